@@ -1,0 +1,227 @@
+//! One follower's brain: estimator, kinematic and dynamic controller and
+//! velocity filter, stepped in SPEC §9's order. The plant is not in here:
+//! the follower sees only its measured pose and the velocity measurement,
+//! so a real robot driver can take the simulated robot's place.
+
+use serde::{Deserialize, Serialize};
+
+use crate::dynamic::{self, DynamicGains, DynamicKind, DynamicState};
+use crate::estimator::{self, EstimatorGains};
+use crate::filter::{FilterParams, VelocityFilter};
+use crate::kinematic::{self, BodyError, KinematicGains, KinematicKind};
+use formation_leader::LeaderState;
+use formation_plant::{Pose, RobotParams, Torque, Velocity};
+
+/// The filter-model fault of section IV: from `time_s` on, the filter's model
+/// uses m_f = mass_factor · m and I_f = inertia_factor · I. The robot itself
+/// does not change.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Fault {
+    pub time_s: f64,
+    pub mass_factor: f64,
+    pub inertia_factor: f64,
+}
+
+/// Everything one follower needs to know, validated.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FollowerConfig {
+    pub id: u32,
+    /// Formation offset (Δx_i, Δy_i), m, in the world frame.
+    pub offset: [f64; 2],
+    /// a_i0: does this follower hear the leader?
+    pub hears_leader: bool,
+    pub estimator: EstimatorGains,
+    pub kinematic: KinematicKind,
+    pub kinematic_gains: KinematicGains,
+    pub dynamic: DynamicKind,
+    pub dynamic_gains: DynamicGains,
+    pub filter: FilterParams,
+    /// The nominal model the controller's torque mapping and the filter use.
+    pub model: RobotParams,
+    pub fault: Option<Fault>,
+    pub dt_s: f64,
+}
+
+impl FollowerConfig {
+    /// The model the filter uses at time t (nominal, or faulty from t_fault).
+    pub fn filter_model_at(&self, t_s: f64) -> RobotParams {
+        match self.fault {
+            Some(f) if t_s >= f.time_s => RobotParams {
+                mass_kg: self.model.mass_kg * f.mass_factor,
+                inertia_kgm2: self.model.inertia_kgm2 * f.inertia_factor,
+                ..self.model
+            },
+            _ => self.model,
+        }
+    }
+}
+
+/// What one step produced.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StepOutput {
+    /// The step these outputs belong to.
+    pub k: u64,
+    /// The estimate (P_ir, v_ir, ω_ir) at k that the outputs were computed from.
+    pub estimate: LeaderState,
+    /// (x̂, ŷ, θ̂).
+    pub body_error: BodyError,
+    /// (v_c, ω_c).
+    pub command: Velocity,
+    /// (v̇_c, ω̇_c), backward differences.
+    pub command_rate: Velocity,
+    /// (v̂, ω̂), the filter's estimate at k.
+    pub velocity_estimate: Velocity,
+    pub torque: Torque,
+    /// How many sources (leader + neighbours) entered the estimator at k.
+    pub sources: u32,
+    /// The message to publish for step k+1: P_ir(k+1), v_ir(k+1), ω_ir(k+1)
+    /// and the Ṗ_ir computed at k.
+    pub next_message: LeaderState,
+}
+
+/// A state that stopped being finite: which quantity.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NonFinite(pub &'static str);
+
+/// One follower's brain.
+#[derive(Clone, Debug)]
+pub struct Follower {
+    pub config: FollowerConfig,
+    /// (P_ir, Ṗ_ir of the last step, v_ir, ω_ir): also this follower's message.
+    estimate: LeaderState,
+    /// V_s of the bioinspired backstepping.
+    v_s: f64,
+    dynamic: DynamicState,
+    filter: VelocityFilter,
+    last_command: Option<Velocity>,
+    /// τ(k−1) and t_(k−1), for the filter's prediction at the next step.
+    last_torque: Torque,
+    last_t_s: f64,
+    next_k: u64,
+}
+
+impl Follower {
+    /// A follower at step 0 with its initial leader estimate and the robot's
+    /// initial velocity ξ(0) (ζ̂(0) = ξ(0), SPEC §8). Ṗ_ir starts at zero.
+    pub fn new(config: FollowerConfig, initial_estimate: LeaderState, initial_velocity: Velocity) -> Self {
+        let filter = VelocityFilter::new(config.filter, initial_velocity);
+        let estimate = LeaderState { pose_rate: Pose::default(), ..initial_estimate };
+        Self {
+            config,
+            estimate,
+            v_s: 0.0,
+            dynamic: DynamicState::default(),
+            filter,
+            last_command: None,
+            last_torque: Torque::default(),
+            last_t_s: 0.0,
+            next_k: 0,
+        }
+    }
+
+    pub fn id(&self) -> u32 {
+        self.config.id
+    }
+
+    /// The step the next call to [`Follower::step`] computes.
+    pub fn next_step(&self) -> u64 {
+        self.next_k
+    }
+
+    /// SPEC §13's message for the coming step: P_ir(k), Ṗ_ir(k−1), v_ir(k), ω_ir(k).
+    pub fn message(&self) -> LeaderState {
+        self.estimate
+    }
+
+    /// The filter's current estimate ζ̂ (and its gains, for telemetry).
+    pub fn filter(&self) -> &VelocityFilter {
+        &self.filter
+    }
+
+    /// One step k (SPEC §9).
+    ///
+    /// `pose` is the robot's pose at k and `z` the velocity measurement z(k)
+    /// (ignored at k = 0, where ζ̂(0) = ξ(0)); `leader` is the leader's state
+    /// at k if this follower hears it (and has it); `neighbours` yields the
+    /// neighbours' messages for k in ascending id.
+    ///
+    /// In order: the filter folds in z(k) (predict with τ(k−1) and the model
+    /// valid at t_(k−1), update with z(k)); the outputs are computed from the
+    /// states at k; the estimator's rates; then every state advances to k+1.
+    pub fn step<'a>(
+        &mut self,
+        pose: &Pose,
+        z: Velocity,
+        leader: Option<&LeaderState>,
+        neighbours: impl IntoIterator<Item = &'a LeaderState>,
+    ) -> StepOutput {
+        let cfg = &self.config;
+        let dt = cfg.dt_s;
+        let k = self.next_k;
+        let t = k as f64 * dt;
+        if k > 0 {
+            let model = cfg.filter_model_at(self.last_t_s);
+            self.filter.update(&model, self.last_torque, dt, z);
+        } else if cfg.filter.kind == crate::FilterKind::None {
+            self.filter.estimate = [z.v, z.w];
+        }
+        let estimate = self.estimate;
+
+        // Kinematic controller (eq. 29, 35–36).
+        let body_error = kinematic::body_error(&estimate.pose, cfg.offset, pose);
+        let command = kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, estimate.v, estimate.w);
+        let command_rate = match self.last_command {
+            Some(prev) => Velocity::new((command.v - prev.v) / dt, (command.w - prev.w) / dt),
+            None => Velocity::default(),
+        };
+
+        // Dynamic controller (eq. 37–43) on the filtered velocity.
+        let velocity_estimate = self.filter.estimate();
+        let e_eta = [command.v - velocity_estimate.v, command.w - velocity_estimate.w];
+        let [a_v, a_w] =
+            dynamic::accelerations(cfg.dynamic, &cfg.dynamic_gains, &self.dynamic, e_eta, [command_rate.v, command_rate.w]);
+        let torque = cfg.model.acceleration_to_torque(a_v, a_w);
+
+        // Estimator (eq. 11–15).
+        let leader = if cfg.hears_leader { leader } else { None };
+        let rates = estimator::rates(&cfg.estimator, &estimate, leader, neighbours);
+
+        // Advance every state to k+1.
+        if cfg.kinematic == KinematicKind::Bio {
+            self.v_s = cfg.kinematic_gains.shunting.advance(self.v_s, body_error.x, dt);
+        }
+        dynamic::advance(cfg.dynamic, &cfg.dynamic_gains, &mut self.dynamic, e_eta, dt);
+        estimator::advance(&mut self.estimate, &rates, dt);
+        self.last_command = Some(command);
+        self.last_torque = torque;
+        self.last_t_s = t;
+        self.next_k = k + 1;
+
+        StepOutput {
+            k,
+            estimate,
+            body_error,
+            command,
+            command_rate,
+            velocity_estimate,
+            torque,
+            sources: rates.sources,
+            next_message: self.estimate,
+        }
+    }
+
+    /// The first state that is not finite, if any.
+    pub fn check_finite(&self) -> Result<(), NonFinite> {
+        let checks: [(&'static str, bool); 5] = [
+            ("leader estimate", self.estimate.is_finite()),
+            ("backstepping shunting state V_s", self.v_s.is_finite()),
+            ("sliding-mode state", self.dynamic.is_finite()),
+            ("filtered velocity", self.filter.estimate.iter().chain(&self.filter.p).all(|x| x.is_finite())),
+            ("torque", self.last_torque.is_finite()),
+        ];
+        match checks.iter().find(|(_, ok)| !ok) {
+            Some((what, _)) => Err(NonFinite(what)),
+            None => Ok(()),
+        }
+    }
+}

@@ -1,0 +1,26 @@
+//! One follower of the formation: the distributed leader estimator
+//! (eq. 11–15), the kinematic controllers (bioinspired backstepping,
+//! eq. 29 and 34–36, and the conventional baseline), the dynamic controllers
+//! (bioinspired sliding mode, eq. 37–43, conventional and super-twisting
+//! baselines) and the velocity filters (KF and ASIF, eq. 57–65).
+//!
+//! The crate is pure: a [`Follower`] is a plain struct whose
+//! [`Follower::step`] takes one step's inputs and returns its outputs. It
+//! never reads a clock, a socket, a file or an environment variable, and the
+//! step does not allocate.
+
+pub mod dynamic;
+pub mod estimator;
+pub mod filter;
+pub mod follower;
+pub mod kinematic;
+pub mod math;
+
+pub use dynamic::{DynamicGains, DynamicKind};
+pub use estimator::EstimatorGains;
+pub use filter::{FilterKind, FilterParams, VelocityFilter};
+pub use follower::{Fault, Follower, FollowerConfig, NonFinite, StepOutput};
+pub use formation_leader::LeaderState;
+pub use formation_plant::{Pose, RobotParams, Torque, Velocity};
+pub use kinematic::{BodyError, KinematicGains, KinematicKind};
+pub use math::Shunting;

@@ -1,0 +1,162 @@
+//! The virtual leader (node 0): unicycle kinematics (eq. 6) driven by a
+//! velocity profile (v_r(t), ω_r(t)); the pose is integrated by forward Euler
+//! like every other state (SPEC §3, §9).
+
+use serde::{Deserialize, Serialize};
+
+pub use formation_plant::{Pose, Velocity};
+
+/// The leader's velocity profile.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Trajectory {
+    /// The paper's reference x_d = t, y_d = 2 + sin(π/2 + t), hence
+    /// v_d = sqrt(1 + sin² t), ω_d = −cos t / (1 + sin² t) (section IV).
+    Paper,
+    /// Straight line at constant speed.
+    Line { speed_mps: f64 },
+    /// Circle of the given radius at constant speed (counter-clockwise for a
+    /// positive radius).
+    Circle { speed_mps: f64, radius_m: f64 },
+    /// Figure eight: v = speed, ω = (speed / radius) sin(speed t / (2 radius)),
+    /// which traces two loops of alternating turn direction.
+    FigureEight { speed_mps: f64, radius_m: f64 },
+}
+
+/// A trajectory with the paper's start-up ramp v_r = v_d (1 − e^(−t/τ)).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Profile {
+    pub trajectory: Trajectory,
+    /// τ of the start-up ramp, s; 0 turns the ramp off. The paper uses 0.5.
+    pub ramp_s: f64,
+}
+
+impl Profile {
+    /// (v_r(t), ω_r(t)) (eq. 6's inputs, with the start-up ramp on v).
+    pub fn velocity(&self, t_s: f64) -> Velocity {
+        let (v, w) = match self.trajectory {
+            Trajectory::Paper => {
+                let s = t_s.sin();
+                let d = 1.0 + s * s;
+                (d.sqrt(), -t_s.cos() / d)
+            }
+            Trajectory::Line { speed_mps } => (speed_mps, 0.0),
+            Trajectory::Circle { speed_mps, radius_m } => (speed_mps, speed_mps / radius_m),
+            Trajectory::FigureEight { speed_mps, radius_m } => {
+                (speed_mps, speed_mps / radius_m * (speed_mps * t_s / (2.0 * radius_m)).sin())
+            }
+        };
+        let ramp = if self.ramp_s > 0.0 { 1.0 - (-t_s / self.ramp_s).exp() } else { 1.0 };
+        Velocity::new(v * ramp, w)
+    }
+
+    /// An upper bound of v_r over all time (used for SPEC §12's speed bound).
+    pub fn max_speed(&self) -> f64 {
+        match self.trajectory {
+            Trajectory::Paper => std::f64::consts::SQRT_2,
+            Trajectory::Line { speed_mps }
+            | Trajectory::Circle { speed_mps, .. }
+            | Trajectory::FigureEight { speed_mps, .. } => speed_mps.abs(),
+        }
+    }
+}
+
+/// What the leader tells the followers that hear it (SPEC §13):
+/// P_r, Ṗ_r, v_r, ω_r at one step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LeaderState {
+    pub pose: Pose,
+    pub pose_rate: Pose,
+    pub v: f64,
+    pub w: f64,
+}
+
+impl LeaderState {
+    pub fn is_finite(&self) -> bool {
+        self.pose.is_finite() && self.pose_rate.is_finite() && self.v.is_finite() && self.w.is_finite()
+    }
+}
+
+/// The virtual leader: a profile and the pose integrated from it.
+#[derive(Clone, Debug)]
+pub struct Leader {
+    pub profile: Profile,
+    pub pose: Pose,
+}
+
+impl Leader {
+    pub fn new(profile: Profile, pose: Pose) -> Self {
+        Self { profile, pose }
+    }
+
+    /// The leader's outputs at time t from its pose at step k (SPEC §9,
+    /// step 1): Ṗ_r = (v_r cos θ_r, v_r sin θ_r, ω_r) (eq. 6).
+    pub fn state(&self, t_s: f64) -> LeaderState {
+        let Velocity { v, w } = self.profile.velocity(t_s);
+        let (s, c) = self.pose.theta.sin_cos();
+        LeaderState { pose: self.pose, pose_rate: Pose::new(v * c, v * s, w), v, w }
+    }
+
+    /// Advances the pose to k+1 with the rate of `state` (forward Euler).
+    pub fn advance(&mut self, state: &LeaderState, dt_s: f64) {
+        self.pose.x += dt_s * state.pose_rate.x;
+        self.pose.y += dt_s * state.pose_rate.y;
+        self.pose.theta += dt_s * state.pose_rate.theta;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paper_profile_is_the_derivative_of_the_reference_path() {
+        // x_d = t, y_d = 2 + sin(π/2 + t) = 2 + cos t: v_d = |(1, −sin t)|,
+        // and ω_d is the rate of atan2(−sin t, 1).
+        let p = Profile { trajectory: Trajectory::Paper, ramp_s: 0.0 };
+        for &t in &[0.0, 0.3, 1.0, 2.5, 7.0] {
+            let vel = p.velocity(t);
+            assert!((vel.v - (1.0 + t.sin().powi(2)).sqrt()).abs() < 1e-12);
+            let h = 1e-6;
+            let heading = |t: f64| (-t.sin()).atan2(1.0);
+            let rate = (heading(t + h) - heading(t - h)) / (2.0 * h);
+            assert!((vel.w - rate).abs() < 1e-6, "t={t}: ω {} vs {}", vel.w, rate);
+        }
+    }
+
+    #[test]
+    fn ramp_starts_at_zero_and_approaches_one() {
+        let p = Profile { trajectory: Trajectory::Line { speed_mps: 2.0 }, ramp_s: 0.5 };
+        assert_eq!(p.velocity(0.0).v, 0.0);
+        assert!((p.velocity(0.5).v - 2.0 * (1.0 - (-1.0f64).exp())).abs() < 1e-12);
+        assert!((p.velocity(10.0).v - 2.0).abs() < 1e-8);
+    }
+
+    #[test]
+    fn integrated_paper_leader_follows_the_reference_path() {
+        // From (0, 3, 0) the integrated pose follows (t, 2 + cos t) up to the
+        // ramp's lag (about 0.5 m of arc) and Euler's O(Δt) error.
+        let profile = Profile { trajectory: Trajectory::Paper, ramp_s: 0.0 };
+        let mut leader = Leader::new(profile, Pose::new(0.0, 3.0, 0.0));
+        let dt = 1e-3;
+        for k in 0..10_000 {
+            let s = leader.state(k as f64 * dt);
+            leader.advance(&s, dt);
+        }
+        let t = 10.0f64;
+        assert!((leader.pose.x - t).abs() < 0.02, "x = {}", leader.pose.x);
+        assert!((leader.pose.y - (2.0 + t.cos())).abs() < 0.02, "y = {}", leader.pose.y);
+    }
+
+    #[test]
+    fn circle_closes_on_itself() {
+        let profile = Profile { trajectory: Trajectory::Circle { speed_mps: 1.0, radius_m: 2.0 }, ramp_s: 0.0 };
+        let mut leader = Leader::new(profile, Pose::default());
+        let dt = 1e-4;
+        let steps = (2.0 * std::f64::consts::PI * 2.0 / dt).round() as usize;
+        for k in 0..steps {
+            let s = leader.state(k as f64 * dt);
+            leader.advance(&s, dt);
+        }
+        assert!(leader.pose.x.hypot(leader.pose.y) < 2e-3, "end {:?}", leader.pose);
+    }
+}
