@@ -1,2 +1,8 @@
 //! The `formation` shells around the pure core: the in-process simulator,
 //! run recording and metrics, the zenoh nodes and the command line.
+
+pub mod bench;
+pub mod cli;
+pub mod net;
+pub mod record;
+pub mod sim;

@@ -57,7 +57,13 @@ impl DynamicState {
 /// - bioinspired (eq. 42–43): a_v = v̇_c + C_a V_s1, a_ω = ω̇_c + C_b V_s2;
 /// - conventional: a_v = v̇_c + C_a sign(e_η1), a_ω = ω̇_c + C_b sign(e_η2);
 /// - super-twisting: a = v̇_c + k_1 |e_η|^½ sign(e_η) + w.
-pub fn accelerations(kind: DynamicKind, g: &DynamicGains, s: &DynamicState, e_eta: [f64; 2], rate: [f64; 2]) -> [f64; 2] {
+pub fn accelerations(
+    kind: DynamicKind,
+    g: &DynamicGains,
+    s: &DynamicState,
+    e_eta: [f64; 2],
+    rate: [f64; 2],
+) -> [f64; 2] {
     let c = [g.ca, g.cb];
     std::array::from_fn(|i| {
         rate[i]

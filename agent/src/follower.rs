@@ -169,7 +169,8 @@ impl Follower {
 
         // Kinematic controller (eq. 29, 35–36).
         let body_error = kinematic::body_error(&estimate.pose, cfg.offset, pose);
-        let command = kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, estimate.v, estimate.w);
+        let command =
+            kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, estimate.v, estimate.w);
         let command_rate = match self.last_command {
             Some(prev) => Velocity::new((command.v - prev.v) / dt, (command.w - prev.w) / dt),
             None => Velocity::default(),
@@ -178,8 +179,13 @@ impl Follower {
         // Dynamic controller (eq. 37–43) on the filtered velocity.
         let velocity_estimate = self.filter.estimate();
         let e_eta = [command.v - velocity_estimate.v, command.w - velocity_estimate.w];
-        let [a_v, a_w] =
-            dynamic::accelerations(cfg.dynamic, &cfg.dynamic_gains, &self.dynamic, e_eta, [command_rate.v, command_rate.w]);
+        let [a_v, a_w] = dynamic::accelerations(
+            cfg.dynamic,
+            &cfg.dynamic_gains,
+            &self.dynamic,
+            e_eta,
+            [command_rate.v, command_rate.w],
+        );
         let torque = cfg.model.acceleration_to_torque(a_v, a_w);
 
         // Estimator (eq. 11–15).

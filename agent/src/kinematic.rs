@@ -55,10 +55,7 @@ pub fn command(kind: KinematicKind, g: &KinematicGains, v_s: f64, e: &BodyError,
         KinematicKind::Bio => v_s,
         KinematicKind::Conventional => e.x,
     };
-    Velocity {
-        v: g.c1 * along + v_ir * e.theta.cos(),
-        w: w_ir + g.c2 * v_ir * e.y + g.c3 * v_ir * e.theta.sin(),
-    }
+    Velocity { v: g.c1 * along + v_ir * e.theta.cos(), w: w_ir + g.c2 * v_ir * e.y + g.c3 * v_ir * e.theta.sin() }
 }
 
 #[cfg(test)]

@@ -35,6 +35,7 @@ pub fn sign(e: f64) -> f64 {
 /// V̇ = −A V + (B − V) f(u) − (D + V) g(u), f(u) = max(u, 0), g(u) = max(−u, 0).
 /// Its state stays in [−D, B] whatever the input.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Shunting {
     /// A, the passive decay rate.
     pub a: f64,

@@ -218,8 +218,7 @@ impl Robot {
 mod tests {
     use super::*;
 
-    const PAPER: RobotParams =
-        RobotParams { mass_kg: 10.0, inertia_kgm2: 5.0, wheel_radius_m: 0.05, half_axle_m: 0.2 };
+    const PAPER: RobotParams = RobotParams { mass_kg: 10.0, inertia_kgm2: 5.0, wheel_radius_m: 0.05, half_axle_m: 0.2 };
 
     #[test]
     fn torque_mapping_inverts_the_dynamics() {

@@ -1,0 +1,223 @@
+//! The `formation` command line: argument definitions and dispatch. Each
+//! command's work lives in its own module; this file only wires them up.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use clap::{Args, Parser, Subcommand};
+use formation_topology::Scenario;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+use crate::record::{RecordOptions, Row, RunWriter, Summary};
+use crate::sim::{Observer, SimError, Simulation};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "formation",
+    version,
+    about = "Distributed leader-follower formation control (bioinspired backstepping and sliding mode, \
+             distributed leader estimator, adaptive sliding innovation filter)",
+    long_about = None
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Run a scenario in one process, deterministically, and write a run folder.
+    Sim(SimArgs),
+    /// Measure follower-steps per second of the simulator.
+    Bench(BenchArgs),
+}
+
+/// Scenario selection shared by every command that runs one.
+#[derive(Args, Debug, Clone)]
+pub struct ScenarioArgs {
+    /// Scenario file (TOML). See scenarios/paper.toml for every key.
+    pub scenario: PathBuf,
+    /// Override a scenario value without editing the file, e.g.
+    /// `--set filter=kf --set fault.time=10 --set duration=5`. Repeatable.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+}
+
+impl ScenarioArgs {
+    pub fn load(&self) -> Result<Scenario, CliError> {
+        Scenario::load(&self.scenario, &self.overrides).map_err(|e| CliError::Input(e.to_string()))
+    }
+}
+
+#[derive(Args, Debug)]
+pub struct SimArgs {
+    #[command(flatten)]
+    pub scenario: ScenarioArgs,
+    /// Run folder to write (default: runs/<scenario name>). Replaced if it exists.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Write every N-th sample to the CSVs (metrics always use every sample).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub every: u64,
+    /// Write summary.json only, no CSV time series.
+    #[arg(long)]
+    pub no_csv: bool,
+    /// Print nothing but errors.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Follower counts to measure; 4 is the paper scenario, larger counts are
+    /// generated rings with n/5 random chords.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![4, 100, 10_000])]
+    pub followers: Vec<u32>,
+    /// Minimum follower-steps per measurement.
+    #[arg(long, default_value_t = 2_000_000)]
+    pub work: u64,
+    /// Also measure with recording on (CSV of every sample into a temporary folder).
+    #[arg(long)]
+    pub record: bool,
+    /// The paper scenario file, for n = 4.
+    #[arg(long, default_value = "scenarios/paper.toml")]
+    pub scenario: PathBuf,
+}
+
+/// An error with its exit status: 2 for bad input, 1 for a failed run.
+#[derive(Debug, thiserror::Error)]
+pub enum CliError {
+    #[error("{0}")]
+    Input(String),
+    #[error("{0}")]
+    Run(String),
+}
+
+impl CliError {
+    pub fn exit_code(&self) -> ExitCode {
+        match self {
+            CliError::Input(_) => ExitCode::from(2),
+            CliError::Run(_) => ExitCode::from(1),
+        }
+    }
+}
+
+impl From<SimError> for CliError {
+    fn from(e: SimError) -> Self {
+        CliError::Run(e.to_string())
+    }
+}
+
+impl From<std::io::Error> for CliError {
+    fn from(e: std::io::Error) -> Self {
+        CliError::Run(e.to_string())
+    }
+}
+
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Sim(a) => sim(&a).map(|_| ()),
+        Command::Bench(a) => crate::bench::run(&a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            e.exit_code()
+        }
+    }
+}
+
+/// A progress bar that appears only once work has taken more than a second.
+pub struct Progress {
+    bar: ProgressBar,
+    started: Instant,
+    shown: bool,
+    quiet: bool,
+}
+
+impl Progress {
+    pub fn new(len: u64, what: &str, quiet: bool) -> Self {
+        let bar = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::hidden());
+        let style = ProgressStyle::with_template("{msg} [{bar:30}] {percent:>3}% {elapsed} (eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> ");
+        bar.set_style(style);
+        bar.set_message(what.to_string());
+        Self { bar, started: Instant::now(), shown: false, quiet }
+    }
+
+    pub fn set(&mut self, pos: u64) {
+        if !self.shown && !self.quiet && self.started.elapsed() > Duration::from_secs(1) {
+            self.bar.set_draw_target(ProgressDrawTarget::stderr());
+            self.shown = true;
+        }
+        self.bar.set_position(pos);
+    }
+
+    pub fn finish(&self) {
+        self.bar.finish_and_clear();
+    }
+}
+
+/// `formation sim`: run, write the folder, print the table.
+pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
+    let scenario = a.scenario.load()?;
+    let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
+    let (summary, dir) = run_to_folder(&scenario, &RecordOptions { dir, every: a.every, csv: !a.no_csv }, a.quiet)?;
+    if !a.quiet {
+        print!("{}", summary.table());
+        println!("wrote {}", dir.display());
+    }
+    Ok((summary, dir))
+}
+
+/// Runs a scenario in process and writes its run folder.
+pub fn run_to_folder(scenario: &Scenario, opts: &RecordOptions, quiet: bool) -> Result<(Summary, PathBuf), CliError> {
+    let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
+    let mut writer = RunWriter::create(opts, &ids)?;
+    let steps = scenario.steps();
+    let mut progress = Progress::new(steps + 1, &scenario.name, quiet);
+    let mut sim = Simulation::new(scenario);
+    let result = {
+        let mut observer = FolderObserver { writer: &mut writer, steps, dt: scenario.dt_s };
+        sim.run(&mut observer, |k| progress.set(k))
+    };
+    progress.finish();
+    match result {
+        Ok(metrics) => {
+            let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect());
+            let dir = writer.finish(&summary)?;
+            Ok((summary, dir))
+        }
+        Err(e) => {
+            // Keep what was recorded up to the failure.
+            let _ = writer.flush();
+            Err(CliError::Run(format!("{e} (samples so far kept in {})", writer.partial_dir().display())))
+        }
+    }
+}
+
+/// Writes every sample the writer wants.
+struct FolderObserver<'w> {
+    writer: &'w mut RunWriter,
+    steps: u64,
+    dt: f64,
+}
+
+impl Observer for FolderObserver<'_> {
+    fn leader(&mut self, k: u64, state: &formation_agent::LeaderState) -> std::io::Result<()> {
+        if self.writer.wants(k, k == self.steps) {
+            self.writer.leader_row(k as f64 * self.dt, state)?;
+        }
+        Ok(())
+    }
+    fn follower(&mut self, index: usize, k: u64, row: &Row, last: bool) -> std::io::Result<()> {
+        if self.writer.wants(k, last) {
+            self.writer.follower_row(index, row)?;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,344 @@
+//! Opening zenoh sessions with this project's safety settings.
+//!
+//! Every session built here has multicast scouting **off** (only loopback
+//! traffic is allowed on our machines, and zenoh's default scouting sends to
+//! 224.0.0.224:7446) and never listens on all interfaces by default. See
+//! `/work/shared/ZENOH.md` for the measurements behind the other defaults.
+//!
+//! # How a `--config` file and our settings combine
+//!
+//! 1. The file (json5/json/yaml, zenoh's own format) is loaded first.
+//! 2. `--mode`, `--listen` and `--connect` given on the command line replace
+//!    the file's `mode`, `listen/endpoints` and `connect/endpoints`.
+//! 3. `scouting/multicast/enabled = false` is forced, always, whatever the
+//!    file says.
+//! 4. These are set only where the file left them unset:
+//!    `scouting/delay = 0`, `connect/timeout_ms = -1` (wait for the peer or
+//!    router instead of failing at once), `connect/exit_on_failure = false`,
+//!    and `connect/retry/{period_init_ms: 100, period_max_ms: 500,
+//!    period_increase_factor: 2}` (per field). The retry settings are what
+//!    makes a client reconnect within a few hundred ms after its router
+//!    restarts (zenoh's default retry is 1 s ×2 up to 4 s).
+//! 5. Listen endpoints: `--listen` if given; else the file's if it set any
+//!    (anything other than zenoh's built-in default); else
+//!    `tcp/127.0.0.1:0` for a peer (a peer needs a listener of its own:
+//!    routers do not forward between peers), `tcp/127.0.0.1:7447` for a
+//!    router and nothing for a client. Zenoh's built-in default (all
+//!    interfaces, `[::]`) is never used.
+
+use std::path::PathBuf;
+
+use anyhow::{anyhow, bail, Context};
+use serde_json::Value;
+
+/// Zenoh node kind, as in zenoh's `mode` config key.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ZenohMode {
+    Peer,
+    Client,
+    Router,
+}
+
+impl ZenohMode {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ZenohMode::Peer => "peer",
+            ZenohMode::Client => "client",
+            ZenohMode::Router => "router",
+        }
+    }
+}
+
+/// Zenoh connection options shared by every binary (`#[command(flatten)]`).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ZenohArgs {
+    /// Zenoh mode [default: peer, or the config file's mode].
+    #[arg(long, value_enum)]
+    pub mode: Option<ZenohMode>,
+    /// Endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable).
+    /// Default: tcp/127.0.0.1:0 for a peer, tcp/127.0.0.1:7447 for a router.
+    #[arg(long = "listen", value_name = "ENDPOINT")]
+    pub listen: Vec<String>,
+    /// Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable).
+    #[arg(long = "connect", value_name = "ENDPOINT")]
+    pub connect: Vec<String>,
+    /// Zenoh configuration file (json5); multicast scouting is forced off
+    /// whatever it says.
+    #[arg(long = "config", value_name = "FILE.json5")]
+    pub config: Option<PathBuf>,
+}
+
+/// Default listen endpoint of a peer: an ephemeral loopback port.
+pub const PEER_DEFAULT_LISTEN: &str = "tcp/127.0.0.1:0";
+/// Default listen endpoint of a router.
+pub const ROUTER_DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7447";
+
+fn zerr(what: impl std::fmt::Display, e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow!("{what}: {e}")
+}
+
+fn get(config: &zenoh::Config, key: &str) -> anyhow::Result<Value> {
+    let json = config.get_json(key).map_err(|e| zerr(format_args!("zenoh config key {key}"), e))?;
+    serde_json::from_str(&json).with_context(|| format!("zenoh config key {key}: {json}"))
+}
+
+fn set(config: &mut zenoh::Config, key: &str, value: &Value) -> anyhow::Result<()> {
+    config
+        .insert_json5(key, &value.to_string())
+        .map_err(|e| zerr(format_args!("setting zenoh config {key} = {value}"), e))
+}
+
+fn set_if_unset(config: &mut zenoh::Config, key: &str, value: Value) -> anyhow::Result<()> {
+    if get(config, key)?.is_null() {
+        set(config, key, &value)?;
+    }
+    Ok(())
+}
+
+impl ZenohArgs {
+    /// The mode the session will run in (flag, else config file, else peer).
+    fn effective_mode(&self, config: &zenoh::Config) -> anyhow::Result<ZenohMode> {
+        if let Some(m) = self.mode {
+            return Ok(m);
+        }
+        Ok(match get(config, "mode")? {
+            Value::String(s) if s == "client" => ZenohMode::Client,
+            Value::String(s) if s == "router" => ZenohMode::Router,
+            _ => ZenohMode::Peer,
+        })
+    }
+
+    /// Build the zenoh configuration (see the module docs for the rules).
+    pub fn to_config(&self) -> anyhow::Result<zenoh::Config> {
+        let mut config = match &self.config {
+            Some(path) => zenoh::Config::from_file(path)
+                .map_err(|e| zerr(format_args!("reading zenoh config {}", path.display()), e))?,
+            None => zenoh::Config::default(),
+        };
+        let mode = self.effective_mode(&config)?;
+        set(&mut config, "mode", &Value::from(mode.as_str()))?;
+
+        // Multicast scouting: off, always.
+        set(&mut config, "scouting/multicast/enabled", &Value::Bool(false))?;
+        set_if_unset(&mut config, "scouting/delay", Value::from(0))?;
+
+        // Connect: wait for the other side and retry fast.
+        set_if_unset(&mut config, "connect/timeout_ms", Value::from(-1))?;
+        set_if_unset(&mut config, "connect/exit_on_failure", Value::Bool(false))?;
+        let mut retry = match get(&config, "connect/retry")? {
+            Value::Object(m) => m,
+            _ => Default::default(),
+        };
+        for (k, v) in [
+            ("period_init_ms", Value::from(100)),
+            ("period_max_ms", Value::from(500)),
+            ("period_increase_factor", Value::from(2.0)),
+        ] {
+            if retry.get(k).is_none_or(Value::is_null) {
+                retry.insert(k.to_string(), v);
+            }
+        }
+        set(&mut config, "connect/retry", &Value::Object(retry))?;
+
+        if !self.connect.is_empty() {
+            set(&mut config, "connect/endpoints", &Value::from(self.connect.clone()))?;
+        }
+
+        // Listen: never zenoh's all-interfaces default.
+        let builtin_listen = get(&zenoh::Config::default(), "listen/endpoints")?;
+        let listen: Option<Vec<String>> = if !self.listen.is_empty() {
+            Some(self.listen.clone())
+        } else if get(&config, "listen/endpoints")? != builtin_listen {
+            None // the file chose its own listeners: keep them
+        } else {
+            Some(match mode {
+                ZenohMode::Peer => vec![PEER_DEFAULT_LISTEN.to_string()],
+                ZenohMode::Router => vec![ROUTER_DEFAULT_LISTEN.to_string()],
+                ZenohMode::Client => vec![],
+            })
+        };
+        if let Some(listen) = listen {
+            set(&mut config, "listen/endpoints", &Value::from(listen))?;
+        }
+        Ok(config)
+    }
+}
+
+/// Endpoint lists of a config for messages: `listen [...], connect [...]`.
+pub fn describe_endpoints(config: &zenoh::Config) -> String {
+    let show = |key: &str| config.get_json(key).unwrap_or_else(|e| format!("<{e}>"));
+    format!("listen {}, connect {}", show("listen/endpoints"), show("connect/endpoints"))
+}
+
+/// Open a zenoh session from the command-line arguments.
+///
+/// A client (or a peer with `--connect`) whose router is not up yet waits
+/// for it (`connect/timeout_ms = -1`): wrap the call in a timeout if that
+/// is not wanted.
+pub async fn open(args: &ZenohArgs) -> anyhow::Result<zenoh::Session> {
+    let config = args.to_config()?;
+    let mode = config.get_json("mode").unwrap_or_default();
+    let endpoints = describe_endpoints(&config);
+    zenoh::open(config).await.map_err(|e| anyhow!("cannot open zenoh session (mode {mode}, {endpoints}): {e}"))
+}
+
+/// Key expression of this project: `formation/<run>/<rest>`.
+pub fn key(run: &str, rest: &str) -> String {
+    format!("formation/{run}/{rest}")
+}
+
+/// Check a run name: non-empty, only `[A-Za-z0-9_-]` (so that it is one
+/// chunk of a key expression with no wildcard or separator in it).
+pub fn validate_run_name(run: &str) -> anyhow::Result<()> {
+    if run.is_empty() {
+        bail!("run name is empty (allowed: letters, digits, '_' and '-')");
+    }
+    if let Some(c) = run.chars().find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '-')) {
+        bail!("run name {run:?} contains {c:?}: only letters, digits, '_' and '-' are allowed");
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    fn json(config: &zenoh::Config, key: &str) -> Value {
+        get(config, key).unwrap()
+    }
+
+    fn file(contents: &str) -> tempfile::NamedTempFile {
+        let mut f = tempfile::Builder::new().suffix(".json5").tempfile().unwrap();
+        f.write_all(contents.as_bytes()).unwrap();
+        f
+    }
+
+    #[test]
+    fn defaults_are_safe() {
+        let c = ZenohArgs::default().to_config().unwrap();
+        assert_eq!(json(&c, "mode"), "peer");
+        assert_eq!(json(&c, "scouting/multicast/enabled"), false);
+        assert_eq!(json(&c, "scouting/delay"), 0);
+        assert_eq!(json(&c, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:0"]));
+        assert_eq!(json(&c, "connect/timeout_ms"), -1);
+        assert_eq!(json(&c, "connect/exit_on_failure"), false);
+        let retry = json(&c, "connect/retry");
+        assert_eq!(retry["period_init_ms"], 100);
+        assert_eq!(retry["period_max_ms"], 500);
+        assert_eq!(retry["period_increase_factor"], 2.0);
+    }
+
+    #[test]
+    fn modes_and_endpoints() {
+        let client = ZenohArgs {
+            mode: Some(ZenohMode::Client),
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            ..Default::default()
+        }
+        .to_config()
+        .unwrap();
+        assert_eq!(json(&client, "mode"), "client");
+        assert_eq!(json(&client, "listen/endpoints"), serde_json::json!([]));
+        assert_eq!(json(&client, "connect/endpoints"), serde_json::json!(["tcp/127.0.0.1:7447"]));
+        let router = ZenohArgs { mode: Some(ZenohMode::Router), ..Default::default() }.to_config().unwrap();
+        assert_eq!(json(&router, "listen/endpoints"), serde_json::json!([ROUTER_DEFAULT_LISTEN]));
+        let peer = ZenohArgs {
+            listen: vec!["tcp/127.0.0.1:17000".into(), "tcp/127.0.0.1:17001".into()],
+            ..Default::default()
+        }
+        .to_config()
+        .unwrap();
+        assert_eq!(json(&peer, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:17000", "tcp/127.0.0.1:17001"]));
+        assert!(ZenohArgs { listen: vec!["nonsense".into()], ..Default::default() }.to_config().is_err());
+    }
+
+    #[test]
+    fn multicast_forced_off_but_file_settings_kept() {
+        let f = file(
+            r#"{ mode: "client",
+                 scouting: { delay: 300, multicast: { enabled: true } },
+                 connect: { endpoints: ["tcp/127.0.0.1:7999"], timeout_ms: 2000,
+                            retry: { period_init_ms: 50 } },
+                 listen: { endpoints: ["tcp/127.0.0.1:7998"] } }"#,
+        );
+        let args = ZenohArgs { config: Some(f.path().into()), ..Default::default() };
+        let c = args.to_config().unwrap();
+        assert_eq!(json(&c, "scouting/multicast/enabled"), false);
+        assert_eq!(json(&c, "mode"), "client");
+        assert_eq!(json(&c, "scouting/delay"), 300);
+        assert_eq!(json(&c, "connect/timeout_ms"), 2000);
+        assert_eq!(json(&c, "connect/exit_on_failure"), false);
+        let retry = json(&c, "connect/retry");
+        assert_eq!(retry["period_init_ms"], 50);
+        assert_eq!(retry["period_max_ms"], 500);
+        assert_eq!(json(&c, "connect/endpoints"), serde_json::json!(["tcp/127.0.0.1:7999"]));
+        assert_eq!(json(&c, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:7998"]));
+
+        // Command-line flags win over the file.
+        let args = ZenohArgs {
+            mode: Some(ZenohMode::Peer),
+            connect: vec!["tcp/127.0.0.1:7001".into()],
+            listen: vec!["tcp/127.0.0.1:7002".into()],
+            config: Some(f.path().into()),
+        };
+        let c = args.to_config().unwrap();
+        assert_eq!(json(&c, "mode"), "peer");
+        assert_eq!(json(&c, "scouting/multicast/enabled"), false);
+        assert_eq!(json(&c, "connect/endpoints"), serde_json::json!(["tcp/127.0.0.1:7001"]));
+        assert_eq!(json(&c, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:7002"]));
+    }
+
+    #[test]
+    fn file_without_listen_gets_loopback() {
+        let f = file(r#"{ scouting: { multicast: { enabled: true } } }"#);
+        let c = ZenohArgs { config: Some(f.path().into()), ..Default::default() }.to_config().unwrap();
+        assert_eq!(json(&c, "mode"), "peer");
+        assert_eq!(json(&c, "scouting/multicast/enabled"), false);
+        assert_eq!(json(&c, "scouting/delay"), 0);
+        assert_eq!(json(&c, "listen/endpoints"), serde_json::json!([PEER_DEFAULT_LISTEN]));
+    }
+
+    #[test]
+    fn missing_config_file_is_an_error() {
+        let args = ZenohArgs { config: Some("/nonexistent/zenoh.json5".into()), ..Default::default() };
+        let e = args.to_config().unwrap_err().to_string();
+        assert!(e.contains("/nonexistent/zenoh.json5"), "{e}");
+    }
+
+    #[test]
+    fn keys_and_run_names() {
+        assert_eq!(key("run-1", "agent/3/state"), "formation/run-1/agent/3/state");
+        for ok in ["a", "run_1", "A-b-C_9"] {
+            validate_run_name(ok).unwrap();
+        }
+        for bad in ["", "a/b", "a*", "a b", "$x", "é", "a?"] {
+            let e = validate_run_name(bad).unwrap_err().to_string();
+            assert!(e.contains("run name"), "{e}");
+        }
+    }
+
+    #[test]
+    fn clap_parses_repeatable_flags() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            zenoh: ZenohArgs,
+        }
+        let cli = Cli::parse_from([
+            "x",
+            "--mode",
+            "client",
+            "--connect",
+            "tcp/127.0.0.1:1",
+            "--connect",
+            "tcp/127.0.0.1:2",
+            "--listen",
+            "tcp/127.0.0.1:3",
+        ]);
+        assert_eq!(cli.zenoh.mode, Some(ZenohMode::Client));
+        assert_eq!(cli.zenoh.connect.len(), 2);
+        assert_eq!(cli.zenoh.listen, vec!["tcp/127.0.0.1:3"]);
+    }
+}

@@ -1,0 +1,173 @@
+//! The in-process simulator: the leader, every follower's brain and robot,
+//! stepped in lock-step in SPEC §9's order. Deterministic: the same scenario
+//! gives the same numbers, bit for bit.
+
+use formation_agent::{Follower, LeaderState};
+use formation_leader::Leader;
+use formation_plant::{NoiseSource, Robot, Velocity};
+use formation_topology::Scenario;
+
+use crate::record::{FollowerMetrics, FollowerSample, MetricsAccumulator, Row};
+
+/// A run stopped because a state stopped being finite.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("follower {follower}: {quantity} is not finite at step {step} (t = {t_s} s); the run diverged")]
+pub struct Diverged {
+    pub follower: u32,
+    pub step: u64,
+    pub t_s: f64,
+    pub quantity: &'static str,
+}
+
+/// One follower as the simulator holds it: the brain and its own robot and
+/// noise generator.
+pub struct SimFollower {
+    pub brain: Follower,
+    pub robot: Robot,
+    pub noise: NoiseSource,
+    /// z(k), the velocity measurement the brain folds in at step k.
+    pub measurement: Velocity,
+    pub metrics: MetricsAccumulator,
+}
+
+impl SimFollower {
+    /// The follower at `index` of the scenario, at step 0. Its noise stream
+    /// is seeded from (scenario seed, follower id), as in its own process.
+    pub fn new(scenario: &Scenario, index: usize) -> Self {
+        let spec = &scenario.followers[index];
+        let brain = Follower::new(scenario.follower_config(index), scenario.initial_estimate(), spec.velocity);
+        let robot = Robot::new(scenario.robot, scenario.disturbance, spec.pose, spec.velocity);
+        Self {
+            brain,
+            robot,
+            noise: NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id),
+            // z(0) = ξ(0): the filter starts from ξ(0) and only `none` reads z(0).
+            measurement: spec.velocity,
+            metrics: MetricsAccumulator::new(scenario.steps(), scenario.dt_s),
+        }
+    }
+
+    /// One step of brain and robot with the leader's state (if heard) and the
+    /// neighbours' messages; returns the sample of step k. The robot advances
+    /// unless `last` (the final sample only computes outputs).
+    pub fn step<'a>(
+        &mut self,
+        t_s: f64,
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: impl IntoIterator<Item = &'a LeaderState>,
+        last: bool,
+    ) -> (FollowerSample, LeaderState) {
+        let out = self.brain.step(&self.robot.pose, self.measurement, leader, neighbours);
+        let sample = FollowerSample::new(&out, self.robot.pose, self.robot.velocity);
+        if !last {
+            let draw = self.noise.draw();
+            self.measurement = self.robot.advance(out.torque, t_s, dt_s, draw);
+        }
+        (sample, out.next_message)
+    }
+
+    /// The first non-finite quantity of brain or robot.
+    pub fn check_finite(&self) -> Result<(), &'static str> {
+        self.brain.check_finite().map_err(|e| e.0)?;
+        if !self.robot.pose.is_finite() {
+            return Err("robot pose");
+        }
+        if !self.robot.velocity.is_finite() {
+            return Err("robot velocity");
+        }
+        Ok(())
+    }
+}
+
+/// Receives every sample of a run (recording, plotting, …).
+pub trait Observer {
+    fn leader(&mut self, _k: u64, _state: &LeaderState) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn follower(&mut self, _index: usize, _k: u64, _row: &Row, _last: bool) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Observes nothing (benchmarks, metrics only).
+pub struct NoRecord;
+impl Observer for NoRecord {}
+
+/// Why a simulation stopped early.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error(transparent)]
+    Diverged(#[from] Diverged),
+    #[error("writing the run folder: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// The whole formation in one process.
+pub struct Simulation<'s> {
+    scenario: &'s Scenario,
+    leader: Leader,
+    followers: Vec<SimFollower>,
+    /// Every follower's message for the current step, by index.
+    messages: Vec<LeaderState>,
+    next_messages: Vec<LeaderState>,
+    k: u64,
+}
+
+impl<'s> Simulation<'s> {
+    pub fn new(scenario: &'s Scenario) -> Self {
+        let followers: Vec<SimFollower> =
+            (0..scenario.followers.len()).map(|i| SimFollower::new(scenario, i)).collect();
+        let messages: Vec<LeaderState> = followers.iter().map(|f| f.brain.message()).collect();
+        Self { scenario, leader: scenario.leader(), next_messages: messages.clone(), messages, followers, k: 0 }
+    }
+
+    /// Steps done so far.
+    pub fn step_index(&self) -> u64 {
+        self.k
+    }
+
+    pub fn followers(&self) -> &[SimFollower] {
+        &self.followers
+    }
+
+    /// Runs to t = T, calling `progress(k)` every 1000 steps.
+    pub fn run(
+        &mut self,
+        observer: &mut impl Observer,
+        mut progress: impl FnMut(u64),
+    ) -> Result<Vec<FollowerMetrics>, SimError> {
+        let steps = self.scenario.steps();
+        while self.k <= steps {
+            self.step(observer)?;
+            if self.k % 1000 == 0 {
+                progress(self.k);
+            }
+        }
+        Ok(self.followers.iter().map(|f| f.metrics.finish()).collect())
+    }
+
+    /// One step k of SPEC §9 for the whole formation.
+    pub fn step(&mut self, observer: &mut impl Observer) -> Result<(), SimError> {
+        let s = self.scenario;
+        let (k, dt) = (self.k, s.dt_s);
+        let t = k as f64 * dt;
+        let last = k == s.steps();
+        let leader = self.leader.state(t);
+        observer.leader(k, &leader)?;
+        for (i, f) in self.followers.iter_mut().enumerate() {
+            let heard = s.graph.hears_leader(i).then_some(&leader);
+            let neighbours = s.graph.neighbours(i).iter().map(|&j| &self.messages[j]);
+            let (sample, next) = f.step(t, dt, heard, neighbours, last);
+            self.next_messages[i] = next;
+            let row = Row::new(&sample, &leader, s.followers[i].offset, dt);
+            f.metrics.push(k, &row);
+            observer.follower(i, k, &row, last)?;
+            f.check_finite().map_err(|quantity| Diverged { follower: s.followers[i].id, step: k, t_s: t, quantity })?;
+        }
+        std::mem::swap(&mut self.messages, &mut self.next_messages);
+        self.leader.advance(&leader, dt);
+        self.k += 1;
+        Ok(())
+    }
+}

@@ -1,0 +1,367 @@
+//! The scenario file as written (TOML), before validation.
+//!
+//! Every value but the followers and edges has a default: SPEC §10's value,
+//! so a scenario file states only what differs from the paper. Unknown keys
+//! are errors.
+
+use serde::{Deserialize, Serialize};
+
+use formation_agent::{DynamicKind, FilterKind, KinematicKind, Shunting};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScenarioFile {
+    /// Run name; defaults to the file's stem.
+    pub name: Option<String>,
+    #[serde(default = "d::seed")]
+    pub seed: u64,
+    /// Step Δt, s.
+    #[serde(default = "d::dt")]
+    pub dt: f64,
+    /// Duration T, s.
+    #[serde(default = "d::duration")]
+    pub duration: f64,
+    /// Process and measurement noise on or off.
+    #[serde(default = "d::yes")]
+    pub noise: bool,
+    #[serde(default = "d::kinematic")]
+    pub kinematic: KinematicKind,
+    #[serde(default = "d::dynamic")]
+    pub dynamic: DynamicKind,
+    #[serde(default = "d::filter")]
+    pub filter: FilterKind,
+    /// `leader` (P_ir(0) = P_r(0), …) or `zero`.
+    #[serde(default = "d::estimate_init")]
+    pub estimate_init: String,
+    /// `lockstep` or `realtime` (networked runs).
+    #[serde(default = "d::timing")]
+    pub timing: String,
+    #[serde(default)]
+    pub leader: LeaderFile,
+    pub followers: Vec<FollowerFile>,
+    /// Undirected follower edges, by follower id.
+    pub edges: Vec<[u32; 2]>,
+    #[serde(default)]
+    pub estimator: EstimatorFile,
+    #[serde(default)]
+    pub backstepping: BacksteppingFile,
+    #[serde(default)]
+    pub sliding_mode: SlidingModeFile,
+    #[serde(default)]
+    pub robot: RobotFile,
+    #[serde(default)]
+    pub disturbance: DisturbanceFile,
+    #[serde(default)]
+    pub covariance: CovarianceFile,
+    #[serde(default)]
+    pub asif: AsifFile,
+    #[serde(default)]
+    pub fault: FaultFile,
+    #[serde(default)]
+    pub network: NetworkFile,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LeaderFile {
+    /// `paper`, `line`, `circle` or `figure-eight`.
+    #[serde(default = "d::trajectory")]
+    pub trajectory: String,
+    /// P_r(0) = (x, y, θ).
+    #[serde(default = "d::leader_pose")]
+    pub pose: [f64; 3],
+    /// Start-up ramp time constant, s (0: none).
+    #[serde(default = "d::ramp")]
+    pub ramp: f64,
+    /// Speed of line, circle and figure eight, m/s.
+    #[serde(default = "d::speed")]
+    pub speed: f64,
+    /// Radius of circle and figure eight, m.
+    #[serde(default = "d::radius")]
+    pub radius: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FollowerFile {
+    pub id: u32,
+    /// (Δx, Δy), m.
+    pub offset: [f64; 2],
+    /// Initial pose (x, y, θ); give this or `body_error`.
+    pub pose: Option<[f64; 3]>,
+    /// Initial body-frame error (x̂, ŷ, θ̂) against the leader's initial pose
+    /// plus the offset; give this or `pose`.
+    pub body_error: Option<[f64; 3]>,
+    /// Initial velocity (v, ω).
+    #[serde(default)]
+    pub velocity: [f64; 2],
+    /// a_i0.
+    #[serde(default)]
+    pub leader_link: bool,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EstimatorFile {
+    #[serde(default = "d::k")]
+    pub k: [f64; 3],
+    #[serde(default = "d::ka")]
+    pub ka: [f64; 2],
+    #[serde(default = "d::kb")]
+    pub kb: [f64; 2],
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BacksteppingFile {
+    #[serde(default = "d::c1")]
+    pub c1: f64,
+    #[serde(default = "d::c2")]
+    pub c2: f64,
+    #[serde(default = "d::c3")]
+    pub c3: f64,
+    #[serde(default = "d::kin_shunting")]
+    pub shunting: Shunting,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SlidingModeFile {
+    #[serde(default = "d::c_ab")]
+    pub ca: f64,
+    #[serde(default = "d::c_ab")]
+    pub cb: f64,
+    #[serde(default = "d::dyn_shunting")]
+    pub shunting_v: Shunting,
+    #[serde(default = "d::dyn_shunting")]
+    pub shunting_w: Shunting,
+    /// Super-twisting k_1, k_2.
+    #[serde(default = "d::st_k")]
+    pub k1: f64,
+    #[serde(default = "d::st_k")]
+    pub k2: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RobotFile {
+    #[serde(default = "d::mass")]
+    pub mass: f64,
+    #[serde(default = "d::inertia")]
+    pub inertia: f64,
+    #[serde(default = "d::wheel_radius")]
+    pub wheel_radius: f64,
+    #[serde(default = "d::half_axle")]
+    pub half_axle: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DisturbanceFile {
+    /// D_v, N.
+    #[serde(default = "d::dv")]
+    pub dv: f64,
+    /// D_ω, N m.
+    #[serde(default = "d::dw")]
+    pub dw: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CovarianceFile {
+    #[serde(default = "d::cov")]
+    pub q: [f64; 2],
+    #[serde(default = "d::cov")]
+    pub r: [f64; 2],
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AsifFile {
+    #[serde(default = "d::rho")]
+    pub rho_max: [f64; 2],
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FaultFile {
+    /// t_fault, s; absent: no fault.
+    pub time: Option<f64>,
+    #[serde(default = "d::mass_factor")]
+    pub mass_factor: f64,
+    #[serde(default = "d::inertia_factor")]
+    pub inertia_factor: f64,
+}
+
+/// Settings of networked runs (ignored by the in-process simulator).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NetworkFile {
+    /// Real-time mode: a neighbour silent this long (s, run time) is left out
+    /// of the estimator's sums until it speaks again.
+    #[serde(default = "d::silence_timeout")]
+    pub silence_timeout: f64,
+    /// Real-time mode: run time per wall-clock second (1: real time).
+    #[serde(default = "d::time_scale")]
+    pub time_scale: f64,
+    /// Steps per telemetry message to the monitor; every step is recorded (batches keep
+    /// the message rate low).
+    #[serde(default = "d::telemetry_batch")]
+    pub telemetry_batch: u32,
+}
+
+macro_rules! default_impl {
+    ($t:ty { $($f:ident: $v:expr),* $(,)? }) => {
+        impl Default for $t {
+            fn default() -> Self { Self { $($f: $v),* } }
+        }
+    };
+}
+default_impl!(LeaderFile {
+    trajectory: d::trajectory(),
+    pose: d::leader_pose(),
+    ramp: d::ramp(),
+    speed: d::speed(),
+    radius: d::radius()
+});
+default_impl!(EstimatorFile { k: d::k(), ka: d::ka(), kb: d::kb() });
+default_impl!(BacksteppingFile { c1: d::c1(), c2: d::c2(), c3: d::c3(), shunting: d::kin_shunting() });
+default_impl!(SlidingModeFile {
+    ca: d::c_ab(),
+    cb: d::c_ab(),
+    shunting_v: d::dyn_shunting(),
+    shunting_w: d::dyn_shunting(),
+    k1: d::st_k(),
+    k2: d::st_k()
+});
+default_impl!(RobotFile {
+    mass: d::mass(),
+    inertia: d::inertia(),
+    wheel_radius: d::wheel_radius(),
+    half_axle: d::half_axle()
+});
+default_impl!(DisturbanceFile { dv: d::dv(), dw: d::dw() });
+default_impl!(CovarianceFile { q: d::cov(), r: d::cov() });
+default_impl!(AsifFile { rho_max: d::rho() });
+default_impl!(FaultFile { time: None, mass_factor: d::mass_factor(), inertia_factor: d::inertia_factor() });
+default_impl!(NetworkFile {
+    silence_timeout: d::silence_timeout(),
+    time_scale: d::time_scale(),
+    telemetry_batch: d::telemetry_batch()
+});
+
+/// SPEC §10's values, the defaults of every key.
+mod d {
+    use super::*;
+    pub fn seed() -> u64 {
+        1
+    }
+    pub fn dt() -> f64 {
+        1e-3
+    }
+    pub fn duration() -> f64 {
+        30.0
+    }
+    pub fn yes() -> bool {
+        true
+    }
+    pub fn kinematic() -> KinematicKind {
+        KinematicKind::Bio
+    }
+    pub fn dynamic() -> DynamicKind {
+        DynamicKind::Bio
+    }
+    pub fn filter() -> FilterKind {
+        FilterKind::Asif
+    }
+    pub fn estimate_init() -> String {
+        "leader".into()
+    }
+    pub fn timing() -> String {
+        "lockstep".into()
+    }
+    pub fn trajectory() -> String {
+        "paper".into()
+    }
+    pub fn leader_pose() -> [f64; 3] {
+        [0.0, 3.0, 0.0]
+    }
+    pub fn ramp() -> f64 {
+        0.5
+    }
+    pub fn speed() -> f64 {
+        1.0
+    }
+    pub fn radius() -> f64 {
+        5.0
+    }
+    pub fn k() -> [f64; 3] {
+        [1.0; 3]
+    }
+    pub fn ka() -> [f64; 2] {
+        [20.0; 2]
+    }
+    pub fn kb() -> [f64; 2] {
+        [5.0; 2]
+    }
+    pub fn c1() -> f64 {
+        3.0
+    }
+    pub fn c2() -> f64 {
+        2.0
+    }
+    pub fn c3() -> f64 {
+        1.0
+    }
+    pub fn kin_shunting() -> Shunting {
+        Shunting { a: 4.0, b: 2.0, d: 2.0 }
+    }
+    pub fn c_ab() -> f64 {
+        3.0
+    }
+    pub fn dyn_shunting() -> Shunting {
+        Shunting { a: 4.0, b: 6.0, d: 6.0 }
+    }
+    pub fn st_k() -> f64 {
+        3.0
+    }
+    pub fn mass() -> f64 {
+        10.0
+    }
+    pub fn inertia() -> f64 {
+        5.0
+    }
+    pub fn wheel_radius() -> f64 {
+        0.05
+    }
+    pub fn half_axle() -> f64 {
+        0.2
+    }
+    pub fn dv() -> f64 {
+        0.5
+    }
+    pub fn dw() -> f64 {
+        0.2
+    }
+    pub fn cov() -> [f64; 2] {
+        [1.6e-4, 1.0e-4]
+    }
+    pub fn rho() -> [f64; 2] {
+        [0.08, 0.08]
+    }
+    pub fn mass_factor() -> f64 {
+        0.01
+    }
+    pub fn inertia_factor() -> f64 {
+        0.1
+    }
+    pub fn silence_timeout() -> f64 {
+        0.05
+    }
+    pub fn time_scale() -> f64 {
+        1.0
+    }
+    pub fn telemetry_batch() -> u32 {
+        50
+    }
+}

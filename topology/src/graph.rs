@@ -1,0 +1,194 @@
+//! The communication graph (section II-A, SPEC §2).
+//!
+//! Followers are stored by index 0..n in ascending id. Adjacency is kept as
+//! sorted neighbour lists (CSR), so the cost of everything per step is
+//! O(followers + edges); the dense L and H exist only on demand, for small
+//! graphs, to report λ_min(H).
+
+use nalgebra::DMatrix;
+
+/// Largest graph for which λ_min(H) is computed densely at load time.
+pub const DENSE_EIGEN_LIMIT: usize = 1500;
+
+/// An undirected follower graph with leader links.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Graph {
+    ids: Vec<u32>,
+    /// CSR offsets into `adjacency`, length n + 1.
+    offsets: Vec<usize>,
+    /// Neighbour indices, ascending within each follower.
+    adjacency: Vec<usize>,
+    /// a_i0.
+    leader_links: Vec<bool>,
+}
+
+impl Graph {
+    /// Builds the graph from follower ids (ascending, unique), index pairs of
+    /// undirected edges (validated: no self-loop, no duplicate) and leader links.
+    pub fn new(ids: Vec<u32>, edges: &[(usize, usize)], leader_links: Vec<bool>) -> Self {
+        let n = ids.len();
+        let mut degree = vec![0usize; n];
+        for &(a, b) in edges {
+            degree[a] += 1;
+            degree[b] += 1;
+        }
+        let mut offsets = Vec::with_capacity(n + 1);
+        offsets.push(0);
+        for d in &degree {
+            offsets.push(offsets.last().copied().unwrap_or(0) + d);
+        }
+        let mut fill = offsets.clone();
+        let mut adjacency = vec![0usize; offsets[n]];
+        for &(a, b) in edges {
+            adjacency[fill[a]] = b;
+            fill[a] += 1;
+            adjacency[fill[b]] = a;
+            fill[b] += 1;
+        }
+        for i in 0..n {
+            adjacency[offsets[i]..offsets[i + 1]].sort_unstable();
+        }
+        Self { ids, offsets, adjacency, leader_links }
+    }
+
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+
+    pub fn id(&self, index: usize) -> u32 {
+        self.ids[index]
+    }
+
+    pub fn ids(&self) -> &[u32] {
+        &self.ids
+    }
+
+    pub fn index_of(&self, id: u32) -> Option<usize> {
+        self.ids.binary_search(&id).ok()
+    }
+
+    /// Neighbour indices of follower `index`, ascending (hence ascending id).
+    pub fn neighbours(&self, index: usize) -> &[usize] {
+        &self.adjacency[self.offsets[index]..self.offsets[index + 1]]
+    }
+
+    /// a_i0.
+    pub fn hears_leader(&self, index: usize) -> bool {
+        self.leader_links[index]
+    }
+
+    pub fn edge_count(&self) -> usize {
+        self.adjacency.len() / 2
+    }
+
+    /// ξ_i = Σ_j a_ij + a_i0 (SPEC §2).
+    pub fn xi(&self, index: usize) -> usize {
+        self.neighbours(index).len() + usize::from(self.leader_links[index])
+    }
+
+    /// Followers that no path connects to a follower hearing the leader, by
+    /// id. Empty exactly when H is positive definite (Lemma 1).
+    pub fn unreachable(&self) -> Vec<u32> {
+        let n = self.len();
+        let mut seen = self.leader_links.clone();
+        let mut stack: Vec<usize> = (0..n).filter(|&i| seen[i]).collect();
+        while let Some(i) = stack.pop() {
+            for &j in self.neighbours(i) {
+                if !seen[j] {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+        (0..n).filter(|&i| !seen[i]).map(|i| self.ids[i]).collect()
+    }
+
+    /// The Laplacian L (eq. 1), dense.
+    pub fn laplacian(&self) -> DMatrix<f64> {
+        let n = self.len();
+        let mut l = DMatrix::zeros(n, n);
+        for i in 0..n {
+            for &j in self.neighbours(i) {
+                l[(i, j)] = -1.0;
+            }
+            l[(i, i)] = self.neighbours(i).len() as f64;
+        }
+        l
+    }
+
+    /// H = L + diag(a_10, …, a_n0) (eq. 2), dense.
+    pub fn h_matrix(&self) -> DMatrix<f64> {
+        let mut h = self.laplacian();
+        for i in 0..self.len() {
+            h[(i, i)] += f64::from(u8::from(self.leader_links[i]));
+        }
+        h
+    }
+
+    /// λ_min(H), which sets the estimator's convergence rate; `None` for
+    /// graphs larger than [`DENSE_EIGEN_LIMIT`] (not computed).
+    pub fn lambda_min_h(&self) -> Option<f64> {
+        if self.is_empty() || self.len() > DENSE_EIGEN_LIMIT {
+            return None;
+        }
+        let eig = self.h_matrix().symmetric_eigen();
+        eig.eigenvalues.iter().copied().reduce(f64::min)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn paper() -> Graph {
+        Graph::new(vec![1, 2, 3, 4], &[(0, 1), (0, 2), (1, 3), (2, 3)], vec![true, false, false, false])
+    }
+
+    #[test]
+    fn paper_graph_lambda_min_matches_spec() {
+        // SPEC §10: λ_min(H) ≈ 0.186.
+        let l = paper().lambda_min_h().expect("small graph");
+        assert!((l - 0.186).abs() < 5e-4, "λ_min(H) = {l}");
+    }
+
+    #[test]
+    fn neighbours_are_ascending_and_xi_counts_the_leader() {
+        let g = paper();
+        assert_eq!(g.neighbours(0), &[1, 2]);
+        assert_eq!(g.neighbours(3), &[1, 2]);
+        assert_eq!(g.xi(0), 3);
+        assert_eq!(g.xi(3), 2);
+        assert_eq!(g.edge_count(), 4);
+    }
+
+    /// Lemma 1 on every graph of 4 followers: H is positive definite exactly
+    /// when every follower is reachable from one that hears the leader.
+    #[test]
+    fn lemma_1_holds_on_every_small_graph() {
+        let pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)];
+        for edge_mask in 0u32..64 {
+            let edges: Vec<_> =
+                pairs.iter().enumerate().filter(|(b, _)| edge_mask >> b & 1 == 1).map(|(_, &e)| e).collect();
+            for leader_mask in 0u32..16 {
+                let links = (0..4).map(|i| leader_mask >> i & 1 == 1).collect();
+                let g = Graph::new(vec![1, 2, 3, 4], &edges, links);
+                let positive_definite = g.lambda_min_h().unwrap() > 1e-9;
+                assert_eq!(
+                    positive_definite,
+                    g.unreachable().is_empty(),
+                    "edges {edges:?}, leader links {leader_mask:04b}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn unreachable_names_the_cut_off_followers() {
+        let g = Graph::new(vec![1, 2, 5, 9], &[(0, 1), (2, 3)], vec![true, false, false, false]);
+        assert_eq!(g.unreachable(), vec![5, 9]);
+    }
+}

@@ -1,0 +1,538 @@
+//! Validation of a [`ScenarioFile`] into a [`Scenario`], and `--set` overrides.
+
+use std::path::Path;
+
+use formation_agent::{
+    DynamicGains, DynamicKind, EstimatorGains, Fault, FilterParams, FollowerConfig, KinematicGains, KinematicKind,
+    LeaderState, Shunting,
+};
+use formation_leader::{Leader, Profile, Trajectory};
+use formation_plant::{Disturbance, NoiseCov, Pose, RobotParams, Velocity};
+use serde::Serialize;
+
+use crate::error::ScenarioError;
+use crate::file::ScenarioFile;
+use crate::graph::Graph;
+
+/// How followers initialise their leader estimate.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EstimateInit {
+    /// P_ir(0) = P_r(0), v_ir(0) = v_r(0), ω_ir(0) = ω_r(0) (SPEC §10).
+    Leader,
+    /// Everything zero.
+    Zero,
+}
+
+/// How networked nodes pace their steps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Timing {
+    /// A node advances from step k once it holds all its inputs for k.
+    Lockstep,
+    /// Fixed-rate loops on a shared time base, latest values.
+    Realtime,
+}
+
+/// One follower's initial conditions and place in the formation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct FollowerSpec {
+    pub id: u32,
+    pub offset: [f64; 2],
+    pub pose: Pose,
+    pub velocity: Velocity,
+    pub hears_leader: bool,
+}
+
+/// Networked-run settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct NetworkSettings {
+    pub silence_timeout_s: f64,
+    pub time_scale: f64,
+    pub telemetry_batch: u32,
+}
+
+/// A validated scenario. Followers are in ascending id, indexed like the graph.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scenario {
+    pub name: String,
+    pub seed: u64,
+    pub dt_s: f64,
+    pub duration_s: f64,
+    pub noise: bool,
+    pub covariance: NoiseCov,
+    pub estimate_init: EstimateInit,
+    pub timing: Timing,
+    pub leader_profile: Profile,
+    pub leader_pose: Pose,
+    pub followers: Vec<FollowerSpec>,
+    pub graph: Graph,
+    pub estimator: EstimatorGains,
+    pub kinematic: KinematicKind,
+    pub kinematic_gains: KinematicGains,
+    pub dynamic: DynamicKind,
+    pub dynamic_gains: DynamicGains,
+    pub filter: FilterParams,
+    pub robot: RobotParams,
+    pub disturbance: Disturbance,
+    pub fault: Option<Fault>,
+    pub network: NetworkSettings,
+    /// The file as it was read and overridden, for the record of a run.
+    pub source: ScenarioFile,
+}
+
+impl Scenario {
+    /// Reads, overrides (`KEY=VALUE`, dotted keys) and validates a scenario file.
+    pub fn load(path: &Path, overrides: &[String]) -> Result<Self, ScenarioError> {
+        let label = path.display().to_string();
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| ScenarioError::Io { file: label.clone(), message: format!("cannot read: {e}") })?;
+        let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("scenario");
+        Self::from_toml(&text, &label, stem, overrides)
+    }
+
+    /// Like [`Scenario::load`] from text; `label` names it in errors and
+    /// `default_name` is the run name when the file gives none.
+    pub fn from_toml(text: &str, label: &str, default_name: &str, overrides: &[String]) -> Result<Self, ScenarioError> {
+        let line_of = |span: Option<std::ops::Range<usize>>| {
+            span.map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1)
+        };
+        let file: ScenarioFile = toml::from_str(text).map_err(|e| ScenarioError::Syntax {
+            file: label.to_string(),
+            line: line_of(e.span()),
+            message: e.message().trim().to_string(),
+        })?;
+        let file = if overrides.is_empty() { file } else { apply_overrides(text, overrides)? };
+        validate(file, label, default_name, Some(text))
+    }
+
+    /// Validates a scenario built in code (no file lines to report).
+    pub fn from_file(file: ScenarioFile, name: &str) -> Result<Self, ScenarioError> {
+        validate(file, "", name, None)
+    }
+
+    /// Number of steps T/Δt; the run has steps + 1 samples (SPEC §9).
+    pub fn steps(&self) -> u64 {
+        (self.duration_s / self.dt_s).round() as u64
+    }
+
+    pub fn leader(&self) -> Leader {
+        Leader::new(self.leader_profile, self.leader_pose)
+    }
+
+    /// Every follower's initial leader estimate.
+    pub fn initial_estimate(&self) -> LeaderState {
+        match self.estimate_init {
+            EstimateInit::Leader => self.leader().state(0.0),
+            EstimateInit::Zero => LeaderState::default(),
+        }
+    }
+
+    /// The brain configuration of the follower at `index`.
+    pub fn follower_config(&self, index: usize) -> FollowerConfig {
+        let f = &self.followers[index];
+        FollowerConfig {
+            id: f.id,
+            offset: f.offset,
+            hears_leader: f.hears_leader,
+            estimator: self.estimator,
+            kinematic: self.kinematic,
+            kinematic_gains: self.kinematic_gains,
+            dynamic: self.dynamic,
+            dynamic_gains: self.dynamic_gains,
+            filter: self.filter,
+            model: self.robot,
+            fault: self.fault,
+            dt_s: self.dt_s,
+        }
+    }
+
+    pub fn index_of(&self, id: u32) -> Option<usize> {
+        self.graph.index_of(id)
+    }
+}
+
+/// Applies `KEY=VALUE` overrides to the parsed document, one at a time so
+/// that an error names the assignment at fault.
+fn apply_overrides(text: &str, overrides: &[String]) -> Result<ScenarioFile, ScenarioError> {
+    let mut table: toml::Table = toml::from_str(text).map_err(|e| ScenarioError::Syntax {
+        file: String::new(),
+        line: None,
+        message: e.message().to_string(),
+    })?;
+    for assignment in overrides {
+        let err = |message: String| ScenarioError::Override { assignment: assignment.clone(), message };
+        let (key, value) = assignment.split_once('=').ok_or_else(|| err("expected KEY=VALUE".into()))?;
+        let (key, value) = (key.trim(), value.trim());
+        if key.is_empty() {
+            return Err(err("empty key".into()));
+        }
+        let value = parse_value(value);
+        let mut next = table.clone();
+        set_path(&mut next, key, value).map_err(err)?;
+        next.clone().try_into::<ScenarioFile>().map_err(|e| err(override_message(key, e.message())))?;
+        table = next;
+    }
+    table
+        .try_into::<ScenarioFile>()
+        .map_err(|e| ScenarioError::Override { assignment: overrides.join(" "), message: e.message().to_string() })
+}
+
+fn override_message(key: &str, message: &str) -> String {
+    if message.starts_with("unknown field") {
+        format!("unknown key `{key}` ({message})")
+    } else {
+        format!("`{key}`: {message}")
+    }
+}
+
+/// A TOML value if VALUE parses as one (number, bool, array, inline table,
+/// quoted string), else VALUE as a bare string (`filter=kf`).
+fn parse_value(value: &str) -> toml::Value {
+    toml::from_str::<toml::Table>(&format!("v = {value}"))
+        .ok()
+        .and_then(|mut t| t.remove("v"))
+        .unwrap_or_else(|| toml::Value::String(value.to_string()))
+}
+
+fn set_path(table: &mut toml::Table, key: &str, value: toml::Value) -> Result<(), String> {
+    let mut parts = key.split('.').peekable();
+    let mut current = table;
+    while let Some(part) = parts.next() {
+        if parts.peek().is_none() {
+            current.insert(part.to_string(), value);
+            return Ok(());
+        }
+        let entry = current.entry(part.to_string()).or_insert_with(|| toml::Value::Table(toml::Table::new()));
+        current = match entry {
+            toml::Value::Table(t) => t,
+            _ => return Err(format!("`{part}` is not a table, cannot set `{key}`")),
+        };
+    }
+    Ok(())
+}
+
+/// Collects validation failures of one field.
+struct Check<'a> {
+    label: &'a str,
+    source: Option<&'a str>,
+}
+
+impl Check<'_> {
+    fn fail(&self, field: &str, message: impl Into<String>) -> ScenarioError {
+        ScenarioError::Invalid {
+            file: self.label.to_string(),
+            line: self.source.and_then(|s| find_line(s, field)),
+            field: field.to_string(),
+            message: message.into(),
+        }
+    }
+
+    fn finite(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+        match values.iter().find(|v| !v.is_finite()) {
+            Some(v) => Err(self.fail(field, format!("must be a finite number, got {v}"))),
+            None => Ok(()),
+        }
+    }
+
+    fn positive(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+        self.finite(field, values)?;
+        match values.iter().find(|&&v| v <= 0.0) {
+            Some(v) => Err(self.fail(field, format!("must be positive, got {v}"))),
+            None => Ok(()),
+        }
+    }
+
+    fn non_negative(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+        self.finite(field, values)?;
+        match values.iter().find(|&&v| v < 0.0) {
+            Some(v) => Err(self.fail(field, format!("must not be negative, got {v}"))),
+            None => Ok(()),
+        }
+    }
+
+    fn shunting(&self, field: &str, s: &Shunting) -> Result<(), ScenarioError> {
+        self.non_negative(&format!("{field}.a"), &[s.a])?;
+        self.positive(&format!("{field}.b"), &[s.b])?;
+        self.positive(&format!("{field}.d"), &[s.d])
+    }
+}
+
+fn validate(
+    file: ScenarioFile,
+    label: &str,
+    default_name: &str,
+    source: Option<&str>,
+) -> Result<Scenario, ScenarioError> {
+    let c = Check { label, source };
+    let name = file.name.clone().unwrap_or_else(|| default_name.to_string());
+    if name.is_empty() || !name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_') {
+        return Err(c.fail("name", format!("`{name}` must be non-empty and use only letters, digits, '-' and '_'")));
+    }
+    c.positive("dt", &[file.dt])?;
+    c.positive("duration", &[file.duration])?;
+    if file.duration / file.dt > 1e10 {
+        return Err(c.fail("duration", format!("{} s at Δt = {} s is more than 1e10 steps", file.duration, file.dt)));
+    }
+    if file.duration / file.dt < 0.5 {
+        return Err(c.fail("duration", format!("{} s is shorter than one step of {} s", file.duration, file.dt)));
+    }
+    let estimate_init = match file.estimate_init.as_str() {
+        "leader" => EstimateInit::Leader,
+        "zero" => EstimateInit::Zero,
+        other => return Err(c.fail("estimate_init", format!("`{other}` is not one of: leader, zero"))),
+    };
+    let timing = match file.timing.as_str() {
+        "lockstep" => Timing::Lockstep,
+        "realtime" => Timing::Realtime,
+        other => return Err(c.fail("timing", format!("`{other}` is not one of: lockstep, realtime"))),
+    };
+
+    // Leader.
+    let l = &file.leader;
+    c.finite("leader.pose", &l.pose)?;
+    c.non_negative("leader.ramp", &[l.ramp])?;
+    c.finite("leader.speed", &[l.speed])?;
+    c.finite("leader.radius", &[l.radius])?;
+    let trajectory = match l.trajectory.as_str() {
+        "paper" => Trajectory::Paper,
+        "line" => Trajectory::Line { speed_mps: l.speed },
+        "circle" | "figure-eight" if l.radius == 0.0 => return Err(c.fail("leader.radius", "must not be zero")),
+        "circle" => Trajectory::Circle { speed_mps: l.speed, radius_m: l.radius },
+        "figure-eight" => Trajectory::FigureEight { speed_mps: l.speed, radius_m: l.radius },
+        other => {
+            return Err(
+                c.fail("leader.trajectory", format!("`{other}` is not one of: paper, line, circle, figure-eight"))
+            )
+        }
+    };
+    let leader_pose = Pose::new(l.pose[0], l.pose[1], l.pose[2]);
+
+    // Followers.
+    if file.followers.is_empty() {
+        return Err(c.fail("followers", "at least one follower is needed"));
+    }
+    let mut order: Vec<usize> = (0..file.followers.len()).collect();
+    order.sort_by_key(|&i| file.followers[i].id);
+    let mut followers = Vec::with_capacity(order.len());
+    for (pos, &i) in order.iter().enumerate() {
+        let f = &file.followers[i];
+        let field = |k: &str| format!("followers[{i}].{k}");
+        if f.id == 0 {
+            return Err(c.fail(&field("id"), "0 is the leader's id; followers are numbered from 1"));
+        }
+        if pos > 0 && file.followers[order[pos - 1]].id == f.id {
+            return Err(c.fail(&field("id"), format!("duplicate follower id {}", f.id)));
+        }
+        c.finite(&field("offset"), &f.offset)?;
+        c.finite(&field("velocity"), &f.velocity)?;
+        let pose = match (f.pose, f.body_error) {
+            (Some(p), None) => {
+                c.finite(&field("pose"), &p)?;
+                Pose::new(p[0], p[1], p[2])
+            }
+            (None, Some(e)) => {
+                c.finite(&field("body_error"), &e)?;
+                pose_from_body_error(leader_pose, f.offset, e)
+            }
+            (Some(_), Some(_)) => return Err(c.fail(&field("pose"), "give either `pose` or `body_error`, not both")),
+            (None, None) => return Err(c.fail(&field("pose"), "missing: give `pose` or `body_error`")),
+        };
+        followers.push(FollowerSpec {
+            id: f.id,
+            offset: f.offset,
+            pose,
+            velocity: Velocity::new(f.velocity[0], f.velocity[1]),
+            hears_leader: f.leader_link,
+        });
+    }
+    let ids: Vec<u32> = followers.iter().map(|f| f.id).collect();
+
+    // Edges.
+    let mut edges = Vec::with_capacity(file.edges.len());
+    let mut seen = std::collections::HashSet::with_capacity(file.edges.len());
+    for (e, &[a, b]) in file.edges.iter().enumerate() {
+        let field = format!("edges[{e}]");
+        let index = |id: u32| {
+            ids.binary_search(&id).map_err(|_| c.fail(&field, format!("edge {a}–{b} names unknown follower {id}")))
+        };
+        let (ia, ib) = (index(a)?, index(b)?);
+        if ia == ib {
+            return Err(c.fail(&field, format!("self-loop {a}–{b}: a follower is not its own neighbour")));
+        }
+        if !seen.insert((ia.min(ib), ia.max(ib))) {
+            return Err(c.fail(&field, format!("duplicate edge {a}–{b} (edges are undirected)")));
+        }
+        edges.push((ia, ib));
+    }
+    let graph = Graph::new(ids, &edges, followers.iter().map(|f| f.hears_leader).collect());
+    let unreachable = graph.unreachable();
+    if !unreachable.is_empty() {
+        return Err(ScenarioError::GraphNotConnected { file: label.to_string(), unreachable });
+    }
+
+    // Gains and models.
+    let est = &file.estimator;
+    c.positive("estimator.k", &est.k)?;
+    c.non_negative("estimator.ka", &est.ka)?;
+    c.non_negative("estimator.kb", &est.kb)?;
+    let bs = &file.backstepping;
+    c.finite("backstepping.c1", &[bs.c1])?;
+    c.finite("backstepping.c2", &[bs.c2])?;
+    c.finite("backstepping.c3", &[bs.c3])?;
+    c.shunting("backstepping.shunting", &bs.shunting)?;
+    let sm = &file.sliding_mode;
+    c.non_negative("sliding_mode.ca", &[sm.ca])?;
+    c.non_negative("sliding_mode.cb", &[sm.cb])?;
+    c.shunting("sliding_mode.shunting_v", &sm.shunting_v)?;
+    c.shunting("sliding_mode.shunting_w", &sm.shunting_w)?;
+    c.non_negative("sliding_mode.k1", &[sm.k1])?;
+    c.non_negative("sliding_mode.k2", &[sm.k2])?;
+    let r = &file.robot;
+    c.positive("robot.mass", &[r.mass])?;
+    c.positive("robot.inertia", &[r.inertia])?;
+    c.positive("robot.wheel_radius", &[r.wheel_radius])?;
+    c.positive("robot.half_axle", &[r.half_axle])?;
+    c.finite("disturbance.dv", &[file.disturbance.dv])?;
+    c.finite("disturbance.dw", &[file.disturbance.dw])?;
+    c.non_negative("covariance.q", &file.covariance.q)?;
+    c.positive("covariance.r", &file.covariance.r)?;
+    c.positive("asif.rho_max", &file.asif.rho_max)?;
+    let fault = match file.fault.time {
+        None => None,
+        Some(time_s) => {
+            c.non_negative("fault.time", &[time_s])?;
+            c.positive("fault.mass_factor", &[file.fault.mass_factor])?;
+            c.positive("fault.inertia_factor", &[file.fault.inertia_factor])?;
+            Some(Fault { time_s, mass_factor: file.fault.mass_factor, inertia_factor: file.fault.inertia_factor })
+        }
+    };
+    let n = &file.network;
+    c.positive("network.silence_timeout", &[n.silence_timeout])?;
+    c.positive("network.time_scale", &[n.time_scale])?;
+    if n.telemetry_batch == 0 {
+        return Err(c.fail("network.telemetry_batch", "must be at least 1"));
+    }
+
+    Ok(Scenario {
+        name,
+        seed: file.seed,
+        dt_s: file.dt,
+        duration_s: file.duration,
+        noise: file.noise,
+        covariance: NoiseCov { q: file.covariance.q, r: file.covariance.r },
+        estimate_init,
+        timing,
+        leader_profile: Profile { trajectory, ramp_s: l.ramp },
+        leader_pose,
+        followers,
+        graph,
+        estimator: EstimatorGains { k: est.k, ka: est.ka, kb: est.kb },
+        kinematic: file.kinematic,
+        kinematic_gains: KinematicGains { c1: bs.c1, c2: bs.c2, c3: bs.c3, shunting: bs.shunting },
+        dynamic: file.dynamic,
+        dynamic_gains: DynamicGains {
+            ca: sm.ca,
+            cb: sm.cb,
+            shunting_v: sm.shunting_v,
+            shunting_w: sm.shunting_w,
+            k1: sm.k1,
+            k2: sm.k2,
+        },
+        filter: FilterParams {
+            kind: file.filter,
+            q: file.covariance.q,
+            r: file.covariance.r,
+            rho_max: file.asif.rho_max,
+        },
+        robot: RobotParams {
+            mass_kg: r.mass,
+            inertia_kgm2: r.inertia,
+            wheel_radius_m: r.wheel_radius,
+            half_axle_m: r.half_axle,
+        },
+        disturbance: Disturbance { linear_n: file.disturbance.dv, angular_nm: file.disturbance.dw },
+        fault,
+        network: NetworkSettings {
+            silence_timeout_s: n.silence_timeout,
+            time_scale: n.time_scale,
+            telemetry_batch: n.telemetry_batch,
+        },
+        source: file,
+    })
+}
+
+/// The pose whose body-frame error against the leader's pose plus the offset
+/// is (x̂, ŷ, θ̂): θ = θ_r − θ̂, and (e_x, e_y) is (x̂, ŷ) rotated back into
+/// the world frame by θ (the inverse of eq. 29).
+pub fn pose_from_body_error(leader: Pose, offset: [f64; 2], e: [f64; 3]) -> Pose {
+    let theta = leader.theta - e[2];
+    let (s, c) = theta.sin_cos();
+    let ex = c * e[0] - s * e[1];
+    let ey = s * e[0] + c * e[1];
+    Pose::new(leader.x + offset[0] - ex, leader.y + offset[1] - ey, theta)
+}
+
+/// The 1-based line of a dotted field (`robot.mass`, `followers[2].offset`,
+/// `edges[1]`) in the TOML source, when it can be found by its key.
+fn find_line(source: &str, field: &str) -> Option<usize> {
+    let target = field.split('[').next().unwrap_or(field);
+    let index: Option<usize> = field.split_once('[').and_then(|(_, rest)| rest.split(']').next()?.parse().ok());
+    let mut context = String::new();
+    let mut array_counts = std::collections::HashMap::<String, usize>::new();
+    let mut best = None;
+    for (n, raw) in source.lines().enumerate() {
+        let line = raw.trim();
+        if let Some(h) = line.strip_prefix("[[") {
+            let name = h.split("]]").next().unwrap_or("").trim().to_string();
+            let count = array_counts.entry(name.clone()).or_insert(0);
+            context = format!("{name}[{count}]");
+            *count += 1;
+            if field == context {
+                return Some(n + 1);
+            }
+            continue;
+        }
+        if let Some(h) = line.strip_prefix('[') {
+            context = h.split(']').next().unwrap_or("").trim().to_string();
+            if field == context || field.starts_with(&format!("{context}.")) && best.is_none() {
+                best = Some(n + 1);
+            }
+            continue;
+        }
+        let Some((key, _)) = line.split_once('=') else { continue };
+        let key = key.trim().trim_matches('"');
+        let full = if context.is_empty() { key.to_string() } else { format!("{context}.{key}") };
+        if full == field || (index.is_some() && full == target) {
+            return Some(n + 1);
+        }
+        if field.starts_with(&format!("{full}.")) {
+            best = Some(n + 1);
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn body_error_round_trips_through_eq_29() {
+        let leader = Pose::new(0.3, 3.0, 0.4);
+        let e = [-1.0, 2.0, 0.25];
+        let p = pose_from_body_error(leader, [4.0, -4.0], e);
+        let back = formation_agent::kinematic::body_error(&leader, [4.0, -4.0], &p);
+        assert!((back.x - e[0]).abs() < 1e-12 && (back.y - e[1]).abs() < 1e-12 && (back.theta - e[2]).abs() < 1e-12);
+    }
+
+    #[test]
+    fn find_line_locates_keys_in_tables_and_arrays_of_tables() {
+        let src = "name = \"x\"\nedges = [[1, 2]]\n[robot]\nmass = -1\n[[followers]]\nid = 1\n[[followers]]\nid = 2\noffset = [0, 0]\n";
+        assert_eq!(find_line(src, "robot.mass"), Some(4));
+        assert_eq!(find_line(src, "followers[1].offset"), Some(9));
+        assert_eq!(find_line(src, "followers[0].id"), Some(6));
+        assert_eq!(find_line(src, "edges[0]"), Some(2));
+        assert_eq!(find_line(src, "fault.time"), None);
+    }
+}

@@ -1,0 +1,116 @@
+//! What crosses the network (SPEC §13): a small header and the estimate
+//! payload, encoded with bincode 2 (standard config) through serde.
+//!
+//! Decoding checks what can be checked from the bytes alone: the format
+//! version, that the message decodes completely and that every number is
+//! finite. Whether the sender is a neighbour, matches its key, or is stale
+//! is for the receiving node to decide ([`Reject`] names those too).
+
+use formation_agent::LeaderState;
+use serde::{Deserialize, Serialize};
+
+/// Bumped on any change of the encoding.
+pub const FORMAT_VERSION: u16 = 1;
+
+/// Leader id on the wire.
+pub const LEADER_ID: u32 = 0;
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Header {
+    pub version: u16,
+    /// 0 for the leader, else the follower id.
+    pub sender: u32,
+    /// The step k the payload belongs to.
+    pub step: u64,
+    /// t = k Δt, s.
+    pub time_s: f64,
+}
+
+/// An estimate message: from the leader, its true state; from follower i,
+/// (P_ir, Ṗ_ir, v_ir, ω_ir).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EstimateMsg {
+    pub header: Header,
+    pub state: LeaderState,
+}
+
+/// Why a received message was not used.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Reject {
+    /// Not decodable, trailing bytes, or too short.
+    Malformed,
+    /// Another format version.
+    Version,
+    /// A non-finite number.
+    NonFinite,
+    /// The header names another sender than the key it came on.
+    WrongSender,
+    /// The sender is not a neighbour (or the leader, for one that does not hear it).
+    NotNeighbour,
+    /// Older than a step already used from that sender.
+    Stale,
+}
+
+fn config() -> bincode::config::Configuration {
+    bincode::config::standard()
+}
+
+pub fn encode(msg: &EstimateMsg) -> Vec<u8> {
+    // Encoding a plain struct of numbers into a Vec cannot fail.
+    bincode::serde::encode_to_vec(msg, config()).unwrap_or_default()
+}
+
+/// Decodes and checks version and finiteness.
+pub fn decode(bytes: &[u8]) -> Result<EstimateMsg, Reject> {
+    let (msg, used): (EstimateMsg, usize) =
+        bincode::serde::decode_from_slice(bytes, config()).map_err(|_| Reject::Malformed)?;
+    if used != bytes.len() {
+        return Err(Reject::Malformed);
+    }
+    if msg.header.version != FORMAT_VERSION {
+        return Err(Reject::Version);
+    }
+    if !msg.header.time_s.is_finite() || !msg.state.is_finite() {
+        return Err(Reject::NonFinite);
+    }
+    Ok(msg)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use formation_plant::Pose;
+
+    fn msg() -> EstimateMsg {
+        EstimateMsg {
+            header: Header { version: FORMAT_VERSION, sender: 3, step: 42, time_s: 0.042 },
+            state: LeaderState { pose: Pose::new(1.0, 2.0, 0.5), pose_rate: Pose::new(0.1, 0.2, 0.3), v: 1.0, w: -0.5 },
+        }
+    }
+
+    #[test]
+    fn round_trip() {
+        assert_eq!(decode(&encode(&msg())), Ok(msg()));
+    }
+
+    #[test]
+    fn garbage_truncation_and_trailing_bytes_are_malformed() {
+        let bytes = encode(&msg());
+        assert_eq!(decode(&bytes[..bytes.len() - 1]), Err(Reject::Malformed));
+        let mut long = bytes.clone();
+        long.push(0);
+        assert_eq!(decode(&long), Err(Reject::Malformed));
+        assert_eq!(decode(b""), Err(Reject::Malformed));
+        assert!(decode(b"hello, formation").is_err());
+    }
+
+    #[test]
+    fn non_finite_and_foreign_versions_are_rejected() {
+        let mut m = msg();
+        m.state.v = f64::NAN;
+        assert_eq!(decode(&encode(&m)), Err(Reject::NonFinite));
+        let mut m = msg();
+        m.header.version = 99;
+        assert_eq!(decode(&encode(&m)), Err(Reject::Version));
+    }
+}
