@@ -1,0 +1,150 @@
+//! SPEC §12: what the paper scenario must show, each claim a test, on the
+//! paper scenario with noise on and its fixed seed. Every assertion prints
+//! the number it measured.
+
+use std::path::Path;
+
+use formation::record::{FollowerMetrics, Row};
+use formation::sim::{NoRecord, Observer, Simulation};
+use formation_topology::Scenario;
+
+fn scenario(overrides: &[&str]) -> Scenario {
+    let overrides: Vec<String> = overrides.iter().map(|s| s.to_string()).collect();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+    Scenario::load(&path, &overrides).expect("paper scenario loads")
+}
+
+fn run(overrides: &[&str]) -> (Scenario, Vec<FollowerMetrics>) {
+    let s = scenario(overrides);
+    let metrics = Simulation::new(&s).run(&mut NoRecord, |_| {}).expect("run completes");
+    (s, metrics)
+}
+
+#[test]
+fn conventional_backstepping_jumps_to_c1_times_initial_error() {
+    let (s, m) = run(&["kinematic=conventional"]);
+    // F4 starts with x̂(0) = 5 and v_ir(0) = v_r(0) = 0: v_c(0) = C_1 · 5 = 15 m/s.
+    let f4 = m[s.index_of(4).unwrap()].vc_peak;
+    assert!((f4 - 15.0).abs() < 1e-3, "conventional peak v_c of F4 = {f4} m/s, expected 15");
+}
+
+#[test]
+fn bioinspired_backstepping_has_no_speed_jump() {
+    let (s, m) = run(&[]);
+    let bound = s.kinematic_gains.c1 * s.kinematic_gains.shunting.b + s.leader_profile.max_speed();
+    for (f, m) in s.followers.iter().zip(&m) {
+        assert!(m.vc_peak <= bound, "F{}: peak v_c {} > C1·B + max v_r = {bound}", f.id, m.vc_peak);
+        assert!(m.vc_peak < 4.0, "F{}: peak v_c {} m/s is not below 4 m/s", f.id, m.vc_peak);
+    }
+}
+
+#[test]
+fn normal_case_asif_equals_kf_within_two_percent() {
+    let (s, asif) = run(&["filter=asif"]);
+    let (_, kf) = run(&["filter=kf"]);
+    for ((f, a), k) in s.followers.iter().zip(&asif).zip(&kf) {
+        for (name, a, k) in [("linear", a.rmse_v, k.rmse_v), ("angular", a.rmse_w, k.rmse_w)] {
+            let rel = (a - k).abs() / k;
+            assert!(rel <= 0.02, "F{} {name}: ASIF {a:.5} vs KF {k:.5} differ by {:.2} %", f.id, rel * 100.0);
+            for (filter, x) in [("ASIF", a), ("KF", k)] {
+                assert!(
+                    (0.006..=0.015).contains(&x),
+                    "F{} {name} {filter} RMSE {:.3}e-2 outside 0.6–1.5e-2",
+                    f.id,
+                    x * 100.0
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn fault_case_asif_halves_the_kf_linear_error() {
+    let (s, asif) = run(&["filter=asif", "fault.time=10"]);
+    let (_, kf) = run(&["filter=kf", "fault.time=10"]);
+    for ((f, a), k) in s.followers.iter().zip(&asif).zip(&kf) {
+        assert!(a.rmse_v <= 0.5 * k.rmse_v, "F{} linear: ASIF {:.5} > half of KF {:.5}", f.id, a.rmse_v, k.rmse_v);
+        assert!(a.rmse_w <= k.rmse_w, "F{} angular: ASIF {:.5} > KF {:.5}", f.id, a.rmse_w, k.rmse_w);
+    }
+}
+
+#[test]
+fn conventional_smc_chatters_super_twisting_less_bioinspired_least() {
+    let (s, bio) = run(&["dynamic=bio"]);
+    let (_, smc) = run(&["dynamic=smc"]);
+    let (_, st) = run(&["dynamic=super-twisting"]);
+    for (i, f) in s.followers.iter().enumerate() {
+        let (b, c, t) = (bio[i].torque_tv, smc[i].torque_tv, st[i].torque_tv);
+        assert!(c >= 50.0 * b, "F{}: SMC torque variation {c:.1} N m/s < 50 × bioinspired {b:.2}", f.id);
+        assert!(b < t && t < c, "F{}: super-twisting {t:.1} not between bioinspired {b:.2} and SMC {c:.1}", f.id);
+    }
+}
+
+#[test]
+fn estimator_converges_from_the_leader_start() {
+    let (s, m) = run(&[]);
+    for (f, m) in s.followers.iter().zip(&m) {
+        assert!(m.estimator_error_final < 0.01, "F{}: estimator error {} m at t = T", f.id, m.estimator_error_final);
+    }
+}
+
+/// Records the largest estimator position error at given steps.
+struct ErrorAt {
+    steps: Vec<u64>,
+    worst: Vec<f64>,
+}
+
+impl Observer for ErrorAt {
+    fn follower(&mut self, _index: usize, k: u64, row: &Row, _last: bool) -> std::io::Result<()> {
+        if let Some(i) = self.steps.iter().position(|&s| s == k) {
+            self.worst[i] = self.worst[i].max(row.estimator_error);
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn estimator_converges_from_zero_at_rate_k() {
+    let s = scenario(&["estimate_init=zero", "duration=6"]);
+    let at = |t: f64| (t / s.dt_s).round() as u64;
+    let mut obs = ErrorAt { steps: vec![0, at(4.0), at(6.0)], worst: vec![0.0; 3] };
+    Simulation::new(&s).run(&mut obs, |_| {}).expect("run completes");
+    // Starting 3 m off, e^(−t) gives 0.055 m at 4 s and 0.0074 m at 6 s (eq. 16, k_i = 1).
+    assert!((obs.worst[0] - 3.0).abs() < 1e-9, "initial error {} m, expected 3 m", obs.worst[0]);
+    assert!(obs.worst[1] < 0.1, "estimator error {} m at t = 4 s", obs.worst[1]);
+    assert!(obs.worst[2] < 0.02, "estimator error {} m at t = 6 s", obs.worst[2]);
+}
+
+#[test]
+fn formation_error_is_bounded() {
+    let (s, m) = run(&[]);
+    for (f, m) in s.followers.iter().zip(&m) {
+        assert!(
+            m.formation_rms_last10 < 0.2,
+            "F{}: formation RMS over the last 10 s = {} m",
+            f.id,
+            m.formation_rms_last10
+        );
+    }
+}
+
+#[test]
+fn paper_graph_reports_lambda_min() {
+    let s = scenario(&[]);
+    let l = s.graph.lambda_min_h().expect("computed for 4 followers");
+    assert!((l - 0.186).abs() < 1e-3, "λ_min(H) = {l}");
+}
+
+#[test]
+fn initial_body_errors_match_the_spec() {
+    // SPEC §10: x = (5, 2, 5, 2), y = 3 + Δy, θ = 0.
+    let s = scenario(&[]);
+    for (f, x) in s.followers.iter().zip([5.0, 2.0, 5.0, 2.0]) {
+        assert!(
+            (f.pose.x - x).abs() < 1e-12 && (f.pose.y - 3.0 - f.offset[1]).abs() < 1e-12 && f.pose.theta == 0.0,
+            "F{}: {:?}",
+            f.id,
+            f.pose
+        );
+    }
+}
