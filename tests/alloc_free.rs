@@ -1,0 +1,44 @@
+//! The simulator's step allocates nothing: a counting global allocator in
+//! this test binary sees zero allocations over many steps of the paper
+//! scenario and of a generated 1000-follower ring.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use formation::sim::{NoRecord, Simulation};
+use formation_topology::{generate, Scenario};
+
+struct Counting;
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn allocations_in_steps(s: &Scenario, steps: u64) -> usize {
+    let mut sim = Simulation::new(s);
+    sim.step(&mut NoRecord).unwrap();
+    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    for _ in 0..steps {
+        sim.step(&mut NoRecord).unwrap();
+    }
+    ALLOCATIONS.load(Ordering::Relaxed) - before
+}
+
+#[test]
+fn stepping_does_not_allocate() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+    let paper = Scenario::load(&path, &[]).unwrap();
+    assert_eq!(allocations_in_steps(&paper, 2000), 0, "paper scenario");
+    let ring = generate::ring_with_chords(1000, 200, 3).unwrap();
+    assert_eq!(allocations_in_steps(&ring, 20), 0, "1000-follower ring");
+}
