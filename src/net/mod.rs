@@ -1,1 +1,6 @@
 pub mod session;
+pub mod agent;
+pub mod barrier;
+pub mod leader;
+pub mod monitor;
+pub mod node;

@@ -1,0 +1,367 @@
+//! One follower as a networked node (the `agent` binary).
+//!
+//! The follower's step is the simulator's ([`SimFollower::step`], behind the
+//! [`Body`] seam), so a lock-step run gives the simulator's numbers bit for
+//! bit; only who delivers the neighbours' messages differs. The node
+//! subscribes only to its neighbours' estimate keys (and the leader's if
+//! a_i0 = 1), publishes only SPEC §13's estimate message on its own key, and
+//! sends telemetry for the monitor on a separate key.
+//!
+//! The control loop runs on its own OS thread (precise sleeps for the
+//! real-time mode; condition-variable waits for lock-step), fed by zenoh
+//! subscriber callbacks through a shared [`Inbox`]; start-up and shut-down
+//! are async.
+
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use formation_agent::LeaderState;
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_topology::{Scenario, Timing};
+use zenoh::pubsub::Publisher;
+use zenoh::qos::CongestionControl;
+use zenoh::Wait;
+
+use crate::cli::CliError;
+use crate::net::barrier;
+use crate::net::node::{self, Counters, Inbox, Keys, LoopStats, NodeArgs, Source, Start, Telemetry};
+use crate::record::FollowerSample;
+use crate::sim::SimFollower;
+
+/// The seam between the network node and the robot: one follower's step.
+///
+/// [`SimFollower`] (brain + simulated robot + noise) is the implementation
+/// the simulator uses too. A real robot's driver implements this with the
+/// same brain ([`formation_agent::Follower::step`]) fed by its own pose and
+/// wheel-speed measurement, and applies the torques to the motors.
+pub trait Body: Send {
+    /// Step k at t = k Δt with the leader's state (if heard) and the
+    /// neighbours' messages for k in ascending id; returns the step's
+    /// telemetry sample and this follower's message for k + 1.
+    fn step(
+        &mut self,
+        t_s: f64,
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: &[LeaderState],
+        last: bool,
+    ) -> (FollowerSample, LeaderState);
+    /// The message for step 0.
+    fn initial_message(&self) -> LeaderState;
+    /// The first quantity that is not finite, if any.
+    fn check_finite(&self) -> Result<(), &'static str>;
+}
+
+impl Body for SimFollower {
+    fn step(
+        &mut self,
+        t_s: f64,
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: &[LeaderState],
+        last: bool,
+    ) -> (FollowerSample, LeaderState) {
+        SimFollower::step(self, t_s, dt_s, leader, neighbours, last)
+    }
+    fn initial_message(&self) -> LeaderState {
+        self.brain.message()
+    }
+    fn check_finite(&self) -> Result<(), &'static str> {
+        SimFollower::check_finite(self)
+    }
+}
+
+/// `agent` arguments.
+#[derive(clap::Args, Debug, Clone)]
+pub struct AgentArgs {
+    #[command(flatten)]
+    pub node: NodeArgs,
+    /// The follower id this process runs.
+    #[arg(long)]
+    pub id: u32,
+    /// Give up if lock-step inputs stop arriving for this long (s).
+    #[arg(long, default_value_t = 60.0, value_name = "SECONDS")]
+    pub stall_timeout: f64,
+}
+
+/// Inbox shared between the subscriber callbacks and the control thread.
+pub(crate) struct Shared {
+    pub inbox: Mutex<Inbox>,
+    pub arrived: Condvar,
+}
+
+/// Runs one follower to the end of the scenario.
+pub async fn run(args: &AgentArgs) -> Result<(), CliError> {
+    let (scenario, keys) = args.node.load()?;
+    let index = scenario.index_of(args.id).ok_or_else(|| {
+        let ids: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
+        CliError::Input(format!("scenario {} has no follower {} (ids: {})", scenario.name, args.id, ids.join(", ")))
+    })?;
+    if !(args.stall_timeout > 0.0) {
+        return Err(CliError::Input("--stall-timeout must be positive".into()));
+    }
+    let session = args.node.open().await?;
+    let body = Box::new(SimFollower::new(&scenario, index));
+    let result =
+        run_follower(&session, &scenario, &keys, index, body, Duration::from_secs_f64(args.stall_timeout)).await;
+    let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+    result
+}
+
+fn zerr(what: &str, e: impl std::fmt::Display) -> CliError {
+    CliError::Run(format!("{what}: {e}"))
+}
+
+/// Runs the follower at `index` with `body` on an open session.
+pub async fn run_follower(
+    session: &zenoh::Session,
+    scenario: &Scenario,
+    keys: &Keys,
+    index: usize,
+    body: Box<dyn Body>,
+    stall_timeout: Duration,
+) -> Result<(), CliError> {
+    let id = scenario.graph.id(index);
+    let hears_leader = scenario.graph.hears_leader(index);
+    let neighbour_ids: Vec<u32> = scenario.graph.neighbours(index).iter().map(|&j| scenario.graph.id(j)).collect();
+    let lockstep = scenario.timing == Timing::Lockstep;
+    let slots = neighbour_ids.len() + usize::from(hears_leader);
+    let shared = Arc::new(Shared { inbox: Mutex::new(Inbox::new(slots, lockstep)), arrived: Condvar::new() });
+
+    // Subscribers first (the start barrier relies on it), one per source.
+    let mut sources: Vec<u32> = neighbour_ids.clone();
+    if hears_leader {
+        sources.push(wire::LEADER_ID);
+    }
+    let mut subscribers = Vec::new();
+    for &src in &sources {
+        let shared = shared.clone();
+        let neighbour_ids = neighbour_ids.clone();
+        let n = neighbour_ids.len();
+        let sub = session
+            .declare_subscriber(keys.estimate(src))
+            .callback(move |sample| {
+                let key_id = node::last_chunk(sample.key_expr().as_str()).parse::<u32>().ok();
+                let bytes = sample.payload().to_bytes();
+                let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
+                match node::check(key_id, &bytes, hears_leader, &neighbour_ids) {
+                    Ok((Source::Neighbour(slot), msg)) => inbox.accept(slot, &msg),
+                    Ok((Source::Leader, msg)) => inbox.accept(n, &msg),
+                    Err(r) => inbox.reject(r),
+                }
+                drop(inbox);
+                shared.arrived.notify_all();
+            })
+            .await
+            .map_err(|e| zerr("declaring a subscriber", e))?;
+        subscribers.push(sub);
+    }
+    let estimate_pub = session
+        .declare_publisher(keys.estimate(id))
+        .congestion_control(CongestionControl::Block)
+        .express(true)
+        .await
+        .map_err(|e| zerr("declaring the estimate publisher", e))?;
+    let telemetry_pub = session
+        .declare_publisher(keys.telemetry(id))
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| zerr("declaring the telemetry publisher", e))?;
+
+    let mut needs: Vec<String> = neighbour_ids.iter().map(u32::to_string).collect();
+    if hears_leader {
+        needs.push(wire::LEADER_ID.to_string());
+    }
+    let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, node::fingerprint(scenario)).await?;
+
+    let loop_ctx = LoopCtx {
+        id,
+        steps: scenario.steps(),
+        dt_s: scenario.dt_s,
+        batch: scenario.network.telemetry_batch.max(1) as usize,
+        lockstep,
+        has_leader: hears_leader,
+        neighbours: neighbour_ids.len(),
+        silence_steps: (scenario.network.silence_timeout_s / scenario.dt_s).round() as u64,
+        start,
+        stall_timeout,
+        source_names: sources
+            .iter()
+            .map(|&s| if s == wire::LEADER_ID { "the leader".to_string() } else { format!("follower {s}") })
+            .collect(),
+    };
+    let outcome =
+        tokio::task::spawn_blocking(move || control_loop(loop_ctx, body, &shared, &estimate_pub, &telemetry_pub))
+            .await
+            .map_err(|e| CliError::Run(format!("follower {id}: control loop panicked: {e}")))?;
+    drop(subscribers);
+    outcome.map_err(|e| CliError::Run(format!("follower {id}: {e}")))
+}
+
+struct LoopCtx {
+    id: u32,
+    steps: u64,
+    dt_s: f64,
+    batch: usize,
+    lockstep: bool,
+    has_leader: bool,
+    neighbours: usize,
+    silence_steps: u64,
+    start: Start,
+    stall_timeout: Duration,
+    /// "follower 2", …, "the leader", by inbox slot.
+    source_names: Vec<String>,
+}
+
+/// Real-time pacing: step k is due at epoch + k Δt / time_scale.
+pub(crate) struct Pacer {
+    epoch: Instant,
+    period: Duration,
+    wakes: Vec<f64>,
+}
+
+impl Pacer {
+    pub fn new(start: &Start, dt_s: f64, steps: u64) -> Self {
+        let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
+        Self {
+            epoch: start.epoch_instant(),
+            period: Duration::from_secs_f64(dt_s / scale),
+            wakes: Vec::with_capacity(steps as usize + 1),
+        }
+    }
+
+    /// Sleeps until step k is due and records the wake-up.
+    pub fn wait(&mut self, k: u64) {
+        let due = self.epoch + self.period.mul_f64(k as f64);
+        let now = Instant::now();
+        if due > now {
+            std::thread::sleep(due - now);
+        }
+        self.wakes.push(Instant::now().saturating_duration_since(self.epoch).as_secs_f64());
+    }
+
+    pub fn stats(&self) -> LoopStats {
+        LoopStats::from_wakeups(&self.wakes, self.period.as_secs_f64())
+    }
+}
+
+fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), String> {
+    p.put(bytes).wait().map_err(|e| format!("publishing: {e}"))
+}
+
+fn control_loop(
+    c: LoopCtx,
+    mut body: Box<dyn Body>,
+    shared: &Shared,
+    estimate_pub: &Publisher<'_>,
+    telemetry_pub: &Publisher<'_>,
+) -> Result<(), String> {
+    let msg = |k: u64, state: LeaderState| EstimateMsg {
+        header: Header { version: FORMAT_VERSION, sender: c.id, step: k, time_s: k as f64 * c.dt_s },
+        state,
+    };
+    let mut sent = 0u64;
+    let mut republished = 0u64;
+    // The messages for the previous and the current step (republished while waiting).
+    let mut previous: Option<Vec<u8>> = None;
+    let mut current = wire::encode(&msg(0, body.initial_message()));
+    put(estimate_pub, current.clone())?;
+    sent += 1;
+
+    let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s, c.steps));
+    let mut inputs: Vec<LeaderState> = Vec::with_capacity(c.neighbours + 1);
+    let mut batch: Vec<FollowerSample> = Vec::with_capacity(c.batch);
+    let mut first_k = 0u64;
+    for k in 0..=c.steps {
+        let last = k == c.steps;
+        let t = k as f64 * c.dt_s;
+        if let Some(p) = pacer.as_mut() {
+            p.wait(k);
+        }
+        // The inputs of step k: neighbours in ascending id, and the leader.
+        let leader = {
+            let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
+            if c.lockstep {
+                let waited = Instant::now();
+                while !inbox.has_all(k) {
+                    let (g, timeout) = shared
+                        .arrived
+                        .wait_timeout(inbox, Duration::from_millis(100))
+                        .unwrap_or_else(|p| p.into_inner());
+                    inbox = g;
+                    if timeout.timed_out() {
+                        if waited.elapsed() > c.stall_timeout {
+                            return Err(format!(
+                                "no input for step {k} from {} for {:.0} s (stall timeout)",
+                                inbox
+                                    .missing(k)
+                                    .iter()
+                                    .map(|&s| c.source_names[s].as_str())
+                                    .collect::<Vec<_>>()
+                                    .join(", "),
+                                c.stall_timeout.as_secs_f64()
+                            ));
+                        }
+                        // Safety net for messages lost at start-up: say it again.
+                        drop(inbox);
+                        for bytes in previous.iter().chain(std::iter::once(&current)) {
+                            put(estimate_pub, bytes.clone())?;
+                            sent += 1;
+                            republished += 1;
+                        }
+                        inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
+                    }
+                }
+                // Slots 0..n are the neighbours, slot n the leader.
+                inbox.take(k, &mut inputs);
+                let leader = if c.has_leader { inputs.get(c.neighbours).copied() } else { None };
+                inputs.truncate(c.neighbours);
+                leader
+            } else {
+                // Latest values; a source silent too long is left out.
+                inputs.clear();
+                for slot in 0..c.neighbours {
+                    if let Some(s) = inbox.latest(slot, k, c.silence_steps) {
+                        inputs.push(s);
+                    }
+                }
+                if c.has_leader {
+                    inbox.latest(c.neighbours, k, c.silence_steps)
+                } else {
+                    None
+                }
+            }
+        };
+        let (sample, next) = body.step(t, c.dt_s, leader.as_ref(), &inputs, last);
+
+        // Publish the message for k + 1 at once, then telemetry.
+        batch.push(sample);
+        let diverged = body.check_finite().err();
+        if !last && diverged.is_none() {
+            let bytes = wire::encode(&msg(k + 1, next));
+            put(estimate_pub, bytes.clone())?;
+            sent += 1;
+            previous = Some(std::mem::replace(&mut current, bytes));
+        }
+        if batch.len() >= c.batch || last || diverged.is_some() {
+            let mut counters: Counters = shared.inbox.lock().unwrap_or_else(|p| p.into_inner()).counters;
+            counters.sent = sent;
+            counters.republished = republished;
+            let done = last || diverged.is_some();
+            let t = Telemetry::Follower {
+                id: c.id,
+                first_k,
+                samples: std::mem::take(&mut batch),
+                counters,
+                done,
+                loop_stats: if done { pacer.as_ref().map(Pacer::stats) } else { None },
+            };
+            put(telemetry_pub, node::encode(&t))?;
+            first_k = k + 1;
+        }
+        if let Some(q) = diverged {
+            return Err(format!("{q} is not finite at step {k} (t = {t} s); the run diverged"));
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,235 @@
+//! The virtual leader as a networked node (the `leader` binary): publishes
+//! (k, t, P_r, Ṗ_r, v_r, ω_r) for the followers that hear it (SPEC §13),
+//! its true state per step as telemetry for the monitor's metrics, and
+//! leads the start barrier.
+//!
+//! In lock-step the leader has no inputs; it runs at most [`WINDOW`] steps
+//! ahead of the slowest follower that hears it (it watches their estimate
+//! keys), so its messages never pile up without bound.
+
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use formation_agent::LeaderState;
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_topology::{Scenario, Timing};
+use zenoh::pubsub::Publisher;
+use zenoh::qos::CongestionControl;
+use zenoh::Wait;
+
+use crate::cli::CliError;
+use crate::net::agent::Pacer;
+use crate::net::barrier;
+use crate::net::node::{self, Counters, Keys, NodeArgs, Start, Telemetry, MONITOR};
+
+/// Lock-step: how many steps the leader may run ahead of its followers.
+pub const WINDOW: u64 = 200;
+
+/// `leader` arguments.
+#[derive(clap::Args, Debug, Clone)]
+pub struct LeaderArgs {
+    #[command(flatten)]
+    pub node: NodeArgs,
+    /// Real-time mode: run time per wall-clock second [default: network.time_scale].
+    #[arg(long, value_name = "X")]
+    pub time_scale: Option<f64>,
+    /// Real-time mode: the epoch is announced this long before step 0 (s).
+    #[arg(long, default_value_t = 0.5, value_name = "SECONDS")]
+    pub start_lead: f64,
+}
+
+struct Progress {
+    /// Latest step each hearing follower has published (i.e. reached).
+    reached: Mutex<Vec<Option<u64>>>,
+    moved: Condvar,
+}
+
+fn zerr(what: &str, e: impl std::fmt::Display) -> CliError {
+    CliError::Run(format!("{what}: {e}"))
+}
+
+pub async fn run(args: &LeaderArgs) -> Result<(), CliError> {
+    let (scenario, keys) = args.node.load()?;
+    let time_scale = args.time_scale.unwrap_or(scenario.network.time_scale);
+    if !(time_scale.is_finite() && time_scale > 0.0) {
+        return Err(CliError::Input(format!("--time-scale must be a positive number, not {time_scale}")));
+    }
+    if !(args.start_lead.is_finite() && args.start_lead >= 0.0) {
+        return Err(CliError::Input("--start-lead must be ≥ 0".into()));
+    }
+    let session = args.node.open().await?;
+    let result = run_leader(&session, &scenario, &keys, time_scale, Duration::from_secs_f64(args.start_lead)).await;
+    let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+    result
+}
+
+pub async fn run_leader(
+    session: &zenoh::Session,
+    scenario: &Scenario,
+    keys: &Keys,
+    time_scale: f64,
+    start_lead: Duration,
+) -> Result<(), CliError> {
+    let hearing: Vec<u32> =
+        (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
+    let progress = Arc::new(Progress { reached: Mutex::new(vec![None; hearing.len()]), moved: Condvar::new() });
+    let mut subs = Vec::new();
+    for (slot, &id) in hearing.iter().enumerate() {
+        let p = progress.clone();
+        subs.push(
+            session
+                .declare_subscriber(keys.estimate(id))
+                .callback(move |s| {
+                    let key_id = node::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
+                    if let Ok(m) = wire::decode(&s.payload().to_bytes()) {
+                        if key_id == Some(m.header.sender) {
+                            let mut r = p.reached.lock().unwrap_or_else(|e| e.into_inner());
+                            r[slot] = Some(r[slot].map_or(m.header.step, |x| x.max(m.header.step)));
+                            drop(r);
+                            p.moved.notify_all();
+                        }
+                    }
+                })
+                .await
+                .map_err(|e| zerr("declaring a subscriber", e))?,
+        );
+    }
+    let estimate_pub = session
+        .declare_publisher(keys.estimate(wire::LEADER_ID))
+        .congestion_control(CongestionControl::Block)
+        .express(true)
+        .await
+        .map_err(|e| zerr("declaring the estimate publisher", e))?;
+    let telemetry_pub = session
+        .declare_publisher(keys.telemetry(wire::LEADER_ID))
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| zerr("declaring the telemetry publisher", e))?;
+
+    let hellos: Vec<String> = hearing.iter().map(u32::to_string).collect();
+    let mut ready: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
+    ready.push(MONITOR.to_string());
+    let lockstep = scenario.timing == Timing::Lockstep;
+    let lead = if lockstep { Duration::ZERO } else { start_lead };
+    let (start, announcer) =
+        barrier::lead_start(session, keys, &hellos, &ready, node::fingerprint(scenario), time_scale, lead).await?;
+
+    let scenario = scenario.clone();
+    let outcome = tokio::task::spawn_blocking(move || {
+        leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &telemetry_pub)
+    })
+    .await
+    .map_err(|e| CliError::Run(format!("leader: loop panicked: {e}")))?;
+    announcer.abort();
+    drop(subs);
+    outcome.map_err(|e| CliError::Run(format!("leader: {e}")))
+}
+
+fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), String> {
+    p.put(bytes).wait().map_err(|e| format!("publishing: {e}"))
+}
+
+fn leader_loop(
+    s: &Scenario,
+    lockstep: bool,
+    start: &Start,
+    progress: &Progress,
+    estimate_pub: &Publisher<'_>,
+    telemetry_pub: &Publisher<'_>,
+) -> Result<(), String> {
+    let steps = s.steps();
+    let dt = s.dt_s;
+    let batch_len = s.network.telemetry_batch.max(1) as usize;
+    let msg = |k: u64, state: LeaderState| {
+        wire::encode(&EstimateMsg {
+            header: Header { version: FORMAT_VERSION, sender: wire::LEADER_ID, step: k, time_s: k as f64 * dt },
+            state,
+        })
+    };
+    let mut leader = s.leader();
+    let mut counters = Counters::default();
+    // Lock-step: the last WINDOW messages, republished if followers stall.
+    let mut recent: std::collections::VecDeque<(u64, Vec<u8>)> = Default::default();
+    let mut state = leader.state(0.0);
+    let first = msg(0, state);
+    put(estimate_pub, first.clone())?;
+    counters.sent += 1;
+    recent.push_back((0, first));
+
+    let mut pacer = (!lockstep).then(|| Pacer::new(start, dt, steps));
+    let mut batch: Vec<LeaderState> = Vec::with_capacity(batch_len);
+    let mut first_k = 0u64;
+    for k in 0..=steps {
+        let last = k == steps;
+        if let Some(p) = pacer.as_mut() {
+            p.wait(k);
+        }
+        batch.push(state);
+        if !last {
+            leader.advance(&state, dt);
+            state = leader.state((k + 1) as f64 * dt);
+            if lockstep {
+                wait_window(k + 1, progress, estimate_pub, &recent, &mut counters)?;
+            }
+            let bytes = msg(k + 1, state);
+            put(estimate_pub, bytes.clone())?;
+            counters.sent += 1;
+            if lockstep {
+                recent.push_back((k + 1, bytes));
+                if recent.len() > WINDOW as usize + 1 {
+                    recent.pop_front();
+                }
+            }
+        }
+        if batch.len() >= batch_len || last {
+            let t = Telemetry::Leader {
+                first_k,
+                states: std::mem::take(&mut batch),
+                counters,
+                done: last,
+                loop_stats: if last { pacer.as_ref().map(Pacer::stats) } else { None },
+            };
+            put(telemetry_pub, node::encode(&t))?;
+            first_k = k + 1;
+        }
+    }
+    Ok(())
+}
+
+/// Lock-step: waits until every hearing follower has reached step k − WINDOW.
+fn wait_window(
+    k: u64,
+    progress: &Progress,
+    estimate_pub: &Publisher<'_>,
+    recent: &std::collections::VecDeque<(u64, Vec<u8>)>,
+    counters: &mut Counters,
+) -> Result<(), String> {
+    let Some(need) = k.checked_sub(WINDOW) else { return Ok(()) };
+    let waited = Instant::now();
+    let mut reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
+    loop {
+        let slowest = reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(u64::MAX);
+        if slowest >= need {
+            return Ok(());
+        }
+        let (g, timeout) =
+            progress.moved.wait_timeout(reached, Duration::from_millis(200)).unwrap_or_else(|e| e.into_inner());
+        reached = g;
+        if timeout.timed_out() {
+            if waited.elapsed() > Duration::from_secs(60) {
+                return Err(format!("followers stopped before step {need} (no progress for 60 s)"));
+            }
+            // Safety net: repeat what the slowest follower may have missed.
+            let slowest = reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(0);
+            drop(reached);
+            for (step, bytes) in recent {
+                if *step >= slowest {
+                    put(estimate_pub, bytes.clone())?;
+                    counters.sent += 1;
+                    counters.republished += 1;
+                }
+            }
+            reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
+        }
+    }
+}

@@ -1,0 +1,499 @@
+//! What every networked node shares: command-line arguments, key
+//! expressions, the start barrier's control messages, telemetry payloads
+//! and the checks applied to every received estimate message.
+//!
+//! # Keys (all under `formation/<run>/`)
+//!
+//! | key | who publishes | payload |
+//! | --- | --- | --- |
+//! | `estimate/<id>` | leader (id 0), follower id | [`wire::EstimateMsg`] (SPEC §13) |
+//! | `telemetry/<id>` | leader (id 0), follower id | [`Telemetry`] |
+//! | `control/hello/<node>` | every node, until the start | empty |
+//! | `control/ready/<node>` | agents and monitor, until the start | [`Ready`] |
+//! | `control/start` | leader, every 100 ms during the run | [`Start`] |
+//!
+//! `<node>` is `0` for the leader, the follower id, or `monitor`.
+//!
+//! # Start barrier
+//!
+//! Zenoh peers connect asynchronously, and a message put before the other
+//! side knows of a subscription is silently lost. So before anything steps:
+//! every node declares its subscribers, then repeats `hello` every 50 ms. A
+//! node is *ready* once it has heard the `hello` of every node it receives
+//! from (an agent: its neighbours and, if a_i0 = 1, the leader; the monitor:
+//! everybody): the same transport that carried the hello carried the
+//! subscriber declarations made before it. Ready nodes repeat `ready` (with
+//! a fingerprint of their scenario) until the leader, having heard every
+//! agent and the monitor ready with its own fingerprint, repeats `start`
+//! (the run's epoch and time scale). Nobody stops saying `hello` before the
+//! start, so nobody waits forever for a hello.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use formation_agent::LeaderState;
+use formation_topology::wire::{self, EstimateMsg, Reject};
+use formation_topology::Scenario;
+use serde::{Deserialize, Serialize};
+
+use crate::cli::CliError;
+use crate::net::session::{self, ZenohArgs};
+use crate::record::FollowerSample;
+
+/// Arguments every node takes.
+#[derive(clap::Args, Debug, Clone)]
+pub struct NodeArgs {
+    /// Scenario file (TOML); every node of a run must load the same one.
+    #[arg(long, value_name = "FILE")]
+    pub scenario: PathBuf,
+    /// Override a scenario value, as `formation sim --set` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+    /// Run name: the key namespace `formation/<run>/…` [default: scenario name].
+    #[arg(long, value_name = "NAME")]
+    pub run: Option<String>,
+    #[command(flatten)]
+    pub zenoh: ZenohArgs,
+}
+
+impl NodeArgs {
+    /// Loads the scenario and resolves the run name (bad input: exit 2).
+    pub fn load(&self) -> Result<(Scenario, Keys), CliError> {
+        let scenario = Scenario::load(&self.scenario, &self.overrides).map_err(|e| CliError::Input(e.to_string()))?;
+        let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
+        session::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
+        self.zenoh.to_config().map_err(|e| CliError::Input(format!("zenoh options: {e}")))?;
+        Ok((scenario, Keys::new(&run)))
+    }
+
+    pub async fn open(&self) -> Result<zenoh::Session, CliError> {
+        tokio::time::timeout(Duration::from_secs(30), session::open(&self.zenoh))
+            .await
+            .map_err(|_| CliError::Run("zenoh session did not open within 30 s".into()))?
+            .map_err(|e| CliError::Run(e.to_string()))
+    }
+}
+
+/// The shell of every node binary: logging, a multi-thread runtime, and
+/// errors as one line with exit status 2 (bad input) or 1 (failed run).
+pub fn main_with<F, Fut>(f: F) -> std::process::ExitCode
+where
+    F: FnOnce() -> Fut,
+    Fut: std::future::Future<Output = Result<std::process::ExitCode, CliError>>,
+{
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .try_init();
+    let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: cannot start the async runtime: {e}");
+            return std::process::ExitCode::from(1);
+        }
+    };
+    let result = runtime.block_on(f());
+    // Zenoh's background tasks must not keep the process alive.
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e}");
+            e.exit_code()
+        }
+    }
+}
+
+/// The key expressions of one run.
+#[derive(Clone, Debug)]
+pub struct Keys {
+    pub run: String,
+}
+
+impl Keys {
+    pub fn new(run: &str) -> Self {
+        Self { run: run.to_string() }
+    }
+    pub fn estimate(&self, id: u32) -> String {
+        session::key(&self.run, &format!("estimate/{id}"))
+    }
+    pub fn telemetry(&self, id: u32) -> String {
+        session::key(&self.run, &format!("telemetry/{id}"))
+    }
+    pub fn telemetry_all(&self) -> String {
+        session::key(&self.run, "telemetry/*")
+    }
+    pub fn hello(&self, node: &str) -> String {
+        session::key(&self.run, &format!("control/hello/{node}"))
+    }
+    pub fn ready(&self, node: &str) -> String {
+        session::key(&self.run, &format!("control/ready/{node}"))
+    }
+    pub fn ready_all(&self) -> String {
+        session::key(&self.run, "control/ready/*")
+    }
+    pub fn start(&self) -> String {
+        session::key(&self.run, "control/start")
+    }
+}
+
+/// The last chunk of a key expression (`…/estimate/3` → `3`).
+pub fn last_chunk(key: &str) -> &str {
+    key.rsplit('/').next().unwrap_or("")
+}
+
+/// Node name of the monitor in control keys.
+pub const MONITOR: &str = "monitor";
+/// Node name of the leader in control keys (its wire id).
+pub const LEADER_NODE: &str = "0";
+
+fn bincode_config() -> bincode::config::Configuration {
+    bincode::config::standard()
+}
+
+/// Encodes a control or telemetry payload.
+pub fn encode<T: Serialize>(v: &T) -> Vec<u8> {
+    bincode::serde::encode_to_vec(v, bincode_config()).unwrap_or_default()
+}
+
+/// Decodes a control or telemetry payload (None if malformed).
+pub fn decode<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Option<T> {
+    match bincode::serde::decode_from_slice::<T, _>(bytes, bincode_config()) {
+        Ok((v, used)) if used == bytes.len() => Some(v),
+        _ => None,
+    }
+}
+
+/// "I can hear everyone I need": sent by agents and the monitor.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Ready {
+    pub fingerprint: u64,
+}
+
+/// The leader's go: the run's epoch (wall clock, ns since the Unix epoch:
+/// step k is due at epoch + k Δt / time_scale in real time) and time scale.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Start {
+    pub fingerprint: u64,
+    pub epoch_unix_ns: u64,
+    pub time_scale: f64,
+}
+
+impl Start {
+    /// The epoch as a tokio/std instant of this process.
+    pub fn epoch_instant(&self) -> std::time::Instant {
+        let now_i = std::time::Instant::now();
+        let now_ns = unix_ns();
+        if self.epoch_unix_ns >= now_ns {
+            now_i + Duration::from_nanos(self.epoch_unix_ns - now_ns)
+        } else {
+            now_i.checked_sub(Duration::from_nanos(now_ns - self.epoch_unix_ns)).unwrap_or(now_i)
+        }
+    }
+}
+
+pub fn unix_ns() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
+}
+
+/// A fingerprint of the scenario as loaded (file plus overrides), so that
+/// nodes started with different scenarios refuse to run together.
+pub fn fingerprint(s: &Scenario) -> u64 {
+    let text = serde_json::to_string(&s.source).unwrap_or_default();
+    // FNV-1a, 64 bit.
+    text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+}
+
+/// Per-reason counts of received estimate messages that were not used.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RejectCounts {
+    pub malformed: u64,
+    pub version: u64,
+    pub non_finite: u64,
+    pub wrong_sender: u64,
+    pub not_neighbour: u64,
+    /// An older step than one already used (also: duplicates of a used step).
+    pub stale: u64,
+}
+
+impl RejectCounts {
+    pub fn add(&mut self, r: Reject) {
+        match r {
+            Reject::Malformed => self.malformed += 1,
+            Reject::Version => self.version += 1,
+            Reject::NonFinite => self.non_finite += 1,
+            Reject::WrongSender => self.wrong_sender += 1,
+            Reject::NotNeighbour => self.not_neighbour += 1,
+            Reject::Stale => self.stale += 1,
+        }
+    }
+    /// Everything but `stale` (which is lateness, not a bad message).
+    pub fn invalid(&self) -> u64 {
+        self.malformed + self.version + self.non_finite + self.wrong_sender + self.not_neighbour
+    }
+}
+
+/// A node's message counters, sent with every telemetry batch.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Counters {
+    /// Estimate messages published (republications included).
+    pub sent: u64,
+    /// Republications of a step's message while waiting (lock-step).
+    pub republished: u64,
+    /// Estimate messages received that passed every check.
+    pub received: u64,
+    /// Received too late to be used (lock-step: a duplicate of a used step;
+    /// real time: older than the latest already held). Also in `rejected.stale`.
+    pub late: u64,
+    pub rejected: RejectCounts,
+    /// (Real time) neighbour-steps left out of the estimator's sums because
+    /// the neighbour was silent longer than `network.silence_timeout`.
+    pub silent: u64,
+}
+
+/// Control-loop timing of a real-time node (µs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LoopStats {
+    /// |actual period − nominal period|: p50, p99, max.
+    pub period_error_p50_us: f64,
+    pub period_error_p99_us: f64,
+    pub period_error_max_us: f64,
+    /// Wake-up after the step's due time: p50, p99, max.
+    pub lateness_p50_us: f64,
+    pub lateness_p99_us: f64,
+    pub lateness_max_us: f64,
+    pub steps: u64,
+}
+
+impl LoopStats {
+    /// From the wake-up times (s since the epoch) of consecutive steps.
+    pub fn from_wakeups(wake_s: &[f64], period_s: f64) -> Self {
+        let mut period_err: Vec<f64> = wake_s.windows(2).map(|w| ((w[1] - w[0]) - period_s).abs() * 1e6).collect();
+        let mut late: Vec<f64> =
+            wake_s.iter().enumerate().map(|(k, w)| (w - k as f64 * period_s).max(0.0) * 1e6).collect();
+        let (p50, p99, max) = percentiles(&mut period_err);
+        let (l50, l99, lmax) = percentiles(&mut late);
+        Self {
+            period_error_p50_us: p50,
+            period_error_p99_us: p99,
+            period_error_max_us: max,
+            lateness_p50_us: l50,
+            lateness_p99_us: l99,
+            lateness_max_us: lmax,
+            steps: wake_s.len() as u64,
+        }
+    }
+}
+
+/// (p50, p99, max) of a sample set (sorted in place); zeros if empty.
+pub fn percentiles(v: &mut [f64]) -> (f64, f64, f64) {
+    if v.is_empty() {
+        return (0.0, 0.0, 0.0);
+    }
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    (at(0.5), at(0.99), v[v.len() - 1])
+}
+
+/// Telemetry for the monitor: every step of a node, in batches. Never feeds control.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Telemetry {
+    Follower {
+        id: u32,
+        /// Step of `samples[0]`.
+        first_k: u64,
+        samples: Vec<FollowerSample>,
+        counters: Counters,
+        /// The node has sent its final step.
+        done: bool,
+        loop_stats: Option<LoopStats>,
+    },
+    Leader {
+        first_k: u64,
+        /// The true leader state at steps first_k, first_k + 1, …
+        states: Vec<LeaderState>,
+        counters: Counters,
+        done: bool,
+        loop_stats: Option<LoopStats>,
+    },
+}
+
+/// Where an estimate message came from, as the receiver sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Source {
+    Leader,
+    /// Index of the neighbour in the receiver's neighbour list.
+    Neighbour(usize),
+}
+
+/// The receiving side's checks (SPEC §13, issue 3): decodes, and checks that
+/// the header's sender is the key's, and that the sender is one this node
+/// listens to. Staleness is the caller's (it depends on the timing mode).
+pub fn check(
+    key_id: Option<u32>,
+    bytes: &[u8],
+    hears_leader: bool,
+    neighbour_ids: &[u32],
+) -> Result<(Source, EstimateMsg), Reject> {
+    let msg = wire::decode(bytes)?;
+    if key_id != Some(msg.header.sender) {
+        return Err(Reject::WrongSender);
+    }
+    let sender = msg.header.sender;
+    if sender == wire::LEADER_ID {
+        return if hears_leader { Ok((Source::Leader, msg)) } else { Err(Reject::NotNeighbour) };
+    }
+    match neighbour_ids.iter().position(|&j| j == sender) {
+        Some(n) => Ok((Source::Neighbour(n), msg)),
+        None => Err(Reject::NotNeighbour),
+    }
+}
+
+/// The estimate messages one node has received and not yet used, per source.
+#[derive(Debug, Default)]
+pub struct Inbox {
+    /// Lock-step: every step received and not yet used, by step.
+    pending: Vec<BTreeMap<u64, LeaderState>>,
+    /// The last step used (lock-step) or held (real time), per source.
+    newest: Vec<Option<u64>>,
+    /// Real time: the latest message per source.
+    latest: Vec<Option<(u64, LeaderState)>>,
+    pub counters: Counters,
+    lockstep: bool,
+}
+
+impl Inbox {
+    /// `sources` = neighbours (+1 for the leader, at the last slot, if heard).
+    pub fn new(sources: usize, lockstep: bool) -> Self {
+        Self {
+            pending: vec![BTreeMap::new(); sources],
+            newest: vec![None; sources],
+            latest: vec![None; sources],
+            counters: Counters::default(),
+            lockstep,
+        }
+    }
+
+    /// Files a checked message, or counts it as stale.
+    pub fn accept(&mut self, slot: usize, msg: &EstimateMsg) {
+        let step = msg.header.step;
+        if self.newest[slot].is_some_and(|n| step <= n) {
+            self.counters.late += 1;
+            self.counters.rejected.add(Reject::Stale);
+            return;
+        }
+        self.counters.received += 1;
+        if self.lockstep {
+            // A republication of a pending step keeps the first copy.
+            self.pending[slot].entry(step).or_insert(msg.state);
+        } else {
+            self.newest[slot] = Some(step);
+            self.latest[slot] = Some((step, msg.state));
+        }
+    }
+
+    pub fn reject(&mut self, r: Reject) {
+        self.counters.rejected.add(r);
+    }
+
+    /// Lock-step: whether every source's step-k message is here.
+    pub fn has_all(&self, k: u64) -> bool {
+        self.pending.iter().all(|p| p.contains_key(&k))
+    }
+
+    /// Lock-step: the slots whose step-k message is missing.
+    pub fn missing(&self, k: u64) -> Vec<usize> {
+        (0..self.pending.len()).filter(|&s| !self.pending[s].contains_key(&k)).collect()
+    }
+
+    /// Lock-step: takes every source's step-k message (call after `has_all`).
+    pub fn take(&mut self, k: u64, out: &mut Vec<LeaderState>) {
+        out.clear();
+        for (slot, p) in self.pending.iter_mut().enumerate() {
+            // Drop anything older (cannot happen with has_all, but keeps memory bounded).
+            while let Some((&s, _)) = p.first_key_value() {
+                if s >= k {
+                    break;
+                }
+                p.pop_first();
+            }
+            if let Some(state) = p.remove(&k) {
+                out.push(state);
+            }
+            self.newest[slot] = Some(k);
+        }
+    }
+
+    /// Real time: the latest message of a source if it is at most
+    /// `max_age_steps` older than k (else it counts as silent).
+    pub fn latest(&mut self, slot: usize, k: u64, max_age_steps: u64) -> Option<LeaderState> {
+        match self.latest[slot] {
+            Some((s, state)) if k.saturating_sub(s) <= max_age_steps => Some(state),
+            _ => {
+                self.counters.silent += 1;
+                None
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use formation_topology::wire::{Header, FORMAT_VERSION};
+
+    fn msg(sender: u32, step: u64) -> EstimateMsg {
+        EstimateMsg {
+            header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
+            state: LeaderState { v: step as f64, ..Default::default() },
+        }
+    }
+
+    #[test]
+    fn checks_name_the_reason() {
+        let bytes = wire::encode(&msg(2, 5));
+        assert_eq!(check(Some(2), &bytes, false, &[2, 3]).map(|r| r.0), Ok(Source::Neighbour(0)));
+        assert_eq!(check(Some(3), &bytes, false, &[2, 3]).map(|r| r.0), Err(Reject::WrongSender));
+        assert_eq!(check(Some(2), &bytes, false, &[3]).map(|r| r.0), Err(Reject::NotNeighbour));
+        assert_eq!(check(Some(2), b"junk", false, &[2]).map(|r| r.0), Err(Reject::Malformed));
+        let leader = wire::encode(&msg(0, 5));
+        assert_eq!(check(Some(0), &leader, true, &[2]).map(|r| r.0), Ok(Source::Leader));
+        assert_eq!(check(Some(0), &leader, false, &[2]).map(|r| r.0), Err(Reject::NotNeighbour));
+    }
+
+    #[test]
+    fn lockstep_inbox_waits_for_every_source_and_counts_stale() {
+        let mut inbox = Inbox::new(2, true);
+        inbox.accept(0, &msg(1, 0));
+        assert!(!inbox.has_all(0));
+        inbox.accept(1, &msg(2, 0));
+        inbox.accept(1, &msg(2, 1));
+        assert!(inbox.has_all(0));
+        let mut out = Vec::new();
+        inbox.take(0, &mut out);
+        assert_eq!(out.len(), 2);
+        inbox.accept(0, &msg(1, 0));
+        assert_eq!(inbox.counters.rejected.stale, 1);
+        assert!(!inbox.has_all(1));
+    }
+
+    #[test]
+    fn realtime_inbox_keeps_the_latest_and_leaves_out_the_silent() {
+        let mut inbox = Inbox::new(1, false);
+        assert_eq!(inbox.latest(0, 0, 10), None);
+        inbox.accept(0, &msg(1, 3));
+        inbox.accept(0, &msg(1, 2));
+        assert_eq!(inbox.counters.late, 1);
+        assert_eq!(inbox.latest(0, 5, 10).map(|s| s.v), Some(3.0));
+        assert_eq!(inbox.latest(0, 14, 10), None);
+        assert_eq!(inbox.counters.silent, 2);
+    }
+
+    #[test]
+    fn loop_stats_of_a_perfect_loop_are_zero() {
+        let wake: Vec<f64> = (0..100).map(|k| k as f64 * 1e-3).collect();
+        let s = LoopStats::from_wakeups(&wake, 1e-3);
+        assert!(s.period_error_max_us < 1e-6 && s.lateness_max_us < 1e-6);
+    }
+}
