@@ -31,6 +31,9 @@ pub enum Command {
     Sim(SimArgs),
     /// Measure follower-steps per second of the simulator.
     Bench(BenchArgs),
+    /// Run the formation as separate processes over zenoh on this machine
+    /// (leader, one agent per follower, monitor) and print the summary.
+    Launch(crate::launch::LaunchArgs),
 }
 
 /// Scenario selection shared by every command that runs one.
@@ -120,6 +123,7 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Sim(a) => sim(&a).map(|_| ()),
         Command::Bench(a) => crate::bench::run(&a),
+        Command::Launch(a) => crate::launch::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

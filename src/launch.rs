@@ -1,0 +1,366 @@
+//! `formation launch`: the whole formation as separate OS processes on
+//! this machine — the leader, one agent per follower and the monitor (and a
+//! zenoh router in client mode) — talking over zenoh on 127.0.0.1.
+//!
+//! Peer mode (default): every node listens on its own loopback port; the
+//! leader connects to the monitor, each agent to the monitor, the leader and
+//! its lower-id neighbours (zenoh's gossip adds any missing link). Client
+//! mode: every node connects to a `router` child.
+//!
+//! No process is left behind: on success, when any child fails (the monitor
+//! is told to write what it has, the rest are killed), on Ctrl-C or SIGTERM
+//! (forwarded; the monitor flushes its run folder), and when this process
+//! unwinds (a guard kills every child still running).
+
+use std::io::{BufRead, BufReader};
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use formation_topology::Scenario;
+
+use crate::cli::{CliError, ScenarioArgs};
+use crate::net::session;
+use crate::record::Summary;
+
+/// How the launched nodes reach each other.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LaunchMode {
+    /// Router-less peers, each listening on its own loopback port.
+    Peer,
+    /// Clients of a `router` child.
+    Client,
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct LaunchArgs {
+    #[command(flatten)]
+    pub scenario: ScenarioArgs,
+    /// Run folder the monitor writes [default: runs/<run name>]. Replaced if it exists.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Run name (key namespace formation/<run>/…) [default: scenario name].
+    #[arg(long, value_name = "NAME")]
+    pub run: Option<String>,
+    /// peer: router-less mesh; client: every node through a zenoh router child.
+    #[arg(long, value_enum, default_value_t = LaunchMode::Peer)]
+    pub mode: LaunchMode,
+    /// Use consecutive loopback ports from this one [default: free ports].
+    #[arg(long, value_name = "PORT")]
+    pub base_port: Option<u16>,
+    /// Real-time mode: run seconds per wall-clock second [default: network.time_scale].
+    #[arg(long, value_name = "X")]
+    pub time_scale: Option<f64>,
+    /// Print nothing but errors (and no live line).
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+/// The child processes of a launch; every one still running is killed on drop.
+pub struct Children {
+    list: Vec<(String, Child)>,
+}
+
+impl Children {
+    fn new() -> Self {
+        Self { list: Vec::new() }
+    }
+
+    fn push(&mut self, name: String, child: Child) {
+        self.list.push((name, child));
+    }
+
+    /// Asks every running child to stop (SIGTERM).
+    fn terminate(&mut self, only: impl Fn(&str) -> bool) {
+        for (name, child) in &mut self.list {
+            if only(name) && matches!(child.try_wait(), Ok(None)) {
+                let _ = Command::new("kill").args(["-TERM", &child.id().to_string()]).stderr(Stdio::null()).status();
+            }
+        }
+    }
+
+    /// Waits up to `limit` for the named child to exit.
+    fn wait_for(&mut self, name: &str, limit: Duration) -> Option<ExitStatus> {
+        let t = Instant::now();
+        while t.elapsed() < limit {
+            for (n, c) in &mut self.list {
+                if n == name {
+                    match c.try_wait() {
+                        Ok(Some(s)) => return Some(s),
+                        Ok(None) => {}
+                        Err(_) => return None,
+                    }
+                }
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        None
+    }
+
+    /// Waits up to `limit` for every child, then kills the rest.
+    fn reap(&mut self, limit: Duration) {
+        let t = Instant::now();
+        while t.elapsed() < limit && self.list.iter_mut().any(|(_, c)| matches!(c.try_wait(), Ok(None))) {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        self.kill_all();
+    }
+
+    fn kill_all(&mut self) {
+        for (_, child) in &mut self.list {
+            if matches!(child.try_wait(), Ok(None)) {
+                let _ = child.kill();
+            }
+            let _ = child.wait();
+        }
+    }
+
+    /// The first child that has exited, with its status (removed from the set
+    /// if it succeeded, so a finished node is not polled again).
+    fn poll(&mut self) -> Option<(String, ExitStatus)> {
+        for (name, child) in &mut self.list {
+            if let Ok(Some(status)) = child.try_wait() {
+                return Some((name.clone(), status));
+            }
+        }
+        None
+    }
+
+    fn remove(&mut self, name: &str) {
+        self.list.retain(|(n, _)| n != name);
+    }
+
+    /// Process ids of the children still running.
+    pub fn pids(&mut self) -> Vec<u32> {
+        self.list.iter_mut().filter_map(|(_, c)| matches!(c.try_wait(), Ok(None)).then(|| c.id())).collect()
+    }
+}
+
+impl Drop for Children {
+    fn drop(&mut self) {
+        self.kill_all();
+    }
+}
+
+fn ep(port: u16) -> String {
+    format!("tcp/127.0.0.1:{port}")
+}
+
+/// `count` loopback ports: consecutive from `base`, or free ones.
+fn ports(base: Option<u16>, count: usize) -> Result<Vec<u16>, CliError> {
+    if let Some(b) = base {
+        let last = u32::from(b) + count as u32;
+        if last > u32::from(u16::MAX) {
+            return Err(CliError::Input(format!("--base-port {b}: not enough ports above it for {count} nodes")));
+        }
+        return Ok((0..count as u16).map(|i| b + i).collect());
+    }
+    // Hold every listener until all are chosen, so no port is handed out twice.
+    let listeners: Vec<TcpListener> = (0..count)
+        .map(|_| TcpListener::bind("127.0.0.1:0"))
+        .collect::<Result<_, _>>()
+        .map_err(|e| CliError::Run(format!("finding free loopback ports: {e}")))?;
+    listeners
+        .iter()
+        .map(|l| l.local_addr().map(|a| a.port()))
+        .collect::<Result<_, _>>()
+        .map_err(|e| CliError::Run(format!("finding free loopback ports: {e}")))
+}
+
+/// The directory of the node binaries: next to the running executable.
+pub fn bin_dir() -> Result<PathBuf, CliError> {
+    let exe = std::env::current_exe().map_err(|e| CliError::Run(format!("locating this executable: {e}")))?;
+    let dir = exe.parent().map(Path::to_path_buf).unwrap_or_default();
+    for b in ["agent", "leader", "monitor", "router"] {
+        if !dir.join(b).exists() {
+            return Err(CliError::Run(format!(
+                "node binary {} not found next to {} (build every binary: cargo build --release)",
+                b,
+                exe.display()
+            )));
+        }
+    }
+    Ok(dir)
+}
+
+/// `formation launch`.
+pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
+    let scenario = a.scenario.load()?;
+    let run = a.run.clone().unwrap_or_else(|| scenario.name.clone());
+    session::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
+    if let Some(x) = a.time_scale {
+        if !(x.is_finite() && x > 0.0) {
+            return Err(CliError::Input(format!("--time-scale must be a positive number, not {x}")));
+        }
+    }
+    let out = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
+    let bins = bin_dir()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
+    let mut children = Children::new();
+    let result = runtime.block_on(launch(a, &scenario, &run, &out, &bins, &mut children));
+    drop(children);
+    let summary = result?;
+    if !a.quiet {
+        print!("{}", summary.table());
+        println!("wrote {}", out.display());
+    }
+    Ok(())
+}
+
+fn node_command(bins: &Path, bin: &str, a: &LaunchArgs, run: &str) -> Command {
+    let mut c = Command::new(bins.join(bin));
+    c.arg("--scenario").arg(&a.scenario.scenario).arg("--run").arg(run);
+    for o in &a.scenario.overrides {
+        c.arg("--set").arg(o);
+    }
+    c.stdin(Stdio::null());
+    c
+}
+
+fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
+    let child = c.spawn().map_err(|e| CliError::Run(format!("starting {name}: {e}")))?;
+    children.push(name.to_string(), child);
+    Ok(())
+}
+
+/// Starts a router child and waits for its "router listening" line.
+fn start_router(children: &mut Children, bins: &Path, port: u16) -> Result<(), CliError> {
+    let mut c = Command::new(bins.join("router"));
+    c.arg("--listen").arg(ep(port)).stdin(Stdio::null()).stdout(Stdio::piped());
+    let mut child = c.spawn().map_err(|e| CliError::Run(format!("starting the router: {e}")))?;
+    let stdout = child.stdout.take();
+    children.push("router".into(), child);
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut lines = stdout.map(|s| BufReader::new(s).lines());
+        let first = lines.as_mut().and_then(|l| l.next()).and_then(Result::ok);
+        let _ = tx.send(first);
+        // Keep draining so the router never blocks on a full pipe.
+        if let Some(l) = lines {
+            for _ in l {}
+        }
+    });
+    match rx.recv_timeout(Duration::from_secs(30)) {
+        Ok(Some(line)) if line.starts_with("router listening") => Ok(()),
+        Ok(other) => Err(CliError::Run(format!("the router did not start: {}", other.unwrap_or_default()))),
+        Err(_) => Err(CliError::Run("the router did not start within 30 s".into())),
+    }
+}
+
+async fn launch(
+    a: &LaunchArgs,
+    scenario: &Scenario,
+    run: &str,
+    out: &Path,
+    bins: &Path,
+    children: &mut Children,
+) -> Result<Summary, CliError> {
+    let n = scenario.followers.len();
+    // Ports: monitor, leader, followers by index (peer); or the router (client).
+    let count = if a.mode == LaunchMode::Peer { n + 2 } else { 1 };
+    let p = ports(a.base_port, count)?;
+    let endpoints = |c: &mut Command, listen: Option<u16>, connect: &[u16]| {
+        if a.mode == LaunchMode::Client {
+            c.args(["--mode", "client", "--connect", &ep(p[0])]);
+            return;
+        }
+        if let Some(l) = listen {
+            c.arg("--listen").arg(ep(l));
+        }
+        for &q in connect {
+            c.arg("--connect").arg(ep(q));
+        }
+    };
+    if !a.quiet {
+        eprintln!(
+            "launching {} processes ({} mode, run {run}): leader, {n} agents, monitor{}",
+            n + 2 + usize::from(a.mode == LaunchMode::Client),
+            if a.mode == LaunchMode::Peer { "peer" } else { "client" },
+            if a.mode == LaunchMode::Client { ", router" } else { "" },
+        );
+    }
+    if a.mode == LaunchMode::Client {
+        start_router(children, bins, p[0])?;
+    }
+    let (mon_port, lead_port) = if a.mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
+
+    let mut c = node_command(bins, "monitor", a, run);
+    c.arg("--out").arg(out).stdout(Stdio::null());
+    if a.quiet {
+        c.arg("--quiet");
+    }
+    endpoints(&mut c, Some(mon_port), &[]);
+    spawn(children, "monitor", c)?;
+
+    let mut c = node_command(bins, "leader", a, run);
+    if let Some(x) = a.time_scale {
+        c.arg("--time-scale").arg(x.to_string());
+    }
+    endpoints(&mut c, Some(lead_port), &[mon_port]);
+    spawn(children, "leader", c)?;
+
+    for i in 0..n {
+        let id = scenario.graph.id(i);
+        let mut c = node_command(bins, "agent", a, run);
+        c.arg("--id").arg(id.to_string());
+        let mut connect = vec![mon_port, lead_port];
+        if a.mode == LaunchMode::Peer {
+            connect.extend(scenario.graph.neighbours(i).iter().filter(|&&j| j < i).map(|&j| p[2 + j]));
+        }
+        endpoints(&mut c, a.mode.eq(&LaunchMode::Peer).then(|| p.get(2 + i).copied().unwrap_or(0)), &connect);
+        spawn(children, &format!("agent {id}"), c)?;
+    }
+
+    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(|e| CliError::Run(format!("installing the SIGTERM handler: {e}")))?;
+    let mut tick = tokio::time::interval(Duration::from_millis(50));
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = tokio::signal::ctrl_c() => return Err(interrupt(children, out)),
+            _ = sigterm.recv() => return Err(interrupt(children, out)),
+        }
+        while let Some((name, status)) = children.poll() {
+            if name == "monitor" {
+                if !status.success() {
+                    children.kill_all();
+                    return Err(CliError::Run(format!("the monitor failed ({status})")));
+                }
+                // The run is recorded; the nodes are done or about to be.
+                children.remove("monitor");
+                children.reap(Duration::from_secs(5));
+                let text = std::fs::read_to_string(out.join("summary.json"))
+                    .map_err(|e| CliError::Run(format!("reading {}: {e}", out.join("summary.json").display())))?;
+                return serde_json::from_str(&text)
+                    .map_err(|e| CliError::Run(format!("reading {}: {e}", out.join("summary.json").display())));
+            }
+            if status.success() {
+                children.remove(&name);
+                continue;
+            }
+            // A node failed: let the monitor write what it has, stop the rest.
+            children.terminate(|n| n == "monitor");
+            let _ = children.wait_for("monitor", Duration::from_secs(10));
+            children.kill_all();
+            return Err(CliError::Run(format!(
+                "{name} failed ({status}); stopped every process; the run folder {} holds what the monitor received",
+                out.display()
+            )));
+        }
+    }
+}
+
+/// Ctrl-C / SIGTERM: stop the nodes, let the monitor flush, kill the rest.
+fn interrupt(children: &mut Children, out: &Path) -> CliError {
+    children.terminate(|n| n != "monitor" && n != "router");
+    children.terminate(|n| n == "monitor");
+    let _ = children.wait_for("monitor", Duration::from_secs(10));
+    children.kill_all();
+    CliError::Run(format!("interrupted: stopped every process; {} holds what the monitor received", out.display()))
+}
