@@ -202,6 +202,11 @@ impl Recorder {
         Ok(())
     }
 
+    /// Appends the buffered CSV rows to the (partial) folder.
+    pub fn flush(&mut self) -> std::io::Result<()> {
+        self.writer.flush()
+    }
+
     /// Whether every node has reported its final step and all of it is recorded.
     pub fn complete(&self) -> bool {
         let steps = self.scenario.steps();
@@ -362,6 +367,7 @@ async fn monitor(
                 if last_heard.elapsed() > idle {
                     break Ending::Idle;
                 }
+                recorder.flush().map_err(|e| CliError::Run(format!("writing the run folder: {e}")))?;
                 if live && started {
                     let line = recorder.status_line();
                     let mut err = std::io::stderr().lock();

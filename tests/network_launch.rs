@@ -1,0 +1,120 @@
+//! `formation launch` end to end (ports 17600–17699, 127.0.0.1 only): a
+//! short run exits 0 and leaves no process behind; SIGINT mid-run stops
+//! every child and the monitor's run folder keeps what it received.
+//!
+//! `formation launch` runs in its own process group, so "no process behind"
+//! means: no process left in that group (every child inherits it).
+
+use std::path::Path;
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use std::os::unix::process::CommandExt;
+
+const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
+const LIMIT: Duration = Duration::from_secs(60);
+
+/// A child process leading its own process group; the group is killed on drop.
+struct Group(Child);
+
+impl Group {
+    fn launch(out: &Path, sets: &[&str], extra: &[&str]) -> Self {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+        c.args(["launch", SCENARIO, "-q", "--out"]).arg(out);
+        for s in sets {
+            c.args(["--set", s]);
+        }
+        c.args(extra).stdin(Stdio::null()).stdout(Stdio::null()).process_group(0);
+        Group(c.spawn().expect("spawn formation launch"))
+    }
+
+    fn wait(&mut self, limit: Duration) -> ExitStatus {
+        let t = Instant::now();
+        loop {
+            if let Some(s) = self.0.try_wait().expect("try_wait") {
+                return s;
+            }
+            assert!(t.elapsed() < limit, "formation launch did not finish within {limit:?}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Processes (other than zombies) still in the group.
+    fn members(&self) -> Vec<u32> {
+        let pgid = self.0.id();
+        let mut found = Vec::new();
+        for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
+            let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+            let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else { continue };
+            // Fields after the ")" closing the command name: state ppid pgrp …
+            let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else { continue };
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            if f.len() > 2 && f[2] == pgid.to_string() && f[0] != "Z" {
+                found.push(pid);
+            }
+        }
+        found
+    }
+
+    /// Waits (bounded) until no process is left in the group.
+    fn assert_group_empty(&self) {
+        let t = Instant::now();
+        while !self.members().is_empty() && t.elapsed() < Duration::from_secs(5) {
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        assert_eq!(self.members(), Vec::<u32>::new(), "processes left behind");
+    }
+}
+
+impl Drop for Group {
+    fn drop(&mut self) {
+        let _ = Command::new("kill").args(["-KILL", "--", &format!("-{}", self.0.id())]).stderr(Stdio::null()).status();
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+#[test]
+fn short_launch_succeeds_and_leaves_nothing_behind() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let mut g = Group::launch(&out, &["duration=0.5"], &["--base-port", "17600", "--run", "launch-ok"]);
+    let status = g.wait(LIMIT);
+    assert!(status.success(), "formation launch failed: {status}");
+    g.assert_group_empty();
+    for f in ["summary.json", "network.json", "follower_1.csv", "follower_4.csv", "leader.csv"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary")).expect("json");
+    assert_eq!(summary["followers"]["4"]["samples"], 501);
+}
+
+#[test]
+fn sigint_stops_every_child_and_keeps_the_folder() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let mut g = Group::launch(&out, &["duration=300"], &["--base-port", "17610", "--run", "launch-int"]);
+    // Wait until the monitor has written some samples (its folder is
+    // `<out>.partial` until it finishes).
+    let partial = tmp.path().join("run.partial").join("leader.csv");
+    let t = Instant::now();
+    while std::fs::metadata(&partial).map_or(0, |m| m.len()) < 10_000 {
+        assert!(t.elapsed() < LIMIT, "no samples recorded within {LIMIT:?}");
+        assert!(g.0.try_wait().expect("try_wait").is_none(), "launch ended early");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let sent = Command::new("kill").args(["-INT", &g.0.id().to_string()]).status().expect("kill");
+    assert!(sent.success());
+    let status = g.wait(Duration::from_secs(30));
+    assert!(!status.success(), "an interrupted launch must not report success");
+    g.assert_group_empty();
+    let network: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("network.json")).expect("network.json")).expect("json");
+    assert_eq!(network["ending"], "interrupted");
+    let recorded = network["recorded_steps"].as_u64().expect("recorded_steps");
+    assert!(recorded > 0);
+    let rows = std::fs::read_to_string(out.join("follower_1.csv")).expect("csv").lines().count() as u64;
+    assert_eq!(rows, recorded + 1, "one CSV row per recorded step plus the header");
+}

@@ -1,0 +1,175 @@
+//! Lock-step networked runs against the in-process simulator (ports
+//! 17500–17599, 127.0.0.1 only, multicast scouting off in every session).
+//!
+//! Each run is `formation launch` in its own process group; a guard kills
+//! the whole group on every path, and every wait is bounded.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use formation::net::session::{self, ZenohArgs};
+use formation_agent::LeaderState;
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use std::os::unix::process::CommandExt;
+
+const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
+const LIMIT: Duration = Duration::from_secs(60);
+
+/// A child process leading its own process group; the group is killed on drop.
+struct Group(Child);
+
+impl Group {
+    fn spawn(args: &[&str]) -> Self {
+        let child = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .process_group(0)
+            .spawn()
+            .expect("spawn formation");
+        Group(child)
+    }
+
+    fn wait(&mut self, limit: Duration) -> ExitStatus {
+        let t = Instant::now();
+        loop {
+            if let Some(s) = self.0.try_wait().expect("try_wait") {
+                return s;
+            }
+            assert!(t.elapsed() < limit, "formation launch did not finish within {limit:?}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Group {
+    fn drop(&mut self) {
+        let _ = Command::new("kill").args(["-KILL", "--", &format!("-{}", self.0.id())]).stderr(Stdio::null()).status();
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn sim(dir: &Path, sets: &[&str]) -> String {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+    c.args(["sim", SCENARIO, "-q", "--out"]).arg(dir);
+    for s in sets {
+        c.args(["--set", s]);
+    }
+    assert!(c.status().expect("formation sim").success());
+    std::fs::read_to_string(dir.join("summary.json")).expect("sim summary")
+}
+
+fn launch(dir: &Path, sets: &[&str], extra: &[&str]) -> Group {
+    let mut args: Vec<String> = vec!["launch".into(), SCENARIO.into(), "-q".into(), "--out".into()];
+    args.push(dir.display().to_string());
+    for s in sets {
+        args.push("--set".into());
+        args.push(s.to_string());
+    }
+    args.extend(extra.iter().map(|s| s.to_string()));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    Group::spawn(&args)
+}
+
+/// Launches a networked lock-step run and checks that its folder matches
+/// `formation sim`'s byte for byte (summary.json and every CSV).
+fn same_as_sim(tag: &str, sets: &[&str], extra: &[&str]) -> PathBuf {
+    let tmp = tempfile::tempdir().expect("tempdir").keep();
+    let net = tmp.join("net");
+    let mut g = launch(&net, sets, extra);
+    let expected = sim(&tmp.join("sim"), sets);
+    let status = g.wait(LIMIT);
+    assert!(status.success(), "{tag}: formation launch failed: {status}");
+    let got = std::fs::read_to_string(net.join("summary.json")).expect("monitor summary");
+    assert_eq!(got, expected, "{tag}: networked summary.json differs from formation sim's");
+    for f in ["follower_1.csv", "follower_4.csv", "leader.csv"] {
+        let a = std::fs::read(net.join(f)).expect("net csv");
+        let b = std::fs::read(tmp.join("sim").join(f)).expect("sim csv");
+        assert!(a == b, "{tag}: {f} differs");
+    }
+    net
+}
+
+fn network(dir: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("network.json")).expect("network.json")).expect("json")
+}
+
+#[test]
+fn lockstep_noise_free_equals_sim() {
+    let net = same_as_sim("noise off", &["duration=2", "noise=false"], &["--base-port", "17500", "--run", "ls-a"]);
+    let n = network(&net);
+    assert_eq!(n["complete"], true);
+    assert_eq!(n["nodes"]["1"]["rejected_invalid"], 0);
+}
+
+#[test]
+fn lockstep_with_noise_equals_sim() {
+    same_as_sim("noise on", &["duration=2"], &["--base-port", "17510", "--run", "ls-b"]);
+}
+
+#[test]
+fn client_mode_through_router_equals_sim() {
+    same_as_sim("client mode", &["duration=1"], &["--mode", "client", "--base-port", "17520", "--run", "ls-c"]);
+}
+
+fn msg(sender: u32, step: u64, v: f64) -> Vec<u8> {
+    wire::encode(&EstimateMsg {
+        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
+        state: LeaderState { v, ..Default::default() },
+    })
+}
+
+/// A rogue session publishes garbage, wrong-sender, non-finite and
+/// foreign-version messages on every estimate key during a lock-step run:
+/// the result is unchanged and the rejections are counted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rogue_messages_are_rejected_and_counted() {
+    let tmp = tempfile::tempdir().expect("tempdir").keep();
+    let net = tmp.join("net");
+    let sets = ["duration=3", "noise=false"];
+    // Ports: monitor 17540, leader 17541, agents 17542–17545; the rogue listens on 17550.
+    let mut g = launch(&net, &sets, &["--base-port", "17540", "--run", "rogue"]);
+    let args = ZenohArgs {
+        listen: vec!["tcp/127.0.0.1:17550".into()],
+        connect: (17541..=17545).map(|p| format!("tcp/127.0.0.1:{p}")).collect(),
+        ..Default::default()
+    };
+    let rogue = tokio::time::timeout(Duration::from_secs(10), session::open(&args)).await.expect("open").expect("open");
+    let t = Instant::now();
+    let mut k = 0u64;
+    while g.0.try_wait().expect("try_wait").is_none() {
+        assert!(t.elapsed() < LIMIT, "run did not finish");
+        for id in 0..=4u32 {
+            let key = format!("formation/rogue/estimate/{id}");
+            let mut bad_version = EstimateMsg {
+                header: Header { version: FORMAT_VERSION + 7, sender: id, step: k, time_s: 0.0 },
+                state: LeaderState::default(),
+            };
+            bad_version.header.version = FORMAT_VERSION + 7;
+            for payload in [
+                b"\x01not a message".to_vec(),
+                msg(id % 4 + 1 + u32::from(id == 0), k + 1, 1.0),
+                msg(id, k + 1, f64::NAN),
+                wire::encode(&bad_version),
+            ] {
+                let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put(key.as_str(), payload)).await;
+            }
+        }
+        k += 1;
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    let status = g.wait(LIMIT);
+    let _ = tokio::time::timeout(Duration::from_secs(5), rogue.close()).await;
+    assert!(status.success(), "formation launch failed: {status}");
+    let expected = sim(&tmp.join("sim"), &sets);
+    assert_eq!(std::fs::read_to_string(net.join("summary.json")).expect("summary"), expected);
+    let n = network(&net);
+    let total = |what: &str| -> u64 {
+        n["nodes"].as_object().expect("nodes").values().map(|v| v["rejected"][what].as_u64().unwrap_or(0)).sum()
+    };
+    for what in ["malformed", "wrong_sender", "non_finite", "version"] {
+        assert!(total(what) > 0, "no {what} rejection counted: {n}");
+    }
+}
