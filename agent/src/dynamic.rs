@@ -85,8 +85,8 @@ pub fn advance(kind: DynamicKind, g: &DynamicGains, s: &mut DynamicState, e_eta:
             s.vs[1] = g.shunting_w.advance(s.vs[1], e_eta[1], dt_s);
         }
         DynamicKind::SuperTwisting => {
-            for i in 0..2 {
-                s.w[i] += dt_s * g.k2 * sign(e_eta[i]);
+            for (w, e) in s.w.iter_mut().zip(e_eta) {
+                *w += dt_s * g.k2 * sign(e);
             }
         }
         DynamicKind::Smc => {}
