@@ -34,6 +34,8 @@ pub enum Command {
     /// Run the formation as separate processes over zenoh on this machine
     /// (leader, one agent per follower, monitor) and print the summary.
     Launch(crate::launch::LaunchArgs),
+    /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
+    BenchNet(crate::net::bench::BenchNetArgs),
 }
 
 /// Scenario selection shared by every command that runs one.
@@ -124,6 +126,7 @@ pub fn main() -> ExitCode {
         Command::Sim(a) => sim(&a).map(|_| ()),
         Command::Bench(a) => crate::bench::run(&a),
         Command::Launch(a) => crate::launch::run(&a),
+        Command::BenchNet(a) => crate::net::bench::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -4,3 +4,4 @@ pub mod barrier;
 pub mod leader;
 pub mod monitor;
 pub mod node;
+pub mod bench;
