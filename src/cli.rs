@@ -36,6 +36,9 @@ pub enum Command {
     Launch(crate::launch::LaunchArgs),
     /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
     BenchNet(crate::net::bench::BenchNetArgs),
+    /// A single node of a networked run (used by `launch`).
+    #[command(hide = true)]
+    Node(crate::launch::NodeCommand),
 }
 
 /// Scenario selection shared by every command that runs one.
@@ -127,6 +130,7 @@ pub fn main() -> ExitCode {
         Command::Bench(a) => crate::bench::run(&a),
         Command::Launch(a) => crate::launch::run(&a),
         Command::BenchNet(a) => crate::net::bench::run(&a),
+        Command::Node(a) => crate::launch::run_node(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -11,6 +11,10 @@
 //! is told to write what it has, the rest are killed), on Ctrl-C or SIGTERM
 //! (forwarded; the monitor flushes its run folder), and when this process
 //! unwinds (a guard kills every child still running).
+//!
+//! The nodes are this executable's hidden `formation node agent|leader|
+//! monitor|router` commands (the same code as the `agent`, `leader`,
+//! `monitor` and `router` binaries), so they always match the launcher.
 
 use std::io::{BufRead, BufReader};
 use std::net::TcpListener;
@@ -169,20 +173,63 @@ fn ports(base: Option<u16>, count: usize) -> Result<Vec<u16>, CliError> {
         .map_err(|e| CliError::Run(format!("finding free loopback ports: {e}")))
 }
 
-/// The directory of the node binaries: next to the running executable.
-pub fn bin_dir() -> Result<PathBuf, CliError> {
-    let exe = std::env::current_exe().map_err(|e| CliError::Run(format!("locating this executable: {e}")))?;
-    let dir = exe.parent().map(Path::to_path_buf).unwrap_or_default();
-    for b in ["agent", "leader", "monitor", "router"] {
-        if !dir.join(b).exists() {
-            return Err(CliError::Run(format!(
-                "node binary {} not found next to {} (build every binary: cargo build --release)",
-                b,
-                exe.display()
-            )));
+/// `formation node …`: the node binaries' work inside the `formation`
+/// executable, so that `formation launch` always starts nodes built from the
+/// same code as itself (`cargo run -- launch` builds only this binary).
+#[derive(Args, Debug, Clone)]
+pub struct NodeCommand {
+    #[command(subcommand)]
+    pub node: Node,
+}
+
+#[derive(clap::Subcommand, Debug, Clone)]
+pub enum Node {
+    /// One follower (as the `agent` binary).
+    Agent(crate::net::agent::AgentArgs),
+    /// The virtual leader (as the `leader` binary).
+    Leader(crate::net::leader::LeaderArgs),
+    /// The monitor (as the `monitor` binary; exit status 1 when interrupted).
+    Monitor(crate::net::monitor::MonitorArgs),
+    /// A zenoh router for client mode (as the `router` binary).
+    Router(session::ZenohArgs),
+}
+
+/// Runs a node on a multi-thread runtime.
+pub fn run_node(cmd: &NodeCommand) -> Result<(), CliError> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
+    let result = runtime.block_on(async {
+        match &cmd.node {
+            Node::Agent(a) => crate::net::agent::run(a).await,
+            Node::Leader(a) => crate::net::leader::run(a).await,
+            Node::Monitor(a) => match crate::net::monitor::run(a).await? {
+                crate::net::monitor::Ending::Complete => Ok(()),
+                _ => Err(CliError::Run("the monitor was interrupted".into())),
+            },
+            Node::Router(z) => router(z).await,
         }
+    });
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    result
+}
+
+/// A zenoh router until SIGINT/SIGTERM; prints `router listening on …` once open.
+async fn router(z: &session::ZenohArgs) -> Result<(), CliError> {
+    let mut z = z.clone();
+    z.mode = Some(session::ZenohMode::Router);
+    let s = session::open(&z).await.map_err(|e| CliError::Run(e.to_string()))?;
+    println!("router listening on {} (zid {})", z.listen.join(", "), s.zid());
+    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(|e| CliError::Run(format!("installing the SIGTERM handler: {e}")))?;
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = term.recv() => {}
     }
-    Ok(dir)
+    let _ = tokio::time::timeout(Duration::from_secs(5), s.close()).await;
+    Ok(())
 }
 
 /// `formation launch`.
@@ -196,14 +243,14 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
         }
     }
     let out = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
-    let bins = bin_dir()?;
+    let exe = std::env::current_exe().map_err(|e| CliError::Run(format!("locating this executable: {e}")))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
         .build()
         .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
-    let result = runtime.block_on(launch(a, &scenario, &run, &out, &bins, &mut children));
+    let result = runtime.block_on(launch(a, &scenario, &run, &out, &exe, &mut children));
     drop(children);
     let summary = result?;
     if !a.quiet {
@@ -213,9 +260,9 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
     Ok(())
 }
 
-fn node_command(bins: &Path, bin: &str, a: &LaunchArgs, run: &str) -> Command {
-    let mut c = Command::new(bins.join(bin));
-    c.arg("--scenario").arg(&a.scenario.scenario).arg("--run").arg(run);
+fn node_command(exe: &Path, node: &str, a: &LaunchArgs, run: &str) -> Command {
+    let mut c = Command::new(exe);
+    c.args(["node", node]).arg("--scenario").arg(&a.scenario.scenario).arg("--run").arg(run);
     for o in &a.scenario.overrides {
         c.arg("--set").arg(o);
     }
@@ -230,9 +277,9 @@ fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliE
 }
 
 /// Starts a router child and waits for its "router listening" line.
-fn start_router(children: &mut Children, bins: &Path, port: u16) -> Result<(), CliError> {
-    let mut c = Command::new(bins.join("router"));
-    c.arg("--listen").arg(ep(port)).stdin(Stdio::null()).stdout(Stdio::piped());
+fn start_router(children: &mut Children, exe: &Path, port: u16) -> Result<(), CliError> {
+    let mut c = Command::new(exe);
+    c.args(["node", "router", "--listen"]).arg(ep(port)).stdin(Stdio::null()).stdout(Stdio::piped());
     let mut child = c.spawn().map_err(|e| CliError::Run(format!("starting the router: {e}")))?;
     let stdout = child.stdout.take();
     children.push("router".into(), child);
@@ -258,7 +305,7 @@ async fn launch(
     scenario: &Scenario,
     run: &str,
     out: &Path,
-    bins: &Path,
+    exe: &Path,
     children: &mut Children,
 ) -> Result<Summary, CliError> {
     let n = scenario.followers.len();
@@ -286,11 +333,11 @@ async fn launch(
         );
     }
     if a.mode == LaunchMode::Client {
-        start_router(children, bins, p[0])?;
+        start_router(children, exe, p[0])?;
     }
     let (mon_port, lead_port) = if a.mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
 
-    let mut c = node_command(bins, "monitor", a, run);
+    let mut c = node_command(exe, "monitor", a, run);
     c.arg("--out").arg(out).stdout(Stdio::null());
     if a.quiet {
         c.arg("--quiet");
@@ -298,7 +345,7 @@ async fn launch(
     endpoints(&mut c, Some(mon_port), &[]);
     spawn(children, "monitor", c)?;
 
-    let mut c = node_command(bins, "leader", a, run);
+    let mut c = node_command(exe, "leader", a, run);
     if let Some(x) = a.time_scale {
         c.arg("--time-scale").arg(x.to_string());
     }
@@ -307,7 +354,7 @@ async fn launch(
 
     for i in 0..n {
         let id = scenario.graph.id(i);
-        let mut c = node_command(bins, "agent", a, run);
+        let mut c = node_command(exe, "agent", a, run);
         c.arg("--id").arg(id.to_string());
         let mut connect = vec![mon_port, lead_port];
         if a.mode == LaunchMode::Peer {
