@@ -55,7 +55,8 @@ pub fn command(kind: KinematicKind, g: &KinematicGains, v_s: f64, e: &BodyError,
         KinematicKind::Bio => v_s,
         KinematicKind::Conventional => e.x,
     };
-    Velocity { v: g.c1 * along + v_ir * e.theta.cos(), w: w_ir + g.c2 * v_ir * e.y + g.c3 * v_ir * e.theta.sin() }
+    let (sin_theta, cos_theta) = e.theta.sin_cos();
+    Velocity { v: g.c1 * along + v_ir * cos_theta, w: w_ir + g.c2 * v_ir * e.y + g.c3 * v_ir * sin_theta }
 }
 
 #[cfg(test)]

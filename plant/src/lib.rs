@@ -106,7 +106,8 @@ pub struct Disturbance {
 impl Disturbance {
     /// (d_1, d_2) at time t.
     pub fn at(&self, t_s: f64) -> (f64, f64) {
-        (self.linear_n * t_s.sin(), self.angular_nm * t_s.cos())
+        let (sin_t, cos_t) = t_s.sin_cos();
+        (self.linear_n * sin_t, self.angular_nm * cos_t)
     }
 }
 
