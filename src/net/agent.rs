@@ -97,7 +97,7 @@ pub async fn run(args: &AgentArgs) -> Result<(), CliError> {
         let ids: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
         CliError::Input(format!("scenario {} has no follower {} (ids: {})", scenario.name, args.id, ids.join(", ")))
     })?;
-    if !(args.stall_timeout > 0.0) {
+    if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
         return Err(CliError::Input("--stall-timeout must be positive".into()));
     }
     let session = args.node.open().await?;

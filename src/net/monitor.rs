@@ -303,7 +303,7 @@ impl Recorder {
 /// Returns how the run ended (`Idle` is an error).
 pub async fn run(args: &MonitorArgs) -> Result<Ending, CliError> {
     let (scenario, keys) = args.node.load()?;
-    if !(args.idle_timeout > 0.0) {
+    if !args.idle_timeout.is_finite() || args.idle_timeout <= 0.0 {
         return Err(CliError::Input("--idle-timeout must be positive".into()));
     }
     let dir = args.out.clone().unwrap_or_else(|| PathBuf::from("runs").join(&keys.run));
