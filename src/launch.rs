@@ -308,6 +308,11 @@ async fn launch(
     exe: &Path,
     children: &mut Children,
 ) -> Result<Summary, CliError> {
+    // Signals first: from here on Ctrl-C must reach the children's cleanup.
+    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(|e| CliError::Run(format!("installing the SIGTERM handler: {e}")))?;
+    let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
+        .map_err(|e| CliError::Run(format!("installing the SIGINT handler: {e}")))?;
     let n = scenario.followers.len();
     // Ports: monitor, leader, followers by index (peer); or the router (client).
     let count = if a.mode == LaunchMode::Peer { n + 2 } else { 1 };
@@ -364,13 +369,11 @@ async fn launch(
         spawn(children, &format!("agent {id}"), c)?;
     }
 
-    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| CliError::Run(format!("installing the SIGTERM handler: {e}")))?;
     let mut tick = tokio::time::interval(Duration::from_millis(50));
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            _ = tokio::signal::ctrl_c() => return Err(interrupt(children, out)),
+            _ = sigint.recv() => return Err(interrupt(children, out)),
             _ = sigterm.recv() => return Err(interrupt(children, out)),
         }
         while let Some((name, status)) = children.poll() {

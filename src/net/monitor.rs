@@ -335,6 +335,9 @@ async fn monitor(
 
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
         .map_err(|e| CliError::Run(format!("installing the SIGTERM handler: {e}")))?;
+    // A stream created once, so that a signal arriving between two polls is not lost.
+    let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
+        .map_err(|e| CliError::Run(format!("installing the SIGINT handler: {e}")))?;
     let mut needs: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     needs.push(node::LEADER_NODE.to_string());
     let barrier = barrier::wait_for_start(session, keys, MONITOR, &needs, node::fingerprint(scenario));
@@ -361,7 +364,7 @@ async fn monitor(
                     break Ending::Complete;
                 }
             }
-            _ = tokio::signal::ctrl_c() => break Ending::Interrupted,
+            _ = sigint.recv() => break Ending::Interrupted,
             _ = sigterm.recv() => break Ending::Interrupted,
             _ = status.tick() => {
                 if last_heard.elapsed() > idle {
