@@ -4,9 +4,13 @@
 //! Settings and tolerances, and why: tests run unoptimised on a loaded
 //! 2-core machine, where six processes cannot hold a 1 kHz loop at ×3
 //! speed, and a real-time node that falls behind its schedule drifts from
-//! its neighbours. So the scenario is the paper's with Δt = 10 ms (100 Hz
-//! control, T = 30 s), run at time scale 3 (a 300 Hz wall-clock loop, 10 s),
-//! and a silence timeout of 0.2 s (20 steps). Bounds: SPEC §12's formation
+//! its neighbours (which then leave it out as silent). So the scenario is
+//! the paper's with Δt = 10 ms (100 Hz control, T = 30 s), run at time
+//! scale 2 (a 200 Hz wall-clock loop, 15 s), and a silence timeout of 0.2 s
+//! (20 steps, 100 ms of wall-clock time). On a machine so overloaded that
+//! the nodes fall more than that behind, the run degrades as real time
+//! should, and this test fails: its message then shows each node's
+//! lateness. Bounds: SPEC §12's formation
 //! bound as it stands (RMS over the last 10 s below 0.2 m); the estimator
 //! bound relaxed from 0.01 m to 0.1 m at t = T, because at Δt = 10 ms the
 //! in-process simulator itself ends at 0.04–0.06 m (forward Euler at a
@@ -41,7 +45,7 @@ fn realtime_run_ends_within_spec_bounds() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("net");
     let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
-    c.args(["launch", SCENARIO, "-q", "--time-scale", "3", "--base-port", "17700", "--run", "rt", "--out"]).arg(&out);
+    c.args(["launch", SCENARIO, "-q", "--time-scale", "2", "--base-port", "17700", "--run", "rt", "--out"]).arg(&out);
     for s in SETS {
         c.args(["--set", s]);
     }
@@ -66,17 +70,26 @@ fn realtime_run_ends_within_spec_bounds() {
     };
     assert!(status.success(), "formation launch failed: {status}");
     let got = summary(&out);
+    let network: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("network.json")).expect("network.json")).expect("json");
+    let lateness: Vec<String> = network["nodes"]
+        .as_object()
+        .expect("nodes")
+        .iter()
+        .map(|(n, v)| format!("{n}: p99 {:.0} µs, silent {}", v["loop"]["lateness_p99_us"], v["silent"]))
+        .collect();
+    let context = format!("(node lateness behind schedule: {})", lateness.join("; "));
     for id in ["1", "2", "3", "4"] {
         let f = &got["followers"][id];
         let r = &reference["followers"][id];
         assert_eq!(f["samples"], 3001, "follower {id}: every step recorded");
         let form = f["formation_rms_last10"].as_f64().expect("number");
         let est = f["estimator_error_final"].as_f64().expect("number");
-        assert!(form < 0.2, "follower {id}: formation RMS over the last 10 s {form} m ≥ 0.2 m");
-        assert!(est < 0.1, "follower {id}: estimator error at T {est} m ≥ 0.1 m");
+        assert!(form < 0.2, "follower {id}: formation RMS over the last 10 s {form} m ≥ 0.2 m {context}");
+        assert!(est < 0.1, "follower {id}: estimator error at T {est} m ≥ 0.1 m {context}");
         let form_ref = r["formation_rms_last10"].as_f64().expect("number");
         let est_ref = r["estimator_error_final"].as_f64().expect("number");
-        assert!((form - form_ref).abs() < 0.1, "follower {id}: formation RMS {form} vs simulator {form_ref}");
-        assert!((est - est_ref).abs() < 0.1, "follower {id}: estimator error {est} vs simulator {est_ref}");
+        assert!((form - form_ref).abs() < 0.1, "follower {id}: formation RMS {form} vs simulator {form_ref} {context}");
+        assert!((est - est_ref).abs() < 0.1, "follower {id}: estimator error {est} vs simulator {est_ref} {context}");
     }
 }

@@ -28,7 +28,7 @@
 //! (the run's epoch and time scale). Nobody stops saying `hello` before the
 //! start, so nobody waits forever for a hello.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -357,8 +357,8 @@ pub struct Inbox {
     pending: Vec<BTreeMap<u64, LeaderState>>,
     /// The last step used (lock-step) or held (real time), per source.
     newest: Vec<Option<u64>>,
-    /// Real time: the latest message per source.
-    latest: Vec<Option<(u64, LeaderState)>>,
+    /// Real time: the recent messages per source, in step order.
+    history: Vec<VecDeque<(u64, LeaderState)>>,
     pub counters: Counters,
     lockstep: bool,
 }
@@ -369,7 +369,7 @@ impl Inbox {
         Self {
             pending: vec![BTreeMap::new(); sources],
             newest: vec![None; sources],
-            latest: vec![None; sources],
+            history: vec![VecDeque::new(); sources],
             counters: Counters::default(),
             lockstep,
         }
@@ -389,7 +389,11 @@ impl Inbox {
             self.pending[slot].entry(step).or_insert(msg.state);
         } else {
             self.newest[slot] = Some(step);
-            self.latest[slot] = Some((step, msg.state));
+            let h = &mut self.history[slot];
+            h.push_back((step, msg.state));
+            if h.len() > HISTORY {
+                h.pop_front();
+            }
         }
     }
 
@@ -425,11 +429,18 @@ impl Inbox {
         }
     }
 
-    /// Real time: the latest message of a source if it is at most
-    /// `max_age_steps` older than k (else it counts as silent).
+    /// Real time: the newest message of a source stamped at or before step
+    /// k (a node running behind the shared schedule does not use values
+    /// from its future; the oldest one held if all are newer), if it is at
+    /// most `max_age_steps` older than k; else the source counts as silent.
     pub fn latest(&mut self, slot: usize, k: u64, max_age_steps: u64) -> Option<LeaderState> {
-        match self.latest[slot] {
-            Some((s, state)) if k.saturating_sub(s) <= max_age_steps => Some(state),
+        let h = &mut self.history[slot];
+        // Keep the newest entry ≤ k and everything after it.
+        while h.len() > 1 && h[1].0 <= k {
+            h.pop_front();
+        }
+        match h.front() {
+            Some(&(s, state)) if k.saturating_sub(s) <= max_age_steps => Some(state),
             _ => {
                 self.counters.silent += 1;
                 None
@@ -437,6 +448,9 @@ impl Inbox {
         }
     }
 }
+
+/// Real time: messages kept per source (newer than the receiver's step).
+const HISTORY: usize = 1024;
 
 #[cfg(test)]
 mod tests {
@@ -485,8 +499,11 @@ mod tests {
         inbox.accept(0, &msg(1, 3));
         inbox.accept(0, &msg(1, 2));
         assert_eq!(inbox.counters.late, 1);
+        inbox.accept(0, &msg(1, 6));
+        // At step 5 the message stamped 6 is in the future: use 3.
         assert_eq!(inbox.latest(0, 5, 10).map(|s| s.v), Some(3.0));
-        assert_eq!(inbox.latest(0, 14, 10), None);
+        assert_eq!(inbox.latest(0, 6, 10).map(|s| s.v), Some(6.0));
+        assert_eq!(inbox.latest(0, 17, 10), None);
         assert_eq!(inbox.counters.silent, 2);
     }
 
