@@ -31,6 +31,10 @@ pub enum Command {
     Sim(SimArgs),
     /// Measure follower-steps per second of the simulator.
     Bench(BenchArgs),
+    /// Run every case the paper compares and write its figures, tables and claims.
+    Paper(crate::paper::PaperArgs),
+    /// The paper's figures and tables for any run folders, side by side.
+    Report(crate::report::ReportArgs),
     /// Run the formation as separate processes over zenoh on this machine
     /// (leader, one agent per follower, monitor) and print the summary.
     Launch(crate::launch::LaunchArgs),
@@ -128,6 +132,8 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Sim(a) => sim(&a).map(|_| ()),
         Command::Bench(a) => crate::bench::run(&a),
+        Command::Paper(a) => crate::paper::run(&a),
+        Command::Report(a) => crate::report::run(&a),
         Command::Launch(a) => crate::launch::run(&a),
         Command::BenchNet(a) => crate::net::bench::run(&a),
         Command::Node(a) => crate::launch::run_node(&a),

@@ -5,5 +5,7 @@ pub mod bench;
 pub mod cli;
 pub mod launch;
 pub mod net;
+pub mod paper;
 pub mod record;
+pub mod report;
 pub mod sim;

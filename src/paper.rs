@@ -1,0 +1,277 @@
+//! `formation paper`: runs every case the paper compares (SPEC §12) on the
+//! paper scenario, for one or many seeds in parallel, and writes the report
+//! (figures, tables, claims) next to the cases' run folders.
+//!
+//! Each case is a run folder under the report folder, so `formation report`
+//! can read it again. Only the first seed writes CSVs (decimated by
+//! `--every`, for the figures); every seed's metrics go to the case's
+//! `seeds.json`.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use formation_topology::Scenario;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rayon::prelude::*;
+
+use crate::cli::CliError;
+use crate::record::{RecordOptions, Row, RunWriter, Summary};
+use crate::report::{self, tables, Case, Context, SeedRecord, ESTIMATOR_CHECK_TIMES_S, SEEDS_FILE};
+use crate::sim::{Observer, Simulation};
+
+#[derive(clap::Args, Debug)]
+pub struct PaperArgs {
+    /// Scenario file the cases are built on.
+    #[arg(long, default_value = "scenarios/paper.toml")]
+    pub scenario: PathBuf,
+    /// Override a scenario value in every case, e.g. `--set duration=5`.
+    /// Keys that define a case (kinematic, dynamic, filter, estimate_init)
+    /// are set by the case; `fault.time` sets the fault cases' fault time.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+    /// Seeds per case: the scenario's seed s and s+1 … s+N−1.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub seeds: u64,
+    /// Report folder; each case's run folder goes inside it.
+    #[arg(long, default_value = "runs/paper-report")]
+    pub out: PathBuf,
+    /// Write every N-th sample of the first seed to the CSVs the figures read.
+    #[arg(long, default_value_t = 10, value_name = "N")]
+    pub every: u64,
+    /// Print nothing but errors.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+/// One case the paper compares.
+#[derive(Clone, Copy, Debug)]
+pub struct PaperCase {
+    /// Folder name.
+    pub name: &'static str,
+    pub description: &'static str,
+    /// The keys that define the case.
+    pub overrides: &'static [&'static str],
+    /// The fault case (filter model wrong from t_fault on).
+    pub fault: bool,
+}
+
+const PROPOSED: &[&str] = &["kinematic=bio", "dynamic=bio", "filter=asif", "estimate_init=leader"];
+
+/// Every case of SPEC §12.
+pub const CASES: [PaperCase; 8] = [
+    PaperCase {
+        name: "proposed",
+        description: "bioinspired backstepping, bioinspired SMC, ASIF, normal case",
+        overrides: PROPOSED,
+        fault: false,
+    },
+    PaperCase {
+        name: "conventional-backstepping",
+        description: "conventional backstepping (Fig. 5)",
+        overrides: &["kinematic=conventional", "dynamic=bio", "filter=asif", "estimate_init=leader"],
+        fault: false,
+    },
+    PaperCase {
+        name: "conventional-smc",
+        description: "conventional sliding mode control (Fig. 6)",
+        overrides: &["kinematic=bio", "dynamic=smc", "filter=asif", "estimate_init=leader"],
+        fault: false,
+    },
+    PaperCase {
+        name: "super-twisting",
+        description: "second-order (super-twisting) sliding mode control (Fig. 6)",
+        overrides: &["kinematic=bio", "dynamic=super-twisting", "filter=asif", "estimate_init=leader"],
+        fault: false,
+    },
+    PaperCase {
+        name: "kf-normal",
+        description: "Kalman filter, normal case (Table I)",
+        overrides: &["kinematic=bio", "dynamic=bio", "filter=kf", "estimate_init=leader"],
+        fault: false,
+    },
+    PaperCase {
+        name: "kf-fault",
+        description: "Kalman filter, fault case (Table II)",
+        overrides: &["kinematic=bio", "dynamic=bio", "filter=kf", "estimate_init=leader"],
+        fault: true,
+    },
+    PaperCase { name: "asif-fault", description: "ASIF, fault case (Table II)", overrides: PROPOSED, fault: true },
+    PaperCase {
+        name: "zero-init",
+        description: "estimator started from zero estimates",
+        overrides: &["kinematic=bio", "dynamic=bio", "filter=asif", "estimate_init=zero"],
+        fault: false,
+    },
+];
+
+/// The fault time of section IV, s.
+pub const PAPER_FAULT_TIME_S: f64 = 10.0;
+
+/// The scenario of a case: the user's overrides, then the case's keys; the
+/// fault cases get `fault.time=10` unless the user or the file sets one, and
+/// the normal cases have no fault.
+pub fn case_scenario(path: &Path, user: &[String], case: &PaperCase) -> Result<Scenario, CliError> {
+    let mut overrides: Vec<String> = user.to_vec();
+    overrides.extend(case.overrides.iter().map(|s| s.to_string()));
+    if case.fault && !user.iter().any(|o| o.trim_start().starts_with("fault.time")) {
+        let file_has_fault = Scenario::load(path, user).map(|s| s.fault.is_some()).unwrap_or(false);
+        if !file_has_fault {
+            overrides.push(format!("fault.time={PAPER_FAULT_TIME_S}"));
+        }
+    }
+    let mut s = Scenario::load(path, &overrides).map_err(|e| CliError::Input(e.to_string()))?;
+    if !case.fault {
+        s.fault = None;
+    }
+    Ok(s)
+}
+
+/// Records the first seed's CSVs (if any) and the estimator error at the
+/// check times.
+struct PaperObserver {
+    writer: Option<RunWriter>,
+    steps: u64,
+    dt_s: f64,
+    ids: Vec<u32>,
+    check_steps: [Option<u64>; 2],
+    at_checks: [BTreeMap<u32, f64>; 2],
+}
+
+impl Observer for PaperObserver {
+    fn leader(&mut self, k: u64, state: &formation_agent::LeaderState) -> std::io::Result<()> {
+        if let Some(w) = &mut self.writer {
+            if w.wants(k, k == self.steps) {
+                w.leader_row(k as f64 * self.dt_s, state)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn follower(&mut self, index: usize, k: u64, row: &Row, last: bool) -> std::io::Result<()> {
+        if let Some(w) = &mut self.writer {
+            if w.wants(k, last) {
+                w.follower_row(index, row)?;
+            }
+        }
+        for (slot, at) in self.check_steps.iter().zip(&mut self.at_checks) {
+            if *slot == Some(k) {
+                at.insert(self.ids[index], row.estimator_error);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Runs one seed of a scenario; writes its run folder if `record` is given.
+pub fn run_seed(scenario: &Scenario, seed: u64, record: Option<&RecordOptions>) -> Result<SeedRecord, CliError> {
+    let mut s = scenario.clone();
+    s.seed = seed;
+    let ids: Vec<u32> = s.followers.iter().map(|f| f.id).collect();
+    let steps = s.steps();
+    let check_steps = ESTIMATOR_CHECK_TIMES_S.map(|t| {
+        let k = (t / s.dt_s).round() as u64;
+        (k <= steps).then_some(k)
+    });
+    let writer = record.map(|o| RunWriter::create(o, &ids)).transpose()?;
+    let mut obs =
+        PaperObserver { writer, steps, dt_s: s.dt_s, ids: ids.clone(), check_steps, at_checks: Default::default() };
+    let metrics =
+        Simulation::new(&s).run(&mut obs, |_| {}).map_err(|e| CliError::Run(format!("{} seed {seed}: {e}", s.name)))?;
+    let summary = Summary::new(&s, ids.iter().copied().zip(metrics).collect());
+    if let Some(w) = obs.writer.take() {
+        w.finish(&summary)?;
+    }
+    let [e4, e6] = obs.at_checks;
+    Ok(SeedRecord { seed, summary, estimator_error_4s: e4, estimator_error_6s: e6 })
+}
+
+/// Runs `formation paper`.
+pub fn run(a: &PaperArgs) -> Result<(), CliError> {
+    if a.seeds == 0 {
+        return Err(CliError::Input("--seeds must be at least 1".into()));
+    }
+    let started = Instant::now();
+    let base = Scenario::load(&a.scenario, &a.overrides).map_err(|e| CliError::Input(e.to_string()))?;
+    let scenarios: Vec<Scenario> =
+        CASES.iter().map(|c| case_scenario(&a.scenario, &a.overrides, c)).collect::<Result<_, _>>()?;
+    let seeds: Vec<u64> = (0..a.seeds).map(|i| base.seed + i).collect();
+    std::fs::create_dir_all(&a.out)?;
+
+    let jobs: Vec<(usize, usize)> = (0..CASES.len()).flat_map(|c| (0..seeds.len()).map(move |s| (c, s))).collect();
+    let bar = ProgressBar::with_draw_target(
+        Some(jobs.len() as u64),
+        if a.quiet { ProgressDrawTarget::hidden() } else { ProgressDrawTarget::stderr() },
+    );
+    bar.set_style(
+        ProgressStyle::with_template("runs [{bar:30}] {pos}/{len} {elapsed} (eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let results: Vec<Result<SeedRecord, CliError>> = jobs
+        .par_iter()
+        .map(|&(c, s)| {
+            let record = (s == 0).then(|| RecordOptions { dir: a.out.join(CASES[c].name), every: a.every, csv: true });
+            let r = run_seed(&scenarios[c], seeds[s], record.as_ref());
+            bar.inc(1);
+            r
+        })
+        .collect();
+    bar.finish_and_clear();
+    let run_time = started.elapsed();
+
+    let mut per_case: Vec<Vec<SeedRecord>> = vec![Vec::new(); CASES.len()];
+    let mut failures = Vec::new();
+    for (&(c, _), r) in jobs.iter().zip(results) {
+        match r {
+            Ok(rec) => per_case[c].push(rec),
+            Err(e) => failures.push(format!("{}: {e}", CASES[c].name)),
+        }
+    }
+    if !failures.is_empty() {
+        return Err(CliError::Run(format!("{} run(s) failed:\n  {}", failures.len(), failures.join("\n  "))));
+    }
+    let mut cases = Vec::with_capacity(CASES.len());
+    for (c, recs) in CASES.iter().zip(per_case) {
+        let dir = a.out.join(c.name);
+        let json = serde_json::to_string_pretty(&recs).map_err(|e| CliError::Run(e.to_string()))?;
+        std::fs::write(dir.join(SEEDS_FILE), json + "\n")?;
+        cases.push(Case::load(&dir, c.name.to_string())?);
+    }
+
+    let mut command = format!("formation paper --scenario {} --seeds {}", a.scenario.display(), a.seeds);
+    for o in &a.overrides {
+        command += &format!(" --set {o}");
+    }
+    command += &format!(" --out {} --every {}", a.out.display(), a.every);
+    let threads = rayon::current_num_threads();
+    let notes = vec![
+        format!(
+            "{} cases × {} seed(s) (seeds {}..={}) = {} runs of {} s, on {threads} threads: {:.1} s wall time for the runs.",
+            CASES.len(),
+            seeds.len(),
+            seeds[0],
+            seeds[seeds.len() - 1],
+            jobs.len(),
+            base.duration_s,
+            run_time.as_secs_f64()
+        ),
+        format!(
+            "The first seed of each case writes its CSVs (one sample in {}); the figures show it.",
+            a.every.max(1)
+        ),
+    ];
+    let ctx = Context { paper: true, command, params: tables::ClaimParams::from_scenario(&base), notes };
+    let (path, built) = report::write_report(&a.out, &cases, &ctx)?;
+    if !a.quiet {
+        print!("{}", tables::claims_text(&built.claims));
+        println!(
+            "{} runs in {:.1} s, report in {:.1} s total",
+            jobs.len(),
+            run_time.as_secs_f64(),
+            started.elapsed().as_secs_f64()
+        );
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,746 @@
+//! The paper's tables (I: velocity RMSE, normal case; II: fault case), the
+//! speed-jump and chattering table, a table of every metric, and the SPEC §12
+//! claims checked on the cases. Each table comes as markdown and as a long
+//! CSV (one row per case, follower and quantity, with its statistics).
+
+use std::fmt::Write as _;
+
+use formation_topology::Scenario;
+
+use super::stats::Stat;
+use super::{Case, Context, Role, SeedRecord};
+use crate::record::FollowerMetrics;
+
+/// The paper's Table I (normal case) and Table II (fault case), ×10⁻²:
+/// per follower (linear KF, linear ASIF, angular KF, angular ASIF), copied
+/// from `formation-paper.tex`.
+pub const PAPER_TABLE_I: [[f64; 4]; 4] =
+    [[0.97, 0.97, 0.80, 0.80], [0.96, 0.96, 0.82, 0.82], [0.97, 0.97, 0.81, 0.81], [0.98, 0.98, 0.78, 0.78]];
+pub const PAPER_TABLE_II: [[f64; 4]; 4] =
+    [[6.43, 1.18, 2.10, 1.03], [6.50, 1.15, 1.83, 1.01], [5.37, 1.19, 2.14, 1.03], [5.75, 1.19, 2.03, 1.05]];
+
+/// The scenario values the claims are checked against.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ClaimParams {
+    /// C_1 of the backstepping controllers.
+    pub c1: f64,
+    /// B of the kinematic shunting model.
+    pub shunting_b: f64,
+    /// An upper bound of the leader's speed, m/s.
+    pub vr_max: f64,
+    /// The follower with the largest initial error x̂(0) (F4 in the paper)…
+    pub jump_follower: u32,
+    /// …and its conventional command at t = 0, C_1 x̂(0) + v_ir(0) cos θ̂(0), m/s.
+    pub jump_expected: f64,
+}
+
+impl ClaimParams {
+    /// SPEC §10's values (used for folders, which do not record gains):
+    /// C_1 = 3, B = 2, max v_r = √2, F4 jumps to 3 · 5 = 15 m/s.
+    pub fn paper_defaults() -> Self {
+        Self { c1: 3.0, shunting_b: 2.0, vr_max: std::f64::consts::SQRT_2, jump_follower: 4, jump_expected: 15.0 }
+    }
+
+    /// The values of a scenario, with x̂(0) from its initial estimate.
+    pub fn from_scenario(s: &Scenario) -> Self {
+        let est = s.initial_estimate();
+        let (jump_follower, jump_expected) = s
+            .followers
+            .iter()
+            .map(|f| {
+                let ex = est.pose.x + f.offset[0] - f.pose.x;
+                let ey = est.pose.y + f.offset[1] - f.pose.y;
+                let (sin, cos) = f.pose.theta.sin_cos();
+                let x_hat = cos * ex + sin * ey;
+                let theta_hat = formation_agent::math::wrap(est.pose.theta - f.pose.theta);
+                (f.id, s.kinematic_gains.c1 * x_hat + est.v * theta_hat.cos())
+            })
+            .fold((0, 0.0_f64), |best, x| if x.1.abs() > best.1.abs() { x } else { best });
+        Self {
+            c1: s.kinematic_gains.c1,
+            shunting_b: s.kinematic_gains.shunting.b,
+            vr_max: s.leader_profile.max_speed(),
+            jump_follower,
+            jump_expected,
+        }
+    }
+}
+
+/// One table, ready to write.
+#[derive(Clone, Debug)]
+pub struct Table {
+    /// File stem of its CSV.
+    pub file: String,
+    pub title: String,
+    pub markdown: String,
+    pub csv: String,
+}
+
+/// Every table and claim of a report.
+#[derive(Clone, Debug)]
+pub struct Tables {
+    pub tables: Vec<Table>,
+    pub claims: Vec<Check>,
+}
+
+/// A column of a table: a case and its header.
+struct Col<'a> {
+    case: &'a Case,
+    header: String,
+}
+
+/// Paper mode: the first case of each role, under the paper's header;
+/// otherwise every case that `keep` accepts, under its label.
+fn columns<'a>(cases: &'a [Case], ctx: &Context, roles: &[(Role, &str)], keep: impl Fn(&Case) -> bool) -> Vec<Col<'a>> {
+    if ctx.paper {
+        roles
+            .iter()
+            .filter_map(|&(role, header)| {
+                cases.iter().find(|c| c.role == role).map(|case| Col { case, header: header.to_string() })
+            })
+            .collect()
+    } else {
+        cases.iter().filter(|c| keep(c)).map(|case| Col { case, header: case.label.clone() }).collect()
+    }
+}
+
+/// Statistics of one metric of one follower over a case's seeds.
+fn metric_stat(case: &Case, id: u32, f: impl Fn(&FollowerMetrics) -> f64) -> Option<Stat> {
+    let values: Vec<f64> = case.seeds.iter().filter_map(|s| s.summary.followers.get(&id)).map(f).collect();
+    Stat::of(&values)
+}
+
+/// Follower ids present in any of the columns, ascending.
+fn follower_ids(cols: &[Col]) -> Vec<u32> {
+    let mut ids: Vec<u32> = cols.iter().flat_map(|c| c.case.follower_ids()).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    ids
+}
+
+/// `n` significant digits, without exponent for ordinary magnitudes.
+pub fn sig(x: f64, n: usize) -> String {
+    if !x.is_finite() {
+        return format!("{x}");
+    }
+    if x == 0.0 {
+        return "0".into();
+    }
+    let mag = x.abs().log10().floor() as i32;
+    if !(-4..6).contains(&mag) {
+        return format!("{:.*e}", n.saturating_sub(1), x);
+    }
+    let decimals = (n as i32 - 1 - mag).max(0) as usize;
+    format!("{x:.decimals$}")
+}
+
+/// A cell: the value for one seed, `mean ± sd [low, high]` for several.
+fn cell(s: Option<Stat>, digits: usize) -> String {
+    match s {
+        None => "–".into(),
+        Some(s) if s.n <= 1 => sig(s.mean, digits),
+        Some(s) => format!(
+            "{} ± {} [{}, {}]",
+            sig(s.mean, digits),
+            sig(s.sd, 2),
+            sig(s.ci_low, digits),
+            sig(s.ci_high, digits)
+        ),
+    }
+}
+
+const STAT_HEADER: &str = "n,mean,sd,ci_low,ci_high,min,max";
+
+fn stat_fields(s: &Stat) -> String {
+    format!("{},{:?},{:?},{:?},{:?},{:?},{:?}", s.n, s.mean, s.sd, s.ci_low, s.ci_high, s.min, s.max)
+}
+
+/// Quotes a CSV field if it needs it.
+fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+/// Builds every table and claim.
+pub fn build(cases: &[Case], ctx: &Context) -> Tables {
+    let mut tables = vec![
+        rmse_table(cases, ctx, false),
+        rmse_table(cases, ctx, true),
+        controller_table(cases, ctx),
+        all_metrics_table(cases),
+    ];
+    tables.retain(|t| !t.csv.is_empty());
+    Tables { tables, claims: claims(cases, &ctx.params) }
+}
+
+/// Table I (`fault = false`) or II: velocity RMSE ×10⁻² per follower, KF and ASIF, beside the paper's.
+fn rmse_table(cases: &[Case], ctx: &Context, fault: bool) -> Table {
+    let (file, title, paper, roles) = if fault {
+        (
+            "table2_fault",
+            "Table II: velocity RMSE under the fault case (×10⁻²)",
+            &PAPER_TABLE_II,
+            [(Role::KfFault, "KF"), (Role::AsifFault, "ASIF")],
+        )
+    } else {
+        (
+            "table1_normal",
+            "Table I: velocity RMSE under the normal case (×10⁻²)",
+            &PAPER_TABLE_I,
+            [(Role::KfNormal, "KF"), (Role::Proposed, "ASIF")],
+        )
+    };
+    let cols = columns(cases, ctx, &roles, |c| c.summary().fault_time.is_some() == fault);
+    if cols.is_empty() {
+        return Table { file: file.into(), title: title.into(), markdown: String::new(), csv: String::new() };
+    }
+    let ids = follower_ids(&cols);
+    let paper_of = |id: u32, channel: usize, filter: &str| -> Option<f64> {
+        let row = paper.get((id as usize).checked_sub(1)?)?;
+        match filter {
+            "kf" => Some(row[2 * channel]),
+            "asif" => Some(row[2 * channel + 1]),
+            _ => None,
+        }
+    };
+    let channels: [(&str, fn(&FollowerMetrics) -> f64); 2] = [("linear", |m| m.rmse_v), ("angular", |m| m.rmse_w)];
+
+    let mut md = String::from("| Follower |");
+    let mut rule = String::from("| --- |");
+    for (name, _) in &channels {
+        for c in &cols {
+            let _ = write!(md, " {} {} |", capitalise(name), c.header);
+            rule += " --- |";
+        }
+        let _ = write!(md, " {} KF (paper) | {} ASIF (paper) |", capitalise(name), capitalise(name));
+        rule += " --- | --- |";
+    }
+    let _ = writeln!(md, "\n{rule}");
+    let mut csv = format!("case,filter,follower,channel,{STAT_HEADER},paper\n");
+    for &id in &ids {
+        let _ = write!(md, "| {id} |");
+        for (ch, (name, f)) in channels.iter().enumerate() {
+            for c in &cols {
+                let s = metric_stat(c.case, id, f).map(|s| s.scaled(100.0));
+                let _ = write!(md, " {} |", cell(s, 3));
+                if let Some(s) = s {
+                    let filter = &c.case.summary().filter;
+                    let p = paper_of(id, ch, filter).map(|p| format!("{p}")).unwrap_or_default();
+                    let _ =
+                        writeln!(csv, "{},{},{id},{name},{},{p}", csv_field(&c.case.label), filter, stat_fields(&s));
+                }
+            }
+            let p = |filter| paper_of(id, ch, filter).map(|p| format!("{p:.2}")).unwrap_or_else(|| "–".into());
+            let _ = write!(md, " {} | {} |", p("kf"), p("asif"));
+        }
+        md.push('\n');
+    }
+    let mut note = String::new();
+    if !ctx.paper {
+        note =
+            "\nColumns are the run folders of this condition; the paper's KF and ASIF values are beside them.\n".into();
+    }
+    Table { file: file.into(), title: title.into(), markdown: md + &note, csv }
+}
+
+/// Speed jump (peak |v_c|) and chattering (torque variation per second, peak |τ|).
+fn controller_table(cases: &[Case], ctx: &Context) -> Table {
+    let roles = [
+        (Role::ConventionalBackstepping, "Conventional backstepping"),
+        (Role::ConventionalSmc, "Conventional SMC"),
+        (Role::SuperTwisting, "Second-order SMC (super-twisting)"),
+        (Role::Proposed, "Bioinspired backstepping + bioinspired SMC"),
+    ];
+    let cols = columns(cases, ctx, &roles, |_| true);
+    let file = "table3_speed_jump_chattering";
+    let title = "Speed jump and chattering";
+    if cols.is_empty() {
+        return Table { file: file.into(), title: title.into(), markdown: String::new(), csv: String::new() };
+    }
+    let ids = follower_ids(&cols);
+    let metrics: [(&str, &str, &str, fn(&FollowerMetrics) -> f64); 3] = [
+        ("vc_peak", "m/s", "Speed jump: peak |v_c| (m/s)", |m| m.vc_peak),
+        ("torque_tv", "N m/s", "Chattering: torque variation Σ|Δτ_L| + |Δτ_R| per second (N m/s)", |m| {
+            m.torque_tv
+        }),
+        ("torque_peak", "N m", "Peak torque |τ| over both wheels (N m)", |m| m.torque_peak),
+    ];
+    let mut md = String::new();
+    let mut csv = format!("case,kinematic,dynamic,follower,metric,unit,{STAT_HEADER}\n");
+    for (key, unit, heading, f) in &metrics {
+        let _ = writeln!(md, "**{heading}**\n");
+        md += "| Follower |";
+        for c in &cols {
+            let _ = write!(md, " {} |", c.header);
+        }
+        md += "\n| --- |";
+        md += &" --- |".repeat(cols.len());
+        md.push('\n');
+        for &id in &ids {
+            let _ = write!(md, "| {id} |");
+            for c in &cols {
+                let s = metric_stat(c.case, id, f);
+                let _ = write!(md, " {} |", cell(s, 4));
+                if let Some(s) = s {
+                    let sum = c.case.summary();
+                    let _ = writeln!(
+                        csv,
+                        "{},{},{},{id},{key},{unit},{}",
+                        csv_field(&c.case.label),
+                        sum.kinematic,
+                        sum.dynamic,
+                        stat_fields(&s)
+                    );
+                }
+            }
+            md.push('\n');
+        }
+        md.push('\n');
+    }
+    Table { file: file.into(), title: title.into(), markdown: md, csv }
+}
+
+/// Every SPEC §11 metric of every case and follower.
+fn all_metrics_table(cases: &[Case]) -> Table {
+    let metrics: [(&str, &str, fn(&FollowerMetrics) -> f64); 9] = [
+        ("formation_rms_last10", "m", |m| m.formation_rms_last10),
+        ("formation_final", "m", |m| m.formation_final),
+        ("heading_final", "rad", |m| m.heading_final),
+        ("estimator_error_final", "m", |m| m.estimator_error_final),
+        ("vc_peak", "m/s", |m| m.vc_peak),
+        ("torque_tv", "N m/s", |m| m.torque_tv),
+        ("torque_peak", "N m", |m| m.torque_peak),
+        ("rmse_v", "m/s", |m| m.rmse_v),
+        ("rmse_w", "rad/s", |m| m.rmse_w),
+    ];
+    let mut md = String::from("| case | follower |");
+    for (k, u, _) in &metrics {
+        let _ = write!(md, " {k} ({u}) |");
+    }
+    md += "\n| --- | --- |";
+    md += &" --- |".repeat(metrics.len());
+    md.push('\n');
+    let mut csv = format!("case,follower,metric,unit,{STAT_HEADER}\n");
+    for c in cases {
+        for id in c.follower_ids() {
+            let _ = write!(md, "| {} | {id} |", c.label);
+            for (key, unit, f) in &metrics {
+                let s = metric_stat(c, id, f);
+                // Means only here (with sd for several seeds); the CSV has the intervals.
+                let text = match s {
+                    Some(s) if s.n > 1 => format!("{} ± {}", sig(s.mean, 4), sig(s.sd, 2)),
+                    Some(s) => sig(s.mean, 4),
+                    None => "–".into(),
+                };
+                let _ = write!(md, " {text} |");
+                if let Some(s) = s {
+                    let _ = writeln!(csv, "{},{id},{key},{unit},{}", csv_field(&c.label), stat_fields(&s));
+                }
+            }
+            md.push('\n');
+        }
+    }
+    Table {
+        file: "table4_all_metrics".into(),
+        title: "Every metric of every case (SPEC §11)".into(),
+        markdown: md,
+        csv,
+    }
+}
+
+/// Text for a markdown table cell (`|` escaped).
+pub fn md_cell(s: &str) -> String {
+    s.replace('|', "\\|")
+}
+
+/// A number in Unicode subscript digits (x̂₄).
+fn subscript(n: u32) -> String {
+    n.to_string().chars().map(|c| char::from_u32(0x2080 + c.to_digit(10).unwrap_or(0)).unwrap_or(c)).collect()
+}
+
+fn capitalise(s: &str) -> String {
+    let mut c = s.chars();
+    c.next().map(|f| f.to_uppercase().collect::<String>() + c.as_str()).unwrap_or_default()
+}
+
+/// What a claim requires of its measured quantity.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Cond {
+    Lt(f64),
+    Le(f64),
+    Gt(f64),
+    Ge(f64),
+    /// |x − target| ≤ tol.
+    Near {
+        target: f64,
+        tol: f64,
+    },
+}
+
+impl Cond {
+    pub fn holds(&self, x: f64) -> bool {
+        match *self {
+            Cond::Lt(b) => x < b,
+            Cond::Le(b) => x <= b,
+            Cond::Gt(b) => x > b,
+            Cond::Ge(b) => x >= b,
+            Cond::Near { target, tol } => (x - target).abs() <= tol,
+        }
+    }
+
+    pub fn text(&self) -> String {
+        match *self {
+            Cond::Lt(b) => format!("< {}", sig(b, 4)),
+            Cond::Le(b) => format!("≤ {}", sig(b, 4)),
+            Cond::Gt(b) => format!("> {}", sig(b, 4)),
+            Cond::Ge(b) => format!("≥ {}", sig(b, 4)),
+            Cond::Near { target, tol } => format!("{} ± {tol:e}", sig(target, 6)),
+        }
+    }
+}
+
+/// One checked statement of SPEC §12.
+#[derive(Clone, Debug)]
+pub struct Check {
+    /// The statement, in SPEC §12's words.
+    pub claim: String,
+    /// What is measured, per seed.
+    pub quantity: String,
+    pub unit: &'static str,
+    pub condition: Cond,
+    /// The cases it was measured on.
+    pub cases: Vec<String>,
+    /// The quantity per seed (seeds of several cases paired by position).
+    pub values: Vec<f64>,
+    pub stat: Option<Stat>,
+    /// Seeds for which the condition holds.
+    pub holds: usize,
+    /// Why the claim could not be checked.
+    pub missing: Option<String>,
+}
+
+impl Check {
+    /// `PASS` if the condition holds for every seed, `FAIL` if not, `N/A` if unchecked.
+    pub fn result(&self) -> &'static str {
+        match (&self.missing, self.values.is_empty()) {
+            (Some(_), _) | (None, true) => "N/A",
+            _ if self.holds == self.values.len() => "PASS",
+            _ => "FAIL",
+        }
+    }
+
+    /// The measured value as text: the value, or mean ± sd [CI] and the range.
+    pub fn measured(&self) -> String {
+        match (&self.missing, self.stat) {
+            (Some(why), _) => format!("n/a: {why}"),
+            (None, None) => "n/a".into(),
+            (None, Some(s)) if s.n <= 1 => sig(s.mean, 5),
+            (None, Some(s)) => format!(
+                "{} ± {} [{}, {}], range {} to {}",
+                sig(s.mean, 5),
+                sig(s.sd, 2),
+                sig(s.ci_low, 5),
+                sig(s.ci_high, 5),
+                sig(s.min, 5),
+                sig(s.max, 5)
+            ),
+        }
+    }
+}
+
+/// The largest (or, with `min`, smallest) of `f` over the followers of a seed;
+/// `None` when there are none.
+fn over_followers(r: &SeedRecord, min: bool, f: impl Fn(u32, &FollowerMetrics) -> Option<f64>) -> Option<f64> {
+    let vals = r.summary.followers.iter().filter_map(|(&id, m)| f(id, m));
+    if min {
+        vals.reduce(f64::min)
+    } else {
+        vals.reduce(f64::max)
+    }
+}
+
+struct ClaimBuilder<'a> {
+    cases: &'a [Case],
+    out: Vec<Check>,
+}
+
+impl ClaimBuilder<'_> {
+    /// Checks `per_seed` on the first case of each role, seeds paired by position.
+    fn check(
+        &mut self,
+        claim: &str,
+        quantity: &str,
+        unit: &'static str,
+        condition: Cond,
+        roles: &[Role],
+        per_seed: impl Fn(&[&SeedRecord]) -> Option<f64>,
+    ) {
+        let found: Vec<Option<&Case>> = roles.iter().map(|r| self.cases.iter().find(|c| c.role == *r)).collect();
+        let mut check = Check {
+            claim: claim.into(),
+            quantity: quantity.into(),
+            unit,
+            condition,
+            cases: found.iter().flatten().map(|c| c.label.clone()).collect(),
+            values: vec![],
+            stat: None,
+            holds: 0,
+            missing: None,
+        };
+        if found.iter().any(Option::is_none) {
+            let names: Vec<String> = roles
+                .iter()
+                .zip(&found)
+                .filter(|(_, c)| c.is_none())
+                .map(|(r, _)| format!("{}", role_name(*r)))
+                .collect();
+            check.missing = Some(format!("no {} case", names.join(", ")));
+        } else {
+            let cases: Vec<&Case> = found.into_iter().flatten().collect();
+            let n = cases.iter().map(|c| c.seeds.len()).min().unwrap_or(0);
+            for i in 0..n {
+                let seeds: Vec<&SeedRecord> = cases.iter().map(|c| &c.seeds[i]).collect();
+                if let Some(v) = per_seed(&seeds) {
+                    check.values.push(v);
+                }
+            }
+            if check.values.is_empty() {
+                check.missing = Some("not measured in these runs".into());
+            }
+            check.stat = Stat::of(&check.values);
+            check.holds = check.values.iter().filter(|&&v| condition.holds(v)).count();
+        }
+        self.out.push(check);
+    }
+}
+
+/// The case a role names, in words.
+pub fn role_name(r: Role) -> &'static str {
+    match r {
+        Role::Proposed => "proposed (bio/bio/ASIF)",
+        Role::ConventionalBackstepping => "conventional backstepping",
+        Role::ConventionalSmc => "conventional SMC",
+        Role::SuperTwisting => "super-twisting SMC",
+        Role::KfNormal => "KF normal",
+        Role::KfFault => "KF fault",
+        Role::AsifFault => "ASIF fault",
+        Role::ZeroInit => "zero-initialised estimator",
+        Role::Other => "other",
+    }
+}
+
+/// Every SPEC §12 claim, checked on the first case of the roles it needs.
+pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
+    use Role::*;
+    let mut b = ClaimBuilder { cases, out: vec![] };
+    let jump = p.jump_follower;
+    b.check(
+        &format!(
+            "Conventional backstepping: peak v_c of F{jump} = C₁·x̂{}(0) = {} m/s (to 1e-3)",
+            subscript(jump),
+            sig(p.jump_expected, 4)
+        ),
+        &format!("peak |v_c| of F{jump}"),
+        "m/s",
+        Cond::Near { target: p.jump_expected, tol: 1e-3 },
+        &[ConventionalBackstepping],
+        |s| s[0].summary.followers.get(&jump).map(|m| m.vc_peak),
+    );
+    let bound = p.c1 * p.shunting_b + p.vr_max;
+    b.check(
+        "Bioinspired backstepping: every peak v_c ≤ C₁B + max v_r",
+        "largest peak |v_c| over followers",
+        "m/s",
+        Cond::Le(bound),
+        &[Proposed],
+        |s| over_followers(s[0], false, |_, m| Some(m.vc_peak)),
+    );
+    b.check(
+        "Bioinspired backstepping: every peak v_c below 4 m/s",
+        "largest peak |v_c| over followers",
+        "m/s",
+        Cond::Lt(4.0),
+        &[Proposed],
+        |s| over_followers(s[0], false, |_, m| Some(m.vc_peak)),
+    );
+    b.check(
+        "Normal case: ASIF and KF velocity RMSE within 2 % of each other",
+        "largest |ASIF − KF| / KF over followers and channels",
+        "%",
+        Cond::Le(2.0),
+        &[Proposed, KfNormal],
+        |s| {
+            over_followers(s[0], false, |id, a| {
+                let k = s[1].summary.followers.get(&id)?;
+                Some(((a.rmse_v - k.rmse_v).abs() / k.rmse_v).max((a.rmse_w - k.rmse_w).abs() / k.rmse_w) * 100.0)
+            })
+        },
+    );
+    let rmse_extreme = |s: &[&SeedRecord], min: bool| {
+        let all = s.iter().flat_map(|r| r.summary.followers.values().flat_map(|m| [m.rmse_v, m.rmse_w]));
+        let x = if min { all.reduce(f64::min) } else { all.reduce(f64::max) };
+        x.map(|x| x * 100.0)
+    };
+    b.check(
+        "Normal case: KF and ASIF RMSE within 0.6–1.5 ×10⁻² on each channel (lower end)",
+        "smallest RMSE over filters, followers, channels",
+        "×10⁻²",
+        Cond::Ge(0.6),
+        &[Proposed, KfNormal],
+        |s| rmse_extreme(s, true),
+    );
+    b.check(
+        "Normal case: KF and ASIF RMSE within 0.6–1.5 ×10⁻² on each channel (upper end)",
+        "largest RMSE over filters, followers, channels",
+        "×10⁻²",
+        Cond::Le(1.5),
+        &[Proposed, KfNormal],
+        |s| rmse_extreme(s, false),
+    );
+    b.check(
+        "Fault case: ASIF linear RMSE at most half the KF's, for every follower",
+        "largest ASIF / KF linear RMSE over followers",
+        "ratio",
+        Cond::Le(0.5),
+        &[AsifFault, KfFault],
+        |s| over_followers(s[0], false, |id, a| Some(a.rmse_v / s[1].summary.followers.get(&id)?.rmse_v)),
+    );
+    b.check(
+        "Fault case: ASIF angular RMSE no larger than the KF's",
+        "largest ASIF / KF angular RMSE over followers",
+        "ratio",
+        Cond::Le(1.0),
+        &[AsifFault, KfFault],
+        |s| over_followers(s[0], false, |id, a| Some(a.rmse_w / s[1].summary.followers.get(&id)?.rmse_w)),
+    );
+    b.check(
+        "Chattering: conventional SMC torque variation ≥ 50× the bioinspired SMC's",
+        "smallest SMC / bioinspired torque variation over followers",
+        "ratio",
+        Cond::Ge(50.0),
+        &[ConventionalSmc, Proposed],
+        |s| over_followers(s[0], true, |id, c| Some(c.torque_tv / s[1].summary.followers.get(&id)?.torque_tv)),
+    );
+    b.check(
+        "Chattering: super-twisting above the bioinspired SMC",
+        "smallest super-twisting / bioinspired torque variation over followers",
+        "ratio",
+        Cond::Gt(1.0),
+        &[SuperTwisting, Proposed],
+        |s| over_followers(s[0], true, |id, t| Some(t.torque_tv / s[1].summary.followers.get(&id)?.torque_tv)),
+    );
+    b.check(
+        "Chattering: super-twisting below the conventional SMC",
+        "largest super-twisting / conventional SMC torque variation over followers",
+        "ratio",
+        Cond::Lt(1.0),
+        &[SuperTwisting, ConventionalSmc],
+        |s| over_followers(s[0], false, |id, t| Some(t.torque_tv / s[1].summary.followers.get(&id)?.torque_tv)),
+    );
+    b.check(
+        "Estimator: position error of every follower below 0.01 m at t = T",
+        "largest estimator position error at t = T",
+        "m",
+        Cond::Lt(0.01),
+        &[Proposed],
+        |s| over_followers(s[0], false, |_, m| Some(m.estimator_error_final)),
+    );
+    b.check(
+        "Estimator from zero estimates (3 m off): below 0.1 m by t = 4 s",
+        "largest estimator position error at t = 4 s",
+        "m",
+        Cond::Lt(0.1),
+        &[ZeroInit],
+        |s| s[0].estimator_error_4s.values().copied().reduce(f64::max),
+    );
+    b.check(
+        "Estimator from zero estimates (3 m off): below 0.02 m by t = 6 s",
+        "largest estimator position error at t = 6 s",
+        "m",
+        Cond::Lt(0.02),
+        &[ZeroInit],
+        |s| s[0].estimator_error_6s.values().copied().reduce(f64::max),
+    );
+    b.check(
+        "Formation: bounded, every follower's formation-error RMS over the last 10 s below 0.2 m",
+        "largest formation-error RMS over the last 10 s",
+        "m",
+        Cond::Lt(0.2),
+        &[Proposed],
+        |s| over_followers(s[0], false, |_, m| Some(m.formation_rms_last10)),
+    );
+    b.out
+}
+
+/// The claims as a markdown table, with a count line.
+pub fn claims_markdown(checks: &[Check]) -> String {
+    let count = |r| checks.iter().filter(|c| c.result() == r).count();
+    let mut md = format!(
+        "{} PASS, {} FAIL, {} N/A. A claim passes when it holds for every seed.\n\n",
+        count("PASS"),
+        count("FAIL"),
+        count("N/A")
+    );
+    md += "| # | Claim | Measured quantity | Cases | Measured | Required | Result |\n";
+    md += "| --- | --- | --- | --- | --- | --- | --- |\n";
+    for (i, c) in checks.iter().enumerate() {
+        let seeds = if c.values.len() > 1 { format!(" ({}/{} seeds)", c.holds, c.values.len()) } else { String::new() };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} ({}) | {} | {} | {} | **{}**{} |",
+            i + 1,
+            md_cell(&c.claim),
+            md_cell(&c.quantity),
+            c.unit,
+            c.cases.join(", "),
+            c.measured(),
+            c.condition.text(),
+            c.result(),
+            seeds
+        );
+    }
+    md
+}
+
+/// The claims as aligned text lines, for the terminal.
+pub fn claims_text(checks: &[Check]) -> String {
+    let mut s = String::new();
+    for c in checks {
+        let seeds = if c.values.len() > 1 { format!(" [{}/{} seeds]", c.holds, c.values.len()) } else { String::new() };
+        let _ = writeln!(
+            s,
+            "{:<4} {}: {} = {} {} (required {}){}",
+            c.result(),
+            c.claim,
+            c.quantity,
+            c.measured(),
+            c.unit,
+            c.condition.text(),
+            seeds
+        );
+    }
+    s
+}
+
+/// The claims as CSV.
+pub fn claims_csv(checks: &[Check]) -> String {
+    let mut s = format!("claim,quantity,unit,cases,{STAT_HEADER},required,holds,result\n");
+    for c in checks {
+        let stat = c.stat.map(|s| stat_fields(&s)).unwrap_or_else(|| "0,,,,,,".into());
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{stat},{},{},{}",
+            csv_field(&c.claim),
+            csv_field(&c.quantity),
+            c.unit,
+            csv_field(&c.cases.join(" ")),
+            csv_field(&c.condition.text()),
+            c.holds,
+            c.result()
+        );
+    }
+    s
+}
