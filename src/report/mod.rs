@@ -168,13 +168,12 @@ impl Case {
     }
 }
 
+/// A value per follower id.
+type ErrorById = BTreeMap<u32, f64>;
+
 /// The estimator position error at t = 4 s and 6 s from a folder's CSVs:
 /// the sample within half a step of the time, if there is one.
-fn estimator_checkpoints_from_csv(
-    dir: &Path,
-    ids: &[u32],
-    dt_s: f64,
-) -> Result<(BTreeMap<u32, f64>, BTreeMap<u32, f64>), CliError> {
+fn estimator_checkpoints_from_csv(dir: &Path, ids: &[u32], dt_s: f64) -> Result<(ErrorById, ErrorById), CliError> {
     let mut at = [BTreeMap::new(), BTreeMap::new()];
     for &id in ids {
         let table = plots::read_columns(&dir.join(format!("follower_{id}.csv")), &["t", "estimator_error"])?;

@@ -185,7 +185,7 @@ struct FigureSpec {
 
 /// The cases a figure compares: paper mode picks the paper's cases by role,
 /// otherwise every case with CSVs.
-fn pick<'a>(cases: &'a [Case], ctx: &Context, roles: &[Role]) -> Vec<usize> {
+fn pick(cases: &[Case], ctx: &Context, roles: &[Role]) -> Vec<usize> {
     if ctx.paper {
         roles.iter().filter_map(|r| cases.iter().position(|c| c.role == *r && c.has_csv)).collect()
     } else {

@@ -26,13 +26,15 @@ impl Stat {
         if n == 0 {
             return None;
         }
-        let mean = values.iter().sum::<f64>() / n as f64;
         let (min, max) = values.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+        // Identical values (a quantity the noise does not reach) would leave
+        // rounding dust in the mean and spread: they are the value, spread 0.
+        let mean = if max == min { min } else { values.iter().sum::<f64>() / n as f64 };
         if n == 1 {
             return Some(Stat { n, mean, sd: 0.0, ci_low: mean, ci_high: mean, min, max });
         }
         let var = values.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / (n - 1) as f64;
-        let sd = var.sqrt();
+        let sd = if max == min { 0.0 } else { var.sqrt() };
         let half = t_975(n - 1) * sd / (n as f64).sqrt();
         Some(Stat { n, mean, sd, ci_low: mean - half, ci_high: mean + half, min, max })
     }

@@ -83,6 +83,9 @@ pub struct Tables {
     pub claims: Vec<Check>,
 }
 
+/// Reads one metric of a follower.
+type MetricFn = fn(&FollowerMetrics) -> f64;
+
 /// A column of a table: a case and its header.
 struct Col<'a> {
     case: &'a Case,
@@ -206,7 +209,7 @@ fn rmse_table(cases: &[Case], ctx: &Context, fault: bool) -> Table {
             _ => None,
         }
     };
-    let channels: [(&str, fn(&FollowerMetrics) -> f64); 2] = [("linear", |m| m.rmse_v), ("angular", |m| m.rmse_w)];
+    let channels: [(&str, MetricFn); 2] = [("linear", |m| m.rmse_v), ("angular", |m| m.rmse_w)];
 
     let mut md = String::from("| Follower |");
     let mut rule = String::from("| --- |");
@@ -261,7 +264,7 @@ fn controller_table(cases: &[Case], ctx: &Context) -> Table {
         return Table { file: file.into(), title: title.into(), markdown: String::new(), csv: String::new() };
     }
     let ids = follower_ids(&cols);
-    let metrics: [(&str, &str, &str, fn(&FollowerMetrics) -> f64); 3] = [
+    let metrics: [(&str, &str, &str, MetricFn); 3] = [
         ("vc_peak", "m/s", "Speed jump: peak |v_c| (m/s)", |m| m.vc_peak),
         ("torque_tv", "N m/s", "Chattering: torque variation Σ|Δτ_L| + |Δτ_R| per second (N m/s)", |m| {
             m.torque_tv
@@ -305,7 +308,7 @@ fn controller_table(cases: &[Case], ctx: &Context) -> Table {
 
 /// Every SPEC §11 metric of every case and follower.
 fn all_metrics_table(cases: &[Case]) -> Table {
-    let metrics: [(&str, &str, fn(&FollowerMetrics) -> f64); 9] = [
+    let metrics: [(&str, &str, MetricFn); 9] = [
         ("formation_rms_last10", "m", |m| m.formation_rms_last10),
         ("formation_final", "m", |m| m.formation_final),
         ("heading_final", "rad", |m| m.heading_final),
@@ -491,12 +494,8 @@ impl ClaimBuilder<'_> {
             missing: None,
         };
         if found.iter().any(Option::is_none) {
-            let names: Vec<String> = roles
-                .iter()
-                .zip(&found)
-                .filter(|(_, c)| c.is_none())
-                .map(|(r, _)| format!("{}", role_name(*r)))
-                .collect();
+            let names: Vec<String> =
+                roles.iter().zip(&found).filter(|(_, c)| c.is_none()).map(|(r, _)| role_name(*r).to_string()).collect();
             check.missing = Some(format!("no {} case", names.join(", ")));
         } else {
             let cases: Vec<&Case> = found.into_iter().flatten().collect();
@@ -710,14 +709,14 @@ pub fn claims_text(checks: &[Check]) -> String {
     let mut s = String::new();
     for c in checks {
         let seeds = if c.values.len() > 1 { format!(" [{}/{} seeds]", c.holds, c.values.len()) } else { String::new() };
+        let unit = if c.stat.is_some() { format!(" {}", c.unit) } else { String::new() };
         let _ = writeln!(
             s,
-            "{:<4} {}: {} = {} {} (required {}){}",
+            "{:<4} {}: {} = {}{unit} (required {}){}",
             c.result(),
             c.claim,
             c.quantity,
             c.measured(),
-            c.unit,
             c.condition.text(),
             seeds
         );

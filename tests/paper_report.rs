@@ -1,0 +1,296 @@
+//! End to end: `formation paper` and `formation report` write every figure
+//! and table, the tables hold the runs' own numbers, and the report states
+//! each SPEC §12 claim with its measurement.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use formation::record::{FollowerMetrics, Summary};
+use formation::report::SeedRecord;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_formation"))
+}
+
+fn paper_toml() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml")
+}
+
+fn run_ok(cmd: &mut Command) -> Output {
+    let out = cmd.output().expect("formation runs");
+    assert!(
+        out.status.success(),
+        "{cmd:?} failed ({}):\n{}{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+const FIGURES: [&str; 4] = ["fig3_paths", "fig4_formation_error", "fig5_velocity_command", "fig6_torque"];
+const TABLES: [&str; 4] = ["table1_normal", "table2_fault", "table3_speed_jump_chattering", "table4_all_metrics"];
+const CASES: [&str; 8] = [
+    "proposed",
+    "conventional-backstepping",
+    "conventional-smc",
+    "super-twisting",
+    "kf-normal",
+    "kf-fault",
+    "asif-fault",
+    "zero-init",
+];
+
+/// A CSV with a header, as maps from column name to field.
+fn read_csv(path: &Path) -> Vec<BTreeMap<String, String>> {
+    let mut r = csv::Reader::from_path(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let headers = r.headers().unwrap().clone();
+    r.records()
+        .map(|rec| {
+            let rec = rec.unwrap();
+            headers.iter().map(str::to_string).zip(rec.iter().map(str::to_string)).collect()
+        })
+        .collect()
+}
+
+fn non_empty(path: &Path) {
+    let len = std::fs::metadata(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).len();
+    assert!(len > 0, "{} is empty", path.display());
+}
+
+/// Every figure (SVG, PNG that decodes, CSV), table, claims.csv and report.md.
+fn check_report_files(dir: &Path) {
+    for f in FIGURES {
+        for ext in ["svg", "png", "csv"] {
+            non_empty(&dir.join(format!("{f}.{ext}")));
+        }
+        let img = image::open(dir.join(format!("{f}.png"))).unwrap_or_else(|e| panic!("{f}.png does not decode: {e}"));
+        assert!(img.width() >= 800 && img.height() >= 400, "{f}.png is {}×{}", img.width(), img.height());
+        let svg = std::fs::read_to_string(dir.join(format!("{f}.svg"))).unwrap();
+        assert!(svg.contains("<svg") && (svg.contains("t (s)") || svg.contains("x (m)")), "{f}.svg lacks axis labels");
+    }
+    for t in TABLES {
+        non_empty(&dir.join(format!("{t}.csv")));
+    }
+    non_empty(&dir.join("claims.csv"));
+    non_empty(&dir.join("report.md"));
+}
+
+/// Summaries of a case folder: every seed from seeds.json if there, else summary.json.
+fn seeds_of(case_dir: &Path) -> Vec<Summary> {
+    let summary: Summary =
+        serde_json::from_str(&std::fs::read_to_string(case_dir.join("summary.json")).unwrap()).unwrap();
+    let seeds = case_dir.join("seeds.json");
+    if !seeds.exists() {
+        return vec![summary];
+    }
+    let recs: Vec<SeedRecord> = serde_json::from_str(&std::fs::read_to_string(seeds).unwrap()).unwrap();
+    assert_eq!(recs[0].summary, summary, "{}: seeds.json starts with summary.json", case_dir.display());
+    recs.into_iter().map(|r| r.summary).collect()
+}
+
+fn mean(values: &[f64]) -> f64 {
+    values.iter().sum::<f64>() / values.len() as f64
+}
+
+fn close(a: f64, b: f64) -> bool {
+    (a - b).abs() <= 1e-12 * a.abs().max(b.abs()).max(1e-300)
+}
+
+/// Checks a long table: every (case, follower, key) row's mean equals the
+/// mean over the case's seeds of the metric it names, times `scale`; and
+/// every case has a row for every follower.
+fn check_table(
+    path: &Path,
+    case_dirs: &BTreeMap<String, PathBuf>,
+    key_column: &str,
+    metric: impl Fn(&str, &FollowerMetrics) -> f64,
+    scale: f64,
+) {
+    let rows = read_csv(path);
+    assert!(!rows.is_empty(), "{} has no rows", path.display());
+    let mut seen: BTreeMap<String, Vec<u32>> = BTreeMap::new();
+    for row in &rows {
+        let case = &row["case"];
+        let dir = case_dirs.get(case).unwrap_or_else(|| panic!("{}: unknown case {case}", path.display()));
+        let id: u32 = row["follower"].parse().unwrap();
+        let seeds = seeds_of(dir);
+        let values: Vec<f64> = seeds.iter().map(|s| metric(&row[key_column], &s.followers[&id]) * scale).collect();
+        let got: f64 = row["mean"].parse().unwrap();
+        assert!(
+            close(got, mean(&values)),
+            "{} {case} F{id} {}: table {got} vs summaries {}",
+            path.display(),
+            row[key_column],
+            mean(&values)
+        );
+        assert_eq!(row["n"].parse::<usize>().unwrap(), seeds.len());
+        seen.entry(case.clone()).or_default().push(id);
+    }
+    for (case, ids) in seen {
+        let summary = &seeds_of(&case_dirs[&case])[0];
+        for id in summary.followers.keys() {
+            assert!(ids.contains(id), "{}: no row for {case} follower {id}", path.display());
+        }
+    }
+}
+
+fn rmse(channel: &str, m: &FollowerMetrics) -> f64 {
+    match channel {
+        "linear" => m.rmse_v,
+        "angular" => m.rmse_w,
+        other => panic!("channel {other}"),
+    }
+}
+
+fn named_metric(name: &str, m: &FollowerMetrics) -> f64 {
+    let v = serde_json::to_value(m).unwrap();
+    v[name].as_f64().unwrap_or_else(|| panic!("metric {name}"))
+}
+
+/// Every claim of SPEC §12 is stated, with a result and, when measured, a number.
+fn check_claims(dir: &Path) -> BTreeMap<String, String> {
+    let rows = read_csv(&dir.join("claims.csv"));
+    assert_eq!(rows.len(), 15, "15 statements of SPEC §12");
+    let report = std::fs::read_to_string(dir.join("report.md")).unwrap();
+    assert!(report.contains("## Claims (SPEC §12)"));
+    let mut results = BTreeMap::new();
+    for row in &rows {
+        let result = row["result"].clone();
+        assert!(["PASS", "FAIL", "N/A"].contains(&result.as_str()), "result {result}");
+        if result != "N/A" {
+            let m: f64 = row["mean"].parse().unwrap_or_else(|_| panic!("claim {} has no number", row["claim"]));
+            assert!(m.is_finite());
+            assert!(report.contains(&format!("**{result}**")));
+        }
+        let claim_md = row["claim"].replace('|', "\\|");
+        assert!(report.contains(&claim_md), "report.md lacks claim {}", row["claim"]);
+        results.insert(row["claim"].clone(), result);
+    }
+    results
+}
+
+#[test]
+fn paper_writes_every_figure_table_and_claim_from_its_runs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("paper-report");
+    let o = run_ok(bin().args(["paper", "--scenario"]).arg(paper_toml()).args([
+        "--set",
+        "duration=3",
+        "--seeds",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("PASS") || stdout.contains("FAIL"), "claims printed:\n{stdout}");
+
+    check_report_files(&out);
+    let mut case_dirs = BTreeMap::new();
+    for c in CASES {
+        let d = out.join(c);
+        for f in ["summary.json", "seeds.json", "leader.csv", "follower_1.csv", "follower_4.csv"] {
+            non_empty(&d.join(f));
+        }
+        let seeds = seeds_of(&d);
+        assert_eq!(seeds.len(), 2, "{c}: two seeds");
+        assert_eq!(seeds[1].seed, seeds[0].seed + 1, "{c}: consecutive seeds");
+        assert_eq!(seeds[0].duration, 3.0);
+        case_dirs.insert(c.to_string(), d);
+    }
+    let fault = |c: &str| seeds_of(&case_dirs[c])[0].fault_time;
+    assert_eq!(fault("kf-fault"), Some(10.0));
+    assert_eq!(fault("asif-fault"), Some(10.0));
+    assert_eq!(fault("proposed"), None);
+
+    check_table(&out.join("table1_normal.csv"), &case_dirs, "channel", rmse, 100.0);
+    check_table(&out.join("table2_fault.csv"), &case_dirs, "channel", rmse, 100.0);
+    check_table(&out.join("table3_speed_jump_chattering.csv"), &case_dirs, "metric", named_metric, 1.0);
+    check_table(&out.join("table4_all_metrics.csv"), &case_dirs, "metric", named_metric, 1.0);
+    // Tables I and II compare exactly KF with ASIF, beside the paper's values.
+    let t1 = read_csv(&out.join("table1_normal.csv"));
+    let cases: std::collections::BTreeSet<&str> = t1.iter().map(|r| r["case"].as_str()).collect();
+    assert_eq!(cases, ["kf-normal", "proposed"].into_iter().collect());
+    assert!(t1.iter().any(|r| r["case"] == "kf-normal" && r["follower"] == "1" && r["paper"] == "0.97"));
+    let t2 = read_csv(&out.join("table2_fault.csv"));
+    assert!(t2.iter().any(|r| r["case"] == "kf-fault" && r["follower"] == "2" && r["paper"] == "6.5"));
+
+    let results = check_claims(&out);
+    // 3 s is shorter than the 4 s and 6 s the zero-start estimator claims look at.
+    let na: Vec<_> = results.iter().filter(|(_, r)| *r == "N/A").map(|(c, _)| c.clone()).collect();
+    assert_eq!(na.len(), 2, "only the 4 s and 6 s claims are N/A: {na:?}");
+    // Two seeds: the report shows mean ± sd and an interval.
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains(" ± ") && report.contains("seeds)"), "Monte Carlo cells in report.md");
+    for f in FIGURES {
+        assert!(report.contains(&format!("({f}.png)")), "report.md shows {f}");
+    }
+}
+
+#[test]
+fn report_compares_sim_folders_side_by_side() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = tmp.path().join("bio-sim");
+    let b = tmp.path().join("smc-kf-fault");
+    run_ok(bin().arg("sim").arg(paper_toml()).args(["--set", "duration=3", "--out", a.to_str().unwrap(), "-q"]));
+    run_ok(bin().arg("sim").arg(paper_toml()).args([
+        "--set",
+        "duration=3",
+        "--set",
+        "dynamic=smc",
+        "--set",
+        "filter=kf",
+        "--set",
+        "fault.time=1",
+        "--every",
+        "5",
+        "--out",
+        b.to_str().unwrap(),
+        "-q",
+    ]));
+    let out = tmp.path().join("report");
+    run_ok(bin().arg("report").arg(&a).arg(&b).args(["--out", out.to_str().unwrap()]));
+    check_report_files(&out);
+    let case_dirs: BTreeMap<String, PathBuf> =
+        [("bio-sim".to_string(), a.clone()), ("smc-kf-fault".to_string(), b.clone())].into_iter().collect();
+    check_table(&out.join("table1_normal.csv"), &case_dirs, "channel", rmse, 100.0);
+    check_table(&out.join("table2_fault.csv"), &case_dirs, "channel", rmse, 100.0);
+    check_table(&out.join("table3_speed_jump_chattering.csv"), &case_dirs, "metric", named_metric, 1.0);
+    check_table(&out.join("table4_all_metrics.csv"), &case_dirs, "metric", named_metric, 1.0);
+    // One seed: the cells are the summary's values themselves.
+    let t4 = read_csv(&out.join("table4_all_metrics.csv"));
+    let s: Summary = serde_json::from_str(&std::fs::read_to_string(a.join("summary.json")).unwrap()).unwrap();
+    let row = t4.iter().find(|r| r["case"] == "bio-sim" && r["follower"] == "3" && r["metric"] == "vc_peak").unwrap();
+    assert_eq!(row["mean"].parse::<f64>().unwrap(), s.followers[&3].vc_peak);
+    // The normal run is in Table I, the fault run in Table II; both cases in the comparison tables.
+    assert!(read_csv(&out.join("table1_normal.csv")).iter().all(|r| r["case"] == "bio-sim"));
+    assert!(read_csv(&out.join("table2_fault.csv")).iter().all(|r| r["case"] == "smc-kf-fault"));
+    let fig5 = read_csv(&out.join("fig5_velocity_command.csv"));
+    for case in ["bio-sim", "smc-kf-fault"] {
+        assert!(fig5.iter().any(|r| r["series"] == case), "Fig. 5 shows {case}");
+    }
+    let results = check_claims(&out);
+    assert!(results.values().any(|r| r == "PASS" || r == "FAIL"));
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("bio-sim") && report.contains("smc-kf-fault"));
+}
+
+#[test]
+fn report_rejects_a_missing_or_foreign_folder_with_status_2() {
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("no-such-run");
+    let o = bin().arg("report").arg(&missing).args(["--out"]).arg(tmp.path().join("r")).output().unwrap();
+    assert_eq!(o.status.code(), Some(2), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("no-such-run") && err.contains("no such run folder"), "stderr: {err}");
+
+    let empty = tmp.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let o = bin().arg("report").arg(&empty).args(["--out"]).arg(tmp.path().join("r")).output().unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("summary.json"));
+
+    let o = bin().arg("paper").args(["--set", "no_such_key=1", "--out"]).arg(tmp.path().join("p")).output().unwrap();
+    assert_eq!(o.status.code(), Some(2), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+}
