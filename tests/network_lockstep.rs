@@ -75,8 +75,9 @@ fn launch(dir: &Path, sets: &[&str], extra: &[&str]) -> Group {
 
 /// Launches a networked lock-step run and checks that its folder matches
 /// `formation sim`'s byte for byte (summary.json and every CSV).
-fn same_as_sim(tag: &str, sets: &[&str], extra: &[&str]) -> PathBuf {
-    let tmp = tempfile::tempdir().expect("tempdir").keep();
+fn same_as_sim(tag: &str, sets: &[&str], extra: &[&str]) -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let tmp = dir.path().to_path_buf();
     let net = tmp.join("net");
     let mut g = launch(&net, sets, extra);
     let expected = sim(&tmp.join("sim"), sets);
@@ -89,7 +90,7 @@ fn same_as_sim(tag: &str, sets: &[&str], extra: &[&str]) -> PathBuf {
         let b = std::fs::read(tmp.join("sim").join(f)).expect("sim csv");
         assert!(a == b, "{tag}: {f} differs");
     }
-    net
+    (dir, net)
 }
 
 fn network(dir: &Path) -> serde_json::Value {
@@ -98,7 +99,8 @@ fn network(dir: &Path) -> serde_json::Value {
 
 #[test]
 fn lockstep_noise_free_equals_sim() {
-    let net = same_as_sim("noise off", &["duration=2", "noise=false"], &["--base-port", "17500", "--run", "ls-a"]);
+    let (_dir, net) =
+        same_as_sim("noise off", &["duration=2", "noise=false"], &["--base-port", "17500", "--run", "ls-a"]);
     let n = network(&net);
     assert_eq!(n["complete"], true);
     assert_eq!(n["nodes"]["1"]["rejected_invalid"], 0);
@@ -126,7 +128,8 @@ fn msg(sender: u32, step: u64, v: f64) -> Vec<u8> {
 /// the result is unchanged and the rejections are counted.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rogue_messages_are_rejected_and_counted() {
-    let tmp = tempfile::tempdir().expect("tempdir").keep();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let tmp = dir.path();
     let net = tmp.join("net");
     let sets = ["duration=3", "noise=false"];
     // Ports: monitor 17540, leader 17541, agents 17542–17545; the rogue listens on 17550.
@@ -172,4 +175,11 @@ async fn rogue_messages_are_rejected_and_counted() {
     for what in ["malformed", "wrong_sender", "non_finite", "version"] {
         assert!(total(what) > 0, "no {what} rejection counted: {n}");
     }
+    eprintln!(
+        "rogue run: rejected malformed {}, wrong_sender {}, non_finite {}, version {}",
+        total("malformed"),
+        total("wrong_sender"),
+        total("non_finite"),
+        total("version")
+    );
 }
