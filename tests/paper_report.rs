@@ -249,11 +249,29 @@ fn report_compares_sim_folders_side_by_side() {
         b.to_str().unwrap(),
         "-q",
     ]));
+    // The same settings again: the agreement table compares it with the first.
+    let again = tmp.path().join("bio-sim-again");
+    run_ok(bin().arg("sim").arg(paper_toml()).args([
+        "--set",
+        "duration=3",
+        "--no-csv",
+        "--out",
+        again.to_str().unwrap(),
+        "-q",
+    ]));
     let out = tmp.path().join("report");
-    run_ok(bin().arg("report").arg(&a).arg(&b).args(["--out", out.to_str().unwrap()]));
+    run_ok(bin().arg("report").arg(&a).arg(&b).arg(&again).args(["--out", out.to_str().unwrap()]));
+    let agreement = read_csv(&out.join("table5_agreement.csv"));
+    assert_eq!(agreement.len(), 9, "one row per metric");
+    for r in &agreement {
+        assert_eq!((r["case"].as_str(), r["reference"].as_str()), ("bio-sim-again", "bio-sim"));
+        assert_eq!(r["max_abs_diff"].parse::<f64>().unwrap(), 0.0, "deterministic: {r:?}");
+    }
     check_report_files(&out);
-    let case_dirs: BTreeMap<String, PathBuf> =
-        [("bio-sim".to_string(), a.clone()), ("smc-kf-fault".to_string(), b.clone())].into_iter().collect();
+    let case_dirs: BTreeMap<String, PathBuf> = [("bio-sim", &a), ("smc-kf-fault", &b), ("bio-sim-again", &again)]
+        .into_iter()
+        .map(|(n, d)| (n.to_string(), d.clone()))
+        .collect();
     check_table(&out.join("table1_normal.csv"), &case_dirs, "channel", rmse, 100.0);
     check_table(&out.join("table2_fault.csv"), &case_dirs, "channel", rmse, 100.0);
     check_table(&out.join("table3_speed_jump_chattering.csv"), &case_dirs, "metric", named_metric, 1.0);
@@ -264,7 +282,7 @@ fn report_compares_sim_folders_side_by_side() {
     let row = t4.iter().find(|r| r["case"] == "bio-sim" && r["follower"] == "3" && r["metric"] == "vc_peak").unwrap();
     assert_eq!(row["mean"].parse::<f64>().unwrap(), s.followers[&3].vc_peak);
     // The normal run is in Table I, the fault run in Table II; both cases in the comparison tables.
-    assert!(read_csv(&out.join("table1_normal.csv")).iter().all(|r| r["case"] == "bio-sim"));
+    assert!(read_csv(&out.join("table1_normal.csv")).iter().all(|r| r["case"].starts_with("bio-sim")));
     assert!(read_csv(&out.join("table2_fault.csv")).iter().all(|r| r["case"] == "smc-kf-fault"));
     let fig5 = read_csv(&out.join("fig5_velocity_command.csv"));
     for case in ["bio-sim", "smc-kf-fault"] {

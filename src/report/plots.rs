@@ -679,20 +679,3 @@ fn fig6(
         csv_xy: ("t_s", "torque_nm"),
     }
 }
-
-/// Draws Fig. 3 of one run folder as a PNG of the given size (for the README).
-pub fn paths_png(case: &Case, path: &Path, size: (u32, u32)) -> Result<(), CliError> {
-    register_fonts();
-    let mut data = BTreeMap::new();
-    data.insert(0, RunData::load(case)?);
-    let ctx = Context {
-        paper: case.role == Role::Proposed,
-        command: String::new(),
-        params: super::tables::ClaimParams::paper_defaults(),
-        notes: vec![],
-    };
-    let mut spec = fig3(std::slice::from_ref(case), &[0], &data, &ctx);
-    spec.size = size;
-    let root = BitMapBackend::new(path, size).into_drawing_area();
-    render(&root, &spec).map_err(|e| CliError::Run(format!("{}: {e}", path.display())))
-}

@@ -9,7 +9,7 @@ use formation_topology::Scenario;
 
 use super::stats::Stat;
 use super::{Case, Context, Role, SeedRecord};
-use crate::record::FollowerMetrics;
+use crate::record::{FollowerMetrics, Summary};
 
 /// The paper's Table I (normal case) and Table II (fault case), ×10⁻²:
 /// per follower (linear KF, linear ASIF, angular KF, angular ASIF), copied
@@ -174,6 +174,7 @@ pub fn build(cases: &[Case], ctx: &Context) -> Tables {
         rmse_table(cases, ctx, true),
         controller_table(cases, ctx),
         all_metrics_table(cases),
+        agreement_table(cases),
     ];
     tables.retain(|t| !t.csv.is_empty());
     Tables { tables, claims: claims(cases, &ctx.params) }
@@ -306,19 +307,22 @@ fn controller_table(cases: &[Case], ctx: &Context) -> Table {
     Table { file: file.into(), title: title.into(), markdown: md, csv }
 }
 
+/// Every metric of [`FollowerMetrics`] but the sample count: name, unit, value.
+const ALL_METRICS: [(&str, &str, MetricFn); 9] = [
+    ("formation_rms_last10", "m", |m| m.formation_rms_last10),
+    ("formation_final", "m", |m| m.formation_final),
+    ("heading_final", "rad", |m| m.heading_final),
+    ("estimator_error_final", "m", |m| m.estimator_error_final),
+    ("vc_peak", "m/s", |m| m.vc_peak),
+    ("torque_tv", "N m/s", |m| m.torque_tv),
+    ("torque_peak", "N m", |m| m.torque_peak),
+    ("rmse_v", "m/s", |m| m.rmse_v),
+    ("rmse_w", "rad/s", |m| m.rmse_w),
+];
+
 /// Every SPEC §11 metric of every case and follower.
 fn all_metrics_table(cases: &[Case]) -> Table {
-    let metrics: [(&str, &str, MetricFn); 9] = [
-        ("formation_rms_last10", "m", |m| m.formation_rms_last10),
-        ("formation_final", "m", |m| m.formation_final),
-        ("heading_final", "rad", |m| m.heading_final),
-        ("estimator_error_final", "m", |m| m.estimator_error_final),
-        ("vc_peak", "m/s", |m| m.vc_peak),
-        ("torque_tv", "N m/s", |m| m.torque_tv),
-        ("torque_peak", "N m", |m| m.torque_peak),
-        ("rmse_v", "m/s", |m| m.rmse_v),
-        ("rmse_w", "rad/s", |m| m.rmse_w),
-    ];
+    let metrics = ALL_METRICS;
     let mut md = String::from("| case | follower |");
     for (k, u, _) in &metrics {
         let _ = write!(md, " {k} ({u}) |");
@@ -362,6 +366,54 @@ pub fn md_cell(s: &str) -> String {
 /// A number in Unicode subscript digits (x̂₄).
 fn subscript(n: u32) -> String {
     n.to_string().chars().map(|c| char::from_u32(0x2080 + c.to_digit(10).unwrap_or(0)).unwrap_or(c)).collect()
+}
+
+/// Cases with the same settings as an earlier one (a networked run beside
+/// the simulator's, say): the largest difference of each metric over the
+/// followers, first seeds compared.
+fn agreement_table(cases: &[Case]) -> Table {
+    let same = |a: &Summary, b: &Summary| {
+        (&a.kinematic, &a.dynamic, &a.filter, &a.estimate_init)
+            == (&b.kinematic, &b.dynamic, &b.filter, &b.estimate_init)
+            && (a.seed, a.noise, a.steps, a.fault_time) == (b.seed, b.noise, b.steps, b.fault_time)
+            && a.dt == b.dt
+            && a.followers.keys().eq(b.followers.keys())
+    };
+    let mut md = String::from("| case | compared with |");
+    for (k, u, _) in &ALL_METRICS {
+        let _ = write!(md, " {k} ({u}) |");
+    }
+    md += "\n| --- | --- |";
+    md += &" --- |".repeat(ALL_METRICS.len());
+    md.push('\n');
+    let mut csv = String::new();
+    for (i, c) in cases.iter().enumerate() {
+        let Some(r) = cases[..i].iter().find(|r| same(c.summary(), r.summary())) else { continue };
+        if csv.is_empty() {
+            csv = "case,reference,metric,unit,max_abs_diff,max_rel_diff\n".into();
+        }
+        let _ = write!(md, "| {} | {} |", c.label, r.label);
+        for (key, unit, f) in &ALL_METRICS {
+            let (mut abs, mut rel) = (0.0_f64, 0.0_f64);
+            for (id, m) in &c.summary().followers {
+                let (x, y) = (f(m), f(&r.summary().followers[id]));
+                abs = abs.max((x - y).abs());
+                if y != 0.0 {
+                    rel = rel.max((x - y).abs() / y.abs());
+                }
+            }
+            let _ = write!(md, " {} |", sig(abs, 3));
+            let _ = writeln!(csv, "{},{},{key},{unit},{abs:?},{rel:?}", csv_field(&c.label), csv_field(&r.label));
+        }
+        md.push('\n');
+    }
+    md += "\nEach cell is the largest absolute difference over the followers (0: identical).\n";
+    Table {
+        file: "table5_agreement".into(),
+        title: "Agreement of runs with the same settings".into(),
+        markdown: md,
+        csv,
+    }
 }
 
 fn capitalise(s: &str) -> String {
