@@ -255,6 +255,8 @@ impl Recorder {
             .map(|(&id, n)| {
                 let name = if id == 0 { "leader".to_string() } else { id.to_string() };
                 let c = &n.counters;
+                // Rows in this follower's CSV (followers can be ahead of the slowest one).
+                let recorded = self.scenario.index_of(id).filter(|_| id != 0).map(|i| self.followers[i].next_k);
                 (
                     name,
                     json!({
@@ -263,6 +265,7 @@ impl Recorder {
                         "telemetry_samples": n.samples,
                         "telemetry_gaps": n.gaps,
                         "done": n.done,
+                        "recorded_steps": recorded,
                         "estimates_sent": c.sent,
                         "republished": c.republished,
                         "received": c.received,
