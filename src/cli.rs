@@ -123,7 +123,11 @@ impl From<SimError> for CliError {
 
 impl From<std::io::Error> for CliError {
     fn from(e: std::io::Error) -> Self {
-        CliError::Run(e.to_string())
+        match e.kind() {
+            // An --out that names a folder which is not a run folder.
+            std::io::ErrorKind::AlreadyExists => CliError::Input(e.to_string()),
+            _ => CliError::Run(e.to_string()),
+        }
     }
 }
 

@@ -173,7 +173,9 @@ impl MetricsAccumulator {
     /// with k ≥ (T − 10)/Δt (all samples when T ≤ 10).
     pub fn new(steps: u64, dt_s: f64) -> Self {
         let duration_s = steps as f64 * dt_s;
-        let last10_from_k = if duration_s > 10.0 { ((duration_s - 10.0) / dt_s).round() as u64 } else { 0 };
+        // The first k with k Δt ≥ T − 10 (the 1e-9 absorbs rounding of a
+        // quotient that is whole on paper).
+        let last10_from_k = if duration_s > 10.0 { ((duration_s - 10.0) / dt_s - 1e-9).ceil() as u64 } else { 0 };
         Self { last10_from_k, duration_s, ..Default::default() }
     }
 
@@ -323,6 +325,7 @@ const LEADER_HEADER: &str = "t,x,y,theta,v,w\n";
 
 impl RunWriter {
     pub fn create(opts: &RecordOptions, ids: &[u32]) -> std::io::Result<Self> {
+        refuse_foreign_folder(&opts.dir)?;
         let mut partial = opts.dir.clone().into_os_string();
         partial.push(".partial");
         let dir = PathBuf::from(partial);
@@ -429,6 +432,7 @@ impl RunWriter {
     pub fn finish(mut self, summary: &Summary) -> std::io::Result<PathBuf> {
         self.flush_all()?;
         self.write_file("summary.json", &summary.to_json())?;
+        refuse_foreign_folder(&self.final_dir)?;
         if self.final_dir.exists() {
             fs::remove_dir_all(&self.final_dir)?;
         }
@@ -440,6 +444,21 @@ impl RunWriter {
     pub fn partial_dir(&self) -> &Path {
         &self.dir
     }
+}
+
+/// A run folder is replaced by a new run only if it is one: empty, or
+/// holding a `summary.json` or `network.json`. Anything else (`--out .`,
+/// `--out ~`, a folder of the user's) is refused rather than deleted.
+pub fn refuse_foreign_folder(dir: &Path) -> std::io::Result<()> {
+    let Ok(mut entries) = fs::read_dir(dir) else { return Ok(()) };
+    let is_run = dir.join("summary.json").is_file() || dir.join("network.json").is_file();
+    if is_run || entries.next().is_none() {
+        return Ok(());
+    }
+    Err(std::io::Error::new(
+        std::io::ErrorKind::AlreadyExists,
+        format!("{} exists and is not a run folder (no summary.json): refusing to replace it", dir.display()),
+    ))
 }
 
 fn write_fields(b: &mut Vec<u8>, fields: &[f64]) {

@@ -116,6 +116,44 @@ fn bad_overrides_are_rejected() {
 }
 
 #[test]
+fn duration_must_be_a_whole_number_of_steps() {
+    assert_rejected(
+        &replace("duration = 30.0", "duration = 10.0005"),
+        &[],
+        &["duration", "not a whole number of steps"],
+    );
+}
+
+#[test]
+fn out_never_replaces_a_folder_that_is_not_a_run_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let keep = tmp.path().join("keep");
+    std::fs::create_dir(&keep).unwrap();
+    std::fs::write(keep.join("important.txt"), "data").unwrap();
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+    let out =
+        formation(&["sim", scenario.to_str().unwrap(), "--out", keep.to_str().unwrap(), "--set", "duration=0.1", "-q"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("not a run folder"), "{stderr}");
+    assert_eq!(std::fs::read_to_string(keep.join("important.txt")).unwrap(), "data");
+    // A run folder is replaced by the next run into it.
+    let run = tmp.path().join("run");
+    for _ in 0..2 {
+        let o = formation(&[
+            "sim",
+            scenario.to_str().unwrap(),
+            "--out",
+            run.to_str().unwrap(),
+            "--set",
+            "duration=0.1",
+            "-q",
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+}
+
+#[test]
 fn missing_file_is_a_clear_error() {
     let out = formation(&["sim", "/nonexistent/scenario.toml", "-q"]);
     assert_eq!(out.status.code(), Some(2));

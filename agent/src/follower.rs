@@ -43,10 +43,17 @@ pub struct FollowerConfig {
 }
 
 impl FollowerConfig {
-    /// The model the filter uses at time t (nominal, or faulty from t_fault).
-    pub fn filter_model_at(&self, t_s: f64) -> RobotParams {
-        match self.fault {
-            Some(f) if t_s >= f.time_s => RobotParams {
+    /// The first step at which the fault is in force: the first k with
+    /// k Δt ≥ t_fault, decided on step indices so that a t_fault on the grid
+    /// is not missed by one step through rounding of k Δt.
+    pub fn fault_step(&self) -> Option<u64> {
+        self.fault.map(|f| (f.time_s / self.dt_s - 1e-9).ceil().max(0.0) as u64)
+    }
+
+    /// The model the filter uses at step k (nominal, or faulty from t_fault).
+    pub fn filter_model_at(&self, k: u64) -> RobotParams {
+        match (self.fault, self.fault_step()) {
+            (Some(f), Some(from)) if k >= from => RobotParams {
                 mass_kg: self.model.mass_kg * f.mass_factor,
                 inertia_kgm2: self.model.inertia_kgm2 * f.inertia_factor,
                 ..self.model
@@ -94,9 +101,9 @@ pub struct Follower {
     dynamic: DynamicState,
     filter: VelocityFilter,
     last_command: Option<Velocity>,
-    /// τ(k−1) and t_(k−1), for the filter's prediction at the next step.
+    /// τ(k−1) and k−1, for the filter's prediction at the next step.
     last_torque: Torque,
-    last_t_s: f64,
+    last_k: u64,
     next_k: u64,
 }
 
@@ -114,7 +121,7 @@ impl Follower {
             filter,
             last_command: None,
             last_torque: Torque::default(),
-            last_t_s: 0.0,
+            last_k: 0,
             next_k: 0,
         }
     }
@@ -158,9 +165,8 @@ impl Follower {
         let cfg = &self.config;
         let dt = cfg.dt_s;
         let k = self.next_k;
-        let t = k as f64 * dt;
         if k > 0 {
-            let model = cfg.filter_model_at(self.last_t_s);
+            let model = cfg.filter_model_at(self.last_k);
             self.filter.update(&model, self.last_torque, dt, z);
         } else if cfg.filter.kind == crate::FilterKind::None {
             self.filter.estimate = [z.v, z.w];
@@ -200,7 +206,7 @@ impl Follower {
         estimator::advance(&mut self.estimate, &rates, dt);
         self.last_command = Some(command);
         self.last_torque = torque;
-        self.last_t_s = t;
+        self.last_k = k;
         self.next_k = k + 1;
 
         StepOutput {
@@ -229,5 +235,49 @@ impl Follower {
             Some((what, _)) => Err(NonFinite(what)),
             None => Ok(()),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{FilterKind, Shunting};
+
+    fn config(fault_time_s: f64, dt_s: f64) -> FollowerConfig {
+        let shunting = Shunting { a: 4.0, b: 2.0, d: 2.0 };
+        FollowerConfig {
+            id: 1,
+            offset: [0.0, 0.0],
+            hears_leader: true,
+            estimator: EstimatorGains { k: [1.0; 3], ka: [20.0; 2], kb: [5.0; 2] },
+            kinematic: KinematicKind::Bio,
+            kinematic_gains: KinematicGains { c1: 3.0, c2: 2.0, c3: 1.0, shunting },
+            dynamic: DynamicKind::Bio,
+            dynamic_gains: DynamicGains {
+                ca: 3.0,
+                cb: 3.0,
+                shunting_v: shunting,
+                shunting_w: shunting,
+                k1: 3.0,
+                k2: 3.0,
+            },
+            filter: FilterParams { kind: FilterKind::Asif, q: [1e-4; 2], r: [1e-4; 2], rho_max: [0.08; 2] },
+            model: RobotParams { mass_kg: 10.0, inertia_kgm2: 5.0, wheel_radius_m: 0.05, half_axle_m: 0.2 },
+            fault: Some(Fault { time_s: fault_time_s, mass_factor: 0.01, inertia_factor: 0.1 }),
+            dt_s,
+        }
+    }
+
+    #[test]
+    fn the_fault_starts_at_the_first_step_at_or_after_t_fault() {
+        // 10 s at 1 ms is step 10000 exactly; 0.3 s at 0.1 s is step 3 even
+        // though 3 × 0.1 = 0.30000000000000004 > 0.3 and 0.3 / 0.1 = 2.9999999999999996.
+        assert_eq!(config(10.0, 1e-3).fault_step(), Some(10_000));
+        assert_eq!(config(0.3, 0.1).fault_step(), Some(3));
+        assert_eq!(config(0.25, 0.1).fault_step(), Some(3));
+        let c = config(0.3, 0.1);
+        assert_eq!(c.filter_model_at(2), c.model);
+        assert_eq!(c.filter_model_at(3).mass_kg, 0.1);
+        assert_eq!(c.filter_model_at(3).inertia_kgm2, 0.5);
     }
 }

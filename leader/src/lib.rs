@@ -17,8 +17,9 @@ pub enum Trajectory {
     /// Circle of the given radius at constant speed (counter-clockwise for a
     /// positive radius).
     Circle { speed_mps: f64, radius_m: f64 },
-    /// Figure eight: v = speed, ω = (speed / radius) sin(speed t / (2 radius)),
-    /// which traces two loops of alternating turn direction.
+    /// Figure eight: two circles of the given radius, one turning left and
+    /// then one turning right, repeated (ω = ±speed / radius, switching
+    /// every 2π radius / speed); the path closes after both loops.
     FigureEight { speed_mps: f64, radius_m: f64 },
 }
 
@@ -42,7 +43,9 @@ impl Profile {
             Trajectory::Line { speed_mps } => (speed_mps, 0.0),
             Trajectory::Circle { speed_mps, radius_m } => (speed_mps, speed_mps / radius_m),
             Trajectory::FigureEight { speed_mps, radius_m } => {
-                (speed_mps, speed_mps / radius_m * (speed_mps * t_s / (2.0 * radius_m)).sin())
+                let loop_s = 2.0 * std::f64::consts::PI * radius_m.abs() / speed_mps.abs();
+                let turn = if (t_s / loop_s).floor() as i64 % 2 == 0 { 1.0 } else { -1.0 };
+                (speed_mps, turn * speed_mps / radius_m)
             }
         };
         let ramp = if self.ramp_s > 0.0 { 1.0 - (-t_s / self.ramp_s).exp() } else { 1.0 };
@@ -145,6 +148,22 @@ mod tests {
         let t = 10.0f64;
         assert!((leader.pose.x - t).abs() < 0.02, "x = {}", leader.pose.x);
         assert!((leader.pose.y - (2.0 + t.cos())).abs() < 0.02, "y = {}", leader.pose.y);
+    }
+
+    #[test]
+    fn figure_eight_closes_after_two_loops() {
+        let profile = Profile { trajectory: Trajectory::FigureEight { speed_mps: 1.0, radius_m: 2.0 }, ramp_s: 0.0 };
+        let mut leader = Leader::new(profile, Pose::default());
+        let dt = 1e-4;
+        let steps = (2.0 * 2.0 * std::f64::consts::PI * 2.0 / dt).round() as usize;
+        let mut farthest = 0.0f64;
+        for k in 0..steps {
+            let s = leader.state(k as f64 * dt);
+            leader.advance(&s, dt);
+            farthest = farthest.max(leader.pose.x.hypot(leader.pose.y));
+        }
+        assert!(leader.pose.x.hypot(leader.pose.y) < 5e-3, "end {:?}", leader.pose);
+        assert!((farthest - 4.0).abs() < 1e-2, "each loop is 2 radii across: {farthest}");
     }
 
     #[test]

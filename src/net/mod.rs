@@ -1,7 +1,7 @@
-pub mod session;
 pub mod agent;
 pub mod barrier;
+pub mod bench;
 pub mod leader;
 pub mod monitor;
 pub mod node;
-pub mod bench;
+pub mod session;

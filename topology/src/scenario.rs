@@ -274,6 +274,13 @@ fn validate(
     if file.duration / file.dt > 1e10 {
         return Err(c.fail("duration", format!("{} s at Δt = {} s is more than 1e10 steps", file.duration, file.dt)));
     }
+    let ratio = file.duration / file.dt;
+    if (ratio - ratio.round()).abs() > 1e-6 * ratio.max(1.0) {
+        return Err(c.fail(
+            "duration",
+            format!("{} s is not a whole number of steps of {} s (T/Δt = {ratio})", file.duration, file.dt),
+        ));
+    }
     if file.duration / file.dt < 0.5 {
         return Err(c.fail("duration", format!("{} s is shorter than one step of {} s", file.duration, file.dt)));
     }
