@@ -66,7 +66,7 @@ impl ScenarioArgs {
 pub struct SimArgs {
     #[command(flatten)]
     pub scenario: ScenarioArgs,
-    /// Run folder to write (default: runs/<scenario name>). Replaced if it exists.
+    /// Run folder to write (default: runs/<scenario name>). Replaced if it is a run folder; any other existing folder is refused.
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Write every N-th sample to the CSVs (metrics always use every sample).

@@ -42,7 +42,7 @@ pub enum LaunchMode {
 pub struct LaunchArgs {
     #[command(flatten)]
     pub scenario: ScenarioArgs,
-    /// Run folder the monitor writes [default: runs/<run name>]. Replaced if it exists.
+    /// Run folder the monitor writes [default: runs/<run name>]. Replaced if it is a run folder; any other existing folder is refused.
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Run name (key namespace formation/<run>/…) [default: scenario name].

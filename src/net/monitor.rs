@@ -26,7 +26,7 @@ use crate::record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunW
 pub struct MonitorArgs {
     #[command(flatten)]
     pub node: NodeArgs,
-    /// Run folder to write [default: runs/<run name>]. Replaced if it exists.
+    /// Run folder to write [default: runs/<run name>]. Replaced if it is a run folder; any other existing folder is refused.
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Write every N-th sample to the CSVs (metrics always use every sample).
