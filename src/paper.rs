@@ -115,14 +115,14 @@ pub fn case_scenario(path: &Path, user: &[String], case: &PaperCase) -> Result<S
     let mut overrides: Vec<String> = user.to_vec();
     overrides.extend(case.overrides.iter().map(|s| s.to_string()));
     if case.fault && !user.iter().any(|o| o.trim_start().starts_with("fault.time")) {
-        let file_has_fault = Scenario::load(path, user).map(|s| s.fault.is_some()).unwrap_or(false);
+        let file_has_fault = Scenario::load(path, user).map(|s| s.control.fault.is_some()).unwrap_or(false);
         if !file_has_fault {
             overrides.push(format!("fault.time={PAPER_FAULT_TIME_S}"));
         }
     }
     let mut s = Scenario::load(path, &overrides).map_err(|e| CliError::Input(e.to_string()))?;
     if !case.fault {
-        s.fault = None;
+        std::sync::Arc::make_mut(&mut s.control).fault = None;
     }
     Ok(s)
 }

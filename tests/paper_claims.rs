@@ -31,7 +31,8 @@ fn conventional_backstepping_jumps_to_c1_times_initial_error() {
 #[test]
 fn bioinspired_backstepping_has_no_speed_jump() {
     let (s, m) = run(&[]);
-    let bound = s.kinematic_gains.c1 * s.kinematic_gains.shunting.b + s.leader_profile.max_speed();
+    let k = &s.control.kinematic_gains;
+    let bound = k.c1 * k.shunting.b + s.leader_profile.max_speed();
     for (f, m) in s.followers.iter().zip(&m) {
         assert!(m.vc_peak <= bound, "F{}: peak v_c {} > C1·B + max v_r = {bound}", f.id, m.vc_peak);
         assert!(m.vc_peak < 4.0, "F{}: peak v_c {} m/s is not below 4 m/s", f.id, m.vc_peak);

@@ -3,6 +3,8 @@
 //! the follower sees only its measured pose and the velocity measurement,
 //! so a real robot driver can take the simulated robot's place.
 
+use std::sync::Arc;
+
 use serde::{Deserialize, Serialize};
 
 use crate::dynamic::{self, DynamicGains, DynamicKind, DynamicState};
@@ -22,14 +24,11 @@ pub struct Fault {
     pub inertia_factor: f64,
 }
 
-/// Everything one follower needs to know, validated.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FollowerConfig {
-    pub id: u32,
-    /// Formation offset (Δx_i, Δy_i), m, in the world frame.
-    pub offset: [f64; 2],
-    /// a_i0: does this follower hear the leader?
-    pub hears_leader: bool,
+/// The control law, filter and step that every follower of a scenario
+/// shares, validated. Followers hold it behind an `Arc`: one copy however
+/// many followers run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ControlParams {
     pub estimator: EstimatorGains,
     pub kinematic: KinematicKind,
     pub kinematic_gains: KinematicGains,
@@ -42,7 +41,18 @@ pub struct FollowerConfig {
     pub dt_s: f64,
 }
 
-impl FollowerConfig {
+/// One follower's place in the formation and the shared control parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FollowerConfig {
+    pub id: u32,
+    /// Formation offset (Δx_i, Δy_i), m, in the world frame.
+    pub offset: [f64; 2],
+    /// a_i0: does this follower hear the leader?
+    pub hears_leader: bool,
+    pub control: Arc<ControlParams>,
+}
+
+impl ControlParams {
     /// The first step at which the fault is in force: the first k with
     /// k Δt ≥ t_fault, decided on step indices so that a t_fault on the grid
     /// is not missed by one step through rounding of k Δt.
@@ -111,7 +121,7 @@ impl Follower {
     /// A follower at step 0 with its initial leader estimate and the robot's
     /// initial velocity ξ(0) (ζ̂(0) = ξ(0), SPEC §8). Ṗ_ir starts at zero.
     pub fn new(config: FollowerConfig, initial_estimate: LeaderState, initial_velocity: Velocity) -> Self {
-        let filter = VelocityFilter::new(config.filter, initial_velocity);
+        let filter = VelocityFilter::new(config.control.filter, initial_velocity);
         let estimate = LeaderState { pose_rate: Pose::default(), ..initial_estimate };
         Self {
             config,
@@ -162,7 +172,7 @@ impl Follower {
         leader: Option<&LeaderState>,
         neighbours: impl IntoIterator<Item = &'a LeaderState>,
     ) -> StepOutput {
-        let cfg = &self.config;
+        let cfg = &*self.config.control;
         let dt = cfg.dt_s;
         let k = self.next_k;
         if k > 0 {
@@ -174,7 +184,7 @@ impl Follower {
         let estimate = self.estimate;
 
         // Kinematic controller (eq. 29, 35–36).
-        let body_error = kinematic::body_error(&estimate.pose, cfg.offset, pose);
+        let body_error = kinematic::body_error(&estimate.pose, self.config.offset, pose);
         let command =
             kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, estimate.v, estimate.w);
         let command_rate = match self.last_command {
@@ -195,7 +205,7 @@ impl Follower {
         let torque = cfg.model.acceleration_to_torque(a_v, a_w);
 
         // Estimator (eq. 11–15).
-        let leader = if cfg.hears_leader { leader } else { None };
+        let leader = if self.config.hears_leader { leader } else { None };
         let rates = estimator::rates(&cfg.estimator, &estimate, leader, neighbours);
 
         // Advance every state to k+1.
@@ -243,12 +253,9 @@ mod tests {
     use super::*;
     use crate::{FilterKind, Shunting};
 
-    fn config(fault_time_s: f64, dt_s: f64) -> FollowerConfig {
+    fn config(fault_time_s: f64, dt_s: f64) -> ControlParams {
         let shunting = Shunting { a: 4.0, b: 2.0, d: 2.0 };
-        FollowerConfig {
-            id: 1,
-            offset: [0.0, 0.0],
-            hears_leader: true,
+        ControlParams {
             estimator: EstimatorGains { k: [1.0; 3], ka: [20.0; 2], kb: [5.0; 2] },
             kinematic: KinematicKind::Bio,
             kinematic_gains: KinematicGains { c1: 3.0, c2: 2.0, c3: 1.0, shunting },

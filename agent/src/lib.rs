@@ -19,7 +19,7 @@ pub mod math;
 pub use dynamic::{DynamicGains, DynamicKind};
 pub use estimator::EstimatorGains;
 pub use filter::{FilterKind, FilterParams, VelocityFilter};
-pub use follower::{Fault, Follower, FollowerConfig, NonFinite, StepOutput};
+pub use follower::{ControlParams, Fault, Follower, FollowerConfig, NonFinite, StepOutput};
 pub use formation_leader::LeaderState;
 pub use formation_plant::{Pose, RobotParams, Torque, Velocity};
 pub use kinematic::{BodyError, KinematicGains, KinematicKind};

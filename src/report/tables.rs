@@ -5,6 +5,7 @@
 
 use std::fmt::Write as _;
 
+use formation_agent::{kinematic, KinematicKind};
 use formation_topology::Scenario;
 
 use super::stats::Stat;
@@ -44,25 +45,18 @@ impl ClaimParams {
     /// The values of a scenario, with x̂(0) from its initial estimate.
     pub fn from_scenario(s: &Scenario) -> Self {
         let est = s.initial_estimate();
+        let k = &s.control.kinematic_gains;
         let (jump_follower, jump_expected) = s
             .followers
             .iter()
             .map(|f| {
-                let ex = est.pose.x + f.offset[0] - f.pose.x;
-                let ey = est.pose.y + f.offset[1] - f.pose.y;
-                let (sin, cos) = f.pose.theta.sin_cos();
-                let x_hat = cos * ex + sin * ey;
-                let theta_hat = formation_agent::math::wrap(est.pose.theta - f.pose.theta);
-                (f.id, s.kinematic_gains.c1 * x_hat + est.v * theta_hat.cos())
+                // v_c(0) of conventional backstepping: C_1 x̂(0) + v_ir cos θ̂ (eq. 29, 35).
+                let e = kinematic::body_error(&est.pose, f.offset, &f.pose);
+                let v_c = kinematic::command(KinematicKind::Conventional, k, 0.0, &e, est.v, est.w).v;
+                (f.id, v_c)
             })
             .fold((0, 0.0_f64), |best, x| if x.1.abs() > best.1.abs() { x } else { best });
-        Self {
-            c1: s.kinematic_gains.c1,
-            shunting_b: s.kinematic_gains.shunting.b,
-            vr_max: s.leader_profile.max_speed(),
-            jump_follower,
-            jump_expected,
-        }
+        Self { c1: k.c1, shunting_b: k.shunting.b, vr_max: s.leader_profile.max_speed(), jump_follower, jump_expected }
     }
 }
 

@@ -1,10 +1,11 @@
 //! Validation of a [`ScenarioFile`] into a [`Scenario`], and `--set` overrides.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use formation_agent::{
-    DynamicGains, DynamicKind, EstimatorGains, Fault, FilterParams, FollowerConfig, KinematicGains, KinematicKind,
-    LeaderState, Shunting,
+    ControlParams, DynamicGains, EstimatorGains, Fault, FilterParams, FollowerConfig, KinematicGains, LeaderState,
+    Shunting,
 };
 use formation_leader::{Leader, Profile, Trajectory};
 use formation_plant::{Disturbance, NoiseCov, Pose, RobotParams, Velocity};
@@ -67,15 +68,13 @@ pub struct Scenario {
     pub leader_pose: Pose,
     pub followers: Vec<FollowerSpec>,
     pub graph: Graph,
-    pub estimator: EstimatorGains,
-    pub kinematic: KinematicKind,
-    pub kinematic_gains: KinematicGains,
-    pub dynamic: DynamicKind,
-    pub dynamic_gains: DynamicGains,
-    pub filter: FilterParams,
+    /// Controllers, filter, the model they assume, the fault: shared by
+    /// every follower.
+    pub control: Arc<ControlParams>,
+    /// The true robot (the plant); `control.model` is what the controllers
+    /// assume, the same values unless a study changes one of them.
     pub robot: RobotParams,
     pub disturbance: Disturbance,
-    pub fault: Option<Fault>,
     pub network: NetworkSettings,
     /// The file as it was read and overridden, for the record of a run.
     pub source: ScenarioFile,
@@ -131,20 +130,7 @@ impl Scenario {
     /// The brain configuration of the follower at `index`.
     pub fn follower_config(&self, index: usize) -> FollowerConfig {
         let f = &self.followers[index];
-        FollowerConfig {
-            id: f.id,
-            offset: f.offset,
-            hears_leader: f.hears_leader,
-            estimator: self.estimator,
-            kinematic: self.kinematic,
-            kinematic_gains: self.kinematic_gains,
-            dynamic: self.dynamic,
-            dynamic_gains: self.dynamic_gains,
-            filter: self.filter,
-            model: self.robot,
-            fault: self.fault,
-            dt_s: self.dt_s,
-        }
+        FollowerConfig { id: f.id, offset: f.offset, hears_leader: f.hears_leader, control: Arc::clone(&self.control) }
     }
 
     pub fn index_of(&self, id: u32) -> Option<usize> {
@@ -414,6 +400,12 @@ fn validate(
             Some(Fault { time_s, mass_factor: file.fault.mass_factor, inertia_factor: file.fault.inertia_factor })
         }
     };
+    let robot = RobotParams {
+        mass_kg: r.mass,
+        inertia_kgm2: r.inertia,
+        wheel_radius_m: r.wheel_radius,
+        half_axle_m: r.half_axle,
+    };
     let n = &file.network;
     c.positive("network.silence_timeout", &[n.silence_timeout])?;
     c.positive("network.time_scale", &[n.time_scale])?;
@@ -434,32 +426,31 @@ fn validate(
         leader_pose,
         followers,
         graph,
-        estimator: EstimatorGains { k: est.k, ka: est.ka, kb: est.kb },
-        kinematic: file.kinematic,
-        kinematic_gains: KinematicGains { c1: bs.c1, c2: bs.c2, c3: bs.c3, shunting: bs.shunting },
-        dynamic: file.dynamic,
-        dynamic_gains: DynamicGains {
-            ca: sm.ca,
-            cb: sm.cb,
-            shunting_v: sm.shunting_v,
-            shunting_w: sm.shunting_w,
-            k1: sm.k1,
-            k2: sm.k2,
-        },
-        filter: FilterParams {
-            kind: file.filter,
-            q: file.covariance.q,
-            r: file.covariance.r,
-            rho_max: file.asif.rho_max,
-        },
-        robot: RobotParams {
-            mass_kg: r.mass,
-            inertia_kgm2: r.inertia,
-            wheel_radius_m: r.wheel_radius,
-            half_axle_m: r.half_axle,
-        },
+        control: Arc::new(ControlParams {
+            estimator: EstimatorGains { k: est.k, ka: est.ka, kb: est.kb },
+            kinematic: file.kinematic,
+            kinematic_gains: KinematicGains { c1: bs.c1, c2: bs.c2, c3: bs.c3, shunting: bs.shunting },
+            dynamic: file.dynamic,
+            dynamic_gains: DynamicGains {
+                ca: sm.ca,
+                cb: sm.cb,
+                shunting_v: sm.shunting_v,
+                shunting_w: sm.shunting_w,
+                k1: sm.k1,
+                k2: sm.k2,
+            },
+            filter: FilterParams {
+                kind: file.filter,
+                q: file.covariance.q,
+                r: file.covariance.r,
+                rho_max: file.asif.rho_max,
+            },
+            model: robot,
+            fault,
+            dt_s: file.dt,
+        }),
+        robot,
         disturbance: Disturbance { linear_n: file.disturbance.dv, angular_nm: file.disturbance.dw },
-        fault,
         network: NetworkSettings {
             silence_timeout_s: n.silence_timeout,
             time_scale: n.time_scale,
