@@ -5,74 +5,12 @@
 //! `formation launch` runs in its own process group, so "no process behind"
 //! means: no process left in that group (every child inherits it).
 
-use std::path::Path;
-use std::process::{Child, Command, ExitStatus, Stdio};
+mod common;
+
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-use std::os::unix::process::CommandExt;
-
-const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
-const LIMIT: Duration = Duration::from_secs(60);
-
-/// A child process leading its own process group; the group is killed on drop.
-struct Group(Child);
-
-impl Group {
-    fn launch(out: &Path, sets: &[&str], extra: &[&str]) -> Self {
-        let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
-        c.args(["launch", SCENARIO, "-q", "--out"]).arg(out);
-        for s in sets {
-            c.args(["--set", s]);
-        }
-        c.args(extra).stdin(Stdio::null()).stdout(Stdio::null()).process_group(0);
-        Group(c.spawn().expect("spawn formation launch"))
-    }
-
-    fn wait(&mut self, limit: Duration) -> ExitStatus {
-        let t = Instant::now();
-        loop {
-            if let Some(s) = self.0.try_wait().expect("try_wait") {
-                return s;
-            }
-            assert!(t.elapsed() < limit, "formation launch did not finish within {limit:?}");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-
-    /// Processes (other than zombies) still in the group.
-    fn members(&self) -> Vec<u32> {
-        let pgid = self.0.id();
-        let mut found = Vec::new();
-        for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
-            let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
-            let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else { continue };
-            // Fields after the ")" closing the command name: state ppid pgrp …
-            let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else { continue };
-            let f: Vec<&str> = rest.split_whitespace().collect();
-            if f.len() > 2 && f[2] == pgid.to_string() && f[0] != "Z" {
-                found.push(pid);
-            }
-        }
-        found
-    }
-
-    /// Waits (bounded) until no process is left in the group.
-    fn assert_group_empty(&self) {
-        let t = Instant::now();
-        while !self.members().is_empty() && t.elapsed() < Duration::from_secs(5) {
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        assert_eq!(self.members(), Vec::<u32>::new(), "processes left behind");
-    }
-}
-
-impl Drop for Group {
-    fn drop(&mut self) {
-        let _ = Command::new("kill").args(["-KILL", "--", &format!("-{}", self.0.id())]).stderr(Stdio::null()).status();
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+use common::{Group, LIMIT};
 
 #[test]
 fn short_launch_succeeds_and_leaves_nothing_behind() {

@@ -4,52 +4,16 @@
 //! Each run is `formation launch` in its own process group; a guard kills
 //! the whole group on every path, and every wait is bounded.
 
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
+use common::{Group, LIMIT, SCENARIO};
 use formation::net::session::{self, ZenohArgs};
 use formation_agent::LeaderState;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
-use std::os::unix::process::CommandExt;
-
-const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
-const LIMIT: Duration = Duration::from_secs(60);
-
-/// A child process leading its own process group; the group is killed on drop.
-struct Group(Child);
-
-impl Group {
-    fn spawn(args: &[&str]) -> Self {
-        let child = Command::new(env!("CARGO_BIN_EXE_formation"))
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .process_group(0)
-            .spawn()
-            .expect("spawn formation");
-        Group(child)
-    }
-
-    fn wait(&mut self, limit: Duration) -> ExitStatus {
-        let t = Instant::now();
-        loop {
-            if let Some(s) = self.0.try_wait().expect("try_wait") {
-                return s;
-            }
-            assert!(t.elapsed() < limit, "formation launch did not finish within {limit:?}");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-}
-
-impl Drop for Group {
-    fn drop(&mut self) {
-        let _ = Command::new("kill").args(["-KILL", "--", &format!("-{}", self.0.id())]).stderr(Stdio::null()).status();
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 fn sim(dir: &Path, sets: &[&str]) -> String {
     let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
@@ -61,25 +25,13 @@ fn sim(dir: &Path, sets: &[&str]) -> String {
     std::fs::read_to_string(dir.join("summary.json")).expect("sim summary")
 }
 
-fn launch(dir: &Path, sets: &[&str], extra: &[&str]) -> Group {
-    let mut args: Vec<String> = vec!["launch".into(), SCENARIO.into(), "-q".into(), "--out".into()];
-    args.push(dir.display().to_string());
-    for s in sets {
-        args.push("--set".into());
-        args.push(s.to_string());
-    }
-    args.extend(extra.iter().map(|s| s.to_string()));
-    let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    Group::spawn(&args)
-}
-
 /// Launches a networked lock-step run and checks that its folder matches
 /// `formation sim`'s byte for byte (summary.json and every CSV).
 fn same_as_sim(tag: &str, sets: &[&str], extra: &[&str]) -> (tempfile::TempDir, PathBuf) {
     let dir = tempfile::tempdir().expect("tempdir");
     let tmp = dir.path().to_path_buf();
     let net = tmp.join("net");
-    let mut g = launch(&net, sets, extra);
+    let mut g = Group::launch(&net, sets, extra);
     let expected = sim(&tmp.join("sim"), sets);
     let status = g.wait(LIMIT);
     assert!(status.success(), "{tag}: formation launch failed: {status}");
@@ -94,7 +46,7 @@ fn same_as_sim(tag: &str, sets: &[&str], extra: &[&str]) -> (tempfile::TempDir, 
 }
 
 fn network(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("network.json")).expect("network.json")).expect("json")
+    common::json(dir, "network.json")
 }
 
 #[test]
@@ -133,7 +85,7 @@ async fn rogue_messages_are_rejected_and_counted() {
     let net = tmp.join("net");
     let sets = ["duration=3", "noise=false"];
     // Ports: monitor 17540, leader 17541, agents 17542–17545; the rogue listens on 17550.
-    let mut g = launch(&net, &sets, &["--base-port", "17540", "--run", "rogue"]);
+    let mut g = Group::launch(&net, &sets, &["--base-port", "17540", "--run", "rogue"]);
     let args = ZenohArgs {
         listen: vec!["tcp/127.0.0.1:17550".into()],
         connect: (17541..=17545).map(|p| format!("tcp/127.0.0.1:{p}")).collect(),

@@ -17,40 +17,19 @@
 //! coarser step), and real time adds a lag of a step or two (≈ 1.2 m/s ×
 //! 10–20 ms). Both are also checked against the simulator: within 0.1 m.
 
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+mod common;
 
-use std::os::unix::process::CommandExt;
+use std::process::Command;
 
-const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
+use common::{json, Group, SCENARIO};
+
 const SETS: [&str; 4] = ["timing=realtime", "dt=0.01", "duration=30", "network.silence_timeout=0.2"];
-
-struct Group(Child);
-
-impl Drop for Group {
-    fn drop(&mut self) {
-        let _ = Command::new("kill").args(["-KILL", "--", &format!("-{}", self.0.id())]).stderr(Stdio::null()).status();
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn summary(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary.json")).expect("json")
-}
 
 #[test]
 fn realtime_run_ends_within_spec_bounds() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("net");
-    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
-    c.args(["launch", SCENARIO, "-q", "--time-scale", "2", "--base-port", "17700", "--run", "rt", "--out"]).arg(&out);
-    for s in SETS {
-        c.args(["--set", s]);
-    }
-    c.stdin(Stdio::null()).stdout(Stdio::null()).process_group(0);
-    let mut g = Group(c.spawn().expect("spawn formation launch"));
+    let mut g = Group::launch(&out, &SETS, &["--time-scale", "2", "--base-port", "17700", "--run", "rt"]);
 
     let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
     sim.args(["sim", SCENARIO, "-q", "--out"]).arg(tmp.path().join("sim"));
@@ -58,20 +37,12 @@ fn realtime_run_ends_within_spec_bounds() {
         sim.args(["--set", s]);
     }
     assert!(sim.status().expect("formation sim").success());
-    let reference = summary(&tmp.path().join("sim"));
+    let reference = json(&tmp.path().join("sim"), "summary.json");
 
-    let t = Instant::now();
-    let status = loop {
-        if let Some(s) = g.0.try_wait().expect("try_wait") {
-            break s;
-        }
-        assert!(t.elapsed() < Duration::from_secs(60), "real-time run did not end");
-        std::thread::sleep(Duration::from_millis(50));
-    };
+    let status = g.wait(common::LIMIT);
     assert!(status.success(), "formation launch failed: {status}");
-    let got = summary(&out);
-    let network: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("network.json")).expect("network.json")).expect("json");
+    let got = json(&out, "summary.json");
+    let network = json(&out, "network.json");
     let lateness: Vec<String> = network["nodes"]
         .as_object()
         .expect("nodes")

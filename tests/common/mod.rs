@@ -1,0 +1,93 @@
+//! Shared by the networked end-to-end tests: `formation` started in its own
+//! process group (every child it starts inherits the group), waited on with
+//! a bound, and killed with its whole group on every path.
+
+#![allow(dead_code)] // each test binary uses its own part of this module
+
+use std::os::unix::process::CommandExt;
+use std::path::Path;
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+pub const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
+pub const LIMIT: Duration = Duration::from_secs(60);
+
+/// A child process leading its own process group; the group is killed on drop.
+pub struct Group(pub Child);
+
+impl Group {
+    /// `formation ARGS…` in a new process group.
+    pub fn spawn(args: &[&str]) -> Self {
+        let child = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .process_group(0)
+            .spawn()
+            .expect("spawn formation");
+        Group(child)
+    }
+
+    /// `formation launch SCENARIO -q --out OUT [--set S]… EXTRA…`.
+    pub fn launch(out: &Path, sets: &[&str], extra: &[&str]) -> Self {
+        let out = out.display().to_string();
+        let mut args = vec!["launch", SCENARIO, "-q", "--out", &out];
+        for s in sets {
+            args.extend(["--set", s]);
+        }
+        args.extend_from_slice(extra);
+        Self::spawn(&args)
+    }
+
+    pub fn wait(&mut self, limit: Duration) -> ExitStatus {
+        let t = Instant::now();
+        loop {
+            if let Some(s) = self.0.try_wait().expect("try_wait") {
+                return s;
+            }
+            assert!(t.elapsed() < limit, "formation did not finish within {limit:?}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Processes (other than zombies) still in the group.
+    pub fn members(&self) -> Vec<u32> {
+        let pgid = self.0.id().to_string();
+        let mut found = Vec::new();
+        for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
+            let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+            let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else { continue };
+            // Fields after the ")" closing the command name: state ppid pgrp …
+            let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else { continue };
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            if f.len() > 2 && f[2] == pgid && f[0] != "Z" {
+                found.push(pid);
+            }
+        }
+        found
+    }
+
+    /// Waits (bounded) until no process is left in the group.
+    pub fn assert_group_empty(&self) {
+        let t = Instant::now();
+        while !self.members().is_empty() && t.elapsed() < Duration::from_secs(5) {
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        assert_eq!(self.members(), Vec::<u32>::new(), "processes left behind");
+    }
+}
+
+impl Drop for Group {
+    fn drop(&mut self) {
+        let _ = Command::new("kill").args(["-KILL", "--", &format!("-{}", self.0.id())]).stderr(Stdio::null()).status();
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A run folder's `summary.json` or `network.json`, parsed.
+pub fn json(dir: &Path, name: &str) -> serde_json::Value {
+    let path = dir.join(name);
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
