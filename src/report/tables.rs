@@ -553,7 +553,7 @@ impl ClaimBuilder<'_> {
                 }
             }
             if check.values.is_empty() {
-                check.missing = Some("not measured in these runs".into());
+                check.missing = Some("not measurable in these runs (too short for this claim)".into());
             }
             check.stat = Stat::of(&check.values);
             check.holds = check.values.iter().filter(|&&v| condition.holds(v)).count();
@@ -651,7 +651,10 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "ratio",
         Cond::Le(0.5),
         &[AsifFault, KfFault],
-        |s| over_followers(s[0], false, |id, a| Some(a.rmse_v / s[1].summary.followers.get(&id)?.rmse_v)),
+        |s| {
+            faulted(s)?;
+            over_followers(s[0], false, |id, a| Some(a.rmse_v / s[1].summary.followers.get(&id)?.rmse_v))
+        },
     );
     b.check(
         "Fault case: ASIF angular RMSE no larger than the KF's",
@@ -659,7 +662,10 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "ratio",
         Cond::Le(1.0),
         &[AsifFault, KfFault],
-        |s| over_followers(s[0], false, |id, a| Some(a.rmse_w / s[1].summary.followers.get(&id)?.rmse_w)),
+        |s| {
+            faulted(s)?;
+            over_followers(s[0], false, |id, a| Some(a.rmse_w / s[1].summary.followers.get(&id)?.rmse_w))
+        },
     );
     b.check(
         "Chattering: conventional SMC torque variation ≥ 50× the bioinspired SMC's",
@@ -715,9 +721,17 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "m",
         Cond::Lt(0.2),
         &[Proposed],
-        |s| over_followers(s[0], false, |_, m| Some(m.formation_rms_last10)),
+        // With T ≤ 10 s "the last 10 s" is the whole run, start-up included:
+        // not the claim's quantity, so not measured.
+        |s| (s[0].summary.duration > 10.0).then(|| over_followers(s[0], false, |_, m| Some(m.formation_rms_last10)))?,
     );
     b.out
+}
+
+/// `Some` when every run's fault happens before its end: the fault claims
+/// are not measurable in runs shorter than the fault time.
+fn faulted(s: &[&SeedRecord]) -> Option<()> {
+    s.iter().all(|r| r.summary.fault_time.is_some_and(|f| f < r.summary.duration)).then_some(())
 }
 
 /// The claims as a markdown table, with a count line.
