@@ -253,6 +253,14 @@ pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBu
     md.push('\n');
 
     let _ = writeln!(md, "## Figures\n");
+    if !figures.is_empty() {
+        let _ = writeln!(
+            md,
+            "Figures are drawn from the samples the runs wrote to CSV (`formation paper` writes every 10th step by \
+             default, `--every 1` writes all). Conventional SMC switches at every step, so a thinned Fig. 6 \
+             under-samples its chattering; the tables' torque variation always uses every step.\n"
+        );
+    }
     for f in &figures {
         let _ = writeln!(md, "### {}\n", f.title);
         let _ = writeln!(md, "![{}]({}.png)\n", f.title, f.file);
