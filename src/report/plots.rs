@@ -450,16 +450,16 @@ fn fig3(cases: &[Case], idx: &[usize], data: &BTreeMap<usize, RunData>, ctx: &Co
         let mut outlines = Vec::new();
         for &t in &instants {
             let Some(li) = nearest(&d.leader[0], t) else { continue };
-            let mut pts = vec![(d.leader[1][li], d.leader[2][li], BLACK)];
+            let leader = (d.leader[1][li], d.leader[2][li], BLACK);
+            // Spokes from the leader to each follower (leader, F1, leader, F2, …):
+            // the formation's offsets, drawn the same way at every instant.
+            let mut pts = vec![leader];
             for (k, f) in d.followers.values().enumerate() {
                 if let Some(fi) = nearest(&f[0], t) {
                     pts.push((f[1][fi], f[2][fi], follower_colour(k)));
+                    pts.push(leader);
                 }
             }
-            // Order the corners by angle about their centroid so the outline does not cross itself.
-            let (cx, cy) = pts.iter().fold((0.0, 0.0), |a, p| (a.0 + p.0, a.1 + p.1));
-            let (cx, cy) = (cx / pts.len() as f64, cy / pts.len() as f64);
-            pts.sort_by(|a, b| (a.1 - cy).atan2(a.0 - cx).total_cmp(&(b.1 - cy).atan2(b.0 - cx)));
             outlines.push(Outline {
                 label: format!("Formation at t = {instants_text} s"),
                 points: pts.iter().map(|p| (p.0, p.1)).collect(),
@@ -487,7 +487,7 @@ fn fig3(cases: &[Case], idx: &[usize], data: &BTreeMap<usize, RunData>, ctx: &Co
             file: "fig3_paths".into(),
             title: "Fig. 3  Position of mobile robots tracking a continuous path".into(),
             caption: format!(
-                "Paths of the leader (black) and the followers; grey outlines join the leader and the followers at \
+                "Paths of the leader (black) and the followers; grey spokes join the leader to each follower at \
                  t = {instants_text} s, dots mark their positions then."
             ),
         },
