@@ -11,6 +11,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::{Group, LIMIT, SCENARIO};
+use formation::net::node;
 use formation::net::session::{self, ZenohArgs};
 use formation_agent::LeaderState;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
@@ -76,8 +77,9 @@ fn msg(sender: u32, step: u64, v: f64) -> Vec<u8> {
 }
 
 /// A rogue session publishes garbage, wrong-sender, non-finite and
-/// foreign-version messages on every estimate key during a lock-step run:
-/// the result is unchanged and the rejections are counted.
+/// foreign-version messages on every estimate key during a lock-step run,
+/// and start-barrier messages with a foreign fingerprint: the result is
+/// unchanged and the rejections are counted.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rogue_messages_are_rejected_and_counted() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -96,6 +98,15 @@ async fn rogue_messages_are_rejected_and_counted() {
     let mut k = 0u64;
     while g.0.try_wait().expect("try_wait").is_none() {
         assert!(t.elapsed() < LIMIT, "run did not finish");
+        // Start-barrier traffic with a foreign fingerprint, under expected and unexpected names.
+        let foreign_ready = node::encode(&node::Ready { fingerprint: 0xbad });
+        for name in ["rogue", "1", "monitor"] {
+            let key = format!("formation/rogue/control/ready/{name}");
+            let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put(key, foreign_ready.clone())).await;
+        }
+        let foreign_start = node::encode(&node::Start { fingerprint: 0xbad, epoch_unix_ns: 1, time_scale: 1.0 });
+        let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put("formation/rogue/control/start", foreign_start))
+            .await;
         for id in 0..=4u32 {
             let key = format!("formation/rogue/estimate/{id}");
             let mut bad_version = EstimateMsg {

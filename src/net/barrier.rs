@@ -1,6 +1,6 @@
 //! The start barrier (see [`crate::net::node`] for the protocol).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeSet;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -13,9 +13,44 @@ const TICK: Duration = Duration::from_millis(50);
 
 #[derive(Default)]
 struct Heard {
+    /// This node's scenario fingerprint: Start and Ready with another are ignored.
+    fingerprint: u64,
+    /// The leader: the nodes whose Ready counts (any other name is ignored).
+    expected: BTreeSet<String>,
     hello: BTreeSet<String>,
-    ready: BTreeMap<String, u64>,
+    /// Expected nodes heard ready with this node's fingerprint.
+    ready: BTreeSet<String>,
+    /// Expected nodes heard ready with another fingerprint (not counted as ready).
+    ready_foreign: BTreeSet<String>,
+    /// The first Start with this node's fingerprint.
     start: Option<Start>,
+    /// Start or Ready messages ignored for another fingerprint (or an unexpected name).
+    ignored: u64,
+}
+
+impl Heard {
+    fn new(fingerprint: u64, expected: &[String]) -> Self {
+        Self { fingerprint, expected: expected.iter().cloned().collect(), ..Self::default() }
+    }
+
+    fn on_start(&mut self, start: Start) {
+        if start.fingerprint == self.fingerprint {
+            self.start.get_or_insert(start);
+        } else {
+            self.ignored += 1;
+        }
+    }
+
+    fn on_ready(&mut self, name: &str, r: Ready) {
+        if !self.expected.contains(name) {
+            self.ignored += 1;
+        } else if r.fingerprint == self.fingerprint {
+            self.ready.insert(name.to_string());
+        } else {
+            self.ignored += 1;
+            self.ready_foreign.insert(name.to_string());
+        }
+    }
 }
 
 fn zerr(what: &str, e: impl std::fmt::Display) -> CliError {
@@ -49,7 +84,7 @@ async fn listen(
             .declare_subscriber(keys.start())
             .callback(move |s| {
                 if let Some(start) = node::decode::<Start>(&s.payload().to_bytes()) {
-                    lock(&h).start.get_or_insert(start);
+                    lock(&h).on_start(start);
                 }
             })
             .await
@@ -62,7 +97,7 @@ async fn listen(
                 .declare_subscriber(keys.ready_all())
                 .callback(move |s| {
                     if let Some(r) = node::decode::<Ready>(&s.payload().to_bytes()) {
-                        lock(&h).ready.insert(node::last_chunk(s.key_expr().as_str()).to_string(), r.fingerprint);
+                        lock(&h).on_ready(node::last_chunk(s.key_expr().as_str()), r);
                     }
                 })
                 .await
@@ -86,22 +121,16 @@ pub async fn wait_for_start(
     needs: &[String],
     fingerprint: u64,
 ) -> Result<Start, CliError> {
-    let heard = Arc::new(Mutex::new(Heard::default()));
+    let heard = Arc::new(Mutex::new(Heard::new(fingerprint, &[])));
     let _subs = listen(session, keys, &heard, false).await?;
     let began = Instant::now();
     let ready = node::encode(&Ready { fingerprint });
     loop {
-        let (start, waiting) = {
+        let (start, waiting, ignored) = {
             let h = lock(&heard);
-            (h.start, missing(|n| h.hello.contains(n), needs))
+            (h.start, missing(|n| h.hello.contains(n), needs), h.ignored)
         };
         if let Some(start) = start {
-            if start.fingerprint != fingerprint {
-                return Err(CliError::Input(format!(
-                    "node {me}: the leader of run {} loaded a different scenario (or other --set values)",
-                    keys.run
-                )));
-            }
             return Ok(start);
         }
         session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
@@ -114,6 +143,14 @@ pub async fn wait_for_start(
             } else {
                 format!("nodes {}", waiting.join(", "))
             };
+            if waiting.is_empty() && ignored > 0 {
+                return Err(CliError::Input(format!(
+                    "node {me}: no start for this scenario within {} s; ignored {ignored} start announcements \
+                     of run {} with another scenario fingerprint (a leader with another scenario or --set values?)",
+                    START_TIMEOUT.as_secs(),
+                    keys.run
+                )));
+            }
             return Err(CliError::Run(format!(
                 "node {me}: no word from {what} within {} s (run {})",
                 START_TIMEOUT.as_secs(),
@@ -137,29 +174,30 @@ pub async fn lead_start(
     time_scale: f64,
     lead: Duration,
 ) -> Result<(Start, tokio::task::JoinHandle<()>), CliError> {
-    let heard = Arc::new(Mutex::new(Heard::default()));
+    let heard = Arc::new(Mutex::new(Heard::new(fingerprint, expect_ready)));
     let subs = listen(session, keys, &heard, true).await?;
     let began = Instant::now();
     let me = node::LEADER_NODE;
     loop {
         let (hello_missing, ready_missing, foreign) = {
             let h = lock(&heard);
-            let foreign: Vec<String> =
-                h.ready.iter().filter(|(_, &f)| f != fingerprint).map(|(n, _)| n.clone()).collect();
-            (missing(|n| h.hello.contains(n), needs_hello), missing(|n| h.ready.contains_key(n), expect_ready), foreign)
+            // Nodes heard only with another fingerprint (possibly forged): still missing.
+            let foreign: Vec<String> = h.ready_foreign.iter().filter(|n| !h.ready.contains(*n)).cloned().collect();
+            (missing(|n| h.hello.contains(n), needs_hello), missing(|n| h.ready.contains(n), expect_ready), foreign)
         };
-        if !foreign.is_empty() {
-            return Err(CliError::Input(format!(
-                "nodes {} of run {} loaded a different scenario (or other --set values) than the leader",
-                foreign.join(", "),
-                keys.run
-            )));
-        }
         if hello_missing.is_empty() && ready_missing.is_empty() {
             break;
         }
         session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
         if began.elapsed() > START_TIMEOUT {
+            if !foreign.is_empty() {
+                return Err(CliError::Input(format!(
+                    "leader: nodes {} of run {} said ready only with another scenario fingerprint \
+                     (a different scenario or other --set values than the leader?)",
+                    foreign.join(", "),
+                    keys.run
+                )));
+            }
             let mut waiting: BTreeSet<String> = hello_missing.into_iter().collect();
             waiting.extend(ready_missing);
             return Err(CliError::Run(format!(
@@ -185,4 +223,31 @@ pub async fn lead_start(
         }
     });
     Ok((start, task))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn foreign_start_and_ready_are_ignored_and_counted() {
+        let mut h = Heard::new(7, &["1".to_string(), "monitor".to_string()]);
+        let start = |fingerprint| Start { fingerprint, epoch_unix_ns: 1, time_scale: 1.0 };
+        // A foreign start first is not kept; the genuine one after it is.
+        h.on_start(start(8));
+        assert_eq!(h.start, None);
+        h.on_start(start(7));
+        h.on_start(start(9));
+        assert_eq!(h.start.map(|s| s.fingerprint), Some(7));
+        // Ready from names outside the expected set, or with another fingerprint, does not count.
+        h.on_ready("rogue", Ready { fingerprint: 8 });
+        h.on_ready("rogue", Ready { fingerprint: 7 });
+        h.on_ready("1", Ready { fingerprint: 8 });
+        assert!(h.ready.is_empty());
+        assert_eq!(h.ready_foreign.iter().collect::<Vec<_>>(), ["1"]);
+        h.on_ready("1", Ready { fingerprint: 7 });
+        h.on_ready("monitor", Ready { fingerprint: 7 });
+        assert_eq!(h.ready.len(), 2);
+        assert_eq!(h.ignored, 5);
+    }
 }
