@@ -77,7 +77,8 @@ fn msg(sender: u32, step: u64, v: f64) -> Vec<u8> {
 }
 
 /// A rogue session publishes garbage, wrong-sender, non-finite and
-/// foreign-version messages on every estimate key during a lock-step run,
+/// foreign-version messages, far-future steps (u64::MAX and a flood of
+/// distinct future steps) on every estimate key during a lock-step run,
 /// and start-barrier messages with a foreign fingerprint: the result is
 /// unchanged and the rejections are counted.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -119,7 +120,14 @@ async fn rogue_messages_are_rejected_and_counted() {
                 msg(id % 4 + 1 + u32::from(id == 0), k + 1, 1.0),
                 msg(id, k + 1, f64::NAN),
                 wire::encode(&bad_version),
+                // Correct sender, but a step no genuine node can have reached.
+                msg(id, u64::MAX, 1.0),
             ] {
+                let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put(key.as_str(), payload)).await;
+            }
+            // A flood of distinct future steps (would pile up in a lock-step inbox).
+            for j in 0..20 {
+                let payload = msg(id, 1_000_000 + k * 20 + j, 1.0);
                 let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put(key.as_str(), payload)).await;
             }
         }
@@ -135,14 +143,15 @@ async fn rogue_messages_are_rejected_and_counted() {
     let total = |what: &str| -> u64 {
         n["nodes"].as_object().expect("nodes").values().map(|v| v["rejected"][what].as_u64().unwrap_or(0)).sum()
     };
-    for what in ["malformed", "wrong_sender", "non_finite", "version"] {
+    for what in ["malformed", "wrong_sender", "non_finite", "version", "future"] {
         assert!(total(what) > 0, "no {what} rejection counted: {n}");
     }
     eprintln!(
-        "rogue run: rejected malformed {}, wrong_sender {}, non_finite {}, version {}",
+        "rogue run: rejected malformed {}, wrong_sender {}, non_finite {}, version {}, future {}",
         total("malformed"),
         total("wrong_sender"),
         total("non_finite"),
-        total("version")
+        total("version"),
+        total("future")
     );
 }

@@ -126,7 +126,10 @@ pub async fn run_follower(
     let neighbour_ids: Vec<u32> = scenario.graph.neighbours(index).iter().map(|&j| scenario.graph.id(j)).collect();
     let lockstep = scenario.timing == Timing::Lockstep;
     let slots = neighbour_ids.len() + usize::from(hears_leader);
-    let shared = Arc::new(Shared { inbox: Mutex::new(Inbox::new(slots, lockstep)), arrived: Condvar::new() });
+    let mut inbox = Inbox::new(slots, lockstep);
+    // Before any message can arrive (the leader may run ahead before this node hears the start).
+    set_window(&mut inbox, scenario, slots, hears_leader, scenario.network.time_scale);
+    let shared = Arc::new(Shared { inbox: Mutex::new(inbox), arrived: Condvar::new() });
 
     // Subscribers first (the start barrier relies on it), one per source.
     let mut sources: Vec<u32> = neighbour_ids.clone();
@@ -173,7 +176,13 @@ pub async fn run_follower(
         needs.push(wire::LEADER_ID.to_string());
     }
     let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, node::fingerprint(scenario)).await?;
-
+    if !lockstep {
+        // The shared clock bounds how far ahead a genuine message can be.
+        let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
+        let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
+        set_window(&mut inbox, scenario, slots, hears_leader, scale);
+        inbox.set_clock(start.epoch_instant(), Duration::from_secs_f64(scenario.dt_s / scale));
+    }
     let loop_ctx = LoopCtx {
         id,
         steps: scenario.steps(),
@@ -196,6 +205,24 @@ pub async fn run_follower(
             .map_err(|e| CliError::Run(format!("follower {id}: control loop panicked: {e}")))?;
     drop(subscribers);
     outcome.map_err(|e| CliError::Run(format!("follower {id}: {e}")))
+}
+
+/// How far ahead of this node's step a genuine message can be (further:
+/// `Reject::Future`). Lock-step: neighbours 2 steps, the leader (last slot)
+/// its window + 2. Real time: 0.1 s of wall time (at least
+/// [`node::REALTIME_AHEAD`] steps) beyond the shared clock's step.
+fn set_window(inbox: &mut Inbox, scenario: &Scenario, slots: usize, hears_leader: bool, time_scale: f64) {
+    if scenario.timing == Timing::Lockstep {
+        if hears_leader {
+            inbox.set_ahead(slots - 1, crate::net::leader::WINDOW + node::LOCKSTEP_AHEAD);
+        }
+    } else {
+        let period = scenario.dt_s / if time_scale > 0.0 { time_scale } else { 1.0 };
+        let slack = ((0.1 / period).ceil() as u64).max(node::REALTIME_AHEAD);
+        for slot in 0..slots {
+            inbox.set_ahead(slot, slack);
+        }
+    }
 }
 
 struct LoopCtx {
@@ -281,6 +308,7 @@ fn control_loop(
         // The inputs of step k: neighbours in ascending id, and the leader.
         let leader = {
             let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
+            inbox.set_step(k);
             if c.lockstep {
                 let waited = Instant::now();
                 while !inbox.has_all(k) {

@@ -41,6 +41,9 @@ pub struct LeaderArgs {
 struct Progress {
     /// Latest step each hearing follower has published (i.e. reached).
     reached: Mutex<Vec<Option<u64>>>,
+    /// The latest step the leader has published: a follower that hears it
+    /// cannot be more than one step further (a claim beyond is forged).
+    published: std::sync::atomic::AtomicU64,
     moved: Condvar,
 }
 
@@ -72,7 +75,11 @@ pub async fn run_leader(
 ) -> Result<(), CliError> {
     let hearing: Vec<u32> =
         (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
-    let progress = Arc::new(Progress { reached: Mutex::new(vec![None; hearing.len()]), moved: Condvar::new() });
+    let progress = Arc::new(Progress {
+        reached: Mutex::new(vec![None; hearing.len()]),
+        published: std::sync::atomic::AtomicU64::new(0),
+        moved: Condvar::new(),
+    });
     let mut subs = Vec::new();
     for (slot, &id) in hearing.iter().enumerate() {
         let p = progress.clone();
@@ -82,7 +89,8 @@ pub async fn run_leader(
                 .callback(move |s| {
                     let key_id = node::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
                     if let Ok(m) = wire::decode(&s.payload().to_bytes()) {
-                        if key_id == Some(m.header.sender) {
+                        let published = p.published.load(std::sync::atomic::Ordering::Acquire);
+                        if key_id == Some(m.header.sender) && m.header.step <= published.saturating_add(1) {
                             let mut r = p.reached.lock().unwrap_or_else(|e| e.into_inner());
                             r[slot] = Some(r[slot].map_or(m.header.step, |x| x.max(m.header.step)));
                             drop(r);
@@ -172,6 +180,7 @@ fn leader_loop(
                 wait_window(k + 1, progress, estimate_pub, &recent, &mut counters)?;
             }
             let bytes = msg(k + 1, state);
+            progress.published.store(k + 1, std::sync::atomic::Ordering::Release);
             put(estimate_pub, bytes.clone())?;
             counters.sent += 1;
             if lockstep {

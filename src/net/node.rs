@@ -215,6 +215,9 @@ pub struct RejectCounts {
     pub not_neighbour: u64,
     /// An older step than one already used (also: duplicates of a used step).
     pub stale: u64,
+    /// A step further ahead of the receiver's than any genuine sender can be.
+    #[serde(default)]
+    pub future: u64,
 }
 
 impl RejectCounts {
@@ -226,11 +229,12 @@ impl RejectCounts {
             Reject::WrongSender => self.wrong_sender += 1,
             Reject::NotNeighbour => self.not_neighbour += 1,
             Reject::Stale => self.stale += 1,
+            Reject::Future => self.future += 1,
         }
     }
     /// Everything but `stale` (which is lateness, not a bad message).
     pub fn invalid(&self) -> u64 {
-        self.malformed + self.version + self.non_finite + self.wrong_sender + self.not_neighbour
+        self.malformed + self.version + self.non_finite + self.wrong_sender + self.not_neighbour + self.future
     }
 }
 
@@ -361,10 +365,23 @@ pub struct Inbox {
     history: Vec<VecDeque<(u64, LeaderState)>>,
     pub counters: Counters,
     lockstep: bool,
+    /// The receiver's current step (set by its control loop).
+    current: u64,
+    /// Per source: how many steps ahead of the receiver's a message may be.
+    ahead: Vec<u64>,
+    /// Real time: the shared clock (epoch, period), once the start is known.
+    clock: Option<(std::time::Instant, Duration)>,
 }
+
+/// Lock-step: how far ahead of the receiver's step a neighbour's message can
+/// be (it needs the receiver's step-k message before it publishes k + 1).
+pub const LOCKSTEP_AHEAD: u64 = 2;
+/// Real time: the default slack (steps) beyond the shared clock's step.
+pub const REALTIME_AHEAD: u64 = 10;
 
 impl Inbox {
     /// `sources` = neighbours (+1 for the leader, at the last slot, if heard).
+    /// Every source may be `ahead` steps ahead of the receiver (see [`Inbox::set_ahead`]).
     pub fn new(sources: usize, lockstep: bool) -> Self {
         Self {
             pending: vec![BTreeMap::new(); sources],
@@ -372,12 +389,48 @@ impl Inbox {
             history: vec![VecDeque::new(); sources],
             counters: Counters::default(),
             lockstep,
+            current: 0,
+            ahead: vec![if lockstep { LOCKSTEP_AHEAD } else { REALTIME_AHEAD }; sources],
+            clock: None,
         }
     }
 
-    /// Files a checked message, or counts it as stale.
+    /// How many steps ahead of the receiver's step a message of `slot` may be
+    /// (further ahead: rejected as [`Reject::Future`]).
+    pub fn set_ahead(&mut self, slot: usize, steps: u64) {
+        self.ahead[slot] = steps;
+    }
+
+    /// Real time: the shared schedule (step k due at `epoch` + k `period`),
+    /// so that the receiver's step is at least the clock's.
+    pub fn set_clock(&mut self, epoch: std::time::Instant, period: Duration) {
+        if !period.is_zero() {
+            self.clock = Some((epoch, period));
+        }
+    }
+
+    /// The step the receiver is at (or waiting for).
+    pub fn set_step(&mut self, k: u64) {
+        self.current = self.current.max(k);
+    }
+
+    /// The furthest step of `slot` a genuine sender can have sent by now.
+    fn limit(&self, slot: usize) -> u64 {
+        let mut base = self.current;
+        if let Some((epoch, period)) = self.clock {
+            let since = std::time::Instant::now().saturating_duration_since(epoch);
+            base = base.max((since.as_secs_f64() / period.as_secs_f64()) as u64);
+        }
+        base.saturating_add(self.ahead[slot])
+    }
+
+    /// Files a checked message, or counts it as stale or from the future.
     pub fn accept(&mut self, slot: usize, msg: &EstimateMsg) {
         let step = msg.header.step;
+        if step > self.limit(slot) {
+            self.counters.rejected.add(Reject::Future);
+            return;
+        }
         if self.newest[slot].is_some_and(|n| step <= n) {
             self.counters.late += 1;
             self.counters.rejected.add(Reject::Stale);
@@ -430,9 +483,9 @@ impl Inbox {
     }
 
     /// Real time: the newest message of a source stamped at or before step
-    /// k (a node running behind the shared schedule does not use values
-    /// from its future; the oldest one held if all are newer), if it is at
-    /// most `max_age_steps` older than k; else the source counts as silent.
+    /// k (a node running behind the shared schedule never uses values from
+    /// its future), if it is at most `max_age_steps` older than k; else the
+    /// source counts as silent.
     pub fn latest(&mut self, slot: usize, k: u64, max_age_steps: u64) -> Option<LeaderState> {
         let h = &mut self.history[slot];
         // Keep the newest entry ≤ k and everything after it.
@@ -440,7 +493,7 @@ impl Inbox {
             h.pop_front();
         }
         match h.front() {
-            Some(&(s, state)) if k.saturating_sub(s) <= max_age_steps => Some(state),
+            Some(&(s, state)) if s <= k && k - s <= max_age_steps => Some(state),
             _ => {
                 self.counters.silent += 1;
                 None
@@ -505,6 +558,56 @@ mod tests {
         assert_eq!(inbox.latest(0, 6, 10).map(|s| s.v), Some(6.0));
         assert_eq!(inbox.latest(0, 17, 10), None);
         assert_eq!(inbox.counters.silent, 2);
+    }
+
+    #[test]
+    fn far_future_steps_are_rejected_and_do_not_silence_the_sender() {
+        // Lock-step: neighbours at most 2 steps ahead, the leader (slot 1) 10.
+        let mut inbox = Inbox::new(2, true);
+        inbox.set_ahead(1, 10);
+        inbox.accept(0, &msg(1, u64::MAX));
+        for s in 3..1000 {
+            inbox.accept(0, &msg(1, s));
+        }
+        inbox.accept(1, &msg(0, 11));
+        assert_eq!(inbox.counters.rejected.future, 1 + 997 + 1);
+        assert_eq!(inbox.counters.rejected.stale, 0);
+        // Nothing pending from the flood; the genuine messages still get through.
+        assert!(inbox.pending.iter().all(|p| p.is_empty()));
+        for s in 0..=2 {
+            inbox.accept(0, &msg(1, s));
+        }
+        inbox.accept(1, &msg(0, 0));
+        inbox.accept(1, &msg(0, 10));
+        assert!(inbox.has_all(0));
+        let mut out = Vec::new();
+        inbox.take(0, &mut out);
+        inbox.set_step(1);
+        inbox.accept(0, &msg(1, 3));
+        assert_eq!(inbox.counters.rejected.future, 999);
+        assert_eq!(inbox.pending[0].len(), 3);
+
+        // Real time: a far-future message is not held, so later genuine ones are used.
+        let mut inbox = Inbox::new(1, false);
+        inbox.set_ahead(0, 5);
+        inbox.accept(0, &msg(1, u64::MAX));
+        inbox.accept(0, &msg(1, 6));
+        inbox.accept(0, &msg(1, 1));
+        assert_eq!(inbox.counters.rejected.future, 2);
+        assert_eq!(inbox.latest(0, 1, 10).map(|s| s.v), Some(1.0));
+        inbox.set_step(10);
+        inbox.accept(0, &msg(1, 9));
+        assert_eq!(inbox.latest(0, 10, 10).map(|s| s.v), Some(9.0));
+    }
+
+    #[test]
+    fn realtime_never_uses_a_message_from_the_receivers_future() {
+        let mut inbox = Inbox::new(1, false);
+        inbox.set_ahead(0, 10);
+        inbox.accept(0, &msg(1, 8));
+        // Held message newer than k: not used (and not "0 steps old").
+        assert_eq!(inbox.latest(0, 5, 10), None);
+        assert_eq!(inbox.latest(0, 8, 10).map(|s| s.v), Some(8.0));
     }
 
     #[test]

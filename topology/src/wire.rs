@@ -49,6 +49,8 @@ pub enum Reject {
     NotNeighbour,
     /// Older than a step already used from that sender.
     Stale,
+    /// A step further ahead of the receiver's than any genuine sender can be.
+    Future,
 }
 
 fn config() -> bincode::config::Configuration {
