@@ -62,6 +62,63 @@ struct NodeStats {
     done: bool,
 }
 
+impl NodeStats {
+    /// Files an admitted batch's bookkeeping.
+    fn note(&mut self, bytes: usize, counters: Counters, done: bool, loop_stats: Option<LoopStats>, fresh: usize) {
+        self.messages += 1;
+        self.bytes += bytes as u64;
+        self.samples += fresh as u64;
+        self.counters = counters;
+        self.done |= done;
+        // Non-finite timing would turn into nulls in network.json.
+        let finite = |l: &LoopStats| {
+            [
+                l.period_error_p50_us,
+                l.period_error_p99_us,
+                l.period_error_max_us,
+                l.lateness_p50_us,
+                l.lateness_p99_us,
+                l.lateness_max_us,
+            ]
+            .iter()
+            .all(|x| x.is_finite())
+        };
+        self.loop_stats = loop_stats.filter(finite).or(self.loop_stats);
+    }
+}
+
+/// What to do with a telemetry batch (items for steps first_k, first_k + 1, …).
+#[derive(Debug, PartialEq)]
+enum Batch<T> {
+    /// Beyond the run's last step.
+    Malformed,
+    /// Starts after the end of what is recorded (a batch was lost).
+    Gap,
+    /// The items beyond what is recorded (an overlap with recorded steps,
+    /// e.g. after a forged batch of another length, is skipped); `truncated`
+    /// when it was cut at a non-finite or misnumbered item.
+    Fresh { items: Vec<T>, truncated: bool },
+}
+
+/// Checks a batch against the recorded steps `..end` of a run of `steps` + 1
+/// steps, before anything is updated; `ok(k, item)` validates one item.
+fn admit<T>(mut items: Vec<T>, first_k: u64, end: u64, steps: u64, ok: impl Fn(u64, &T) -> bool) -> Batch<T> {
+    match first_k.checked_add(items.len() as u64) {
+        Some(last) if last <= steps + 1 => {}
+        _ => return Batch::Malformed,
+    }
+    if first_k > end {
+        return Batch::Gap;
+    }
+    let bad = items.iter().enumerate().position(|(i, x)| !ok(first_k + i as u64, x));
+    if let Some(b) = bad {
+        items.truncate(b);
+    }
+    let skip = (end - first_k) as usize;
+    let items = if skip < items.len() { items.split_off(skip) } else { Vec::new() };
+    Batch::Fresh { items, truncated: bad.is_some() }
+}
+
 struct FollowerTrack {
     id: u32,
     offset: [f64; 2],
@@ -130,19 +187,25 @@ impl Recorder {
                     self.malformed += 1;
                     return Ok(());
                 }
+                let end = self.leader_next_k;
                 let n = self.nodes.entry(0).or_default();
-                n.messages += 1;
-                n.bytes += bytes.len() as u64;
-                n.counters = counters;
-                n.done |= done;
-                n.loop_stats = loop_stats.or(n.loop_stats);
-                if first_k != self.leader_next_k {
-                    n.gaps += 1;
-                    return Ok(());
-                }
-                n.samples += states.len() as u64;
-                for (i, s) in states.into_iter().enumerate() {
-                    let k = first_k + i as u64;
+                let fresh = match admit(states, first_k, end, steps, |_, s| s.is_finite()) {
+                    Batch::Malformed => {
+                        self.malformed += 1;
+                        return Ok(());
+                    }
+                    Batch::Gap => {
+                        n.gaps += 1;
+                        return Ok(());
+                    }
+                    Batch::Fresh { items, truncated } => {
+                        self.malformed += u64::from(truncated);
+                        items
+                    }
+                };
+                n.note(bytes.len(), counters, done, loop_stats, fresh.len());
+                for (i, s) in fresh.into_iter().enumerate() {
+                    let k = end + i as u64;
                     if self.writer.wants(k, k == steps) {
                         self.writer.leader_row(k as f64 * self.scenario.dt_s, &s)?;
                     }
@@ -155,20 +218,25 @@ impl Recorder {
                     self.malformed += 1;
                     return Ok(());
                 };
-                let n = self.nodes.entry(id).or_default();
-                n.messages += 1;
-                n.bytes += bytes.len() as u64;
-                n.counters = counters;
-                n.done |= done;
-                n.loop_stats = loop_stats.or(n.loop_stats);
                 let f = &mut self.followers[index];
-                let expected = f.next_k + f.pending.len() as u64;
-                if first_k != expected {
-                    n.gaps += 1;
-                    return Ok(());
-                }
-                n.samples += samples.len() as u64;
-                f.pending.extend(samples);
+                let end = f.next_k + f.pending.len() as u64;
+                let n = self.nodes.entry(id).or_default();
+                let fresh = match admit(samples, first_k, end, steps, |k, s| s.k == k && s.is_finite()) {
+                    Batch::Malformed => {
+                        self.malformed += 1;
+                        return Ok(());
+                    }
+                    Batch::Gap => {
+                        n.gaps += 1;
+                        return Ok(());
+                    }
+                    Batch::Fresh { items, truncated } => {
+                        self.malformed += u64::from(truncated);
+                        items
+                    }
+                };
+                n.note(bytes.len(), counters, done, loop_stats, fresh.len());
+                f.pending.extend(fresh);
             }
         }
         self.process()
@@ -406,5 +474,89 @@ async fn monitor(
             unfinished.join(", "),
             dir.display()
         ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn admit_validates_before_anything_is_recorded() {
+        let ok = |_: u64, x: &f64| x.is_finite();
+        // Beyond the run's end: malformed.
+        assert_eq!(admit(vec![1.0; 3], 9, 9, 10, ok), Batch::Malformed);
+        assert_eq!(admit(vec![1.0; 1], u64::MAX, 9, 10, ok), Batch::Malformed);
+        assert_eq!(admit(vec![f64::NAN, 1.0], 0, 0, 10, ok), Batch::Fresh { items: vec![], truncated: true });
+        // After the recorded end: a gap.
+        assert_eq!(admit(vec![1.0], 5, 4, 10, ok), Batch::Gap);
+        // Overlap: only what is beyond the recorded end.
+        assert_eq!(
+            admit(vec![1.0, 2.0, 3.0, 4.0], 2, 4, 10, ok),
+            Batch::Fresh { items: vec![3.0, 4.0], truncated: false }
+        );
+        assert_eq!(admit(vec![1.0, 2.0], 2, 4, 10, ok), Batch::Fresh { items: vec![], truncated: false });
+        // Cut at the first non-finite item.
+        assert_eq!(admit(vec![1.0, f64::NAN, 3.0], 4, 4, 10, ok), Batch::Fresh { items: vec![1.0], truncated: true });
+    }
+
+    fn sample(k: u64) -> FollowerSample {
+        FollowerSample {
+            k,
+            pose: Default::default(),
+            velocity: Default::default(),
+            velocity_estimate: Default::default(),
+            estimate: Default::default(),
+            command: Default::default(),
+            torque_l: 0.0,
+            torque_r: 0.0,
+        }
+    }
+
+    #[test]
+    fn a_forged_batch_of_another_length_does_not_desynchronise_the_recorder() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+        let scenario = Scenario::load(&path, &["duration=0.01".to_string()]).expect("scenario");
+        let steps = scenario.steps();
+        let dir = tempfile::tempdir().expect("tempdir");
+        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true };
+        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
+        let leader = |first_k: u64, n: u64, done: bool| {
+            node::encode(&Telemetry::Leader {
+                first_k,
+                states: vec![LeaderState::default(); n as usize],
+                counters: Counters::default(),
+                done,
+                loop_stats: None,
+            })
+        };
+        let follower = |id: u32, first_k: u64, samples: Vec<FollowerSample>, done: bool| {
+            node::encode(&Telemetry::Follower {
+                id,
+                first_k,
+                samples,
+                counters: Counters::default(),
+                done,
+                loop_stats: None,
+            })
+        };
+        r.telemetry(Some(0), &leader(0, steps + 1, true)).unwrap();
+        let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
+        // Forged: the expected first step, but 2 samples instead of the whole batch; then a NaN sample.
+        r.telemetry(Some(ids[0]), &follower(ids[0], 0, (0..2).map(sample).collect(), false)).unwrap();
+        let mut nan = sample(2);
+        nan.torque_l = f64::NAN;
+        r.telemetry(Some(ids[0]), &follower(ids[0], 2, vec![nan], false)).unwrap();
+        // Forged: beyond the run's end, claiming done.
+        r.telemetry(Some(ids[0]), &follower(ids[0], steps, (steps..steps + 3).map(sample).collect(), true)).unwrap();
+        assert_eq!(r.malformed, 2);
+        assert_eq!(r.followers[0].next_k + r.followers[0].pending.len() as u64, 2);
+        assert!(!r.nodes[&ids[0]].done, "a rejected batch must not set done");
+        // The genuine batches, overlapping the forged one, still complete the run.
+        for &id in &ids {
+            r.telemetry(Some(id), &follower(id, 0, (0..=steps).map(sample).collect(), true)).unwrap();
+        }
+        assert!(r.complete());
+        assert_eq!(r.recorded_steps(), steps + 1);
     }
 }
