@@ -171,6 +171,12 @@ pub async fn run_follower(
         .await
         .map_err(|e| zerr("declaring the telemetry publisher", e))?;
 
+    // Lock-step: which neighbours have completed the final step (see the end of control_loop).
+    let (done_subs, neighbours_done) = if lockstep {
+        node::watch_done(session, keys, &neighbour_ids, scenario.steps()).await?
+    } else {
+        (Vec::new(), Default::default())
+    };
     let mut needs: Vec<String> = neighbour_ids.iter().map(u32::to_string).collect();
     if hears_leader {
         needs.push(wire::LEADER_ID.to_string());
@@ -194,6 +200,7 @@ pub async fn run_follower(
         silence_steps: (scenario.network.silence_timeout_s / scenario.dt_s).round() as u64,
         start,
         stall_timeout,
+        neighbours_done,
         source_names: sources
             .iter()
             .map(|&s| if s == wire::LEADER_ID { "the leader".to_string() } else { format!("follower {s}") })
@@ -204,6 +211,7 @@ pub async fn run_follower(
             .await
             .map_err(|e| CliError::Run(format!("follower {id}: control loop panicked: {e}")))?;
     drop(subscribers);
+    drop(done_subs);
     outcome.map_err(|e| CliError::Run(format!("follower {id}: {e}")))
 }
 
@@ -236,6 +244,8 @@ struct LoopCtx {
     silence_steps: u64,
     start: Start,
     stall_timeout: Duration,
+    /// Lock-step: neighbours that reported their final step.
+    neighbours_done: Arc<Mutex<std::collections::BTreeSet<u32>>>,
     /// "follower 2", …, "the leader", by inbox slot.
     source_names: Vec<String>,
 }
@@ -391,5 +401,30 @@ fn control_loop(
             return Err(format!("{q} is not finite at step {k} (t = {t} s); the run diverged"));
         }
     }
+    if c.lockstep {
+        // A neighbour may still wait for our final message (lost?): say it
+        // again until every neighbour reports its final step, for at most LINGER.
+        let began = Instant::now();
+        let mut said = Instant::now();
+        while began.elapsed() < LINGER {
+            if shared_len(&c.neighbours_done) >= c.neighbours {
+                break;
+            }
+            if said.elapsed() >= Duration::from_millis(200) {
+                for bytes in previous.iter().chain(std::iter::once(&current)) {
+                    put(estimate_pub, bytes.clone())?;
+                }
+                said = Instant::now();
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
     Ok(())
+}
+
+/// Lock-step: how long a follower keeps republishing its final message after its last step.
+const LINGER: Duration = Duration::from_secs(1);
+
+fn shared_len(s: &Mutex<std::collections::BTreeSet<u32>>) -> usize {
+    s.lock().unwrap_or_else(|p| p.into_inner()).len()
 }

@@ -114,22 +114,29 @@ pub async fn run_leader(
         .await
         .map_err(|e| zerr("declaring the telemetry publisher", e))?;
 
+    let lockstep = scenario.timing == Timing::Lockstep;
+    // Lock-step: which hearing followers have completed the final step.
+    let (done_subs, followers_done) = if lockstep {
+        node::watch_done(session, keys, &hearing, scenario.steps()).await?
+    } else {
+        (Vec::new(), Default::default())
+    };
     let hellos: Vec<String> = hearing.iter().map(u32::to_string).collect();
     let mut ready: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     ready.push(MONITOR.to_string());
-    let lockstep = scenario.timing == Timing::Lockstep;
     let lead = if lockstep { Duration::ZERO } else { start_lead };
     let (start, announcer) =
         barrier::lead_start(session, keys, &hellos, &ready, node::fingerprint(scenario), time_scale, lead).await?;
 
     let scenario = scenario.clone();
     let outcome = tokio::task::spawn_blocking(move || {
-        leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &telemetry_pub)
+        leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &telemetry_pub, &followers_done)
     })
     .await
     .map_err(|e| CliError::Run(format!("leader: loop panicked: {e}")))?;
     announcer.abort();
     drop(subs);
+    drop(done_subs);
     outcome.map_err(|e| CliError::Run(format!("leader: {e}")))
 }
 
@@ -144,6 +151,7 @@ fn leader_loop(
     progress: &Progress,
     estimate_pub: &Publisher<'_>,
     telemetry_pub: &Publisher<'_>,
+    followers_done: &Mutex<std::collections::BTreeSet<u32>>,
 ) -> Result<(), String> {
     let steps = s.steps();
     let dt = s.dt_s;
@@ -202,8 +210,35 @@ fn leader_loop(
             first_k = k + 1;
         }
     }
+    if lockstep {
+        // A follower may still wait for one of the last messages (lost?):
+        // repeat what the slowest may have missed until every hearing
+        // follower reports its final step, for at most LINGER.
+        let hearing = progress.reached.lock().unwrap_or_else(|e| e.into_inner()).len();
+        let began = Instant::now();
+        let mut said = Instant::now();
+        while began.elapsed() < LINGER {
+            if followers_done.lock().unwrap_or_else(|e| e.into_inner()).len() >= hearing {
+                break;
+            }
+            if said.elapsed() >= Duration::from_millis(200) {
+                let slowest =
+                    progress.reached.lock().unwrap_or_else(|e| e.into_inner()).iter().map(|r| r.unwrap_or(0)).min();
+                for (step, bytes) in &recent {
+                    if *step >= slowest.unwrap_or(0) {
+                        put(estimate_pub, bytes.clone())?;
+                    }
+                }
+                said = Instant::now();
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
     Ok(())
 }
+
+/// Lock-step: how long the leader keeps republishing after its last step.
+const LINGER: Duration = Duration::from_secs(2);
 
 /// Lock-step: waits until every hearing follower has reached step k − WINDOW.
 fn wait_window(

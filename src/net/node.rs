@@ -323,6 +323,41 @@ pub enum Telemetry {
     },
 }
 
+/// Lock-step end of run: the followers among `ids` that have reported (on
+/// their telemetry key) that they completed the final step. Nodes that feed
+/// them keep republishing their last messages until then (bounded), so a
+/// message lost near the end is recovered.
+pub async fn watch_done(
+    session: &zenoh::Session,
+    keys: &Keys,
+    ids: &[u32],
+    steps: u64,
+) -> Result<
+    (Vec<zenoh::pubsub::Subscriber<()>>, std::sync::Arc<std::sync::Mutex<std::collections::BTreeSet<u32>>>),
+    CliError,
+> {
+    let done = std::sync::Arc::new(std::sync::Mutex::new(std::collections::BTreeSet::new()));
+    let mut subs = Vec::new();
+    for &id in ids {
+        let d = done.clone();
+        let sub = session
+            .declare_subscriber(keys.telemetry(id))
+            .callback(move |s| {
+                if let Some(Telemetry::Follower { id: sender, first_k, samples, done: true, .. }) =
+                    decode::<Telemetry>(&s.payload().to_bytes())
+                {
+                    if sender == id && first_k.checked_add(samples.len() as u64) == Some(steps + 1) {
+                        d.lock().unwrap_or_else(|p| p.into_inner()).insert(id);
+                    }
+                }
+            })
+            .await
+            .map_err(|e| CliError::Run(format!("declaring a telemetry subscriber: {e}")))?;
+        subs.push(sub);
+    }
+    Ok((subs, done))
+}
+
 /// Where an estimate message came from, as the receiver sees it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Source {
