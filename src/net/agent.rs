@@ -254,17 +254,15 @@ struct LoopCtx {
 pub(crate) struct Pacer {
     epoch: Instant,
     period: Duration,
-    wakes: Vec<f64>,
+    /// Wake-up timing, in bounded memory whatever the run's length.
+    timer: node::LoopTimer,
 }
 
 impl Pacer {
-    pub fn new(start: &Start, dt_s: f64, steps: u64) -> Self {
+    pub fn new(start: &Start, dt_s: f64) -> Self {
         let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
-        Self {
-            epoch: start.epoch_instant(),
-            period: Duration::from_secs_f64(dt_s / scale),
-            wakes: Vec::with_capacity(steps as usize + 1),
-        }
+        let period = Duration::from_secs_f64(dt_s / scale);
+        Self { epoch: start.epoch_instant(), period, timer: node::LoopTimer::new(period.as_secs_f64()) }
     }
 
     /// Sleeps until step k is due and records the wake-up.
@@ -274,11 +272,11 @@ impl Pacer {
         if due > now {
             std::thread::sleep(due - now);
         }
-        self.wakes.push(Instant::now().saturating_duration_since(self.epoch).as_secs_f64());
+        self.timer.push(k, Instant::now().saturating_duration_since(self.epoch).as_secs_f64());
     }
 
     pub fn stats(&self) -> LoopStats {
-        LoopStats::from_wakeups(&self.wakes, self.period.as_secs_f64())
+        self.timer.stats()
     }
 }
 
@@ -305,7 +303,7 @@ fn control_loop(
     put(estimate_pub, current.clone())?;
     sent += 1;
 
-    let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s, c.steps));
+    let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s));
     let mut inputs: Vec<LeaderState> = Vec::with_capacity(c.neighbours + 1);
     let mut batch: Vec<FollowerSample> = Vec::with_capacity(c.batch);
     let mut first_k = 0u64;

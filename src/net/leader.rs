@@ -172,7 +172,7 @@ fn leader_loop(
     counters.sent += 1;
     recent.push_back((0, first));
 
-    let mut pacer = (!lockstep).then(|| Pacer::new(start, dt, steps));
+    let mut pacer = (!lockstep).then(|| Pacer::new(start, dt));
     let mut batch: Vec<LeaderState> = Vec::with_capacity(batch_len);
     let mut first_k = 0u64;
     for k in 0..=steps {
