@@ -155,7 +155,13 @@ fn ep(port: u16) -> String {
 /// `count` loopback ports: consecutive from `base`, or free ones.
 fn ports(base: Option<u16>, count: usize) -> Result<Vec<u16>, CliError> {
     if let Some(b) = base {
-        let last = u32::from(b) + count as u32;
+        if b == 0 {
+            return Err(CliError::Input(
+                "--base-port 0: give a port of 1 or more (or leave --base-port out for free ports)".into(),
+            ));
+        }
+        // The ports are b, b + 1, …, b + count − 1.
+        let last = u32::from(b) + count.saturating_sub(1) as u32;
         if last > u32::from(u16::MAX) {
             return Err(CliError::Input(format!("--base-port {b}: not enough ports above it for {count} nodes")));
         }
@@ -413,4 +419,16 @@ fn interrupt(children: &mut Children, out: &Path) -> CliError {
     let _ = children.wait_for("monitor", Duration::from_secs(10));
     children.kill_all();
     CliError::Run(format!("interrupted: stopped every process; {} holds what the monitor received", out.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn base_port_range_is_checked_up_front() {
+        assert!(matches!(ports(Some(0), 3), Err(CliError::Input(_))));
+        assert_eq!(ports(Some(65533), 3).ok(), Some(vec![65533, 65534, 65535]));
+        assert!(matches!(ports(Some(65534), 3), Err(CliError::Input(_))));
+    }
 }

@@ -62,3 +62,13 @@ fn sigint_stops_every_child_and_keeps_the_folder() {
         assert_eq!(rows, own + 1, "follower {id}: one CSV row per recorded step plus the header");
     }
 }
+
+#[test]
+fn base_port_zero_is_refused_up_front() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let mut g = Group::launch(&out, &["duration=0.5"], &["--base-port", "0", "--run", "launch-port0"]);
+    let status = g.wait(Duration::from_secs(20));
+    assert_eq!(status.code(), Some(2), "--base-port 0 must be bad input: {status}");
+    g.assert_group_empty();
+}

@@ -450,6 +450,13 @@ async fn monitor(
             }
         }
     };
+    if ending == Ending::Interrupted {
+        // Keep what already arrived (stop listening first, so this ends).
+        drop(_sub);
+        while let Ok((id, bytes)) = rx.try_recv() {
+            recorder.telemetry(id, &bytes).map_err(|e| CliError::Run(format!("writing the run folder: {e}")))?;
+        }
+    }
     if live && tty {
         eprintln!();
     }
