@@ -100,6 +100,26 @@ enum Batch<T> {
     Fresh { items: Vec<T>, truncated: bool },
 }
 
+impl<T> Batch<T> {
+    /// Counts a rejected or truncated batch; the items to record, if any.
+    fn count(self, malformed: &mut u64, gaps: &mut u64) -> Option<Vec<T>> {
+        match self {
+            Batch::Malformed => {
+                *malformed += 1;
+                None
+            }
+            Batch::Gap => {
+                *gaps += 1;
+                None
+            }
+            Batch::Fresh { items, truncated } => {
+                *malformed += u64::from(truncated);
+                Some(items)
+            }
+        }
+    }
+}
+
 /// Checks a batch against the recorded steps `..end` of a run of `steps` + 1
 /// steps, before anything is updated; `ok(k, item)` validates one item.
 fn admit<T>(mut items: Vec<T>, first_k: u64, end: u64, steps: u64, ok: impl Fn(u64, &T) -> bool) -> Batch<T> {
@@ -189,20 +209,8 @@ impl Recorder {
                 }
                 let end = self.leader_next_k;
                 let n = self.nodes.entry(0).or_default();
-                let fresh = match admit(states, first_k, end, steps, |_, s| s.is_finite()) {
-                    Batch::Malformed => {
-                        self.malformed += 1;
-                        return Ok(());
-                    }
-                    Batch::Gap => {
-                        n.gaps += 1;
-                        return Ok(());
-                    }
-                    Batch::Fresh { items, truncated } => {
-                        self.malformed += u64::from(truncated);
-                        items
-                    }
-                };
+                let batch = admit(states, first_k, end, steps, |_, s| s.is_finite());
+                let Some(fresh) = batch.count(&mut self.malformed, &mut n.gaps) else { return Ok(()) };
                 n.note(bytes.len(), counters, done, loop_stats, fresh.len());
                 for (i, s) in fresh.into_iter().enumerate() {
                     let k = end + i as u64;
@@ -221,20 +229,8 @@ impl Recorder {
                 let f = &mut self.followers[index];
                 let end = f.next_k + f.pending.len() as u64;
                 let n = self.nodes.entry(id).or_default();
-                let fresh = match admit(samples, first_k, end, steps, |k, s| s.k == k && s.is_finite()) {
-                    Batch::Malformed => {
-                        self.malformed += 1;
-                        return Ok(());
-                    }
-                    Batch::Gap => {
-                        n.gaps += 1;
-                        return Ok(());
-                    }
-                    Batch::Fresh { items, truncated } => {
-                        self.malformed += u64::from(truncated);
-                        items
-                    }
-                };
+                let batch = admit(samples, first_k, end, steps, |k, s| s.k == k && s.is_finite());
+                let Some(fresh) = batch.count(&mut self.malformed, &mut n.gaps) else { return Ok(()) };
                 n.note(bytes.len(), counters, done, loop_stats, fresh.len());
                 f.pending.extend(fresh);
             }

@@ -319,12 +319,10 @@ pub fn run(a: &ReportArgs) -> Result<(), CliError> {
         .collect::<Vec<_>>()
         .join(" ");
     // Run folders do not record gains: the claims' thresholds are SPEC §10's.
-    let notes = vec![
-        "Run folders do not record their gains, so the claims are checked against SPEC §10's values \
+    let notes = vec!["Run folders do not record their gains, so the claims are checked against SPEC §10's values \
          (C₁ = 3, B = 2, max v_r = √2, F4 starting at x̂ = 5, so a 15 m/s jump); for other scenarios use \
          `formation paper --scenario FILE`."
-            .to_string(),
-    ];
+        .to_string()];
     let ctx = Context { paper: false, command, params: tables::ClaimParams::paper_defaults(), notes };
     let (path, built) = write_report(&a.out, &cases, &ctx)?;
     if !a.quiet {
