@@ -575,6 +575,39 @@ fn panel_ids(idx: &[usize], data: &BTreeMap<usize, RunData>) -> (Vec<u32>, bool)
     (ids, cut)
 }
 
+/// The cases drawn in one time-series figure, with their colours.
+struct Methods<'a> {
+    cases: &'a [Case],
+    idx: &'a [usize],
+    data: &'a BTreeMap<usize, RunData>,
+    ctx: &'a Context,
+    colours: &'a [RGBColor],
+}
+
+/// One line per case for follower `id`: column `col` of its time series
+/// against t, min/max-enveloped, labelled in the figure's wording.
+fn method_lines(
+    m: &Methods,
+    id: u32,
+    col: usize,
+    wording: fn(Role) -> Option<&'static str>,
+    width: impl Fn(usize) -> u32,
+) -> Vec<Line> {
+    m.idx
+        .iter()
+        .filter_map(|&i| {
+            let f = m.data[&i].followers.get(&id)?;
+            Some(Line {
+                label: legend(&m.cases[i], m.ctx, wording),
+                colour: m.colours[i],
+                width: width(i),
+                points: envelope(&f[0], &f[col]),
+                legend: true,
+            })
+        })
+        .collect()
+}
+
 fn fig5(
     cases: &[Case],
     idx: &[usize],
@@ -590,19 +623,7 @@ fn fig5(
             caption: format!("Follower {id}"),
             x_label: "t (s)".into(),
             y_label: "linear velocity command v_c (m/s)".into(),
-            lines: idx
-                .iter()
-                .filter_map(|&i| {
-                    let f = data[&i].followers.get(id)?;
-                    Some(Line {
-                        label: legend(&cases[i], ctx, fig5_wording),
-                        colour: colours[i],
-                        width: 2,
-                        points: envelope(&f[0], &f[3]),
-                        legend: true,
-                    })
-                })
-                .collect(),
+            lines: method_lines(&Methods { cases, idx, data, ctx, colours }, *id, 3, fig5_wording, |_| 2),
             outlines: vec![],
             equal_aspect: false,
             legend: n == 0,
@@ -642,20 +663,14 @@ fn fig6(
                 caption: format!("Follower {id}, {wheel} wheel"),
                 x_label: "t (s)".into(),
                 y_label: format!("torque {name} (N m)"),
-                lines: idx
-                    .iter()
-                    .filter_map(|&i| {
-                        let f = data[&i].followers.get(id)?;
-                        Some(Line {
-                            label: legend(&cases[i], ctx, fig6_wording),
-                            colour: colours[i],
-                            // The last drawn (the proposed method in paper mode) on top, thicker.
-                            width: if Some(&i) == idx.last() { 2 } else { 1 },
-                            points: envelope(&f[0], &f[col]),
-                            legend: true,
-                        })
-                    })
-                    .collect(),
+                // The last drawn (the proposed method in paper mode) on top, thicker.
+                lines: method_lines(&Methods { cases, idx, data, ctx, colours }, *id, col, fig6_wording, |i| {
+                    if Some(&i) == idx.last() {
+                        2
+                    } else {
+                        1
+                    }
+                }),
                 outlines: vec![],
                 equal_aspect: false,
                 legend: n == 0 && wheel == "left",
