@@ -65,7 +65,46 @@ pub fn measure(scenario: &Scenario, steps: u64, record: bool) -> Result<Measurem
     })
 }
 
+/// The fault-table cases of `formation bench --faults`: the paper scenario
+/// without faults, with follower 3 cut off for 3 s, with 30 % loss on every link.
+pub const FAULT_CASES: [(&str, &[&str]); 3] = [
+    ("no faults", &[]),
+    ("follower 3 cut off 10-13 s", &["faults=[{node=3, from=10, to=13}]"]),
+    (
+        "30 % loss on every link, whole run",
+        &["faults=[{node=1, from=0, to=30, loss=0.3}, {node=2, from=0, to=30, loss=0.3}, \
+           {node=3, from=0, to=30, loss=0.3}, {node=4, from=0, to=30, loss=0.3}, {link=[0, 1], from=0, to=30, loss=0.3}]"],
+    ),
+];
+
+/// Follower-steps/s of the paper scenario (its own duration) for each fault
+/// case, the best of three repetitions of at least `work` follower-steps.
+fn fault_cases(a: &BenchArgs) -> Result<(), CliError> {
+    println!("\n{:<36} {:>9} {:>20} {:>7}", "paper scenario, fault table", "runs", "follower-steps/s", "ratio");
+    let mut base = None;
+    for (name, sets) in FAULT_CASES {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        let s = Scenario::load(&a.scenario, &sets).map_err(|e| CliError::Input(e.to_string()))?;
+        let per_run = s.followers.len() as u64 * (s.steps() + 1);
+        let runs = a.work.div_ceil(per_run).max(1);
+        let mut best = 0.0f64;
+        for _ in 0..3 {
+            let started = Instant::now();
+            for _ in 0..runs {
+                Simulation::new(&s).run(&mut NoRecord, |_| {})?;
+            }
+            best = best.max((runs * per_run) as f64 / started.elapsed().as_secs_f64());
+        }
+        let ratio = best / *base.get_or_insert(best);
+        println!("{name:<36} {runs:>9} {best:>20.0} {ratio:>7.3}");
+    }
+    Ok(())
+}
+
 pub fn run(a: &BenchArgs) -> Result<(), CliError> {
+    if a.faults {
+        return fault_cases(a);
+    }
     println!(
         "{:>9} {:>7} {:>8} {:>9} {:>9} {:>20}",
         "followers", "edges", "steps", "record", "seconds", "follower-steps/s"

@@ -95,6 +95,10 @@ pub struct BenchArgs {
     /// The paper scenario file, for n = 4.
     #[arg(long, default_value = "scenarios/paper.toml")]
     pub scenario: PathBuf,
+    /// Instead: the paper scenario without faults, with follower 3 cut off
+    /// for 3 s and with 30 % loss on every link, side by side (SPEC §14).
+    #[arg(long)]
+    pub faults: bool,
 }
 
 /// An error with its exit status: 2 for bad input, 1 for a failed run.
@@ -209,7 +213,8 @@ pub fn run_to_folder(scenario: &Scenario, opts: &RecordOptions, quiet: bool) -> 
     progress.finish();
     match result {
         Ok(metrics) => {
-            let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect());
+            let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect())
+                .with_outages(scenario, &sim.outages());
             let dir = writer.finish(&summary)?;
             Ok((summary, dir))
         }

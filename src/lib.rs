@@ -5,6 +5,7 @@ pub mod bench;
 pub mod cli;
 pub mod launch;
 pub mod net;
+pub mod outage;
 pub mod paper;
 pub mod record;
 pub mod report;

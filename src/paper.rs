@@ -176,9 +176,9 @@ pub fn run_seed(scenario: &Scenario, seed: u64, record: Option<&RecordOptions>) 
     let writer = record.map(|o| RunWriter::create(o, &ids)).transpose()?;
     let mut obs =
         PaperObserver { writer, steps, dt_s: s.dt_s, ids: ids.clone(), check_steps, at_checks: Default::default() };
-    let metrics =
-        Simulation::new(&s).run(&mut obs, |_| {}).map_err(|e| CliError::Run(format!("{} seed {seed}: {e}", s.name)))?;
-    let summary = Summary::new(&s, ids.iter().copied().zip(metrics).collect());
+    let mut sim = Simulation::new(&s);
+    let metrics = sim.run(&mut obs, |_| {}).map_err(|e| CliError::Run(format!("{} seed {seed}: {e}", s.name)))?;
+    let summary = Summary::new(&s, ids.iter().copied().zip(metrics).collect()).with_outages(&s, &sim.outages());
     if let Some(w) = obs.writer.take() {
         w.finish(&summary)?;
     }

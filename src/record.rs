@@ -166,6 +166,8 @@ pub struct MetricsAccumulator {
     tv: f64,
     last: Row,
     m: FollowerMetrics,
+    /// One per fault window of the scenario (SPEC §14's metrics under faults).
+    outages: Vec<crate::outage::OutageAccumulator>,
 }
 
 impl MetricsAccumulator {
@@ -177,6 +179,21 @@ impl MetricsAccumulator {
         // quotient that is whole on paper).
         let last10_from_k = if duration_s > 10.0 { ((duration_s - 10.0) / dt_s - 1e-9).ceil() as u64 } else { 0 };
         Self { last10_from_k, duration_s, ..Default::default() }
+    }
+
+    /// For a scenario, with its fault windows.
+    pub fn for_scenario(s: &Scenario) -> Self {
+        let mut a = Self::new(s.steps(), s.dt_s);
+        a.outages = crate::outage::Window::all(s)
+            .into_iter()
+            .map(|w| crate::outage::OutageAccumulator::new(w, s.dt_s))
+            .collect();
+        a
+    }
+
+    /// The metrics around each fault window, in table order.
+    pub fn outages(&self) -> Vec<crate::outage::OutageMetrics> {
+        self.outages.iter().map(|o| o.finish()).collect()
     }
 
     /// Adds the sample of step k (samples must come in step order).
@@ -196,6 +213,9 @@ impl MetricsAccumulator {
         self.prev_torque = Some((r.tau_l, r.tau_r));
         m.samples += 1;
         self.last = *r;
+        for o in &mut self.outages {
+            o.push(k, r);
+        }
     }
 
     pub fn finish(&self) -> FollowerMetrics {
@@ -231,6 +251,12 @@ pub struct Summary {
     pub fault_time: Option<f64>,
     pub lambda_min_h: Option<f64>,
     pub followers: BTreeMap<u32, FollowerMetrics>,
+    /// `network.rejoin`, when the scenario has link faults.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rejoin: Option<String>,
+    /// SPEC §14's metrics under faults, per fault window and follower.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub faults: Vec<crate::outage::FaultSummary>,
 }
 
 impl Summary {
@@ -249,7 +275,19 @@ impl Summary {
             fault_time: s.control.fault.map(|f| f.time_s),
             lambda_min_h: s.graph.lambda_min_h(),
             followers,
+            rejoin: (!s.faults.is_empty()).then(|| name(&s.control.rejoin.policy)),
+            faults: Vec::new(),
         }
+    }
+
+    /// Adds the metrics under faults (by follower id, one per fault window).
+    pub fn with_outages(
+        mut self,
+        s: &Scenario,
+        per_follower: &BTreeMap<u32, Vec<crate::outage::OutageMetrics>>,
+    ) -> Self {
+        self.faults = crate::outage::FaultSummary::all(s, per_follower);
+        self
     }
 
     pub fn to_json(&self) -> String {
@@ -286,6 +324,7 @@ impl Summary {
                 m.rmse_w
             );
         }
+        out += &crate::outage::table(&self.faults);
         out
     }
 }

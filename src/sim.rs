@@ -2,7 +2,7 @@
 //! stepped in lock-step in SPEC §9's order. Deterministic: the same scenario
 //! gives the same numbers, bit for bit.
 
-use formation_agent::{Follower, LeaderState};
+use formation_agent::{Follower, Hearing, LeaderState, LinkLoss};
 use formation_leader::Leader;
 use formation_plant::{NoiseSource, Robot, Velocity};
 use formation_topology::Scenario;
@@ -43,21 +43,25 @@ impl SimFollower {
             noise: NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id),
             // z(0) = ξ(0): the filter starts from ξ(0) and only `none` reads z(0).
             measurement: spec.velocity,
-            metrics: MetricsAccumulator::new(scenario.steps(), scenario.dt_s),
+            metrics: MetricsAccumulator::for_scenario(scenario),
         }
     }
 
     /// One step of brain and robot with the leader's state (if heard) and the
     /// neighbours' messages; returns the sample of step k. The robot advances
     /// unless `last` (the final sample only computes outputs).
-    pub fn step<'a>(
+    pub fn step<'a, I>(
         &mut self,
         t_s: f64,
         dt_s: f64,
         leader: Option<&LeaderState>,
-        neighbours: impl IntoIterator<Item = &'a LeaderState>,
+        neighbours: I,
         last: bool,
-    ) -> (FollowerSample, LeaderState) {
+    ) -> (FollowerSample, LeaderState)
+    where
+        I: IntoIterator<Item = &'a LeaderState>,
+        I::IntoIter: Clone,
+    {
         let out = self.brain.step(&self.robot.pose, self.measurement, leader, neighbours);
         let sample = FollowerSample::new(&out, self.robot.pose, self.robot.velocity);
         if !last {
@@ -77,6 +81,35 @@ impl SimFollower {
             return Err("robot velocity");
         }
         Ok(())
+    }
+}
+
+/// SPEC §14 on the receiving side of one follower: the fault table's loss
+/// decisions for each incoming link and what it holds from each source.
+/// Slots are the neighbours in ascending id, then the leader if heard.
+pub struct Reception {
+    pub links: Vec<LinkLoss>,
+    pub hearing: Hearing,
+}
+
+impl Reception {
+    /// The follower at `index`'s reception, or `None` when no fault of the
+    /// table touches its incoming links (then it hears every step-k message).
+    pub fn new(scenario: &Scenario, index: usize) -> Option<Self> {
+        let id = scenario.graph.id(index);
+        let links: Vec<LinkLoss> = scenario.sources_of(index).iter().map(|&src| scenario.link_loss(src, id)).collect();
+        if links.iter().all(LinkLoss::is_empty) {
+            return None;
+        }
+        let hearing = Hearing::new(links.len(), scenario.silence_steps());
+        Some(Self { links, hearing })
+    }
+
+    /// Step k's message of `slot` was sent: delivered unless the table removes it.
+    pub fn offer(&mut self, slot: usize, k: u64, msg: &LeaderState) {
+        if !self.links[slot].lost(k) {
+            self.hearing.deliver(slot, k, *msg);
+        }
     }
 }
 
@@ -111,6 +144,8 @@ pub struct Simulation<'s> {
     /// Every follower's message for the current step, by index.
     messages: Vec<LeaderState>,
     next_messages: Vec<LeaderState>,
+    /// Per follower, `Some` where the fault table touches its incoming links.
+    receptions: Vec<Option<Reception>>,
     k: u64,
 }
 
@@ -119,7 +154,16 @@ impl<'s> Simulation<'s> {
         let followers: Vec<SimFollower> =
             (0..scenario.followers.len()).map(|i| SimFollower::new(scenario, i)).collect();
         let messages: Vec<LeaderState> = followers.iter().map(|f| f.brain.message()).collect();
-        Self { scenario, leader: scenario.leader(), next_messages: messages.clone(), messages, followers, k: 0 }
+        let receptions = (0..followers.len()).map(|i| Reception::new(scenario, i)).collect();
+        Self {
+            scenario,
+            leader: scenario.leader(),
+            next_messages: messages.clone(),
+            messages,
+            followers,
+            receptions,
+            k: 0,
+        }
     }
 
     /// Steps done so far.
@@ -129,6 +173,11 @@ impl<'s> Simulation<'s> {
 
     pub fn followers(&self) -> &[SimFollower] {
         &self.followers
+    }
+
+    /// Every follower's metrics around each fault window, by id.
+    pub fn outages(&self) -> std::collections::BTreeMap<u32, Vec<crate::outage::OutageMetrics>> {
+        self.followers.iter().map(|f| (f.brain.id(), f.metrics.outages())).collect()
     }
 
     /// Runs to t = T, calling `progress(k)` every 1000 steps.
@@ -156,9 +205,30 @@ impl<'s> Simulation<'s> {
         let leader = self.leader.state(t);
         observer.leader(k, &leader)?;
         for (i, f) in self.followers.iter_mut().enumerate() {
-            let heard = s.graph.hears_leader(i).then_some(&leader);
-            let neighbours = s.graph.neighbours(i).iter().map(|&j| &self.messages[j]);
-            let (sample, next) = f.step(t, dt, heard, neighbours, last);
+            let (sample, next) = match &mut self.receptions[i] {
+                None => {
+                    let heard = s.graph.hears_leader(i).then_some(&leader);
+                    let neighbours = s.graph.neighbours(i).iter().map(|&j| &self.messages[j]);
+                    f.step(t, dt, heard, neighbours, last)
+                }
+                Some(rx) => {
+                    // SPEC §14: deliver what the table lets through, then
+                    // hear each source's newest message within the timeout.
+                    let ns = s.graph.neighbours(i);
+                    for (slot, &j) in ns.iter().enumerate() {
+                        rx.offer(slot, k, &self.messages[j]);
+                    }
+                    let heard = if s.graph.hears_leader(i) {
+                        rx.offer(ns.len(), k, &leader);
+                        rx.hearing.heard(ns.len(), k)
+                    } else {
+                        None
+                    };
+                    let hearing = &rx.hearing;
+                    let neighbours = (0..ns.len()).filter_map(|slot| hearing.heard(slot, k));
+                    f.step(t, dt, heard, neighbours, last)
+                }
+            };
             self.next_messages[i] = next;
             let row = Row::new(&sample, &leader, s.followers[i].offset, dt);
             f.metrics.push(k, &row);

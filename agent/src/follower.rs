@@ -11,6 +11,7 @@ use crate::dynamic::{self, DynamicGains, DynamicKind, DynamicState};
 use crate::estimator::{self, EstimatorGains};
 use crate::filter::{FilterParams, VelocityFilter};
 use crate::kinematic::{self, BodyError, KinematicGains, KinematicKind};
+use crate::links::{self, RejoinPolicy, RejoinRule};
 use formation_leader::LeaderState;
 use formation_plant::{Pose, RobotParams, Torque, Velocity};
 
@@ -38,6 +39,8 @@ pub struct ControlParams {
     /// The nominal model the controller's torque mapping and the filter use.
     pub model: RobotParams,
     pub fault: Option<Fault>,
+    /// What a follower does when it hears a source again after isolation (SPEC §14).
+    pub rejoin: RejoinRule,
     pub dt_s: f64,
 }
 
@@ -91,6 +94,9 @@ pub struct StepOutput {
     pub torque: Torque,
     /// How many sources (leader + neighbours) entered the estimator at k.
     pub sources: u32,
+    /// Step k ended an isolation of at least `rejoin.after_steps` steps
+    /// (and, under `adopt`, the estimate was replaced before the outputs).
+    pub rejoined: bool,
     /// The message to publish for step k+1: P_ir(k+1), v_ir(k+1), ω_ir(k+1)
     /// and the Ṗ_ir computed at k.
     pub next_message: LeaderState,
@@ -115,6 +121,11 @@ pub struct Follower {
     last_torque: Torque,
     last_k: u64,
     next_k: u64,
+    /// Consecutive steps, up to k − 1, at which no source was heard.
+    silent_steps: u64,
+    /// Adopt at the next step that hears a source, whatever the policy (a
+    /// restarted agent has no estimate to keep).
+    adopt_pending: bool,
 }
 
 impl Follower {
@@ -133,6 +144,8 @@ impl Follower {
             last_torque: Torque::default(),
             last_k: 0,
             next_k: 0,
+            silent_steps: 0,
+            adopt_pending: false,
         }
     }
 
@@ -150,6 +163,12 @@ impl Follower {
         self.estimate
     }
 
+    /// Takes the estimate from the first step that hears a source, as
+    /// `adopt` does, whatever `network.rejoin` says (SPEC §14's restarted agent).
+    pub fn adopt_on_next_source(&mut self) {
+        self.adopt_pending = true;
+    }
+
     /// The filter's current estimate ζ̂ (and its gains, for telemetry).
     pub fn filter(&self) -> &VelocityFilter {
         &self.filter
@@ -165,13 +184,17 @@ impl Follower {
     /// In order: the filter folds in z(k) (predict with τ(k−1) and the model
     /// valid at t_(k−1), update with z(k)); the outputs are computed from the
     /// states at k; the estimator's rates; then every state advances to k+1.
-    pub fn step<'a>(
-        &mut self,
-        pose: &Pose,
-        z: Velocity,
-        leader: Option<&LeaderState>,
-        neighbours: impl IntoIterator<Item = &'a LeaderState>,
-    ) -> StepOutput {
+    ///
+    /// SPEC §14: the sources not heard at k are simply not passed. After at
+    /// least `rejoin.after_steps` steps without any source, the first step
+    /// that hears one is a rejoin; under `adopt` the estimate is first
+    /// replaced by [`links::adopted`].
+    pub fn step<'a, I>(&mut self, pose: &Pose, z: Velocity, leader: Option<&LeaderState>, neighbours: I) -> StepOutput
+    where
+        I: IntoIterator<Item = &'a LeaderState>,
+        I::IntoIter: Clone,
+    {
+        let neighbours = neighbours.into_iter();
         let cfg = &*self.config.control;
         let dt = cfg.dt_s;
         let k = self.next_k;
@@ -180,6 +203,16 @@ impl Follower {
             self.filter.update(&model, self.last_torque, dt, z);
         } else if cfg.filter.kind == crate::FilterKind::None {
             self.filter.estimate = [z.v, z.w];
+        }
+        let leader = if self.config.hears_leader { leader } else { None };
+        let isolated = self.silent_steps >= cfg.rejoin.after_steps;
+        let mut rejoined = false;
+        if (isolated && cfg.rejoin.policy == RejoinPolicy::Adopt) || self.adopt_pending {
+            if let Some(adopted) = links::adopted(leader, neighbours.clone()) {
+                self.estimate = adopted;
+                self.adopt_pending = false;
+                rejoined = true;
+            }
         }
         let estimate = self.estimate;
 
@@ -205,8 +238,9 @@ impl Follower {
         let torque = cfg.model.acceleration_to_torque(a_v, a_w);
 
         // Estimator (eq. 11–15).
-        let leader = if self.config.hears_leader { leader } else { None };
         let rates = estimator::rates(&cfg.estimator, &estimate, leader, neighbours);
+        rejoined |= isolated && rates.sources > 0;
+        self.silent_steps = if rates.sources == 0 { self.silent_steps.saturating_add(1) } else { 0 };
 
         // Advance every state to k+1.
         if cfg.kinematic == KinematicKind::Bio {
@@ -228,6 +262,7 @@ impl Follower {
             velocity_estimate,
             torque,
             sources: rates.sources,
+            rejoined,
             next_message: self.estimate,
         }
     }
@@ -251,6 +286,7 @@ impl Follower {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::links::{RejoinPolicy, RejoinRule};
     use crate::{FilterKind, Shunting};
 
     fn config(fault_time_s: f64, dt_s: f64) -> ControlParams {
@@ -271,8 +307,82 @@ mod tests {
             filter: FilterParams { kind: FilterKind::Asif, q: [1e-4; 2], r: [1e-4; 2], rho_max: [0.08; 2] },
             model: RobotParams { mass_kg: 10.0, inertia_kgm2: 5.0, wheel_radius_m: 0.05, half_axle_m: 0.2 },
             fault: Some(Fault { time_s: fault_time_s, mass_factor: 0.01, inertia_factor: 0.1 }),
+            rejoin: RejoinRule::default(),
             dt_s,
         }
+    }
+
+    fn follower(policy: RejoinPolicy, after_steps: u64) -> Follower {
+        let mut c = config(100.0, 1e-3);
+        c.rejoin = RejoinRule { policy, after_steps };
+        let cfg = FollowerConfig { id: 3, offset: [7.0, -7.0], hears_leader: false, control: Arc::new(c) };
+        let start = LeaderState { pose: Pose::new(0.0, 3.0, 0.0), pose_rate: Pose::default(), v: 1.0, w: 0.0 };
+        Follower::new(cfg, start, Velocity::default())
+    }
+
+    fn neighbour(x: f64) -> LeaderState {
+        LeaderState { pose: Pose::new(x, 3.0, 0.0), pose_rate: Pose::new(1.0, 0.0, 0.0), v: 1.0, w: 0.0 }
+    }
+
+    /// Runs `silent` isolated steps, then one step hearing a neighbour at x = 5.
+    fn isolate_then_hear(f: &mut Follower, silent: u64) -> (StepOutput, LeaderState) {
+        let pose = Pose::new(7.0, -4.0, 0.0);
+        for _ in 0..silent {
+            let out = f.step(&pose, Velocity::default(), None, []);
+            assert_eq!(out.sources, 0);
+        }
+        let before = f.message();
+        let n = neighbour(5.0);
+        (f.step(&pose, Velocity::default(), None, [&n]), before)
+    }
+
+    #[test]
+    fn isolation_holds_the_rates_and_dead_reckons() {
+        let mut f = follower(RejoinPolicy::Consensus, 100);
+        let n = neighbour(1.0);
+        f.step(&Pose::default(), Velocity::default(), None, [&n]);
+        let rate = f.message().pose_rate;
+        let (v, w) = (f.message().v, f.message().w);
+        let x0 = f.message().pose.x;
+        for _ in 0..50 {
+            f.step(&Pose::default(), Velocity::default(), None, []);
+        }
+        let m = f.message();
+        assert_eq!((m.pose_rate, m.v, m.w), (rate, v, w), "isolated: Ṗ_ir, v_ir, ω_ir held");
+        assert!((m.pose.x - (x0 + 50.0 * 1e-3 * rate.x)).abs() < 1e-12, "dead reckoning: x = {}", m.pose.x);
+    }
+
+    #[test]
+    fn consensus_rejoins_without_a_jump() {
+        let mut f = follower(RejoinPolicy::Consensus, 100);
+        let (out, before) = isolate_then_hear(&mut f, 200);
+        assert!(out.rejoined, "200 silent steps ≥ 100: the step that hears again is a rejoin");
+        // The outputs use the held estimate; the estimate moves by one Euler step only.
+        assert_eq!(out.estimate, before);
+        let moved = (f.message().pose.x - before.pose.x).abs();
+        assert!(moved < 0.01, "consensus moved the estimate {moved} m in one step");
+    }
+
+    #[test]
+    fn adopt_takes_the_heard_state_before_the_outputs() {
+        let mut f = follower(RejoinPolicy::Adopt, 100);
+        let (out, before) = isolate_then_hear(&mut f, 200);
+        assert!(out.rejoined);
+        assert_eq!(out.estimate, neighbour(5.0), "adopt: the outputs use the neighbour's state");
+        assert!((before.pose.x - 5.0).abs() > 1.0, "the held estimate was elsewhere ({})", before.pose.x);
+        // A short silence (below rejoin_after) is not a rejoin: consensus as usual.
+        let mut g = follower(RejoinPolicy::Adopt, 100);
+        let (out, before) = isolate_then_hear(&mut g, 99);
+        assert!(!out.rejoined);
+        assert_eq!(out.estimate, before);
+    }
+
+    #[test]
+    fn a_restarted_follower_adopts_whatever_the_policy() {
+        let mut f = follower(RejoinPolicy::Consensus, 100);
+        f.adopt_on_next_source();
+        let (out, _) = isolate_then_hear(&mut f, 3);
+        assert_eq!(out.estimate, neighbour(5.0));
     }
 
     #[test]

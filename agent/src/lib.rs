@@ -14,6 +14,7 @@ pub mod estimator;
 pub mod filter;
 pub mod follower;
 pub mod kinematic;
+pub mod links;
 pub mod math;
 
 pub use dynamic::{DynamicGains, DynamicKind};
@@ -23,4 +24,5 @@ pub use follower::{ControlParams, Fault, Follower, FollowerConfig, NonFinite, St
 pub use formation_leader::LeaderState;
 pub use formation_plant::{Pose, RobotParams, Torque, Velocity};
 pub use kinematic::{BodyError, KinematicGains, KinematicKind};
+pub use links::{Hearing, LinkLoss, LossWindow, RejoinPolicy, RejoinRule};
 pub use math::Shunting;

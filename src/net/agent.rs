@@ -15,7 +15,7 @@
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use formation_agent::LeaderState;
+use formation_agent::{Hearing, LeaderState};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use formation_topology::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
@@ -127,6 +127,8 @@ pub async fn run_follower(
     let lockstep = scenario.timing == Timing::Lockstep;
     let slots = neighbour_ids.len() + usize::from(hears_leader);
     let mut inbox = Inbox::new(slots, lockstep);
+    // SPEC §14: the fault table applies at the receiver, per incoming link.
+    inbox.set_links(scenario.sources_of(index).iter().map(|&src| scenario.link_loss(src, id)).collect());
     // Before any message can arrive (the leader may run ahead before this node hears the start).
     set_window(&mut inbox, scenario, slots, hears_leader, scenario.network.time_scale);
     let shared = Arc::new(Shared { inbox: Mutex::new(inbox), arrived: Condvar::new() });
@@ -197,7 +199,7 @@ pub async fn run_follower(
         lockstep,
         has_leader: hears_leader,
         neighbours: neighbour_ids.len(),
-        silence_steps: (scenario.network.silence_timeout_s / scenario.dt_s).round() as u64,
+        silence_steps: scenario.silence_steps(),
         start,
         stall_timeout,
         neighbours_done,
@@ -221,8 +223,19 @@ pub async fn run_follower(
 /// [`node::REALTIME_AHEAD`] steps) beyond the shared clock's step.
 fn set_window(inbox: &mut Inbox, scenario: &Scenario, slots: usize, hears_leader: bool, time_scale: f64) {
     if scenario.timing == Timing::Lockstep {
+        // A fault lets a node run ahead of a receiver that does not wait for
+        // it (an isolated follower runs freely through its window), by at
+        // most the longest window plus one step per hop of the graph.
+        let faulted = scenario.faults.iter().map(|f| {
+            let (a, b) = f.steps(scenario.dt_s);
+            b - a + scenario.followers.len() as u64
+        });
+        let ahead = faulted.max().map_or(node::LOCKSTEP_AHEAD, |w| w + node::LOCKSTEP_AHEAD);
+        for slot in 0..slots {
+            inbox.set_ahead(slot, ahead);
+        }
         if hears_leader {
-            inbox.set_ahead(slots - 1, crate::net::leader::WINDOW + node::LOCKSTEP_AHEAD);
+            inbox.set_ahead(slots - 1, ahead + crate::net::leader::WINDOW);
         }
     } else {
         let period = scenario.dt_s / if time_scale > 0.0 { time_scale } else { 1.0 };
@@ -305,6 +318,10 @@ fn control_loop(
 
     let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s));
     let mut inputs: Vec<LeaderState> = Vec::with_capacity(c.neighbours + 1);
+    // Lock-step: each source's step-k message (None: removed by the fault
+    // table), and the newest delivered one per source (SPEC §14).
+    let mut taken: Vec<Option<LeaderState>> = Vec::with_capacity(c.neighbours + 1);
+    let mut hearing = Hearing::new(c.neighbours + usize::from(c.has_leader), c.silence_steps);
     let mut batch: Vec<FollowerSample> = Vec::with_capacity(c.batch);
     let mut first_k = 0u64;
     for k in 0..=c.steps {
@@ -349,10 +366,19 @@ fn control_loop(
                     }
                 }
                 // Slots 0..n are the neighbours, slot n the leader.
-                inbox.take(k, &mut inputs);
-                let leader = if c.has_leader { inputs.get(c.neighbours).copied() } else { None };
-                inputs.truncate(c.neighbours);
-                leader
+                inbox.take(k, &mut taken);
+                for (slot, m) in taken.iter().enumerate() {
+                    if let Some(m) = m {
+                        hearing.deliver(slot, k, *m);
+                    }
+                }
+                inputs.clear();
+                inputs.extend((0..c.neighbours).filter_map(|slot| hearing.heard(slot, k)).copied());
+                if c.has_leader {
+                    hearing.heard(c.neighbours, k).copied()
+                } else {
+                    None
+                }
             } else {
                 // Latest values; a source silent too long is left out.
                 inputs.clear();

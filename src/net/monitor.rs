@@ -173,7 +173,7 @@ impl Recorder {
                 offset: f.offset,
                 pending: VecDeque::new(),
                 next_k: 0,
-                metrics: MetricsAccumulator::new(scenario.steps(), scenario.dt_s),
+                metrics: MetricsAccumulator::for_scenario(scenario),
                 formation_error: f64::NAN,
             })
             .collect();
@@ -335,6 +335,7 @@ impl Recorder {
                         "received": c.received,
                         "late": c.late,
                         "silent": c.silent,
+                        "fault_lost": c.fault_lost,
                         "rejected": c.rejected,
                         "rejected_invalid": c.rejected.invalid(),
                         "loop": n.loop_stats,
@@ -360,7 +361,8 @@ impl Recorder {
     pub fn finish(self, ending: Ending) -> std::io::Result<(Summary, PathBuf)> {
         self.writer.write_file("network.json", &self.network_json(ending))?;
         let metrics = self.followers.iter().map(|f| (f.id, f.metrics.finish())).collect();
-        let summary = Summary::new(&self.scenario, metrics);
+        let outages = self.followers.iter().map(|f| (f.id, f.metrics.outages())).collect();
+        let summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
         let dir = self.writer.finish(&summary)?;
         Ok((summary, dir))
     }

@@ -32,7 +32,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use formation_agent::LeaderState;
+use formation_agent::{LeaderState, LinkLoss};
 use formation_topology::wire::{self, EstimateMsg, Reject};
 use formation_topology::Scenario;
 use serde::{Deserialize, Serialize};
@@ -254,6 +254,9 @@ pub struct Counters {
     /// (Real time) neighbour-steps left out of the estimator's sums because
     /// the neighbour was silent longer than `network.silence_timeout`.
     pub silent: u64,
+    /// Messages removed by the scenario's fault table at this receiver (SPEC §14).
+    #[serde(default)]
+    pub fault_lost: u64,
 }
 
 /// Control-loop timing of a real-time node (µs).
@@ -482,6 +485,8 @@ pub struct Inbox {
     ahead: Vec<u64>,
     /// Real time: the shared clock (epoch, period), once the start is known.
     clock: Option<(std::time::Instant, Duration)>,
+    /// Per source: the fault table's loss decisions for the link (SPEC §14).
+    links: Vec<LinkLoss>,
 }
 
 /// Lock-step: how far ahead of the receiver's step a neighbour's message can
@@ -503,6 +508,17 @@ impl Inbox {
             current: 0,
             ahead: vec![if lockstep { LOCKSTEP_AHEAD } else { REALTIME_AHEAD }; sources],
             clock: None,
+            links: vec![LinkLoss::none(); sources],
+        }
+    }
+
+    /// The fault table's loss decisions per source (SPEC §14): a message the
+    /// table removes is dropped on arrival and counted (`fault_lost`), and
+    /// lock-step does not wait for it.
+    pub fn set_links(&mut self, links: Vec<LinkLoss>) {
+        debug_assert_eq!(links.len(), self.links.len());
+        if links.len() == self.links.len() {
+            self.links = links;
         }
     }
 
@@ -542,6 +558,10 @@ impl Inbox {
             self.counters.rejected.add(Reject::Future);
             return;
         }
+        if self.links[slot].lost(step) {
+            self.counters.fault_lost += 1;
+            return;
+        }
         if self.newest[slot].is_some_and(|n| step <= n) {
             self.counters.late += 1;
             self.counters.rejected.add(Reject::Stale);
@@ -565,18 +585,20 @@ impl Inbox {
         self.counters.rejected.add(r);
     }
 
-    /// Lock-step: whether every source's step-k message is here.
-    pub fn has_all(&self, k: u64) -> bool {
-        self.pending.iter().all(|p| p.contains_key(&k))
+    /// Lock-step: whether every source's step-k message is here (or removed
+    /// by the fault table, so not to be waited for).
+    pub fn has_all(&mut self, k: u64) -> bool {
+        (0..self.pending.len()).all(|s| self.pending[s].contains_key(&k) || self.links[s].lost(k))
     }
 
-    /// Lock-step: the slots whose step-k message is missing.
-    pub fn missing(&self, k: u64) -> Vec<usize> {
-        (0..self.pending.len()).filter(|&s| !self.pending[s].contains_key(&k)).collect()
+    /// Lock-step: the slots whose step-k message is missing (and not removed by the table).
+    pub fn missing(&mut self, k: u64) -> Vec<usize> {
+        (0..self.pending.len()).filter(|&s| !self.pending[s].contains_key(&k) && !self.links[s].lost(k)).collect()
     }
 
-    /// Lock-step: takes every source's step-k message (call after `has_all`).
-    pub fn take(&mut self, k: u64, out: &mut Vec<LeaderState>) {
+    /// Lock-step: takes each source's step-k message, `None` where the fault
+    /// table removed it (call after `has_all`).
+    pub fn take(&mut self, k: u64, out: &mut Vec<Option<LeaderState>>) {
         out.clear();
         for (slot, p) in self.pending.iter_mut().enumerate() {
             // Drop anything older (cannot happen with has_all, but keeps memory bounded).
@@ -586,9 +608,7 @@ impl Inbox {
                 }
                 p.pop_first();
             }
-            if let Some(state) = p.remove(&k) {
-                out.push(state);
-            }
+            out.push(p.remove(&k));
             self.newest[slot] = Some(k);
         }
     }
@@ -651,6 +671,7 @@ mod tests {
         let mut out = Vec::new();
         inbox.take(0, &mut out);
         assert_eq!(out.len(), 2);
+        assert!(out.iter().all(Option::is_some));
         inbox.accept(0, &msg(1, 0));
         assert_eq!(inbox.counters.rejected.stale, 1);
         assert!(!inbox.has_all(1));

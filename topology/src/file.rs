@@ -59,6 +59,28 @@ pub struct ScenarioFile {
     pub fault: FaultFile,
     #[serde(default)]
     pub network: NetworkFile,
+    /// Link faults (SPEC §14): outages and loss over windows of run time.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub faults: Vec<LinkFaultFile>,
+}
+
+/// One row of SPEC §14's fault table: one link (both directions; 0 is the
+/// leader) or every link of one follower, over [from, to) s of run time,
+/// each message lost with probability `loss`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LinkFaultFile {
+    /// Every link of this follower.
+    pub node: Option<u32>,
+    /// One link, by node ids (0 = the leader).
+    pub link: Option<[u32; 2]>,
+    /// Start, s of run time (inclusive).
+    pub from: f64,
+    /// End, s of run time (exclusive).
+    pub to: f64,
+    /// Probability that a message is lost (1: the link is down).
+    #[serde(default = "d::loss")]
+    pub loss: f64,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -208,6 +230,12 @@ pub struct NetworkFile {
     /// the message rate low).
     #[serde(default = "d::telemetry_batch")]
     pub telemetry_batch: u32,
+    /// After isolation: `consensus` (the paper's law) or `adopt` (SPEC §14).
+    #[serde(default = "d::rejoin")]
+    pub rejoin: String,
+    /// Seconds without any source before hearing one again is a rejoin.
+    #[serde(default = "d::rejoin_after")]
+    pub rejoin_after: f64,
 }
 
 macro_rules! default_impl {
@@ -247,7 +275,9 @@ default_impl!(FaultFile { time: None, mass_factor: d::mass_factor(), inertia_fac
 default_impl!(NetworkFile {
     silence_timeout: d::silence_timeout(),
     time_scale: d::time_scale(),
-    telemetry_batch: d::telemetry_batch()
+    telemetry_batch: d::telemetry_batch(),
+    rejoin: d::rejoin(),
+    rejoin_after: d::rejoin_after()
 });
 
 /// SPEC §10's values, the defaults of every key.
@@ -363,5 +393,14 @@ mod d {
     }
     pub fn telemetry_batch() -> u32 {
         50
+    }
+    pub fn rejoin() -> String {
+        "consensus".into()
+    }
+    pub fn rejoin_after() -> f64 {
+        0.1
+    }
+    pub fn loss() -> f64 {
+        1.0
     }
 }

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use formation_agent::{
     ControlParams, DynamicGains, EstimatorGains, Fault, FilterParams, FollowerConfig, KinematicGains, LeaderState,
-    Shunting,
+    LinkLoss, LossWindow, RejoinPolicy, RejoinRule, Shunting,
 };
 use formation_leader::{Leader, Profile, Trajectory};
 use formation_plant::{Disturbance, NoiseCov, Pose, RobotParams, Velocity};
@@ -53,6 +53,59 @@ pub struct NetworkSettings {
     pub telemetry_batch: u32,
 }
 
+/// What a link fault covers (SPEC §14).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FaultTarget {
+    /// Every link of this follower, both directions.
+    Node(u32),
+    /// One link between two nodes (0 = the leader), both directions.
+    Link(u32, u32),
+}
+
+/// One validated row of the fault table.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct LinkFault {
+    pub target: FaultTarget,
+    pub from_s: f64,
+    pub to_s: f64,
+    pub loss: f64,
+}
+
+impl LinkFault {
+    /// Whether the fault covers the directed link sender → receiver.
+    pub fn covers(&self, sender: u32, receiver: u32) -> bool {
+        match self.target {
+            FaultTarget::Node(n) => sender == n || receiver == n,
+            FaultTarget::Link(a, b) => (sender, receiver) == (a, b) || (sender, receiver) == (b, a),
+        }
+    }
+
+    /// The window in steps: [first k with k Δt ≥ from, first k with k Δt ≥ to).
+    pub fn steps(&self, dt_s: f64) -> (u64, u64) {
+        (step_at(self.from_s, dt_s), step_at(self.to_s, dt_s))
+    }
+
+    /// "follower 3" or "link 0–1", for tables and messages.
+    pub fn label(&self) -> String {
+        let what = match self.target {
+            FaultTarget::Node(n) => format!("follower {n}"),
+            FaultTarget::Link(a, b) => format!("link {a}–{b}"),
+        };
+        if self.loss >= 1.0 {
+            format!("{what} down {}–{} s", self.from_s, self.to_s)
+        } else {
+            format!("{what} {}% loss {}–{} s", self.loss * 100.0, self.from_s, self.to_s)
+        }
+    }
+}
+
+/// The first step k with k Δt ≥ t (decided on step indices; the 1e-9
+/// absorbs rounding of a quotient that is whole on paper).
+pub fn step_at(t_s: f64, dt_s: f64) -> u64 {
+    (t_s / dt_s - 1e-9).ceil().max(0.0) as u64
+}
+
 /// A validated scenario. Followers are in ascending id, indexed like the graph.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Scenario {
@@ -76,6 +129,8 @@ pub struct Scenario {
     pub robot: RobotParams,
     pub disturbance: Disturbance,
     pub network: NetworkSettings,
+    /// SPEC §14's fault table (empty: perfect links).
+    pub faults: Vec<LinkFault>,
     /// The file as it was read and overridden, for the record of a run.
     pub source: ScenarioFile,
 }
@@ -136,6 +191,43 @@ impl Scenario {
     pub fn index_of(&self, id: u32) -> Option<usize> {
         self.graph.index_of(id)
     }
+
+    /// `network.silence_timeout` in steps, rounded to the nearest (SPEC §14).
+    pub fn silence_steps(&self) -> u64 {
+        (self.network.silence_timeout_s / self.dt_s).round() as u64
+    }
+
+    /// The fault windows, in steps, on the directed link sender → receiver.
+    pub fn link_windows(&self, sender: u32, receiver: u32) -> Vec<LossWindow> {
+        self.faults
+            .iter()
+            .filter(|f| f.covers(sender, receiver))
+            .map(|f| {
+                let (from_k, to_k) = f.steps(self.dt_s);
+                LossWindow { from_k, to_k, loss: f.loss }
+            })
+            .collect()
+    }
+
+    /// The receiver's loss decisions for the link sender → receiver.
+    pub fn link_loss(&self, sender: u32, receiver: u32) -> LinkLoss {
+        let windows = self.link_windows(sender, receiver);
+        if windows.is_empty() {
+            LinkLoss::none()
+        } else {
+            LinkLoss::new(self.seed, sender, receiver, &windows)
+        }
+    }
+
+    /// The sources of the follower at `index` in inbox order: its neighbours'
+    /// ids in ascending order, then the leader (0) if it hears it.
+    pub fn sources_of(&self, index: usize) -> Vec<u32> {
+        let mut ids: Vec<u32> = self.graph.neighbours(index).iter().map(|&j| self.graph.id(j)).collect();
+        if self.graph.hears_leader(index) {
+            ids.push(0);
+        }
+        ids
+    }
 }
 
 /// Applies `KEY=VALUE` overrides to the parsed document, one at a time so
@@ -155,7 +247,10 @@ fn apply_overrides(text: &str, overrides: &[String]) -> Result<ScenarioFile, Sce
         }
         let value = parse_value(value);
         let mut next = table.clone();
-        set_path(&mut next, key, value).map_err(err)?;
+        match key.strip_suffix('+') {
+            Some(array) => append_path(&mut next, array.trim(), value).map_err(err)?,
+            None => set_path(&mut next, key, value).map_err(err)?,
+        }
         next.clone().try_into::<ScenarioFile>().map_err(|e| err(override_message(key, e.message())))?;
         table = next;
     }
@@ -179,6 +274,29 @@ fn parse_value(value: &str) -> toml::Value {
         .ok()
         .and_then(|mut t| t.remove("v"))
         .unwrap_or_else(|| toml::Value::String(value.to_string()))
+}
+
+/// `KEY+=VALUE`: appends VALUE to the array at KEY (creating it), e.g.
+/// `--set 'faults+={node=3, from=10, to=13}'`.
+fn append_path(table: &mut toml::Table, key: &str, value: toml::Value) -> Result<(), String> {
+    let mut current = toml::Value::Array(Vec::new());
+    let mut cursor: Option<&toml::Table> = Some(table);
+    let parts: Vec<&str> = key.split('.').collect();
+    for (n, part) in parts.iter().enumerate() {
+        let found = cursor.and_then(|t| t.get(*part));
+        if n + 1 == parts.len() {
+            if let Some(v) = found {
+                current = v.clone();
+            }
+        } else {
+            cursor = found.and_then(toml::Value::as_table);
+        }
+    }
+    let toml::Value::Array(mut items) = current else {
+        return Err(format!("`{key}` is not an array, cannot append to it"));
+    };
+    items.push(value);
+    set_path(table, key, toml::Value::Array(items))
 }
 
 fn set_path(table: &mut toml::Table, key: &str, value: toml::Value) -> Result<(), String> {
@@ -406,8 +524,21 @@ fn validate(
         wheel_radius_m: r.wheel_radius,
         half_axle_m: r.half_axle,
     };
+    let faults = validate_faults(&c, &file, &followers, &graph)?;
     let n = &file.network;
     c.positive("network.silence_timeout", &[n.silence_timeout])?;
+    let rejoin_policy = match n.rejoin.as_str() {
+        "consensus" => RejoinPolicy::Consensus,
+        "adopt" => RejoinPolicy::Adopt,
+        other => return Err(c.fail("network.rejoin", format!("`{other}` is not one of: consensus, adopt"))),
+    };
+    c.positive("network.rejoin_after", &[n.rejoin_after])?;
+    let rejoin_after_steps = (n.rejoin_after / file.dt).round() as u64;
+    if rejoin_after_steps == 0 {
+        return Err(
+            c.fail("network.rejoin_after", format!("{} s is less than half a step of {} s", n.rejoin_after, file.dt))
+        );
+    }
     c.positive("network.time_scale", &[n.time_scale])?;
     if n.telemetry_batch == 0 {
         return Err(c.fail("network.telemetry_batch", "must be at least 1"));
@@ -447,6 +578,7 @@ fn validate(
             },
             model: robot,
             fault,
+            rejoin: RejoinRule { policy: rejoin_policy, after_steps: rejoin_after_steps },
             dt_s: file.dt,
         }),
         robot,
@@ -456,8 +588,113 @@ fn validate(
             time_scale: n.time_scale,
             telemetry_batch: n.telemetry_batch,
         },
+        faults,
         source: file,
     })
+}
+
+/// SPEC §14's fault table: each row one link of the graph or one follower,
+/// a window inside the run, a probability.
+fn validate_faults(
+    c: &Check<'_>,
+    file: &ScenarioFile,
+    followers: &[FollowerSpec],
+    graph: &Graph,
+) -> Result<Vec<LinkFault>, ScenarioError> {
+    let ids = || followers.iter().map(|f| f.id.to_string()).collect::<Vec<_>>().join(", ");
+    let mut out = Vec::with_capacity(file.faults.len());
+    for (i, f) in file.faults.iter().enumerate() {
+        let field = |k: &str| format!("faults[{i}].{k}");
+        let target = match (f.node, f.link) {
+            (Some(_), Some(_)) => return Err(c.fail(&field("node"), "give either `node` or `link`, not both")),
+            (None, None) => {
+                return Err(c.fail(
+                    &format!("faults[{i}]"),
+                    "missing: give `node = ID` (every link of a follower) or `link = [A, B]` (0 = the leader)",
+                ))
+            }
+            (Some(0), None) => {
+                return Err(c.fail(
+                    &field("node"),
+                    "0 is the leader; cut the leader's links with `link = [0, ID]` for a follower that hears it",
+                ))
+            }
+            (Some(n), None) => {
+                if graph.index_of(n).is_none() {
+                    return Err(c.fail(&field("node"), format!("follower {n} is not in the scenario (ids: {})", ids())));
+                }
+                FaultTarget::Node(n)
+            }
+            (None, Some([a, b])) => {
+                for id in [a, b] {
+                    if id != 0 && graph.index_of(id).is_none() {
+                        return Err(c.fail(
+                            &field("link"),
+                            format!("node {id} is not in the scenario (0 = the leader; followers: {})", ids()),
+                        ));
+                    }
+                }
+                if a == b {
+                    return Err(c.fail(&field("link"), format!("{a}–{b} is not a link: both ends are node {a}")));
+                }
+                if !is_link(graph, a, b) {
+                    let end = if a == 0 { b } else { a };
+                    let links = graph.index_of(end).map(|i| {
+                        let mut l: Vec<String> = graph.neighbours(i).iter().map(|&j| graph.id(j).to_string()).collect();
+                        if graph.hears_leader(i) {
+                            l.insert(0, "0".into());
+                        }
+                        l.join(", ")
+                    });
+                    return Err(c.fail(
+                        &field("link"),
+                        format!(
+                            "{a}–{b} is not a link of the scenario's graph (node {end} talks to: {})",
+                            links.unwrap_or_default()
+                        ),
+                    ));
+                }
+                FaultTarget::Link(a, b)
+            }
+        };
+        c.finite(&field("from"), &[f.from])?;
+        c.finite(&field("to"), &[f.to])?;
+        if f.from < 0.0 {
+            return Err(c.fail(&field("from"), format!("{} s is before the run starts (t = 0)", f.from)));
+        }
+        if f.from >= f.to {
+            return Err(c.fail(
+                &field("to"),
+                format!("the window [{}, {}) s is empty: `to` must be after `from`", f.from, f.to),
+            ));
+        }
+        if f.to > file.duration {
+            return Err(c.fail(
+                &field("to"),
+                format!(
+                    "{} s is after the end of the run (T = {} s); use to = {} for the rest of the run",
+                    f.to, file.duration, file.duration
+                ),
+            ));
+        }
+        c.finite(&field("loss"), &[f.loss])?;
+        if !(0.0..=1.0).contains(&f.loss) {
+            return Err(c.fail(&field("loss"), format!("{} is not a probability in [0, 1]", f.loss)));
+        }
+        out.push(LinkFault { target, from_s: f.from, to_s: f.to, loss: f.loss });
+    }
+    Ok(out)
+}
+
+/// Whether a and b (0 = the leader) talk to each other in the graph.
+fn is_link(graph: &Graph, a: u32, b: u32) -> bool {
+    match (a, b) {
+        (0, f) | (f, 0) => graph.index_of(f).is_some_and(|i| graph.hears_leader(i)),
+        (a, b) => match (graph.index_of(a), graph.index_of(b)) {
+            (Some(ia), Some(ib)) => graph.neighbours(ia).contains(&ib),
+            _ => false,
+        },
+    }
 }
 
 /// The pose whose body-frame error against the leader's pose plus the offset
@@ -522,6 +759,72 @@ mod tests {
         let p = pose_from_body_error(leader, [4.0, -4.0], e);
         let back = formation_agent::kinematic::body_error(&leader, [4.0, -4.0], &p);
         assert!((back.x - e[0]).abs() < 1e-12 && (back.y - e[1]).abs() < 1e-12 && (back.theta - e[2]).abs() < 1e-12);
+    }
+
+    const PAPER: &str = "duration = 20\nedges = [[1, 2], [1, 3], [2, 4], [3, 4]]\n\
+        [[followers]]\nid = 1\noffset = [4, -4]\nbody_error = [-1, 0, 0]\nleader_link = true\n\
+        [[followers]]\nid = 2\noffset = [4, 4]\nbody_error = [2, 0, 0]\n\
+        [[followers]]\nid = 3\noffset = [7, -7]\nbody_error = [2, 0, 0]\n\
+        [[followers]]\nid = 4\noffset = [7, 7]\nbody_error = [5, 0, 0]\n";
+
+    fn with_faults(faults: &str) -> Result<Scenario, ScenarioError> {
+        Scenario::from_toml(&format!("{PAPER}{faults}"), "t.toml", "t", &[])
+    }
+
+    #[test]
+    fn fault_table_rows_cover_their_links_in_steps() {
+        let s = with_faults(
+            "[[faults]]\nnode = 3\nfrom = 10\nto = 13\n[[faults]]\nlink = [0, 1]\nfrom = 1\nto = 2\nloss = 0.3\n",
+        )
+        .expect("valid fault table");
+        assert_eq!(s.faults.len(), 2);
+        // Follower 3's links, both directions: 1–3 and 3–4; not 1–2.
+        assert_eq!(s.link_windows(1, 3), vec![LossWindow { from_k: 10_000, to_k: 13_000, loss: 1.0 }]);
+        assert_eq!(s.link_windows(3, 4).len(), 1);
+        assert!(s.link_windows(1, 2).is_empty());
+        assert_eq!(s.link_windows(0, 1), vec![LossWindow { from_k: 1000, to_k: 2000, loss: 0.3 }]);
+        assert_eq!(s.sources_of(0), vec![2, 3, 0]);
+        assert_eq!(s.silence_steps(), 50);
+        assert_eq!(s.control.rejoin, RejoinRule { policy: RejoinPolicy::Consensus, after_steps: 100 });
+    }
+
+    #[test]
+    fn bad_fault_rows_are_refused_naming_the_field() {
+        let cases = [
+            ("node = 9\nfrom = 1\nto = 2", "faults[0].node", "follower 9 is not in the scenario"),
+            ("node = 0\nfrom = 1\nto = 2", "faults[0].node", "0 is the leader"),
+            ("link = [1, 4]\nfrom = 1\nto = 2", "faults[0].link", "1–4 is not a link"),
+            ("link = [0, 2]\nfrom = 1\nto = 2", "faults[0].link", "0–2 is not a link"),
+            ("link = [1, 7]\nfrom = 1\nto = 2", "faults[0].link", "node 7 is not in the scenario"),
+            ("node = 3\nlink = [1, 3]\nfrom = 1\nto = 2", "faults[0].node", "not both"),
+            ("from = 1\nto = 2", "faults[0]", "missing"),
+            ("node = 3\nfrom = 5\nto = 5", "faults[0].to", "empty"),
+            ("node = 3\nfrom = -1\nto = 5", "faults[0].from", "before the run"),
+            ("node = 3\nfrom = 5\nto = 25", "faults[0].to", "after the end of the run"),
+            ("node = 3\nfrom = 1\nto = 2\nloss = 1.5", "faults[0].loss", "not a probability"),
+            ("node = 3\nfrom = 1\nto = 2\nloss = -0.1", "faults[0].loss", "not a probability"),
+        ];
+        for (row, field, says) in cases {
+            let e = with_faults(&format!("[[faults]]\n{row}\n")).expect_err(row).to_string();
+            assert!(e.contains(&format!("{field}:")) && e.contains(says), "{row}: {e}");
+            assert!(e.starts_with("t.toml:"), "names the file and line: {e}");
+        }
+        let e = with_faults("[network]\nrejoin = \"maybe\"\n").expect_err("rejoin").to_string();
+        assert!(e.contains("network.rejoin:") && e.contains("consensus, adopt"), "{e}");
+        let e = with_faults("[network]\nrejoin_after = 0.0001\n").expect_err("rejoin_after").to_string();
+        assert!(e.contains("network.rejoin_after:"), "{e}");
+    }
+
+    #[test]
+    fn an_outage_can_be_appended_from_the_command_line() {
+        let set =
+            ["faults+={node=3, from=10, to=13}".to_string(), "faults+={link=[0,1], from=1, to=2, loss=0.5}".into()];
+        let s = Scenario::from_toml(PAPER, "t.toml", "t", &set).expect("appended");
+        assert_eq!(s.faults.len(), 2);
+        assert_eq!(s.faults[0].target, FaultTarget::Node(3));
+        assert_eq!(s.faults[1].loss, 0.5);
+        let replaced = Scenario::from_toml(PAPER, "t.toml", "t", &["faults=[{node=2, from=1, to=2}]".into()]).unwrap();
+        assert_eq!(replaced.faults[0].target, FaultTarget::Node(2));
     }
 
     #[test]
