@@ -219,9 +219,16 @@ pub fn run_to_folder(scenario: &Scenario, opts: &RecordOptions, quiet: bool) -> 
             Ok((summary, dir))
         }
         Err(e) => {
-            // Keep what was recorded up to the failure.
+            // Keep what was recorded up to the failure, with the summary of
+            // an incomplete run (`complete: false`).
+            let metrics = sim.followers().iter().map(|f| f.metrics.finish());
+            let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect());
             let _ = writer.flush();
-            Err(CliError::Run(format!("{e} (samples so far kept in {})", writer.partial_dir().display())))
+            let _ = writer.write_file("summary.json", &summary.to_json());
+            Err(CliError::Run(format!(
+                "{e} (samples so far and their summary.json kept in {})",
+                writer.partial_dir().display()
+            )))
         }
     }
 }

@@ -124,48 +124,93 @@ fn norm(a: f64, b: f64) -> f64 {
     (a * a + b * b).sqrt()
 }
 
-/// The SPEC §11 metrics of one follower (SI units; RMSE not scaled).
+/// The SPEC §11 metrics of one follower (SI units; RMSE not scaled). A
+/// metric is `None` (`null` in `summary.json`) when the samples it needs
+/// were not recorded: the last 10 s, the sample at t = T, or any sample.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct FollowerMetrics {
     /// RMS of the formation error over the samples with t ≥ T − 10, m.
-    pub formation_rms_last10: f64,
+    pub formation_rms_last10: Option<f64>,
     /// Formation error at t = T, m.
-    pub formation_final: f64,
+    pub formation_final: Option<f64>,
     /// Heading error at t = T, rad.
-    pub heading_final: f64,
+    pub heading_final: Option<f64>,
     /// Estimator position error at t = T, m.
-    pub estimator_error_final: f64,
+    pub estimator_error_final: Option<f64>,
     /// Estimator |v_ir − v_r| at t = T, m/s.
-    pub estimator_v_error_final: f64,
+    pub estimator_v_error_final: Option<f64>,
     /// Estimator |ω_ir − ω_r| at t = T, rad/s.
-    pub estimator_w_error_final: f64,
+    pub estimator_w_error_final: Option<f64>,
     /// Peak |v_c|, m/s (speed jump).
-    pub vc_peak: f64,
-    /// Σ_k (|Δτ_L| + |Δτ_R|) / T, N m/s (chattering).
-    pub torque_tv: f64,
+    pub vc_peak: Option<f64>,
+    /// Σ_k (|Δτ_L| + |Δτ_R|) / T, N m/s (chattering); over the recorded
+    /// span instead of T when the run is incomplete.
+    pub torque_tv: Option<f64>,
     /// Peak |τ| over both wheels, N m.
-    pub torque_peak: f64,
+    pub torque_peak: Option<f64>,
     /// sqrt(mean((v̂ − v)²)) over all samples, m/s.
-    pub rmse_v: f64,
+    pub rmse_v: Option<f64>,
     /// sqrt(mean((ω̂ − ω)²)) over all samples, rad/s.
-    pub rmse_w: f64,
+    pub rmse_w: Option<f64>,
     /// Number of samples the metrics were computed from.
     pub samples: u64,
+}
+
+impl FollowerMetrics {
+    /// Nulls the metrics whose window `samples` (steps 0, 1, … in order)
+    /// does not reach in a run of `steps` steps of Δt. A no-op for metrics
+    /// from [`MetricsAccumulator`]; older `summary.json` files wrote 0 there.
+    pub fn null_unreached(&mut self, steps: u64, dt_s: f64) {
+        if self.samples <= last10_from_k(steps, dt_s) {
+            self.formation_rms_last10 = None;
+        }
+        if self.samples <= steps {
+            for m in [
+                &mut self.formation_final,
+                &mut self.heading_final,
+                &mut self.estimator_error_final,
+                &mut self.estimator_v_error_final,
+                &mut self.estimator_w_error_final,
+            ] {
+                *m = None;
+            }
+        }
+        if self.samples == 0 {
+            *self = Self::default();
+        }
+    }
+}
+
+/// The first step k of "the last 10 s" of a run of `steps` steps of Δt: the
+/// first k with k Δt ≥ T − 10 (0 when T ≤ 10).
+pub fn last10_from_k(steps: u64, dt_s: f64) -> u64 {
+    let duration_s = steps as f64 * dt_s;
+    // The 1e-9 absorbs rounding of a quotient that is whole on paper.
+    if duration_s > 10.0 {
+        ((duration_s - 10.0) / dt_s - 1e-9).ceil() as u64
+    } else {
+        0
+    }
 }
 
 /// Streaming accumulator of [`FollowerMetrics`] (O(1) memory per follower).
 #[derive(Clone, Debug, Default)]
 pub struct MetricsAccumulator {
+    steps: u64,
+    dt_s: f64,
     last10_from_k: u64,
-    duration_s: f64,
     sum_formation_sq_last10: f64,
     n_last10: u64,
     sum_v_sq: f64,
     sum_w_sq: f64,
     prev_torque: Option<(f64, f64)>,
     tv: f64,
+    vc_peak: f64,
+    torque_peak: f64,
+    samples: u64,
+    /// The sample of step `steps` (t = T) was pushed.
+    reached_final: bool,
     last: Row,
-    m: FollowerMetrics,
     /// One per fault window of the scenario (SPEC §14's metrics under faults).
     outages: Vec<crate::outage::OutageAccumulator>,
 }
@@ -174,11 +219,7 @@ impl MetricsAccumulator {
     /// For a run of `steps` steps of Δt: "the last 10 s" are the samples
     /// with k ≥ (T − 10)/Δt (all samples when T ≤ 10).
     pub fn new(steps: u64, dt_s: f64) -> Self {
-        let duration_s = steps as f64 * dt_s;
-        // The first k with k Δt ≥ T − 10 (the 1e-9 absorbs rounding of a
-        // quotient that is whole on paper).
-        let last10_from_k = if duration_s > 10.0 { ((duration_s - 10.0) / dt_s - 1e-9).ceil() as u64 } else { 0 };
-        Self { last10_from_k, duration_s, ..Default::default() }
+        Self { steps, dt_s, last10_from_k: last10_from_k(steps, dt_s), ..Default::default() }
     }
 
     /// For a scenario, with its fault windows.
@@ -198,39 +239,48 @@ impl MetricsAccumulator {
 
     /// Adds the sample of step k (samples must come in step order).
     pub fn push(&mut self, k: u64, r: &Row) {
-        let m = &mut self.m;
         if k >= self.last10_from_k {
             self.sum_formation_sq_last10 += r.formation_error * r.formation_error;
             self.n_last10 += 1;
         }
         self.sum_v_sq += (r.v_hat - r.v) * (r.v_hat - r.v);
         self.sum_w_sq += (r.w_hat - r.w) * (r.w_hat - r.w);
-        m.vc_peak = m.vc_peak.max(r.v_c.abs());
-        m.torque_peak = m.torque_peak.max(r.tau_l.abs()).max(r.tau_r.abs());
+        self.vc_peak = self.vc_peak.max(r.v_c.abs());
+        self.torque_peak = self.torque_peak.max(r.tau_l.abs()).max(r.tau_r.abs());
         if let Some((l, rr)) = self.prev_torque {
             self.tv += (r.tau_l - l).abs() + (r.tau_r - rr).abs();
         }
         self.prev_torque = Some((r.tau_l, r.tau_r));
-        m.samples += 1;
+        self.samples += 1;
+        self.reached_final = k == self.steps;
         self.last = *r;
         for o in &mut self.outages {
             o.push(k, r);
         }
     }
 
+    /// The metrics of the samples pushed so far; `None` for a metric whose
+    /// window they do not reach (never 0).
     pub fn finish(&self) -> FollowerMetrics {
-        let n = self.m.samples.max(1) as f64;
+        let n = self.samples;
+        let any = n > 0;
+        let at_t = |x: f64| self.reached_final.then_some(x);
+        // T for a complete run: samples 0..=steps span steps Δt.
+        let span_s = n.saturating_sub(1) as f64 * self.dt_s;
         FollowerMetrics {
-            formation_rms_last10: (self.sum_formation_sq_last10 / self.n_last10.max(1) as f64).sqrt(),
-            formation_final: self.last.formation_error,
-            heading_final: self.last.heading_error,
-            estimator_error_final: self.last.estimator_error,
-            estimator_v_error_final: self.last.estimator_v_error,
-            estimator_w_error_final: self.last.estimator_w_error,
-            torque_tv: if self.duration_s > 0.0 { self.tv / self.duration_s } else { 0.0 },
-            rmse_v: (self.sum_v_sq / n).sqrt(),
-            rmse_w: (self.sum_w_sq / n).sqrt(),
-            ..self.m
+            formation_rms_last10: (self.n_last10 > 0)
+                .then(|| (self.sum_formation_sq_last10 / self.n_last10 as f64).sqrt()),
+            formation_final: at_t(self.last.formation_error),
+            heading_final: at_t(self.last.heading_error),
+            estimator_error_final: at_t(self.last.estimator_error),
+            estimator_v_error_final: at_t(self.last.estimator_v_error),
+            estimator_w_error_final: at_t(self.last.estimator_w_error),
+            vc_peak: any.then_some(self.vc_peak),
+            torque_tv: any.then(|| if span_s > 0.0 { self.tv / span_s } else { 0.0 }),
+            torque_peak: any.then_some(self.torque_peak),
+            rmse_v: any.then(|| (self.sum_v_sq / n as f64).sqrt()),
+            rmse_w: any.then(|| (self.sum_w_sq / n as f64).sqrt()),
+            samples: n,
         }
     }
 }
@@ -250,6 +300,15 @@ pub struct Summary {
     pub estimate_init: String,
     pub fault_time: Option<f64>,
     pub lambda_min_h: Option<f64>,
+    /// Every follower recorded all steps + 1 samples (t = 0 to T, SPEC §9).
+    /// Written only when false (`"complete": false` with `incomplete`), so a
+    /// complete run's summary.json is what it was before the key existed;
+    /// [`Summary::mark_unreached`] recomputes it on load.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub complete: bool,
+    /// The followers that recorded fewer samples, by id (absent when complete).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub incomplete: BTreeMap<u32, Shortfall>,
     pub followers: BTreeMap<u32, FollowerMetrics>,
     /// `network.rejoin`, when the scenario has link faults.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -259,9 +318,29 @@ pub struct Summary {
     pub faults: Vec<crate::outage::FaultSummary>,
 }
 
+/// How many samples a follower of an incomplete run recorded, of how many.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Shortfall {
+    pub recorded: u64,
+    /// steps + 1.
+    pub expected: u64,
+}
+
+impl Shortfall {
+    /// "follower 3 recorded 8150 of 20001 samples (to t = 8.149 s of T = 20 s)".
+    pub fn describe(&self, id: u32, dt_s: f64, duration_s: f64) -> String {
+        let reached = match self.recorded {
+            0 => String::new(),
+            // To the microsecond: 1499 × 0.001 prints as 1.499, not 1.4990000000000001.
+            n => format!(" (to t = {} s of T = {duration_s} s)", ((n - 1) as f64 * dt_s * 1e6).round() / 1e6),
+        };
+        format!("follower {id} recorded {} of {} samples{reached}", self.recorded, self.expected)
+    }
+}
+
 impl Summary {
     pub fn new(s: &Scenario, followers: BTreeMap<u32, FollowerMetrics>) -> Self {
-        Self {
+        let mut summary = Self {
             scenario: s.name.clone(),
             seed: s.seed,
             dt: s.dt_s,
@@ -274,10 +353,42 @@ impl Summary {
             estimate_init: name(&s.estimate_init),
             fault_time: s.control.fault.map(|f| f.time_s),
             lambda_min_h: s.graph.lambda_min_h(),
+            complete: true,
+            incomplete: BTreeMap::new(),
             followers,
             rejoin: (!s.faults.is_empty()).then(|| name(&s.control.rejoin.policy)),
             faults: Vec::new(),
+        };
+        summary.mark_unreached();
+        summary
+    }
+
+    /// Marks what the recorded samples do not cover: `complete`,
+    /// `incomplete`, and null metrics whose window was not reached (older
+    /// `summary.json` files wrote 0 for them). Idempotent.
+    pub fn mark_unreached(&mut self) {
+        let expected = self.steps + 1;
+        for m in self.followers.values_mut() {
+            m.null_unreached(self.steps, self.dt);
         }
+        self.incomplete = self
+            .followers
+            .iter()
+            .filter(|(_, m)| m.samples < expected)
+            .map(|(&id, m)| (id, Shortfall { recorded: m.samples, expected }))
+            .collect();
+        self.complete = self.incomplete.is_empty();
+    }
+
+    /// What the run is missing, a clause for each of the first three short
+    /// followers (`incomplete` lists them all); `None` when complete.
+    pub fn shortfall_text(&self) -> Option<String> {
+        let mut parts: Vec<String> =
+            self.incomplete.iter().take(3).map(|(&id, s)| s.describe(id, self.dt, self.duration)).collect();
+        if self.incomplete.len() > 3 {
+            parts.push(format!("and {} more followers", self.incomplete.len() - 3));
+        }
+        (!parts.is_empty()).then(|| parts.join("; "))
     }
 
     /// Adds the metrics under faults (by follower id, one per fault window).
@@ -294,7 +405,8 @@ impl Summary {
         serde_json::to_string_pretty(self).unwrap_or_default() + "\n"
     }
 
-    /// A compact, aligned table of the metrics.
+    /// A compact, aligned table of the metrics ("—": window not reached),
+    /// and a line saying so when the run is incomplete.
     pub fn table(&self) -> String {
         let mut out = format!(
             "{:>8} {:>11} {:>10} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9} {:>9}\n",
@@ -309,24 +421,36 @@ impl Summary {
             "rmse_v",
             "rmse_w"
         );
+        let c = |x: Option<f64>, f: fn(f64) -> String| x.map_or_else(|| "—".to_string(), f);
         for (id, m) in &self.followers {
             out += &format!(
-                "{:>8} {:>11.4} {:>10.4} {:>9.4} {:>10.2e} {:>9.3} {:>10.3} {:>9.3} {:>9.2e} {:>9.2e}\n",
+                "{:>8} {:>11} {:>10} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9} {:>9}\n",
                 id,
-                m.formation_rms_last10,
-                m.formation_final,
-                m.heading_final,
-                m.estimator_error_final,
-                m.vc_peak,
-                m.torque_tv,
-                m.torque_peak,
-                m.rmse_v,
-                m.rmse_w
+                c(m.formation_rms_last10, |x| format!("{x:.4}")),
+                c(m.formation_final, |x| format!("{x:.4}")),
+                c(m.heading_final, |x| format!("{x:.4}")),
+                c(m.estimator_error_final, |x| format!("{x:.2e}")),
+                c(m.vc_peak, |x| format!("{x:.3}")),
+                c(m.torque_tv, |x| format!("{x:.3}")),
+                c(m.torque_peak, |x| format!("{x:.3}")),
+                c(m.rmse_v, |x| format!("{x:.2e}")),
+                c(m.rmse_w, |x| format!("{x:.2e}"))
             );
+        }
+        if let Some(short) = self.shortfall_text() {
+            out += &format!("incomplete run: {short}; — marks a metric whose window was not reached\n");
         }
         out += &crate::outage::table(&self.faults);
         out
     }
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 /// The name of an enum choice as scenario files write it (`super-twisting`).
@@ -519,4 +643,135 @@ fn append(path: &Path, buffer: &mut Vec<u8>) -> std::io::Result<()> {
     f.write_all(buffer)?;
     buffer.clear();
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// T = 20 s at Δt = 0.01 s: 2000 steps, 2001 samples, the last 10 s from k = 1000.
+    const STEPS: u64 = 2000;
+    const DT: f64 = 0.01;
+
+    fn row(k: u64) -> Row {
+        let x = k as f64 * 1e-3;
+        Row {
+            t: k as f64 * DT,
+            v: 1.0,
+            v_hat: 1.0 + x,
+            v_c: 2.0 - x,
+            tau_l: x,
+            tau_r: -x,
+            formation_error: x,
+            heading_error: 0.5 * x,
+            estimator_error: 0.25 * x,
+            ..Default::default()
+        }
+    }
+
+    /// The metrics of the samples of steps 0..n.
+    fn metrics_of(n: u64) -> FollowerMetrics {
+        let mut acc = MetricsAccumulator::new(STEPS, DT);
+        for k in 0..n {
+            acc.push(k, &row(k));
+        }
+        acc.finish()
+    }
+
+    fn scenario() -> Scenario {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+        Scenario::load(&path, &["dt=0.01".to_string(), "duration=20".to_string()]).expect("scenario")
+    }
+
+    #[test]
+    fn a_run_cut_before_the_last_10_s_has_null_windows_not_zeros() {
+        assert_eq!(last10_from_k(STEPS, DT), 1000, "T − 10 = 10 s is step 1000");
+        // Samples k = 0..=799: t ≤ 7.99 s < T − 10.
+        let m = metrics_of(800);
+        assert_eq!(m.samples, 800);
+        assert_eq!(m.formation_rms_last10, None, "no sample with t ≥ 10 s, got {:?}", m.formation_rms_last10);
+        for (name, x) in [
+            ("formation_final", m.formation_final),
+            ("heading_final", m.heading_final),
+            ("estimator_error_final", m.estimator_error_final),
+            ("estimator_v_error_final", m.estimator_v_error_final),
+            ("estimator_w_error_final", m.estimator_w_error_final),
+        ] {
+            assert_eq!(x, None, "{name}: the sample at t = T was not recorded, got {x:?}");
+        }
+        // Whole-run metrics are measured over what was recorded.
+        let rmse_v = (0..800).map(|k| (k as f64 * 1e-3).powi(2)).sum::<f64>() / 800.0;
+        assert!((m.rmse_v.unwrap() - rmse_v.sqrt()).abs() < 1e-12, "rmse_v {:?} vs {}", m.rmse_v, rmse_v.sqrt());
+        assert_eq!(m.vc_peak, Some(2.0), "peak |v_c| at k = 0: {:?}", m.vc_peak);
+        // Σ|Δτ| = 2 · 799 · 1e-3 over the recorded 7.99 s, not over T = 20 s.
+        let tv = m.torque_tv.unwrap();
+        assert!((tv - 2.0 * 799.0 * 1e-3 / 7.99).abs() < 1e-9, "torque_tv {tv}");
+        let json = serde_json::to_value(m).unwrap();
+        assert!(json["formation_rms_last10"].is_null() && json["formation_final"].is_null(), "{json}");
+    }
+
+    #[test]
+    fn a_run_cut_inside_the_last_10_s_has_its_rms_but_no_final_values() {
+        // Samples k = 0..=1499: 500 of them in the last 10 s, none at t = T.
+        let m = metrics_of(1500);
+        let want = ((1000..1500).map(|k| (k as f64 * 1e-3).powi(2)).sum::<f64>() / 500.0).sqrt();
+        let rms = m.formation_rms_last10.expect("500 samples with t ≥ 10 s");
+        assert!((rms - want).abs() < 1e-12, "formation RMS over the recorded last 10 s {rms} vs {want}");
+        assert_eq!(m.formation_final, None, "formation_final {:?} without the sample at t = T", m.formation_final);
+        assert_eq!(m.estimator_error_final, None, "estimator_error_final {:?}", m.estimator_error_final);
+    }
+
+    #[test]
+    fn a_complete_run_measures_everything_and_no_samples_measure_nothing() {
+        let m = metrics_of(STEPS + 1);
+        assert_eq!(m.formation_final, Some(2.0), "final formation error = row(2000).formation_error");
+        assert_eq!(m.heading_final, Some(1.0));
+        assert_eq!(m.estimator_error_final, Some(0.5));
+        let tv = m.torque_tv.unwrap();
+        assert!((tv - 2.0 * 2000.0 * 1e-3 / 20.0).abs() < 1e-9, "torque_tv {tv} = Σ|Δτ| / T");
+        assert!(m.formation_rms_last10.is_some());
+        assert_eq!(metrics_of(0), FollowerMetrics::default(), "no samples: every metric null");
+    }
+
+    #[test]
+    fn summary_says_which_followers_are_short_and_older_zeros_become_null() {
+        let s = scenario();
+        let full = Summary::new(&s, s.followers.iter().map(|f| (f.id, metrics_of(STEPS + 1))).collect());
+        assert!(full.complete && full.incomplete.is_empty());
+        let json = full.to_json();
+        // Complete: no key at all, so the file is what it was before the key existed.
+        assert!(!json.contains("complete"), "{json}");
+        let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+        let mut metrics = v["followers"].as_object().unwrap().values().flat_map(|m| m.as_object().unwrap().values());
+        assert!(metrics.all(serde_json::Value::is_number), "a complete run has no null metric: {json}");
+
+        let mut followers = full.followers.clone();
+        followers.insert(3, metrics_of(800));
+        let cut = Summary::new(&s, followers);
+        assert!(!cut.complete);
+        assert_eq!(cut.incomplete.len(), 1, "{:?}", cut.incomplete);
+        assert_eq!(cut.incomplete[&3], Shortfall { recorded: 800, expected: 2001 });
+        let v: serde_json::Value = serde_json::from_str(&cut.to_json()).unwrap();
+        assert_eq!(v["complete"], false);
+        assert_eq!(v["incomplete"]["3"], serde_json::json!({ "recorded": 800, "expected": 2001 }));
+        assert!(v["followers"]["3"]["formation_rms_last10"].is_null(), "{}", v["followers"]["3"]);
+        assert_eq!(
+            cut.shortfall_text().as_deref(),
+            Some("follower 3 recorded 800 of 2001 samples (to t = 7.99 s of T = 20 s)")
+        );
+        assert!(cut.table().contains("incomplete run: follower 3 recorded 800 of 2001"), "{}", cut.table());
+
+        // An older file: no `complete`, zeros for the windows not reached.
+        let mut old = v.clone();
+        old.as_object_mut().unwrap().remove("complete");
+        old.as_object_mut().unwrap().remove("incomplete");
+        for key in ["formation_rms_last10", "formation_final", "heading_final", "estimator_error_final"] {
+            old["followers"]["3"][key] = 0.0.into();
+        }
+        let mut read: Summary = serde_json::from_value(old).expect("older summary.json loads");
+        assert_eq!(read.followers[&3].formation_rms_last10, Some(0.0), "as written");
+        read.mark_unreached();
+        let cut: Summary = serde_json::from_value(v).unwrap();
+        assert_eq!(read, cut, "an older file reads as the same incomplete run");
+    }
 }

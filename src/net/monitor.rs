@@ -470,7 +470,8 @@ async fn monitor(
             Ok(Ending::Complete)
         }
         Ending::Interrupted => {
-            eprintln!("interrupted: wrote the {recorded} steps received to {}", dir.display());
+            let short = summary.shortfall_text().map(|s| format!(" (incomplete: {s})")).unwrap_or_default();
+            eprintln!("interrupted: wrote the {recorded} steps received to {}{short}", dir.display());
             Ok(Ending::Interrupted)
         }
         Ending::Idle => Err(CliError::Run(format!(
@@ -563,5 +564,43 @@ mod tests {
         }
         assert!(r.complete());
         assert_eq!(r.recorded_steps(), steps + 1);
+    }
+
+    #[test]
+    fn an_interrupted_run_writes_a_summary_that_says_who_is_short() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+        let scenario = Scenario::load(&path, &["duration=0.01".to_string()]).expect("scenario");
+        let steps = scenario.steps();
+        let dir = tempfile::tempdir().expect("tempdir");
+        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true };
+        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
+        let states = vec![LeaderState::default(); steps as usize + 1];
+        let leader =
+            Telemetry::Leader { first_k: 0, states, counters: Counters::default(), done: true, loop_stats: None };
+        r.telemetry(Some(0), &node::encode(&leader)).unwrap();
+        let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
+        // The third follower stops after 4 of the steps + 1 samples.
+        for &id in &ids {
+            let n = if id == ids[2] { 4 } else { steps + 1 };
+            let samples = (0..n).map(sample).collect();
+            let batch = Telemetry::Follower {
+                id,
+                first_k: 0,
+                samples,
+                counters: Counters::default(),
+                done: false,
+                loop_stats: None,
+            };
+            r.telemetry(Some(id), &node::encode(&batch)).unwrap();
+        }
+        let (summary, dir) = r.finish(Ending::Interrupted).expect("partial run written");
+        assert!(!summary.complete);
+        let short: Vec<_> = summary.incomplete.iter().map(|(&id, s)| (id, s.recorded, s.expected)).collect();
+        assert_eq!(short, vec![(ids[2], 4, steps + 1)], "followers short (id, recorded, expected)");
+        let m = &summary.followers[&ids[2]];
+        assert_eq!((m.formation_final, m.estimator_error_final), (None, None), "no sample at t = T: {m:?}");
+        assert!(summary.followers[&ids[0]].formation_final.is_some(), "{:?}", summary.followers[&ids[0]]);
+        let json = std::fs::read_to_string(dir.join("summary.json")).unwrap();
+        assert!(json.contains("\"complete\": false"), "{json}");
     }
 }

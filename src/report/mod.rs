@@ -8,6 +8,12 @@
 //! when `formation paper` ran several seeds, `seeds.json` with every seed's
 //! summary. Every table cell is the statistics of one number over a case's
 //! seeds (just the value for one seed).
+//!
+//! A run that did not record every sample (`"complete": false` in its
+//! summary, or, in older files, fewer samples than steps + 1) is shown as
+//! such: a metric whose window it did not reach is n/a (null, never 0), cells
+//! say how many seeds measured them, and every claim that uses the run is
+//! N/A with the reason, never PASS.
 
 pub mod plots;
 pub mod stats;
@@ -121,8 +127,16 @@ impl Case {
         } else {
             format!("seed {}", s.seed)
         };
+        let short = self.incomplete_seeds();
+        let incomplete = match short.first() {
+            None => String::new(),
+            Some(r) if self.seeds.len() == 1 => {
+                format!(", INCOMPLETE: {}", r.summary.shortfall_text().unwrap_or_default())
+            }
+            Some(_) => format!(", INCOMPLETE: {} of {} seeds", short.len(), self.seeds.len()),
+        };
         format!(
-            "kinematic {}, dynamic {}, filter {}, {fault}, estimate init {}, T = {} s, noise {}, {seeds}{}",
+            "kinematic {}, dynamic {}, filter {}, {fault}, estimate init {}, T = {} s, noise {}, {seeds}{}{incomplete}",
             s.kinematic,
             s.dynamic,
             s.filter,
@@ -131,6 +145,11 @@ impl Case {
             if s.noise { "on" } else { "off" },
             if self.networked { ", networked" } else { "" }
         )
+    }
+
+    /// The seeds whose run did not record every sample.
+    pub fn incomplete_seeds(&self) -> Vec<&SeedRecord> {
+        self.seeds.iter().filter(|r| !r.summary.complete).collect()
     }
 
     /// Reads a run folder: `summary.json`, and `seeds.json` if present.
@@ -144,16 +163,20 @@ impl Case {
         let text = fs::read_to_string(&summary_path).map_err(|e| {
             CliError::Input(format!("{}: not a run folder (cannot read summary.json: {e})", dir.display()))
         })?;
-        let summary: Summary = serde_json::from_str(&text)
+        let mut summary: Summary = serde_json::from_str(&text)
             .map_err(|e| CliError::Input(format!("{}: invalid summary.json: {e}", summary_path.display())))?;
+        summary.mark_unreached();
         let ids: Vec<u32> = summary.followers.keys().copied().collect();
         let has_csv =
             dir.join("leader.csv").is_file() && ids.iter().all(|id| dir.join(format!("follower_{id}.csv")).is_file());
         let seeds_path = dir.join(SEEDS_FILE);
         let seeds = if seeds_path.is_file() {
             let text = fs::read_to_string(&seeds_path)?;
-            let seeds: Vec<SeedRecord> = serde_json::from_str(&text)
+            let mut seeds: Vec<SeedRecord> = serde_json::from_str(&text)
                 .map_err(|e| CliError::Input(format!("{}: invalid: {e}", seeds_path.display())))?;
+            for r in &mut seeds {
+                r.summary.mark_unreached();
+            }
             if seeds.is_empty() {
                 return Err(CliError::Input(format!("{}: no seeds", seeds_path.display())));
             }

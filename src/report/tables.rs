@@ -9,8 +9,8 @@ use formation_agent::{kinematic, KinematicKind};
 use formation_topology::Scenario;
 
 use super::stats::Stat;
-use super::{Case, Context, Role, SeedRecord};
-use crate::record::{FollowerMetrics, Summary};
+use super::{Case, Context, Role, SeedRecord, ESTIMATOR_CHECK_TIMES_S};
+use crate::record::{last10_from_k, FollowerMetrics, Shortfall, Summary};
 
 /// The paper's Table I (normal case) and Table II (fault case), ×10⁻²:
 /// per follower (linear KF, linear ASIF, angular KF, angular ASIF), copied
@@ -77,8 +77,8 @@ pub struct Tables {
     pub claims: Vec<Check>,
 }
 
-/// Reads one metric of a follower.
-type MetricFn = fn(&FollowerMetrics) -> f64;
+/// Reads one metric of a follower (`None`: its window was not reached).
+type MetricFn = fn(&FollowerMetrics) -> Option<f64>;
 
 /// A column of a table: a case and its header.
 struct Col<'a> {
@@ -101,10 +101,36 @@ fn columns<'a>(cases: &'a [Case], ctx: &Context, roles: &[(Role, &str)], keep: i
     }
 }
 
-/// Statistics of one metric of one follower over a case's seeds.
-fn metric_stat(case: &Case, id: u32, f: impl Fn(&FollowerMetrics) -> f64) -> Option<Stat> {
-    let values: Vec<f64> = case.seeds.iter().filter_map(|s| s.summary.followers.get(&id)).map(f).collect();
-    Stat::of(&values)
+/// One metric of one follower over a case's seeds: the statistics of the
+/// seeds that measured it (a null metric, its window not reached, is
+/// skipped, not read as 0) and how many seeds have the follower at all.
+#[derive(Clone, Copy, Debug)]
+struct Measured {
+    stat: Option<Stat>,
+    seeds: usize,
+}
+
+impl Measured {
+    fn scaled(self, k: f64) -> Self {
+        Self { stat: self.stat.map(|s| s.scaled(k)), ..self }
+    }
+
+    /// A table cell: `–` without the follower, `n/a` when no seed measured
+    /// the metric, and how many seeds did when only some did.
+    fn cell(&self, text: impl Fn(&Stat) -> String) -> String {
+        match self.stat {
+            _ if self.seeds == 0 => "–".into(),
+            None => "n/a".into(),
+            Some(s) if s.n < self.seeds => format!("{} ({} of {} seeds)", text(&s), s.n, self.seeds),
+            Some(s) => text(&s),
+        }
+    }
+}
+
+fn metric_stat(case: &Case, id: u32, f: impl Fn(&FollowerMetrics) -> Option<f64>) -> Measured {
+    let metrics: Vec<&FollowerMetrics> = case.seeds.iter().filter_map(|s| s.summary.followers.get(&id)).collect();
+    let values: Vec<f64> = metrics.iter().filter_map(|m| f(m)).collect();
+    Measured { stat: Stat::of(&values), seeds: metrics.len() }
 }
 
 /// Follower ids present in any of the columns, ascending.
@@ -131,19 +157,12 @@ pub fn sig(x: f64, n: usize) -> String {
     format!("{x:.decimals$}")
 }
 
-/// A cell: the value for one seed, `mean ± sd [low, high]` for several.
-fn cell(s: Option<Stat>, digits: usize) -> String {
-    match s {
-        None => "–".into(),
-        Some(s) if s.n <= 1 => sig(s.mean, digits),
-        Some(s) => format!(
-            "{} ± {} [{}, {}]",
-            sig(s.mean, digits),
-            sig(s.sd, 2),
-            sig(s.ci_low, digits),
-            sig(s.ci_high, digits)
-        ),
+/// A cell's statistics: the value for one seed, `mean ± sd [low, high]` for several.
+fn stat_text(s: &Stat, digits: usize) -> String {
+    if s.n <= 1 {
+        return sig(s.mean, digits);
     }
+    format!("{} ± {} [{}, {}]", sig(s.mean, digits), sig(s.sd, 2), sig(s.ci_low, digits), sig(s.ci_high, digits))
 }
 
 const STAT_HEADER: &str = "n,mean,sd,ci_low,ci_high,min,max";
@@ -222,9 +241,9 @@ fn rmse_table(cases: &[Case], ctx: &Context, fault: bool) -> Table {
         let _ = write!(md, "| {id} |");
         for (ch, (name, f)) in channels.iter().enumerate() {
             for c in &cols {
-                let s = metric_stat(c.case, id, f).map(|s| s.scaled(100.0));
-                let _ = write!(md, " {} |", cell(s, 3));
-                if let Some(s) = s {
+                let m = metric_stat(c.case, id, f).scaled(100.0);
+                let _ = write!(md, " {} |", m.cell(|s| stat_text(s, 3)));
+                if let Some(s) = m.stat {
                     let filter = &c.case.summary().filter;
                     let p = paper_of(id, ch, filter).map(|p| format!("{p}")).unwrap_or_default();
                     let _ =
@@ -280,9 +299,9 @@ fn controller_table(cases: &[Case], ctx: &Context) -> Table {
         for &id in &ids {
             let _ = write!(md, "| {id} |");
             for c in &cols {
-                let s = metric_stat(c.case, id, f);
-                let _ = write!(md, " {} |", cell(s, 4));
-                if let Some(s) = s {
+                let m = metric_stat(c.case, id, f);
+                let _ = write!(md, " {} |", m.cell(|s| stat_text(s, 4)));
+                if let Some(s) = m.stat {
                     let sum = c.case.summary();
                     let _ = writeln!(
                         csv,
@@ -329,15 +348,12 @@ fn all_metrics_table(cases: &[Case]) -> Table {
         for id in c.follower_ids() {
             let _ = write!(md, "| {} | {id} |", c.label);
             for (key, unit, f) in &metrics {
-                let s = metric_stat(c, id, f);
+                let m = metric_stat(c, id, f);
                 // Means only here (with sd for several seeds); the CSV has the intervals.
-                let text = match s {
-                    Some(s) if s.n > 1 => format!("{} ± {}", sig(s.mean, 4), sig(s.sd, 2)),
-                    Some(s) => sig(s.mean, 4),
-                    None => "–".into(),
-                };
+                let text =
+                    m.cell(|s| if s.n > 1 { format!("{} ± {}", sig(s.mean, 4), sig(s.sd, 2)) } else { sig(s.mean, 4) });
                 let _ = write!(md, " {text} |");
-                if let Some(s) = s {
+                if let Some(s) = m.stat {
                     let _ = writeln!(csv, "{},{id},{key},{unit},{}", csv_field(&c.label), stat_fields(&s));
                 }
             }
@@ -389,19 +405,30 @@ fn agreement_table(cases: &[Case]) -> Table {
         let _ = write!(md, "| {} | {} |", c.label, r.label);
         for (key, unit, f) in &ALL_METRICS {
             let (mut abs, mut rel) = (0.0_f64, 0.0_f64);
+            // A null on either side (window not reached) leaves nothing to compare.
+            let mut compared = true;
             for (id, m) in &c.summary().followers {
-                let (x, y) = (f(m), f(&r.summary().followers[id]));
+                let (Some(x), Some(y)) = (f(m), f(&r.summary().followers[id])) else {
+                    compared = false;
+                    break;
+                };
                 abs = abs.max((x - y).abs());
                 if y != 0.0 {
                     rel = rel.max((x - y).abs() / y.abs());
                 }
             }
-            let _ = write!(md, " {} |", sig(abs, 3));
-            let _ = writeln!(csv, "{},{},{key},{unit},{abs:?},{rel:?}", csv_field(&c.label), csv_field(&r.label));
+            let (cell, abs, rel) = if compared {
+                (sig(abs, 3), format!("{abs:?}"), format!("{rel:?}"))
+            } else {
+                ("n/a".into(), "".into(), "".into())
+            };
+            let _ = write!(md, " {cell} |");
+            let _ = writeln!(csv, "{},{},{key},{unit},{abs},{rel}", csv_field(&c.label), csv_field(&r.label));
         }
         md.push('\n');
     }
-    md += "\nEach cell is the largest absolute difference over the followers (0: identical).\n";
+    md += "\nEach cell is the largest absolute difference over the followers (0: identical; n/a: a metric \
+           whose window a run did not reach).\n";
     Table {
         file: "table5_agreement".into(),
         title: "Agreement of runs with the same settings".into(),
@@ -511,13 +538,68 @@ fn over_followers(r: &SeedRecord, min: bool, f: impl Fn(u32, &FollowerMetrics) -
     }
 }
 
+/// The samples a claim's quantity needs: what an incomplete run did not reach.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Window {
+    /// Every sample (peaks, RMSE, torque variation).
+    Whole,
+    /// The sample at t = T.
+    Final,
+    /// The samples with t ≥ T − 10.
+    Last10,
+    /// The sample at t (s).
+    At(f64),
+}
+
+impl Window {
+    /// What a follower that recorded `short.recorded` samples misses.
+    fn unreached(self, short: &Shortfall, s: &Summary) -> String {
+        let reached = |k: u64| short.recorded > k;
+        match self {
+            Window::Whole => "the run not complete".into(),
+            Window::Final => "the sample at t = T not reached".into(),
+            Window::Last10 if !reached(last10_from_k(s.steps, s.dt)) => "the last 10 s not reached".into(),
+            Window::Last10 => "the last 10 s only partly recorded".into(),
+            Window::At(t) if !reached((t / s.dt).round() as u64) => format!("t = {t} s not reached"),
+            Window::At(_) => "the run not complete".into(),
+        }
+    }
+}
+
+/// Why the incomplete ones among `seeds` (of `cases`, paired) leave a claim
+/// unchecked: "proposed: follower 3 recorded 8150 of 20001 samples (…), the
+/// last 10 s not reached"; `None` when every run is complete.
+fn incomplete_reason(cases: &[&Case], seeds: &[&SeedRecord], window: Window) -> Option<String> {
+    let mut reasons: Vec<String> = cases
+        .iter()
+        .zip(seeds)
+        .flat_map(|(c, r)| {
+            let s = &r.summary;
+            let run = if c.seeds.len() > 1 { format!("{} seed {}", c.label, r.seed) } else { c.label.clone() };
+            s.incomplete.iter().map(move |(&id, short)| {
+                format!("{run}: {}, {}", short.describe(id, s.dt, s.duration), window.unreached(short, s))
+            })
+        })
+        .collect();
+    // The first three say why; summary.json lists every short follower.
+    if reasons.len() > 3 {
+        let more = reasons.len() - 3;
+        reasons.truncate(3);
+        reasons.push(format!("and {more} more short followers"));
+    }
+    (!reasons.is_empty()).then(|| reasons.join("; "))
+}
+
 struct ClaimBuilder<'a> {
     cases: &'a [Case],
     out: Vec<Check>,
 }
 
 impl ClaimBuilder<'_> {
-    /// Checks `per_seed` on the first case of each role, seeds paired by position.
+    /// Checks `per_seed` on the first case of each role, seeds paired by
+    /// position. A claim on an incomplete run is N/A with the reason (it
+    /// needs the samples of `window`), never PASS or FAIL.
+    #[allow(clippy::too_many_arguments)]
     fn check(
         &mut self,
         claim: &str,
@@ -525,6 +607,7 @@ impl ClaimBuilder<'_> {
         unit: &'static str,
         condition: Cond,
         roles: &[Role],
+        window: Window,
         per_seed: impl Fn(&[&SeedRecord]) -> Option<f64>,
     ) {
         let found: Vec<Option<&Case>> = roles.iter().map(|r| self.cases.iter().find(|c| c.role == *r)).collect();
@@ -546,13 +629,23 @@ impl ClaimBuilder<'_> {
         } else {
             let cases: Vec<&Case> = found.into_iter().flatten().collect();
             let n = cases.iter().map(|c| c.seeds.len()).min().unwrap_or(0);
+            let mut incomplete = Vec::new();
             for i in 0..n {
                 let seeds: Vec<&SeedRecord> = cases.iter().map(|c| &c.seeds[i]).collect();
-                if let Some(v) = per_seed(&seeds) {
+                if let Some(why) = incomplete_reason(&cases, &seeds, window) {
+                    incomplete.push(why);
+                } else if let Some(v) = per_seed(&seeds) {
                     check.values.push(v);
                 }
             }
-            if check.values.is_empty() {
+            if let Some(first) = incomplete.first() {
+                let more = match incomplete.len() {
+                    1 => String::new(),
+                    k => format!(" (and {} more incomplete seeds of {n})", k - 1),
+                };
+                check.values.clear();
+                check.missing = Some(format!("{first}{more}"));
+            } else if check.values.is_empty() {
                 check.missing = Some("not measurable in these runs (too short for this claim)".into());
             }
             check.stat = Stat::of(&check.values);
@@ -592,7 +685,8 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "m/s",
         Cond::Near { target: p.jump_expected, tol: 1e-3 },
         &[ConventionalBackstepping],
-        |s| s[0].summary.followers.get(&jump).map(|m| m.vc_peak),
+        Window::Whole,
+        |s| s[0].summary.followers.get(&jump).and_then(|m| m.vc_peak),
     );
     let bound = p.c1 * p.shunting_b + p.vr_max;
     b.check(
@@ -601,7 +695,8 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "m/s",
         Cond::Le(bound),
         &[Proposed],
-        |s| over_followers(s[0], false, |_, m| Some(m.vc_peak)),
+        Window::Whole,
+        |s| over_followers(s[0], false, |_, m| m.vc_peak),
     );
     b.check(
         "Bioinspired backstepping: every peak v_c below 4 m/s",
@@ -609,7 +704,8 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "m/s",
         Cond::Lt(4.0),
         &[Proposed],
-        |s| over_followers(s[0], false, |_, m| Some(m.vc_peak)),
+        Window::Whole,
+        |s| over_followers(s[0], false, |_, m| m.vc_peak),
     );
     b.check(
         "Normal case: ASIF and KF velocity RMSE within 2 % of each other",
@@ -617,15 +713,17 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "%",
         Cond::Le(2.0),
         &[Proposed, KfNormal],
+        Window::Whole,
         |s| {
             over_followers(s[0], false, |id, a| {
                 let k = s[1].summary.followers.get(&id)?;
-                Some(((a.rmse_v - k.rmse_v).abs() / k.rmse_v).max((a.rmse_w - k.rmse_w).abs() / k.rmse_w) * 100.0)
+                let rel = |a: Option<f64>, k: Option<f64>| Some((a? - k?).abs() / k?);
+                Some(rel(a.rmse_v, k.rmse_v)?.max(rel(a.rmse_w, k.rmse_w)?) * 100.0)
             })
         },
     );
     let rmse_extreme = |s: &[&SeedRecord], min: bool| {
-        let all = s.iter().flat_map(|r| r.summary.followers.values().flat_map(|m| [m.rmse_v, m.rmse_w]));
+        let all = s.iter().flat_map(|r| r.summary.followers.values().flat_map(|m| [m.rmse_v, m.rmse_w]).flatten());
         let x = if min { all.reduce(f64::min) } else { all.reduce(f64::max) };
         x.map(|x| x * 100.0)
     };
@@ -635,6 +733,7 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "×10⁻²",
         Cond::Ge(0.6),
         &[Proposed, KfNormal],
+        Window::Whole,
         |s| rmse_extreme(s, true),
     );
     b.check(
@@ -643,6 +742,7 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "×10⁻²",
         Cond::Le(1.5),
         &[Proposed, KfNormal],
+        Window::Whole,
         |s| rmse_extreme(s, false),
     );
     b.check(
@@ -651,9 +751,10 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "ratio",
         Cond::Le(0.5),
         &[AsifFault, KfFault],
+        Window::Whole,
         |s| {
             faulted(s)?;
-            over_followers(s[0], false, |id, a| Some(a.rmse_v / s[1].summary.followers.get(&id)?.rmse_v))
+            over_followers(s[0], false, |id, a| Some(a.rmse_v? / s[1].summary.followers.get(&id)?.rmse_v?))
         },
     );
     b.check(
@@ -662,9 +763,10 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "ratio",
         Cond::Le(1.0),
         &[AsifFault, KfFault],
+        Window::Whole,
         |s| {
             faulted(s)?;
-            over_followers(s[0], false, |id, a| Some(a.rmse_w / s[1].summary.followers.get(&id)?.rmse_w))
+            over_followers(s[0], false, |id, a| Some(a.rmse_w? / s[1].summary.followers.get(&id)?.rmse_w?))
         },
     );
     b.check(
@@ -673,7 +775,8 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "ratio",
         Cond::Ge(50.0),
         &[ConventionalSmc, Proposed],
-        |s| over_followers(s[0], true, |id, c| Some(c.torque_tv / s[1].summary.followers.get(&id)?.torque_tv)),
+        Window::Whole,
+        |s| over_followers(s[0], true, |id, c| Some(c.torque_tv? / s[1].summary.followers.get(&id)?.torque_tv?)),
     );
     b.check(
         "Chattering: super-twisting above the bioinspired SMC",
@@ -681,7 +784,8 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "ratio",
         Cond::Gt(1.0),
         &[SuperTwisting, Proposed],
-        |s| over_followers(s[0], true, |id, t| Some(t.torque_tv / s[1].summary.followers.get(&id)?.torque_tv)),
+        Window::Whole,
+        |s| over_followers(s[0], true, |id, t| Some(t.torque_tv? / s[1].summary.followers.get(&id)?.torque_tv?)),
     );
     b.check(
         "Chattering: super-twisting below the conventional SMC",
@@ -689,7 +793,8 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "ratio",
         Cond::Lt(1.0),
         &[SuperTwisting, ConventionalSmc],
-        |s| over_followers(s[0], false, |id, t| Some(t.torque_tv / s[1].summary.followers.get(&id)?.torque_tv)),
+        Window::Whole,
+        |s| over_followers(s[0], false, |id, t| Some(t.torque_tv? / s[1].summary.followers.get(&id)?.torque_tv?)),
     );
     b.check(
         "Estimator: position error of every follower below 0.01 m at t = T",
@@ -697,7 +802,8 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "m",
         Cond::Lt(0.01),
         &[Proposed],
-        |s| over_followers(s[0], false, |_, m| Some(m.estimator_error_final)),
+        Window::Final,
+        |s| over_followers(s[0], false, |_, m| m.estimator_error_final),
     );
     b.check(
         "Estimator from zero estimates (3 m off): below 0.1 m by t = 4 s",
@@ -705,6 +811,7 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "m",
         Cond::Lt(0.1),
         &[ZeroInit],
+        Window::At(ESTIMATOR_CHECK_TIMES_S[0]),
         |s| s[0].estimator_error_4s.values().copied().reduce(f64::max),
     );
     b.check(
@@ -713,6 +820,7 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "m",
         Cond::Lt(0.02),
         &[ZeroInit],
+        Window::At(ESTIMATOR_CHECK_TIMES_S[1]),
         |s| s[0].estimator_error_6s.values().copied().reduce(f64::max),
     );
     b.check(
@@ -721,9 +829,10 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         "m",
         Cond::Lt(0.2),
         &[Proposed],
+        Window::Last10,
         // With T ≤ 10 s "the last 10 s" is the whole run, start-up included:
         // not the claim's quantity, so not measured.
-        |s| (s[0].summary.duration > 10.0).then(|| over_followers(s[0], false, |_, m| Some(m.formation_rms_last10)))?,
+        |s| (s[0].summary.duration > 10.0).then(|| over_followers(s[0], false, |_, m| m.formation_rms_last10))?,
     );
     b.out
 }
@@ -802,4 +911,118 @@ pub fn claims_csv(checks: &[Check]) -> String {
         );
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::{Path, PathBuf};
+
+    use super::*;
+    use crate::record::{MetricsAccumulator, Row};
+
+    /// The paper's settings (the proposed method) at T = 20 s, Δt = 0.01 s: 2001 samples.
+    fn scenario() -> Scenario {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+        Scenario::load(&path, &["dt=0.01".to_string(), "duration=20".to_string()]).expect("scenario")
+    }
+
+    /// A follower that recorded steps 0..n with a formation error of 0.05 m,
+    /// estimator error 1 mm and peak |v_c| 1 m/s: well inside every claim.
+    fn metrics(s: &Scenario, n: u64) -> FollowerMetrics {
+        let mut acc = MetricsAccumulator::new(s.steps(), s.dt_s);
+        let r = Row { formation_error: 0.05, estimator_error: 1e-3, v_c: 1.0, v_hat: 0.01, ..Default::default() };
+        for k in 0..n {
+            acc.push(k, &r);
+        }
+        acc.finish()
+    }
+
+    /// A proposed case, one seed per (seed, samples follower 3 recorded).
+    fn case(s: &Scenario, seeds: &[(u64, u64)]) -> Case {
+        let seeds = seeds
+            .iter()
+            .map(|&(seed, n3)| {
+                let n = |id: u32| if id == 3 { n3 } else { s.steps() + 1 };
+                let mut summary = Summary::new(s, s.followers.iter().map(|f| (f.id, metrics(s, n(f.id)))).collect());
+                summary.seed = seed;
+                SeedRecord {
+                    seed,
+                    summary,
+                    estimator_error_4s: Default::default(),
+                    estimator_error_6s: Default::default(),
+                }
+            })
+            .collect();
+        Case {
+            label: "proposed".into(),
+            dir: PathBuf::from("proposed"),
+            seeds,
+            role: Role::Proposed,
+            has_csv: false,
+            networked: false,
+        }
+    }
+
+    fn claim<'a>(checks: &'a [Check], part: &str) -> &'a Check {
+        checks.iter().find(|c| c.claim.contains(part)).unwrap_or_else(|| panic!("no claim with {part}"))
+    }
+
+    #[test]
+    fn a_claim_on_an_incomplete_run_is_na_with_the_reason_never_pass() {
+        let s = scenario();
+        let p = ClaimParams::paper_defaults();
+        let complete = claims(&[case(&s, &[(1, s.steps() + 1)])], &p);
+        for part in ["Formation", "at t = T", "every peak v_c below 4 m/s", "C₁B + max v_r"] {
+            let c = claim(&complete, part);
+            assert_eq!(c.result(), "PASS", "complete run, {}: {}", c.claim, c.measured());
+        }
+
+        // Follower 3 stopped at t = 7.99 s, before T − 10 = 10 s.
+        let cut = claims(&[case(&s, &[(1, 800)])], &p);
+        for c in &cut {
+            assert_ne!(c.result(), "PASS", "{}: {} on an incomplete run", c.claim, c.measured());
+        }
+        let why = "proposed: follower 3 recorded 800 of 2001 samples (to t = 7.99 s of T = 20 s)";
+        for (part, unreached) in [
+            ("Formation", "the last 10 s not reached"),
+            ("at t = T", "the sample at t = T not reached"),
+            ("every peak v_c below 4 m/s", "the run not complete"),
+        ] {
+            let c = claim(&cut, part);
+            assert_eq!(c.result(), "N/A", "{}: {}", c.claim, c.measured());
+            assert_eq!(c.measured(), format!("n/a: {why}, {unreached}"), "{}", c.claim);
+            assert!(c.values.is_empty() && c.stat.is_none(), "{}: values {:?}", c.claim, c.values);
+        }
+        let text = claims_text(&cut);
+        assert!(text.lines().any(|l| l.starts_with("N/A") && l.contains("the last 10 s not reached")), "{text}");
+    }
+
+    #[test]
+    fn statistics_over_seeds_skip_nulls_and_say_how_many_seeds_measured() {
+        let s = scenario();
+        let full = s.steps() + 1;
+        let c = case(&s, &[(1, full), (2, 800), (3, full)]);
+        let m = metric_stat(&c, 3, |m| m.formation_rms_last10);
+        let stat = m.stat.expect("two seeds measured it");
+        assert_eq!((stat.n, m.seeds), (2, 3), "seeds that measured F3's formation RMS, of all");
+        assert!(
+            (stat.mean - 0.05).abs() < 1e-12,
+            "mean {} of the measured seeds (a 0 would pull it to 0.033)",
+            stat.mean
+        );
+        assert_eq!(m.cell(|s| sig(s.mean, 3)), "0.0500 (2 of 3 seeds)");
+        let none = metric_stat(&case(&s, &[(2, 800)]), 3, |m| m.formation_rms_last10);
+        assert_eq!(none.cell(|s| sig(s.mean, 3)), "n/a");
+        let t = all_metrics_table(std::slice::from_ref(&c));
+        assert!(t.markdown.contains("0.05000 ± 0 (2 of 3 seeds)"), "{}", t.markdown);
+
+        let checks = claims(&[c], &ClaimParams::paper_defaults());
+        let f = claim(&checks, "Formation");
+        assert_eq!(f.result(), "N/A", "{}", f.measured());
+        assert!(
+            f.measured().contains("proposed seed 2: follower 3 recorded 800 of 2001 samples"),
+            "the incomplete seed named: {}",
+            f.measured()
+        );
+    }
 }
