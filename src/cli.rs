@@ -127,11 +127,22 @@ impl From<SimError> for CliError {
 
 impl From<std::io::Error> for CliError {
     fn from(e: std::io::Error) -> Self {
+        use std::io::ErrorKind;
         match e.kind() {
-            // An --out that names a folder which is not a run folder.
-            std::io::ErrorKind::AlreadyExists => CliError::Input(e.to_string()),
+            // An --out that names a file or a folder which is not a run
+            // folder, or a path through a file. (An over-long name,
+            // `InvalidFilename`, needs Rust 1.87, past the MSRV.)
+            ErrorKind::AlreadyExists | ErrorKind::NotADirectory => CliError::Input(e.to_string()),
             _ => CliError::Run(e.to_string()),
         }
+    }
+}
+
+/// Refuses 0 for a count option that must be at least 1.
+pub fn at_least_one(flag: &str, value: u64) -> Result<(), CliError> {
+    match value {
+        0 => Err(CliError::Input(format!("{flag} must be at least 1, not 0"))),
+        _ => Ok(()),
     }
 }
 
@@ -189,6 +200,7 @@ impl Progress {
 
 /// `formation sim`: run, write the folder, print the table.
 pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
+    at_least_one("--every", a.every)?;
     let scenario = a.scenario.load()?;
     let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
     let (summary, dir) = run_to_folder(&scenario, &RecordOptions { dir, every: a.every, csv: !a.no_csv }, a.quiet)?;

@@ -15,8 +15,8 @@ use formation_topology::Scenario;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 
-use crate::cli::CliError;
-use crate::record::{RecordOptions, Row, RunWriter, Summary};
+use crate::cli::{at_least_one, CliError};
+use crate::record::{at_path, RecordOptions, Row, RunWriter, Summary};
 use crate::report::{self, tables, Case, Context, SeedRecord, ESTIMATOR_CHECK_TIMES_S, SEEDS_FILE};
 use crate::sim::{Observer, Simulation};
 
@@ -109,18 +109,28 @@ pub const CASES: [PaperCase; 8] = [
 pub const PAPER_FAULT_TIME_S: f64 = 10.0;
 
 /// The scenario of a case: the user's overrides, then the case's keys; the
-/// fault cases get `fault.time=10` unless the user or the file sets one, and
+/// fault cases get the fault at 10 s unless the user or the file sets one, and
 /// the normal cases have no fault.
 pub fn case_scenario(path: &Path, user: &[String], case: &PaperCase) -> Result<Scenario, CliError> {
     let mut overrides: Vec<String> = user.to_vec();
     overrides.extend(case.overrides.iter().map(|s| s.to_string()));
-    if case.fault && !user.iter().any(|o| o.trim_start().starts_with("fault.time")) {
-        let file_has_fault = Scenario::load(path, user).map(|s| s.control.fault.is_some()).unwrap_or(false);
-        if !file_has_fault {
-            overrides.push(format!("fault.time={PAPER_FAULT_TIME_S}"));
-        }
+    let paper_fault = case.fault
+        && !user.iter().any(|o| o.trim_start().starts_with("fault.time"))
+        && !Scenario::load(path, user).is_ok_and(|s| s.control.fault.is_some());
+    if paper_fault {
+        // Validates the file's fault factors; the time is the paper's, set
+        // below, also in a run that ends before it (`--set duration=3`),
+        // whose fault claims are then N/A. A fault time the user gives must
+        // lie within the run.
+        overrides.push("fault.time=0".into());
     }
     let mut s = Scenario::load(path, &overrides).map_err(|e| CliError::Input(e.to_string()))?;
+    if paper_fault {
+        if let Some(f) = std::sync::Arc::make_mut(&mut s.control).fault.as_mut() {
+            f.time_s = PAPER_FAULT_TIME_S;
+        }
+        s.source.fault.time = Some(PAPER_FAULT_TIME_S);
+    }
     if !case.fault {
         std::sync::Arc::make_mut(&mut s.control).fault = None;
     }
@@ -188,15 +198,14 @@ pub fn run_seed(scenario: &Scenario, seed: u64, record: Option<&RecordOptions>) 
 
 /// Runs `formation paper`.
 pub fn run(a: &PaperArgs) -> Result<(), CliError> {
-    if a.seeds == 0 {
-        return Err(CliError::Input("--seeds must be at least 1".into()));
-    }
+    at_least_one("--seeds", a.seeds)?;
+    at_least_one("--every", a.every)?;
     let started = Instant::now();
     let base = Scenario::load(&a.scenario, &a.overrides).map_err(|e| CliError::Input(e.to_string()))?;
     let scenarios: Vec<Scenario> =
         CASES.iter().map(|c| case_scenario(&a.scenario, &a.overrides, c)).collect::<Result<_, _>>()?;
     let seeds: Vec<u64> = (0..a.seeds).map(|i| base.seed + i).collect();
-    std::fs::create_dir_all(&a.out)?;
+    std::fs::create_dir_all(&a.out).map_err(at_path(&a.out, "cannot create the folder"))?;
 
     let jobs: Vec<(usize, usize)> = (0..CASES.len()).flat_map(|c| (0..seeds.len()).map(move |s| (c, s))).collect();
     let bar = ProgressBar::with_draw_target(
@@ -235,7 +244,8 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     for (c, recs) in CASES.iter().zip(per_case) {
         let dir = a.out.join(c.name);
         let json = serde_json::to_string_pretty(&recs).map_err(|e| CliError::Run(e.to_string()))?;
-        std::fs::write(dir.join(SEEDS_FILE), json + "\n")?;
+        let path = dir.join(SEEDS_FILE);
+        std::fs::write(&path, json + "\n").map_err(at_path(&path, "cannot write"))?;
         cases.push(Case::load(&dir, c.name.to_string())?);
     }
 
@@ -258,7 +268,7 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
         ),
         format!(
             "The first seed of each case writes its CSVs (one sample in {}); the figures show it.",
-            a.every.max(1)
+            a.every
         ),
     ];
     let ctx = Context { paper: true, command, params: tables::ClaimParams::from_scenario(&base), notes };

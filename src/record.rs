@@ -493,9 +493,9 @@ impl RunWriter {
         partial.push(".partial");
         let dir = PathBuf::from(partial);
         if dir.exists() {
-            fs::remove_dir_all(&dir)?;
+            fs::remove_dir_all(&dir).map_err(at_path(&dir, "cannot remove the old folder"))?;
         }
-        fs::create_dir_all(&dir)?;
+        fs::create_dir_all(&dir).map_err(at_path(&dir, "cannot create the folder"))?;
         let flush_at = (64 << 20) / ids.len().max(1);
         let flush_at = flush_at.clamp(4 << 10, 1 << 20);
         let mut w = Self {
@@ -510,9 +510,11 @@ impl RunWriter {
         };
         if w.csv {
             for i in 0..ids.len() {
-                File::create(w.follower_path(i))?;
+                let path = w.follower_path(i);
+                File::create(&path).map_err(at_path(&path, "cannot create"))?;
             }
-            File::create(w.dir.join("leader.csv"))?;
+            let path = w.dir.join("leader.csv");
+            File::create(&path).map_err(at_path(&path, "cannot create"))?;
         }
         w.flush_all()?;
         Ok(w)
@@ -582,7 +584,8 @@ impl RunWriter {
 
     /// Writes an extra file into the run folder.
     pub fn write_file(&self, name: &str, contents: &str) -> std::io::Result<()> {
-        fs::write(self.dir.join(name), contents)
+        let path = self.dir.join(name);
+        fs::write(&path, contents).map_err(at_path(&path, "cannot write"))
     }
 
     /// Flushes the CSVs and writes what has been recorded so far, without
@@ -597,9 +600,10 @@ impl RunWriter {
         self.write_file("summary.json", &summary.to_json())?;
         refuse_foreign_folder(&self.final_dir)?;
         if self.final_dir.exists() {
-            fs::remove_dir_all(&self.final_dir)?;
+            fs::remove_dir_all(&self.final_dir).map_err(at_path(&self.final_dir, "cannot replace the old run"))?;
         }
-        fs::rename(&self.dir, &self.final_dir)?;
+        let what = format!("cannot move {} here", self.dir.display());
+        fs::rename(&self.dir, &self.final_dir).map_err(at_path(&self.final_dir, &what))?;
         Ok(self.final_dir.clone())
     }
 
@@ -611,8 +615,14 @@ impl RunWriter {
 
 /// A run folder is replaced by a new run only if it is one: empty, or
 /// holding a `summary.json` or `network.json`. Anything else (`--out .`,
-/// `--out ~`, a folder of the user's) is refused rather than deleted.
+/// `--out ~`, a folder of the user's, a file) is refused rather than deleted.
 pub fn refuse_foreign_folder(dir: &Path) -> std::io::Result<()> {
+    if fs::metadata(dir).is_ok_and(|m| !m.is_dir()) {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::AlreadyExists,
+            format!("{} exists and is not a folder: refusing to replace it", dir.display()),
+        ));
+    }
     let Ok(mut entries) = fs::read_dir(dir) else { return Ok(()) };
     let is_run = dir.join("summary.json").is_file() || dir.join("network.json").is_file();
     if is_run || entries.next().is_none() {
@@ -639,10 +649,16 @@ fn append(path: &Path, buffer: &mut Vec<u8>) -> std::io::Result<()> {
     if buffer.is_empty() {
         return Ok(());
     }
-    let mut f = OpenOptions::new().append(true).create(true).open(path)?;
-    f.write_all(buffer)?;
+    let mut f = OpenOptions::new().append(true).create(true).open(path).map_err(at_path(path, "cannot open"))?;
+    f.write_all(buffer).map_err(at_path(path, "cannot write"))?;
     buffer.clear();
     Ok(())
+}
+
+/// An IO error that names the path it is about (the OS message alone does
+/// not: "File name too long (os error 36)"), of the same kind.
+pub fn at_path<'a>(path: &'a Path, what: &'a str) -> impl FnOnce(std::io::Error) -> std::io::Error + 'a {
+    move |e| std::io::Error::new(e.kind(), format!("{}: {what}: {e}", path.display()))
 }
 
 #[cfg(test)]

@@ -115,6 +115,139 @@ fn bad_overrides_are_rejected() {
     assert_rejected(&t, &["--set", "robot.mass=0"], &["robot.mass: must be positive"]);
 }
 
+/// The 1-based line of the first line of `text` that starts with `start`.
+fn line_of(text: &str, start: &str) -> usize {
+    text.lines().position(|l| l.starts_with(start)).unwrap_or_else(|| panic!("no line starts with {start:?}")) + 1
+}
+
+#[test]
+fn an_array_longer_than_its_field_is_rejected_naming_the_field() {
+    for (from, to, field, want) in [
+        ("offset = [4.0, 4.0]", "offset = [4.0, 4.0, 9.0]", "followers[1].offset", "expected 2 numbers, got 3"),
+        (
+            "edges = [[1, 2], [1, 3], [2, 4], [3, 4]]",
+            "edges = [[1, 2], [1, 3], [2, 4, 1], [3, 4]]",
+            "edges[2]",
+            "expected 2 follower ids, got 3",
+        ),
+        ("ka = [20.0, 20.0]", "ka = [20.0, 20.0, 5.0]", "estimator.ka", "expected 2 numbers, got 3"),
+    ] {
+        let text = replace(from, to);
+        assert_rejected(&text, &[], &[&format!("s.toml:{}: {field}: {want}", line_of(&text, to))]);
+    }
+}
+
+#[test]
+fn a_set_never_takes_the_blame_for_an_error_in_the_file() {
+    // The file's error, with its line, whatever --set is given besides.
+    let text = replace("ka = [20.0, 20.0]", "ka = [20.0, 20.0, 5.0]");
+    let want = format!("s.toml:{}: estimator.ka: expected 2 numbers, got 3", line_of(&text, "ka = "));
+    let (out, dir) = sim_text(&text, &["--set", "duration=1"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(stderr.trim_end(), format!("error: {}/{want}", dir.path().display()), "{stderr}");
+    assert!(!stderr.contains("--set"), "a --set took the blame: {stderr}");
+    assert_rejected(&text, &["--set", "duration=1", "--set", "seed=3"], &[&want]);
+    let text = replace("mass = 10.0", "mass = -1.0");
+    assert_rejected(
+        &text,
+        &["--set", "duration=1"],
+        &[&format!("s.toml:{}: robot.mass: must be positive", line_of(&text, "mass = -1.0"))],
+    );
+}
+
+#[test]
+fn an_error_in_a_set_value_names_the_set_not_a_file_line() {
+    let t = paper_text();
+    let (out, _dir) = sim_text(&t, &["--set", "duration=1", "--set", "robot.mass=-1"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert_eq!(stderr.trim_end(), "error: --set robot.mass=-1: robot.mass: must be positive, got -1", "{stderr}");
+    // A --set that makes a value of the file wrong is named, not the file's line.
+    assert_rejected(&t, &["--set", "dt=0.007"], &["--set dt=0.007: duration: 30 s is not a whole number of steps"]);
+    assert_rejected(&t, &["--set", "edges=[[1, 2]]"], &["--set edges=[[1, 2]]: graph: H is not positive definite"]);
+    assert_rejected(
+        &t,
+        &["--set", "estimator.ka=[1, 2, 3]"],
+        &["--set estimator.ka=[1, 2, 3]: `estimator.ka`: expected 2 numbers, got 3"],
+    );
+}
+
+#[test]
+fn every_zero_is_refused() {
+    let (out, dir) = sim_text(&paper_text(), &["--set", "duration=0.1", "--every", "0"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert_eq!(stderr.trim_end(), "error: --every must be at least 1, not 0", "{stderr}");
+    assert!(!dir.path().join("out").exists() && !dir.path().join("out.partial").exists(), "a folder was written");
+    let out = formation(&["paper", "--every", "0", "--out", dir.path().join("p").to_str().unwrap(), "-q"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert_eq!(stderr.trim_end(), "error: --every must be at least 1, not 0", "{stderr}");
+}
+
+#[test]
+fn fault_time_beyond_the_run_is_refused() {
+    let text = replace("mass_factor = 0.01", "time = 30.5\nmass_factor = 0.01");
+    let line = line_of(&text, "time = 30.5");
+    assert_rejected(
+        &text,
+        &[],
+        &[&format!("s.toml:{line}: fault.time: must lie within [0, duration] = [0, 30] s, got 30.5")],
+    );
+    let t = paper_text();
+    assert_rejected(
+        &t,
+        &["--set", "duration=1", "--set", "fault.time=10"],
+        &["--set fault.time=10: fault.time: must lie within [0, duration] = [0, 1] s, got 10"],
+    );
+    // A fault in the file, a --set duration that ends the run before it.
+    assert_rejected(
+        &replace("mass_factor = 0.01", "time = 10.0\nmass_factor = 0.01"),
+        &["--set", "duration=5"],
+        &["--set duration=5: fault.time: must lie within"],
+    );
+}
+
+/// Runs `formation sim` on the paper scenario into `out` and returns exit status and stderr.
+fn sim_into(out: &Path) -> (Option<i32>, String) {
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["sim", scenario.to_str().unwrap(), "--set", "duration=0.1", "-q", "--out"])
+        .arg(out)
+        .output()
+        .expect("formation runs");
+    (o.status.code(), String::from_utf8_lossy(&o.stderr).into_owned())
+}
+
+#[test]
+fn out_errors_name_the_path() {
+    let tmp = tempfile::tempdir().unwrap();
+    // --out naming a regular file: refused up front, the file kept, nothing written.
+    let file = tmp.path().join("notes.txt");
+    std::fs::write(&file, "data").unwrap();
+    let (code, stderr) = sim_into(&file);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert_eq!(
+        stderr.trim_end(),
+        format!("error: {} exists and is not a folder: refusing to replace it", file.display())
+    );
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "data");
+    // A path through a file.
+    let (code, stderr) = sim_into(&file.join("run"));
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(stderr.starts_with(&format!("error: {}", file.join("run").display())), "{stderr}");
+    assert!(stderr.contains("cannot create the folder") && stderr.contains("os error"), "{stderr}");
+    // An over-long name: the OS message alone does not say which.
+    let long = tmp.path().join("a".repeat(300));
+    let (code, stderr) = sim_into(&long);
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(stderr.starts_with(&format!("error: {}", long.display())), "the path is named: {stderr}");
+    assert!(stderr.contains("cannot create the folder") && stderr.contains("os error"), "{stderr}");
+    assert_eq!(stderr.trim_end().lines().count(), 1, "one line: {stderr}");
+    let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(left, vec![std::ffi::OsString::from("notes.txt")], "nothing written");
+}
+
 #[test]
 fn duration_must_be_a_whole_number_of_steps() {
     assert_rejected(
@@ -238,7 +371,7 @@ fn every_named_override_takes_effect() {
         ("kinematic=conventional", "kinematic", "conventional".into()),
         ("dynamic=smc", "dynamic", "smc".into()),
         ("dynamic=super-twisting", "dynamic", "super-twisting".into()),
-        ("fault.time=10", "fault_time", 10.0.into()),
+        ("fault.time=2", "fault_time", 2.0.into()),
         ("duration=5", "duration", 5.0.into()),
         ("seed=7", "seed", 7.into()),
         ("estimate_init=zero", "estimate_init", "zero".into()),

@@ -65,6 +65,7 @@ fn timed_launch(l: &LaunchArgs) -> Result<f64, CliError> {
 }
 
 pub fn run(a: &BenchNetArgs) -> Result<(), CliError> {
+    crate::cli::at_least_one("--round-trips", a.round_trips as u64)?;
     let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}", std::process::id()));
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| CliError::Input(e.to_string()))?;
     let n = scenario.followers.len();

@@ -27,7 +27,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::cli::CliError;
-use crate::record::Summary;
+use crate::record::{at_path, Summary};
 
 /// File, in a case folder, with every seed's record (written by `formation paper`).
 pub const SEEDS_FILE: &str = "seeds.json";
@@ -171,7 +171,7 @@ impl Case {
             dir.join("leader.csv").is_file() && ids.iter().all(|id| dir.join(format!("follower_{id}.csv")).is_file());
         let seeds_path = dir.join(SEEDS_FILE);
         let seeds = if seeds_path.is_file() {
-            let text = fs::read_to_string(&seeds_path)?;
+            let text = fs::read_to_string(&seeds_path).map_err(at_path(&seeds_path, "cannot read"))?;
             let mut seeds: Vec<SeedRecord> = serde_json::from_str(&text)
                 .map_err(|e| CliError::Input(format!("{}: invalid: {e}", seeds_path.display())))?;
             for r in &mut seeds {
@@ -229,13 +229,15 @@ pub struct Context {
 /// Writes every figure, table and `report.md` into `out`; returns the path
 /// of `report.md` and what it shows.
 pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBuf, tables::Tables), CliError> {
-    fs::create_dir_all(out)?;
+    fs::create_dir_all(out).map_err(at_path(out, "cannot create the folder"))?;
     let colours = plots::colours(cases, ctx.paper);
     let tables = tables::build(cases, ctx);
     for t in &tables.tables {
-        fs::write(out.join(format!("{}.csv", t.file)), &t.csv)?;
+        let path = out.join(format!("{}.csv", t.file));
+        fs::write(&path, &t.csv).map_err(at_path(&path, "cannot write"))?;
     }
-    fs::write(out.join("claims.csv"), tables::claims_csv(&tables.claims))?;
+    let path = out.join("claims.csv");
+    fs::write(&path, tables::claims_csv(&tables.claims)).map_err(at_path(&path, "cannot write"))?;
     let figures = plots::draw_all(out, cases, ctx, &colours)?;
 
     let mut md = String::new();
@@ -301,7 +303,7 @@ pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBu
         let _ = writeln!(md, "\nData: [{0}.csv]({0}.csv).\n", t.file);
     }
     let path = out.join("report.md");
-    fs::write(&path, md)?;
+    fs::write(&path, md).map_err(at_path(&path, "cannot write"))?;
     Ok((path, tables))
 }
 

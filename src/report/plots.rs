@@ -249,7 +249,8 @@ fn write_figure(out: &Path, spec: &FigureSpec) -> Result<(), CliError> {
         let root = BitMapBackend::new(&png, spec.size).into_drawing_area();
         render(&root, spec).map_err(|e| CliError::Run(format!("{}: {e}", png.display())))?;
     }
-    fs::write(out.join(format!("{}.csv", spec.figure.file)), figure_csv(spec))?;
+    let csv = out.join(format!("{}.csv", spec.figure.file));
+    fs::write(&csv, figure_csv(spec)).map_err(crate::record::at_path(&csv, "cannot write"))?;
     Ok(())
 }
 

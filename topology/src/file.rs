@@ -4,7 +4,7 @@
 //! so a scenario file states only what differs from the paper. Unknown keys
 //! are errors.
 
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
 
 use formation_agent::{DynamicKind, FilterKind, KinematicKind, Shunting};
 
@@ -40,6 +40,7 @@ pub struct ScenarioFile {
     pub leader: LeaderFile,
     pub followers: Vec<FollowerFile>,
     /// Undirected follower edges, by follower id.
+    #[serde(deserialize_with = "exact::edges")]
     pub edges: Vec<[u32; 2]>,
     #[serde(default)]
     pub estimator: EstimatorFile,
@@ -90,7 +91,7 @@ pub struct LeaderFile {
     #[serde(default = "d::trajectory")]
     pub trajectory: String,
     /// P_r(0) = (x, y, θ).
-    #[serde(default = "d::leader_pose")]
+    #[serde(default = "d::leader_pose", deserialize_with = "exact::array")]
     pub pose: [f64; 3],
     /// Start-up ramp time constant, s (0: none).
     #[serde(default = "d::ramp")]
@@ -108,14 +109,17 @@ pub struct LeaderFile {
 pub struct FollowerFile {
     pub id: u32,
     /// (Δx, Δy), m.
+    #[serde(deserialize_with = "exact::array")]
     pub offset: [f64; 2],
     /// Initial pose (x, y, θ); give this or `body_error`.
+    #[serde(default, deserialize_with = "exact::option")]
     pub pose: Option<[f64; 3]>,
     /// Initial body-frame error (x̂, ŷ, θ̂) against the leader's initial pose
     /// plus the offset; give this or `pose`.
+    #[serde(default, deserialize_with = "exact::option")]
     pub body_error: Option<[f64; 3]>,
     /// Initial velocity (v, ω).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "exact::array")]
     pub velocity: [f64; 2],
     /// a_i0.
     #[serde(default)]
@@ -125,11 +129,11 @@ pub struct FollowerFile {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EstimatorFile {
-    #[serde(default = "d::k")]
+    #[serde(default = "d::k", deserialize_with = "exact::array")]
     pub k: [f64; 3],
-    #[serde(default = "d::ka")]
+    #[serde(default = "d::ka", deserialize_with = "exact::array")]
     pub ka: [f64; 2],
-    #[serde(default = "d::kb")]
+    #[serde(default = "d::kb", deserialize_with = "exact::array")]
     pub kb: [f64; 2],
 }
 
@@ -191,16 +195,16 @@ pub struct DisturbanceFile {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CovarianceFile {
-    #[serde(default = "d::cov")]
+    #[serde(default = "d::cov", deserialize_with = "exact::array")]
     pub q: [f64; 2],
-    #[serde(default = "d::cov")]
+    #[serde(default = "d::cov", deserialize_with = "exact::array")]
     pub r: [f64; 2],
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AsifFile {
-    #[serde(default = "d::rho")]
+    #[serde(default = "d::rho", deserialize_with = "exact::array")]
     pub rho_max: [f64; 2],
 }
 
@@ -236,6 +240,88 @@ pub struct NetworkFile {
     /// Seconds without any source before hearing one again is a rejoin.
     #[serde(default = "d::rejoin_after")]
     pub rejoin_after: f64,
+}
+
+/// Fixed-length arrays read exactly. toml fills a `[T; N]` from the first N
+/// elements of a longer array and drops the rest without a word, so every
+/// fixed-length field goes through here: a length mismatch is an error
+/// (`expected 2 numbers, got 3`) at the array's span.
+pub(crate) mod exact {
+    use serde::de::{Error, SeqAccess, Visitor};
+
+    use super::{Deserialize, Deserializer};
+
+    /// An array of exactly N elements.
+    struct Exact<T, const N: usize>([T; N]);
+
+    /// What the elements are called in the message.
+    pub trait Element {
+        const NOUN: &'static str;
+    }
+    impl Element for f64 {
+        const NOUN: &'static str = "numbers";
+    }
+    impl Element for u32 {
+        const NOUN: &'static str = "follower ids";
+    }
+
+    impl<'de, T: Deserialize<'de> + Element, const N: usize> Deserialize<'de> for Exact<T, N> {
+        fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+            d.deserialize_seq(ExactVisitor::<T, N>(std::marker::PhantomData))
+        }
+    }
+
+    /// Checks the length inside the visit, so that the error carries the
+    /// span of this array (an element of `edges`), not of the one around it.
+    struct ExactVisitor<T, const N: usize>(std::marker::PhantomData<T>);
+
+    impl<'de, T: Deserialize<'de> + Element, const N: usize> Visitor<'de> for ExactVisitor<T, N> {
+        type Value = Exact<T, N>;
+
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            write!(f, "an array of {N} {}", T::NOUN)
+        }
+
+        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+            let mut items = Vec::with_capacity(N);
+            while let Some(item) = seq.next_element::<T>()? {
+                items.push(item);
+            }
+            let got = items.len();
+            items.try_into().map(Exact).map_err(|_| A::Error::custom(message(N, T::NOUN, got)))
+        }
+    }
+
+    fn message(expected: usize, noun: &str, got: usize) -> String {
+        format!("expected {expected} {noun}, got {got}")
+    }
+
+    /// Whether a deserialization message is a length mismatch from here.
+    pub(crate) fn is_length_error(message: &str) -> bool {
+        let Some(rest) = message.strip_prefix("expected ") else { return false };
+        let Some((expected, got)) = rest.split_once(", got ") else { return false };
+        let mut words = expected.splitn(2, ' ');
+        let (Some(n), Some(noun)) = (words.next(), words.next()) else { return false };
+        [<f64 as Element>::NOUN, <u32 as Element>::NOUN].contains(&noun)
+            && n.parse::<usize>().is_ok()
+            && got.parse::<usize>().is_ok()
+    }
+
+    pub fn array<'de, D: Deserializer<'de>, T: Deserialize<'de> + Element, const N: usize>(
+        d: D,
+    ) -> Result<[T; N], D::Error> {
+        Exact::<T, N>::deserialize(d).map(|e| e.0)
+    }
+
+    pub fn option<'de, D: Deserializer<'de>, T: Deserialize<'de> + Element, const N: usize>(
+        d: D,
+    ) -> Result<Option<[T; N]>, D::Error> {
+        Option::<Exact<T, N>>::deserialize(d).map(|o| o.map(|e| e.0))
+    }
+
+    pub fn edges<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<[u32; 2]>, D::Error> {
+        Vec::<Exact<u32, 2>>::deserialize(d).map(|v| v.into_iter().map(|e| e.0).collect())
+    }
 }
 
 macro_rules! default_impl {

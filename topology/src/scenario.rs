@@ -12,7 +12,7 @@ use formation_plant::{Disturbance, NoiseCov, Pose, RobotParams, Velocity};
 use serde::Serialize;
 
 use crate::error::ScenarioError;
-use crate::file::ScenarioFile;
+use crate::file::{exact, ScenarioFile};
 use crate::graph::Graph;
 
 /// How followers initialise their leader estimate.
@@ -154,15 +154,16 @@ impl Scenario {
         let file: ScenarioFile = toml::from_str(text).map_err(|e| ScenarioError::Syntax {
             file: label.to_string(),
             line: line_of(e.span()),
-            message: e.message().trim().to_string(),
+            message: syntax_message(text, &e),
         })?;
-        let file = if overrides.is_empty() { file } else { apply_overrides(text, overrides)? };
-        validate(file, label, default_name, Some(text))
+        let (file, overridden) =
+            if overrides.is_empty() { (file, Vec::new()) } else { apply_overrides(text, label, overrides)? };
+        validate(file, label, default_name, Some(text), &overridden)
     }
 
     /// Validates a scenario built in code (no file lines to report).
     pub fn from_file(file: ScenarioFile, name: &str) -> Result<Self, ScenarioError> {
-        validate(file, "", name, None)
+        validate(file, "", name, None, &[])
     }
 
     /// Number of steps T/Δt; the run has steps + 1 samples (SPEC §9).
@@ -230,14 +231,30 @@ impl Scenario {
     }
 }
 
+/// A deserialization message; a length mismatch, which does not say what it
+/// is about, is prefixed with the field (`followers[2].offset: expected 2
+/// numbers, got 3`).
+fn syntax_message(text: &str, e: &toml::de::Error) -> String {
+    let message = e.message().trim();
+    match e.span().filter(|_| exact::is_length_error(message)).and_then(|s| field_at(text, s.start)) {
+        Some(field) => format!("{field}: {message}"),
+        None => message.to_string(),
+    }
+}
+
+/// The dotted keys `--set` gave a value, each with its assignment, in order.
+type Overridden = Vec<(String, String)>;
+
 /// Applies `KEY=VALUE` overrides to the parsed document, one at a time so
 /// that an error names the assignment at fault.
-fn apply_overrides(text: &str, overrides: &[String]) -> Result<ScenarioFile, ScenarioError> {
-    let mut table: toml::Table = toml::from_str(text).map_err(|e| ScenarioError::Syntax {
-        file: String::new(),
-        line: None,
-        message: e.message().to_string(),
-    })?;
+fn apply_overrides(text: &str, label: &str, overrides: &[String]) -> Result<(ScenarioFile, Overridden), ScenarioError> {
+    let file_error =
+        |message: &str| ScenarioError::Syntax { file: label.to_string(), line: None, message: message.trim().into() };
+    let mut table: toml::Table = toml::from_str(text).map_err(|e| file_error(e.message()))?;
+    // The file on its own must convert, so that a failure below is the
+    // assignment's and never the file's.
+    table.clone().try_into::<ScenarioFile>().map_err(|e| file_error(e.message()))?;
+    let mut overridden = Vec::with_capacity(overrides.len());
     for assignment in overrides {
         let err = |message: String| ScenarioError::Override { assignment: assignment.clone(), message };
         let (key, value) = assignment.split_once('=').ok_or_else(|| err("expected KEY=VALUE".into()))?;
@@ -252,11 +269,18 @@ fn apply_overrides(text: &str, overrides: &[String]) -> Result<ScenarioFile, Sce
             None => set_path(&mut next, key, value).map_err(err)?,
         }
         next.clone().try_into::<ScenarioFile>().map_err(|e| err(override_message(key, e.message())))?;
+        // `faults+=…` gave the array's new last element, nothing before it.
+        let given = match key.strip_suffix('+').map(str::trim) {
+            Some(array) => format!("{array}[{}]", array_len(&next, array).saturating_sub(1)),
+            None => key.to_string(),
+        };
         table = next;
+        overridden.push((given, assignment.clone()));
     }
-    table
+    let file = table
         .try_into::<ScenarioFile>()
-        .map_err(|e| ScenarioError::Override { assignment: overrides.join(" "), message: e.message().to_string() })
+        .map_err(|e| ScenarioError::Override { assignment: overrides.join(" "), message: e.message().to_string() })?;
+    Ok((file, overridden))
 }
 
 fn override_message(key: &str, message: &str) -> String {
@@ -274,6 +298,20 @@ fn parse_value(value: &str) -> toml::Value {
         .ok()
         .and_then(|mut t| t.remove("v"))
         .unwrap_or_else(|| toml::Value::String(value.to_string()))
+}
+
+/// The length of the array at dotted `key` (0 if there is none).
+fn array_len(table: &toml::Table, key: &str) -> usize {
+    let mut parts = key.split('.').peekable();
+    let mut current = table;
+    while let Some(part) = parts.next() {
+        match (current.get(part), parts.peek()) {
+            (Some(toml::Value::Array(a)), None) => return a.len(),
+            (Some(toml::Value::Table(t)), Some(_)) => current = t,
+            _ => return 0,
+        }
+    }
+    0
 }
 
 /// `KEY+=VALUE`: appends VALUE to the array at KEY (creating it), e.g.
@@ -320,16 +358,39 @@ fn set_path(table: &mut toml::Table, key: &str, value: toml::Value) -> Result<()
 struct Check<'a> {
     label: &'a str,
     source: Option<&'a str>,
+    /// What `--set` gave a value: an error about it names the assignment,
+    /// never a line of the file the user did not write.
+    overridden: &'a [(String, String)],
 }
 
 impl Check<'_> {
     fn fail(&self, field: &str, message: impl Into<String>) -> ScenarioError {
-        ScenarioError::Invalid {
-            file: self.label.to_string(),
-            line: self.source.and_then(|s| find_line(s, field)),
-            field: field.to_string(),
-            message: message.into(),
+        self.fail_with(field, &[], message)
+    }
+
+    /// A failure of `field` that also depends on the `related` fields: if
+    /// any of them came from `--set`, the error names that assignment.
+    fn fail_with(&self, field: &str, related: &[&str], message: impl Into<String>) -> ScenarioError {
+        let message = message.into();
+        match std::iter::once(field).chain(related.iter().copied()).find_map(|f| self.assignment_of(f)) {
+            Some(assignment) => {
+                ScenarioError::Override { assignment: assignment.to_string(), message: format!("{field}: {message}") }
+            }
+            None => ScenarioError::Invalid {
+                file: self.label.to_string(),
+                line: self.source.and_then(|s| find_line(s, field)),
+                field: field.to_string(),
+                message,
+            },
         }
+    }
+
+    /// The last `--set` that gave `field` its value (or the table or array
+    /// holding it).
+    fn assignment_of(&self, field: &str) -> Option<&str> {
+        let covers =
+            |key: &str| field.strip_prefix(key).is_some_and(|rest| rest.is_empty() || rest.starts_with(['.', '[']));
+        self.overridden.iter().rev().find(|(key, _)| covers(key)).map(|(_, a)| a.as_str())
     }
 
     fn finite(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
@@ -367,8 +428,9 @@ fn validate(
     label: &str,
     default_name: &str,
     source: Option<&str>,
+    overridden: &[(String, String)],
 ) -> Result<Scenario, ScenarioError> {
-    let c = Check { label, source };
+    let c = Check { label, source, overridden };
     let name = file.name.clone().unwrap_or_else(|| default_name.to_string());
     if name.is_empty() || !name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_') {
         return Err(c.fail("name", format!("`{name}` must be non-empty and use only letters, digits, '-' and '_'")));
@@ -376,17 +438,26 @@ fn validate(
     c.positive("dt", &[file.dt])?;
     c.positive("duration", &[file.duration])?;
     if file.duration / file.dt > 1e10 {
-        return Err(c.fail("duration", format!("{} s at Δt = {} s is more than 1e10 steps", file.duration, file.dt)));
+        return Err(c.fail_with(
+            "duration",
+            &["dt"],
+            format!("{} s at Δt = {} s is more than 1e10 steps", file.duration, file.dt),
+        ));
     }
     let ratio = file.duration / file.dt;
     if (ratio - ratio.round()).abs() > 1e-6 * ratio.max(1.0) {
-        return Err(c.fail(
+        return Err(c.fail_with(
             "duration",
+            &["dt"],
             format!("{} s is not a whole number of steps of {} s (T/Δt = {ratio})", file.duration, file.dt),
         ));
     }
     if file.duration / file.dt < 0.5 {
-        return Err(c.fail("duration", format!("{} s is shorter than one step of {} s", file.duration, file.dt)));
+        return Err(c.fail_with(
+            "duration",
+            &["dt"],
+            format!("{} s is shorter than one step of {} s", file.duration, file.dt),
+        ));
     }
     let estimate_init = match file.estimate_init.as_str() {
         "leader" => EstimateInit::Leader,
@@ -479,7 +550,13 @@ fn validate(
     let graph = Graph::new(ids, &edges, followers.iter().map(|f| f.hears_leader).collect());
     let unreachable = graph.unreachable();
     if !unreachable.is_empty() {
-        return Err(ScenarioError::GraphNotConnected { file: label.to_string(), unreachable });
+        return Err(match c.assignment_of("edges").or_else(|| c.assignment_of("followers")) {
+            Some(assignment) => ScenarioError::Override {
+                assignment: assignment.to_string(),
+                message: ScenarioError::GraphNotConnected { file: String::new(), unreachable }.to_string(),
+            },
+            None => ScenarioError::GraphNotConnected { file: label.to_string(), unreachable },
+        });
     }
 
     // Gains and models.
@@ -513,6 +590,13 @@ fn validate(
         None => None,
         Some(time_s) => {
             c.non_negative("fault.time", &[time_s])?;
+            if time_s > file.duration {
+                return Err(c.fail_with(
+                    "fault.time",
+                    &["duration"],
+                    format!("must lie within [0, duration] = [0, {}] s, got {time_s}", file.duration),
+                ));
+            }
             c.positive("fault.mass_factor", &[file.fault.mass_factor])?;
             c.positive("fault.inertia_factor", &[file.fault.inertia_factor])?;
             Some(Fault { time_s, mass_factor: file.fault.mass_factor, inertia_factor: file.fault.inertia_factor })
@@ -708,6 +792,35 @@ pub fn pose_from_body_error(leader: Pose, offset: [f64; 2], e: [f64; 3]) -> Pose
     Pose::new(leader.x + offset[0] - ex, leader.y + offset[1] - ey, theta)
 }
 
+/// The dotted field (`followers[2].offset`, `edges[1]`) of the innermost
+/// value that spans byte `at` of the TOML source.
+fn field_at(source: &str, at: usize) -> Option<String> {
+    fn path_to(value: &toml::Spanned<toml::de::DeValue<'_>>, at: usize, path: &mut String) -> bool {
+        let len = path.len();
+        let found = match value.get_ref() {
+            toml::de::DeValue::Table(t) => t.iter().any(|(key, v)| {
+                path.truncate(len);
+                path.push_str(&format!(".{}", key.get_ref()));
+                path_to(v, at, path)
+            }),
+            toml::de::DeValue::Array(a) => a.iter().enumerate().any(|(i, v)| {
+                path.truncate(len);
+                path.push_str(&format!("[{i}]"));
+                path_to(v, at, path)
+            }),
+            _ => false,
+        };
+        if !found {
+            path.truncate(len);
+        }
+        found || value.span().contains(&at)
+    }
+    let document = toml::de::DeTable::parse(source).ok()?;
+    let mut path = String::new();
+    let root = toml::Spanned::new(document.span(), toml::de::DeValue::Table(document.into_inner()));
+    (path_to(&root, at, &mut path) && !path.is_empty()).then(|| path.trim_start_matches('.').to_string())
+}
+
 /// The 1-based line of a dotted field (`robot.mass`, `followers[2].offset`,
 /// `edges[1]`) in the TOML source, when it can be found by its key.
 fn find_line(source: &str, field: &str) -> Option<usize> {
@@ -825,6 +938,12 @@ mod tests {
         assert_eq!(s.faults[1].loss, 0.5);
         let replaced = Scenario::from_toml(PAPER, "t.toml", "t", &["faults=[{node=2, from=1, to=2}]".into()]).unwrap();
         assert_eq!(replaced.faults[0].target, FaultTarget::Node(2));
+        // An error in an appended row names the --set, not the file.
+        let file_row = format!("{PAPER}[[faults]]\nnode = 2\nfrom = 1\nto = 2\n");
+        let e = Scenario::from_toml(&file_row, "t.toml", "t", &["faults+={node=9, from=1, to=2}".into()])
+            .expect_err("unknown node")
+            .to_string();
+        assert!(e.starts_with("--set faults+={node=9") && e.contains("faults[1].node"), "{e}");
     }
 
     #[test]
@@ -835,5 +954,107 @@ mod tests {
         assert_eq!(find_line(src, "followers[0].id"), Some(6));
         assert_eq!(find_line(src, "edges[0]"), Some(2));
         assert_eq!(find_line(src, "fault.time"), None);
+    }
+
+    /// Every fixed-length array of the file, written out, on two followers.
+    const ARRAYS: &str = "edges = [[1, 2]]\n[leader]\npose = [0.0, 3.0, 0.0]\n\
+        [[followers]]\nid = 1\noffset = [1.0, 0.0]\npose = [0.0, 0.0, 0.0]\nvelocity = [0.0, 0.0]\nleader_link = true\n\
+        [[followers]]\nid = 2\noffset = [2.0, 0.0]\nbody_error = [0.0, 0.0, 0.0]\n\
+        [estimator]\nk = [1.0, 1.0, 1.0]\nka = [20.0, 20.0]\nkb = [5.0, 5.0]\n\
+        [covariance]\nq = [1.6e-4, 1.0e-4]\nr = [1.6e-4, 1.0e-4]\n[asif]\nrho_max = [0.08, 0.08]\n";
+
+    fn load(text: &str, overrides: &[&str]) -> Result<Scenario, ScenarioError> {
+        let overrides: Vec<String> = overrides.iter().map(|s| s.to_string()).collect();
+        Scenario::from_toml(text, "s.toml", "s", &overrides)
+    }
+
+    fn message(text: &str, overrides: &[&str]) -> String {
+        load(text, overrides).expect_err("must be rejected").to_string()
+    }
+
+    #[test]
+    fn every_fixed_length_array_must_have_exactly_its_length() {
+        load(ARRAYS, &[]).expect("the arrays as written load");
+        for (from, to, want) in [
+            ("[[1, 2]]", "[[1, 2], [2, 1, 3]]", "edges[1]: expected 2 follower ids, got 3"),
+            ("[[1, 2]]", "[[1]]", "edges[0]: expected 2 follower ids, got 1"),
+            ("[0.0, 3.0, 0.0]", "[0.0, 3.0, 0.0, 1.0]", "leader.pose: expected 3 numbers, got 4"),
+            ("[1.0, 0.0]", "[1.0, 0.0, 5.0]", "followers[0].offset: expected 2 numbers, got 3"),
+            ("[0.0, 0.0, 0.0]\nvel", "[0.0, 0.0, 0.0, 0.0]\nvel", "followers[0].pose: expected 3 numbers, got 4"),
+            ("velocity = [0.0, 0.0]", "velocity = [0.0]", "followers[0].velocity: expected 2 numbers, got 1"),
+            ("[2.0, 0.0]", "[2.0, 0.0, 0.0]", "followers[1].offset: expected 2 numbers, got 3"),
+            (
+                "body_error = [0.0, 0.0, 0.0]",
+                "body_error = [0.0, 0.0]",
+                "followers[1].body_error: expected 3 numbers, got 2",
+            ),
+            ("[1.0, 1.0, 1.0]", "[1.0, 1.0, 1.0, 1.0]", "estimator.k: expected 3 numbers, got 4"),
+            ("[20.0, 20.0]", "[20.0, 20.0, 20.0]", "estimator.ka: expected 2 numbers, got 3"),
+            ("[5.0, 5.0]", "[5.0, 5.0, 5.0]", "estimator.kb: expected 2 numbers, got 3"),
+            ("q = [1.6e-4, 1.0e-4]", "q = [1.6e-4, 1.0e-4, 1.0]", "covariance.q: expected 2 numbers, got 3"),
+            ("r = [1.6e-4, 1.0e-4]", "r = [1.6e-4, 1.0e-4, 1.0]", "covariance.r: expected 2 numbers, got 3"),
+            ("[0.08, 0.08]", "[0.08, 0.08, 0.08]", "asif.rho_max: expected 2 numbers, got 3"),
+        ] {
+            assert_eq!(ARRAYS.matches(from).count(), 1, "{from:?} is not unique");
+            let text = ARRAYS.replace(from, to);
+            let line = text[..text.find(to).unwrap()].matches('\n').count() + 1;
+            let want = format!("s.toml:{line}: {want}");
+            assert_eq!(message(&text, &[]), want);
+            // A --set elsewhere does not take the blame for the file.
+            assert_eq!(message(&text, &["duration=1"]), want, "with --set duration=1");
+        }
+    }
+
+    #[test]
+    fn a_set_array_must_have_exactly_its_length() {
+        assert_eq!(
+            message(ARRAYS, &["estimator.ka=[1, 2, 3]"]),
+            "--set estimator.ka=[1, 2, 3]: `estimator.ka`: expected 2 numbers, got 3"
+        );
+    }
+
+    #[test]
+    fn an_error_in_a_set_value_names_the_set_not_a_file_line() {
+        let text = format!("{ARRAYS}[robot]\nmass = 10.0\n");
+        assert_eq!(message(&text, &["robot.mass=-1"]), "--set robot.mass=-1: robot.mass: must be positive, got -1");
+        // The last assignment of a key is the one that counts.
+        assert_eq!(
+            message(&text, &["robot.mass=-1", "robot.mass=-2"]),
+            "--set robot.mass=-2: robot.mass: must be positive, got -2"
+        );
+        // A table set as a whole.
+        assert_eq!(
+            message(&text, &["backstepping.shunting={a = 1.0, b = -1.0, d = 1.0}"]),
+            "--set backstepping.shunting={a = 1.0, b = -1.0, d = 1.0}: backstepping.shunting.b: must be positive, got -1"
+        );
+        // A file value made invalid by a --set of another field.
+        let m = message(&text, &["dt=0.007"]);
+        assert!(m.starts_with("--set dt=0.007: duration: 30 s is not a whole number of steps"), "{m}");
+        let m = message(&text, &["edges=[]"]);
+        assert!(m.starts_with("--set edges=[]: graph: H is not positive definite"), "{m}");
+        // The file's own errors still cite the file's line.
+        let text = format!("{ARRAYS}[robot]\nmass = -1.0\n");
+        let line = text.lines().count();
+        assert_eq!(message(&text, &["duration=1"]), format!("s.toml:{line}: robot.mass: must be positive, got -1"));
+    }
+
+    #[test]
+    fn fault_time_must_lie_within_the_run() {
+        let with_fault = |t: &str| format!("{ARRAYS}[fault]\ntime = {t}\n");
+        let line = with_fault("0").lines().count();
+        assert_eq!(load(&with_fault("30.0"), &[]).unwrap().control.fault.unwrap().time_s, 30.0);
+        assert_eq!(load(&with_fault("0.0"), &[]).unwrap().control.fault.unwrap().time_s, 0.0);
+        assert_eq!(
+            message(&with_fault("30.5"), &[]),
+            format!("s.toml:{line}: fault.time: must lie within [0, duration] = [0, 30] s, got 30.5")
+        );
+        assert_eq!(
+            message(&with_fault("10.0"), &["duration=5"]),
+            "--set duration=5: fault.time: must lie within [0, duration] = [0, 5] s, got 10"
+        );
+        assert_eq!(
+            message(ARRAYS, &["fault.time=31"]),
+            "--set fault.time=31: fault.time: must lie within [0, duration] = [0, 30] s, got 31"
+        );
     }
 }
