@@ -48,6 +48,9 @@ struct Segment {
 pub struct LinkLoss {
     segments: Vec<Segment>,
     rng: ChaCha8Rng,
+    /// The draw index the generator's cursor is at: asking in step order
+    /// reads on without seeking (a seek regenerates the block buffer).
+    cursor: u64,
 }
 
 impl LinkLoss {
@@ -73,12 +76,12 @@ impl LinkLoss {
             }
             draws += b - a;
         }
-        Self { segments, rng: ChaCha8Rng::seed_from_u64(link_seed(seed, sender, receiver)) }
+        Self { segments, rng: ChaCha8Rng::seed_from_u64(link_seed(seed, sender, receiver)), cursor: 0 }
     }
 
     /// A link without faults.
     pub fn none() -> Self {
-        Self { segments: Vec::new(), rng: ChaCha8Rng::seed_from_u64(0) }
+        Self { segments: Vec::new(), rng: ChaCha8Rng::seed_from_u64(0), cursor: 0 }
     }
 
     /// No fault ever covers this link.
@@ -91,14 +94,14 @@ impl LinkLoss {
         let Some(s) = self.segments.iter().find(|s| s.from_k <= k && k < s.to_k) else { return false };
         let n = s.draws_before + (k - s.from_k);
         let loss = s.loss;
-        uniform_at(&mut self.rng, n) < loss
+        if n != self.cursor {
+            self.rng.set_word_pos(u128::from(n) * 2);
+        }
+        self.cursor = n + 1;
+        // The n-th uniform draw in [0, 1) of the stream (53 random bits).
+        let u = (self.rng.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64);
+        u < loss
     }
-}
-
-/// The n-th uniform draw in [0, 1) of a stream (53 random bits).
-fn uniform_at(rng: &mut ChaCha8Rng, n: u64) -> f64 {
-    rng.set_word_pos(u128::from(n) * 2);
-    (rng.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
 }
 
 /// The link generator's seed: (scenario seed, sender, receiver) mixed by
