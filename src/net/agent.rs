@@ -24,7 +24,9 @@ use zenoh::Wait;
 
 use crate::cli::CliError;
 use crate::net::barrier;
-use crate::net::node::{self, Counters, Inbox, Keys, LoopStats, NodeArgs, Source, Start, Telemetry};
+use crate::net::node::{
+    self, estimate_congestion, Counters, Inbox, Keys, LoopStats, NodeArgs, Source, Start, Telemetry,
+};
 use crate::record::FollowerSample;
 use crate::sim::SimFollower;
 
@@ -163,7 +165,7 @@ pub async fn run_follower(
     }
     let estimate_pub = session
         .declare_publisher(keys.estimate(id))
-        .congestion_control(CongestionControl::Block)
+        .congestion_control(estimate_congestion(scenario))
         .express(true)
         .await
         .map_err(|e| zerr("declaring the estimate publisher", e))?;

@@ -20,7 +20,7 @@ use zenoh::Wait;
 use crate::cli::CliError;
 use crate::net::agent::Pacer;
 use crate::net::barrier;
-use crate::net::node::{self, Counters, Keys, NodeArgs, Start, Telemetry, MONITOR};
+use crate::net::node::{self, estimate_congestion, Counters, Keys, NodeArgs, Start, Telemetry, MONITOR};
 
 /// Lock-step: how many steps the leader may run ahead of its followers.
 pub const WINDOW: u64 = 200;
@@ -104,7 +104,7 @@ pub async fn run_leader(
     }
     let estimate_pub = session
         .declare_publisher(keys.estimate(wire::LEADER_ID))
-        .congestion_control(CongestionControl::Block)
+        .congestion_control(estimate_congestion(scenario))
         .express(true)
         .await
         .map_err(|e| zerr("declaring the estimate publisher", e))?;

@@ -138,6 +138,18 @@ impl Keys {
     }
 }
 
+/// How an estimate publisher meets a full queue (a slow or dead peer).
+/// Real time: `Drop`, the newest wins — every step re-sends the whole state,
+/// and a control loop that must meet its period never waits on a `put`.
+/// Lock-step: `Block`, since every step's message is needed and the loop
+/// waits for its peers by design (lost start-up messages are re-sent).
+pub fn estimate_congestion(scenario: &Scenario) -> zenoh::qos::CongestionControl {
+    match scenario.timing {
+        formation_topology::Timing::Realtime => zenoh::qos::CongestionControl::Drop,
+        formation_topology::Timing::Lockstep => zenoh::qos::CongestionControl::Block,
+    }
+}
+
 /// The last chunk of a key expression (`…/estimate/3` → `3`).
 pub fn last_chunk(key: &str) -> &str {
     key.rsplit('/').next().unwrap_or("")
