@@ -27,6 +27,7 @@ use crate::net::barrier;
 use crate::net::node::{
     self, estimate_congestion, Counters, Inbox, Keys, LoopStats, NodeArgs, Source, Start, Telemetry,
 };
+use crate::net::outbox::{Outbox, Publishing};
 use crate::record::FollowerSample;
 use crate::sim::SimFollower;
 
@@ -210,10 +211,20 @@ pub async fn run_follower(
             .map(|&s| if s == wire::LEADER_ID { "the leader".to_string() } else { format!("follower {s}") })
             .collect(),
     };
-    let outcome =
-        tokio::task::spawn_blocking(move || control_loop(loop_ctx, body, &shared, &estimate_pub, &telemetry_pub))
-            .await
-            .map_err(|e| CliError::Run(format!("follower {id}: control loop panicked: {e}")))?;
+    // Telemetry leaves the loop through a bounded store and a thread of its
+    // own, so a slow or dead link to the monitor never holds a step.
+    let publishing = Publishing::start(move |bytes| put(&telemetry_pub, bytes));
+    let outbox = publishing.outbox.clone();
+    let outcome = tokio::task::spawn_blocking(move || control_loop(loop_ctx, body, &shared, &estimate_pub, &outbox))
+        .await
+        .map_err(|e| CliError::Run(format!("follower {id}: control loop panicked: {e}")))?;
+    let undelivered = tokio::task::spawn_blocking(move || publishing.finish(TELEMETRY_DRAIN)).await.unwrap_or(0);
+    if undelivered > 0 {
+        eprintln!(
+            "follower {id}: {undelivered} telemetry batches were not delivered to the monitor (store of {} batches)",
+            crate::net::outbox::CAPACITY
+        );
+    }
     drop(subscribers);
     drop(done_subs);
     outcome.map_err(|e| CliError::Run(format!("follower {id}: {e}")))
@@ -304,7 +315,7 @@ fn control_loop(
     mut body: Box<dyn Body>,
     shared: &Shared,
     estimate_pub: &Publisher<'_>,
-    telemetry_pub: &Publisher<'_>,
+    telemetry: &Outbox,
 ) -> Result<(), String> {
     let msg = |k: u64, state: LeaderState| EstimateMsg {
         header: Header { version: FORMAT_VERSION, sender: c.id, step: k, time_s: k as f64 * c.dt_s },
@@ -420,7 +431,7 @@ fn control_loop(
                 done,
                 loop_stats: if done { pacer.as_ref().map(Pacer::stats) } else { None },
             };
-            put(telemetry_pub, node::encode(&t))?;
+            telemetry.push(node::encode(&t));
             first_k = k + 1;
         }
         if let Some(q) = diverged {
@@ -447,6 +458,9 @@ fn control_loop(
     }
     Ok(())
 }
+
+/// How long a finished follower waits for its telemetry to go out.
+const TELEMETRY_DRAIN: Duration = Duration::from_secs(10);
 
 /// Lock-step: how long a follower keeps republishing its final message after its last step.
 const LINGER: Duration = Duration::from_secs(1);

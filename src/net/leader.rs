@@ -21,6 +21,7 @@ use crate::cli::CliError;
 use crate::net::agent::Pacer;
 use crate::net::barrier;
 use crate::net::node::{self, estimate_congestion, Counters, Keys, NodeArgs, Start, Telemetry, MONITOR};
+use crate::net::outbox::{Outbox, Publishing};
 
 /// Lock-step: how many steps the leader may run ahead of its followers.
 pub const WINDOW: u64 = 200;
@@ -129,11 +130,19 @@ pub async fn run_leader(
         barrier::lead_start(session, keys, &hellos, &ready, node::fingerprint(scenario), time_scale, lead).await?;
 
     let scenario = scenario.clone();
+    // Telemetry through a bounded store and its own thread (see agent.rs).
+    let publishing = Publishing::start(move |bytes| put(&telemetry_pub, bytes));
+    let outbox = publishing.outbox.clone();
     let outcome = tokio::task::spawn_blocking(move || {
-        leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &telemetry_pub, &followers_done)
+        leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &outbox, &followers_done)
     })
     .await
     .map_err(|e| CliError::Run(format!("leader: loop panicked: {e}")))?;
+    let undelivered =
+        tokio::task::spawn_blocking(move || publishing.finish(Duration::from_secs(10))).await.unwrap_or(0);
+    if undelivered > 0 {
+        eprintln!("leader: {undelivered} telemetry batches were not delivered to the monitor");
+    }
     announcer.abort();
     drop(subs);
     drop(done_subs);
@@ -150,7 +159,7 @@ fn leader_loop(
     start: &Start,
     progress: &Progress,
     estimate_pub: &Publisher<'_>,
-    telemetry_pub: &Publisher<'_>,
+    telemetry: &Outbox,
     followers_done: &Mutex<std::collections::BTreeSet<u32>>,
 ) -> Result<(), String> {
     let steps = s.steps();
@@ -206,7 +215,7 @@ fn leader_loop(
                 done: last,
                 loop_stats: if last { pacer.as_ref().map(Pacer::stats) } else { None },
             };
-            put(telemetry_pub, node::encode(&t))?;
+            telemetry.push(node::encode(&t));
             first_k = k + 1;
         }
     }

@@ -4,4 +4,5 @@ pub mod bench;
 pub mod leader;
 pub mod monitor;
 pub mod node;
+pub mod outbox;
 pub mod session;
