@@ -7,6 +7,7 @@
 
 mod common;
 
+use std::os::unix::process::CommandExt;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
@@ -71,4 +72,34 @@ fn base_port_zero_is_refused_up_front() {
     let status = g.wait(Duration::from_secs(20));
     assert_eq!(status.code(), Some(2), "--base-port 0 must be bad input: {status}");
     g.assert_group_empty();
+}
+
+/// SIGTERM ends the monitor with 143 (128 + 15, the convention), Ctrl-C with
+/// 130, and the folder says which signal interrupted the run.
+#[test]
+fn the_monitor_exits_143_on_sigterm_and_130_on_sigint() {
+    for (signal, code, port) in [("-TERM", 143, "17620"), ("-INT", 130, "17621")] {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let out = tmp.path().join("run");
+        let child = Command::new(env!("CARGO_BIN_EXE_monitor"))
+            .args(["--scenario", common::SCENARIO, "-q", "--run", "mon-sig", "--listen"])
+            .arg(format!("tcp/127.0.0.1:{port}"))
+            .arg("--out")
+            .arg(&out)
+            .stdin(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .process_group(0)
+            .spawn()
+            .expect("spawn monitor");
+        let mut g = Group(child);
+        std::thread::sleep(Duration::from_millis(1500));
+        let sent = Command::new("kill").args([signal, &g.0.id().to_string()]).status().expect("kill");
+        assert!(sent.success());
+        let status = g.wait(Duration::from_secs(20));
+        assert_eq!(status.code(), Some(code), "monitor after kill {signal}: {status}");
+        let network = common::json(&out, "network.json");
+        assert_eq!(network["ending"], "interrupted", "{network}");
+        assert_eq!(network["signal"], if code == 143 { "SIGTERM" } else { "SIGINT" }, "{network}");
+        g.assert_group_empty();
+    }
 }

@@ -1,6 +1,6 @@
 //! `monitor --scenario FILE [--out DIR] [--set KEY=VALUE]… [--run NAME] [zenoh options]`:
 //! records a networked run into a run folder (see `formation::net::monitor`).
-//! Exit status 130 after Ctrl-C/SIGTERM (the folder holds what was received).
+//! Exit status 130 after Ctrl-C, 143 after SIGTERM (the folder holds what was received).
 
 use std::process::ExitCode;
 
@@ -20,6 +20,7 @@ fn main() -> ExitCode {
     node::main_with(|| async move {
         monitor::run(&cli.args).await.map(|ending| match ending {
             Ending::Interrupted => ExitCode::from(130),
+            Ending::Terminated => ExitCode::from(143),
             _ => ExitCode::SUCCESS,
         })
     })

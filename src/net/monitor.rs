@@ -4,7 +4,7 @@
 //! [`RunWriter`], [`MetricsAccumulator`] and [`Summary`], so a lock-step run
 //! gives a byte-identical `summary.json`) plus `network.json` with each
 //! node's message counters. Ctrl-C or SIGTERM: writes everything received
-//! so far and exits with status 130.
+//! so far and exits with status 130 (SIGINT) or 143 (SIGTERM).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::io::{IsTerminal, Write};
@@ -45,8 +45,10 @@ pub struct MonitorArgs {
 pub enum Ending {
     /// Every node reported its final step.
     Complete,
-    /// Ctrl-C or SIGTERM.
+    /// Ctrl-C (SIGINT).
     Interrupted,
+    /// SIGTERM.
+    Terminated,
     /// No telemetry for the idle timeout.
     Idle,
 }
@@ -347,7 +349,17 @@ impl Recorder {
             "scenario": self.scenario.name,
             "timing": crate::record::name(&self.scenario.timing),
             "complete": ending == Ending::Complete,
-            "ending": format!("{ending:?}").to_lowercase(),
+            // Both signals interrupt the run; `signal` says which.
+            "ending": match ending {
+                Ending::Complete => "complete",
+                Ending::Interrupted | Ending::Terminated => "interrupted",
+                Ending::Idle => "idle",
+            },
+            "signal": match ending {
+                Ending::Interrupted => Some("SIGINT"),
+                Ending::Terminated => Some("SIGTERM"),
+                _ => None,
+            },
             "steps": self.scenario.steps(),
             "recorded_steps": self.recorded_steps(),
             "malformed_telemetry": self.malformed,
@@ -434,7 +446,7 @@ async fn monitor(
                 }
             }
             _ = sigint.recv() => break Ending::Interrupted,
-            _ = sigterm.recv() => break Ending::Interrupted,
+            _ = sigterm.recv() => break Ending::Terminated,
             _ = status.tick() => {
                 if last_heard.elapsed() > idle {
                     break Ending::Idle;
@@ -448,7 +460,7 @@ async fn monitor(
             }
         }
     };
-    if ending == Ending::Interrupted {
+    if matches!(ending, Ending::Interrupted | Ending::Terminated) {
         // Keep what already arrived (stop listening first, so this ends).
         drop(_sub);
         while let Ok((id, bytes)) = rx.try_recv() {
@@ -469,10 +481,11 @@ async fn monitor(
             }
             Ok(Ending::Complete)
         }
-        Ending::Interrupted => {
+        Ending::Interrupted | Ending::Terminated => {
             let short = summary.shortfall_text().map(|s| format!(" (incomplete: {s})")).unwrap_or_default();
-            eprintln!("interrupted: wrote the {recorded} steps received to {}{short}", dir.display());
-            Ok(Ending::Interrupted)
+            let how = if ending == Ending::Terminated { "terminated" } else { "interrupted" };
+            eprintln!("{how}: wrote the {recorded} steps received to {}{short}", dir.display());
+            Ok(ending)
         }
         Ending::Idle => Err(CliError::Run(format!(
             "no telemetry for {} s; still running: {}; wrote the {recorded} steps received to {}",
