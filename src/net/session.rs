@@ -132,7 +132,7 @@ impl ZenohArgs {
         // A dead link is noticed within about a second (zenoh's default
         // lease is 10 s): keep-alives every 250 ms, lease 1 s.
         // (Only where the file left zenoh's defaults, 10 000 ms and 4.)
-        if get(&config, "transport/link/tx/lease")? == Value::from(10_000) {
+        if get(&config, "transport/link/tx/lease")? == 10_000 {
             set(&mut config, "transport/link/tx/lease", &Value::from(LEASE_MS))?;
         }
 
