@@ -607,6 +607,11 @@ impl RunWriter {
         Ok(self.final_dir.clone())
     }
 
+    /// Removes the `<dir>.partial` folder: nothing of it is worth keeping.
+    pub fn discard(self) {
+        let _ = fs::remove_dir_all(&self.dir);
+    }
+
     /// The folder being written (`<dir>.partial` until finished).
     pub fn partial_dir(&self) -> &Path {
         &self.dir

@@ -103,3 +103,24 @@ fn the_monitor_exits_143_on_sigterm_and_130_on_sigint() {
         g.assert_group_empty();
     }
 }
+
+/// A monitor whose port is taken says so in one line and leaves no empty
+/// `<out>.partial` folder behind.
+#[test]
+fn a_taken_monitor_port_leaves_no_partial_folder() {
+    let held = std::net::TcpListener::bind("127.0.0.1:17632").expect("hold the port");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let result = Command::new(env!("CARGO_BIN_EXE_monitor"))
+        .args(["--scenario", common::SCENARIO, "-q", "--run", "mon-taken", "--listen", "tcp/127.0.0.1:17632", "--out"])
+        .arg(&out)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("run monitor");
+    drop(held);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert_eq!(result.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("17632") && stderr.contains("Address already in use"), "{stderr}");
+    let left: Vec<_> = std::fs::read_dir(tmp.path()).expect("tmp").map(|e| e.expect("entry").file_name()).collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}

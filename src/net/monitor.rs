@@ -268,6 +268,11 @@ impl Recorder {
         Ok(())
     }
 
+    /// Removes the folder being written (a run that never started).
+    pub fn discard(self) {
+        self.writer.discard();
+    }
+
     /// Appends the buffered CSV rows to the (partial) folder.
     pub fn flush(&mut self) -> std::io::Result<()> {
         self.writer.flush()
@@ -391,7 +396,14 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, CliError> {
     let opts = RecordOptions { dir, every: args.every.max(1), csv: true };
     let recorder =
         Recorder::new(&scenario, &opts).map_err(|e| CliError::Run(format!("creating the run folder: {e}")))?;
-    let session = args.node.open().await?;
+    let session = match args.node.open().await {
+        Ok(s) => s,
+        Err(e) => {
+            // Nothing was recorded: leave no empty `<out>.partial` behind.
+            recorder.discard();
+            return Err(e);
+        }
+    };
     let result = monitor(&session, &scenario, &keys, recorder, args).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
