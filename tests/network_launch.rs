@@ -124,3 +124,21 @@ fn a_taken_monitor_port_leaves_no_partial_folder() {
     let left: Vec<_> = std::fs::read_dir(tmp.path()).expect("tmp").map(|e| e.expect("entry").file_name()).collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
+
+/// A client whose router is not there says what it waits for and gives up
+/// after `--open-timeout` with one line naming the endpoint (exit 1).
+#[test]
+fn a_client_without_its_router_gives_up_naming_it() {
+    let began = Instant::now();
+    let result = Command::new(env!("CARGO_BIN_EXE_agent"))
+        .args(["--scenario", common::SCENARIO, "--id", "1", "--run", "no-router", "--mode", "client"])
+        .args(["--connect", "tcp/127.0.0.1:17633", "--open-timeout", "2"])
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("run agent");
+    let took = began.elapsed();
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert_eq!(result.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("no zenoh router or peer answered at tcp/127.0.0.1:17633 within 2 s"), "{stderr}");
+    assert!(took < Duration::from_secs(15), "gave up after {took:?} with --open-timeout 2");
+}

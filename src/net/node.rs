@@ -55,6 +55,9 @@ pub struct NodeArgs {
     pub run: Option<String>,
     #[command(flatten)]
     pub zenoh: ZenohArgs,
+    /// Give up when no router or peer answers at start-up within this long (s).
+    #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
+    pub open_timeout: f64,
 }
 
 impl NodeArgs {
@@ -67,11 +70,43 @@ impl NodeArgs {
         Ok((scenario, Keys::new(&run)))
     }
 
+    /// Opens the session; says once after a few seconds what it is waiting
+    /// for, and gives up after `--open-timeout` naming the endpoints.
     pub async fn open(&self) -> Result<zenoh::Session, CliError> {
-        tokio::time::timeout(Duration::from_secs(30), session::open(&self.zenoh))
-            .await
-            .map_err(|_| CliError::Run("zenoh session did not open within 30 s".into()))?
-            .map_err(|e| CliError::Run(e.to_string()))
+        let opening = session::open(&self.zenoh);
+        tokio::pin!(opening);
+        if !(self.open_timeout.is_finite() && self.open_timeout > 0.0) {
+            return Err(CliError::Input(format!("--open-timeout must be positive, not {}", self.open_timeout)));
+        }
+        let limit = Duration::from_secs_f64(self.open_timeout);
+        let began = std::time::Instant::now();
+        let mut said = false;
+        loop {
+            let wait = Duration::from_secs(3).min(limit.saturating_sub(began.elapsed()).max(Duration::from_millis(10)));
+            match tokio::time::timeout(wait, &mut opening).await {
+                Ok(result) => return result.map_err(|e| CliError::Run(e.to_string())),
+                Err(_) if began.elapsed() >= limit => {
+                    return Err(CliError::Run(format!(
+                        "no zenoh router or peer answered at {} within {} s (is the router running?)",
+                        self.endpoints(),
+                        self.open_timeout
+                    )))
+                }
+                Err(_) if !said => {
+                    eprintln!("waiting for {} …", self.endpoints());
+                    said = true;
+                }
+                Err(_) => {}
+            }
+        }
+    }
+
+    fn endpoints(&self) -> String {
+        if self.zenoh.connect.is_empty() {
+            "the configured endpoints".to_string()
+        } else {
+            self.zenoh.connect.join(", ")
+        }
     }
 }
 

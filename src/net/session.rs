@@ -188,12 +188,24 @@ pub fn describe_endpoints(config: &zenoh::Config) -> String {
 ///
 /// A client (or a peer with `--connect`) whose router is not up yet waits
 /// for it (`connect/timeout_ms = -1`): wrap the call in a timeout if that
-/// is not wanted.
+/// is not wanted. The wait runs on a thread of its own (zenoh's `open`
+/// holds the thread that polls it while it waits), so a timeout around
+/// this call does fire.
 pub async fn open(args: &ZenohArgs) -> anyhow::Result<zenoh::Session> {
+    use zenoh::Wait;
     let config = args.to_config()?;
     let mode = config.get_json("mode").unwrap_or_default();
     let endpoints = describe_endpoints(&config);
-    zenoh::open(config).await.map_err(|e| anyhow!("cannot open zenoh session (mode {mode}, {endpoints}): {e}"))
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    std::thread::Builder::new()
+        .name("zenoh-open".into())
+        .spawn(move || {
+            let _ = tx.send(zenoh::open(config).wait());
+        })
+        .map_err(|e| anyhow!("cannot start a thread to open the zenoh session: {e}"))?;
+    rx.await
+        .map_err(|_| anyhow!("opening the zenoh session stopped without an answer"))?
+        .map_err(|e| anyhow!("cannot open zenoh session (mode {mode}, {endpoints}): {e}"))
 }
 
 /// Key expression of this project: `formation/<run>/<rest>`.
