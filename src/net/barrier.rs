@@ -125,6 +125,7 @@ pub async fn wait_for_start(
     let _subs = listen(session, keys, &heard, false).await?;
     let began = Instant::now();
     let ready = node::encode(&Ready { fingerprint });
+    let mut warned = false;
     loop {
         let (start, waiting, ignored) = {
             let h = lock(&heard);
@@ -132,6 +133,17 @@ pub async fn wait_for_start(
         };
         if let Some(start) = start {
             return Ok(start);
+        }
+        if ignored > 0 && !warned {
+            // Said at once, not only at the time limit; not fatal, since a
+            // forged announcement must not stop a genuine run.
+            eprintln!(
+                "node {me}: the leader of run {} announces another scenario (another file or --set values?); \
+                 waiting up to {} s for a start with this one",
+                keys.run,
+                START_TIMEOUT.as_secs()
+            );
+            warned = true;
         }
         session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
         if waiting.is_empty() {
@@ -178,6 +190,7 @@ pub async fn lead_start(
     let subs = listen(session, keys, &heard, true).await?;
     let began = Instant::now();
     let me = node::LEADER_NODE;
+    let mut warned: Vec<String> = Vec::new();
     loop {
         let (hello_missing, ready_missing, foreign) = {
             let h = lock(&heard);
@@ -187,6 +200,18 @@ pub async fn lead_start(
         };
         if hello_missing.is_empty() && ready_missing.is_empty() {
             break;
+        }
+        for n in &foreign {
+            if warned.contains(n) {
+                continue;
+            }
+            eprintln!(
+                "leader: node {n} of run {} is ready with another scenario (another file or --set values?); \
+                 waiting up to {} s for it to run this one",
+                keys.run,
+                START_TIMEOUT.as_secs()
+            );
+            warned.push(n.clone());
         }
         session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
         if began.elapsed() > START_TIMEOUT {
