@@ -268,8 +268,8 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     }
     let study_cases = cases.split_off(CASES.len());
     let study = plan.map(|p| {
-        let kinds = p.cases.iter().map(|c| c.sweep);
-        study::study(kinds.zip(study_cases).collect(), p.notes)
+        let kinds: Vec<bool> = p.cases.iter().map(|c| c.sweep).collect();
+        study::study(kinds.into_iter().zip(study_cases).collect(), p)
     });
 
     let mut command = format!("formation paper --scenario {} --seeds {}", a.scenario.display(), a.seeds);

@@ -38,7 +38,10 @@ pub struct StudyCase {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Plan {
     pub cases: Vec<StudyCase>,
+    /// What the cases are.
     pub notes: Vec<String>,
+    /// What was skipped, and why.
+    pub skipped: Vec<String>,
 }
 
 /// The part the outage cases need: the window and the 5 s after it over
@@ -54,11 +57,12 @@ pub fn plan(base: &Scenario) -> Plan {
     let node = STUDY_NODE;
     let mut cases = Vec::new();
     let mut notes = Vec::new();
+    let mut skipped = Vec::new();
     if !base.followers.iter().any(|f| f.id == node) {
-        notes.push(format!(
+        skipped.push(format!(
             "The outage study cuts follower {node}'s links; this scenario has no follower {node}, so it was skipped."
         ));
-        return Plan { cases, notes };
+        return Plan { cases, notes, skipped };
     }
     let (from, to) = OUTAGE_S;
     let proposed = ["dynamic=bio", "filter=asif", "estimate_init=leader"];
@@ -78,7 +82,7 @@ pub fn plan(base: &Scenario) -> Plan {
              {from} s ≤ t < {to} s, rejoining with `adopt` or `consensus`."
         ));
     } else {
-        notes.push(format!(
+        skipped.push(format!(
             "The outage cases were skipped: they need T ≥ {} s (follower {node}'s links down {from}–{to} s and the \
              {} s after, over which SPEC §14 takes the peaks), and this run has T = {} s.",
             outage_needs_s(),
@@ -110,17 +114,18 @@ pub fn plan(base: &Scenario) -> Plan {
         base.source.network.rejoin_after,
         crate::report::tables::sig(p_max.powi(links * after as i32), 2),
     ));
-    Plan { cases, notes }
+    Plan { cases, notes, skipped }
 }
 
 /// The study's loaded cases, outage and loss cases apart.
-pub fn study(cases: Vec<(bool, crate::report::Case)>, notes: Vec<String>) -> Study {
+pub fn study(cases: Vec<(bool, crate::report::Case)>, plan: Plan) -> Study {
     let (sweep, outage): (Vec<_>, Vec<_>) = cases.into_iter().partition(|(s, _)| *s);
     Study {
         node: STUDY_NODE,
         outage: outage.into_iter().map(|(_, c)| c).collect(),
         sweep: sweep.into_iter().map(|(_, c)| c).collect(),
-        notes,
+        notes: plan.notes,
+        skipped: plan.skipped,
     }
 }
 
@@ -138,7 +143,7 @@ mod tests {
         let short = plan(&paper(17.9));
         assert!(short.cases.iter().all(|c| c.sweep), "{:?}", short.cases);
         assert_eq!(short.cases.len(), LOSSES.len());
-        assert!(short.notes.iter().any(|n| n.contains("skipped") && n.contains("T = 17.9 s")), "{:?}", short.notes);
+        assert!(short.skipped.iter().any(|n| n.contains("skipped") && n.contains("T = 17.9 s")), "{:?}", short.skipped);
         let long = plan(&paper(18.0));
         assert_eq!(long.cases.len(), 4 + LOSSES.len());
         let names: Vec<&str> = long.cases.iter().map(|c| c.name.as_str()).collect();

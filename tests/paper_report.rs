@@ -235,6 +235,7 @@ fn paper_writes_every_figure_table_and_claim_from_its_runs() {
         report.contains("The outage cases were skipped") && report.contains("T = 3 s"),
         "report.md says why the outage cases are missing"
     );
+    assert!(stdout.contains("The outage cases were skipped"), "and so does the terminal:\n{stdout}");
     for f in ["table_outage.csv", "fig_outage_errors.png"] {
         assert!(!out.join(f).exists(), "{f} without outage cases");
     }

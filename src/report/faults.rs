@@ -33,8 +33,10 @@ pub struct Study {
     pub outage: Vec<Case>,
     /// The loss cases, in ascending loss.
     pub sweep: Vec<Case>,
-    /// What the cases are, and why any were skipped.
+    /// What the cases are.
     pub notes: Vec<String>,
+    /// What was skipped, and why.
+    pub skipped: Vec<String>,
 }
 
 /// Reads one metric around a fault window (`None`: not measured).
@@ -563,8 +565,11 @@ pub fn write(out: &Path, faulted: &[&Case], study: Option<&Study>) -> Result<Wri
     let mut terminal = String::new();
     if let Some(s) = study {
         let _ = writeln!(md, "The outage study (`formation paper`; `--no-study` leaves it out):\n");
-        for n in &s.notes {
+        for n in s.skipped.iter().chain(&s.notes) {
             let _ = writeln!(md, "- {n}");
+        }
+        for n in &s.skipped {
+            let _ = writeln!(terminal, "{n}");
         }
         md.push('\n');
         let all: Vec<&Case> = s.outage.iter().chain(&s.sweep).collect();
