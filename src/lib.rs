@@ -10,3 +10,4 @@ pub mod paper;
 pub mod record;
 pub mod report;
 pub mod sim;
+pub mod study;

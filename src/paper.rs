@@ -19,6 +19,7 @@ use crate::cli::{at_least_one, CliError};
 use crate::record::{at_path, RecordOptions, Row, RunWriter, Summary};
 use crate::report::{self, tables, Case, Context, SeedRecord, ESTIMATOR_CHECK_TIMES_S, SEEDS_FILE};
 use crate::sim::{Observer, Simulation};
+use crate::study;
 
 #[derive(clap::Args, Debug)]
 pub struct PaperArgs {
@@ -42,6 +43,9 @@ pub struct PaperArgs {
     /// Print nothing but errors.
     #[arg(long, short)]
     pub quiet: bool,
+    /// Skip the outage study (SPEC §14) that follows the paper's cases.
+    #[arg(long)]
+    pub no_study: bool,
 }
 
 /// One case the paper compares.
@@ -112,9 +116,16 @@ pub const PAPER_FAULT_TIME_S: f64 = 10.0;
 /// fault cases get the fault at 10 s unless the user or the file sets one, and
 /// the normal cases have no fault.
 pub fn case_scenario(path: &Path, user: &[String], case: &PaperCase) -> Result<Scenario, CliError> {
+    let keys: Vec<String> = case.overrides.iter().map(|s| s.to_string()).collect();
+    scenario_with(path, user, &keys, case.fault)
+}
+
+/// The scenario of a case given by its keys (set after the user's
+/// overrides) and whether it is a fault case (see [`case_scenario`]).
+pub fn scenario_with(path: &Path, user: &[String], keys: &[String], fault: bool) -> Result<Scenario, CliError> {
     let mut overrides: Vec<String> = user.to_vec();
-    overrides.extend(case.overrides.iter().map(|s| s.to_string()));
-    let paper_fault = case.fault
+    overrides.extend(keys.iter().cloned());
+    let paper_fault = fault
         && !user.iter().any(|o| o.trim_start().starts_with("fault.time"))
         && !Scenario::load(path, user).is_ok_and(|s| s.control.fault.is_some());
     if paper_fault {
@@ -131,7 +142,7 @@ pub fn case_scenario(path: &Path, user: &[String], case: &PaperCase) -> Result<S
         }
         s.source.fault.time = Some(PAPER_FAULT_TIME_S);
     }
-    if !case.fault {
+    if !fault {
         std::sync::Arc::make_mut(&mut s.control).fault = None;
     }
     Ok(s)
@@ -202,12 +213,19 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     at_least_one("--every", a.every)?;
     let started = Instant::now();
     let base = Scenario::load(&a.scenario, &a.overrides).map_err(|e| CliError::Input(e.to_string()))?;
-    let scenarios: Vec<Scenario> =
-        CASES.iter().map(|c| case_scenario(&a.scenario, &a.overrides, c)).collect::<Result<_, _>>()?;
+    let plan = if a.no_study { None } else { Some(study::plan(&base)) };
+    // Every case's folder name and scenario: the paper's, then the study's.
+    let mut runs: Vec<(String, Scenario)> = CASES
+        .iter()
+        .map(|c| Ok((c.name.to_string(), case_scenario(&a.scenario, &a.overrides, c)?)))
+        .collect::<Result<_, CliError>>()?;
+    for c in plan.iter().flat_map(|p| &p.cases) {
+        runs.push((c.name.clone(), scenario_with(&a.scenario, &a.overrides, &c.overrides, false)?));
+    }
     let seeds: Vec<u64> = (0..a.seeds).map(|i| base.seed + i).collect();
     std::fs::create_dir_all(&a.out).map_err(at_path(&a.out, "cannot create the folder"))?;
 
-    let jobs: Vec<(usize, usize)> = (0..CASES.len()).flat_map(|c| (0..seeds.len()).map(move |s| (c, s))).collect();
+    let jobs: Vec<(usize, usize)> = (0..runs.len()).flat_map(|c| (0..seeds.len()).map(move |s| (c, s))).collect();
     let bar = ProgressBar::with_draw_target(
         Some(jobs.len() as u64),
         if a.quiet { ProgressDrawTarget::hidden() } else { ProgressDrawTarget::stderr() },
@@ -220,8 +238,8 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     let results: Vec<Result<SeedRecord, CliError>> = jobs
         .par_iter()
         .map(|&(c, s)| {
-            let record = (s == 0).then(|| RecordOptions { dir: a.out.join(CASES[c].name), every: a.every, csv: true });
-            let r = run_seed(&scenarios[c], seeds[s], record.as_ref());
+            let record = (s == 0).then(|| RecordOptions { dir: a.out.join(&runs[c].0), every: a.every, csv: true });
+            let r = run_seed(&runs[c].1, seeds[s], record.as_ref());
             bar.inc(1);
             r
         })
@@ -229,36 +247,46 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     bar.finish_and_clear();
     let run_time = started.elapsed();
 
-    let mut per_case: Vec<Vec<SeedRecord>> = vec![Vec::new(); CASES.len()];
+    let mut per_case: Vec<Vec<SeedRecord>> = vec![Vec::new(); runs.len()];
     let mut failures = Vec::new();
     for (&(c, _), r) in jobs.iter().zip(results) {
         match r {
             Ok(rec) => per_case[c].push(rec),
-            Err(e) => failures.push(format!("{}: {e}", CASES[c].name)),
+            Err(e) => failures.push(format!("{}: {e}", runs[c].0)),
         }
     }
     if !failures.is_empty() {
         return Err(CliError::Run(format!("{} run(s) failed:\n  {}", failures.len(), failures.join("\n  "))));
     }
-    let mut cases = Vec::with_capacity(CASES.len());
-    for (c, recs) in CASES.iter().zip(per_case) {
-        let dir = a.out.join(c.name);
+    let mut cases = Vec::with_capacity(runs.len());
+    for ((name, _), recs) in runs.iter().zip(per_case) {
+        let dir = a.out.join(name);
         let json = serde_json::to_string_pretty(&recs).map_err(|e| CliError::Run(e.to_string()))?;
         let path = dir.join(SEEDS_FILE);
         std::fs::write(&path, json + "\n").map_err(at_path(&path, "cannot write"))?;
-        cases.push(Case::load(&dir, c.name.to_string())?);
+        cases.push(Case::load(&dir, name.clone())?);
     }
+    let study_cases = cases.split_off(CASES.len());
+    let study = plan.map(|p| {
+        let kinds: Vec<bool> = p.cases.iter().map(|c| c.sweep).collect();
+        study::study(kinds.into_iter().zip(study_cases).collect(), p)
+    });
 
     let mut command = format!("formation paper --scenario {} --seeds {}", a.scenario.display(), a.seeds);
     for o in &a.overrides {
         command += &format!(" --set {o}");
     }
     command += &format!(" --out {} --every {}", a.out.display(), a.every);
+    if a.no_study {
+        command += " --no-study";
+    }
     let threads = rayon::current_num_threads();
+    let study_count = runs.len() - CASES.len();
     let notes = vec![
         format!(
-            "{} cases × {} seed(s) (seeds {}..={}) = {} runs of {} s, on {threads} threads: {:.1} s wall time for the runs.",
-            CASES.len(),
+            "{} cases{} × {} seed(s) (seeds {}..={}) = {} runs of {} s, on {threads} threads: {:.1} s wall time for the runs.",
+            runs.len(),
+            if study_count > 0 { format!(" ({} of the paper, {study_count} of the outage study)", CASES.len()) } else { String::new() },
             seeds.len(),
             seeds[0],
             seeds[seeds.len() - 1],
@@ -271,10 +299,11 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
             a.every
         ),
     ];
-    let ctx = Context { paper: true, command, params: tables::ClaimParams::from_scenario(&base), notes };
+    let ctx = Context { paper: true, command, params: tables::ClaimParams::from_scenario(&base), notes, study };
     let (path, built) = report::write_report(&a.out, &cases, &ctx)?;
     if !a.quiet {
         print!("{}", tables::claims_text(&built.claims));
+        print!("{}", built.faults);
         println!(
             "{} runs in {:.1} s, report in {:.1} s total",
             jobs.len(),

@@ -42,6 +42,12 @@ const CASES: [&str; 8] = [
     "zero-init",
 ];
 
+/// `formation paper` on the paper scenario with `args`, into `out`; its stdout.
+fn paper(out: &Path, args: &[&str]) -> String {
+    let o = run_ok(bin().args(["paper", "--scenario"]).arg(paper_toml()).args(args).arg("--out").arg(out));
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
 /// A CSV with a header, as maps from column name to field.
 fn read_csv(path: &Path) -> Vec<BTreeMap<String, String>> {
     let mut r = csv::Reader::from_path(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
@@ -62,11 +68,7 @@ fn non_empty(path: &Path) {
 /// Every figure (SVG, PNG that decodes, CSV), table, claims.csv and report.md.
 fn check_report_files(dir: &Path) {
     for f in FIGURES {
-        for ext in ["svg", "png", "csv"] {
-            non_empty(&dir.join(format!("{f}.{ext}")));
-        }
-        let img = image::open(dir.join(format!("{f}.png"))).unwrap_or_else(|e| panic!("{f}.png does not decode: {e}"));
-        assert!(img.width() >= 800 && img.height() >= 400, "{f}.png is {}×{}", img.width(), img.height());
+        check_figure(dir, f);
         let svg = std::fs::read_to_string(dir.join(format!("{f}.svg"))).unwrap();
         assert!(svg.contains("<svg") && (svg.contains("t (s)") || svg.contains("x (m)")), "{f}.svg lacks axis labels");
     }
@@ -178,15 +180,7 @@ fn check_claims(dir: &Path) -> BTreeMap<String, String> {
 fn paper_writes_every_figure_table_and_claim_from_its_runs() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("paper-report");
-    let o = run_ok(bin().args(["paper", "--scenario"]).arg(paper_toml()).args([
-        "--set",
-        "duration=3",
-        "--seeds",
-        "2",
-        "--out",
-        out.to_str().unwrap(),
-    ]));
-    let stdout = String::from_utf8_lossy(&o.stdout);
+    let stdout = paper(&out, &["--set", "duration=3", "--seeds", "2"]);
     assert!(stdout.contains("PASS") || stdout.contains("FAIL"), "claims printed:\n{stdout}");
 
     check_report_files(&out);
@@ -234,6 +228,174 @@ fn paper_writes_every_figure_table_and_claim_from_its_runs() {
     for f in FIGURES {
         assert!(report.contains(&format!("({f}.png)")), "report.md shows {f}");
     }
+
+    // The outage study: 3 s is too short for the 10–13 s window and the 5 s
+    // after it, so only the loss sweep ran, and report.md says why.
+    assert!(
+        report.contains("The outage cases were skipped") && report.contains("T = 3 s"),
+        "report.md says why the outage cases are missing"
+    );
+    assert!(stdout.contains("The outage cases were skipped"), "and so does the terminal:\n{stdout}");
+    for f in ["table_outage.csv", "fig_outage_errors.png"] {
+        assert!(!out.join(f).exists(), "{f} without outage cases");
+    }
+    assert!(!out.join("outage-bio-adopt").exists());
+    let sweep_dirs = check_sweep(&out, 2);
+    assert!(
+        table_names(&out.join("table4_all_metrics.csv")).iter().all(|c| CASES.contains(&c.as_str())),
+        "the study's cases stay out of the paper's tables"
+    );
+    assert_eq!(sweep_dirs.len(), LOSSES.len());
+}
+
+/// The loss sweep of `formation paper`, in every case's folder and in
+/// fig_loss_sweep and table_loss_sweep: one row per case and series, each
+/// mean that of the seeds in seeds.json. Returns the case folders.
+fn check_sweep(out: &Path, seeds: usize) -> BTreeMap<String, PathBuf> {
+    let mut dirs = BTreeMap::new();
+    for p in LOSSES {
+        let name = format!("loss-p{p}");
+        let d = out.join(&name);
+        let s = seeds_of(&d);
+        assert_eq!(s.len(), seeds, "{name}: seeds");
+        assert_eq!(s[0].faults.len(), 1, "{name}: one fault");
+        assert_eq!((s[0].faults[0].from, s[0].faults[0].to, s[0].faults[0].loss), (0.0, s[0].duration, p), "{name}");
+        dirs.insert(name, d);
+    }
+    check_figure(out, "fig_loss_sweep");
+    let fig = read_csv(&out.join("fig_loss_sweep.csv"));
+    assert!(fig.iter().all(|r| r.contains_key("ci_low") && r.contains_key("ci_high")), "intervals in the figure's CSV");
+    assert_eq!(fig.len(), 2 * 2 * LOSSES.len(), "two panels × two series × one point per p");
+    let rows = read_csv(&out.join("table_loss_sweep.csv"));
+    assert_eq!(rows.len(), 4 * LOSSES.len(), "four quantities per p");
+    for r in &rows {
+        let case = &r["case"];
+        assert_eq!(format!("loss-p{}", r["loss"]), *case);
+        let values: Vec<f64> = seeds_of(&dirs[case])
+            .iter()
+            .map(|s| {
+                let est = |id: &u32| s.faults[0].followers[id].peak_estimator_error.unwrap();
+                let rms = |id: &u32| s.followers[id].formation_rms_last10.unwrap();
+                let others = || s.followers.keys().filter(|&&id| id != 3);
+                match (r["series"].as_str(), r["metric"].as_str()) {
+                    ("follower 3", "formation_rms_last10") => rms(&3),
+                    ("follower 3", "peak_estimator_error") => est(&3),
+                    ("worst of the others", "formation_rms_last10") => others().map(rms).fold(0.0, f64::max),
+                    ("worst of the others", "peak_estimator_error") => others().map(est).fold(0.0, f64::max),
+                    other => panic!("sweep row {other:?}"),
+                }
+            })
+            .collect();
+        let got: f64 = r["mean"].parse().unwrap();
+        assert!(
+            close(got, mean(&values)),
+            "{case} {} {}: table {got} vs seeds {}",
+            r["series"],
+            r["metric"],
+            mean(&values)
+        );
+        assert_eq!(r["n"].parse::<usize>().unwrap(), seeds);
+    }
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("(fig_loss_sweep.png)") && report.contains("[table_loss_sweep.csv]"));
+    dirs
+}
+
+const LOSSES: [f64; 6] = [0.0, 0.1, 0.3, 0.5, 0.9, 1.0];
+const OUTAGE_CASES: [&str; 4] =
+    ["outage-bio-adopt", "outage-bio-consensus", "outage-conventional-adopt", "outage-conventional-consensus"];
+
+/// A figure's SVG, PNG (which decodes) and CSV.
+fn check_figure(dir: &Path, f: &str) {
+    for ext in ["svg", "png", "csv"] {
+        non_empty(&dir.join(format!("{f}.{ext}")));
+    }
+    let img = image::open(dir.join(format!("{f}.png"))).unwrap_or_else(|e| panic!("{f}.png does not decode: {e}"));
+    assert!(img.width() >= 800 && img.height() >= 400, "{f}.png is {}×{}", img.width(), img.height());
+}
+
+/// The case names of a long table.
+fn table_names(path: &Path) -> std::collections::BTreeSet<String> {
+    read_csv(path).into_iter().map(|r| r["case"].clone()).collect()
+}
+
+/// table_outage.csv: a row per case, follower and metric, each mean that of
+/// the seeds (those that measured it: recovery counts the recovered ones).
+fn check_outage_table(path: &Path, case_dirs: &BTreeMap<String, PathBuf>) {
+    let rows = read_csv(path);
+    for (case, dir) in case_dirs {
+        let seeds = seeds_of(dir);
+        for id in seeds[0].followers.keys() {
+            let n = rows.iter().filter(|r| r["case"] == *case && r["follower"] == id.to_string()).count();
+            assert!(n >= 6, "{}: {n} rows for {case} follower {id}", path.display());
+        }
+    }
+    for r in &rows {
+        let case = &r["case"];
+        let dir = case_dirs.get(case).unwrap_or_else(|| panic!("{}: unknown case {case}", path.display()));
+        let id: u32 = r["follower"].parse().unwrap();
+        let seeds = seeds_of(dir);
+        let values: Vec<f64> = seeds
+            .iter()
+            .filter_map(|s| serde_json::to_value(s.faults[0].followers[&id]).unwrap()[r["metric"].as_str()].as_f64())
+            .collect();
+        let got: f64 = r["mean"].parse().unwrap();
+        assert!(close(got, mean(&values)), "{case} F{id} {}: table {got} vs seeds {}", r["metric"], mean(&values));
+        assert_eq!(r["n"].parse::<usize>().unwrap(), values.len(), "{case} F{id} {}", r["metric"]);
+        assert_eq!(r["seeds"].parse::<usize>().unwrap(), seeds.len());
+        assert_eq!(r["rejoin"], seeds[0].rejoin.clone().unwrap());
+    }
+}
+
+#[test]
+fn outage_study_shows_adopt_recovering_at_once_and_consensus_smoothly() {
+    // 19 s: the 10–13 s outage, the 5 s after it, and 1 s to see a recovery.
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("paper-report");
+    let stdout = paper(&out, &["--set", "duration=19", "--every", "50"]);
+    assert!(stdout.contains("`adopt` recovers in"), "the findings printed:\n{stdout}");
+
+    let case_dirs: BTreeMap<String, PathBuf> = OUTAGE_CASES.iter().map(|c| (c.to_string(), out.join(c))).collect();
+    check_figure(&out, "fig_outage_errors");
+    check_outage_table(&out.join("table_outage.csv"), &case_dirs);
+    assert_eq!(table_names(&out.join("table_outage.csv")), case_dirs.keys().cloned().collect());
+    check_sweep(&out, 1);
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("### What the outage study shows") && report.contains("(fig_outage_errors.png)"));
+
+    // Follower 3 around its rejoin, from the table: SPEC §14's trade-off.
+    let rows = read_csv(&out.join("table_outage.csv"));
+    let f3 = |case: &str, metric: &str| -> f64 {
+        let r = rows.iter().find(|r| r["case"] == case && r["follower"] == "3" && r["metric"] == metric);
+        r.unwrap_or_else(|| panic!("no {metric} of follower 3 in {case} (not recovered?)"))["mean"].parse().unwrap()
+    };
+    for k in ["bio", "conventional"] {
+        let (adopt, consensus) = (format!("outage-{k}-adopt"), format!("outage-{k}-consensus"));
+        let (ra, rc) = (f3(&adopt, "recovery_s"), f3(&consensus, "recovery_s"));
+        assert!(ra < rc, "{k}: adopt recovers in {ra} s, not faster than consensus ({rc} s)");
+        assert!(ra <= 0.1, "{k}: adopt takes {ra} s to recover, not at once");
+        let (ta, tc) = (f3(&adopt, "peak_torque"), f3(&consensus, "peak_torque"));
+        let (va, vc) = (f3(&adopt, "peak_vc_rate"), f3(&consensus, "peak_vc_rate"));
+        assert!(
+            ta > tc && va > vc,
+            "{k}: adopt's jump should cost more: peak |τ| {ta} vs {tc} N m, |v̇_c| {va} vs {vc}"
+        );
+        eprintln!("{k}: recovery adopt {ra} s, consensus {rc} s; peak |τ| {ta} vs {tc} N m; |v̇_c| {va} vs {vc} m/s²");
+    }
+
+    // `formation report` on the study's folders: the fault table per folder,
+    // printed and written, and the outage figure.
+    let rep = tmp.path().join("report");
+    let dirs: Vec<&PathBuf> = case_dirs.values().collect();
+    let o = run_ok(bin().arg("report").args(&dirs).args(["--out", rep.to_str().unwrap()]));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    for c in OUTAGE_CASES {
+        assert!(stdout.contains(&format!("\n{c}:")), "report prints {c}'s fault table:\n{stdout}");
+    }
+    assert!(stdout.contains("follower 3 down 10–13 s"), "{stdout}");
+    check_outage_table(&rep.join("table_outage.csv"), &case_dirs);
+    check_figure(&rep, "fig_outage_errors");
+    assert!(!rep.join("table5_agreement.csv").exists(), "runs with other rejoin policies are not the same settings");
 }
 
 #[test]

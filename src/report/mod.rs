@@ -15,6 +15,7 @@
 //! say how many seeds measured them, and every claim that uses the run is
 //! N/A with the reason, never PASS.
 
+pub mod faults;
 pub mod plots;
 pub mod stats;
 pub mod tables;
@@ -135,8 +136,14 @@ impl Case {
             }
             Some(_) => format!(", INCOMPLETE: {} of {} seeds", short.len(), self.seeds.len()),
         };
+        let links = if s.faults.is_empty() {
+            String::new()
+        } else {
+            let list: Vec<&str> = s.faults.iter().map(|f| f.fault.as_str()).collect();
+            format!(", link faults: {}, rejoin {}", list.join("; "), s.rejoin.as_deref().unwrap_or("consensus"))
+        };
         format!(
-            "kinematic {}, dynamic {}, filter {}, {fault}, estimate init {}, T = {} s, noise {}, {seeds}{}{incomplete}",
+            "kinematic {}, dynamic {}, filter {}, {fault}, estimate init {}, T = {} s, noise {}, {seeds}{}{links}{incomplete}",
             s.kinematic,
             s.dynamic,
             s.filter,
@@ -224,11 +231,22 @@ pub struct Context {
     pub params: tables::ClaimParams,
     /// Extra lines for the report's header (seeds, wall time, …).
     pub notes: Vec<String>,
+    /// `formation paper`'s outage study, when it ran.
+    pub study: Option<faults::Study>,
+}
+
+/// What a report shows besides its files: the claims, and text for the
+/// terminal about link faults (the study's findings, or each folder's table
+/// of metrics under faults).
+#[derive(Clone, Debug)]
+pub struct Written {
+    pub claims: Vec<tables::Check>,
+    pub faults: String,
 }
 
 /// Writes every figure, table and `report.md` into `out`; returns the path
 /// of `report.md` and what it shows.
-pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBuf, tables::Tables), CliError> {
+pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBuf, Written), CliError> {
     fs::create_dir_all(out).map_err(at_path(out, "cannot create the folder"))?;
     let colours = plots::colours(cases, ctx.paper);
     let tables = tables::build(cases, ctx);
@@ -302,9 +320,12 @@ pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBu
         md += &t.markdown;
         let _ = writeln!(md, "\nData: [{0}.csv]({0}.csv).\n", t.file);
     }
+    let faulted: Vec<&Case> = cases.iter().filter(|c| !c.summary().faults.is_empty()).collect();
+    let link_faults = faults::write(out, &faulted, ctx.study.as_ref())?;
+    md += &link_faults.markdown;
     let path = out.join("report.md");
     fs::write(&path, md).map_err(at_path(&path, "cannot write"))?;
-    Ok((path, tables))
+    Ok((path, Written { claims: tables.claims, faults: link_faults.terminal }))
 }
 
 /// `formation report`: the figures and tables for any run folders.
@@ -348,10 +369,11 @@ pub fn run(a: &ReportArgs) -> Result<(), CliError> {
          (C₁ = 3, B = 2, max v_r = √2, F4 starting at x̂ = 5, so a 15 m/s jump); for other scenarios use \
          `formation paper --scenario FILE`."
         .to_string()];
-    let ctx = Context { paper: false, command, params: tables::ClaimParams::paper_defaults(), notes };
+    let ctx = Context { paper: false, command, params: tables::ClaimParams::paper_defaults(), notes, study: None };
     let (path, built) = write_report(&a.out, &cases, &ctx)?;
     if !a.quiet {
         print!("{}", tables::claims_text(&built.claims));
+        print!("{}", built.faults);
         println!("wrote {}", path.display());
     }
     Ok(())

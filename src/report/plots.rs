@@ -15,6 +15,8 @@ use std::fs;
 use std::path::Path;
 use std::sync::Once;
 
+use plotters::coord::ranged1d::ValueFormatter;
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::{register_font, FontStyle};
@@ -145,42 +147,49 @@ impl RunData {
 }
 
 /// One line of a panel.
-struct Line {
-    label: String,
-    colour: RGBColor,
-    width: u32,
-    points: Vec<(f64, f64)>,
+pub(super) struct Line {
+    pub(super) label: String,
+    pub(super) colour: RGBColor,
+    pub(super) width: u32,
+    pub(super) points: Vec<(f64, f64)>,
     /// Show in the legend.
-    legend: bool,
+    pub(super) legend: bool,
+    /// Per point, an interval (low, high) drawn as a bar with caps, and a
+    /// marker on the point; empty: a plain line.
+    pub(super) intervals: Vec<(f64, f64)>,
 }
 
 /// A closed outline with markers at its corners (Fig. 3's formation).
-struct Outline {
-    label: String,
-    points: Vec<(f64, f64)>,
+pub(super) struct Outline {
+    pub(super) label: String,
+    pub(super) points: Vec<(f64, f64)>,
     /// Marker colour of each corner.
-    colours: Vec<RGBColor>,
+    pub(super) colours: Vec<RGBColor>,
 }
 
-struct Panel {
-    caption: String,
-    x_label: String,
-    y_label: String,
-    lines: Vec<Line>,
-    outlines: Vec<Outline>,
-    equal_aspect: bool,
-    legend: bool,
+pub(super) struct Panel {
+    pub(super) caption: String,
+    pub(super) x_label: String,
+    pub(super) y_label: String,
+    pub(super) lines: Vec<Line>,
+    pub(super) outlines: Vec<Outline>,
+    pub(super) equal_aspect: bool,
+    pub(super) legend: bool,
     /// Extra room above the data, as a fraction of its span (for the legend).
-    headroom: f64,
+    pub(super) headroom: f64,
+    /// Spans of x shaded grey behind the lines (fault windows).
+    pub(super) shade: Vec<(f64, f64)>,
+    /// Logarithmic y axis (values ≤ 0 drawn at its bottom).
+    pub(super) log_y: bool,
 }
 
-struct FigureSpec {
-    figure: Figure,
-    panels: Vec<Panel>,
-    cols: usize,
-    size: (u32, u32),
+pub(super) struct FigureSpec {
+    pub(super) figure: Figure,
+    pub(super) panels: Vec<Panel>,
+    pub(super) cols: usize,
+    pub(super) size: (u32, u32),
     /// CSV column names of x and y.
-    csv_xy: (&'static str, &'static str),
+    pub(super) csv_xy: (&'static str, &'static str),
 }
 
 /// The cases a figure compares: paper mode picks the paper's cases by role,
@@ -238,7 +247,7 @@ pub fn draw_all(out: &Path, cases: &[Case], ctx: &Context, colours: &[RGBColor])
 }
 
 /// Writes a figure's SVG, PNG and CSV.
-fn write_figure(out: &Path, spec: &FigureSpec) -> Result<(), CliError> {
+pub(super) fn write_figure(out: &Path, spec: &FigureSpec) -> Result<(), CliError> {
     let svg = out.join(format!("{}.svg", spec.figure.file));
     let png = out.join(format!("{}.png", spec.figure.file));
     {
@@ -254,20 +263,27 @@ fn write_figure(out: &Path, spec: &FigureSpec) -> Result<(), CliError> {
     Ok(())
 }
 
-/// The CSV of what a figure plots: one row per point.
+/// The CSV of what a figure plots: one row per point (with its interval
+/// when the figure draws intervals).
 fn figure_csv(spec: &FigureSpec) -> String {
     let (x, y) = spec.csv_xy;
-    let mut s = format!("panel,series,{x},{y}\n");
+    let bars = spec.panels.iter().any(|p| p.lines.iter().any(|l| !l.intervals.is_empty()));
+    let mut s = format!("panel,series,{x},{y}{}\n", if bars { ",ci_low,ci_high" } else { "" });
     let q = |t: &str| if t.contains([',', '"']) { format!("\"{}\"", t.replace('"', "\"\"")) } else { t.to_string() };
     for p in &spec.panels {
         for l in &p.lines {
-            for (a, b) in &l.points {
-                let _ = writeln!(s, "{},{},{a:?},{b:?}", q(&p.caption), q(&l.label));
+            for (i, (a, b)) in l.points.iter().enumerate() {
+                let _ = write!(s, "{},{},{a:?},{b:?}", q(&p.caption), q(&l.label));
+                match l.intervals.get(i) {
+                    Some((lo, hi)) => s += &format!(",{lo:?},{hi:?}\n"),
+                    None if bars => s += ",,\n",
+                    None => s.push('\n'),
+                }
             }
         }
         for o in &p.outlines {
             for (a, b) in &o.points {
-                let _ = writeln!(s, "{},{},{a:?},{b:?}", q(&p.caption), q(&o.label));
+                let _ = writeln!(s, "{},{},{a:?},{b:?}{}", q(&p.caption), q(&o.label), if bars { ",," } else { "" });
             }
         }
     }
@@ -300,10 +316,21 @@ fn range(points: impl Iterator<Item = f64>) -> (f64, f64) {
 
 fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> DrawResult<DB> {
     let all = || p.lines.iter().flat_map(|l| l.points.iter()).chain(p.outlines.iter().flat_map(|o| o.points.iter()));
+    let bars = || p.lines.iter().flat_map(|l| l.intervals.iter().flat_map(|&(lo, hi)| [lo, hi]));
     let (mut x0, mut x1) = range(all().map(|q| q.0));
-    let (mut y0, mut y1) = range(all().map(|q| q.1));
+    let (mut y0, mut y1) = if p.log_y {
+        log_range(all().map(|q| q.1).chain(bars()))
+    } else if p.lines.iter().any(|l| !l.intervals.is_empty()) {
+        range(all().map(|q| q.1).chain(bars()))
+    } else {
+        range(all().map(|q| q.1))
+    };
     if p.legend {
-        y1 += p.headroom * (y1 - y0);
+        if p.log_y {
+            y1 *= (y1 / y0).powf(p.headroom);
+        } else {
+            y1 += p.headroom * (y1 - y0);
+        }
     }
     let (label_x, label_y, caption_h, margin) = (50u32, 70u32, 30u32, 12u32);
     if p.equal_aspect {
@@ -321,21 +348,71 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> D
             (x0, x1) = (c - half, c + half);
         }
     }
-    let mut chart = ChartBuilder::on(area)
+    let mut builder = ChartBuilder::on(area);
+    builder
         .caption(&p.caption, (FAMILY, 20).into_font())
         .margin(margin)
         .x_label_area_size(label_x)
-        .y_label_area_size(label_y)
-        .build_cartesian_2d(x0..x1, y0..y1)?;
-    chart
-        .configure_mesh()
-        .x_desc(p.x_label.as_str())
+        .y_label_area_size(label_y);
+    if p.log_y {
+        let mut chart = builder.build_cartesian_2d(x0..x1, (y0..y1).log_scale())?;
+        draw_contents(&mut chart, p, [x0, x1, y0, y1], Some(&|v: &f64| super::tables::sig(*v, 1)))
+    } else {
+        let mut chart = builder.build_cartesian_2d(x0..x1, y0..y1)?;
+        draw_contents(&mut chart, p, [x0, x1, y0, y1], None)
+    }
+}
+
+/// Axis range of the positive values, padded by 10 % on a log scale
+/// (at most 6 decades below the largest; a unit range if none).
+fn log_range(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
+    if !lo.is_finite() {
+        return (0.1, 1.0);
+    }
+    let lo = lo.max(hi * 1e-6);
+    if hi > lo {
+        (lo / 1.1, hi * 1.1)
+    } else {
+        (lo / 2.0, hi * 2.0)
+    }
+}
+
+/// A tick label formatter of the y axis.
+type Ticks<'a> = Option<&'a dyn Fn(&f64) -> String>;
+
+/// Mesh, shading, outlines, lines, interval bars and legend of a panel on a
+/// chart whose y axis is linear or logarithmic; `r` = [x0, x1, y0, y1].
+fn draw_contents<'a, DB, Y>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, Y>>,
+    p: &Panel,
+    r: [f64; 4],
+    ticks: Ticks,
+) -> DrawResult<DB>
+where
+    DB: DrawingBackend + 'a,
+    Y: Ranged<ValueType = f64> + ValueFormatter<f64>,
+{
+    let [x0, x1, y0, y1] = r;
+    let mut mesh = chart.configure_mesh();
+    mesh.x_desc(p.x_label.as_str())
         .y_desc(p.y_label.as_str())
         .axis_desc_style((FAMILY, 17))
         .label_style((FAMILY, 14))
         .light_line_style(RGBColor(235, 235, 235))
-        .bold_line_style(RGBColor(210, 210, 210))
-        .draw()?;
+        .bold_line_style(RGBColor(210, 210, 210));
+    if let Some(f) = ticks {
+        mesh.y_label_formatter(f);
+    }
+    mesh.draw()?;
+    let shade = GREY.mix(0.2);
+    let spans = p.shade.iter().map(|&(a, b)| (a.max(x0), b.min(x1))).filter(|(a, b)| a < b);
+    let s = chart.draw_series(spans.map(|(a, b)| Rectangle::new([(a, y0), (b, y1)], shade.filled())))?;
+    if p.legend && !p.shade.is_empty() {
+        s.label("fault window").legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 24, y + 6)], shade.filled()));
+    }
     for o in &p.outlines {
         let mut closed = o.points.clone();
         if let Some(&first) = o.points.first() {
@@ -345,12 +422,27 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> D
         chart.draw_series(o.points.iter().zip(&o.colours).map(|(&q, &c)| Circle::new(q, 5, c.filled())))?;
     }
     let mut outline_legend = p.outlines.first().map(|o| o.label.clone());
+    // On a log axis, values at or below 0 sit on its bottom edge.
+    let floor = |y: f64| if p.log_y { y.max(y0) } else { y };
+    let cap = 0.006 * (x1 - x0);
     for l in &p.lines {
         let colour = l.colour;
-        let s = chart.draw_series(LineSeries::new(l.points.iter().copied(), colour.stroke_width(l.width)))?;
+        let s = chart
+            .draw_series(LineSeries::new(l.points.iter().map(|&(x, y)| (x, floor(y))), colour.stroke_width(l.width)))?;
         if p.legend && l.legend {
             s.label(l.label.as_str())
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], colour.stroke_width(3)));
+        }
+        if !l.intervals.is_empty() {
+            chart.draw_series(l.points.iter().map(|&(x, y)| Circle::new((x, floor(y)), 4, colour.filled())))?;
+            chart.draw_series(l.points.iter().zip(&l.intervals).flat_map(|(&(x, _), &(lo, hi))| {
+                let (lo, hi) = (floor(lo), floor(hi));
+                [
+                    PathElement::new(vec![(x, lo), (x, hi)], colour.stroke_width(1)),
+                    PathElement::new(vec![(x - cap, lo), (x + cap, lo)], colour.stroke_width(1)),
+                    PathElement::new(vec![(x - cap, hi), (x + cap, hi)], colour.stroke_width(1)),
+                ]
+            }))?;
         }
     }
     if p.legend {
@@ -374,7 +466,7 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> D
 
 /// At most [`MAX_POINTS`] points: a min/max envelope per bucket of time,
 /// which keeps chattering visible as a band.
-fn envelope(t: &[f64], y: &[f64]) -> Vec<(f64, f64)> {
+pub(super) fn envelope(t: &[f64], y: &[f64]) -> Vec<(f64, f64)> {
     let n = t.len().min(y.len());
     if n <= MAX_POINTS {
         return t.iter().copied().zip(y.iter().copied()).take(n).collect();
@@ -420,7 +512,7 @@ fn nearest(ts: &[f64], t: f64) -> Option<usize> {
     (0..ts.len()).min_by(|&a, &b| (ts[a] - t).abs().total_cmp(&(ts[b] - t).abs()))
 }
 
-fn follower_colour(i: usize) -> RGBColor {
+pub(super) fn follower_colour(i: usize) -> RGBColor {
     FOLLOWER_COLOURS[i % FOLLOWER_COLOURS.len()]
 }
 
@@ -435,6 +527,7 @@ fn fig3(cases: &[Case], idx: &[usize], data: &BTreeMap<usize, RunData>, ctx: &Co
             width: 2,
             points: stride(&d.leader[1], &d.leader[2]),
             legend: true,
+            intervals: vec![],
         }];
         for (k, (id, f)) in d.followers.iter().enumerate() {
             lines.push(Line {
@@ -443,6 +536,7 @@ fn fig3(cases: &[Case], idx: &[usize], data: &BTreeMap<usize, RunData>, ctx: &Co
                 width: 2,
                 points: stride(&f[1], &f[2]),
                 legend: true,
+                intervals: vec![],
             });
         }
         let duration = case.summary().duration;
@@ -480,6 +574,8 @@ fn fig3(cases: &[Case], idx: &[usize], data: &BTreeMap<usize, RunData>, ctx: &Co
             equal_aspect: true,
             legend: true,
             headroom: 0.3,
+            shade: vec![],
+            log_y: false,
         });
     }
     let rows = panels.len().max(1) as u32;
@@ -514,6 +610,7 @@ fn fig4(cases: &[Case], idx: &[usize], data: &BTreeMap<usize, RunData>, ctx: &Co
                     width: 2,
                     points: envelope(&f[0], &f[6]),
                     legend: true,
+                    intervals: vec![],
                 })
                 .collect();
             Panel {
@@ -529,6 +626,8 @@ fn fig4(cases: &[Case], idx: &[usize], data: &BTreeMap<usize, RunData>, ctx: &Co
                 equal_aspect: false,
                 legend: true,
                 headroom: 0.1,
+                shade: vec![],
+                log_y: false,
             }
         })
         .collect();
@@ -604,6 +703,7 @@ fn method_lines(
                 width: width(i),
                 points: envelope(&f[0], &f[col]),
                 legend: true,
+                intervals: vec![],
             })
         })
         .collect()
@@ -629,6 +729,8 @@ fn fig5(
             equal_aspect: false,
             legend: n == 0,
             headroom: 0.3,
+            shade: vec![],
+            log_y: false,
         })
         .collect();
     let rows = panels.len().div_ceil(2).max(1) as u32;
@@ -676,6 +778,8 @@ fn fig6(
                 equal_aspect: false,
                 legend: n == 0 && wheel == "left",
                 headroom: 0.45,
+                shade: vec![],
+                log_y: false,
             });
         }
     }

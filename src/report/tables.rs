@@ -158,21 +158,21 @@ pub fn sig(x: f64, n: usize) -> String {
 }
 
 /// A cell's statistics: the value for one seed, `mean ± sd [low, high]` for several.
-fn stat_text(s: &Stat, digits: usize) -> String {
+pub(super) fn stat_text(s: &Stat, digits: usize) -> String {
     if s.n <= 1 {
         return sig(s.mean, digits);
     }
     format!("{} ± {} [{}, {}]", sig(s.mean, digits), sig(s.sd, 2), sig(s.ci_low, digits), sig(s.ci_high, digits))
 }
 
-const STAT_HEADER: &str = "n,mean,sd,ci_low,ci_high,min,max";
+pub(super) const STAT_HEADER: &str = "n,mean,sd,ci_low,ci_high,min,max";
 
-fn stat_fields(s: &Stat) -> String {
+pub(super) fn stat_fields(s: &Stat) -> String {
     format!("{},{:?},{:?},{:?},{:?},{:?},{:?}", s.n, s.mean, s.sd, s.ci_low, s.ci_high, s.min, s.max)
 }
 
 /// Quotes a CSV field if it needs it.
-fn csv_field(s: &str) -> String {
+pub(super) fn csv_field(s: &str) -> String {
     if s.contains([',', '"', '\n']) {
         format!("\"{}\"", s.replace('"', "\"\""))
     } else {
@@ -388,6 +388,9 @@ fn agreement_table(cases: &[Case]) -> Table {
             && (a.seed, a.noise, a.steps, a.fault_time) == (b.seed, b.noise, b.steps, b.fault_time)
             && a.dt == b.dt
             && a.followers.keys().eq(b.followers.keys())
+            // The same link faults (window and loss, in the label) and rejoin policy.
+            && a.rejoin == b.rejoin
+            && a.faults.iter().map(|f| &f.fault).eq(b.faults.iter().map(|f| &f.fault))
     };
     let mut md = String::from("| case | compared with |");
     for (k, u, _) in &ALL_METRICS {
