@@ -185,9 +185,8 @@ impl FollowerMetrics {
 /// first k with k Δt ≥ T − 10 (0 when T ≤ 10).
 pub fn last10_from_k(steps: u64, dt_s: f64) -> u64 {
     let duration_s = steps as f64 * dt_s;
-    // The 1e-9 absorbs rounding of a quotient that is whole on paper.
     if duration_s > 10.0 {
-        ((duration_s - 10.0) / dt_s - 1e-9).ceil() as u64
+        formation_agent::math::step_at(duration_s - 10.0, dt_s)
     } else {
         0
     }

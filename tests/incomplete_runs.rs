@@ -3,6 +3,9 @@
 //! short, a metric whose window was not reached is null (not 0), and
 //! `formation report` shows every claim on it as N/A with the reason.
 
+mod common;
+
+use common::run_ok;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -21,18 +24,6 @@ fn paper_toml() -> PathBuf {
 
 fn run(cmd: &mut Command) -> Output {
     cmd.output().expect("formation runs")
-}
-
-fn run_ok(cmd: &mut Command) -> Output {
-    let out = run(cmd);
-    assert!(
-        out.status.success(),
-        "{cmd:?} failed ({}):\n{}{}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
 }
 
 fn read_json(path: &Path) -> Value {

@@ -2,9 +2,12 @@
 //! and table, the tables hold the runs' own numbers, and the report states
 //! each SPEC §12 claim with its measurement.
 
+mod common;
+
+use common::run_ok;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
 use formation::record::{FollowerMetrics, Summary};
 use formation::report::SeedRecord;
@@ -15,18 +18,6 @@ fn bin() -> Command {
 
 fn paper_toml() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml")
-}
-
-fn run_ok(cmd: &mut Command) -> Output {
-    let out = cmd.output().expect("formation runs");
-    assert!(
-        out.status.success(),
-        "{cmd:?} failed ({}):\n{}{}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
 }
 
 const FIGURES: [&str; 4] = ["fig3_paths", "fig4_formation_error", "fig5_velocity_command", "fig6_torque"];

@@ -60,7 +60,7 @@ impl ControlParams {
     /// k Δt ≥ t_fault, decided on step indices so that a t_fault on the grid
     /// is not missed by one step through rounding of k Δt.
     pub fn fault_step(&self) -> Option<u64> {
-        self.fault.map(|f| (f.time_s / self.dt_s - 1e-9).ceil().max(0.0) as u64)
+        self.fault.map(|f| crate::math::step_at(f.time_s, self.dt_s))
     }
 
     /// The model the filter uses at step k (nominal, or faulty from t_fault).

@@ -73,6 +73,13 @@ impl Shunting {
     }
 }
 
+/// The first step k with k Δt ≥ t, decided on step indices: the 1e-9
+/// absorbs rounding of a quotient that is whole on paper (0.3 / 0.1 =
+/// 2.9999999999999996 is step 3).
+pub fn step_at(t_s: f64, dt_s: f64) -> u64 {
+    (t_s / dt_s - 1e-9).ceil().max(0.0) as u64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -544,14 +544,20 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_forged_batch_of_another_length_does_not_desynchronise_the_recorder() {
+    /// A recorder of the paper scenario cut to 10 steps, in a temporary folder.
+    fn paper_recorder() -> (tempfile::TempDir, Scenario, Recorder) {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
         let scenario = Scenario::load(&path, &["duration=0.01".to_string()]).expect("scenario");
-        let steps = scenario.steps();
         let dir = tempfile::tempdir().expect("tempdir");
         let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true };
-        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
+        let r = Recorder::new(&scenario, &opts).expect("recorder");
+        (dir, scenario, r)
+    }
+
+    #[test]
+    fn a_forged_batch_of_another_length_does_not_desynchronise_the_recorder() {
+        let (_dir, scenario, mut r) = paper_recorder();
+        let steps = scenario.steps();
         let leader = |first_k: u64, n: u64, done: bool| {
             node::encode(&Telemetry::Leader {
                 first_k,
@@ -593,12 +599,8 @@ mod tests {
 
     #[test]
     fn an_interrupted_run_writes_a_summary_that_says_who_is_short() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
-        let scenario = Scenario::load(&path, &["duration=0.01".to_string()]).expect("scenario");
+        let (_dir, scenario, mut r) = paper_recorder();
         let steps = scenario.steps();
-        let dir = tempfile::tempdir().expect("tempdir");
-        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true };
-        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
         let states = vec![LeaderState::default(); steps as usize + 1];
         let leader =
             Telemetry::Leader { first_k: 0, states, counters: Counters::default(), done: true, loop_stats: None };

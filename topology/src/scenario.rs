@@ -100,11 +100,7 @@ impl LinkFault {
     }
 }
 
-/// The first step k with k Δt ≥ t (decided on step indices; the 1e-9
-/// absorbs rounding of a quotient that is whole on paper).
-pub fn step_at(t_s: f64, dt_s: f64) -> u64 {
-    (t_s / dt_s - 1e-9).ceil().max(0.0) as u64
-}
+pub use formation_agent::math::step_at;
 
 /// A validated scenario. Followers are in ascending id, indexed like the graph.
 #[derive(Clone, Debug, PartialEq)]
