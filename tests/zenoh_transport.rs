@@ -11,6 +11,7 @@ use std::time::{Duration, Instant};
 use formation::net::session::{self, ZenohArgs, ZenohMode};
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
 use zenoh::Session;
 
@@ -33,13 +34,19 @@ fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![ep(port)], ..Default::default() }
 }
 
+// Block, not the default Drop: `exchange` checks that every payload arrives,
+// and a 100 kB put may be dropped on a loaded machine under Drop.
 type Sub = Subscriber<FifoChannelHandler<Sample>>;
 
 async fn pubsub(from: &Session, to: &Session, key: &str) -> (Publisher<'static>, Sub) {
     let sub = within("declare subscriber", STEP, to.declare_subscriber(key.to_string())).await.expect("subscriber");
-    let publisher = within("declare publisher", STEP, from.declare_publisher(key.to_string()).express(true))
-        .await
-        .expect("publisher");
+    let publisher = within(
+        "declare publisher",
+        STEP,
+        from.declare_publisher(key.to_string()).express(true).congestion_control(CongestionControl::Block),
+    )
+    .await
+    .expect("publisher");
     (publisher, sub)
 }
 
