@@ -10,7 +10,7 @@ use formation_topology::Scenario;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 use crate::record::{RecordOptions, Row, RunWriter, Summary};
-use crate::sim::{Observer, SimError, Simulation};
+use crate::sim::{Observer, Simulation};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -101,42 +101,8 @@ pub struct BenchArgs {
     pub faults: bool,
 }
 
-/// An error with its exit status: 2 for bad input, 1 for a failed run.
-#[derive(Debug, thiserror::Error)]
-pub enum CliError {
-    #[error("{0}")]
-    Input(String),
-    #[error("{0}")]
-    Run(String),
-}
-
-impl CliError {
-    pub fn exit_code(&self) -> ExitCode {
-        match self {
-            CliError::Input(_) => ExitCode::from(2),
-            CliError::Run(_) => ExitCode::from(1),
-        }
-    }
-}
-
-impl From<SimError> for CliError {
-    fn from(e: SimError) -> Self {
-        CliError::Run(e.to_string())
-    }
-}
-
-impl From<std::io::Error> for CliError {
-    fn from(e: std::io::Error) -> Self {
-        use std::io::ErrorKind;
-        match e.kind() {
-            // An --out that names a file or a folder which is not a run
-            // folder, or a path through a file. (An over-long name,
-            // `InvalidFilename`, needs Rust 1.87, past the MSRV.)
-            ErrorKind::AlreadyExists | ErrorKind::NotADirectory => CliError::Input(e.to_string()),
-            _ => CliError::Run(e.to_string()),
-        }
-    }
-}
+/// Every command ends with [`crate::error::Error`]: one line and its exit status.
+pub use crate::error::Error as CliError;
 
 /// Refuses 0 for a count option that must be at least 1.
 pub fn at_least_one(flag: &str, value: u64) -> Result<(), CliError> {

@@ -11,7 +11,6 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::{Group, LIMIT, SCENARIO};
-use formation::net::node;
 use formation::net::session::{self, ZenohArgs};
 use formation_agent::LeaderState;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
@@ -100,12 +99,16 @@ async fn rogue_messages_are_rejected_and_counted() {
     while g.0.try_wait().expect("try_wait").is_none() {
         assert!(t.elapsed() < LIMIT, "run did not finish");
         // Start-barrier traffic with a foreign fingerprint, under expected and unexpected names.
-        let foreign_ready = node::encode(&node::Ready { fingerprint: 0xbad });
+        let foreign_ready = formation::net::codec::encode(&formation::net::barrier::Ready { fingerprint: 0xbad });
         for name in ["rogue", "1", "monitor"] {
             let key = format!("formation/rogue/control/ready/{name}");
             let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put(key, foreign_ready.clone())).await;
         }
-        let foreign_start = node::encode(&node::Start { fingerprint: 0xbad, epoch_unix_ns: 1, time_scale: 1.0 });
+        let foreign_start = formation::net::codec::encode(&formation::net::barrier::Start {
+            fingerprint: 0xbad,
+            epoch_unix_ns: 1,
+            time_scale: 1.0,
+        });
         let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put("formation/rogue/control/start", foreign_start))
             .await;
         for id in 0..=4u32 {

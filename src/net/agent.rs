@@ -22,12 +22,17 @@ use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
-use crate::cli::CliError;
-use crate::net::barrier;
-use crate::net::node::{
-    self, estimate_congestion, Counters, Inbox, Keys, LoopStats, NodeArgs, Source, Start, Telemetry,
-};
+use crate::error::Error;
+
+use crate::net::barrier::{self, Start};
+use crate::net::codec;
+use crate::net::counters::Counters;
+use crate::net::inbox::{self, Inbox, Source};
+use crate::net::keys::{self, Keys};
+use crate::net::node::{estimate_congestion, NodeArgs};
 use crate::net::outbox::{Outbox, Publishing};
+use crate::net::telemetry::{self, Telemetry};
+use crate::net::timing::Pacer;
 use crate::record::FollowerSample;
 use crate::sim::SimFollower;
 
@@ -94,14 +99,14 @@ pub(crate) struct Shared {
 }
 
 /// Runs one follower to the end of the scenario.
-pub async fn run(args: &AgentArgs) -> Result<(), CliError> {
+pub async fn run(args: &AgentArgs) -> Result<(), Error> {
     let (scenario, keys) = args.node.load()?;
     let index = scenario.index_of(args.id).ok_or_else(|| {
         let ids: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
-        CliError::Input(format!("scenario {} has no follower {} (ids: {})", scenario.name, args.id, ids.join(", ")))
+        Error::Input(format!("scenario {} has no follower {} (ids: {})", scenario.name, args.id, ids.join(", ")))
     })?;
     if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
-        return Err(CliError::Input("--stall-timeout must be positive".into()));
+        return Err(Error::Input("--stall-timeout must be positive".into()));
     }
     let session = args.node.open().await?;
     let body = Box::new(SimFollower::new(&scenario, index));
@@ -111,8 +116,8 @@ pub async fn run(args: &AgentArgs) -> Result<(), CliError> {
     result
 }
 
-fn zerr(what: &str, e: impl std::fmt::Display) -> CliError {
-    CliError::Run(format!("{what}: {e}"))
+fn zerr(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::Run(format!("{what}: {e}"))
 }
 
 /// Runs the follower at `index` with `body` on an open session.
@@ -123,7 +128,7 @@ pub async fn run_follower(
     index: usize,
     body: Box<dyn Body>,
     stall_timeout: Duration,
-) -> Result<(), CliError> {
+) -> Result<(), Error> {
     let id = scenario.graph.id(index);
     let hears_leader = scenario.graph.hears_leader(index);
     let neighbour_ids: Vec<u32> = scenario.graph.neighbours(index).iter().map(|&j| scenario.graph.id(j)).collect();
@@ -149,10 +154,10 @@ pub async fn run_follower(
         let sub = session
             .declare_subscriber(keys.estimate(src))
             .callback(move |sample| {
-                let key_id = node::last_chunk(sample.key_expr().as_str()).parse::<u32>().ok();
+                let key_id = keys::last_chunk(sample.key_expr().as_str()).parse::<u32>().ok();
                 let bytes = sample.payload().to_bytes();
                 let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
-                match node::check(key_id, &bytes, hears_leader, &neighbour_ids) {
+                match inbox::check(key_id, &bytes, hears_leader, &neighbour_ids) {
                     Ok((Source::Neighbour(slot), msg)) => inbox.accept(slot, &msg),
                     Ok((Source::Leader, msg)) => inbox.accept(n, &msg),
                     Err(r) => inbox.reject(r),
@@ -178,7 +183,7 @@ pub async fn run_follower(
 
     // Lock-step: which neighbours have completed the final step (see the end of control_loop).
     let (done_subs, neighbours_done) = if lockstep {
-        node::watch_done(session, keys, &neighbour_ids, scenario.steps()).await?
+        telemetry::watch_done(session, keys, &neighbour_ids, scenario.steps()).await?
     } else {
         (Vec::new(), Default::default())
     };
@@ -186,7 +191,7 @@ pub async fn run_follower(
     if hears_leader {
         needs.push(wire::LEADER_ID.to_string());
     }
-    let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, node::fingerprint(scenario)).await?;
+    let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, barrier::fingerprint(scenario)).await?;
     if !lockstep {
         // The shared clock bounds how far ahead a genuine message can be.
         let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
@@ -217,7 +222,7 @@ pub async fn run_follower(
     let outbox = publishing.outbox.clone();
     let outcome = tokio::task::spawn_blocking(move || control_loop(loop_ctx, body, &shared, &estimate_pub, &outbox))
         .await
-        .map_err(|e| CliError::Run(format!("follower {id}: control loop panicked: {e}")))?;
+        .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
     let undelivered = tokio::task::spawn_blocking(move || publishing.finish(TELEMETRY_DRAIN)).await.unwrap_or(0);
     if undelivered > 0 {
         eprintln!(
@@ -227,13 +232,13 @@ pub async fn run_follower(
     }
     drop(subscribers);
     drop(done_subs);
-    outcome.map_err(|e| CliError::Run(format!("follower {id}: {e}")))
+    outcome.map_err(|e| Error::Run(format!("follower {id}: {e}")))
 }
 
 /// How far ahead of this node's step a genuine message can be (further:
 /// `Reject::Future`). Lock-step: neighbours 2 steps, the leader (last slot)
 /// its window + 2. Real time: 0.1 s of wall time (at least
-/// [`node::REALTIME_AHEAD`] steps) beyond the shared clock's step.
+/// [`crate::net::inbox::REALTIME_AHEAD`] steps) beyond the shared clock's step.
 fn set_window(inbox: &mut Inbox, scenario: &Scenario, slots: usize, hears_leader: bool, time_scale: f64) {
     if scenario.timing == Timing::Lockstep {
         // A fault lets a node run ahead of a receiver that does not wait for
@@ -243,7 +248,7 @@ fn set_window(inbox: &mut Inbox, scenario: &Scenario, slots: usize, hears_leader
             let (a, b) = f.steps(scenario.dt_s);
             b - a + scenario.followers.len() as u64
         });
-        let ahead = faulted.max().map_or(node::LOCKSTEP_AHEAD, |w| w + node::LOCKSTEP_AHEAD);
+        let ahead = faulted.max().map_or(inbox::LOCKSTEP_AHEAD, |w| w + inbox::LOCKSTEP_AHEAD);
         for slot in 0..slots {
             inbox.set_ahead(slot, ahead);
         }
@@ -252,7 +257,7 @@ fn set_window(inbox: &mut Inbox, scenario: &Scenario, slots: usize, hears_leader
         }
     } else {
         let period = scenario.dt_s / if time_scale > 0.0 { time_scale } else { 1.0 };
-        let slack = ((0.1 / period).ceil() as u64).max(node::REALTIME_AHEAD);
+        let slack = ((0.1 / period).ceil() as u64).max(inbox::REALTIME_AHEAD);
         for slot in 0..slots {
             inbox.set_ahead(slot, slack);
         }
@@ -274,36 +279,6 @@ struct LoopCtx {
     neighbours_done: Arc<Mutex<std::collections::BTreeSet<u32>>>,
     /// "follower 2", …, "the leader", by inbox slot.
     source_names: Vec<String>,
-}
-
-/// Real-time pacing: step k is due at epoch + k Δt / time_scale.
-pub(crate) struct Pacer {
-    epoch: Instant,
-    period: Duration,
-    /// Wake-up timing, in bounded memory whatever the run's length.
-    timer: node::LoopTimer,
-}
-
-impl Pacer {
-    pub fn new(start: &Start, dt_s: f64) -> Self {
-        let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
-        let period = Duration::from_secs_f64(dt_s / scale);
-        Self { epoch: start.epoch_instant(), period, timer: node::LoopTimer::new(period.as_secs_f64()) }
-    }
-
-    /// Sleeps until step k is due and records the wake-up.
-    pub fn wait(&mut self, k: u64) {
-        let due = self.epoch + self.period.mul_f64(k as f64);
-        let now = Instant::now();
-        if due > now {
-            std::thread::sleep(due - now);
-        }
-        self.timer.push(k, Instant::now().saturating_duration_since(self.epoch).as_secs_f64());
-    }
-
-    pub fn stats(&self) -> LoopStats {
-        self.timer.stats()
-    }
 }
 
 fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), String> {
@@ -431,7 +406,7 @@ fn control_loop(
                 done,
                 loop_stats: if done { pacer.as_ref().map(Pacer::stats) } else { None },
             };
-            telemetry.push(node::encode(&t));
+            telemetry.push(codec::encode(&t));
             first_k = k + 1;
         }
         if let Some(q) = diverged {

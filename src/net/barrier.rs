@@ -1,11 +1,67 @@
-//! The start barrier (see [`crate::net::node`] for the protocol).
+//! The start barrier, and its messages `Ready` and `Start`.
+//!
+//! Zenoh peers connect asynchronously, and a message put before the other
+//! side knows of a subscription is silently lost. So before anything steps:
+//! every node declares its subscribers, then repeats `hello` every 50 ms. A
+//! node is *ready* once it has heard the `hello` of every node it receives
+//! from (an agent: its neighbours and, if a_i0 = 1, the leader; the monitor:
+//! everybody): the same transport that carried the hello carried the
+//! subscriber declarations made before it. Ready nodes repeat `ready` (with
+//! a fingerprint of their scenario) until the leader, having heard every
+//! agent and the monitor ready with its own fingerprint, repeats `start`
+//! (the run's epoch and time scale). Nobody stops saying `hello` before the
+//! start, so nobody waits forever for a hello.
 
 use std::collections::BTreeSet;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use crate::cli::CliError;
-use crate::net::node::{self, Keys, Ready, Start};
+use formation_topology::Scenario;
+use serde::{Deserialize, Serialize};
+
+use crate::error::Error;
+use crate::net::codec;
+use crate::net::keys::{self, Keys};
+
+/// "I can hear everyone I need": sent by agents and the monitor.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Ready {
+    pub fingerprint: u64,
+}
+
+/// The leader's go: the run's epoch (wall clock, ns since the Unix epoch:
+/// step k is due at epoch + k Δt / time_scale in real time) and time scale.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Start {
+    pub fingerprint: u64,
+    pub epoch_unix_ns: u64,
+    pub time_scale: f64,
+}
+
+impl Start {
+    /// The epoch as a tokio/std instant of this process.
+    pub fn epoch_instant(&self) -> std::time::Instant {
+        let now_i = std::time::Instant::now();
+        let now_ns = unix_ns();
+        if self.epoch_unix_ns >= now_ns {
+            now_i + Duration::from_nanos(self.epoch_unix_ns - now_ns)
+        } else {
+            now_i.checked_sub(Duration::from_nanos(now_ns - self.epoch_unix_ns)).unwrap_or(now_i)
+        }
+    }
+}
+
+pub fn unix_ns() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
+}
+
+/// A fingerprint of the scenario as loaded (file plus overrides), so that
+/// nodes started with different scenarios refuse to run together.
+pub fn fingerprint(s: &Scenario) -> u64 {
+    let text = serde_json::to_string(&s.source).unwrap_or_default();
+    // FNV-1a, 64 bit.
+    text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+}
 
 /// How long a node waits at the barrier before giving up.
 pub const START_TIMEOUT: Duration = Duration::from_secs(120);
@@ -53,8 +109,8 @@ impl Heard {
     }
 }
 
-fn zerr(what: &str, e: impl std::fmt::Display) -> CliError {
-    CliError::Run(format!("{what}: {e}"))
+fn zerr(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::Run(format!("{what}: {e}"))
 }
 
 fn lock(h: &Mutex<Heard>) -> std::sync::MutexGuard<'_, Heard> {
@@ -66,14 +122,14 @@ async fn listen(
     keys: &Keys,
     heard: &Arc<Mutex<Heard>>,
     ready_too: bool,
-) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, CliError> {
+) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, Error> {
     let mut subs = Vec::new();
     let h = heard.clone();
     subs.push(
         session
             .declare_subscriber(keys.hello("*"))
             .callback(move |s| {
-                lock(&h).hello.insert(node::last_chunk(s.key_expr().as_str()).to_string());
+                lock(&h).hello.insert(keys::last_chunk(s.key_expr().as_str()).to_string());
             })
             .await
             .map_err(|e| zerr("declaring the hello subscriber", e))?,
@@ -83,7 +139,7 @@ async fn listen(
         session
             .declare_subscriber(keys.start())
             .callback(move |s| {
-                if let Some(start) = node::decode::<Start>(&s.payload().to_bytes()) {
+                if let Some(start) = codec::decode::<Start>(&s.payload().to_bytes()) {
                     lock(&h).on_start(start);
                 }
             })
@@ -96,8 +152,8 @@ async fn listen(
             session
                 .declare_subscriber(keys.ready_all())
                 .callback(move |s| {
-                    if let Some(r) = node::decode::<Ready>(&s.payload().to_bytes()) {
-                        lock(&h).on_ready(node::last_chunk(s.key_expr().as_str()), r);
+                    if let Some(r) = codec::decode::<Ready>(&s.payload().to_bytes()) {
+                        lock(&h).on_ready(keys::last_chunk(s.key_expr().as_str()), r);
                     }
                 })
                 .await
@@ -120,11 +176,11 @@ pub async fn wait_for_start(
     me: &str,
     needs: &[String],
     fingerprint: u64,
-) -> Result<Start, CliError> {
+) -> Result<Start, Error> {
     let heard = Arc::new(Mutex::new(Heard::new(fingerprint, &[])));
     let _subs = listen(session, keys, &heard, false).await?;
     let began = Instant::now();
-    let ready = node::encode(&Ready { fingerprint });
+    let ready = codec::encode(&Ready { fingerprint });
     let mut warned = false;
     loop {
         let (start, waiting, ignored) = {
@@ -156,14 +212,14 @@ pub async fn wait_for_start(
                 format!("nodes {}", waiting.join(", "))
             };
             if waiting.is_empty() && ignored > 0 {
-                return Err(CliError::Input(format!(
+                return Err(Error::Input(format!(
                     "node {me}: no start for this scenario within {} s; ignored {ignored} start announcements \
                      of run {} with another scenario fingerprint (a leader with another scenario or --set values?)",
                     START_TIMEOUT.as_secs(),
                     keys.run
                 )));
             }
-            return Err(CliError::Run(format!(
+            return Err(Error::Run(format!(
                 "node {me}: no word from {what} within {} s (run {})",
                 START_TIMEOUT.as_secs(),
                 keys.run
@@ -185,11 +241,11 @@ pub async fn lead_start(
     fingerprint: u64,
     time_scale: f64,
     lead: Duration,
-) -> Result<(Start, tokio::task::JoinHandle<()>), CliError> {
+) -> Result<(Start, tokio::task::JoinHandle<()>), Error> {
     let heard = Arc::new(Mutex::new(Heard::new(fingerprint, expect_ready)));
     let subs = listen(session, keys, &heard, true).await?;
     let began = Instant::now();
-    let me = node::LEADER_NODE;
+    let me = keys::LEADER_NODE;
     let mut warned: Vec<String> = Vec::new();
     loop {
         let (hello_missing, ready_missing, foreign) = {
@@ -216,7 +272,7 @@ pub async fn lead_start(
         session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
         if began.elapsed() > START_TIMEOUT {
             if !foreign.is_empty() {
-                return Err(CliError::Input(format!(
+                return Err(Error::Input(format!(
                     "leader: nodes {} of run {} said ready only with another scenario fingerprint \
                      (a different scenario or other --set values than the leader?)",
                     foreign.join(", "),
@@ -225,7 +281,7 @@ pub async fn lead_start(
             }
             let mut waiting: BTreeSet<String> = hello_missing.into_iter().collect();
             waiting.extend(ready_missing);
-            return Err(CliError::Run(format!(
+            return Err(Error::Run(format!(
                 "leader: nodes {} of run {} not ready within {} s",
                 waiting.into_iter().collect::<Vec<_>>().join(", "),
                 keys.run,
@@ -235,8 +291,8 @@ pub async fn lead_start(
         tokio::time::sleep(TICK).await;
     }
     drop(subs);
-    let start = Start { fingerprint, epoch_unix_ns: node::unix_ns() + lead.as_nanos() as u64, time_scale };
-    let bytes = node::encode(&start);
+    let start = Start { fingerprint, epoch_unix_ns: unix_ns() + lead.as_nanos() as u64, time_scale };
+    let bytes = codec::encode(&start);
     let session = session.clone();
     let key = keys.start();
     let task = tokio::spawn(async move {

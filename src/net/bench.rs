@@ -21,10 +21,13 @@ use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
-use crate::cli::{CliError, ScenarioArgs};
+use crate::cli::ScenarioArgs;
+use crate::error::Error;
 use crate::launch::{LaunchArgs, LaunchMode};
-use crate::net::node::{self, Inbox, Source};
+use crate::net::inbox::{self, Inbox, Source};
+use crate::net::keys;
 use crate::net::session::{self, ZenohArgs};
+use crate::net::timing;
 use crate::sim::{NoRecord, Simulation};
 
 #[derive(Args, Debug, Clone)]
@@ -58,16 +61,16 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
     }
 }
 
-fn timed_launch(l: &LaunchArgs) -> Result<f64, CliError> {
+fn timed_launch(l: &LaunchArgs) -> Result<f64, Error> {
     let t = Instant::now();
     crate::launch::run(l)?;
     Ok(t.elapsed().as_secs_f64())
 }
 
-pub fn run(a: &BenchNetArgs) -> Result<(), CliError> {
+pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     crate::cli::at_least_one("--round-trips", a.round_trips as u64)?;
     let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}", std::process::id()));
-    let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| CliError::Input(e.to_string()))?;
+    let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     let n = scenario.followers.len();
 
     // 1. Lock-step over zenoh vs in process.
@@ -79,9 +82,9 @@ pub fn run(a: &BenchNetArgs) -> Result<(), CliError> {
     let dsteps = ((a.lockstep_duration - short) / scenario.dt_s).round();
     let net_rate = dsteps / (t_long - t_short).max(1e-9);
     let sim_s = formation_topology::Scenario::load(&a.scenario, &sets(a.lockstep_duration))
-        .map_err(|e| CliError::Input(e.to_string()))?;
+        .map_err(|e| Error::Input(e.to_string()))?;
     let t = Instant::now();
-    Simulation::new(&sim_s).run(&mut NoRecord, |_| {}).map_err(|e| CliError::Run(e.to_string()))?;
+    Simulation::new(&sim_s).run(&mut NoRecord, |_| {}).map_err(|e| Error::Run(e.to_string()))?;
     let sim_rate = sim_s.steps() as f64 / t.elapsed().as_secs_f64();
     println!("lock-step, {n} followers + leader over zenoh (peer processes): {net_rate:>10.0} steps/s");
     println!("  (runs of {short} s and {} s took {t_short:.2} s and {t_long:.2} s wall)", a.lockstep_duration);
@@ -95,7 +98,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), CliError> {
     let net: serde_json::Value = std::fs::read_to_string(tmp.join("rt").join("network.json"))
         .ok()
         .and_then(|t| serde_json::from_str(&t).ok())
-        .ok_or_else(|| CliError::Run("reading the real-time run's network.json".into()))?;
+        .ok_or_else(|| Error::Run("reading the real-time run's network.json".into()))?;
     println!("real time at 1 kHz, {n} agents + leader: |period − 1 ms| (µs) p50 / p99 / max, wake-up lateness p99:");
     if let Some(nodes) = net["nodes"].as_object() {
         for (name, v) in nodes {
@@ -118,10 +121,10 @@ pub fn run(a: &BenchNetArgs) -> Result<(), CliError> {
         .worker_threads(2)
         .enable_all()
         .build()
-        .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
+        .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
     let (estimate, plain) = runtime
         .block_on(latency(a.base_port + 40, a.round_trips))
-        .map_err(|e| CliError::Run(format!("latency benchmark: {e}")))?;
+        .map_err(|e| Error::Run(format!("latency benchmark: {e}")))?;
     println!("one-hop latency (half round trip, µs), {} round trips each, interleaved:", a.round_trips);
     println!("  estimate message (agent path): p50 {:>7.1}  p99 {:>7.1}", estimate.0, estimate.1);
     println!("  plain zenoh ping-pong:         p50 {:>7.1}  p99 {:>7.1}", plain.0, plain.1);
@@ -163,9 +166,9 @@ fn estimate(sender: u32, step: u64) -> Vec<u8> {
 
 /// Receive path of an agent: decode + checks + inbox.
 fn receive(inbox: &Mutex<Inbox>, key: &str, bytes: &[u8], neighbours: &[u32]) -> bool {
-    let key_id = node::last_chunk(key).parse::<u32>().ok();
+    let key_id = keys::last_chunk(key).parse::<u32>().ok();
     let mut i = inbox.lock().unwrap_or_else(|p| p.into_inner());
-    match node::check(key_id, bytes, false, neighbours) {
+    match inbox::check(key_id, bytes, false, neighbours) {
         Ok((Source::Neighbour(slot), m)) => {
             i.accept(slot, &m);
             true
@@ -289,8 +292,8 @@ async fn latency(port: u16, n: usize) -> anyhow::Result<((f64, f64), (f64, f64))
     })
     .await??;
     let (mut est, mut plain) = measured;
-    let (e50, e99, _) = node::percentiles(&mut est);
-    let (p50, p99, _) = node::percentiles(&mut plain);
+    let (e50, e99, _) = timing::percentiles(&mut est);
+    let (p50, p99, _) = timing::percentiles(&mut plain);
     let _ = a.close().await;
     let _ = b.close().await;
     Ok(((e50, e99), (p50, p99)))

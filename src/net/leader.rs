@@ -17,11 +17,15 @@ use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
-use crate::cli::CliError;
-use crate::net::agent::Pacer;
-use crate::net::barrier;
-use crate::net::node::{self, estimate_congestion, Counters, Keys, NodeArgs, Start, Telemetry, MONITOR};
+use crate::error::Error;
+use crate::net::barrier::{self, Start};
+use crate::net::codec;
+use crate::net::counters::Counters;
+use crate::net::keys::{self, Keys, MONITOR};
+use crate::net::node::{estimate_congestion, NodeArgs};
 use crate::net::outbox::{Outbox, Publishing};
+use crate::net::telemetry::{self, Telemetry};
+use crate::net::timing::Pacer;
 
 /// Lock-step: how many steps the leader may run ahead of its followers.
 pub const WINDOW: u64 = 200;
@@ -48,18 +52,18 @@ struct Progress {
     moved: Condvar,
 }
 
-fn zerr(what: &str, e: impl std::fmt::Display) -> CliError {
-    CliError::Run(format!("{what}: {e}"))
+fn zerr(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::Run(format!("{what}: {e}"))
 }
 
-pub async fn run(args: &LeaderArgs) -> Result<(), CliError> {
+pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     let (scenario, keys) = args.node.load()?;
     let time_scale = args.time_scale.unwrap_or(scenario.network.time_scale);
     if !(time_scale.is_finite() && time_scale > 0.0) {
-        return Err(CliError::Input(format!("--time-scale must be a positive number, not {time_scale}")));
+        return Err(Error::Input(format!("--time-scale must be a positive number, not {time_scale}")));
     }
     if !(args.start_lead.is_finite() && args.start_lead >= 0.0) {
-        return Err(CliError::Input("--start-lead must be ≥ 0".into()));
+        return Err(Error::Input("--start-lead must be ≥ 0".into()));
     }
     let session = args.node.open().await?;
     let result = run_leader(&session, &scenario, &keys, time_scale, Duration::from_secs_f64(args.start_lead)).await;
@@ -73,7 +77,7 @@ pub async fn run_leader(
     keys: &Keys,
     time_scale: f64,
     start_lead: Duration,
-) -> Result<(), CliError> {
+) -> Result<(), Error> {
     let hearing: Vec<u32> =
         (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
     let progress = Arc::new(Progress {
@@ -88,7 +92,7 @@ pub async fn run_leader(
             session
                 .declare_subscriber(keys.estimate(id))
                 .callback(move |s| {
-                    let key_id = node::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
+                    let key_id = keys::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
                     if let Ok(m) = wire::decode(&s.payload().to_bytes()) {
                         let published = p.published.load(std::sync::atomic::Ordering::Acquire);
                         if key_id == Some(m.header.sender) && m.header.step <= published.saturating_add(1) {
@@ -118,7 +122,7 @@ pub async fn run_leader(
     let lockstep = scenario.timing == Timing::Lockstep;
     // Lock-step: which hearing followers have completed the final step.
     let (done_subs, followers_done) = if lockstep {
-        node::watch_done(session, keys, &hearing, scenario.steps()).await?
+        telemetry::watch_done(session, keys, &hearing, scenario.steps()).await?
     } else {
         (Vec::new(), Default::default())
     };
@@ -127,7 +131,7 @@ pub async fn run_leader(
     ready.push(MONITOR.to_string());
     let lead = if lockstep { Duration::ZERO } else { start_lead };
     let (start, announcer) =
-        barrier::lead_start(session, keys, &hellos, &ready, node::fingerprint(scenario), time_scale, lead).await?;
+        barrier::lead_start(session, keys, &hellos, &ready, barrier::fingerprint(scenario), time_scale, lead).await?;
 
     let scenario = scenario.clone();
     // Telemetry through a bounded store and its own thread (see agent.rs).
@@ -137,7 +141,7 @@ pub async fn run_leader(
         leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &outbox, &followers_done)
     })
     .await
-    .map_err(|e| CliError::Run(format!("leader: loop panicked: {e}")))?;
+    .map_err(|e| Error::Run(format!("leader: loop panicked: {e}")))?;
     let undelivered =
         tokio::task::spawn_blocking(move || publishing.finish(Duration::from_secs(10))).await.unwrap_or(0);
     if undelivered > 0 {
@@ -146,7 +150,7 @@ pub async fn run_leader(
     announcer.abort();
     drop(subs);
     drop(done_subs);
-    outcome.map_err(|e| CliError::Run(format!("leader: {e}")))
+    outcome.map_err(|e| Error::Run(format!("leader: {e}")))
 }
 
 fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), String> {
@@ -215,7 +219,7 @@ fn leader_loop(
                 done: last,
                 loop_stats: if last { pacer.as_ref().map(Pacer::stats) } else { None },
             };
-            telemetry.push(node::encode(&t));
+            telemetry.push(codec::encode(&t));
             first_k = k + 1;
         }
     }

@@ -16,9 +16,15 @@ use formation_topology::Scenario;
 use serde_json::json;
 use tokio::sync::mpsc;
 
-use crate::cli::CliError;
+use crate::error::Error;
+
 use crate::net::barrier;
-use crate::net::node::{self, Counters, Keys, LoopStats, NodeArgs, Telemetry, MONITOR};
+use crate::net::codec;
+use crate::net::counters::Counters;
+use crate::net::keys::{self, Keys, MONITOR};
+use crate::net::node::NodeArgs;
+use crate::net::telemetry::Telemetry;
+use crate::net::timing::LoopStats;
 use crate::record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
 
 /// `monitor` arguments.
@@ -198,7 +204,7 @@ impl Recorder {
 
     /// Files one telemetry message received on `telemetry/<key_id>`.
     pub fn telemetry(&mut self, key_id: Option<u32>, bytes: &[u8]) -> std::io::Result<()> {
-        let Some(t) = node::decode::<Telemetry>(bytes) else {
+        let Some(t) = codec::decode::<Telemetry>(bytes) else {
             self.malformed += 1;
             return Ok(());
         };
@@ -387,15 +393,14 @@ impl Recorder {
 
 /// Runs the monitor to the end of the run (or Ctrl-C / SIGTERM / idle timeout).
 /// Returns how the run ended (`Idle` is an error).
-pub async fn run(args: &MonitorArgs) -> Result<Ending, CliError> {
+pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
     let (scenario, keys) = args.node.load()?;
     if !args.idle_timeout.is_finite() || args.idle_timeout <= 0.0 {
-        return Err(CliError::Input("--idle-timeout must be positive".into()));
+        return Err(Error::Input("--idle-timeout must be positive".into()));
     }
     let dir = args.out.clone().unwrap_or_else(|| PathBuf::from("runs").join(&keys.run));
     let opts = RecordOptions { dir, every: args.every.max(1), csv: true };
-    let recorder =
-        Recorder::new(&scenario, &opts).map_err(|e| CliError::Run(format!("creating the run folder: {e}")))?;
+    let recorder = Recorder::new(&scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
     let session = match args.node.open().await {
         Ok(s) => s,
         Err(e) => {
@@ -415,25 +420,25 @@ async fn monitor(
     keys: &Keys,
     mut recorder: Recorder,
     args: &MonitorArgs,
-) -> Result<Ending, CliError> {
+) -> Result<Ending, Error> {
     let (tx, mut rx) = mpsc::unbounded_channel::<(Option<u32>, Vec<u8>)>();
     let _sub = session
         .declare_subscriber(keys.telemetry_all())
         .callback(move |s| {
-            let id = node::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
+            let id = keys::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
             let _ = tx.send((id, s.payload().to_bytes().into_owned()));
         })
         .await
-        .map_err(|e| CliError::Run(format!("declaring the telemetry subscriber: {e}")))?;
+        .map_err(|e| Error::Run(format!("declaring the telemetry subscriber: {e}")))?;
 
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| CliError::Run(format!("installing the SIGTERM handler: {e}")))?;
+        .map_err(|e| Error::Run(format!("installing the SIGTERM handler: {e}")))?;
     // A stream created once, so that a signal arriving between two polls is not lost.
     let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
-        .map_err(|e| CliError::Run(format!("installing the SIGINT handler: {e}")))?;
+        .map_err(|e| Error::Run(format!("installing the SIGINT handler: {e}")))?;
     let mut needs: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
-    needs.push(node::LEADER_NODE.to_string());
-    let barrier = barrier::wait_for_start(session, keys, MONITOR, &needs, node::fingerprint(scenario));
+    needs.push(keys::LEADER_NODE.to_string());
+    let barrier = barrier::wait_for_start(session, keys, MONITOR, &needs, barrier::fingerprint(scenario));
     tokio::pin!(barrier);
     let mut started = false;
 
@@ -452,7 +457,7 @@ async fn monitor(
             m = rx.recv() => {
                 let Some((id, bytes)) = m else { break Ending::Idle };
                 last_heard = Instant::now();
-                recorder.telemetry(id, &bytes).map_err(|e| CliError::Run(format!("writing the run folder: {e}")))?;
+                recorder.telemetry(id, &bytes).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
                 if recorder.complete() {
                     break Ending::Complete;
                 }
@@ -463,7 +468,7 @@ async fn monitor(
                 if last_heard.elapsed() > idle {
                     break Ending::Idle;
                 }
-                recorder.flush().map_err(|e| CliError::Run(format!("writing the run folder: {e}")))?;
+                recorder.flush().map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
                 if live && started {
                     let line = recorder.status_line();
                     let mut err = std::io::stderr().lock();
@@ -476,7 +481,7 @@ async fn monitor(
         // Keep what already arrived (stop listening first, so this ends).
         drop(_sub);
         while let Ok((id, bytes)) = rx.try_recv() {
-            recorder.telemetry(id, &bytes).map_err(|e| CliError::Run(format!("writing the run folder: {e}")))?;
+            recorder.telemetry(id, &bytes).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
         }
     }
     if live && tty {
@@ -484,7 +489,7 @@ async fn monitor(
     }
     let recorded = recorder.recorded_steps();
     let unfinished = recorder.unfinished();
-    let (summary, dir) = recorder.finish(ending).map_err(|e| CliError::Run(format!("writing the run folder: {e}")))?;
+    let (summary, dir) = recorder.finish(ending).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
     match ending {
         Ending::Complete => {
             if !args.quiet {
@@ -499,7 +504,7 @@ async fn monitor(
             eprintln!("{how}: wrote the {recorded} steps received to {}{short}", dir.display());
             Ok(ending)
         }
-        Ending::Idle => Err(CliError::Run(format!(
+        Ending::Idle => Err(Error::Run(format!(
             "no telemetry for {} s; still running: {}; wrote the {recorded} steps received to {}",
             args.idle_timeout,
             unfinished.join(", "),
@@ -559,7 +564,7 @@ mod tests {
         let (_dir, scenario, mut r) = paper_recorder();
         let steps = scenario.steps();
         let leader = |first_k: u64, n: u64, done: bool| {
-            node::encode(&Telemetry::Leader {
+            codec::encode(&Telemetry::Leader {
                 first_k,
                 states: vec![LeaderState::default(); n as usize],
                 counters: Counters::default(),
@@ -568,7 +573,7 @@ mod tests {
             })
         };
         let follower = |id: u32, first_k: u64, samples: Vec<FollowerSample>, done: bool| {
-            node::encode(&Telemetry::Follower {
+            codec::encode(&Telemetry::Follower {
                 id,
                 first_k,
                 samples,
@@ -604,7 +609,7 @@ mod tests {
         let states = vec![LeaderState::default(); steps as usize + 1];
         let leader =
             Telemetry::Leader { first_k: 0, states, counters: Counters::default(), done: true, loop_stats: None };
-        r.telemetry(Some(0), &node::encode(&leader)).unwrap();
+        r.telemetry(Some(0), &codec::encode(&leader)).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
         // The third follower stops after 4 of the steps + 1 samples.
         for &id in &ids {
@@ -618,7 +623,7 @@ mod tests {
                 done: false,
                 loop_stats: None,
             };
-            r.telemetry(Some(id), &node::encode(&batch)).unwrap();
+            r.telemetry(Some(id), &codec::encode(&batch)).unwrap();
         }
         let (summary, dir) = r.finish(Ending::Interrupted).expect("partial run written");
         assert!(!summary.complete);
