@@ -202,7 +202,8 @@ pub struct MetricsAccumulator {
     n_last10: u64,
     sum_v_sq: f64,
     sum_w_sq: f64,
-    prev_torque: Option<(f64, f64)>,
+    /// The torques of the previous sample, and its step.
+    prev_torque: Option<(u64, f64, f64)>,
     tv: f64,
     vc_peak: f64,
     torque_peak: f64,
@@ -246,10 +247,11 @@ impl MetricsAccumulator {
         self.sum_w_sq += (r.w_hat - r.w) * (r.w_hat - r.w);
         self.vc_peak = self.vc_peak.max(r.v_c.abs());
         self.torque_peak = self.torque_peak.max(r.tau_l.abs()).max(r.tau_r.abs());
-        if let Some((l, rr)) = self.prev_torque {
+        // Across a gap in the record (a node that was down) there is no Δτ to add.
+        if let Some((_, l, rr)) = self.prev_torque.filter(|p| p.0 + 1 == k) {
             self.tv += (r.tau_l - l).abs() + (r.tau_r - rr).abs();
         }
-        self.prev_torque = Some((r.tau_l, r.tau_r));
+        self.prev_torque = Some((k, r.tau_l, r.tau_r));
         self.samples += 1;
         self.reached_final = k == self.steps;
         self.last = *r;

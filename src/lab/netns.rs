@@ -98,7 +98,10 @@ pub fn prepare_unshared() -> Result<(), String> {
     DONE.get_or_init(|| {
         let map = fs::read_to_string("/proc/self/uid_map").map_err(|e| format!("/proc/self/uid_map: {e}"))?;
         if map.split_whitespace().eq(["0", "0", "4294967295"]) {
-            return Err(format!("prepare_unshared must run inside `{}`, not in the initial user namespace", UNSHARE.join(" ")));
+            return Err(format!(
+                "prepare_unshared must run inside `{}`, not in the initial user namespace",
+                UNSHARE.join(" ")
+            ));
         }
         if Path::new(NETNS_DIR).is_dir() {
             run(Command::new("mount").args(["-t", "tmpfs", "tmpfs", NETNS_DIR]))?;
@@ -175,7 +178,11 @@ impl Lab {
     }
 
     fn host(&self, name: &str) -> Result<(usize, &Host), String> {
-        self.hosts.iter().enumerate().find(|(_, h)| h.name == name).ok_or_else(|| format!("no host {name:?} in this lab"))
+        self.hosts
+            .iter()
+            .enumerate()
+            .find(|(_, h)| h.name == name)
+            .ok_or_else(|| format!("no host {name:?} in this lab"))
     }
 
     /// The host's address on 10.77.0.0/16.
@@ -219,7 +226,8 @@ impl Lab {
                 return Err(format!("packet loss for {name} must be 0..=100 %, not {p}"));
             }
             let cut = (p * 100.0).round() as u32; // numgen draws 0..=9999
-            let verdict = if cut >= 10_000 { "drop".to_string() } else { format!("numgen random mod 10000 < {cut} drop") };
+            let verdict =
+                if cut >= 10_000 { "drop".to_string() } else { format!("numgen random mod 10000 < {cut} drop") };
             if cut > 0 {
                 script += &format!(
                     "; add table inet flab\
@@ -245,7 +253,11 @@ impl Lab {
                 true
             }
         });
-        if failed.is_empty() { Ok(()) } else { Err(failed.join("; ")) }
+        if failed.is_empty() {
+            Ok(())
+        } else {
+            Err(failed.join("; "))
+        }
     }
 }
 
@@ -279,12 +291,19 @@ fn validate(names: &[&str]) -> Result<(), String> {
         return Err(format!("a lab has at most {MAX_HOSTS} hosts, not {}", names.len()));
     }
     for (i, n) in names.iter().enumerate() {
-        if n.is_empty() || n.len() > MAX_NAME || !n.bytes().all(|b| matches!(b, b'a'..=b'z' | b'0'..=b'9' | b'-')) {
-            return Err(format!("bad lab host name {n:?}: use 1 to {MAX_NAME} of [a-z0-9-]"));
-        }
-        if *n == "sw" || names[..i].contains(n) {
-            return Err(format!("bad lab host name {n:?}: {}", if *n == "sw" { "reserved for the switch" } else { "twice" }));
-        }
+        let why = if n.is_empty()
+            || n.len() > MAX_NAME
+            || !n.bytes().all(|b| matches!(b, b'a'..=b'z' | b'0'..=b'9' | b'-'))
+        {
+            "use 1 to 20 of [a-z0-9-]"
+        } else if *n == "sw" {
+            "reserved for the switch"
+        } else if names[..i].contains(n) {
+            "given twice"
+        } else {
+            continue;
+        };
+        return Err(format!("bad lab host name {n:?}: {why}"));
     }
     Ok(())
 }
@@ -349,10 +368,13 @@ mod tests {
         let why = if std::env::var_os(UNSHARED_ENV).is_some() { prepare_unshared().err() } else { None };
         let why = why.or_else(|| match privilege() {
             Ok(Privilege::Root) => None,
-            Ok(Privilege::Unshare) => Some(format!("not root; run the test binary under `{UNSHARED_ENV}=1 {}`", UNSHARE.join(" "))),
+            Ok(Privilege::Unshare) => {
+                Some(format!("not root; run the test binary under `{UNSHARED_ENV}=1 {}`", UNSHARE.join(" ")))
+            }
             Err(e) => Some(e),
         });
-        let why = why.or_else(|| ["ping -V", "nft -v"].iter().find_map(|c| run(Command::new("sh").args(["-c", c])).err()));
+        let why =
+            why.or_else(|| ["ping -V", "nft -v"].iter().find_map(|c| run(Command::new("sh").args(["-c", c])).err()));
         if let Some(why) = &why {
             eprintln!("{test}: skipped: {why}");
         }
@@ -380,7 +402,8 @@ mod tests {
     }
 
     fn listed() -> String {
-        String::from_utf8_lossy(&Command::new("ip").args(["netns", "list"]).output().expect("ip runs").stdout).into_owned()
+        String::from_utf8_lossy(&Command::new("ip").args(["netns", "list"]).output().expect("ip runs").stdout)
+            .into_owned()
     }
 
     fn names(lab: &Lab) -> Vec<String> {

@@ -19,7 +19,6 @@ use formation_agent::{Hearing, LeaderState};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use formation_topology::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
-use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
 use crate::error::Error;
@@ -27,10 +26,10 @@ use crate::error::Error;
 use crate::net::barrier::{self, Start};
 use crate::net::codec;
 use crate::net::counters::Counters;
+use crate::net::courier::Courier;
 use crate::net::inbox::{self, Inbox, Source};
 use crate::net::keys::{self, Keys};
 use crate::net::node::{estimate_congestion, NodeArgs};
-use crate::net::outbox::{Outbox, Publishing};
 use crate::net::telemetry::{self, Telemetry};
 use crate::net::timing::Pacer;
 use crate::record::FollowerSample;
@@ -175,11 +174,6 @@ pub async fn run_follower(
         .express(true)
         .await
         .map_err(|e| zerr("declaring the estimate publisher", e))?;
-    let telemetry_pub = session
-        .declare_publisher(keys.telemetry(id))
-        .congestion_control(CongestionControl::Block)
-        .await
-        .map_err(|e| zerr("declaring the telemetry publisher", e))?;
 
     // Lock-step: which neighbours have completed the final step (see the end of control_loop).
     let (done_subs, neighbours_done) = if lockstep {
@@ -210,6 +204,7 @@ pub async fn run_follower(
         silence_steps: scenario.silence_steps(),
         start,
         stall_timeout,
+        incarnation: barrier::unix_ns(),
         neighbours_done,
         source_names: sources
             .iter()
@@ -217,19 +212,21 @@ pub async fn run_follower(
             .collect(),
     };
     // Telemetry leaves the loop through a bounded store and a thread of its
-    // own, so a slow or dead link to the monitor never holds a step.
-    let publishing = Publishing::start(move |bytes| put(&telemetry_pub, bytes));
-    let outbox = publishing.outbox.clone();
-    let outcome = tokio::task::spawn_blocking(move || control_loop(loop_ctx, body, &shared, &estimate_pub, &outbox))
+    // own, so a slow or dead link to the monitor never holds a step; it is
+    // kept until the monitor acknowledges it.
+    let (delivery, acks) = telemetry::start_delivery(session, keys, id, scenario).await?;
+    let courier = delivery.courier.clone();
+    let outcome = tokio::task::spawn_blocking(move || control_loop(loop_ctx, body, &shared, &estimate_pub, &courier))
         .await
         .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
-    let undelivered = tokio::task::spawn_blocking(move || publishing.finish(TELEMETRY_DRAIN)).await.unwrap_or(0);
-    if undelivered > 0 {
+    let unacknowledged = tokio::task::spawn_blocking(move || delivery.finish(telemetry::DRAIN)).await.unwrap_or(0);
+    if unacknowledged > 0 {
         eprintln!(
-            "follower {id}: {undelivered} telemetry batches were not delivered to the monitor (store of {} batches)",
-            crate::net::outbox::CAPACITY
+            "follower {id}: the monitor did not acknowledge {unacknowledged} steps of telemetry within {} s",
+            telemetry::DRAIN.as_secs()
         );
     }
+    drop(acks);
     drop(subscribers);
     drop(done_subs);
     outcome.map_err(|e| Error::Run(format!("follower {id}: {e}")))
@@ -275,14 +272,16 @@ struct LoopCtx {
     silence_steps: u64,
     start: Start,
     stall_timeout: Duration,
+    /// This process's start (ns since the Unix epoch), sent with telemetry.
+    incarnation: u64,
     /// Lock-step: neighbours that reported their final step.
     neighbours_done: Arc<Mutex<std::collections::BTreeSet<u32>>>,
     /// "follower 2", …, "the leader", by inbox slot.
     source_names: Vec<String>,
 }
 
-fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), String> {
-    p.put(bytes).wait().map_err(|e| format!("publishing: {e}"))
+fn put(p: &Publisher<'_>, bytes: &[u8]) -> Result<(), String> {
+    p.put(bytes.to_vec()).wait().map_err(|e| format!("publishing: {e}"))
 }
 
 fn control_loop(
@@ -290,7 +289,7 @@ fn control_loop(
     mut body: Box<dyn Body>,
     shared: &Shared,
     estimate_pub: &Publisher<'_>,
-    telemetry: &Outbox,
+    telemetry: &Courier,
 ) -> Result<(), String> {
     let msg = |k: u64, state: LeaderState| EstimateMsg {
         header: Header { version: FORMAT_VERSION, sender: c.id, step: k, time_s: k as f64 * c.dt_s },
@@ -301,7 +300,7 @@ fn control_loop(
     // The messages for the previous and the current step (republished while waiting).
     let mut previous: Option<Vec<u8>> = None;
     let mut current = wire::encode(&msg(0, body.initial_message()));
-    put(estimate_pub, current.clone())?;
+    put(estimate_pub, &current)?;
     sent += 1;
 
     let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s));
@@ -346,7 +345,7 @@ fn control_loop(
                         // Safety net for messages lost at start-up: say it again.
                         drop(inbox);
                         for bytes in previous.iter().chain(std::iter::once(&current)) {
-                            put(estimate_pub, bytes.clone())?;
+                            put(estimate_pub, bytes)?;
                             sent += 1;
                             republished += 1;
                         }
@@ -389,7 +388,7 @@ fn control_loop(
         let diverged = body.check_finite().err();
         if !last && diverged.is_none() {
             let bytes = wire::encode(&msg(k + 1, next));
-            put(estimate_pub, bytes.clone())?;
+            put(estimate_pub, &bytes)?;
             sent += 1;
             previous = Some(std::mem::replace(&mut current, bytes));
         }
@@ -405,8 +404,13 @@ fn control_loop(
                 counters,
                 done,
                 loop_stats: if done { pacer.as_ref().map(Pacer::stats) } else { None },
+                delivery: telemetry::Delivery {
+                    available_from: telemetry.available_from(first_k),
+                    incarnation: c.incarnation,
+                    courier: telemetry.stats(),
+                },
             };
-            telemetry.push(codec::encode(&t));
+            telemetry.push(first_k, k + 1, codec::encode(&t));
             first_k = k + 1;
         }
         if let Some(q) = diverged {
@@ -424,7 +428,7 @@ fn control_loop(
             }
             if said.elapsed() >= Duration::from_millis(200) {
                 for bytes in previous.iter().chain(std::iter::once(&current)) {
-                    put(estimate_pub, bytes.clone())?;
+                    put(estimate_pub, bytes)?;
                 }
                 said = Instant::now();
             }
@@ -433,9 +437,6 @@ fn control_loop(
     }
     Ok(())
 }
-
-/// How long a finished follower waits for its telemetry to go out.
-const TELEMETRY_DRAIN: Duration = Duration::from_secs(10);
 
 /// Lock-step: how long a follower keeps republishing its final message after its last step.
 const LINGER: Duration = Duration::from_secs(1);

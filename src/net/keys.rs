@@ -7,6 +7,7 @@
 //! | `control/hello/<node>` | every node, until the start | empty |
 //! | `control/ready/<node>` | agents and monitor, until the start | [`crate::net::barrier::Ready`] |
 //! | `control/start` | leader, every 100 ms during the run | [`crate::net::barrier::Start`] |
+//! | `control/ack` | monitor, every 100 ms during the run | [`crate::net::telemetry::Ack`] |
 //!
 //! `<node>` is `0` for the leader, the follower id, or `monitor`.
 
@@ -39,6 +40,9 @@ impl Keys {
     }
     pub fn ready_all(&self) -> String {
         session::key(&self.run, "control/ready/*")
+    }
+    pub fn ack(&self) -> String {
+        session::key(&self.run, "control/ack")
     }
     pub fn start(&self) -> String {
         session::key(&self.run, "control/start")

@@ -14,16 +14,15 @@ use formation_agent::LeaderState;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use formation_topology::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
-use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
 use crate::error::Error;
 use crate::net::barrier::{self, Start};
 use crate::net::codec;
 use crate::net::counters::Counters;
+use crate::net::courier::Courier;
 use crate::net::keys::{self, Keys, MONITOR};
 use crate::net::node::{estimate_congestion, NodeArgs};
-use crate::net::outbox::{Outbox, Publishing};
 use crate::net::telemetry::{self, Telemetry};
 use crate::net::timing::Pacer;
 
@@ -113,11 +112,6 @@ pub async fn run_leader(
         .express(true)
         .await
         .map_err(|e| zerr("declaring the estimate publisher", e))?;
-    let telemetry_pub = session
-        .declare_publisher(keys.telemetry(wire::LEADER_ID))
-        .congestion_control(CongestionControl::Block)
-        .await
-        .map_err(|e| zerr("declaring the telemetry publisher", e))?;
 
     let lockstep = scenario.timing == Timing::Lockstep;
     // Lock-step: which hearing followers have completed the final step.
@@ -135,18 +129,21 @@ pub async fn run_leader(
 
     let scenario = scenario.clone();
     // Telemetry through a bounded store and its own thread (see agent.rs).
-    let publishing = Publishing::start(move |bytes| put(&telemetry_pub, bytes));
-    let outbox = publishing.outbox.clone();
+    let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, &scenario).await?;
+    let courier = delivery.courier.clone();
     let outcome = tokio::task::spawn_blocking(move || {
-        leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &outbox, &followers_done)
+        leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &courier, &followers_done)
     })
     .await
     .map_err(|e| Error::Run(format!("leader: loop panicked: {e}")))?;
-    let undelivered =
-        tokio::task::spawn_blocking(move || publishing.finish(Duration::from_secs(10))).await.unwrap_or(0);
-    if undelivered > 0 {
-        eprintln!("leader: {undelivered} telemetry batches were not delivered to the monitor");
+    let unacknowledged = tokio::task::spawn_blocking(move || delivery.finish(telemetry::DRAIN)).await.unwrap_or(0);
+    if unacknowledged > 0 {
+        eprintln!(
+            "leader: the monitor did not acknowledge {unacknowledged} steps of telemetry within {} s",
+            telemetry::DRAIN.as_secs()
+        );
     }
+    drop(acks);
     announcer.abort();
     drop(subs);
     drop(done_subs);
@@ -163,7 +160,7 @@ fn leader_loop(
     start: &Start,
     progress: &Progress,
     estimate_pub: &Publisher<'_>,
-    telemetry: &Outbox,
+    telemetry: &Courier,
     followers_done: &Mutex<std::collections::BTreeSet<u32>>,
 ) -> Result<(), String> {
     let steps = s.steps();
@@ -188,6 +185,7 @@ fn leader_loop(
     let mut pacer = (!lockstep).then(|| Pacer::new(start, dt));
     let mut batch: Vec<LeaderState> = Vec::with_capacity(batch_len);
     let mut first_k = 0u64;
+    let incarnation = barrier::unix_ns();
     for k in 0..=steps {
         let last = k == steps;
         if let Some(p) = pacer.as_mut() {
@@ -218,8 +216,13 @@ fn leader_loop(
                 counters,
                 done: last,
                 loop_stats: if last { pacer.as_ref().map(Pacer::stats) } else { None },
+                delivery: telemetry::Delivery {
+                    available_from: telemetry.available_from(first_k),
+                    incarnation,
+                    courier: telemetry.stats(),
+                },
             };
-            telemetry.push(codec::encode(&t));
+            telemetry.push(first_k, k + 1, codec::encode(&t));
             first_k = k + 1;
         }
     }

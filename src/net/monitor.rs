@@ -23,7 +23,7 @@ use crate::net::codec;
 use crate::net::counters::Counters;
 use crate::net::keys::{self, Keys, MONITOR};
 use crate::net::node::NodeArgs;
-use crate::net::telemetry::Telemetry;
+use crate::net::telemetry::{Ack, Delivery, Telemetry};
 use crate::net::timing::LoopStats;
 use crate::record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
 
@@ -63,21 +63,37 @@ pub enum Ending {
 struct NodeStats {
     messages: u64,
     bytes: u64,
+    /// Steps recorded from this node's telemetry.
     samples: u64,
-    gaps: u64,
+    /// The newest batch so far, as (incarnation, first step): counters and
+    /// delivery figures are taken from it (a batch sent again is older).
+    newest: Option<(u64, u64)>,
     counters: Counters,
+    delivery: Delivery,
     loop_stats: Option<LoopStats>,
     done: bool,
 }
 
 impl NodeStats {
-    /// Files an admitted batch's bookkeeping.
-    fn note(&mut self, bytes: usize, counters: Counters, done: bool, loop_stats: Option<LoopStats>, fresh: usize) {
+    /// Files a checked batch's bookkeeping.
+    fn note(
+        &mut self,
+        bytes: usize,
+        first_k: u64,
+        counters: Counters,
+        done: bool,
+        loop_stats: Option<LoopStats>,
+        delivery: Delivery,
+    ) {
         self.messages += 1;
         self.bytes += bytes as u64;
-        self.samples += fresh as u64;
-        self.counters = counters;
         self.done |= done;
+        let at = (delivery.incarnation, first_k);
+        if self.newest.is_none_or(|n| at >= n) {
+            self.newest = Some(at);
+            self.counters = counters;
+            self.delivery = delivery;
+        }
         // Non-finite timing would turn into nulls in network.json.
         let finite = |l: &LoopStats| {
             [
@@ -95,63 +111,143 @@ impl NodeStats {
     }
 }
 
-/// What to do with a telemetry batch (items for steps first_k, first_k + 1, …).
-#[derive(Debug, PartialEq)]
-enum Batch<T> {
-    /// Beyond the run's last step.
-    Malformed,
-    /// Starts after the end of what is recorded (a batch was lost).
-    Gap,
-    /// The items beyond what is recorded (an overlap with recorded steps,
-    /// e.g. after a forged batch of another length, is skipped); `truncated`
-    /// when it was cut at a non-finite or misnumbered item.
-    Fresh { items: Vec<T>, truncated: bool },
+/// Steps of one node that the monitor will never have.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct Gap {
+    /// Steps from..to.
+    pub from: u64,
+    pub to: u64,
+    /// "restarted" (the node's process was replaced) or "dropped by the
+    /// sender" (its store of unacknowledged telemetry overflowed).
+    pub why: &'static str,
 }
 
-impl<T> Batch<T> {
-    /// Counts a rejected or truncated batch; the items to record, if any.
-    fn count(self, malformed: &mut u64, gaps: &mut u64) -> Option<Vec<T>> {
-        match self {
-            Batch::Malformed => {
-                *malformed += 1;
-                None
-            }
-            Batch::Gap => {
-                *gaps += 1;
-                None
-            }
-            Batch::Fresh { items, truncated } => {
-                *malformed += u64::from(truncated);
-                Some(items)
-            }
+/// Batches that arrive ahead of the recorded end are held, up to this many per node.
+const MAX_AHEAD: usize = 8192;
+
+/// One node's telemetry put back in step order: batches may arrive late,
+/// twice (sent again), out of order, or never (steps the sender says it
+/// can no longer deliver become a [`Gap`]).
+#[derive(Debug)]
+struct Stream<T> {
+    /// Every step below `end` is recorded or marked lost.
+    end: u64,
+    /// Batches that arrived ahead of `end`, by first step.
+    ahead: BTreeMap<u64, Vec<T>>,
+    gaps: Vec<Gap>,
+    /// Batches that arrived ahead of a missing one and were held.
+    reordered: u64,
+    /// Batches that held nothing new (sent again after a lost acknowledgement).
+    duplicates: u64,
+    /// Batches given up because too many were held ahead.
+    overflow: u64,
+    /// The sender's process (see `Delivery::incarnation`).
+    incarnation: Option<u64>,
+}
+
+impl<T> Default for Stream<T> {
+    fn default() -> Self {
+        Self {
+            end: 0,
+            ahead: BTreeMap::new(),
+            gaps: Vec::new(),
+            reordered: 0,
+            duplicates: 0,
+            overflow: 0,
+            incarnation: None,
         }
     }
 }
 
-/// Checks a batch against the recorded steps `..end` of a run of `steps` + 1
-/// steps, before anything is updated; `ok(k, item)` validates one item.
-fn admit<T>(mut items: Vec<T>, first_k: u64, end: u64, steps: u64, ok: impl Fn(u64, &T) -> bool) -> Batch<T> {
+impl<T> Stream<T> {
+    /// Files a checked batch (items for steps first_k, first_k + 1, …) from
+    /// a sender that can deliver nothing below `available_from`; appends to
+    /// `out` every item now in order, with its step.
+    fn file(&mut self, first_k: u64, items: Vec<T>, available_from: u64, incarnation: u64, out: &mut Vec<(u64, T)>) {
+        let restarted = self.incarnation.is_some_and(|i| i != incarnation);
+        self.incarnation = Some(incarnation);
+        let end = first_k + items.len() as u64;
+        if end <= self.end || items.is_empty() {
+            self.duplicates += 1;
+        } else if first_k > self.end {
+            self.reordered += 1;
+            if self.ahead.len() >= MAX_AHEAD {
+                self.overflow += 1;
+                if let Some(last) = self.ahead.keys().next_back().copied().filter(|&l| l > first_k) {
+                    self.ahead.remove(&last);
+                } else {
+                    return;
+                }
+            }
+            // Of two batches with one first step, keep the longer.
+            match self.ahead.get(&first_k) {
+                Some(held) if held.len() >= items.len() => {}
+                _ => {
+                    self.ahead.insert(first_k, items);
+                }
+            }
+        } else {
+            self.take(first_k, items, out);
+        }
+        loop {
+            // Held batches that now continue the stream.
+            while let Some((&k, _)) = self.ahead.first_key_value().filter(|(&k, _)| k <= self.end) {
+                if let Some(items) = self.ahead.remove(&k) {
+                    self.take(k, items, out);
+                }
+            }
+            // Steps the sender can no longer deliver: a gap up to what it can.
+            if available_from <= self.end {
+                break;
+            }
+            let to = self.ahead.keys().next().map_or(available_from, |&k| k.min(available_from));
+            let why = if restarted { "restarted" } else { "dropped by the sender" };
+            match self.gaps.last_mut() {
+                Some(g) if g.to == self.end && g.why == why => g.to = to,
+                _ => self.gaps.push(Gap { from: self.end, to, why }),
+            }
+            self.end = to;
+        }
+    }
+
+    /// Appends the items of a batch beyond `end` (first_k ≤ end).
+    fn take(&mut self, first_k: u64, items: Vec<T>, out: &mut Vec<(u64, T)>) {
+        let skip = (self.end - first_k) as usize;
+        let end = first_k + items.len() as u64;
+        out.extend(items.into_iter().enumerate().skip(skip).map(|(i, x)| (first_k + i as u64, x)));
+        self.end = self.end.max(end);
+    }
+
+    fn lost_steps(&self) -> u64 {
+        self.gaps.iter().map(|g| g.to - g.from).sum()
+    }
+}
+
+/// Checks a batch against a run of `steps` + 1 steps before anything is
+/// filed: None if it reaches beyond the run's end; otherwise the items up
+/// to the first that fails `ok(k, item)`, and whether it was cut there.
+fn check_batch<T>(mut items: Vec<T>, first_k: u64, steps: u64, ok: impl Fn(u64, &T) -> bool) -> Option<(Vec<T>, bool)> {
     match first_k.checked_add(items.len() as u64) {
         Some(last) if last <= steps + 1 => {}
-        _ => return Batch::Malformed,
-    }
-    if first_k > end {
-        return Batch::Gap;
+        _ => return None,
     }
     let bad = items.iter().enumerate().position(|(i, x)| !ok(first_k + i as u64, x));
     if let Some(b) = bad {
         items.truncate(b);
     }
-    let skip = (end - first_k) as usize;
-    let items = if skip < items.len() { items.split_off(skip) } else { Vec::new() };
-    Batch::Fresh { items, truncated: bad.is_some() }
+    Some((items, bad.is_some()))
 }
 
 struct FollowerTrack {
     id: u32,
     offset: [f64; 2],
+    stream: Stream<FollowerSample>,
+    /// Samples in step order, waiting for the leader's state of their step.
     pending: VecDeque<FollowerSample>,
+    /// Every step below this is a row or lost.
     next_k: u64,
+    /// Samples whose leader state was lost (no row).
+    unpaired: u64,
     metrics: MetricsAccumulator,
     formation_error: f64,
 }
@@ -161,10 +257,10 @@ pub struct Recorder {
     scenario: Scenario,
     writer: RunWriter,
     followers: Vec<FollowerTrack>,
-    /// Leader states from step `leader_base` on.
-    leader: VecDeque<LeaderState>,
+    leader_stream: Stream<LeaderState>,
+    /// Leader states of steps `leader_base`.. (None: lost).
+    leader: VecDeque<Option<LeaderState>>,
     leader_base: u64,
-    leader_next_k: u64,
     nodes: BTreeMap<u32, NodeStats>,
     malformed: u64,
 }
@@ -179,8 +275,10 @@ impl Recorder {
             .map(|f| FollowerTrack {
                 id: f.id,
                 offset: f.offset,
+                stream: Stream::default(),
                 pending: VecDeque::new(),
                 next_k: 0,
+                unpaired: 0,
                 metrics: MetricsAccumulator::for_scenario(scenario),
                 formation_error: f64::NAN,
             })
@@ -194,9 +292,9 @@ impl Recorder {
             scenario: scenario.clone(),
             writer,
             followers,
+            leader_stream: Stream::default(),
             leader: VecDeque::new(),
             leader_base: 0,
-            leader_next_k: 0,
             nodes,
             malformed: 0,
         })
@@ -210,37 +308,52 @@ impl Recorder {
         };
         let steps = self.scenario.steps();
         match t {
-            Telemetry::Leader { first_k, states, counters, done, loop_stats } => {
+            Telemetry::Leader { first_k, states, counters, done, loop_stats, delivery } => {
                 if key_id != Some(0) {
                     self.malformed += 1;
                     return Ok(());
                 }
-                let end = self.leader_next_k;
+                let Some((states, cut)) = check_batch(states, first_k, steps, |_, s| s.is_finite()) else {
+                    self.malformed += 1;
+                    return Ok(());
+                };
+                self.malformed += u64::from(cut);
                 let n = self.nodes.entry(0).or_default();
-                let batch = admit(states, first_k, end, steps, |_, s| s.is_finite());
-                let Some(fresh) = batch.count(&mut self.malformed, &mut n.gaps) else { return Ok(()) };
-                n.note(bytes.len(), counters, done, loop_stats, fresh.len());
-                for (i, s) in fresh.into_iter().enumerate() {
-                    let k = end + i as u64;
+                n.note(bytes.len(), first_k, counters, done, loop_stats, delivery);
+                let mut fresh = Vec::new();
+                self.leader_stream.file(first_k, states, delivery.available_from, delivery.incarnation, &mut fresh);
+                n.samples += fresh.len() as u64;
+                for (k, s) in fresh {
                     if self.writer.wants(k, k == steps) {
                         self.writer.leader_row(k as f64 * self.scenario.dt_s, &s)?;
                     }
-                    self.leader.push_back(s);
+                    while self.leader_base + (self.leader.len() as u64) < k {
+                        self.leader.push_back(None);
+                    }
+                    self.leader.push_back(Some(s));
                 }
-                self.leader_next_k = self.leader_base + self.leader.len() as u64;
+                while self.leader_base + (self.leader.len() as u64) < self.leader_stream.end {
+                    self.leader.push_back(None);
+                }
             }
-            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats } => {
+            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats, delivery } => {
                 let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
                     self.malformed += 1;
                     return Ok(());
                 };
+                let ok = |k: u64, s: &FollowerSample| s.k == k && s.is_finite();
+                let Some((samples, cut)) = check_batch(samples, first_k, steps, ok) else {
+                    self.malformed += 1;
+                    return Ok(());
+                };
+                self.malformed += u64::from(cut);
                 let f = &mut self.followers[index];
-                let end = f.next_k + f.pending.len() as u64;
                 let n = self.nodes.entry(id).or_default();
-                let batch = admit(samples, first_k, end, steps, |k, s| s.k == k && s.is_finite());
-                let Some(fresh) = batch.count(&mut self.malformed, &mut n.gaps) else { return Ok(()) };
-                n.note(bytes.len(), counters, done, loop_stats, fresh.len());
-                f.pending.extend(fresh);
+                n.note(bytes.len(), first_k, counters, done, loop_stats, delivery);
+                let mut fresh = Vec::new();
+                f.stream.file(first_k, samples, delivery.available_from, delivery.incarnation, &mut fresh);
+                n.samples += fresh.len() as u64;
+                f.pending.extend(fresh.into_iter().map(|(_, s)| s));
             }
         }
         self.process()
@@ -252,26 +365,45 @@ impl Recorder {
         let dt = self.scenario.dt_s;
         let leader_end = self.leader_base + self.leader.len() as u64;
         for (index, f) in self.followers.iter_mut().enumerate() {
-            while f.next_k < leader_end {
+            while f.pending.front().is_some_and(|s| s.k < leader_end) {
                 let Some(sample) = f.pending.pop_front() else { break };
-                let k = f.next_k;
-                let l = &self.leader[(k - self.leader_base) as usize];
-                let row = Row::new(&sample, l, f.offset, dt);
+                let k = sample.k;
+                f.next_k = k + 1;
+                let Some(l) = self.leader.get((k - self.leader_base) as usize).copied().flatten() else {
+                    f.unpaired += 1;
+                    continue;
+                };
+                let row = Row::new(&sample, &l, f.offset, dt);
                 f.metrics.push(k, &row);
                 f.formation_error = row.formation_error;
                 if self.writer.wants(k, k == steps) {
                     self.writer.follower_row(index, &row)?;
                 }
-                f.next_k += 1;
+            }
+            if f.pending.is_empty() {
+                f.next_k = f.next_k.max(f.stream.end.min(leader_end));
             }
         }
         // Leader states every follower has used are no longer needed.
-        let used = self.followers.iter().map(|f| f.next_k).min().unwrap_or(leader_end);
+        let used =
+            self.followers.iter().map(|f| f.pending.front().map_or(f.next_k, |s| s.k)).min().unwrap_or(leader_end);
         while self.leader_base < used && !self.leader.is_empty() {
             self.leader.pop_front();
             self.leader_base += 1;
         }
         Ok(())
+    }
+
+    /// Per node (0: the leader), the first step the monitor does not hold.
+    pub fn ack(&self) -> Ack {
+        let mut next_k = vec![(0, self.leader_stream.end)];
+        next_k.extend(self.followers.iter().map(|f| (f.id, f.stream.end)));
+        Ack { fingerprint: barrier::fingerprint(&self.scenario), next_k }
+    }
+
+    /// Steps of any node that will never be recorded (lost, or left without a leader state).
+    pub fn lost_steps(&self) -> u64 {
+        self.leader_stream.lost_steps() + self.followers.iter().map(|f| f.stream.lost_steps() + f.unpaired).sum::<u64>()
     }
 
     /// Removes the folder being written (a run that never started).
@@ -284,10 +416,14 @@ impl Recorder {
         self.writer.flush()
     }
 
-    /// Whether every node has reported its final step and all of it is recorded.
+    /// Whether every node has reported its final step and all of it is recorded
+    /// or marked lost.
+    /// (Gaps included: see [`Recorder::lost_steps`].)
     pub fn complete(&self) -> bool {
         let steps = self.scenario.steps();
-        self.nodes.values().all(|n| n.done) && self.followers.iter().all(|f| f.next_k == steps + 1)
+        self.nodes.values().all(|n| n.done)
+            && self.leader_stream.end == steps + 1
+            && self.followers.iter().all(|f| f.next_k == steps + 1 && f.pending.is_empty())
     }
 
     /// Steps recorded by every follower.
@@ -332,15 +468,27 @@ impl Recorder {
             .map(|(&id, n)| {
                 let name = if id == 0 { "leader".to_string() } else { id.to_string() };
                 let c = &n.counters;
-                // Rows in this follower's CSV (followers can be ahead of the slowest one).
-                let recorded = self.scenario.index_of(id).filter(|_| id != 0).map(|i| self.followers[i].next_k);
+                let follower = self.scenario.index_of(id).filter(|_| id != 0).map(|i| &self.followers[i]);
+                // Steps this follower's record has reached (followers can be ahead of the slowest one).
+                let recorded = follower.map(|f| f.next_k);
+                let stream = follower.map_or(
+                    (&self.leader_stream.gaps, self.leader_stream.reordered, self.leader_stream.duplicates),
+                    |f| (&f.stream.gaps, f.stream.reordered, f.stream.duplicates),
+                );
+                let d = &n.delivery;
                 (
                     name,
                     json!({
                         "telemetry_messages": n.messages,
                         "telemetry_bytes": n.bytes,
                         "telemetry_samples": n.samples,
-                        "telemetry_gaps": n.gaps,
+                        "telemetry_reordered": stream.1,
+                        "telemetry_duplicates": stream.2,
+                        "telemetry_resent": d.courier.resent,
+                        "telemetry_dropped_by_sender": d.courier.lost_steps,
+                        "telemetry_peak_unacknowledged_bytes": d.courier.peak_held_bytes,
+                        "gaps": stream.0,
+                        "unpaired": follower.map(|f| f.unpaired),
                         "done": n.done,
                         "recorded_steps": recorded,
                         "estimates_sent": c.sent,
@@ -356,12 +504,15 @@ impl Recorder {
                 )
             })
             .collect();
+        let lost = self.lost_steps();
         let v = json!({
             "scenario": self.scenario.name,
             "timing": crate::record::name(&self.scenario.timing),
-            "complete": ending == Ending::Complete,
+            // Every step of every node recorded, none lost.
+            "complete": ending == Ending::Complete && lost == 0,
             // Both signals interrupt the run; `signal` says which.
             "ending": match ending {
+                Ending::Complete if lost > 0 => "finished with gaps",
                 Ending::Complete => "complete",
                 Ending::Interrupted | Ending::Terminated => "interrupted",
                 Ending::Idle => "idle",
@@ -373,6 +524,7 @@ impl Recorder {
             },
             "steps": self.scenario.steps(),
             "recorded_steps": self.recorded_steps(),
+            "lost_steps": lost,
             "malformed_telemetry": self.malformed,
             "nodes": nodes,
         });
@@ -390,6 +542,9 @@ impl Recorder {
         Ok((summary, dir))
     }
 }
+
+/// How often the monitor acknowledges what it holds.
+const ACK_PERIOD: Duration = Duration::from_millis(100);
 
 /// Runs the monitor to the end of the run (or Ctrl-C / SIGTERM / idle timeout).
 /// Returns how the run ended (`Idle` is an error).
@@ -430,6 +585,14 @@ async fn monitor(
         })
         .await
         .map_err(|e| Error::Run(format!("declaring the telemetry subscriber: {e}")))?;
+    // Acknowledgements: what the monitor holds, so senders forget it and
+    // send again what it lacks (droppable: the next one says the same).
+    let acks = session
+        .declare_publisher(keys.ack())
+        .congestion_control(zenoh::qos::CongestionControl::Drop)
+        .await
+        .map_err(|e| Error::Run(format!("declaring the acknowledgement publisher: {e}")))?;
+    let mut ack_tick = tokio::time::interval(ACK_PERIOD);
 
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
         .map_err(|e| Error::Run(format!("installing the SIGTERM handler: {e}")))?;
@@ -462,6 +625,9 @@ async fn monitor(
                     break Ending::Complete;
                 }
             }
+            _ = ack_tick.tick(), if started => {
+                let _ = acks.put(codec::encode(&recorder.ack())).await;
+            }
             _ = sigint.recv() => break Ending::Interrupted,
             _ = sigterm.recv() => break Ending::Terminated,
             _ = status.tick() => {
@@ -482,6 +648,14 @@ async fn monitor(
         drop(_sub);
         while let Ok((id, bytes)) = rx.try_recv() {
             recorder.telemetry(id, &bytes).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
+        }
+    }
+    if ending == Ending::Complete {
+        // The senders' last batches are acknowledged only now: say so a few
+        // times, so they can stop without waiting for their drain limit.
+        for _ in 0..5 {
+            let _ = acks.put(codec::encode(&recorder.ack())).await;
+            tokio::time::sleep(ACK_PERIOD / 2).await;
         }
     }
     if live && tty {
@@ -518,22 +692,53 @@ mod tests {
     use super::*;
 
     #[test]
-    fn admit_validates_before_anything_is_recorded() {
+    fn batches_are_checked_before_anything_is_recorded() {
         let ok = |_: u64, x: &f64| x.is_finite();
-        // Beyond the run's end: malformed.
-        assert_eq!(admit(vec![1.0; 3], 9, 9, 10, ok), Batch::Malformed);
-        assert_eq!(admit(vec![1.0; 1], u64::MAX, 9, 10, ok), Batch::Malformed);
-        assert_eq!(admit(vec![f64::NAN, 1.0], 0, 0, 10, ok), Batch::Fresh { items: vec![], truncated: true });
-        // After the recorded end: a gap.
-        assert_eq!(admit(vec![1.0], 5, 4, 10, ok), Batch::Gap);
-        // Overlap: only what is beyond the recorded end.
-        assert_eq!(
-            admit(vec![1.0, 2.0, 3.0, 4.0], 2, 4, 10, ok),
-            Batch::Fresh { items: vec![3.0, 4.0], truncated: false }
-        );
-        assert_eq!(admit(vec![1.0, 2.0], 2, 4, 10, ok), Batch::Fresh { items: vec![], truncated: false });
+        // Beyond the run's end: refused whole.
+        assert_eq!(check_batch(vec![1.0; 3], 9, 10, ok), None);
+        assert_eq!(check_batch(vec![1.0; 1], u64::MAX, 10, ok), None);
         // Cut at the first non-finite item.
-        assert_eq!(admit(vec![1.0, f64::NAN, 3.0], 4, 4, 10, ok), Batch::Fresh { items: vec![1.0], truncated: true });
+        assert_eq!(check_batch(vec![1.0, f64::NAN, 3.0], 4, 10, ok), Some((vec![1.0], true)));
+        assert_eq!(check_batch(vec![1.0, 2.0], 9, 10, ok), Some((vec![1.0, 2.0], false)));
+    }
+
+    /// Files batches into a stream; the steps that came out, in order.
+    fn file(s: &mut Stream<u64>, first_k: u64, n: u64, available_from: u64, incarnation: u64) -> Vec<u64> {
+        let mut out = Vec::new();
+        s.file(first_k, (first_k..first_k + n).collect(), available_from, incarnation, &mut out);
+        assert!(out.iter().all(|(k, x)| k == x), "{out:?}");
+        out.into_iter().map(|(k, _)| k).collect()
+    }
+
+    #[test]
+    fn a_stream_puts_late_repeated_and_overlapping_batches_back_in_order() {
+        let mut s = Stream::default();
+        assert_eq!(file(&mut s, 0, 5, 0, 1), (0..5).collect::<Vec<_>>());
+        // 10..15 and 15..20 arrive before 5..10: held, then released in order.
+        assert!(file(&mut s, 10, 5, 0, 1).is_empty());
+        assert!(file(&mut s, 15, 5, 5, 1).is_empty());
+        assert_eq!(s.reordered, 2);
+        assert_eq!(file(&mut s, 5, 5, 5, 1), (5..20).collect::<Vec<_>>());
+        // Sent again: nothing new. Overlapping: only what is new.
+        assert!(file(&mut s, 10, 5, 5, 1).is_empty());
+        assert_eq!(s.duplicates, 1);
+        assert_eq!(file(&mut s, 18, 4, 18, 1), vec![20, 21]);
+        assert!(s.gaps.is_empty());
+        assert_eq!(s.end, 22);
+    }
+
+    #[test]
+    fn steps_the_sender_can_no_longer_deliver_become_a_marked_gap() {
+        let mut s = Stream::default();
+        file(&mut s, 0, 10, 0, 1);
+        // The sender dropped 10..30 from a full store; 40..45 came before 30..40.
+        assert!(file(&mut s, 40, 5, 30, 1).is_empty());
+        assert_eq!(s.gaps, vec![Gap { from: 10, to: 30, why: "dropped by the sender" }]);
+        assert_eq!(file(&mut s, 30, 10, 30, 1), (30..45).collect::<Vec<_>>());
+        // A restarted process (new incarnation) resumes at step 60.
+        assert_eq!(file(&mut s, 60, 5, 60, 2), (60..65).collect::<Vec<_>>());
+        assert_eq!(s.gaps[1], Gap { from: 45, to: 60, why: "restarted" });
+        assert_eq!(s.lost_steps(), 35);
     }
 
     fn sample(k: u64) -> FollowerSample {
@@ -570,6 +775,7 @@ mod tests {
                 counters: Counters::default(),
                 done,
                 loop_stats: None,
+                delivery: Delivery::default(),
             })
         };
         let follower = |id: u32, first_k: u64, samples: Vec<FollowerSample>, done: bool| {
@@ -580,6 +786,7 @@ mod tests {
                 counters: Counters::default(),
                 done,
                 loop_stats: None,
+                delivery: Delivery::default(),
             })
         };
         r.telemetry(Some(0), &leader(0, steps + 1, true)).unwrap();
@@ -607,8 +814,14 @@ mod tests {
         let (_dir, scenario, mut r) = paper_recorder();
         let steps = scenario.steps();
         let states = vec![LeaderState::default(); steps as usize + 1];
-        let leader =
-            Telemetry::Leader { first_k: 0, states, counters: Counters::default(), done: true, loop_stats: None };
+        let leader = Telemetry::Leader {
+            first_k: 0,
+            states,
+            counters: Counters::default(),
+            done: true,
+            loop_stats: None,
+            delivery: Delivery::default(),
+        };
         r.telemetry(Some(0), &codec::encode(&leader)).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
         // The third follower stops after 4 of the steps + 1 samples.
@@ -622,6 +835,7 @@ mod tests {
                 counters: Counters::default(),
                 done: false,
                 loop_stats: None,
+                delivery: Delivery::default(),
             };
             r.telemetry(Some(id), &codec::encode(&batch)).unwrap();
         }

@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::Error;
 use crate::net::codec::decode;
 use crate::net::counters::Counters;
+use crate::net::courier::CourierStats;
 use crate::net::keys::Keys;
 use crate::net::timing::LoopStats;
 use crate::record::FollowerSample;
@@ -23,6 +24,7 @@ pub enum Telemetry {
         /// The node has sent its final step.
         done: bool,
         loop_stats: Option<LoopStats>,
+        delivery: Delivery,
     },
     Leader {
         first_k: u64,
@@ -31,7 +33,28 @@ pub enum Telemetry {
         counters: Counters,
         done: bool,
         loop_stats: Option<LoopStats>,
+        delivery: Delivery,
     },
+}
+
+/// How the sender's telemetry gets through (see [`crate::net::courier`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Delivery {
+    /// Steps below this that the monitor does not hold will never come
+    /// (dropped from a full store, or produced by an earlier process).
+    pub available_from: u64,
+    /// This process's start (ns since the Unix epoch): a new value from the
+    /// same node means it was restarted.
+    pub incarnation: u64,
+    pub courier: CourierStats,
+}
+
+/// The monitor's acknowledgements on `control/ack`, about every 100 ms:
+/// per node (0: the leader), the first step it does not hold.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Ack {
+    pub fingerprint: u64,
+    pub next_k: Vec<(u32, u64)>,
 }
 
 /// Lock-step end of run: the followers among `ids` that have reported (on
@@ -68,3 +91,53 @@ pub async fn watch_done(
     }
     Ok((subs, done))
 }
+
+/// Feeds the monitor's acknowledgements for `node` (0: the leader) to its
+/// courier. Acknowledgements from a monitor of another scenario are ignored.
+pub async fn subscribe_acks(
+    session: &zenoh::Session,
+    keys: &Keys,
+    node: u32,
+    fingerprint: u64,
+    courier: std::sync::Arc<crate::net::courier::Courier>,
+) -> Result<zenoh::pubsub::Subscriber<()>, Error> {
+    session
+        .declare_subscriber(keys.ack())
+        .callback(move |s| {
+            if let Some(ack) = decode::<Ack>(&s.payload().to_bytes()) {
+                if ack.fingerprint == fingerprint {
+                    if let Some(&(_, next_k)) = ack.next_k.iter().find(|(n, _)| *n == node) {
+                        courier.ack(next_k);
+                    }
+                }
+            }
+        })
+        .await
+        .map_err(|e| Error::Run(format!("declaring the acknowledgement subscriber: {e}")))
+}
+
+/// The telemetry of `node` (0: the leader) leaves through a [`Delivery`]:
+/// its publisher (droppable in real time: the courier sends again what is
+/// lost) and the subscriber that feeds it the monitor's acknowledgements.
+pub async fn start_delivery(
+    session: &zenoh::Session,
+    keys: &Keys,
+    node: u32,
+    scenario: &formation_topology::Scenario,
+) -> Result<(crate::net::courier::Delivery, zenoh::pubsub::Subscriber<()>), Error> {
+    use zenoh::Wait;
+    let publisher = session
+        .declare_publisher(keys.telemetry(node))
+        .congestion_control(crate::net::node::estimate_congestion(scenario))
+        .await
+        .map_err(|e| Error::Run(format!("declaring the telemetry publisher: {e}")))?;
+    let delivery = crate::net::courier::Delivery::start(crate::net::courier::CAPACITY_STEPS, move |bytes| {
+        publisher.put(bytes.to_vec()).wait().map_err(|e| format!("publishing: {e}"))
+    });
+    let fingerprint = crate::net::barrier::fingerprint(scenario);
+    let acks = subscribe_acks(session, keys, node, fingerprint, delivery.courier.clone()).await?;
+    Ok((delivery, acks))
+}
+
+/// A finished node waits this long for the monitor to acknowledge its telemetry.
+pub const DRAIN: std::time::Duration = std::time::Duration::from_secs(10);
