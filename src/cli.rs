@@ -38,6 +38,11 @@ pub enum Command {
     /// Run the formation as separate processes over zenoh on this machine
     /// (leader, one agent per follower, monitor) and print the summary.
     Launch(crate::launch::LaunchArgs),
+    /// Run the formation as on several machines: every node in a network
+    /// namespace of its own on a virtual bridge, the fault table performed
+    /// by the network (links down, packet loss), router and agent restarts.
+    /// Needs root or unprivileged user namespaces.
+    Lab(crate::lab::LabArgs),
     /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
     BenchNet(crate::net::bench::BenchNetArgs),
     /// A single node of a networked run (used by `launch`).
@@ -120,6 +125,7 @@ pub fn main() -> ExitCode {
         Command::Paper(a) => crate::paper::run(&a),
         Command::Report(a) => crate::report::run(&a),
         Command::Launch(a) => crate::launch::run(&a),
+        Command::Lab(a) => crate::lab::run(&a),
         Command::BenchNet(a) => crate::net::bench::run(&a),
         Command::Node(a) => crate::launch::run_node(&a),
     };

@@ -68,16 +68,16 @@ pub struct Children {
 }
 
 impl Children {
-    fn new() -> Self {
+    pub(crate) fn new() -> Self {
         Self { list: Vec::new() }
     }
 
-    fn push(&mut self, name: String, child: Child) {
+    pub(crate) fn push(&mut self, name: String, child: Child) {
         self.list.push((name, child));
     }
 
     /// Asks every running child to stop (SIGTERM).
-    fn terminate(&mut self, only: impl Fn(&str) -> bool) {
+    pub(crate) fn terminate(&mut self, only: impl Fn(&str) -> bool) {
         for (name, child) in &mut self.list {
             if only(name) && matches!(child.try_wait(), Ok(None)) {
                 let _ = Command::new("kill").args(["-TERM", &child.id().to_string()]).stderr(Stdio::null()).status();
@@ -86,7 +86,7 @@ impl Children {
     }
 
     /// Waits up to `limit` for the named child to exit.
-    fn wait_for(&mut self, name: &str, limit: Duration) -> Option<ExitStatus> {
+    pub(crate) fn wait_for(&mut self, name: &str, limit: Duration) -> Option<ExitStatus> {
         let t = Instant::now();
         while t.elapsed() < limit {
             for (n, c) in &mut self.list {
@@ -104,7 +104,7 @@ impl Children {
     }
 
     /// Waits up to `limit` for every child, then kills the rest.
-    fn reap(&mut self, limit: Duration) {
+    pub(crate) fn reap(&mut self, limit: Duration) {
         let t = Instant::now();
         while t.elapsed() < limit && self.list.iter_mut().any(|(_, c)| matches!(c.try_wait(), Ok(None))) {
             std::thread::sleep(Duration::from_millis(20));
@@ -112,7 +112,7 @@ impl Children {
         self.kill_all();
     }
 
-    fn kill_all(&mut self) {
+    pub(crate) fn kill_all(&mut self) {
         for (_, child) in &mut self.list {
             if matches!(child.try_wait(), Ok(None)) {
                 let _ = child.kill();
@@ -123,7 +123,7 @@ impl Children {
 
     /// The first child that has exited, with its status (removed from the set
     /// if it succeeded, so a finished node is not polled again).
-    fn poll(&mut self) -> Option<(String, ExitStatus)> {
+    pub(crate) fn poll(&mut self) -> Option<(String, ExitStatus)> {
         for (name, child) in &mut self.list {
             if let Ok(Some(status)) = child.try_wait() {
                 return Some((name.clone(), status));
@@ -132,7 +132,18 @@ impl Children {
         None
     }
 
-    fn remove(&mut self, name: &str) {
+    /// Kills the named child (SIGKILL: a crash, not a shutdown), reaps it and forgets it.
+    pub(crate) fn kill(&mut self, name: &str) {
+        for (n, child) in &mut self.list {
+            if n == name {
+                let _ = child.kill();
+                let _ = child.wait();
+            }
+        }
+        self.remove(name);
+    }
+
+    pub(crate) fn remove(&mut self, name: &str) {
         self.list.retain(|(n, _)| n != name);
     }
 
@@ -276,7 +287,7 @@ fn node_command(exe: &Path, node: &str, a: &LaunchArgs, run: &str) -> Command {
     c
 }
 
-fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
+pub(crate) fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
     let child = c.spawn().map_err(|e| CliError::Run(format!("starting {name}: {e}")))?;
     children.push(name.to_string(), child);
     Ok(())
@@ -285,7 +296,14 @@ fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliE
 /// Starts a router child and waits for its "router listening" line.
 fn start_router(children: &mut Children, exe: &Path, port: u16) -> Result<(), CliError> {
     let mut c = Command::new(exe);
-    c.args(["node", "router", "--listen"]).arg(ep(port)).stdin(Stdio::null()).stdout(Stdio::piped());
+    c.args(["node", "router", "--listen"]).arg(ep(port));
+    start_router_with(children, c)
+}
+
+/// Starts `c` (a `formation node router …` command) as the child "router"
+/// and waits up to 30 s for its "router listening" line.
+pub(crate) fn start_router_with(children: &mut Children, mut c: Command) -> Result<(), CliError> {
+    c.stdin(Stdio::null()).stdout(Stdio::piped());
     let mut child = c.spawn().map_err(|e| CliError::Run(format!("starting the router: {e}")))?;
     let stdout = child.stdout.take();
     children.push("router".into(), child);
@@ -413,7 +431,7 @@ async fn launch(
 }
 
 /// Ctrl-C / SIGTERM: stop the nodes, let the monitor flush, kill the rest.
-fn interrupt(children: &mut Children, out: &Path) -> CliError {
+pub(crate) fn interrupt(children: &mut Children, out: &Path) -> CliError {
     children.terminate(|n| n != "monitor" && n != "router");
     children.terminate(|n| n == "monitor");
     let _ = children.wait_for("monitor", Duration::from_secs(10));

@@ -4,6 +4,7 @@
 pub mod bench;
 pub mod cli;
 pub mod error;
+pub mod lab;
 pub mod launch;
 pub mod net;
 pub mod outage;

@@ -89,6 +89,11 @@ pub struct AgentArgs {
     /// Give up if lock-step inputs stop arriving for this long (s).
     #[arg(long, default_value_t = 60.0, value_name = "SECONDS")]
     pub stall_timeout: f64,
+    /// The network itself performs the fault table's `node = …` rows
+    /// (`formation lab` takes the link down): do not drop their messages
+    /// again in software. `link = …` rows are still applied here.
+    #[arg(long, hide = true)]
+    pub physical_node_faults: bool,
 }
 
 /// Inbox shared between the subscriber callbacks and the control thread.
@@ -109,8 +114,8 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
     }
     let session = args.node.open().await?;
     let body = Box::new(SimFollower::new(&scenario, index));
-    let result =
-        run_follower(&session, &scenario, &keys, index, body, Duration::from_secs_f64(args.stall_timeout)).await;
+    let stall = Duration::from_secs_f64(args.stall_timeout);
+    let result = run_follower(&session, &scenario, &keys, index, body, stall, args.physical_node_faults).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -127,6 +132,7 @@ pub async fn run_follower(
     index: usize,
     body: Box<dyn Body>,
     stall_timeout: Duration,
+    physical_node_faults: bool,
 ) -> Result<(), Error> {
     let id = scenario.graph.id(index);
     let hears_leader = scenario.graph.hears_leader(index);
@@ -135,7 +141,11 @@ pub async fn run_follower(
     let slots = neighbour_ids.len() + usize::from(hears_leader);
     let mut inbox = Inbox::new(slots, lockstep);
     // SPEC §14: the fault table applies at the receiver, per incoming link.
-    inbox.set_links(scenario.sources_of(index).iter().map(|&src| scenario.link_loss(src, id)).collect());
+    let mut table = scenario.clone();
+    if physical_node_faults {
+        table.faults.retain(|f| !matches!(f.target, formation_topology::FaultTarget::Node(_)));
+    }
+    inbox.set_links(scenario.sources_of(index).iter().map(|&src| table.link_loss(src, id)).collect());
     // Before any message can arrive (the leader may run ahead before this node hears the start).
     set_window(&mut inbox, scenario, slots, hears_leader, scenario.network.time_scale);
     let shared = Arc::new(Shared { inbox: Mutex::new(inbox), arrived: Condvar::new() });

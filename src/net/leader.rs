@@ -40,6 +40,10 @@ pub struct LeaderArgs {
     /// Real-time mode: the epoch is announced this long before step 0 (s).
     #[arg(long, default_value_t = 0.5, value_name = "SECONDS")]
     pub start_lead: f64,
+    /// Print `start <epoch ns since the Unix epoch> <time scale>` on stdout
+    /// once the run starts (for `formation lab`, which times faults by it).
+    #[arg(long, hide = true)]
+    pub print_start: bool,
 }
 
 struct Progress {
@@ -65,7 +69,8 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
         return Err(Error::Input("--start-lead must be ≥ 0".into()));
     }
     let session = args.node.open().await?;
-    let result = run_leader(&session, &scenario, &keys, time_scale, Duration::from_secs_f64(args.start_lead)).await;
+    let lead = Duration::from_secs_f64(args.start_lead);
+    let result = run_leader(&session, &scenario, &keys, time_scale, lead, args.print_start).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -76,6 +81,7 @@ pub async fn run_leader(
     keys: &Keys,
     time_scale: f64,
     start_lead: Duration,
+    print_start: bool,
 ) -> Result<(), Error> {
     let hearing: Vec<u32> =
         (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
@@ -126,6 +132,11 @@ pub async fn run_leader(
     let lead = if lockstep { Duration::ZERO } else { start_lead };
     let (start, announcer) =
         barrier::lead_start(session, keys, &hellos, &ready, barrier::fingerprint(scenario), time_scale, lead).await?;
+    if print_start {
+        use std::io::Write;
+        let mut out = std::io::stdout().lock();
+        let _ = writeln!(out, "start {} {}", start.epoch_unix_ns, start.time_scale).and_then(|()| out.flush());
+    }
 
     let scenario = scenario.clone();
     // Telemetry through a bounded store and its own thread (see agent.rs).

@@ -1,0 +1,515 @@
+//! `formation lab`: the formation as on several machines, on this one. Every
+//! node — router, leader, agents, monitor — runs in a network namespace of
+//! its own on a virtual bridge (subnet 10.77.0.0/16, see [`netns`]), and the
+//! scenario's fault table is performed by the network, not simulated:
+//!
+//! - a `node = N` row with loss 1 takes follower N's link down for the
+//!   window (its cable unplugged); with loss p < 1, nftables drops p of its
+//!   packets at random, both ways;
+//! - `link = [a, b]` rows cannot be cut on a shared link without cutting
+//!   others, so the agents apply those in software, as `formation launch`
+//!   does;
+//! - `--kill-router AT:FOR` kills the router (SIGKILL) at run time AT and
+//!   starts it again FOR seconds later; `--restart-agent ID@AT:FOR` does the
+//!   same to an agent.
+//!
+//! Every namespace, interface and process the lab made is removed on
+//! success, on failure and on Ctrl-C; namespaces left by a lab that was
+//! killed outright are swept at the next start. `lab.json` in the run
+//! folder lists each fault with the time it was planned and performed.
+
+pub mod netns;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use formation_topology::{FaultTarget, Scenario};
+use serde_json::json;
+
+use crate::cli::ScenarioArgs;
+use crate::error::Error;
+use crate::launch::{self, Children, LaunchMode};
+use crate::net::session;
+use crate::record::Summary;
+
+/// The port every node listens on, on its own address.
+const PORT: u16 = 7447;
+
+#[derive(Args, Debug, Clone)]
+pub struct LabArgs {
+    #[command(flatten)]
+    pub scenario: ScenarioArgs,
+    /// Run folder the monitor writes [default: runs/<run name>].
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Run name (key namespace formation/<run>/…) [default: scenario name].
+    #[arg(long, value_name = "NAME")]
+    pub run: Option<String>,
+    /// client: every node through a router (its own host); peer: a mesh.
+    #[arg(long, value_enum, default_value_t = LaunchMode::Client)]
+    pub mode: LaunchMode,
+    /// Real-time mode: run seconds per wall-clock second [default: network.time_scale].
+    #[arg(long, value_name = "X")]
+    pub time_scale: Option<f64>,
+    /// Kill the router at run time AT (s) and start it again FOR s later,
+    /// e.g. `8:3` (client mode). Repeatable.
+    #[arg(long = "kill-router", value_name = "AT:FOR")]
+    pub kill_router: Vec<String>,
+    /// Kill agent ID at run time AT (s) and start it again FOR s later,
+    /// e.g. `3@8:2`. Repeatable.
+    #[arg(long = "restart-agent", value_name = "ID@AT:FOR")]
+    pub restart_agent: Vec<String>,
+    /// Print nothing but errors (and no live line).
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+/// What the lab does to the network at one moment.
+#[derive(Clone, Debug, PartialEq)]
+enum Action {
+    Link { host: String, up: bool },
+    Loss { host: String, percent: Option<f64> },
+    KillRouter,
+    StartRouter,
+    KillAgent(u32),
+    StartAgent(u32),
+}
+
+#[derive(Clone, Debug)]
+struct Event {
+    /// Run time (s).
+    at_s: f64,
+    action: Action,
+    what: String,
+}
+
+fn agent_host(id: u32) -> String {
+    format!("agent-{id}")
+}
+
+/// "AT:FOR" → (at, for), both finite, at ≥ 0, for > 0.
+fn at_for(flag: &str, text: &str) -> Result<(f64, f64), Error> {
+    let bad = || Error::Input(format!("{flag} {text}: expected AT:FOR in seconds of run time, e.g. 8:3"));
+    let (a, f) = text.split_once(':').ok_or_else(bad)?;
+    let (a, f): (f64, f64) = (a.trim().parse().map_err(|_| bad())?, f.trim().parse().map_err(|_| bad())?);
+    if !(a.is_finite() && f.is_finite() && a >= 0.0 && f > 0.0) {
+        return Err(bad());
+    }
+    Ok((a, f))
+}
+
+/// The lab's plan: the fault table's node rows and the command line's kills, in time order.
+fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
+    let t_end = s.steps() as f64 * s.dt_s;
+    let mut events = Vec::new();
+    let mut notes = Vec::new();
+    for f in &s.faults {
+        match f.target {
+            FaultTarget::Node(id) if f.loss >= 1.0 => {
+                let host = agent_host(id);
+                let w = format!("follower {id}'s link");
+                events.push(Event {
+                    at_s: f.from_s,
+                    action: Action::Link { host: host.clone(), up: false },
+                    what: w.clone() + " down",
+                });
+                events.push(Event { at_s: f.to_s, action: Action::Link { host, up: true }, what: w + " up" });
+            }
+            FaultTarget::Node(id) => {
+                let host = agent_host(id);
+                let p = f.loss * 100.0;
+                let w = format!("follower {id}'s link");
+                events.push(Event {
+                    at_s: f.from_s,
+                    action: Action::Loss { host: host.clone(), percent: Some(p) },
+                    what: format!("{w}: {p:.0} % packet loss"),
+                });
+                events.push(Event {
+                    at_s: f.to_s,
+                    action: Action::Loss { host, percent: None },
+                    what: w + ": loss off",
+                });
+            }
+            FaultTarget::Link(x, y) => notes.push(format!(
+                "the fault on link [{x}, {y}] is applied by the agents in software (the lab cuts whole hosts only)"
+            )),
+        }
+    }
+    for k in &a.kill_router {
+        if a.mode != LaunchMode::Client {
+            return Err(Error::Input("--kill-router needs --mode client (peer mode has no router)".into()));
+        }
+        let (at, dur) = at_for("--kill-router", k)?;
+        if at >= t_end {
+            return Err(Error::Input(format!("--kill-router {k}: {at} s is past the run's end ({t_end} s)")));
+        }
+        events.push(Event { at_s: at, action: Action::KillRouter, what: "router killed".into() });
+        events.push(Event { at_s: at + dur, action: Action::StartRouter, what: "router started again".into() });
+    }
+    for r in &a.restart_agent {
+        let bad = || Error::Input(format!("--restart-agent {r}: expected ID@AT:FOR, e.g. 3@8:2"));
+        let (id, rest) = r.split_once('@').ok_or_else(bad)?;
+        let id: u32 = id.trim().parse().map_err(|_| bad())?;
+        if s.index_of(id).is_none() {
+            let ids: Vec<String> = s.graph.ids().iter().map(u32::to_string).collect();
+            return Err(Error::Input(format!("--restart-agent {r}: no follower {id} (ids: {})", ids.join(", "))));
+        }
+        let (at, dur) = at_for("--restart-agent", rest)?;
+        if at + dur >= t_end {
+            return Err(Error::Input(format!(
+                "--restart-agent {r}: the restart at {} s is past the run's end ({t_end} s)",
+                at + dur
+            )));
+        }
+        events.push(Event { at_s: at, action: Action::KillAgent(id), what: format!("agent {id} killed") });
+        events.push(Event {
+            at_s: at + dur,
+            action: Action::StartAgent(id),
+            what: format!("agent {id} started again"),
+        });
+    }
+    events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    Ok((events, notes))
+}
+
+/// `formation lab`.
+pub fn run(a: &LabArgs) -> Result<(), Error> {
+    match netns::privilege().map_err(Error::Input)? {
+        netns::Privilege::Root => {}
+        netns::Privilege::Unshare if std::env::var_os(netns::UNSHARED_ENV).is_some() => {
+            netns::prepare_unshared().map_err(Error::Run)?;
+        }
+        netns::Privilege::Unshare => {
+            // Not root: the same command inside a user and network namespace of its own.
+            let status = netns::reexec()
+                .map_err(Error::Run)?
+                .status()
+                .map_err(|e| Error::Run(format!("running {}: {e}", netns::UNSHARE.join(" "))))?;
+            return match status.code() {
+                Some(0) => Ok(()),
+                Some(2) => Err(Error::Input("(the lab inside unshare refused its input; see above)".into())),
+                _ => Err(Error::Run(format!("the lab inside unshare failed ({status})"))),
+            };
+        }
+    }
+    let scenario = a.scenario.load()?;
+    let run = a.run.clone().unwrap_or_else(|| scenario.name.clone());
+    session::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
+    if let Some(x) = a.time_scale {
+        if !(x.is_finite() && x > 0.0) {
+            return Err(Error::Input(format!("--time-scale must be a positive number, not {x}")));
+        }
+    }
+    let (events, notes) = plan(a, &scenario)?;
+    let out = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
+    let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
+    for stale in netns::sweep_stale() {
+        eprintln!("removed namespace {stale}, left by a lab that was killed");
+    }
+    let mut hosts: Vec<String> = Vec::new();
+    if a.mode == LaunchMode::Client {
+        hosts.push("router".into());
+    }
+    hosts.extend(["monitor".to_string(), "leader".to_string()]);
+    hosts.extend(scenario.graph.ids().iter().map(|&id| agent_host(id)));
+    let names: Vec<&str> = hosts.iter().map(String::as_str).collect();
+    let lab = netns::Lab::create(&names).map_err(|e| Error::Run(format!("building the lab network: {e}")))?;
+    if !a.quiet {
+        eprintln!(
+            "lab: {} hosts on a bridge, 10.77.0.0/16 ({} mode, run {run}); {} planned fault events",
+            hosts.len(),
+            if a.mode == LaunchMode::Client { "client" } else { "peer" },
+            events.len()
+        );
+        for n in &notes {
+            eprintln!("lab: {n}");
+        }
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
+    let mut children = Children::new();
+    let ctx = Ctx { a, scenario: &scenario, run: &run, out: &out, exe: &exe, lab: &lab };
+    let result = runtime.block_on(ctx.drive(&mut children, events));
+    drop(children);
+    drop(lab);
+    let (summary, performed) = result?;
+    let record = json!({ "mode": if a.mode == LaunchMode::Client { "client" } else { "peer" }, "events": performed, "notes": notes });
+    std::fs::write(out.join("lab.json"), serde_json::to_string_pretty(&record).unwrap_or_default() + "\n")
+        .map_err(|e| Error::Run(format!("writing {}: {e}", out.join("lab.json").display())))?;
+    if !a.quiet {
+        print!("{}", summary.table());
+        println!("wrote {}", out.display());
+    }
+    Ok(())
+}
+
+struct Ctx<'a> {
+    a: &'a LabArgs,
+    scenario: &'a Scenario,
+    run: &'a str,
+    out: &'a Path,
+    exe: &'a Path,
+    lab: &'a netns::Lab,
+}
+
+impl Ctx<'_> {
+    fn ep(&self, host: &str) -> String {
+        let addr = self.lab.addr(host).map_or_else(|| "0.0.0.0".to_string(), |a| a.to_string());
+        format!("tcp/{addr}:{PORT}")
+    }
+
+    /// `formation node <node> …` in the host's namespace, with its endpoints.
+    fn node(&self, host: &str, node: &str) -> Command {
+        let mut c = self.lab.command(host, self.exe);
+        c.args(["node", node]).arg("--scenario").arg(&self.a.scenario.scenario).arg("--run").arg(self.run);
+        for o in &self.a.scenario.overrides {
+            c.arg("--set").arg(o);
+        }
+        c.stdin(Stdio::null());
+        if self.a.mode == LaunchMode::Client {
+            c.args(["--mode", "client", "--connect", &self.ep("router")]);
+            return c;
+        }
+        c.arg("--listen").arg(self.ep(host));
+        // As `formation launch`: the leader dials the monitor; an agent the
+        // monitor, the leader and its lower-id neighbours.
+        let mut dial: Vec<String> = Vec::new();
+        if host != "monitor" {
+            dial.push("monitor".into());
+        }
+        if let Some(id) = host.strip_prefix("agent-").and_then(|i| i.parse::<u32>().ok()) {
+            dial.push("leader".into());
+            if let Some(i) = self.scenario.index_of(id) {
+                let g = &self.scenario.graph;
+                dial.extend(g.neighbours(i).iter().filter(|&&j| j < i).map(|&j| agent_host(g.id(j))));
+            }
+        }
+        for d in dial {
+            c.arg("--connect").arg(self.ep(&d));
+        }
+        c
+    }
+
+    fn agent(&self, id: u32) -> Command {
+        let mut c = self.node(&agent_host(id), "agent");
+        c.arg("--id").arg(id.to_string()).arg("--physical-node-faults");
+        c
+    }
+
+    fn router(&self) -> Command {
+        let mut c = self.lab.command("router", self.exe);
+        c.args(["node", "router", "--listen", &self.ep("router")]);
+        c
+    }
+
+    fn act(&self, children: &mut Children, action: &Action) -> Result<(), Error> {
+        match action {
+            Action::Link { host, up } => self.lab.set_link(host, *up).map_err(Error::Run),
+            Action::Loss { host, percent } => self.lab.set_loss(host, *percent).map_err(Error::Run),
+            Action::KillRouter => {
+                children.kill("router");
+                Ok(())
+            }
+            Action::StartRouter => launch::start_router_with(children, self.router()),
+            Action::KillAgent(id) => {
+                children.kill(&format!("agent {id}"));
+                Ok(())
+            }
+            Action::StartAgent(id) => launch::spawn(children, &format!("agent {id}"), self.agent(*id)),
+        }
+    }
+
+    /// Starts every node, performs the plan on the run's clock, and returns
+    /// the monitor's summary and what was done when.
+    async fn drive(
+        &self,
+        children: &mut Children,
+        events: Vec<Event>,
+    ) -> Result<(Summary, Vec<serde_json::Value>), Error> {
+        let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+            .map_err(|e| Error::Run(format!("installing the SIGTERM handler: {e}")))?;
+        let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
+            .map_err(|e| Error::Run(format!("installing the SIGINT handler: {e}")))?;
+        if self.a.mode == LaunchMode::Client {
+            launch::start_router_with(children, self.router())?;
+        }
+        let mut c = self.node("monitor", "monitor");
+        c.arg("--out").arg(self.out).stdout(Stdio::null());
+        if self.a.quiet {
+            c.arg("--quiet");
+        }
+        launch::spawn(children, "monitor", c)?;
+
+        let mut c = self.node("leader", "leader");
+        c.arg("--print-start").stdout(Stdio::piped());
+        if let Some(x) = self.a.time_scale {
+            c.arg("--time-scale").arg(x.to_string());
+        }
+        let mut leader = c.spawn().map_err(|e| Error::Run(format!("starting the leader: {e}")))?;
+        let (tx, rx) = std::sync::mpsc::channel::<(u64, f64)>();
+        if let Some(stdout) = leader.stdout.take() {
+            std::thread::spawn(move || {
+                for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                    let mut w = line.split_whitespace();
+                    if let (Some("start"), Some(e), Some(x)) = (w.next(), w.next(), w.next()) {
+                        if let (Ok(e), Ok(x)) = (e.parse(), x.parse()) {
+                            let _ = tx.send((e, x));
+                        }
+                    }
+                }
+            });
+        }
+        children.push("leader".into(), leader);
+        for &id in self.scenario.graph.ids() {
+            launch::spawn(children, &format!("agent {id}"), self.agent(id))?;
+        }
+
+        // Run time t happens at epoch + t / time_scale (wall clock).
+        let mut clock: Option<(u64, f64)> = None;
+        let mut next = 0;
+        let mut performed = Vec::new();
+        let mut tick = tokio::time::interval(Duration::from_millis(5));
+        let began = Instant::now();
+        loop {
+            tokio::select! {
+                _ = tick.tick() => {}
+                _ = sigint.recv() => return Err(launch::interrupt(children, self.out)),
+                _ = sigterm.recv() => return Err(launch::interrupt(children, self.out)),
+            }
+            if clock.is_none() {
+                clock = rx.try_recv().ok();
+                if clock.is_none() && began.elapsed() > Duration::from_secs(180) {
+                    children.kill_all();
+                    return Err(Error::Run(
+                        "the run did not start within 180 s (see the nodes' messages above)".into(),
+                    ));
+                }
+            }
+            if let Some((epoch_ns, scale)) = clock {
+                let now_s = (crate::net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+                while next < events.len() && events[next].at_s <= now_s {
+                    let e = &events[next];
+                    if let Err(err) = self.act(children, &e.action) {
+                        children.terminate(|n| n == "monitor");
+                        let _ = children.wait_for("monitor", Duration::from_secs(10));
+                        children.kill_all();
+                        return Err(Error::Run(format!("performing '{}' at t = {} s: {err}", e.what, e.at_s)));
+                    }
+                    let done_s = (crate::net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+                    if !self.a.quiet {
+                        eprintln!("lab: t = {done_s:.3} s: {}", e.what);
+                    }
+                    performed.push(json!({ "planned_s": e.at_s, "performed_s": done_s, "what": e.what }));
+                    next += 1;
+                }
+            }
+            while let Some((name, status)) = children.poll() {
+                if name == "monitor" {
+                    if !status.success() {
+                        children.kill_all();
+                        return Err(Error::Run(format!("the monitor failed ({status})")));
+                    }
+                    children.remove("monitor");
+                    children.reap(Duration::from_secs(5));
+                    let path = self.out.join("summary.json");
+                    let text = std::fs::read_to_string(&path)
+                        .map_err(|e| Error::Run(format!("reading {}: {e}", path.display())))?;
+                    let summary = serde_json::from_str(&text)
+                        .map_err(|e| Error::Run(format!("reading {}: {e}", path.display())))?;
+                    if next < events.len() {
+                        eprintln!("lab: the run ended before {} planned events", events.len() - next);
+                    }
+                    return Ok((summary, performed));
+                }
+                if status.success() {
+                    children.remove(&name);
+                    continue;
+                }
+                children.terminate(|n| n == "monitor");
+                let _ = children.wait_for("monitor", Duration::from_secs(10));
+                children.kill_all();
+                return Err(Error::Run(format!(
+                    "{name} failed ({status}); stopped every process; the run folder {} holds what the monitor received",
+                    self.out.display()
+                )));
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        lab: LabArgs,
+    }
+
+    fn args(extra: &[&str]) -> LabArgs {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
+        Cli::parse_from(["lab", path].iter().chain(extra)).lab
+    }
+
+    #[test]
+    fn the_plan_turns_node_faults_and_kills_into_timed_events() {
+        let a = args(&[
+            "--set",
+            "faults+={node=3, from=8, to=11}",
+            "--set",
+            "faults+={node=2, from=5, to=15, loss=0.3}",
+            "--set",
+            "faults+={link=[1, 2], from=1, to=2}",
+            "--kill-router",
+            "12:3",
+            "--restart-agent",
+            "4@6:2",
+        ]);
+        let s = a.scenario.load().expect("scenario");
+        let (events, notes) = plan(&a, &s).expect("plan");
+        let got: Vec<(f64, &str)> = events.iter().map(|e| (e.at_s, e.what.as_str())).collect();
+        assert_eq!(
+            got,
+            vec![
+                (5.0, "follower 2's link: 30 % packet loss"),
+                (6.0, "agent 4 killed"),
+                (8.0, "follower 3's link down"),
+                (8.0, "agent 4 started again"),
+                (11.0, "follower 3's link up"),
+                (12.0, "router killed"),
+                (15.0, "follower 2's link: loss off"),
+                (15.0, "router started again"),
+            ]
+        );
+        assert_eq!(notes.len(), 1, "{notes:?}");
+    }
+
+    #[test]
+    fn bad_plans_are_refused_with_the_flag_named() {
+        let s = args(&[]).scenario.load().expect("scenario");
+        for (flag, value, says) in [
+            ("--kill-router", "8", "AT:FOR"),
+            ("--kill-router", "8:-1", "AT:FOR"),
+            ("--kill-router", "99:1", "past the run's end"),
+            ("--restart-agent", "9@1:1", "no follower 9"),
+            ("--restart-agent", "3:1", "ID@AT:FOR"),
+            ("--restart-agent", "3@29.5:1", "past the run's end"),
+        ] {
+            let a = args(&[flag, value]);
+            match plan(&a, &s) {
+                Err(Error::Input(m)) => assert!(m.contains(says) && m.contains(value), "{flag} {value}: {m}"),
+                other => panic!("{flag} {value}: expected an input error, got {:?}", other.map(|p| p.0.len())),
+            }
+        }
+        let a = args(&["--mode", "peer", "--kill-router", "1:1"]);
+        assert!(matches!(plan(&a, &s), Err(Error::Input(m)) if m.contains("--mode client")));
+    }
+}
