@@ -177,6 +177,15 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
 
 /// `formation lab`.
 pub fn run(a: &LabArgs) -> Result<(), Error> {
+    let scenario = a.scenario.load()?;
+    let run = a.run.clone().unwrap_or_else(|| scenario.name.clone());
+    session::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
+    if let Some(x) = a.time_scale {
+        if !(x.is_finite() && x > 0.0) {
+            return Err(Error::Input(format!("--time-scale must be a positive number, not {x}")));
+        }
+    }
+    let (events, notes) = plan(a, &scenario)?;
     match netns::privilege().map_err(Error::Input)? {
         netns::Privilege::Root => {}
         netns::Privilege::Unshare if std::env::var_os(netns::UNSHARED_ENV).is_some() => {
@@ -195,15 +204,6 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
             };
         }
     }
-    let scenario = a.scenario.load()?;
-    let run = a.run.clone().unwrap_or_else(|| scenario.name.clone());
-    session::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
-    if let Some(x) = a.time_scale {
-        if !(x.is_finite() && x > 0.0) {
-            return Err(Error::Input(format!("--time-scale must be a positive number, not {x}")));
-        }
-    }
-    let (events, notes) = plan(a, &scenario)?;
     let out = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
     for stale in netns::sweep_stale() {
@@ -298,7 +298,13 @@ impl Ctx<'_> {
 
     fn agent(&self, id: u32) -> Command {
         let mut c = self.node(&agent_host(id), "agent");
-        c.arg("--id").arg(id.to_string()).arg("--physical-node-faults");
+        c.arg("--id").arg(id.to_string());
+        // Real time: the network performs the node rows. Lock-step keeps the
+        // table in software (its numbers are the simulator's); the physical
+        // outage then only delays the run.
+        if self.scenario.timing == formation_topology::Timing::Realtime {
+            c.arg("--physical-node-faults");
+        }
         c
     }
 

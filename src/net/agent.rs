@@ -30,7 +30,7 @@ use crate::net::courier::Courier;
 use crate::net::inbox::{self, Inbox, Source};
 use crate::net::keys::{self, Keys};
 use crate::net::node::{estimate_congestion, NodeArgs};
-use crate::net::telemetry::{self, Telemetry};
+use crate::net::telemetry::{self, EventKind, NetEvent, Telemetry};
 use crate::net::timing::Pacer;
 use crate::record::FollowerSample;
 use crate::sim::SimFollower;
@@ -100,6 +100,8 @@ pub struct AgentArgs {
 pub(crate) struct Shared {
     pub inbox: Mutex<Inbox>,
     pub arrived: Condvar,
+    /// Network events noticed outside the loop (the router watcher), for the next telemetry batch.
+    pub events: Mutex<Vec<NetEvent>>,
 }
 
 /// Runs one follower to the end of the scenario.
@@ -148,7 +150,7 @@ pub async fn run_follower(
     inbox.set_links(scenario.sources_of(index).iter().map(|&src| table.link_loss(src, id)).collect());
     // Before any message can arrive (the leader may run ahead before this node hears the start).
     set_window(&mut inbox, scenario, slots, hears_leader, scenario.network.time_scale);
-    let shared = Arc::new(Shared { inbox: Mutex::new(inbox), arrived: Condvar::new() });
+    let shared = Arc::new(Shared { inbox: Mutex::new(inbox), arrived: Condvar::new(), events: Mutex::new(Vec::new()) });
 
     // Subscribers first (the start barrier relies on it), one per source.
     let mut sources: Vec<u32> = neighbour_ids.clone();
@@ -216,11 +218,33 @@ pub async fn run_follower(
         stall_timeout,
         incarnation: barrier::unix_ns(),
         neighbours_done,
+        source_ids: sources.clone(),
         source_names: sources
             .iter()
             .map(|&s| if s == wire::LEADER_ID { "the leader".to_string() } else { format!("follower {s}") })
             .collect(),
     };
+    // Client mode, real time: note when the router goes and comes back (for
+    // the timeline). A peer has no router, and no such events.
+    let has_router = session.info().routers_zid().await.next().is_some();
+    let watcher = (has_router && !lockstep).then(|| {
+        let session = session.clone();
+        let shared = shared.clone();
+        let (epoch, step) = (start.epoch_instant(), Duration::from_secs_f64(scenario.dt_s / start_scale(&start)));
+        tokio::spawn(async move {
+            let mut had = true;
+            loop {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                let has = session.info().routers_zid().await.next().is_some();
+                if has != had {
+                    had = has;
+                    let k = (epoch.elapsed().as_secs_f64() / step.as_secs_f64()) as u64;
+                    let what = if has { EventKind::RouterBack } else { EventKind::RouterLost };
+                    shared.events.lock().unwrap_or_else(|p| p.into_inner()).push(NetEvent { k, what });
+                }
+            }
+        })
+    });
     // Telemetry leaves the loop through a bounded store and a thread of its
     // own, so a slow or dead link to the monitor never holds a step; it is
     // kept until the monitor acknowledges it.
@@ -237,6 +261,9 @@ pub async fn run_follower(
         );
     }
     drop(acks);
+    if let Some(w) = watcher {
+        w.abort();
+    }
     drop(subscribers);
     drop(done_subs);
     outcome.map_err(|e| Error::Run(format!("follower {id}: {e}")))
@@ -288,10 +315,34 @@ struct LoopCtx {
     neighbours_done: Arc<Mutex<std::collections::BTreeSet<u32>>>,
     /// "follower 2", …, "the leader", by inbox slot.
     source_names: Vec<String>,
+    /// The sources' ids (0: the leader), by inbox slot.
+    source_ids: Vec<u32>,
 }
 
 fn put(p: &Publisher<'_>, bytes: &[u8]) -> Result<(), String> {
     p.put(bytes.to_vec()).wait().map_err(|e| format!("publishing: {e}"))
+}
+
+fn start_scale(start: &Start) -> f64 {
+    if start.time_scale > 0.0 {
+        start.time_scale
+    } else {
+        1.0
+    }
+}
+
+/// Per inbox slot, whether the source is heard now (real time).
+struct Heard(Vec<bool>);
+
+impl Heard {
+    /// Records a change of whether `slot` is heard at step k.
+    fn note(&mut self, slot: usize, k: u64, now: bool, ids: &[u32], events: &mut Vec<NetEvent>) {
+        if self.0[slot] != now {
+            self.0[slot] = now;
+            let what = if now { EventKind::Heard(ids[slot]) } else { EventKind::Silent(ids[slot]) };
+            events.push(NetEvent { k, what });
+        }
+    }
 }
 
 fn control_loop(
@@ -319,6 +370,9 @@ fn control_loop(
     // table), and the newest delivered one per source (SPEC §14).
     let mut taken: Vec<Option<LeaderState>> = Vec::with_capacity(c.neighbours + 1);
     let mut hearing = Hearing::new(c.neighbours + usize::from(c.has_leader), c.silence_steps);
+    // Real time: who is heard, for the timeline.
+    let mut heard = Heard(vec![false; c.neighbours + usize::from(c.has_leader)]);
+    let mut events: Vec<NetEvent> = Vec::new();
     let mut batch: Vec<FollowerSample> = Vec::with_capacity(c.batch);
     let mut first_k = 0u64;
     for k in 0..=c.steps {
@@ -380,12 +434,14 @@ fn control_loop(
                 // Latest values; a source silent too long is left out.
                 inputs.clear();
                 for slot in 0..c.neighbours {
-                    if let Some(s) = inbox.latest(slot, k, c.silence_steps) {
-                        inputs.push(s);
-                    }
+                    let s = inbox.latest(slot, k, c.silence_steps);
+                    heard.note(slot, k, s.is_some(), &c.source_ids, &mut events);
+                    inputs.extend(s);
                 }
                 if c.has_leader {
-                    inbox.latest(c.neighbours, k, c.silence_steps)
+                    let s = inbox.latest(c.neighbours, k, c.silence_steps);
+                    heard.note(c.neighbours, k, s.is_some(), &c.source_ids, &mut events);
+                    s
                 } else {
                     None
                 }
@@ -418,6 +474,12 @@ fn control_loop(
                     available_from: telemetry.available_from(first_k),
                     incarnation: c.incarnation,
                     courier: telemetry.stats(),
+                },
+                events: {
+                    let mut outside = shared.events.lock().unwrap_or_else(|p| p.into_inner());
+                    events.append(&mut outside);
+                    events.sort_unstable();
+                    std::mem::take(&mut events)
                 },
             };
             telemetry.push(first_k, k + 1, codec::encode(&t));

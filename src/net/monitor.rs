@@ -23,7 +23,7 @@ use crate::net::codec;
 use crate::net::counters::Counters;
 use crate::net::keys::{self, Keys, MONITOR};
 use crate::net::node::NodeArgs;
-use crate::net::telemetry::{Ack, Delivery, Telemetry};
+use crate::net::telemetry::{Ack, Delivery, NetEvent, Telemetry};
 use crate::net::timing::LoopStats;
 use crate::record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
 
@@ -72,7 +72,12 @@ struct NodeStats {
     delivery: Delivery,
     loop_stats: Option<LoopStats>,
     done: bool,
+    /// What the network did to this node, as it noticed it.
+    timeline: std::collections::BTreeSet<NetEvent>,
 }
+
+/// Events taken from one batch (a forged batch cannot fill the monitor's memory).
+const MAX_EVENTS_PER_BATCH: usize = 256;
 
 impl NodeStats {
     /// Files a checked batch's bookkeeping.
@@ -336,7 +341,7 @@ impl Recorder {
                     self.leader.push_back(None);
                 }
             }
-            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats, delivery } => {
+            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats, delivery, events } => {
                 let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
                     self.malformed += 1;
                     return Ok(());
@@ -350,6 +355,8 @@ impl Recorder {
                 let f = &mut self.followers[index];
                 let n = self.nodes.entry(id).or_default();
                 n.note(bytes.len(), first_k, counters, done, loop_stats, delivery);
+                // A batch sent again repeats its events: a set keeps each once.
+                n.timeline.extend(events.into_iter().take(MAX_EVENTS_PER_BATCH));
                 let mut fresh = Vec::new();
                 f.stream.file(first_k, samples, delivery.available_from, delivery.incarnation, &mut fresh);
                 n.samples += fresh.len() as u64;
@@ -488,6 +495,10 @@ impl Recorder {
                         "telemetry_dropped_by_sender": d.courier.lost_steps,
                         "telemetry_peak_unacknowledged_bytes": d.courier.peak_held_bytes,
                         "gaps": stream.0,
+                        "timeline": n.timeline.iter().map(|e| json!({
+                            "t": e.k as f64 * self.scenario.dt_s,
+                            "event": e.what.describe(),
+                        })).collect::<Vec<_>>(),
                         "unpaired": follower.map(|f| f.unpaired),
                         "done": n.done,
                         "recorded_steps": recorded,
@@ -787,6 +798,7 @@ mod tests {
                 done,
                 loop_stats: None,
                 delivery: Delivery::default(),
+                events: Vec::new(),
             })
         };
         r.telemetry(Some(0), &leader(0, steps + 1, true)).unwrap();
@@ -836,6 +848,7 @@ mod tests {
                 done: false,
                 loop_stats: None,
                 delivery: Delivery::default(),
+                events: Vec::new(),
             };
             r.telemetry(Some(id), &codec::encode(&batch)).unwrap();
         }

@@ -25,6 +25,8 @@ pub enum Telemetry {
         done: bool,
         loop_stats: Option<LoopStats>,
         delivery: Delivery,
+        /// What the network did to this node during the batch's steps.
+        events: Vec<NetEvent>,
     },
     Leader {
         first_k: u64,
@@ -47,6 +49,38 @@ pub struct Delivery {
     /// same node means it was restarted.
     pub incarnation: u64,
     pub courier: CourierStats,
+}
+
+/// One entry of a node's network timeline (`network.json`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct NetEvent {
+    /// The step at which the node noticed.
+    pub k: u64,
+    pub what: EventKind,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+pub enum EventKind {
+    /// A source (0: the leader) is heard again, or for the first time.
+    Heard(u32),
+    /// A source fell silent (nothing newer than `network.silence_timeout`).
+    Silent(u32),
+    /// The session lost its last router (client mode).
+    RouterLost,
+    /// The session has a router again.
+    RouterBack,
+}
+
+impl EventKind {
+    pub fn describe(&self) -> String {
+        let name = |s: u32| if s == 0 { "the leader".to_string() } else { format!("follower {s}") };
+        match *self {
+            EventKind::Heard(s) => format!("hears {}", name(s)),
+            EventKind::Silent(s) => format!("{} silent", name(s)),
+            EventKind::RouterLost => "router lost".into(),
+            EventKind::RouterBack => "router back".into(),
+        }
+    }
 }
 
 /// The monitor's acknowledgements on `control/ack`, about every 100 ms:
