@@ -38,8 +38,10 @@ pub enum LaunchMode {
     Client,
 }
 
+/// What every command that runs the whole networked formation takes
+/// (`launch`, `lab`).
 #[derive(Args, Debug, Clone)]
-pub struct LaunchArgs {
+pub struct RunOptions {
     #[command(flatten)]
     pub scenario: ScenarioArgs,
     /// Run folder the monitor writes [default: runs/<run name>]. Replaced if it is a run folder; any other existing folder is refused.
@@ -48,18 +50,40 @@ pub struct LaunchArgs {
     /// Run name (key namespace formation/<run>/…) [default: scenario name].
     #[arg(long, value_name = "NAME")]
     pub run: Option<String>,
-    /// peer: router-less mesh; client: every node through a zenoh router child.
-    #[arg(long, value_enum, default_value_t = LaunchMode::Peer)]
-    pub mode: LaunchMode,
-    /// Use consecutive loopback ports from this one [default: free ports].
-    #[arg(long, value_name = "PORT")]
-    pub base_port: Option<u16>,
     /// Real-time mode: run seconds per wall-clock second [default: network.time_scale].
     #[arg(long, value_name = "X")]
     pub time_scale: Option<f64>,
     /// Print nothing but errors (and no live line).
     #[arg(long, short)]
     pub quiet: bool,
+}
+
+impl RunOptions {
+    /// The scenario, the run name and the run folder, checked (bad input: exit 2).
+    pub fn resolve(&self) -> Result<(Scenario, String, PathBuf), CliError> {
+        let scenario = self.scenario.load()?;
+        let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
+        session::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
+        if let Some(x) = self.time_scale {
+            if !(x.is_finite() && x > 0.0) {
+                return Err(CliError::Input(format!("--time-scale must be a positive number, not {x}")));
+            }
+        }
+        let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
+        Ok((scenario, run, out))
+    }
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct LaunchArgs {
+    #[command(flatten)]
+    pub opts: RunOptions,
+    /// peer: router-less mesh; client: every node through a zenoh router child.
+    #[arg(long, value_enum, default_value_t = LaunchMode::Peer)]
+    pub mode: LaunchMode,
+    /// Use consecutive loopback ports from this one [default: free ports].
+    #[arg(long, value_name = "PORT")]
+    pub base_port: Option<u16>,
 }
 
 /// The child processes of a launch; every one still running is killed on drop.
@@ -77,7 +101,7 @@ impl Children {
     }
 
     /// Asks every running child to stop (SIGTERM).
-    pub(crate) fn terminate(&mut self, only: impl Fn(&str) -> bool) {
+    fn terminate(&mut self, only: impl Fn(&str) -> bool) {
         for (name, child) in &mut self.list {
             if only(name) && matches!(child.try_wait(), Ok(None)) {
                 let _ = Command::new("kill").args(["-TERM", &child.id().to_string()]).stderr(Stdio::null()).status();
@@ -86,7 +110,7 @@ impl Children {
     }
 
     /// Waits up to `limit` for the named child to exit.
-    pub(crate) fn wait_for(&mut self, name: &str, limit: Duration) -> Option<ExitStatus> {
+    fn wait_for(&mut self, name: &str, limit: Duration) -> Option<ExitStatus> {
         let t = Instant::now();
         while t.elapsed() < limit {
             for (n, c) in &mut self.list {
@@ -109,6 +133,13 @@ impl Children {
         while t.elapsed() < limit && self.list.iter_mut().any(|(_, c)| matches!(c.try_wait(), Ok(None))) {
             std::thread::sleep(Duration::from_millis(20));
         }
+        self.kill_all();
+    }
+
+    /// Lets the monitor write what it has (SIGTERM, up to 10 s), then kills every child.
+    pub(crate) fn wind_down(&mut self) {
+        self.terminate(|n| n == "monitor");
+        let _ = self.wait_for("monitor", Duration::from_secs(10));
         self.kill_all();
     }
 
@@ -251,15 +282,7 @@ async fn router(z: &session::ZenohArgs) -> Result<(), CliError> {
 
 /// `formation launch`.
 pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
-    let scenario = a.scenario.load()?;
-    let run = a.run.clone().unwrap_or_else(|| scenario.name.clone());
-    session::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
-    if let Some(x) = a.time_scale {
-        if !(x.is_finite() && x > 0.0) {
-            return Err(CliError::Input(format!("--time-scale must be a positive number, not {x}")));
-        }
-    }
-    let out = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
+    let (scenario, run, out) = a.opts.resolve()?;
     let exe = std::env::current_exe().map_err(|e| CliError::Run(format!("locating this executable: {e}")))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
@@ -270,7 +293,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
     let result = runtime.block_on(launch(a, &scenario, &run, &out, &exe, &mut children));
     drop(children);
     let summary = result?;
-    if !a.quiet {
+    if !a.opts.quiet {
         print!("{}", summary.table());
         println!("wrote {}", out.display());
     }
@@ -279,12 +302,17 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
 
 fn node_command(exe: &Path, node: &str, a: &LaunchArgs, run: &str) -> Command {
     let mut c = Command::new(exe);
-    c.args(["node", node]).arg("--scenario").arg(&a.scenario.scenario).arg("--run").arg(run);
-    for o in &a.scenario.overrides {
+    node_args(&mut c, node, &a.opts, run);
+    c
+}
+
+/// `node <node> --scenario … --run … --set …` of a run, stdin closed.
+pub(crate) fn node_args(c: &mut Command, node: &str, opts: &RunOptions, run: &str) {
+    c.args(["node", node]).arg("--scenario").arg(&opts.scenario.scenario).arg("--run").arg(run);
+    for o in &opts.scenario.overrides {
         c.arg("--set").arg(o);
     }
     c.stdin(Stdio::null());
-    c
 }
 
 pub(crate) fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
@@ -353,7 +381,7 @@ async fn launch(
             c.arg("--connect").arg(ep(q));
         }
     };
-    if !a.quiet {
+    if !a.opts.quiet {
         eprintln!(
             "launching {} processes ({} mode, run {run}): leader, {n} agents, monitor{}",
             n + 2 + usize::from(a.mode == LaunchMode::Client),
@@ -368,14 +396,14 @@ async fn launch(
 
     let mut c = node_command(exe, "monitor", a, run);
     c.arg("--out").arg(out).stdout(Stdio::null());
-    if a.quiet {
+    if a.opts.quiet {
         c.arg("--quiet");
     }
     endpoints(&mut c, Some(mon_port), &[]);
     spawn(children, "monitor", c)?;
 
     let mut c = node_command(exe, "leader", a, run);
-    if let Some(x) = a.time_scale {
+    if let Some(x) = a.opts.time_scale {
         c.arg("--time-scale").arg(x.to_string());
     }
     endpoints(&mut c, Some(lead_port), &[mon_port]);
@@ -400,42 +428,48 @@ async fn launch(
             _ = sigint.recv() => return Err(interrupt(children, out)),
             _ = sigterm.recv() => return Err(interrupt(children, out)),
         }
-        while let Some((name, status)) = children.poll() {
-            if name == "monitor" {
-                if !status.success() {
-                    children.kill_all();
-                    return Err(CliError::Run(format!("the monitor failed ({status})")));
-                }
-                // The run is recorded; the nodes are done or about to be.
-                children.remove("monitor");
-                children.reap(Duration::from_secs(5));
-                let text = std::fs::read_to_string(out.join("summary.json"))
-                    .map_err(|e| CliError::Run(format!("reading {}: {e}", out.join("summary.json").display())))?;
-                return serde_json::from_str(&text)
-                    .map_err(|e| CliError::Run(format!("reading {}: {e}", out.join("summary.json").display())));
-            }
-            if status.success() {
-                children.remove(&name);
-                continue;
-            }
-            // A node failed: let the monitor write what it has, stop the rest.
-            children.terminate(|n| n == "monitor");
-            let _ = children.wait_for("monitor", Duration::from_secs(10));
-            children.kill_all();
-            return Err(CliError::Run(format!(
-                "{name} failed ({status}); stopped every process; the run folder {} holds what the monitor received",
-                out.display()
-            )));
+        if let Some(ended) = settle(children, out) {
+            return ended;
         }
     }
+}
+
+/// Looks at the children that have exited: once the monitor has, the run is
+/// over (its summary, or its failure); a node that failed stops the run
+/// (the monitor first writes what it has). None while the run goes on.
+pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summary, CliError>> {
+    while let Some((name, status)) = children.poll() {
+        if name == "monitor" {
+            if !status.success() {
+                children.kill_all();
+                return Some(Err(CliError::Run(format!("the monitor failed ({status})"))));
+            }
+            // The run is recorded; the nodes are done or about to be.
+            children.remove("monitor");
+            children.reap(Duration::from_secs(5));
+            let path = out.join("summary.json");
+            let read = std::fs::read_to_string(&path).map_err(|e| e.to_string());
+            let summary = read.and_then(|text| serde_json::from_str(&text).map_err(|e| e.to_string()));
+            return Some(summary.map_err(|e| CliError::Run(format!("reading {}: {e}", path.display()))));
+        }
+        if status.success() {
+            children.remove(&name);
+            continue;
+        }
+        // A node failed: let the monitor write what it has, stop the rest.
+        children.wind_down();
+        return Some(Err(CliError::Run(format!(
+            "{name} failed ({status}); stopped every process; the run folder {} holds what the monitor received",
+            out.display()
+        ))));
+    }
+    None
 }
 
 /// Ctrl-C / SIGTERM: stop the nodes, let the monitor flush, kill the rest.
 pub(crate) fn interrupt(children: &mut Children, out: &Path) -> CliError {
     children.terminate(|n| n != "monitor" && n != "router");
-    children.terminate(|n| n == "monitor");
-    let _ = children.wait_for("monitor", Duration::from_secs(10));
-    children.kill_all();
+    children.wind_down();
     CliError::Run(format!("interrupted: stopped every process; {} holds what the monitor received", out.display()))
 }
 

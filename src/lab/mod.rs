@@ -21,7 +21,7 @@
 pub mod netns;
 
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -29,10 +29,8 @@ use clap::Args;
 use formation_topology::{FaultTarget, Scenario};
 use serde_json::json;
 
-use crate::cli::ScenarioArgs;
 use crate::error::Error;
-use crate::launch::{self, Children, LaunchMode};
-use crate::net::session;
+use crate::launch::{self, Children, LaunchMode, RunOptions};
 use crate::record::Summary;
 
 /// The port every node listens on, on its own address.
@@ -41,19 +39,10 @@ const PORT: u16 = 7447;
 #[derive(Args, Debug, Clone)]
 pub struct LabArgs {
     #[command(flatten)]
-    pub scenario: ScenarioArgs,
-    /// Run folder the monitor writes [default: runs/<run name>].
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-    /// Run name (key namespace formation/<run>/…) [default: scenario name].
-    #[arg(long, value_name = "NAME")]
-    pub run: Option<String>,
+    pub opts: RunOptions,
     /// client: every node through a router (its own host); peer: a mesh.
     #[arg(long, value_enum, default_value_t = LaunchMode::Client)]
     pub mode: LaunchMode,
-    /// Real-time mode: run seconds per wall-clock second [default: network.time_scale].
-    #[arg(long, value_name = "X")]
-    pub time_scale: Option<f64>,
     /// Kill the router at run time AT (s) and start it again FOR s later,
     /// e.g. `8:3` (client mode). Repeatable.
     #[arg(long = "kill-router", value_name = "AT:FOR")]
@@ -62,9 +51,6 @@ pub struct LabArgs {
     /// e.g. `3@8:2`. Repeatable.
     #[arg(long = "restart-agent", value_name = "ID@AT:FOR")]
     pub restart_agent: Vec<String>,
-    /// Print nothing but errors (and no live line).
-    #[arg(long, short)]
-    pub quiet: bool,
 }
 
 /// What the lab does to the network at one moment.
@@ -177,14 +163,7 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
 
 /// `formation lab`.
 pub fn run(a: &LabArgs) -> Result<(), Error> {
-    let scenario = a.scenario.load()?;
-    let run = a.run.clone().unwrap_or_else(|| scenario.name.clone());
-    session::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
-    if let Some(x) = a.time_scale {
-        if !(x.is_finite() && x > 0.0) {
-            return Err(Error::Input(format!("--time-scale must be a positive number, not {x}")));
-        }
-    }
+    let (scenario, run, out) = a.opts.resolve()?;
     let (events, notes) = plan(a, &scenario)?;
     match netns::privilege().map_err(Error::Input)? {
         netns::Privilege::Root => {}
@@ -204,7 +183,6 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
             };
         }
     }
-    let out = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
     for stale in netns::sweep_stale() {
         eprintln!("removed namespace {stale}, left by a lab that was killed");
@@ -217,7 +195,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     hosts.extend(scenario.graph.ids().iter().map(|&id| agent_host(id)));
     let names: Vec<&str> = hosts.iter().map(String::as_str).collect();
     let lab = netns::Lab::create(&names).map_err(|e| Error::Run(format!("building the lab network: {e}")))?;
-    if !a.quiet {
+    if !a.opts.quiet {
         eprintln!(
             "lab: {} hosts on a bridge, 10.77.0.0/16 ({} mode, run {run}); {} planned fault events",
             hosts.len(),
@@ -242,7 +220,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     let record = json!({ "mode": if a.mode == LaunchMode::Client { "client" } else { "peer" }, "events": performed, "notes": notes });
     std::fs::write(out.join("lab.json"), serde_json::to_string_pretty(&record).unwrap_or_default() + "\n")
         .map_err(|e| Error::Run(format!("writing {}: {e}", out.join("lab.json").display())))?;
-    if !a.quiet {
+    if !a.opts.quiet {
         print!("{}", summary.table());
         println!("wrote {}", out.display());
     }
@@ -267,11 +245,7 @@ impl Ctx<'_> {
     /// `formation node <node> …` in the host's namespace, with its endpoints.
     fn node(&self, host: &str, node: &str) -> Command {
         let mut c = self.lab.command(host, self.exe);
-        c.args(["node", node]).arg("--scenario").arg(&self.a.scenario.scenario).arg("--run").arg(self.run);
-        for o in &self.a.scenario.overrides {
-            c.arg("--set").arg(o);
-        }
-        c.stdin(Stdio::null());
+        launch::node_args(&mut c, node, &self.a.opts, self.run);
         if self.a.mode == LaunchMode::Client {
             c.args(["--mode", "client", "--connect", &self.ep("router")]);
             return c;
@@ -347,14 +321,14 @@ impl Ctx<'_> {
         }
         let mut c = self.node("monitor", "monitor");
         c.arg("--out").arg(self.out).stdout(Stdio::null());
-        if self.a.quiet {
+        if self.a.opts.quiet {
             c.arg("--quiet");
         }
         launch::spawn(children, "monitor", c)?;
 
         let mut c = self.node("leader", "leader");
         c.arg("--print-start").stdout(Stdio::piped());
-        if let Some(x) = self.a.time_scale {
+        if let Some(x) = self.a.opts.time_scale {
             c.arg("--time-scale").arg(x.to_string());
         }
         let mut leader = c.spawn().map_err(|e| Error::Run(format!("starting the leader: {e}")))?;
@@ -402,48 +376,22 @@ impl Ctx<'_> {
                 while next < events.len() && events[next].at_s <= now_s {
                     let e = &events[next];
                     if let Err(err) = self.act(children, &e.action) {
-                        children.terminate(|n| n == "monitor");
-                        let _ = children.wait_for("monitor", Duration::from_secs(10));
-                        children.kill_all();
+                        children.wind_down();
                         return Err(Error::Run(format!("performing '{}' at t = {} s: {err}", e.what, e.at_s)));
                     }
                     let done_s = (crate::net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
-                    if !self.a.quiet {
+                    if !self.a.opts.quiet {
                         eprintln!("lab: t = {done_s:.3} s: {}", e.what);
                     }
                     performed.push(json!({ "planned_s": e.at_s, "performed_s": done_s, "what": e.what }));
                     next += 1;
                 }
             }
-            while let Some((name, status)) = children.poll() {
-                if name == "monitor" {
-                    if !status.success() {
-                        children.kill_all();
-                        return Err(Error::Run(format!("the monitor failed ({status})")));
-                    }
-                    children.remove("monitor");
-                    children.reap(Duration::from_secs(5));
-                    let path = self.out.join("summary.json");
-                    let text = std::fs::read_to_string(&path)
-                        .map_err(|e| Error::Run(format!("reading {}: {e}", path.display())))?;
-                    let summary = serde_json::from_str(&text)
-                        .map_err(|e| Error::Run(format!("reading {}: {e}", path.display())))?;
-                    if next < events.len() {
-                        eprintln!("lab: the run ended before {} planned events", events.len() - next);
-                    }
-                    return Ok((summary, performed));
+            if let Some(ended) = launch::settle(children, self.out) {
+                if ended.is_ok() && next < events.len() {
+                    eprintln!("lab: the run ended before {} planned events", events.len() - next);
                 }
-                if status.success() {
-                    children.remove(&name);
-                    continue;
-                }
-                children.terminate(|n| n == "monitor");
-                let _ = children.wait_for("monitor", Duration::from_secs(10));
-                children.kill_all();
-                return Err(Error::Run(format!(
-                    "{name} failed ({status}); stopped every process; the run folder {} holds what the monitor received",
-                    self.out.display()
-                )));
+                return ended.map(|summary| (summary, performed));
             }
         }
     }
@@ -479,7 +427,7 @@ mod tests {
             "--restart-agent",
             "4@6:2",
         ]);
-        let s = a.scenario.load().expect("scenario");
+        let s = a.opts.scenario.load().expect("scenario");
         let (events, notes) = plan(&a, &s).expect("plan");
         let got: Vec<(f64, &str)> = events.iter().map(|e| (e.at_s, e.what.as_str())).collect();
         assert_eq!(
@@ -500,7 +448,7 @@ mod tests {
 
     #[test]
     fn bad_plans_are_refused_with_the_flag_named() {
-        let s = args(&[]).scenario.load().expect("scenario");
+        let s = args(&[]).opts.scenario.load().expect("scenario");
         for (flag, value, says) in [
             ("--kill-router", "8", "AT:FOR"),
             ("--kill-router", "8:-1", "AT:FOR"),

@@ -23,7 +23,7 @@ use zenoh::Wait;
 
 use crate::cli::ScenarioArgs;
 use crate::error::Error;
-use crate::launch::{LaunchArgs, LaunchMode};
+use crate::launch::{LaunchArgs, LaunchMode, RunOptions};
 use crate::net::inbox::{self, Inbox, Source};
 use crate::net::keys;
 use crate::net::session::{self, ZenohArgs};
@@ -51,13 +51,15 @@ pub struct BenchNetArgs {
 
 fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: &str) -> LaunchArgs {
     LaunchArgs {
-        scenario: ScenarioArgs { scenario: a.scenario.clone(), overrides: sets.to_vec() },
-        out: Some(out),
-        run: Some(run.to_string()),
+        opts: RunOptions {
+            scenario: ScenarioArgs { scenario: a.scenario.clone(), overrides: sets.to_vec() },
+            out: Some(out),
+            run: Some(run.to_string()),
+            time_scale: None,
+            quiet: true,
+        },
         mode: LaunchMode::Peer,
         base_port: Some(port),
-        time_scale: None,
-        quiet: true,
     }
 }
 
@@ -93,7 +95,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     // 2. Real-time period error at 1 kHz.
     let rt_sets = vec![format!("duration={}", a.realtime_duration), "timing=realtime".into(), "dt=0.001".into()];
     let mut l = launch_args(a, &rt_sets, a.base_port + 20, tmp.join("rt"), "bench-rt");
-    l.time_scale = Some(1.0);
+    l.opts.time_scale = Some(1.0);
     crate::launch::run(&l)?;
     let net: serde_json::Value = std::fs::read_to_string(tmp.join("rt").join("network.json"))
         .ok()
