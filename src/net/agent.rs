@@ -253,13 +253,7 @@ pub async fn run_follower(
     let outcome = tokio::task::spawn_blocking(move || control_loop(loop_ctx, body, &shared, &estimate_pub, &courier))
         .await
         .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
-    let unacknowledged = tokio::task::spawn_blocking(move || delivery.finish(telemetry::DRAIN)).await.unwrap_or(0);
-    if unacknowledged > 0 {
-        eprintln!(
-            "follower {id}: the monitor did not acknowledge {unacknowledged} steps of telemetry within {} s",
-            telemetry::DRAIN.as_secs()
-        );
-    }
+    telemetry::finish_delivery(delivery, &format!("follower {id}")).await;
     drop(acks);
     if let Some(w) = watcher {
         w.abort();

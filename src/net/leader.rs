@@ -147,13 +147,7 @@ pub async fn run_leader(
     })
     .await
     .map_err(|e| Error::Run(format!("leader: loop panicked: {e}")))?;
-    let unacknowledged = tokio::task::spawn_blocking(move || delivery.finish(telemetry::DRAIN)).await.unwrap_or(0);
-    if unacknowledged > 0 {
-        eprintln!(
-            "leader: the monitor did not acknowledge {unacknowledged} steps of telemetry within {} s",
-            telemetry::DRAIN.as_secs()
-        );
-    }
+    telemetry::finish_delivery(delivery, "leader").await;
     drop(acks);
     announcer.abort();
     drop(subs);

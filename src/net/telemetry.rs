@@ -175,3 +175,15 @@ pub async fn start_delivery(
 
 /// A finished node waits this long for the monitor to acknowledge its telemetry.
 pub const DRAIN: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Waits (off the async runtime) up to [`DRAIN`] for the monitor to
+/// acknowledge everything, and says how many steps it did not.
+pub async fn finish_delivery(delivery: crate::net::courier::Delivery, who: &str) {
+    let unacknowledged = tokio::task::spawn_blocking(move || delivery.finish(DRAIN)).await.unwrap_or(0);
+    if unacknowledged > 0 {
+        eprintln!(
+            "{who}: the monitor did not acknowledge {unacknowledged} steps of telemetry within {} s",
+            DRAIN.as_secs()
+        );
+    }
+}
