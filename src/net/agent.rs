@@ -183,7 +183,8 @@ pub async fn run_follower(
     let estimate_pub = session
         .declare_publisher(keys.estimate(id))
         .congestion_control(estimate_congestion(scenario))
-        .express(true)
+        .priority(crate::net::node::priority::ESTIMATE)
+        .express(crate::net::node::estimate_express(scenario))
         .await
         .map_err(|e| zerr("declaring the estimate publisher", e))?;
 

@@ -6,6 +6,12 @@
 //! sent again, oldest first, so a batch lost to a dead link, a router
 //! restart or a full queue reaches the monitor once the way is clear.
 //!
+//! Sending again is paced so that it cannot swamp the network it waits
+//! for: at most [`WINDOW_BYTES`] are in flight (sent, not acknowledged), and
+//! while no acknowledgement arrives at all (a dead link) the time before
+//! the next try doubles, up to [`MAX_RESEND`]; the first acknowledgement
+//! that arrives again (the monitor sends one every 100 ms) resets it.
+//!
 //! The store is bounded: at most [`CAPACITY_STEPS`] unacknowledged steps
 //! (200 s of a follower's telemetry at 1 kHz, about 32 MB). Past that the
 //! oldest batch is dropped and counted, and the batches that follow tell
@@ -20,6 +26,10 @@ use std::time::{Duration, Instant};
 pub const CAPACITY_STEPS: u64 = 200_000;
 /// A batch not acknowledged this long after it was sent is sent again.
 pub const RESEND: Duration = Duration::from_millis(300);
+/// The longest wait between two tries while nothing is acknowledged.
+pub const MAX_RESEND: Duration = Duration::from_millis(2400);
+/// Bytes in flight (sent, not yet acknowledged) at most.
+pub const WINDOW_BYTES: u64 = 256 * 1024;
 /// How often the courier's thread looks for work when nothing wakes it.
 const TICK: Duration = Duration::from_millis(20);
 
@@ -54,6 +64,8 @@ struct State {
     held_bytes: u64,
     closed: bool,
     stats: CourierStats,
+    /// The current resend timeout (see the module docs).
+    resend: Duration,
 }
 
 /// The store between a control loop and the network (see the module docs).
@@ -66,7 +78,8 @@ pub struct Courier {
 
 impl Courier {
     pub fn new(capacity_steps: u64) -> Self {
-        Self { state: Mutex::new(State::default()), changed: Condvar::new(), capacity_steps: capacity_steps.max(1) }
+        let state = State { resend: RESEND, ..State::default() };
+        Self { state: Mutex::new(state), changed: Condvar::new(), capacity_steps: capacity_steps.max(1) }
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -107,6 +120,8 @@ impl Courier {
     /// The monitor holds every step below `next_k`: forget those batches.
     pub fn ack(&self, next_k: u64) {
         let mut s = self.lock();
+        // An acknowledgement arrived: the way to the monitor is open again.
+        s.resend = RESEND;
         if next_k <= s.acked {
             return;
         }
@@ -130,29 +145,39 @@ impl Courier {
         self.lock().held_steps
     }
 
-    /// The batches due now: never sent, or sent more than [`RESEND`] ago
-    /// (oldest first); marks them sent. Waits up to [`TICK`] for work.
-    fn due(&self) -> Option<Vec<(Arc<Vec<u8>>, bool)>> {
+    /// The batches due now, oldest first, marked sent: if the oldest in
+    /// flight has waited the resend timeout, everything in flight goes again
+    /// (and the timeout doubles until an acknowledgement arrives); then
+    /// batches never sent, while the window allows. Waits up to [`TICK`] for
+    /// work.
+    fn due(&self) -> Option<Vec<Arc<Vec<u8>>>> {
         let mut s = self.lock();
-        let now = Instant::now();
-        let is_due = |b: &Batch| b.sent.is_none_or(|t| now.duration_since(t) >= RESEND);
-        if !s.queue.iter().any(is_due) {
-            if s.closed && s.queue.is_empty() {
-                return None;
+        let mut out = Vec::new();
+        for attempt in 0..2 {
+            let now = Instant::now();
+            let State { queue, resend, stats, .. } = &mut *s;
+            if queue.front().and_then(|b| b.sent).is_some_and(|t| now.duration_since(t) >= *resend) {
+                for b in queue.iter_mut().take_while(|b| b.sent.is_some()) {
+                    b.sent = None;
+                    stats.resent += 1;
+                }
+                *resend = (*resend * 2).min(MAX_RESEND);
+            }
+            let mut in_flight: u64 = queue.iter().filter(|b| b.sent.is_some()).map(|b| b.bytes.len() as u64).sum();
+            for b in queue.iter_mut().filter(|b| b.sent.is_none()) {
+                let n = b.bytes.len() as u64;
+                if in_flight > 0 && in_flight + n > WINDOW_BYTES {
+                    break;
+                }
+                in_flight += n;
+                out.push(b.bytes.clone());
+                b.sent = Some(now);
+            }
+            if !out.is_empty() || (s.closed && s.queue.is_empty()) || attempt == 1 {
+                break;
             }
             s = self.changed.wait_timeout(s, TICK).unwrap_or_else(|p| p.into_inner()).0;
         }
-        let now = Instant::now();
-        let mut out = Vec::new();
-        let mut resent = 0;
-        for b in s.queue.iter_mut() {
-            if b.sent.is_none_or(|t| now.duration_since(t) >= RESEND) {
-                resent += u64::from(b.sent.is_some());
-                out.push((b.bytes.clone(), b.sent.is_some()));
-                b.sent = Some(now);
-            }
-        }
-        s.stats.resent += resent;
         if s.closed && s.queue.is_empty() {
             return None;
         }
@@ -189,7 +214,7 @@ impl Delivery {
         let mut publish = publish;
         let thread = std::thread::spawn(move || {
             while let Some(batches) = c.due() {
-                for (bytes, _) in batches {
+                for bytes in batches {
                     // A failed put is like a lost one: sent again after RESEND.
                     let _ = publish(&bytes);
                 }
@@ -276,6 +301,39 @@ mod tests {
         let stats = d.courier.stats();
         assert_eq!(d.finish(Duration::from_secs(1)), 0, "every step acknowledged ({stats:?})");
         assert!(stats.resent >= 10, "the batches lost to the dead link were sent again: {stats:?}");
+    }
+
+    #[test]
+    fn sending_again_is_windowed_and_backs_off_while_nothing_is_acknowledged() {
+        // A dead link for good: count the puts.
+        let puts = Arc::new(Mutex::new(Vec::<(Duration, usize)>::new()));
+        let p = puts.clone();
+        let began = Instant::now();
+        let d = Delivery::start(1_000_000, move |b| {
+            p.lock().unwrap().push((began.elapsed(), b.len()));
+            Err("down".into())
+        });
+        // 100 batches of 10 kB: four times the window.
+        for i in 0..100u64 {
+            d.courier.push(i * 50, i * 50 + 50, vec![0; 10 * 1024]);
+        }
+        std::thread::sleep(Duration::from_millis(2000));
+        let log = puts.lock().unwrap().clone();
+        let first: usize = log.iter().filter(|(t, _)| *t < Duration::from_millis(150)).count();
+        assert_eq!(first as u64, WINDOW_BYTES / (10 * 1024), "the first try sends one window: {first} batches");
+        // Tries at 0, 0.3 and 0.9 s (then 2.1 s): three windows in 2 s, not seven.
+        let tries = log.len() / first;
+        assert!(tries <= 3, "{tries} windows sent in 2 s without an acknowledgement (puts at {:?})", {
+            let mut at: Vec<u128> = log.iter().map(|(t, _)| t.as_millis()).collect();
+            at.dedup_by(|a, b| a.abs_diff(*b) < 50);
+            at
+        });
+        // An acknowledgement resets the pace and frees the window.
+        d.courier.ack(50 * 25);
+        std::thread::sleep(Duration::from_millis(150));
+        let after = puts.lock().unwrap().len() - log.len();
+        assert_eq!(after as u64, WINDOW_BYTES / (10 * 1024), "after the acknowledgement, the next window: {after}");
+        d.finish(Duration::from_millis(10));
     }
 
     #[test]

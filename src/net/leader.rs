@@ -115,7 +115,8 @@ pub async fn run_leader(
     let estimate_pub = session
         .declare_publisher(keys.estimate(wire::LEADER_ID))
         .congestion_control(estimate_congestion(scenario))
-        .express(true)
+        .priority(crate::net::node::priority::ESTIMATE)
+        .express(crate::net::node::estimate_express(scenario))
         .await
         .map_err(|e| zerr("declaring the estimate publisher", e))?;
 

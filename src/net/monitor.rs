@@ -601,6 +601,8 @@ async fn monitor(
     let acks = session
         .declare_publisher(keys.ack())
         .congestion_control(zenoh::qos::CongestionControl::Drop)
+        .priority(crate::net::node::priority::ACK)
+        .express(true)
         .await
         .map_err(|e| Error::Run(format!("declaring the acknowledgement publisher: {e}")))?;
     let mut ack_tick = tokio::time::interval(ACK_PERIOD);

@@ -131,3 +131,25 @@ pub fn estimate_congestion(scenario: &Scenario) -> zenoh::qos::CongestionControl
         formation_topology::Timing::Lockstep => zenoh::qos::CongestionControl::Block,
     }
 }
+
+/// Whether estimates skip zenoh's batching. Lock-step: yes, every step
+/// waits for them. Real time: no. An express message takes a whole batch
+/// of its priority's queue (2 by default), so a transport that is held up
+/// for a few milliseconds (a router descheduled on a busy host) drops every
+/// estimate after the second; batched, a stall of that length costs a few
+/// kilobytes of queue and nothing is dropped. Without back-pressure a
+/// batched message leaves at once.
+pub fn estimate_express(scenario: &Scenario) -> bool {
+    scenario.timing == formation_topology::Timing::Lockstep
+}
+
+/// Zenoh priorities of a run's traffic. Each priority has a queue of its own
+/// in every transport (and the router's), served highest first: estimates
+/// never wait behind telemetry, not even behind the burst a node sends
+/// again after an outage. Acknowledgements come next, telemetry last.
+pub mod priority {
+    use zenoh::qos::Priority;
+    pub const ESTIMATE: Priority = Priority::RealTime;
+    pub const ACK: Priority = Priority::InteractiveHigh;
+    pub const TELEMETRY: Priority = Priority::DataLow;
+}

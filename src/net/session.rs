@@ -15,7 +15,7 @@
 //! 4. These are set only where the file left them unset:
 //!    `scouting/delay = 0`, `connect/timeout_ms = -1` (wait for the peer or
 //!    router instead of failing at once), `connect/exit_on_failure = false`,
-//!    and `connect/retry/{period_init_ms: 100, period_max_ms: 500,
+//!    and `connect/retry/{period_init_ms: 100, period_max_ms: 200,
 //!    period_increase_factor: 2}` (per field). The retry settings are what
 //!    makes a client reconnect within a few hundred ms after its router
 //!    restarts (zenoh's default retry is 1 s ×2 up to 4 s). And
@@ -145,7 +145,7 @@ impl ZenohArgs {
         };
         for (k, v) in [
             ("period_init_ms", Value::from(100)),
-            ("period_max_ms", Value::from(500)),
+            ("period_max_ms", Value::from(200)),
             ("period_increase_factor", Value::from(2.0)),
         ] {
             if retry.get(k).is_none_or(Value::is_null) {
@@ -251,7 +251,7 @@ mod tests {
         assert_eq!(json(&c, "connect/exit_on_failure"), false);
         let retry = json(&c, "connect/retry");
         assert_eq!(retry["period_init_ms"], 100);
-        assert_eq!(retry["period_max_ms"], 500);
+        assert_eq!(retry["period_max_ms"], 200);
         assert_eq!(retry["period_increase_factor"], 2.0);
         assert_eq!(json(&c, "transport/link/tx/lease"), 1000);
         assert_eq!(json(&c, "transport/link/tx/keep_alive"), 4);
@@ -299,7 +299,7 @@ mod tests {
         assert_eq!(json(&c, "connect/exit_on_failure"), false);
         let retry = json(&c, "connect/retry");
         assert_eq!(retry["period_init_ms"], 50);
-        assert_eq!(retry["period_max_ms"], 500);
+        assert_eq!(retry["period_max_ms"], 200);
         assert_eq!(json(&c, "connect/endpoints"), serde_json::json!(["tcp/127.0.0.1:7999"]));
         assert_eq!(json(&c, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:7998"]));
 

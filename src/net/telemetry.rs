@@ -163,6 +163,7 @@ pub async fn start_delivery(
     let publisher = session
         .declare_publisher(keys.telemetry(node))
         .congestion_control(crate::net::node::estimate_congestion(scenario))
+        .priority(crate::net::node::priority::TELEMETRY)
         .await
         .map_err(|e| Error::Run(format!("declaring the telemetry publisher: {e}")))?;
     let delivery = crate::net::courier::Delivery::start(crate::net::courier::CAPACITY_STEPS, move |bytes| {
