@@ -154,6 +154,11 @@ pub struct FollowerMetrics {
     pub rmse_w: Option<f64>,
     /// Number of samples the metrics were computed from.
     pub samples: u64,
+    /// Steps missing between recorded ones (an agent that was down,
+    /// telemetry lost for good; `network.json` lists the gaps). Written only
+    /// when not 0.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub gap_steps: u64,
 }
 
 impl FollowerMetrics {
@@ -161,10 +166,12 @@ impl FollowerMetrics {
     /// does not reach in a run of `steps` steps of Δt. A no-op for metrics
     /// from [`MetricsAccumulator`]; older `summary.json` files wrote 0 there.
     pub fn null_unreached(&mut self, steps: u64, dt_s: f64) {
-        if self.samples <= last10_from_k(steps, dt_s) {
+        // How far the record reached: its samples and the gaps between them.
+        let reached = self.samples + self.gap_steps;
+        if reached <= last10_from_k(steps, dt_s) {
             self.formation_rms_last10 = None;
         }
-        if self.samples <= steps {
+        if reached <= steps {
             for m in [
                 &mut self.formation_final,
                 &mut self.heading_final,
@@ -210,6 +217,8 @@ pub struct MetricsAccumulator {
     samples: u64,
     /// The sample of step `steps` (t = T) was pushed.
     reached_final: bool,
+    /// The step after the last one pushed.
+    next_k: u64,
     last: Row,
     /// One per fault window of the scenario (SPEC §14's metrics under faults).
     outages: Vec<crate::outage::OutageAccumulator>,
@@ -253,6 +262,7 @@ impl MetricsAccumulator {
         }
         self.prev_torque = Some((k, r.tau_l, r.tau_r));
         self.samples += 1;
+        self.next_k = k + 1;
         self.reached_final = k == self.steps;
         self.last = *r;
         for o in &mut self.outages {
@@ -266,8 +276,8 @@ impl MetricsAccumulator {
         let n = self.samples;
         let any = n > 0;
         let at_t = |x: f64| self.reached_final.then_some(x);
-        // T for a complete run: samples 0..=steps span steps Δt.
-        let span_s = n.saturating_sub(1) as f64 * self.dt_s;
+        // T for a complete run: samples 0..=steps span steps Δt (gaps included).
+        let span_s = self.next_k.saturating_sub(1) as f64 * self.dt_s;
         FollowerMetrics {
             formation_rms_last10: (self.n_last10 > 0)
                 .then(|| (self.sum_formation_sq_last10 / self.n_last10 as f64).sqrt()),
@@ -282,6 +292,7 @@ impl MetricsAccumulator {
             rmse_v: any.then(|| (self.sum_v_sq / n as f64).sqrt()),
             rmse_w: any.then(|| (self.sum_w_sq / n as f64).sqrt()),
             samples: n,
+            gap_steps: self.next_k.saturating_sub(n),
         }
     }
 }
@@ -325,6 +336,9 @@ pub struct Shortfall {
     pub recorded: u64,
     /// steps + 1.
     pub expected: u64,
+    /// Of the missing ones, steps missing between recorded ones.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub in_gaps: u64,
 }
 
 impl Shortfall {
@@ -335,6 +349,13 @@ impl Shortfall {
             // To the microsecond: 1499 × 0.001 prints as 1.499, not 1.4990000000000001.
             n => format!(" (to t = {} s of T = {duration_s} s)", ((n - 1) as f64 * dt_s * 1e6).round() / 1e6),
         };
+        if self.in_gaps > 0 && self.recorded + self.in_gaps == self.expected {
+            return format!(
+                "follower {id} recorded {} of {} samples ({} missing in gaps: an agent that was down or telemetry \
+                 lost for good; network.json lists them)",
+                self.recorded, self.expected, self.in_gaps
+            );
+        }
         format!("follower {id} recorded {} of {} samples{reached}", self.recorded, self.expected)
     }
 }
@@ -376,7 +397,7 @@ impl Summary {
             .followers
             .iter()
             .filter(|(_, m)| m.samples < expected)
-            .map(|(&id, m)| (id, Shortfall { recorded: m.samples, expected }))
+            .map(|(&id, m)| (id, Shortfall { recorded: m.samples, expected, in_gaps: m.gap_steps }))
             .collect();
         self.complete = self.incomplete.is_empty();
     }
@@ -448,6 +469,10 @@ impl Summary {
 
 fn yes() -> bool {
     true
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
 }
 
 fn is_true(b: &bool) -> bool {
@@ -772,7 +797,7 @@ mod tests {
         let cut = Summary::new(&s, followers);
         assert!(!cut.complete);
         assert_eq!(cut.incomplete.len(), 1, "{:?}", cut.incomplete);
-        assert_eq!(cut.incomplete[&3], Shortfall { recorded: 800, expected: 2001 });
+        assert_eq!(cut.incomplete[&3], Shortfall { recorded: 800, expected: 2001, in_gaps: 0 });
         let v: serde_json::Value = serde_json::from_str(&cut.to_json()).unwrap();
         assert_eq!(v["complete"], false);
         assert_eq!(v["incomplete"]["3"], serde_json::json!({ "recorded": 800, "expected": 2001 }));

@@ -4,7 +4,7 @@
 
 use formation_agent::{Follower, Hearing, LeaderState, LinkLoss};
 use formation_leader::Leader;
-use formation_plant::{NoiseSource, Robot, Velocity};
+use formation_plant::{NoiseSource, Pose, Robot, Velocity};
 use formation_topology::Scenario;
 
 use crate::record::{FollowerMetrics, FollowerSample, MetricsAccumulator, Row};
@@ -45,6 +45,16 @@ impl SimFollower {
             measurement: spec.velocity,
             metrics: MetricsAccumulator::for_scenario(scenario),
         }
+    }
+
+    /// A restarted agent's follower (SPEC §14): at step `k`, its robot
+    /// stopped (v = ω = 0) at `pose`, a fresh brain that adopts its estimate
+    /// from the first source it hears.
+    pub fn resume(&mut self, k: u64, pose: Pose) {
+        self.brain.resume_at(k);
+        self.robot.pose = pose;
+        self.robot.velocity = Velocity::default();
+        self.measurement = Velocity::default();
     }
 
     /// One step of brain and robot with the leader's state (if heard) and the

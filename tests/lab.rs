@@ -48,11 +48,16 @@ struct Run {
 }
 
 fn lab(tag: &str, sets: &[&str], extra: &[&str]) -> Run {
+    lab_on(&BASE, tag, sets, extra)
+}
+
+/// [`lab`] with other base settings than real time for 20 s.
+fn lab_on(base: &[&str], tag: &str, sets: &[&str], extra: &[&str]) -> Run {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("run");
     let out_s = out.display().to_string();
     let mut args = vec!["lab", common::SCENARIO, "-q", "--out", &out_s, "--run", tag];
-    for s in BASE.iter().chain(sets) {
+    for s in base.iter().chain(sets) {
         args.extend(["--set", s]);
     }
     args.extend_from_slice(extra);
@@ -74,15 +79,24 @@ fn lab(tag: &str, sets: &[&str], extra: &[&str]) -> Run {
 }
 
 fn sim(sets: &[&str]) -> serde_json::Value {
+    let (dir, out) = sim_on(&BASE, sets);
+    let summary = common::json(&out, "summary.json");
+    drop(dir);
+    summary
+}
+
+/// `formation sim` with `base` and `sets`; the folder and the run in it.
+fn sim_on(base: &[&str], sets: &[&str]) -> (tempfile::TempDir, std::path::PathBuf) {
     let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("sim");
     let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
-    c.args(["sim", common::SCENARIO, "-q", "--out"]).arg(dir.path().join("sim"));
-    for s in BASE.iter().chain(sets) {
+    c.args(["sim", common::SCENARIO, "-q", "--out"]).arg(&out);
+    for s in base.iter().chain(sets) {
         c.args(["--set", s]);
     }
-    let out = c.output().expect("formation sim");
-    assert!(out.status.success(), "formation sim: {}", String::from_utf8_lossy(&out.stderr));
-    common::json(&dir.path().join("sim"), "summary.json")
+    let o = c.output().expect("formation sim");
+    assert!(o.status.success(), "formation sim: {}", String::from_utf8_lossy(&o.stderr));
+    (dir, out)
 }
 
 const IDS: [&str; 4] = ["1", "2", "3", "4"];
@@ -103,10 +117,15 @@ fn num(v: &serde_json::Value) -> f64 {
 
 /// Estimator position error of follower `id` per row: (t, error).
 fn estimator_error(r: &Run, id: &str) -> Vec<(f64, f64)> {
+    column(r, id, "estimator_error")
+}
+
+/// Column `name` of follower `id`'s CSV per row: (t, value).
+fn column(r: &Run, id: &str, name: &str) -> Vec<(f64, f64)> {
     let text = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv");
     let mut lines = text.lines();
     let head: Vec<&str> = lines.next().expect("header").split(',').collect();
-    let col = head.iter().position(|h| *h == "estimator_error").expect("estimator_error column");
+    let col = head.iter().position(|h| *h == name).expect("column");
     lines
         .map(|l| {
             let f: Vec<&str> = l.split(',').collect();
@@ -171,7 +190,9 @@ fn fault_free_clients_through_a_router_record_every_step() {
 }
 
 #[test]
-#[ignore = "flaky as of 2026-11-22 on a noisy 2-core VM: 2 of 5 runs had a source silent > 50 ms once; formation RMS 1.11x and once 2.33x the simulator's under host load; torque variation up to 1.14x; issue 9"]
+#[ignore = "flaky as of 2026-11-22 on a noisy 2-core VM (25-30 % CPU steal seen with vmstat during runs, loop \
+            wake-up lateness p99 3-5 ms, max 20-45 ms): no source silent in 2 runs since estimates are batched, \
+            but formation RMS and torque variation against the simulator move with the host's load; issue 9"]
 fn fault_free_clients_through_a_router_match_the_simulator() {
     fault_free("lab-free-timely", true);
 }
@@ -204,30 +225,38 @@ fn follower_3_cut_off(tag: &str, mode: &str) {
 }
 
 #[test]
-#[ignore = "fails as of 2026-11-22: follower 1's estimator error peaks at 0.0214 m (sim 0.011 m) after follower 3 rejoins; issue 9"]
+#[ignore = "flaky as of 2026-11-22 (noisy 2-core VM, 25-30 % CPU steal): the others' peak estimator error was \
+            0.015-0.023 m over 3 runs against 0.02 asked (simulator 0.011-0.018 m), follower 3 recovered 0.3-0.7 s \
+            later than simulated (it reconnects about 0.18 s after the link is back); issue 9"]
 fn follower_3_cut_off_for_3_s_as_a_client() {
     follower_3_cut_off("lab-cut-client", "client");
 }
 
 #[test]
-#[ignore = "fails as of 2026-11-22: follower 4's estimator error peaks at 0.0231 m (sim 0.0176 m) after follower 3 rejoins; issue 9"]
+#[ignore = "flaky as of 2026-11-22 (noisy 2-core VM): the others' peak estimator error was 0.015-0.027 m over \
+            3 runs against 0.02 asked (simulator 0.011-0.018 m); issue 9"]
 fn follower_3_cut_off_for_3_s_as_a_peer() {
     follower_3_cut_off("lab-cut-peer", "peer");
 }
 
-#[test]
-#[ignore = "fails as of 2026-11-22: with consensus rejoin, follower 1 recovers 5.7 s after the router restart (2 s asked); issue 9"]
-fn a_router_killed_for_3_s_costs_nothing_recorded() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
-    if !lab_available() {
-        return;
-    }
-    let r = lab("lab-router", &[], &["--kill-router", "8:3"]);
-    every_step_recorded("router restart", &r);
+/// The router killed at 8 s for 3 s: the restart time and the run.
+fn router_restart(tag: &str, sets: &[&str]) -> (Run, f64) {
+    let r = lab(tag, sets, &["--kill-router", "8:3"]);
+    every_step_recorded(tag, &r);
     let lab_json = std::fs::read_to_string(r.out.join("lab.json")).expect("lab.json");
     let back: f64 = serde_json::from_str::<serde_json::Value>(&lab_json).expect("lab.json")["events"][1]["performed_s"]
         .as_f64()
         .expect("restart time");
+    (r, back)
+}
+
+#[test]
+fn a_router_killed_for_3_s_costs_nothing_recorded_and_traffic_is_back_within_1_s() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    let (r, back) = router_restart("lab-router", &[]);
     for id in IDS {
         let timeline = r.network["nodes"][id]["timeline"].as_array().expect("timeline");
         let heard = timeline
@@ -240,12 +269,78 @@ fn a_router_killed_for_3_s_costs_nothing_recorded() {
             "follower {id}: traffic back {:.3} s after the restart at {back:.3} s: {timeline:?}",
             heard - back
         );
+    }
+}
+
+#[test]
+#[ignore = "fails as of 2026-11-22, as the model predicts: every follower is isolated for the 3 s, and the simulator \
+            (every follower cut off 8-11.12 s) recovers in 5.4-5.6 s under consensus; under adopt follower 1 in \
+            0.46 s and the others in 5.5 s (they adopt their equally stale neighbours, a SPEC §14 gap); lab \
+            5.5-5.7 s under both; issue 9"]
+fn a_router_killed_for_3_s_every_follower_recovers_within_2_s() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    let (r, back) = router_restart("lab-router-adopt", &["network.rejoin=adopt"]);
+    for id in IDS {
         let rec = recovered_at(&estimator_error(&r, id), back);
         assert!(
             rec.is_some_and(|t| t - back <= 2.0),
             "follower {id}: estimator error below 0.02 m for 1 s from {rec:?} (restart at {back:.3} s; 2 s allowed)"
         );
     }
+}
+
+/// Lock-step with a physical fault: the run is only delayed, and its files
+/// are the simulator's byte for byte (the lab performs `node` rows on the
+/// network at the given wall time and the agents apply the table in
+/// software at the given run time).
+fn lockstep_equals_sim(tag: &str, sets: &[&str], extra: &[&str]) {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    // 30 s of lock-step take about 15-20 s of wall time here: a fault at
+    // 4-7 s of wall time falls inside the run.
+    let base = ["duration=30"];
+    let r = lab_on(&base, tag, sets, extra);
+    let lab_json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(r.out.join("lab.json")).expect("lab.json")).expect("lab.json");
+    let performed = lab_json["events"].as_array().map_or(0, Vec::len);
+    let (_dir, s) = sim_on(&base, sets);
+    for f in ["follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv", "leader.csv", "summary.json"] {
+        let a = std::fs::read(r.out.join(f)).expect("lab file");
+        let b = std::fs::read(s.join(f)).expect("sim file");
+        let first = a.iter().zip(&b).position(|(x, y)| x != y);
+        assert!(
+            a == b,
+            "{tag}: {f} differs from the simulator's ({} vs {} bytes, first difference at byte {first:?}; {performed} \
+             fault events performed)",
+            a.len(),
+            b.len()
+        );
+    }
+    eprintln!("{tag}: byte-identical to the simulator, {performed} fault events performed: {}", lab_json["events"]);
+}
+
+#[test]
+fn lockstep_with_follower_3_cut_off_physically_equals_the_simulator() {
+    lockstep_equals_sim("lab-ls-cut", &["faults+={node=3, from=4, to=7}"], &[]);
+}
+
+#[test]
+fn lockstep_with_the_router_killed_equals_the_simulator() {
+    lockstep_equals_sim("lab-ls-router", &[], &["--kill-router", "4:3"]);
+}
+
+#[test]
+#[ignore = "fails as of 2026-11-22 in 3 of 6 runs: under 30 % physical loss on follower 2's link, follower 2's \
+            lock-step messages stop reaching its neighbours and the run stalls (stall timeout 60 s) even after \
+            the loss ends; follower 2 reports no stall itself. Cause not found (a zenoh session left split by a \
+            one-sided lease expiry, eclipse-zenoh/zenoh#2806, is a candidate); issue 9"]
+fn lockstep_with_30_percent_loss_on_follower_2_equals_the_simulator() {
+    lockstep_equals_sim("lab-ls-loss", &["faults+={node=2, from=3, to=13, loss=0.3}"], &[]);
 }
 
 #[test]
@@ -269,4 +364,67 @@ fn a_bad_plan_is_refused_before_any_namespace_is_made() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(err.contains("--kill-router 8") && err.lines().count() == 1, "{err}");
+}
+
+/// Agent 3 killed at 8 s and started again 2 s later (real time, 1 kHz):
+/// it rejoins the running formation from its checkpointed pose (SPEC §14's
+/// restarted agent), the record marks the gap and nothing else jumps.
+#[test]
+fn an_agent_killed_and_restarted_rejoins_the_running_formation() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    restarted("lab-restart");
+}
+
+#[test]
+#[ignore = "flaky as of 2026-11-22 on a noisy 2-core VM: with agent 3 restarted, follower 1's estimator error \
+            reached 0.0246 m in one test-profile run (0.006-0.009 m in release runs); 0.02 asked; issue 10"]
+fn an_agent_killed_and_restarted_goes_unnoticed_by_the_others() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    let r = restarted("lab-restart-others");
+    for id in ["1", "2", "4"] {
+        let peak = estimator_error(&r, id).iter().filter(|(t, _)| *t >= 5.0).map(|e| e.1).fold(0.0, f64::max);
+        assert!(peak < 0.02, "follower {id}'s estimator error reached {peak:.4} m (from 5 s on)");
+    }
+}
+
+/// The lab run of the restart tests, with its own checks.
+fn restarted(tag: &str) -> Run {
+    let r = lab(tag, &[], &["--restart-agent", "3@8:2"]);
+    let lab_json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(r.out.join("lab.json")).expect("lab.json")).expect("lab.json");
+    let back = num(&lab_json["events"][1]["performed_s"]);
+    // The record: one gap, marked as a restart, and the run not called complete.
+    let gaps = r.network["nodes"]["3"]["gaps"].as_array().expect("gaps").clone();
+    assert_eq!(gaps.len(), 1, "follower 3's gaps: {gaps:?}");
+    assert_eq!(gaps[0]["why"], "restarted", "{gaps:?}");
+    let (from, to) = (num(&gaps[0]["from"]) * 1e-3, num(&gaps[0]["to"]) * 1e-3);
+    assert!(from <= 8.05 && to >= back && to <= back + 1.0, "gap {from}-{to} s, restart at {back:.3} s");
+    assert_eq!(r.network["complete"], false, "a record with a gap is not complete");
+    assert_eq!(r.network["ending"], "finished with gaps");
+    // No jump the gap does not explain: consecutive rows move less than 1 cm
+    // (at most about 1.5 mm at 1 kHz), except across the gap.
+    let text = std::fs::read_to_string(r.out.join("follower_3.csv")).expect("csv");
+    let rows: Vec<Vec<f64>> =
+        text.lines().skip(1).map(|l| l.split(',').take(3).map(|f| f.parse().unwrap_or(f64::NAN)).collect()).collect();
+    let jumps: Vec<(f64, f64, f64)> = rows
+        .windows(2)
+        .map(|w| (w[0][0], w[1][0], (w[1][1] - w[0][1]).hypot(w[1][2] - w[0][2])))
+        .filter(|j| j.2 > 0.01 && j.1 - j.0 < 0.0015)
+        .collect();
+    assert!(jumps.is_empty(), "follower 3 jumps between consecutive steps (t, t', m): {jumps:?}");
+    // It rejoins: formation error below 0.2 m within 5 s of the restart.
+    let fe = column(&r, "3", "formation_error");
+    let settled = fe.iter().find(|(t, e)| *t >= back && *e < 0.2).map(|(t, _)| t - back);
+    assert!(
+        settled.is_some_and(|s| s <= 5.0),
+        "follower 3's formation error below 0.2 m {settled:?} s after the restart"
+    );
+    eprintln!("restart: gap {from:.3}-{to:.3} s, formation error below 0.2 m {settled:?} s after the restart");
+    r
 }

@@ -142,3 +142,43 @@ fn a_client_without_its_router_gives_up_naming_it() {
     assert!(stderr.contains("no zenoh router or peer answered at tcp/127.0.0.1:17633 within 2 s"), "{stderr}");
     assert!(took < Duration::from_secs(15), "gave up after {took:?} with --open-timeout 2");
 }
+
+/// A second leader or a second follower 3 for a run that is already going
+/// on the same router is refused before it publishes anything (exit 2, one
+/// line naming the run and `--run`), and the running formation finishes
+/// undisturbed.
+#[test]
+fn a_twin_of_a_running_node_is_refused_and_the_run_goes_on() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("first");
+    // Router on 17650 (client mode); real time, 12 s.
+    let sets = ["timing=realtime", "duration=12"];
+    let mut first = Group::launch(&out, &sets, &["--mode", "client", "--base-port", "17650", "--run", "twin"]);
+    std::thread::sleep(Duration::from_secs(5));
+    for (bin, extra) in [("leader", vec![]), ("agent", vec!["--id", "3"])] {
+        let began = Instant::now();
+        let result = Command::new(match bin {
+            "leader" => env!("CARGO_BIN_EXE_leader"),
+            _ => env!("CARGO_BIN_EXE_agent"),
+        })
+        .args(["--scenario", common::SCENARIO, "--run", "twin", "--mode", "client"])
+        .args(["--connect", "tcp/127.0.0.1:17650", "--set", sets[0], "--set", sets[1]])
+        .args(&extra)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("run the twin");
+        let took = began.elapsed();
+        let stderr = String::from_utf8_lossy(&result.stderr);
+        assert_eq!(result.status.code(), Some(2), "{bin}: {stderr}");
+        assert!(
+            stderr.contains("run twin:") && stderr.contains("already running") && stderr.contains("--run NAME"),
+            "{bin}: {stderr}"
+        );
+        assert!(took < Duration::from_secs(5), "{bin}: refused after {took:?}");
+    }
+    let status = first.wait(common::LIMIT);
+    assert!(status.success(), "the first formation was disturbed: {status}");
+    let network = common::json(&out, "network.json");
+    assert_eq!(network["complete"], true, "first formation's record: {}", network["ending"]);
+    first.assert_group_empty();
+}

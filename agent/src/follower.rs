@@ -169,6 +169,34 @@ impl Follower {
         self.adopt_pending = true;
     }
 
+    /// A restarted agent (SPEC §14): the follower as new (fresh filter with
+    /// ζ̂ = 0, P = R, fresh controller with the first-step rules of section
+    /// 7) at step `k`, taking its estimate from the first step that hears a
+    /// source, as `adopt` does.
+    pub fn resume_at(&mut self, k: u64) {
+        self.filter = VelocityFilter::new(self.config.control.filter, Velocity::default());
+        self.next_k = k;
+        self.last_k = k.saturating_sub(1);
+        self.adopt_pending = true;
+        self.v_s = 0.0;
+        self.dynamic = DynamicState::default();
+        self.last_command = None;
+        self.last_torque = Torque::default();
+        self.silent_steps = 0;
+    }
+
+    /// Still waiting for a source to take its estimate from (see
+    /// [`Follower::adopt_on_next_source`]).
+    pub fn adopting(&self) -> bool {
+        self.adopt_pending
+    }
+
+    /// Consecutive steps, up to the last one computed, at which no source was
+    /// heard (isolation when at least `rejoin.after_steps`).
+    pub fn silent_steps(&self) -> u64 {
+        self.silent_steps
+    }
+
     /// The filter's current estimate ζ̂ (and its gains, for telemetry).
     pub fn filter(&self) -> &VelocityFilter {
         &self.filter
@@ -375,6 +403,23 @@ mod tests {
         let (out, before) = isolate_then_hear(&mut g, 99);
         assert!(!out.rejoined);
         assert_eq!(out.estimate, before);
+    }
+
+    #[test]
+    fn a_resumed_follower_starts_fresh_at_its_step_and_adopts() {
+        let mut f = follower(RejoinPolicy::Consensus, 100);
+        for _ in 0..50 {
+            f.step(&Pose::default(), Velocity::new(0.5, 0.1), None, [&neighbour(1.0)]);
+        }
+        f.resume_at(7000);
+        assert!(f.adopting());
+        assert_eq!(f.next_step(), 7000);
+        assert_eq!(f.filter().estimate, [0.0, 0.0], "fresh filter: ζ̂ = 0");
+        let out = f.step(&Pose::default(), Velocity::default(), None, [&neighbour(5.0)]);
+        assert_eq!(out.k, 7000);
+        assert!(out.rejoined && !f.adopting());
+        assert_eq!(out.estimate, neighbour(5.0), "the estimate is the first heard message");
+        assert_eq!(out.command_rate, Velocity::default(), "first-step rule: no command rate");
     }
 
     #[test]

@@ -16,6 +16,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use formation_agent::{Hearing, LeaderState};
+use formation_plant::Pose;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use formation_topology::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
@@ -24,6 +25,7 @@ use zenoh::Wait;
 use crate::error::Error;
 
 use crate::net::barrier::{self, Start};
+use crate::net::checkpoint;
 use crate::net::codec;
 use crate::net::counters::Counters;
 use crate::net::courier::Courier;
@@ -57,6 +59,13 @@ pub trait Body: Send {
     fn initial_message(&self) -> LeaderState;
     /// The first quantity that is not finite, if any.
     fn check_finite(&self) -> Result<(), &'static str>;
+    /// Consecutive steps without any source (SPEC §14's isolation).
+    fn silent_steps(&self) -> u64;
+    /// A restarted agent: go on from step `k`, the robot stopped at `pose`,
+    /// with a fresh brain that adopts its estimate (SPEC §14).
+    fn resume(&mut self, k: u64, pose: Pose);
+    /// Waiting for a first source to adopt an estimate from.
+    fn adopting(&self) -> bool;
 }
 
 impl Body for SimFollower {
@@ -76,6 +85,15 @@ impl Body for SimFollower {
     fn check_finite(&self) -> Result<(), &'static str> {
         SimFollower::check_finite(self)
     }
+    fn silent_steps(&self) -> u64 {
+        self.brain.silent_steps()
+    }
+    fn resume(&mut self, k: u64, pose: Pose) {
+        SimFollower::resume(self, k, pose);
+    }
+    fn adopting(&self) -> bool {
+        self.brain.adopting()
+    }
 }
 
 /// `agent` arguments.
@@ -94,6 +112,11 @@ pub struct AgentArgs {
     /// again in software. `link = …` rows are still applied here.
     #[arg(long, hide = true)]
     pub physical_node_faults: bool,
+    /// Where the robot's pose is checkpointed every 100 ms, so that a
+    /// restarted agent resumes from it (default: formation-checkpoints in
+    /// the system's temporary folder).
+    #[arg(long, value_name = "DIR")]
+    pub checkpoint_dir: Option<std::path::PathBuf>,
 }
 
 /// Inbox shared between the subscriber callbacks and the control thread.
@@ -117,13 +140,30 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
     let session = args.node.open().await?;
     let body = Box::new(SimFollower::new(&scenario, index));
     let stall = Duration::from_secs_f64(args.stall_timeout);
-    let result = run_follower(&session, &scenario, &keys, index, body, stall, args.physical_node_faults).await;
+    let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
+    let checkpoint = checkpoint::path(&checkpoint_dir, &keys.run, args.id);
+    let opts = FollowerOptions {
+        stall_timeout: stall,
+        physical_node_faults: args.physical_node_faults,
+        checkpoint: Some(checkpoint),
+    };
+    let result = run_follower(&session, &scenario, &keys, index, body, opts).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
 
 fn zerr(what: &str, e: impl std::fmt::Display) -> Error {
     Error::Run(format!("{what}: {e}"))
+}
+
+/// How a follower process runs, beyond its scenario.
+pub struct FollowerOptions {
+    /// Lock-step: give up when inputs stop arriving for this long.
+    pub stall_timeout: Duration,
+    /// The network performs the fault table's `node` rows (the lab).
+    pub physical_node_faults: bool,
+    /// Where the robot's pose is checkpointed (real time), for a restart.
+    pub checkpoint: Option<std::path::PathBuf>,
 }
 
 /// Runs the follower at `index` with `body` on an open session.
@@ -133,10 +173,13 @@ pub async fn run_follower(
     keys: &Keys,
     index: usize,
     body: Box<dyn Body>,
-    stall_timeout: Duration,
-    physical_node_faults: bool,
+    opts: FollowerOptions,
 ) -> Result<(), Error> {
+    let FollowerOptions { stall_timeout, physical_node_faults, checkpoint } = opts;
+    let mut body = body;
     let id = scenario.graph.id(index);
+    // Nothing of this process goes out before it knows it has no twin.
+    barrier::refuse_twin(session, keys, id, scenario.steps()).await?;
     let hears_leader = scenario.graph.hears_leader(index);
     let neighbour_ids: Vec<u32> = scenario.graph.neighbours(index).iter().map(|&j| scenario.graph.id(j)).collect();
     let lockstep = scenario.timing == Timing::Lockstep;
@@ -198,7 +241,39 @@ pub async fn run_follower(
     if hears_leader {
         needs.push(wire::LEADER_ID.to_string());
     }
-    let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, barrier::fingerprint(scenario)).await?;
+    let fingerprint = barrier::fingerprint(scenario);
+    let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, fingerprint).await?;
+    // A run that began a while ago: this process is a restart (SPEC §14).
+    let first_step = if lockstep { 0 } else { rejoin_step(&start, scenario)? };
+    if first_step > 0 {
+        let found = checkpoint.as_deref().map(|p| checkpoint::read(p, fingerprint, start.epoch_unix_ns));
+        let pose = match found {
+            Some(Ok(c)) => {
+                eprintln!(
+                    "follower {id}: rejoining the running formation at t = {:.3} s (step {first_step}), the robot \
+                     stopped at the pose checkpointed at t = {:.3} s",
+                    first_step as f64 * scenario.dt_s,
+                    c.k as f64 * scenario.dt_s
+                );
+                c.pose()
+            }
+            Some(Err(why)) => {
+                eprintln!(
+                    "follower {id}: rejoining the running formation at t = {:.3} s (step {first_step}) from the \
+                     initial pose: {why}",
+                    first_step as f64 * scenario.dt_s
+                );
+                scenario.followers[index].pose
+            }
+            None => scenario.followers[index].pose,
+        };
+        body.resume(first_step, pose);
+    }
+    let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
+    let stop_writer = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let writer = checkpoint
+        .filter(|_| !lockstep)
+        .map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone(), stop_writer.clone()));
     if !lockstep {
         // The shared clock bounds how far ahead a genuine message can be.
         let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
@@ -215,6 +290,9 @@ pub async fn run_follower(
         has_leader: hears_leader,
         neighbours: neighbour_ids.len(),
         silence_steps: scenario.silence_steps(),
+        rejoin_after_steps: scenario.control.rejoin.after_steps,
+        first_step,
+        latest,
         start,
         stall_timeout,
         incarnation: barrier::unix_ns(),
@@ -255,6 +333,10 @@ pub async fn run_follower(
         .await
         .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
     telemetry::finish_delivery(delivery, &format!("follower {id}")).await;
+    stop_writer.store(true, std::sync::atomic::Ordering::Relaxed);
+    if let Some(w) = writer {
+        let _ = w.join();
+    }
     drop(acks);
     if let Some(w) = watcher {
         w.abort();
@@ -302,6 +384,12 @@ struct LoopCtx {
     has_leader: bool,
     neighbours: usize,
     silence_steps: u64,
+    /// `network.rejoin_after` in steps (SPEC §14).
+    rejoin_after_steps: u64,
+    /// The first step this process computes (> 0: a restart).
+    first_step: u64,
+    /// The robot's latest pose, for the checkpoint writer.
+    latest: checkpoint::Latest,
     start: Start,
     stall_timeout: Duration,
     /// This process's start (ns since the Unix epoch), sent with telemetry.
@@ -317,6 +405,29 @@ struct LoopCtx {
 fn put(p: &Publisher<'_>, bytes: &[u8]) -> Result<(), String> {
     p.put(bytes.to_vec()).wait().map_err(|e| format!("publishing: {e}"))
 }
+
+/// Real time: the step a process that hears the start `start` should begin
+/// at. 0 for a run that has not begun (or began less than [`LATE`] ago);
+/// otherwise a restart, which resumes [`LATE`] ahead of the run's current
+/// step (time to set up before that step is due).
+fn rejoin_step(start: &Start, scenario: &Scenario) -> Result<u64, Error> {
+    let now = barrier::unix_ns();
+    let elapsed_s = now.saturating_sub(start.epoch_unix_ns) as f64 * 1e-9 * start_scale(start);
+    if elapsed_s < LATE.as_secs_f64() {
+        return Ok(0);
+    }
+    let k = ((elapsed_s + LATE.as_secs_f64()) / scenario.dt_s).ceil() as u64;
+    if k >= scenario.steps() {
+        return Err(Error::Run(format!(
+            "run {} began {elapsed_s:.1} s ago and is over (T = {} s): nothing to rejoin",
+            scenario.name, scenario.duration_s
+        )));
+    }
+    Ok(k)
+}
+
+/// A process that hears a start older than this is a restart.
+const LATE: Duration = Duration::from_millis(200);
 
 fn start_scale(start: &Start) -> f64 {
     if start.time_scale > 0.0 {
@@ -355,9 +466,12 @@ fn control_loop(
     let mut republished = 0u64;
     // The messages for the previous and the current step (republished while waiting).
     let mut previous: Option<Vec<u8>> = None;
-    let mut current = wire::encode(&msg(0, body.initial_message()));
-    put(estimate_pub, &current)?;
-    sent += 1;
+    // A restart publishes nothing until it has adopted an estimate.
+    let mut current = wire::encode(&msg(c.first_step, body.initial_message()));
+    if c.first_step == 0 {
+        put(estimate_pub, &current)?;
+        sent += 1;
+    }
 
     let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s));
     let mut inputs: Vec<LeaderState> = Vec::with_capacity(c.neighbours + 1);
@@ -369,8 +483,8 @@ fn control_loop(
     let mut heard = Heard(vec![false; c.neighbours + usize::from(c.has_leader)]);
     let mut events: Vec<NetEvent> = Vec::new();
     let mut batch: Vec<FollowerSample> = Vec::with_capacity(c.batch);
-    let mut first_k = 0u64;
-    for k in 0..=c.steps {
+    let mut first_k = c.first_step;
+    for k in c.first_step..=c.steps {
         let last = k == c.steps;
         let t = k as f64 * c.dt_s;
         if let Some(p) = pacer.as_mut() {
@@ -382,32 +496,40 @@ fn control_loop(
             inbox.set_step(k);
             if c.lockstep {
                 let waited = Instant::now();
+                let mut said = Instant::now();
                 while !inbox.has_all(k) {
-                    let (g, timeout) = shared
+                    // Woken by every message that arrives (others' repeats
+                    // included): repeat on a clock of our own, not only
+                    // after a quiet 100 ms, or nodes that keep waking each
+                    // other would never repeat anything.
+                    let (g, _) = shared
                         .arrived
                         .wait_timeout(inbox, Duration::from_millis(100))
                         .unwrap_or_else(|p| p.into_inner());
                     inbox = g;
-                    if timeout.timed_out() {
-                        if waited.elapsed() > c.stall_timeout {
-                            return Err(format!(
-                                "no input for step {k} from {} for {:.0} s (stall timeout)",
-                                inbox
-                                    .missing(k)
-                                    .iter()
-                                    .map(|&s| c.source_names[s].as_str())
-                                    .collect::<Vec<_>>()
-                                    .join(", "),
-                                c.stall_timeout.as_secs_f64()
-                            ));
-                        }
-                        // Safety net for messages lost at start-up: say it again.
+                    if inbox.has_all(k) {
+                        break;
+                    }
+                    if waited.elapsed() > c.stall_timeout {
+                        let missing = inbox.missing(k);
+                        let names: Vec<&str> = missing.iter().map(|&s| c.source_names[s].as_str()).collect();
+                        return Err(format!(
+                            "{} stopped answering: no input for step {k} from {} for {:.0} s (stall timeout; a \
+                             process that is down, or a link that does not carry its messages)",
+                            names.join(" and "),
+                            if names.len() == 1 { "it" } else { "them" },
+                            c.stall_timeout.as_secs_f64()
+                        ));
+                    }
+                    if said.elapsed() >= Duration::from_millis(100) {
+                        // Safety net for messages lost on the way: say it again.
                         drop(inbox);
                         for bytes in previous.iter().chain(std::iter::once(&current)) {
                             put(estimate_pub, bytes)?;
                             sent += 1;
                             republished += 1;
                         }
+                        said = Instant::now();
                         inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
                     }
                 }
@@ -442,12 +564,21 @@ fn control_loop(
                 }
             }
         };
+        let was_silent = body.silent_steps();
         let (sample, next) = body.step(t, c.dt_s, leader.as_ref(), &inputs, last);
+        match body.silent_steps() {
+            s if s == c.rejoin_after_steps => events.push(NetEvent { k, what: EventKind::Isolated }),
+            0 if was_silent >= c.rejoin_after_steps => events.push(NetEvent { k, what: EventKind::Rejoined }),
+            _ => {}
+        }
 
         // Publish the message for k + 1 at once, then telemetry.
         batch.push(sample);
         let diverged = body.check_finite().err();
-        if !last && diverged.is_none() {
+        if k % 10 == 0 {
+            *c.latest.lock().unwrap_or_else(|p| p.into_inner()) = Some((k, sample.pose));
+        }
+        if !last && diverged.is_none() && !body.adopting() {
             let bytes = wire::encode(&msg(k + 1, next));
             put(estimate_pub, &bytes)?;
             sent += 1;

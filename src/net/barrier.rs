@@ -306,6 +306,46 @@ pub async fn lead_start(
     Ok((start, task))
 }
 
+/// How long a node listens for a twin before it joins a run.
+pub const TWIN_LISTEN: Duration = Duration::from_millis(300);
+
+/// Refuses to take part in a run where a process with this node's identity
+/// (`id`: 0 the leader, else a follower) already publishes estimates: a
+/// second formation started with the same run name, or a second process
+/// for one follower. Called before the node publishes anything; listens to
+/// its own estimate key for [`TWIN_LISTEN`]. (A forged message can still
+/// make a node refuse: traffic is not authenticated yet.)
+pub async fn refuse_twin(session: &zenoh::Session, keys: &Keys, id: u32, steps: u64) -> Result<(), Error> {
+    let heard = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let h = heard.clone();
+    let sub = session
+        .declare_subscriber(keys.estimate(id))
+        .callback(move |sample| {
+            // Only a well-formed estimate from this very id, of a step of
+            // the run, counts (garbage on the key is the inbox's business).
+            let bytes = sample.payload().to_bytes();
+            if formation_topology::wire::decode(&bytes).is_ok_and(|m| m.header.sender == id && m.header.step <= steps) {
+                h.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+        })
+        .await
+        .map_err(|e| zerr("listening for a twin", e))?;
+    tokio::time::sleep(TWIN_LISTEN).await;
+    drop(sub);
+    let n = heard.load(std::sync::atomic::Ordering::Relaxed);
+    if n == 0 {
+        return Ok(());
+    }
+    let who = if id == 0 { "the leader".to_string() } else { format!("follower {id}") };
+    Err(Error::Input(format!(
+        "run {}: {who} is already running on this network ({n} of its estimates in {} ms): another formation \
+         with the same run name, or a second process for {who}. Give this formation another name with --run \
+         NAME, or stop the other process",
+        keys.run,
+        TWIN_LISTEN.as_millis()
+    )))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

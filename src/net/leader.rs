@@ -83,6 +83,8 @@ pub async fn run_leader(
     start_lead: Duration,
     print_start: bool,
 ) -> Result<(), Error> {
+    // A second formation with this run name: refuse before saying anything.
+    barrier::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps()).await?;
     let hearing: Vec<u32> =
         (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
     let progress = Arc::new(Progress {

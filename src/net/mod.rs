@@ -2,6 +2,7 @@
 pub mod agent;
 pub mod barrier;
 pub mod bench;
+pub mod checkpoint;
 pub mod codec;
 pub mod counters;
 pub mod courier;

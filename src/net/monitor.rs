@@ -146,6 +146,9 @@ struct Stream<T> {
     duplicates: u64,
     /// Batches given up because too many were held ahead.
     overflow: u64,
+    /// Steps that came late and filled a hole (a batch sent again after an
+    /// outage or a loss), as merged spans [from, to).
+    recovered: Vec<(u64, u64)>,
     /// The sender's process (see `Delivery::incarnation`).
     incarnation: Option<u64>,
 }
@@ -159,6 +162,7 @@ impl<T> Default for Stream<T> {
             reordered: 0,
             duplicates: 0,
             overflow: 0,
+            recovered: Vec::new(),
             incarnation: None,
         }
     }
@@ -192,6 +196,13 @@ impl<T> Stream<T> {
                 }
             }
         } else {
+            if !self.ahead.is_empty() {
+                // A late batch fills the hole before held ones.
+                match self.recovered.last_mut() {
+                    Some(r) if r.1 >= first_k => r.1 = r.1.max(end),
+                    _ => self.recovered.push((first_k, end)),
+                }
+            }
             self.take(first_k, items, out);
         }
         loop {
@@ -479,9 +490,33 @@ impl Recorder {
                 // Steps this follower's record has reached (followers can be ahead of the slowest one).
                 let recorded = follower.map(|f| f.next_k);
                 let stream = follower.map_or(
-                    (&self.leader_stream.gaps, self.leader_stream.reordered, self.leader_stream.duplicates),
-                    |f| (&f.stream.gaps, f.stream.reordered, f.stream.duplicates),
+                    (
+                        &self.leader_stream.gaps,
+                        self.leader_stream.reordered,
+                        self.leader_stream.duplicates,
+                        &self.leader_stream.recovered,
+                    ),
+                    |f| (&f.stream.gaps, f.stream.reordered, f.stream.duplicates, &f.stream.recovered),
                 );
+                let dt = self.scenario.dt_s;
+                // The node's own events, and the monitor's: telemetry that
+                // came late and filled a hole, and steps lost for good.
+                let mut timeline: Vec<(u64, String)> = n.timeline.iter().map(|e| (e.k, e.what.describe())).collect();
+                timeline.extend(stream.3.iter().map(|&(a, b)| {
+                    (a, format!("telemetry for t = {:.3}–{:.3} s recovered late", a as f64 * dt, b as f64 * dt))
+                }));
+                timeline.extend(stream.0.iter().map(|g| {
+                    (
+                        g.from,
+                        format!(
+                            "telemetry for t = {:.3}–{:.3} s lost ({})",
+                            g.from as f64 * dt,
+                            g.to as f64 * dt,
+                            g.why
+                        ),
+                    )
+                }));
+                timeline.sort_by_key(|e| e.0);
                 let d = &n.delivery;
                 (
                     name,
@@ -495,9 +530,9 @@ impl Recorder {
                         "telemetry_dropped_by_sender": d.courier.lost_steps,
                         "telemetry_peak_unacknowledged_bytes": d.courier.peak_held_bytes,
                         "gaps": stream.0,
-                        "timeline": n.timeline.iter().map(|e| json!({
-                            "t": e.k as f64 * self.scenario.dt_s,
-                            "event": e.what.describe(),
+                        "timeline": timeline.iter().map(|(k, what)| json!({
+                            "t": *k as f64 * dt,
+                            "event": what,
                         })).collect::<Vec<_>>(),
                         "unpaired": follower.map(|f| f.unpaired),
                         "done": n.done,

@@ -36,7 +36,7 @@ pub struct NodeArgs {
     #[command(flatten)]
     pub zenoh: ZenohArgs,
     /// Give up when no router or peer answers at start-up within this long (s).
-    #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 10.0, value_name = "SECONDS")]
     pub open_timeout: f64,
 }
 

@@ -69,6 +69,10 @@ pub enum EventKind {
     RouterLost,
     /// The session has a router again.
     RouterBack,
+    /// No source heard for `network.rejoin_after`: the estimate dead-reckons.
+    Isolated,
+    /// A source heard again after isolation (SPEC §14's rejoin).
+    Rejoined,
 }
 
 impl EventKind {
@@ -79,6 +83,8 @@ impl EventKind {
             EventKind::Silent(s) => format!("{} silent", name(s)),
             EventKind::RouterLost => "router lost".into(),
             EventKind::RouterBack => "router back".into(),
+            EventKind::Isolated => "isolated: no source heard, dead-reckoning".into(),
+            EventKind::Rejoined => "rejoined".into(),
         }
     }
 }

@@ -16,6 +16,7 @@
 //! N/A with the reason, never PASS.
 
 pub mod faults;
+mod network;
 pub mod plots;
 pub mod stats;
 pub mod tables;
@@ -323,6 +324,8 @@ pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBu
     let faulted: Vec<&Case> = cases.iter().filter(|c| !c.summary().faults.is_empty()).collect();
     let link_faults = faults::write(out, &faulted, ctx.study.as_ref())?;
     md += &link_faults.markdown;
+    let networked: Vec<&Case> = cases.iter().filter(|c| c.networked).collect();
+    md += &network::write(out, &networked)?;
     let path = out.join("report.md");
     fs::write(&path, md).map_err(at_path(&path, "cannot write"))?;
     Ok((path, Written { claims: tables.claims, faults: link_faults.terminal }))
