@@ -165,11 +165,16 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
 pub fn run(a: &LabArgs) -> Result<(), Error> {
     let (scenario, run, out) = a.opts.resolve()?;
     let (events, notes) = plan(a, &scenario)?;
-    match netns::privilege().map_err(Error::Input)? {
+    // Inside the re-run under unshare, uid 0 is the mapped user: prepare
+    // the namespace there whatever privilege() says.
+    let privilege = if std::env::var_os(netns::UNSHARED_ENV).is_some() {
+        netns::prepare_unshared().map_err(Error::Run)?;
+        netns::Privilege::Root
+    } else {
+        netns::privilege().map_err(Error::Input)?
+    };
+    match privilege {
         netns::Privilege::Root => {}
-        netns::Privilege::Unshare if std::env::var_os(netns::UNSHARED_ENV).is_some() => {
-            netns::prepare_unshared().map_err(Error::Run)?;
-        }
         netns::Privilege::Unshare => {
             // Not root: the same command inside a user and network namespace of its own.
             let status = netns::reexec()
