@@ -182,3 +182,66 @@ fn a_twin_of_a_running_node_is_refused_and_the_run_goes_on() {
     assert_eq!(network["complete"], true, "first formation's record: {}", network["ending"]);
     first.assert_group_empty();
 }
+
+/// One agent with another robot mass: every node ends within seconds,
+/// naming the node and the key that differs (exit 2); the leader tells the
+/// nodes that cannot see the odd one; the monitor leaves no folder.
+#[test]
+fn a_node_with_another_scenario_is_named_with_the_key_that_differs() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("mismatch");
+    let out_s = out.display().to_string();
+    let spawn = |bin: &str, extra: &[&str]| {
+        let exe = match bin {
+            "router" => env!("CARGO_BIN_EXE_router"),
+            "monitor" => env!("CARGO_BIN_EXE_monitor"),
+            "leader" => env!("CARGO_BIN_EXE_leader"),
+            _ => env!("CARGO_BIN_EXE_agent"),
+        };
+        let mut c = Command::new(exe);
+        if bin == "router" {
+            c.args(["--listen", "tcp/127.0.0.1:17655"]);
+        } else {
+            c.args(["--scenario", common::SCENARIO, "--run", "mismatch", "--mode", "client"]).args([
+                "--connect",
+                "tcp/127.0.0.1:17655",
+                "--set",
+                "timing=realtime",
+                "--set",
+                "duration=5",
+            ]);
+        }
+        c.args(extra)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .process_group(0);
+        Group(c.spawn().expect("spawn"))
+    };
+    let mut router = spawn("router", &[]);
+    let began = Instant::now();
+    let mut monitor = spawn("monitor", &["--out", &out_s, "-q"]);
+    let mut leader = spawn("leader", &[]);
+    let mut agents: Vec<Group> = ["1", "2", "4"].iter().map(|id| spawn("agent", &["--id", id])).collect();
+    let mut odd = spawn("agent", &["--id", "3", "--set", "robot.mass=12"]);
+    let [a1, a2, a4] = &mut agents[..] else { unreachable!("three agents") };
+    let all = [
+        ("leader", &mut leader),
+        ("agent 3", &mut odd),
+        ("monitor", &mut monitor),
+        ("agent 1", a1),
+        ("agent 2 (no neighbour of 3: told by the leader)", a2),
+        ("agent 4", a4),
+    ];
+    for (who, g) in all {
+        let status = g.wait(Duration::from_secs(20));
+        let mut err = String::new();
+        std::io::Read::read_to_string(g.0.stderr.as_mut().expect("stderr"), &mut err).expect("stderr");
+        assert_eq!(status.code(), Some(2), "{who}: {status} after {:?}: {err}", began.elapsed());
+        assert!(err.contains("runs another scenario, differing in robot.mass"), "{who}: {err}");
+    }
+    let took = began.elapsed();
+    assert!(took < Duration::from_secs(15), "the mismatch was reported after {took:?}");
+    assert!(!out.exists() && !dir.path().join("mismatch.partial").exists(), "the monitor left a folder");
+    let _ = router.0.kill();
+}

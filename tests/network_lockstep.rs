@@ -99,7 +99,8 @@ async fn rogue_messages_are_rejected_and_counted() {
     while g.0.try_wait().expect("try_wait").is_none() {
         assert!(t.elapsed() < LIMIT, "run did not finish");
         // Start-barrier traffic with a foreign fingerprint, under expected and unexpected names.
-        let foreign_ready = formation::net::codec::encode(&formation::net::barrier::Ready { fingerprint: 0xbad });
+        let foreign_ready =
+            formation::net::codec::encode(&formation::net::barrier::Ready { fingerprint: 0xbad, keys: vec![] });
         for name in ["rogue", "1", "monitor"] {
             let key = format!("formation/rogue/control/ready/{name}");
             let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put(key, foreign_ready.clone())).await;

@@ -242,7 +242,7 @@ pub async fn run_follower(
         needs.push(wire::LEADER_ID.to_string());
     }
     let fingerprint = barrier::fingerprint(scenario);
-    let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, fingerprint).await?;
+    let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
     // A run that began a while ago: this process is a restart (SPEC §14).
     let first_step = if lockstep { 0 } else { rejoin_step(&start, scenario)? };
     if first_step > 0 {

@@ -24,9 +24,13 @@ use crate::net::codec;
 use crate::net::keys::{self, Keys};
 
 /// "I can hear everyone I need": sent by agents and the monitor.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Ready {
     pub fingerprint: u64,
+    /// Per scenario key, a digest of its value ([`key_digests`]), so that a
+    /// mismatch can name the keys that differ.
+    #[serde(default)]
+    pub keys: Vec<(String, u64)>,
 }
 
 /// The leader's go: the run's epoch (wall clock, ns since the Unix epoch:
@@ -63,6 +67,50 @@ pub fn fingerprint(s: &Scenario) -> u64 {
     text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
 }
 
+/// Every leaf of the scenario file's settings (`robot.mass`,
+/// `followers.3.offset`, …) with an FNV-1a digest of its value.
+pub fn key_digests(s: &Scenario) -> Vec<(String, u64)> {
+    fn walk(prefix: &str, v: &serde_json::Value, out: &mut Vec<(String, u64)>) {
+        let join = |k: &str| if prefix.is_empty() { k.to_string() } else { format!("{prefix}.{k}") };
+        match v {
+            serde_json::Value::Object(m) => m.iter().for_each(|(k, v)| walk(&join(k), v, out)),
+            serde_json::Value::Array(a) if a.iter().any(|x| x.is_object()) => {
+                a.iter().enumerate().for_each(|(i, v)| walk(&join(&(i + 1).to_string()), v, out))
+            }
+            leaf => out.push((prefix.to_string(), fnv(leaf.to_string().as_bytes()))),
+        }
+    }
+    let mut out = Vec::new();
+    walk("", &serde_json::to_value(&s.source).unwrap_or_default(), &mut out);
+    out
+}
+
+fn fnv(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+}
+
+/// The keys whose digests differ between `a` and `b` (or that only one has).
+pub fn differing_keys(a: &[(String, u64)], b: &[(String, u64)]) -> Vec<String> {
+    let (ma, mb): (std::collections::BTreeMap<_, _>, std::collections::BTreeMap<_, _>) =
+        (a.iter().cloned().collect(), b.iter().cloned().collect());
+    let mut keys: BTreeSet<&String> = ma.keys().collect();
+    keys.extend(mb.keys());
+    keys.into_iter().filter(|k| ma.get(*k) != mb.get(*k)).cloned().collect()
+}
+
+/// "robot.mass, dt" (at most 5, then "and N more").
+fn key_list(keys: &[String]) -> String {
+    let mut s = keys.iter().take(5).cloned().collect::<Vec<_>>().join(", ");
+    if keys.len() > 5 {
+        s += &format!(" and {} more", keys.len() - 5);
+    }
+    s
+}
+
+/// A node heard only with another scenario for this long is refused (the
+/// leader), or gives up (an agent hearing only a foreign start).
+pub const MISMATCH_GRACE: Duration = Duration::from_secs(5);
+
 /// How long a node waits at the barrier before giving up.
 pub const START_TIMEOUT: Duration = Duration::from_secs(120);
 const TICK: Duration = Duration::from_millis(50);
@@ -82,6 +130,14 @@ struct Heard {
     start: Option<Start>,
     /// Start or Ready messages ignored for another fingerprint (or an unexpected name).
     ignored: u64,
+    /// This node's key digests, and per node ready with another
+    /// fingerprint, the keys that differ and when it was first heard so.
+    mine: Vec<(String, u64)>,
+    differ: std::collections::BTreeMap<String, (Vec<String>, Instant)>,
+    /// When a start with another fingerprint was first heard.
+    foreign_start: Option<Instant>,
+    /// The leader's reason for refusing the run, if it did.
+    abort: Option<String>,
 }
 
 impl Heard {
@@ -94,6 +150,7 @@ impl Heard {
             self.start.get_or_insert(start);
         } else {
             self.ignored += 1;
+            self.foreign_start.get_or_insert_with(Instant::now);
         }
     }
 
@@ -105,6 +162,8 @@ impl Heard {
         } else {
             self.ignored += 1;
             self.ready_foreign.insert(name.to_string());
+            let keys = differing_keys(&self.mine, &r.keys);
+            self.differ.entry(name.to_string()).or_insert((keys, Instant::now()));
         }
     }
 }
@@ -146,6 +205,19 @@ async fn listen(
             .await
             .map_err(|e| zerr("declaring the start subscriber", e))?,
     );
+    let h = heard.clone();
+    subs.push(
+        session
+            .declare_subscriber(keys.abort())
+            .callback(move |s| {
+                let reason = String::from_utf8_lossy(&s.payload().to_bytes()).chars().take(500).collect::<String>();
+                if !reason.is_empty() {
+                    lock(&h).abort.get_or_insert(reason);
+                }
+            })
+            .await
+            .map_err(|e| zerr("declaring the abort subscriber", e))?,
+    );
     if ready_too {
         let h = heard.clone();
         subs.push(
@@ -175,29 +247,62 @@ pub async fn wait_for_start(
     keys: &Keys,
     me: &str,
     needs: &[String],
-    fingerprint: u64,
+    scenario: &Scenario,
 ) -> Result<Start, Error> {
-    let heard = Arc::new(Mutex::new(Heard::new(fingerprint, &[])));
-    let _subs = listen(session, keys, &heard, false).await?;
+    let fingerprint = self::fingerprint(scenario);
+    // The nodes it needs count when they say ready with another scenario.
+    let mut h0 = Heard::new(fingerprint, needs);
+    h0.mine = key_digests(scenario);
+    let heard = Arc::new(Mutex::new(h0));
+    let _subs = listen(session, keys, &heard, true).await?;
     let began = Instant::now();
-    let ready = codec::encode(&Ready { fingerprint });
+    let ready = codec::encode(&Ready { fingerprint, keys: key_digests(scenario) });
     let mut warned = false;
     loop {
-        let (start, waiting, ignored) = {
+        let (start, waiting, ignored, foreign_since, mismatched) = {
             let h = lock(&heard);
-            (h.start, missing(|n| h.hello.contains(n), needs), h.ignored)
+            let mismatched = h
+                .differ
+                .iter()
+                .find(|(n, (_, since))| !h.ready.contains(*n) && since.elapsed() >= MISMATCH_GRACE)
+                .map(|(n, (k, _))| (n.clone(), k.clone()));
+            (h.start, missing(|n| h.hello.contains(n), needs), h.ignored, h.foreign_start, mismatched)
         };
         if let Some(start) = start {
             return Ok(start);
         }
-        if ignored > 0 && !warned {
+        if let Some(reason) = lock(&heard).abort.clone() {
+            return Err(Error::Input(format!("node {me}: the leader refused run {}: {reason}", keys.run)));
+        }
+        if let Some((n, differ)) = mismatched {
+            let n = if n == "0" { "the leader".to_string() } else { format!("node {n}") };
+            return Err(Error::Input(format!(
+                "node {me}: {n} of run {} runs another scenario, {} (another file or --set values)",
+                keys.run,
+                if differ.is_empty() {
+                    "with other keys".to_string()
+                } else {
+                    format!("differing in {}", key_list(&differ))
+                }
+            )));
+        }
+        if foreign_since.is_some_and(|t| t.elapsed() >= MISMATCH_GRACE * 2) {
+            // Heard for 10 s: the leader of this run has another scenario.
+            return Err(Error::Input(format!(
+                "node {me}: the leader of run {} has another scenario (another file or --set values; the \
+                 leader's own message names the keys that differ); no start for this one in {} s",
+                keys.run,
+                (MISMATCH_GRACE * 2).as_secs()
+            )));
+        }
+        if foreign_since.is_some() && !warned {
             // Said at once, not only at the time limit; not fatal, since a
             // forged announcement must not stop a genuine run.
             eprintln!(
                 "node {me}: the leader of run {} announces another scenario (another file or --set values?); \
                  waiting up to {} s for a start with this one",
                 keys.run,
-                START_TIMEOUT.as_secs()
+                (MISMATCH_GRACE * 2).as_secs()
             );
             warned = true;
         }
@@ -211,7 +316,7 @@ pub async fn wait_for_start(
             } else {
                 format!("nodes {}", waiting.join(", "))
             };
-            if waiting.is_empty() && ignored > 0 {
+            if waiting.is_empty() && foreign_since.is_some() {
                 return Err(Error::Input(format!(
                     "node {me}: no start for this scenario within {} s; ignored {ignored} start announcements \
                      of run {} with another scenario fingerprint (a leader with another scenario or --set values?)",
@@ -238,11 +343,14 @@ pub async fn lead_start(
     keys: &Keys,
     needs_hello: &[String],
     expect_ready: &[String],
-    fingerprint: u64,
+    scenario: &Scenario,
     time_scale: f64,
     lead: Duration,
 ) -> Result<(Start, tokio::task::JoinHandle<()>), Error> {
-    let heard = Arc::new(Mutex::new(Heard::new(fingerprint, expect_ready)));
+    let fingerprint = self::fingerprint(scenario);
+    let mut h0 = Heard::new(fingerprint, expect_ready);
+    h0.mine = key_digests(scenario);
+    let heard = Arc::new(Mutex::new(h0));
     let subs = listen(session, keys, &heard, true).await?;
     let began = Instant::now();
     let me = keys::LEADER_NODE;
@@ -251,34 +359,54 @@ pub async fn lead_start(
         let (hello_missing, ready_missing, foreign) = {
             let h = lock(&heard);
             // Nodes heard only with another fingerprint (possibly forged): still missing.
-            let foreign: Vec<String> = h.ready_foreign.iter().filter(|n| !h.ready.contains(*n)).cloned().collect();
+            let foreign: Vec<(String, Vec<String>, Duration)> = h
+                .ready_foreign
+                .iter()
+                .filter(|n| !h.ready.contains(*n))
+                .map(|n| {
+                    let (keys, since) = h.differ.get(n).cloned().unwrap_or_else(|| (Vec::new(), Instant::now()));
+                    (n.clone(), keys, since.elapsed())
+                })
+                .collect();
             (missing(|n| h.hello.contains(n), needs_hello), missing(|n| h.ready.contains(n), expect_ready), foreign)
         };
         if hello_missing.is_empty() && ready_missing.is_empty() {
             break;
         }
-        for n in &foreign {
+        let differs = |keys_differ: &[String]| {
+            if keys_differ.is_empty() {
+                "(the keys that differ are not known: an older build?)".to_string()
+            } else {
+                format!("differing in {}", key_list(keys_differ))
+            }
+        };
+        for (n, keys_differ, since) in &foreign {
+            if *since >= MISMATCH_GRACE {
+                let reason = format!("node {n} runs another scenario, {}", differs(keys_differ));
+                // Tell every node waiting for the start, so none waits it out.
+                for _ in 0..5 {
+                    let _ = session.put(keys.abort(), reason.clone().into_bytes()).await;
+                    tokio::time::sleep(TICK).await;
+                }
+                return Err(Error::Input(format!(
+                    "leader: {reason} in run {} (another file or --set values)",
+                    keys.run
+                )));
+            }
             if warned.contains(n) {
                 continue;
             }
             eprintln!(
-                "leader: node {n} of run {} is ready with another scenario (another file or --set values?); \
-                 waiting up to {} s for it to run this one",
+                "leader: node {n} of run {} is ready with another scenario, {}; waiting up to {} s for it to run \
+                 this one",
                 keys.run,
-                START_TIMEOUT.as_secs()
+                differs(keys_differ),
+                MISMATCH_GRACE.as_secs()
             );
             warned.push(n.clone());
         }
         session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
         if began.elapsed() > START_TIMEOUT {
-            if !foreign.is_empty() {
-                return Err(Error::Input(format!(
-                    "leader: nodes {} of run {} said ready only with another scenario fingerprint \
-                     (a different scenario or other --set values than the leader?)",
-                    foreign.join(", "),
-                    keys.run
-                )));
-            }
             let mut waiting: BTreeSet<String> = hello_missing.into_iter().collect();
             waiting.extend(ready_missing);
             return Err(Error::Run(format!(
@@ -361,14 +489,30 @@ mod tests {
         h.on_start(start(9));
         assert_eq!(h.start.map(|s| s.fingerprint), Some(7));
         // Ready from names outside the expected set, or with another fingerprint, does not count.
-        h.on_ready("rogue", Ready { fingerprint: 8 });
-        h.on_ready("rogue", Ready { fingerprint: 7 });
-        h.on_ready("1", Ready { fingerprint: 8 });
+        let ready = |fingerprint| Ready { fingerprint, keys: vec![] };
+        h.on_ready("rogue", ready(8));
+        h.on_ready("rogue", ready(7));
+        h.on_ready("1", ready(8));
         assert!(h.ready.is_empty());
         assert_eq!(h.ready_foreign.iter().collect::<Vec<_>>(), ["1"]);
-        h.on_ready("1", Ready { fingerprint: 7 });
-        h.on_ready("monitor", Ready { fingerprint: 7 });
+        h.on_ready("1", ready(7));
+        h.on_ready("monitor", ready(7));
         assert_eq!(h.ready.len(), 2);
         assert_eq!(h.ignored, 5);
+    }
+
+    #[test]
+    fn a_mismatch_names_the_keys_that_differ() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+        let a = Scenario::load(&path, &[]).expect("scenario");
+        let b = Scenario::load(&path, &["robot.mass=12".to_string(), "dt=0.002".to_string()]).expect("scenario");
+        let (da, db) = (key_digests(&a), key_digests(&b));
+        assert!(da.len() > 20, "{} keys", da.len());
+        assert_eq!(differing_keys(&da, &da), Vec::<String>::new());
+        assert_eq!(differing_keys(&da, &db), ["dt", "robot.mass"]);
+        let mut h = Heard::new(fingerprint(&a), &["3".to_string()]);
+        h.mine = da;
+        h.on_ready("3", Ready { fingerprint: fingerprint(&b), keys: db });
+        assert_eq!(h.differ["3"].0, ["dt", "robot.mass"]);
     }
 }

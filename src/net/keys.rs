@@ -47,6 +47,10 @@ impl Keys {
     pub fn start(&self) -> String {
         session::key(&self.run, "control/start")
     }
+    /// The leader refuses the run before its start (the reason, UTF-8).
+    pub fn abort(&self) -> String {
+        session::key(&self.run, "control/abort")
+    }
 }
 
 /// The last chunk of a key expression (`…/estimate/3` → `3`).

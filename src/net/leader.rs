@@ -133,8 +133,7 @@ pub async fn run_leader(
     let mut ready: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     ready.push(MONITOR.to_string());
     let lead = if lockstep { Duration::ZERO } else { start_lead };
-    let (start, announcer) =
-        barrier::lead_start(session, keys, &hellos, &ready, barrier::fingerprint(scenario), time_scale, lead).await?;
+    let (start, announcer) = barrier::lead_start(session, keys, &hellos, &ready, scenario, time_scale, lead).await?;
     if print_start {
         use std::io::Write;
         let mut out = std::io::stdout().lock();

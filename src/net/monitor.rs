@@ -649,7 +649,7 @@ async fn monitor(
         .map_err(|e| Error::Run(format!("installing the SIGINT handler: {e}")))?;
     let mut needs: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     needs.push(keys::LEADER_NODE.to_string());
-    let barrier = barrier::wait_for_start(session, keys, MONITOR, &needs, barrier::fingerprint(scenario));
+    let barrier = barrier::wait_for_start(session, keys, MONITOR, &needs, scenario);
     tokio::pin!(barrier);
     let mut started = false;
 
@@ -661,7 +661,12 @@ async fn monitor(
     let ending = loop {
         tokio::select! {
             r = &mut barrier, if !started => {
-                r?;
+                if let Err(e) = r {
+                    // A start that failed (another scenario, nodes missing)
+                    // leaves no folder behind: nothing was recorded.
+                    recorder.discard();
+                    return Err(e);
+                }
                 started = true;
                 last_heard = Instant::now();
             }
