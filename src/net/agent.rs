@@ -244,7 +244,16 @@ pub async fn run_follower(
     let fingerprint = barrier::fingerprint(scenario);
     let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
     // A run that began a while ago: this process is a restart (SPEC §14).
-    let first_step = if lockstep { 0 } else { rejoin_step(&start, scenario)? };
+    let late = barrier::unix_ns().saturating_sub(start.epoch_unix_ns) > LATE.as_nanos() as u64;
+    let first_step = if lockstep {
+        if late {
+            lockstep_rejoin_step(&shared, neighbour_ids.len(), hears_leader, id).await?
+        } else {
+            0
+        }
+    } else {
+        rejoin_step(&start, scenario)?
+    };
     if first_step > 0 {
         let found = checkpoint.as_deref().map(|p| checkpoint::read(p, fingerprint, start.epoch_unix_ns));
         let pose = match found {
@@ -272,7 +281,6 @@ pub async fn run_follower(
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
     let stop_writer = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let writer = checkpoint
-        .filter(|_| !lockstep)
         .map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone(), stop_writer.clone()));
     if !lockstep {
         // The shared clock bounds how far ahead a genuine message can be.
@@ -424,6 +432,35 @@ fn rejoin_step(start: &Start, scenario: &Scenario) -> Result<u64, Error> {
         )));
     }
     Ok(k)
+}
+
+/// Lock-step: where a restarted process resumes. Its neighbours, waiting
+/// for its message of the step they are at, repeat their last two messages
+/// every 100 ms; a process that hears them well past step 0 is a restart
+/// and resumes one step before the least advanced of them (it adopts from
+/// their messages of that step and publishes the message they wait for).
+/// 0 for a run that is only starting.
+async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize, hears_leader: bool, id: u32) -> Result<u64, Error> {
+    if neighbours == 0 {
+        return Ok(0);
+    }
+    tokio::time::sleep(LATE + Duration::from_millis(100)).await;
+    let heard: Vec<Option<u64>> = {
+        let inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
+        (0..neighbours).map(|slot| inbox.heard_max(slot)).collect()
+    };
+    let ahead = inbox::LOCKSTEP_AHEAD + 2;
+    if !heard.iter().flatten().any(|&k| k > ahead) {
+        return Ok(0);
+    }
+    if hears_leader {
+        return Err(Error::Run(format!(
+            "follower {id}: the lock-step run is past step {ahead}; a follower that hears the leader cannot rejoin \
+             it yet (the leader does not repeat the steps it is past). Start the run again, or use real time"
+        )));
+    }
+    let k0 = heard.iter().flatten().min().copied().unwrap_or(1).saturating_sub(1);
+    Ok(k0)
 }
 
 /// A process that hears a start older than this is a restart.

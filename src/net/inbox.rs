@@ -48,6 +48,8 @@ pub struct Inbox {
     pending: Vec<BTreeMap<u64, LeaderState>>,
     /// The last step used (lock-step) or held (real time), per source.
     newest: Vec<Option<u64>>,
+    /// Per source, the furthest step heard (see [`Inbox::heard_max`]).
+    heard_max: Vec<Option<u64>>,
     /// Real time: the recent messages per source, in step order.
     history: Vec<VecDeque<(u64, LeaderState)>>,
     pub counters: Counters,
@@ -75,6 +77,7 @@ impl Inbox {
         Self {
             pending: vec![BTreeMap::new(); sources],
             newest: vec![None; sources],
+            heard_max: vec![None; sources],
             history: vec![VecDeque::new(); sources],
             counters: Counters::default(),
             lockstep,
@@ -109,6 +112,13 @@ impl Inbox {
         }
     }
 
+    /// The furthest step heard from `slot` in a checked message, accepted or
+    /// not (a restarted lock-step agent learns from it where its
+    /// neighbours wait).
+    pub fn heard_max(&self, slot: usize) -> Option<u64> {
+        self.heard_max[slot]
+    }
+
     /// The step the receiver is at (or waiting for).
     pub fn set_step(&mut self, k: u64) {
         self.current = self.current.max(k);
@@ -127,6 +137,8 @@ impl Inbox {
     /// Files a checked message, or counts it as stale or from the future.
     pub fn accept(&mut self, slot: usize, msg: &EstimateMsg) {
         let step = msg.header.step;
+        let seen = &mut self.heard_max[slot];
+        *seen = Some(seen.map_or(step, |m| m.max(step)));
         if step > self.limit(slot) {
             self.counters.rejected.add(Reject::Future);
             return;

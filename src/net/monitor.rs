@@ -149,6 +149,8 @@ struct Stream<T> {
     /// Steps that came late and filled a hole (a batch sent again after an
     /// outage or a loss), as merged spans [from, to).
     recovered: Vec<(u64, u64)>,
+    /// Steps at which a new process of the sender took over.
+    restarts: Vec<u64>,
     /// The sender's process (see `Delivery::incarnation`).
     incarnation: Option<u64>,
 }
@@ -163,6 +165,7 @@ impl<T> Default for Stream<T> {
             duplicates: 0,
             overflow: 0,
             recovered: Vec::new(),
+            restarts: Vec::new(),
             incarnation: None,
         }
     }
@@ -174,6 +177,9 @@ impl<T> Stream<T> {
     /// `out` every item now in order, with its step.
     fn file(&mut self, first_k: u64, items: Vec<T>, available_from: u64, incarnation: u64, out: &mut Vec<(u64, T)>) {
         let restarted = self.incarnation.is_some_and(|i| i != incarnation);
+        if restarted {
+            self.restarts.push(first_k);
+        }
         self.incarnation = Some(incarnation);
         let end = first_k + items.len() as u64;
         if end <= self.end || items.is_empty() {
@@ -495,8 +501,17 @@ impl Recorder {
                         self.leader_stream.reordered,
                         self.leader_stream.duplicates,
                         &self.leader_stream.recovered,
+                        &self.leader_stream.restarts,
                     ),
-                    |f| (&f.stream.gaps, f.stream.reordered, f.stream.duplicates, &f.stream.recovered),
+                    |f| {
+                        (
+                            &f.stream.gaps,
+                            f.stream.reordered,
+                            f.stream.duplicates,
+                            &f.stream.recovered,
+                            &f.stream.restarts,
+                        )
+                    },
                 );
                 let dt = self.scenario.dt_s;
                 // The node's own events, and the monitor's: telemetry that
@@ -516,6 +531,7 @@ impl Recorder {
                         ),
                     )
                 }));
+                timeline.extend(stream.4.iter().map(|&k| (k, "a new process took over (restarted)".to_string())));
                 timeline.sort_by_key(|e| e.0);
                 let d = &n.delivery;
                 (
