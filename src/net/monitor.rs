@@ -546,6 +546,7 @@ impl Recorder {
                         "telemetry_dropped_by_sender": d.courier.lost_steps,
                         "telemetry_peak_unacknowledged_bytes": d.courier.peak_held_bytes,
                         "gaps": stream.0,
+                        "recovered": stream.3.iter().map(|&(from, to)| json!({"from": from, "to": to})).collect::<Vec<_>>(),
                         "timeline": timeline.iter().map(|(k, what)| json!({
                             "t": *k as f64 * dt,
                             "event": what,

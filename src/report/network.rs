@@ -25,21 +25,39 @@ const LOST: RGBColor = RGBColor(200, 0, 0);
 /// One follower's timeline: (t, event) in time order.
 type Events = Vec<(f64, String)>;
 
-fn read_timelines(case: &Case) -> Result<Vec<(u32, Events)>, CliError> {
+/// One follower's record of the network: its timeline, and the spans (s)
+/// of its telemetry that came late (`recovered`) or never (`gaps`).
+struct NodeRecord {
+    id: u32,
+    events: Events,
+    recovered: Vec<(f64, f64)>,
+    lost: Vec<(f64, f64)>,
+}
+
+fn read_records(case: &Case) -> Result<Vec<NodeRecord>, CliError> {
     let path = case.dir.join("network.json");
     let text = std::fs::read_to_string(&path).map_err(at_path(&path, "cannot read"))?;
     let json: Value = serde_json::from_str(&text)
         .map_err(|e| CliError::Input(format!("{}: not a network.json ({e})", path.display())))?;
+    let dt = case.summary().dt;
     let mut out = Vec::new();
     for id in case.follower_ids() {
-        let mut events: Events = json["nodes"][id.to_string()]["timeline"]
+        let node = &json["nodes"][id.to_string()];
+        let mut events: Events = node["timeline"]
             .as_array()
             .map(|a| a.iter().filter_map(|e| Some((e["t"].as_f64()?, e["event"].as_str()?.to_string()))).collect())
             .unwrap_or_default();
         events.sort_by(|a, b| a.0.total_cmp(&b.0));
-        out.push((id, events));
+        out.push(NodeRecord { id, events, recovered: spans(&node["recovered"], dt), lost: spans(&node["gaps"], dt) });
     }
     Ok(out)
+}
+
+/// `[{from, to}, …]` in steps, as spans in s.
+fn spans(v: &Value, dt: f64) -> Vec<(f64, f64)> {
+    v.as_array()
+        .map(|a| a.iter().filter_map(|g| Some((g["from"].as_f64()? * dt, g["to"].as_f64()? * dt))).collect())
+        .unwrap_or_default()
 }
 
 /// The hearing line of one follower: a step function of how many of its
@@ -88,20 +106,6 @@ fn hearing_line(events: &Events, end: f64) -> Vec<(f64, f64)> {
     points
 }
 
-/// Spans [from, to] of telemetry events whose text contains `word`
-/// ("recovered" or "lost"), read back from "telemetry for t = a–b s …".
-fn telemetry_spans(events: &Events, word: &str) -> Vec<(f64, f64)> {
-    events
-        .iter()
-        .filter(|(_, e)| e.starts_with("telemetry for t = ") && e.contains(word))
-        .filter_map(|(_, e)| {
-            let range = e.strip_prefix("telemetry for t = ")?.split(" s").next()?;
-            let (a, b) = range.split_once('–')?;
-            Some((a.trim().parse().ok()?, b.trim().parse().ok()?))
-        })
-        .collect()
-}
-
 fn timeline_figure(cases: &[&Case]) -> Result<Option<FigureSpec>, CliError> {
     let mut panels = Vec::new();
     for (n, c) in cases.iter().enumerate() {
@@ -109,22 +113,22 @@ fn timeline_figure(cases: &[&Case]) -> Result<Option<FigureSpec>, CliError> {
         let shade: Vec<(f64, f64)> = c.summary().faults.iter().map(|f| (f.from, f.to)).collect();
         let mut lines = Vec::new();
         let mut first = [true, true];
-        for (k, (id, events)) in read_timelines(c)?.into_iter().enumerate() {
-            let y0 = f64::from(id);
+        for (k, node) in read_records(c)?.into_iter().enumerate() {
+            let y0 = f64::from(node.id);
             lines.push(Line {
-                label: format!("Follower {id}"),
+                label: format!("Follower {}", node.id),
                 colour: plots::follower_colour(k),
                 width: 2,
-                points: hearing_line(&events, end).into_iter().map(|(t, y)| (t, y0 + y)).collect(),
+                points: hearing_line(&node.events, end).into_iter().map(|(t, y)| (t, y0 + y)).collect(),
                 legend: true,
                 intervals: vec![],
             });
-            for (m, (word, colour, label)) in
-                [("recovered", RECOVERED, "telemetry recovered late"), ("lost", LOST, "telemetry lost")]
+            for (m, (spans, colour, label)) in
+                [(&node.recovered, RECOVERED, "telemetry recovered late"), (&node.lost, LOST, "telemetry lost")]
                     .into_iter()
                     .enumerate()
             {
-                for (a, b) in telemetry_spans(&events, word) {
+                for &(a, b) in spans {
                     lines.push(Line {
                         label: label.into(),
                         colour,
@@ -214,13 +218,9 @@ mod tests {
     }
 
     #[test]
-    fn telemetry_spans_are_read_back_from_the_events() {
-        let e = ev(&[
-            (8.0, "telemetry for t = 8.000–11.250 s recovered late"),
-            (12.0, "telemetry for t = 12.000–12.500 s lost (restarted)"),
-            (13.0, "hears the leader"),
-        ]);
-        assert_eq!(telemetry_spans(&e, "recovered"), vec![(8.0, 11.25)]);
-        assert_eq!(telemetry_spans(&e, "lost"), vec![(12.0, 12.5)]);
+    fn spans_are_read_in_seconds() {
+        let v = serde_json::json!([{"from": 8000, "to": 11250, "why": "restarted"}, {"from": 12000}]);
+        assert_eq!(spans(&v, 1e-3), vec![(8.0, 11.25)], "a span without its end is left out");
+        assert_eq!(spans(&Value::Null, 1e-3), vec![]);
     }
 }
