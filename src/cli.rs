@@ -45,6 +45,10 @@ pub enum Command {
     Lab(crate::lab::LabArgs),
     /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
     BenchNet(crate::net::bench::BenchNetArgs),
+    /// Make a certificate authority, a certificate and key per node and the
+    /// access-control policy of a scenario, for `--tls DIR` (mutual TLS on
+    /// every link, each node allowed to speak only for itself).
+    Certs(crate::certs::CertsArgs),
     /// A single node of a networked run (used by `launch`).
     #[command(hide = true)]
     Node(crate::launch::NodeCommand),
@@ -127,6 +131,7 @@ pub fn main() -> ExitCode {
         Command::Launch(a) => crate::launch::run(&a),
         Command::Lab(a) => crate::lab::run(&a),
         Command::BenchNet(a) => crate::net::bench::run(&a),
+        Command::Certs(a) => crate::certs::run(&a),
         Command::Node(a) => crate::launch::run_node(&a),
     };
     match result {

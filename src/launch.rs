@@ -56,6 +56,10 @@ pub struct RunOptions {
     /// Print nothing but errors (and no live line).
     #[arg(long, short)]
     pub quiet: bool,
+    /// Mutual TLS on every link and access control from the topology, with
+    /// the certificates in DIR (made by `formation certs SCENARIO --out DIR`).
+    #[arg(long, value_name = "DIR")]
+    pub tls: Option<PathBuf>,
 }
 
 impl RunOptions {
@@ -70,6 +74,12 @@ impl RunOptions {
             }
         }
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
+        if let Some(dir) = &self.tls {
+            // Every node's files, checked before any process starts.
+            for name in crate::certs::node_names(&scenario) {
+                crate::certs::identity_for(dir, &name, &scenario).map_err(CliError::Input)?;
+            }
+        }
         Ok((scenario, run, out))
     }
 }
@@ -268,6 +278,7 @@ pub fn run_node(cmd: &NodeCommand) -> Result<(), CliError> {
 async fn router(z: &session::ZenohArgs) -> Result<(), CliError> {
     let mut z = z.clone();
     z.mode = Some(session::ZenohMode::Router);
+    z.identity = Some(crate::certs::ROUTER.to_string());
     let s = session::open(&z).await.map_err(|e| CliError::Run(e.to_string()))?;
     println!("router listening on {} (zid {})", z.listen.join(", "), s.zid());
     let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
@@ -312,7 +323,15 @@ pub(crate) fn node_args(c: &mut Command, node: &str, opts: &RunOptions, run: &st
     for o in &opts.scenario.overrides {
         c.arg("--set").arg(o);
     }
+    tls_arg(c, opts);
     c.stdin(Stdio::null());
+}
+
+/// `--tls DIR` (absolute) when the run has it.
+pub(crate) fn tls_arg(c: &mut Command, opts: &RunOptions) {
+    if let Some(dir) = &opts.tls {
+        c.arg("--tls").arg(std::path::absolute(dir).unwrap_or_else(|_| dir.clone()));
+    }
 }
 
 pub(crate) fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
@@ -322,9 +341,10 @@ pub(crate) fn spawn(children: &mut Children, name: &str, mut c: Command) -> Resu
 }
 
 /// Starts a router child and waits for its "router listening" line.
-fn start_router(children: &mut Children, exe: &Path, port: u16) -> Result<(), CliError> {
+fn start_router(children: &mut Children, exe: &Path, port: u16, opts: &RunOptions) -> Result<(), CliError> {
     let mut c = Command::new(exe);
     c.args(["node", "router", "--listen"]).arg(ep(port));
+    tls_arg(&mut c, opts);
     start_router_with(children, c)
 }
 
@@ -390,7 +410,7 @@ async fn launch(
         );
     }
     if a.mode == LaunchMode::Client {
-        start_router(children, exe, p[0])?;
+        start_router(children, exe, p[0], &a.opts)?;
     }
     let (mon_port, lead_port) = if a.mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
 

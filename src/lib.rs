@@ -2,6 +2,7 @@
 //! run recording and metrics, the zenoh nodes and the command line.
 
 pub mod bench;
+pub mod certs;
 pub mod cli;
 pub mod error;
 pub mod lab;

@@ -2,7 +2,7 @@
 //! stepped in lock-step in SPEC §9's order. Deterministic: the same scenario
 //! gives the same numbers, bit for bit.
 
-use formation_agent::{Follower, Hearing, LeaderState, LinkLoss};
+use formation_agent::{Follower, Hearing, LeaderState, LinkLoss, Message};
 use formation_leader::Leader;
 use formation_plant::{NoiseSource, Pose, Robot, Velocity};
 use formation_topology::Scenario;
@@ -67,9 +67,9 @@ impl SimFollower {
         leader: Option<&LeaderState>,
         neighbours: I,
         last: bool,
-    ) -> (FollowerSample, LeaderState)
+    ) -> (FollowerSample, Message)
     where
-        I: IntoIterator<Item = &'a LeaderState>,
+        I: IntoIterator<Item = &'a Message>,
         I::IntoIter: Clone,
     {
         let out = self.brain.step(&self.robot.pose, self.measurement, leader, neighbours);
@@ -116,7 +116,7 @@ impl Reception {
     }
 
     /// Step k's message of `slot` was sent: delivered unless the table removes it.
-    pub fn offer(&mut self, slot: usize, k: u64, msg: &LeaderState) {
+    pub fn offer(&mut self, slot: usize, k: u64, msg: &Message) {
         if !self.links[slot].lost(k) {
             self.hearing.deliver(slot, k, *msg);
         }
@@ -152,8 +152,8 @@ pub struct Simulation<'s> {
     leader: Leader,
     followers: Vec<SimFollower>,
     /// Every follower's message for the current step, by index.
-    messages: Vec<LeaderState>,
-    next_messages: Vec<LeaderState>,
+    messages: Vec<Message>,
+    next_messages: Vec<Message>,
     /// Per follower, `Some` where the fault table touches its incoming links.
     receptions: Vec<Option<Reception>>,
     k: u64,
@@ -163,7 +163,7 @@ impl<'s> Simulation<'s> {
     pub fn new(scenario: &'s Scenario) -> Self {
         let followers: Vec<SimFollower> =
             (0..scenario.followers.len()).map(|i| SimFollower::new(scenario, i)).collect();
-        let messages: Vec<LeaderState> = followers.iter().map(|f| f.brain.message()).collect();
+        let messages: Vec<Message> = followers.iter().map(|f| f.brain.tagged_message()).collect();
         let receptions = (0..followers.len()).map(|i| Reception::new(scenario, i)).collect();
         Self {
             scenario,
@@ -229,8 +229,8 @@ impl<'s> Simulation<'s> {
                         rx.offer(slot, k, &self.messages[j]);
                     }
                     let heard = if s.graph.hears_leader(i) {
-                        rx.offer(ns.len(), k, &leader);
-                        rx.hearing.heard(ns.len(), k)
+                        rx.offer(ns.len(), k, &Message::fresh(leader));
+                        rx.hearing.heard(ns.len(), k).map(|m| &m.state)
                     } else {
                         None
                     };

@@ -272,22 +272,25 @@ fn a_router_killed_for_3_s_costs_nothing_recorded_and_traffic_is_back_within_1_s
     }
 }
 
+/// A router restart isolates every follower at once. Under `consensus` the
+/// model itself needs 5.4-5.6 s to reconverge (see link_faults.rs), so the
+/// 2 s asked for is a matter of `adopt`, with SPEC §14's freshness: the
+/// simulator predicts recovery within 2 ms of the links' return.
 #[test]
-#[ignore = "fails as of 2026-11-22, as the model predicts: every follower is isolated for the 3 s, and the simulator \
-            (every follower cut off 8-11.12 s) recovers in 5.4-5.6 s under consensus; under adopt follower 1 in \
-            0.46 s and the others in 5.5 s (they adopt their equally stale neighbours, a SPEC §14 gap); lab \
-            5.5-5.7 s under both; issue 9"]
 fn a_router_killed_for_3_s_every_follower_recovers_within_2_s() {
     let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
     if !lab_available() {
         return;
     }
     let (r, back) = router_restart("lab-router-adopt", &["network.rejoin=adopt"]);
-    for id in IDS {
-        let rec = recovered_at(&estimator_error(&r, id), back);
+    let rec: Vec<(&str, Option<f64>)> =
+        IDS.iter().map(|&id| (id, recovered_at(&estimator_error(&r, id), back).map(|t| t - back))).collect();
+    eprintln!("router restart at {back:.3} s, adopt: recovered after {rec:?} s");
+    for (id, after) in &rec {
         assert!(
-            rec.is_some_and(|t| t - back <= 2.0),
-            "follower {id}: estimator error below 0.02 m for 1 s from {rec:?} (restart at {back:.3} s; 2 s allowed)"
+            after.is_some_and(|a| a <= 2.0),
+            "follower {id}: estimator error below 0.02 m for 1 s only {after:?} s after the restart at {back:.3} s \
+             (2 s allowed); all: {rec:?}"
         );
     }
 }

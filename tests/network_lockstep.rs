@@ -72,6 +72,7 @@ fn msg(sender: u32, step: u64, v: f64) -> Vec<u8> {
     wire::encode(&EstimateMsg {
         header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
         state: LeaderState { v, ..Default::default() },
+        fresh: true,
     })
 }
 
@@ -117,6 +118,7 @@ async fn rogue_messages_are_rejected_and_counted() {
             let mut bad_version = EstimateMsg {
                 header: Header { version: FORMAT_VERSION + 7, sender: id, step: k, time_s: 0.0 },
                 state: LeaderState::default(),
+                fresh: true,
             };
             bad_version.header.version = FORMAT_VERSION + 7;
             for payload in [

@@ -11,7 +11,7 @@ use crate::dynamic::{self, DynamicGains, DynamicKind, DynamicState};
 use crate::estimator::{self, EstimatorGains};
 use crate::filter::{FilterParams, VelocityFilter};
 use crate::kinematic::{self, BodyError, KinematicGains, KinematicKind};
-use crate::links::{self, RejoinPolicy, RejoinRule};
+use crate::links::{self, Message, RejoinPolicy, RejoinRule};
 use formation_leader::LeaderState;
 use formation_plant::{Pose, RobotParams, Torque, Velocity};
 
@@ -98,8 +98,8 @@ pub struct StepOutput {
     /// (and, under `adopt`, the estimate was replaced before the outputs).
     pub rejoined: bool,
     /// The message to publish for step k+1: P_ir(k+1), v_ir(k+1), ω_ir(k+1)
-    /// and the Ṗ_ir computed at k.
-    pub next_message: LeaderState,
+    /// and the Ṗ_ir computed at k, with its freshness (SPEC §14).
+    pub next_message: Message,
 }
 
 /// A state that stopped being finite: which quantity.
@@ -126,6 +126,11 @@ pub struct Follower {
     /// Adopt at the next step that hears a source, whatever the policy (a
     /// restarted agent has no estimate to keep).
     adopt_pending: bool,
+    /// The estimate has been held through an isolation (or is a restart's
+    /// placeholder) and has not since been taken from a fresh source: its
+    /// message is not fresh (SPEC §14), and under `adopt` it is replaced as
+    /// soon as the leader or a fresh neighbour is heard.
+    stale: bool,
 }
 
 impl Follower {
@@ -146,6 +151,7 @@ impl Follower {
             next_k: 0,
             silent_steps: 0,
             adopt_pending: false,
+            stale: false,
         }
     }
 
@@ -163,10 +169,16 @@ impl Follower {
         self.estimate
     }
 
+    /// The message with its freshness (SPEC §14), as neighbours receive it.
+    pub fn tagged_message(&self) -> Message {
+        Message { state: self.estimate, fresh: !self.stale }
+    }
+
     /// Takes the estimate from the first step that hears a source, as
     /// `adopt` does, whatever `network.rejoin` says (SPEC §14's restarted agent).
     pub fn adopt_on_next_source(&mut self) {
         self.adopt_pending = true;
+        self.stale = true;
     }
 
     /// A restarted agent (SPEC §14): the follower as new (fresh filter with
@@ -183,6 +195,7 @@ impl Follower {
         self.last_command = None;
         self.last_torque = Torque::default();
         self.silent_steps = 0;
+        self.stale = true;
     }
 
     /// Still waiting for a source to take its estimate from (see
@@ -215,11 +228,12 @@ impl Follower {
     ///
     /// SPEC §14: the sources not heard at k are simply not passed. After at
     /// least `rejoin.after_steps` steps without any source, the first step
-    /// that hears one is a rejoin; under `adopt` the estimate is first
-    /// replaced by [`links::adopted`].
+    /// that hears one is a rejoin, and the estimate is stale; under `adopt`
+    /// it is replaced by [`links::adopted`] at the first step that hears the
+    /// leader or a fresh neighbour (until then the law runs on what is heard).
     pub fn step<'a, I>(&mut self, pose: &Pose, z: Velocity, leader: Option<&LeaderState>, neighbours: I) -> StepOutput
     where
-        I: IntoIterator<Item = &'a LeaderState>,
+        I: IntoIterator<Item = &'a Message>,
         I::IntoIter: Clone,
     {
         let neighbours = neighbours.into_iter();
@@ -235,14 +249,18 @@ impl Follower {
         let leader = if self.config.hears_leader { leader } else { None };
         let isolated = self.silent_steps >= cfg.rejoin.after_steps;
         let mut rejoined = false;
-        if (isolated && cfg.rejoin.policy == RejoinPolicy::Adopt) || self.adopt_pending {
+        if (self.stale && cfg.rejoin.policy == RejoinPolicy::Adopt) || self.adopt_pending {
             if let Some(adopted) = links::adopted(leader, neighbours.clone()) {
                 self.estimate = adopted;
                 self.adopt_pending = false;
+                self.stale = false;
                 rejoined = true;
             }
         }
         let estimate = self.estimate;
+        // SPEC §14, `adopt`: a fresh estimate leaves stale ones out of its sums.
+        let only_fresh = cfg.rejoin.policy == RejoinPolicy::Adopt && !self.stale;
+        let neighbours = neighbours.filter(move |m| m.fresh || !only_fresh);
 
         // Kinematic controller (eq. 29, 35–36).
         let body_error = kinematic::body_error(&estimate.pose, self.config.offset, pose);
@@ -266,9 +284,15 @@ impl Follower {
         let torque = cfg.model.acceleration_to_torque(a_v, a_w);
 
         // Estimator (eq. 11–15).
-        let rates = estimator::rates(&cfg.estimator, &estimate, leader, neighbours);
+        let rates = estimator::rates(&cfg.estimator, &estimate, leader, neighbours.map(|m| &m.state));
         rejoined |= isolated && rates.sources > 0;
         self.silent_steps = if rates.sources == 0 { self.silent_steps.saturating_add(1) } else { 0 };
+        if self.silent_steps >= cfg.rejoin.after_steps {
+            self.stale = true;
+        } else if rates.sources > 0 && cfg.rejoin.policy == RejoinPolicy::Consensus && !self.adopt_pending {
+            // `consensus` rejoins by the law itself: heard again, fresh again.
+            self.stale = false;
+        }
 
         // Advance every state to k+1.
         if cfg.kinematic == KinematicKind::Bio {
@@ -291,7 +315,7 @@ impl Follower {
             torque,
             sources: rates.sources,
             rejoined,
-            next_message: self.estimate,
+            next_message: self.tagged_message(),
         }
     }
 
@@ -348,8 +372,13 @@ mod tests {
         Follower::new(cfg, start, Velocity::default())
     }
 
-    fn neighbour(x: f64) -> LeaderState {
-        LeaderState { pose: Pose::new(x, 3.0, 0.0), pose_rate: Pose::new(1.0, 0.0, 0.0), v: 1.0, w: 0.0 }
+    fn neighbour(x: f64) -> Message {
+        Message::fresh(LeaderState {
+            pose: Pose::new(x, 3.0, 0.0),
+            pose_rate: Pose::new(1.0, 0.0, 0.0),
+            v: 1.0,
+            w: 0.0,
+        })
     }
 
     /// Runs `silent` isolated steps, then one step hearing a neighbour at x = 5.
@@ -396,7 +425,7 @@ mod tests {
         let mut f = follower(RejoinPolicy::Adopt, 100);
         let (out, before) = isolate_then_hear(&mut f, 200);
         assert!(out.rejoined);
-        assert_eq!(out.estimate, neighbour(5.0), "adopt: the outputs use the neighbour's state");
+        assert_eq!(out.estimate, neighbour(5.0).state, "adopt: the outputs use the neighbour's state");
         assert!((before.pose.x - 5.0).abs() > 1.0, "the held estimate was elsewhere ({})", before.pose.x);
         // A short silence (below rejoin_after) is not a rejoin: consensus as usual.
         let mut g = follower(RejoinPolicy::Adopt, 100);
@@ -418,7 +447,7 @@ mod tests {
         let out = f.step(&Pose::default(), Velocity::default(), None, [&neighbour(5.0)]);
         assert_eq!(out.k, 7000);
         assert!(out.rejoined && !f.adopting());
-        assert_eq!(out.estimate, neighbour(5.0), "the estimate is the first heard message");
+        assert_eq!(out.estimate, neighbour(5.0).state, "the estimate is the first heard message");
         assert_eq!(out.command_rate, Velocity::default(), "first-step rule: no command rate");
     }
 
@@ -427,7 +456,38 @@ mod tests {
         let mut f = follower(RejoinPolicy::Consensus, 100);
         f.adopt_on_next_source();
         let (out, _) = isolate_then_hear(&mut f, 3);
-        assert_eq!(out.estimate, neighbour(5.0));
+        assert_eq!(out.estimate, neighbour(5.0).state);
+    }
+
+    #[test]
+    fn adopt_waits_for_a_fresh_source_and_its_message_says_when_it_is_stale() {
+        let mut f = follower(RejoinPolicy::Adopt, 100);
+        let pose = Pose::new(7.0, -4.0, 0.0);
+        assert!(f.tagged_message().fresh);
+        for _ in 0..100 {
+            f.step(&pose, Velocity::default(), None, []);
+        }
+        assert!(!f.tagged_message().fresh, "100 silent steps: the estimate is held through an isolation");
+        // A neighbour that was cut off too (a router restart): not adopted.
+        let stale = Message { fresh: false, ..neighbour(5.0) };
+        let held = f.message();
+        let out = f.step(&pose, Velocity::default(), None, [&stale]);
+        assert_eq!(out.estimate, held, "a stale neighbour's estimate is not taken");
+        assert!(!f.tagged_message().fresh, "still stale after hearing only a stale neighbour");
+        // The first fresh one is.
+        let out = f.step(&pose, Velocity::default(), None, [&stale, &neighbour(9.0)]);
+        assert_eq!(out.estimate, neighbour(9.0).state, "adopted from the fresh neighbour alone");
+        assert!(out.rejoined && f.tagged_message().fresh);
+    }
+
+    #[test]
+    fn consensus_is_fresh_again_when_it_hears_anyone() {
+        let mut f = follower(RejoinPolicy::Consensus, 100);
+        isolate_then_hear(&mut f, 100);
+        assert!(f.tagged_message().fresh);
+        let mut g = follower(RejoinPolicy::Consensus, 100);
+        g.resume_at(50);
+        assert!(!g.tagged_message().fresh, "a restart's placeholder estimate is stale");
     }
 
     #[test]

@@ -24,5 +24,5 @@ pub use follower::{ControlParams, Fault, Follower, FollowerConfig, NonFinite, St
 pub use formation_leader::LeaderState;
 pub use formation_plant::{Pose, RobotParams, Torque, Velocity};
 pub use kinematic::{BodyError, KinematicGains, KinematicKind};
-pub use links::{Hearing, LinkLoss, LossWindow, RejoinPolicy, RejoinRule};
+pub use links::{Hearing, LinkLoss, LossWindow, Message, RejoinPolicy, RejoinRule};
 pub use math::Shunting;

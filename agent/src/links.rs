@@ -117,13 +117,29 @@ pub fn link_seed(seed: u64, sender: u32, receiver: u32) -> u64 {
     mix(mix(mix(seed ^ 0x6c69_6e6b) ^ u64::from(sender)) ^ (u64::from(receiver) << 32))
 }
 
+/// SPEC §13's message from a follower: its estimate of the leader's state
+/// and whether that estimate is *fresh*, i.e. not held through an isolation
+/// since it last came from the leader (SPEC §14: `adopt` takes only fresh
+/// estimates). The leader's own state is always fresh.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Message {
+    pub state: LeaderState,
+    pub fresh: bool,
+}
+
+impl Message {
+    pub fn fresh(state: LeaderState) -> Self {
+        Self { state, fresh: true }
+    }
+}
+
 /// What a receiver holds from each of its sources: the newest delivered
 /// message and its step. SPEC §14: at step k a source is heard through its
 /// newest delivered message stamped at or before k if that is at most the
 /// silence timeout old; otherwise it is silent.
 #[derive(Clone, Debug)]
 pub struct Hearing {
-    last: Vec<Option<(u64, LeaderState)>>,
+    last: Vec<Option<(u64, Message)>>,
     timeout_steps: u64,
 }
 
@@ -134,17 +150,17 @@ impl Hearing {
     }
 
     /// A message of `slot` stamped `k` was delivered (older ones than held are ignored).
-    pub fn deliver(&mut self, slot: usize, k: u64, state: LeaderState) {
+    pub fn deliver(&mut self, slot: usize, k: u64, msg: Message) {
         let held = &mut self.last[slot];
         if held.is_none_or(|(s, _)| s <= k) {
-            *held = Some((k, state));
+            *held = Some((k, msg));
         }
     }
 
     /// What `slot` says at step k, if it is heard.
-    pub fn heard(&self, slot: usize, k: u64) -> Option<&LeaderState> {
+    pub fn heard(&self, slot: usize, k: u64) -> Option<&Message> {
         match &self.last[slot] {
-            Some((s, state)) if *s <= k && k - s <= self.timeout_steps => Some(state),
+            Some((s, msg)) if *s <= k && k - s <= self.timeout_steps => Some(msg),
             _ => None,
         }
     }
@@ -162,7 +178,8 @@ pub enum RejoinPolicy {
     /// The paper's law unchanged: reconverge at rate k_i.
     #[default]
     Consensus,
-    /// Take the leader's state if heard, else the heard neighbours' mean.
+    /// Take the leader's state if heard, else the mean of the heard
+    /// neighbours' fresh estimates.
     Adopt,
 }
 
@@ -182,17 +199,19 @@ impl Default for RejoinRule {
 }
 
 /// The estimate `adopt` takes (SPEC §14): the leader's state if heard,
-/// otherwise the mean of the heard neighbours' messages, θ as the first
-/// (lowest-id) neighbour's θ plus the mean of the wrapped differences to it.
-/// `None` when nothing is heard.
+/// otherwise the mean of the heard neighbours' *fresh* messages, θ as the
+/// first (lowest-id) of them's θ plus the mean of the wrapped differences to
+/// it. `None` when neither the leader nor a fresh neighbour is heard: an
+/// estimate held through an isolation of its own is no better than ours
+/// (after a router restart every follower's is), so it is not taken.
 pub fn adopted<'a>(
     leader: Option<&LeaderState>,
-    neighbours: impl IntoIterator<Item = &'a LeaderState>,
+    neighbours: impl IntoIterator<Item = &'a Message>,
 ) -> Option<LeaderState> {
     if let Some(l) = leader {
         return Some(*l);
     }
-    let mut iter = neighbours.into_iter();
+    let mut iter = neighbours.into_iter().filter(|m| m.fresh).map(|m| &m.state);
     let first = *iter.next()?;
     let mut sum = LeaderState { pose: Pose::new(first.pose.x, first.pose.y, 0.0), ..first };
     let mut n = 1.0;
@@ -268,12 +287,12 @@ mod tests {
     #[test]
     fn hearing_keeps_the_newest_message_within_the_timeout() {
         let mut h = Hearing::new(2, 3);
-        let s = |v: f64| LeaderState { v, ..Default::default() };
+        let s = |v: f64| Message::fresh(LeaderState { v, ..Default::default() });
         assert!(h.heard(0, 0).is_none());
         h.deliver(0, 5, s(5.0));
         h.deliver(0, 4, s(4.0)); // older: ignored
-        assert_eq!(h.heard(0, 5).map(|m| m.v), Some(5.0));
-        assert_eq!(h.heard(0, 8).map(|m| m.v), Some(5.0));
+        assert_eq!(h.heard(0, 5).map(|m| m.state.v), Some(5.0));
+        assert_eq!(h.heard(0, 8).map(|m| m.state.v), Some(5.0));
         assert!(h.heard(0, 9).is_none(), "4 steps old with a 3-step timeout");
         assert!(h.heard(0, 4).is_none(), "never a message from the receiver's future");
         assert!(h.heard(1, 5).is_none());
@@ -288,7 +307,7 @@ mod tests {
             w: -v,
         };
         let leader = m(9.0, 1.0, 9.0);
-        let (a, b) = (m(1.0, 3.1, 1.0), m(3.0, -3.1, 2.0));
+        let (a, b) = (Message::fresh(m(1.0, 3.1, 1.0)), Message::fresh(m(3.0, -3.1, 2.0)));
         assert_eq!(adopted(Some(&leader), [&a, &b]), Some(leader));
         let mean = adopted(None, [&a, &b]).expect("two neighbours heard");
         assert_eq!((mean.pose.x, mean.pose.y, mean.v, mean.w), (2.0, 4.0, 1.5, -1.5));
@@ -296,5 +315,19 @@ mod tests {
         // 3.1 and −3.1 are 0.083 rad apart across ±π: the mean is π, not 0.
         assert!((wrap(mean.pose.theta - std::f64::consts::PI)).abs() < 1e-12, "θ = {}", mean.pose.theta);
         assert_eq!(adopted(None, []), None);
+    }
+
+    #[test]
+    fn adopt_takes_no_estimate_held_through_an_isolation() {
+        let m = |x: f64| LeaderState { pose: Pose::new(x, 0.0, 0.0), ..Default::default() };
+        let stale = Message { state: m(1.0), fresh: false };
+        let fresh = Message::fresh(m(5.0));
+        assert_eq!(adopted(None, [&stale]), None, "only a stale neighbour: nothing to adopt");
+        assert_eq!(
+            adopted(None, [&stale, &fresh]).map(|s| s.pose.x),
+            Some(5.0),
+            "the stale one is left out of the mean"
+        );
+        assert_eq!(adopted(Some(&m(9.0)), [&stale]).map(|s| s.pose.x), Some(9.0), "the leader is always fresh");
     }
 }

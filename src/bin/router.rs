@@ -23,6 +23,7 @@ async fn main() -> anyhow::Result<()> {
         .init();
     let mut args = Cli::parse().zenoh;
     args.mode = Some(ZenohMode::Router);
+    args.identity = Some(formation::certs::ROUTER.to_string());
     let listen = args.to_config()?.get_json("listen/endpoints").unwrap_or_default();
     let listen = serde_json::from_str::<Vec<String>>(&listen).map_or(listen, |v| v.join(", "));
     let session = session::open(&args).await?;

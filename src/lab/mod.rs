@@ -290,6 +290,7 @@ impl Ctx<'_> {
     fn router(&self) -> Command {
         let mut c = self.lab.command("router", self.exe);
         c.args(["node", "router", "--listen", &self.ep("router")]);
+        launch::tls_arg(&mut c, &self.a.opts);
         c
     }
 

@@ -281,7 +281,7 @@ pub fn sweep_stale() -> Vec<String> {
 }
 
 /// Host i's address: 10.77.(i/250).(i%250 + 2).
-fn host_addr(i: usize) -> Ipv4Addr {
+pub fn host_addr(i: usize) -> Ipv4Addr {
     Ipv4Addr::new(10, 77, (i / 250) as u8, (i % 250 + 2) as u8)
 }
 

@@ -15,7 +15,7 @@
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use formation_agent::{Hearing, LeaderState};
+use formation_agent::{Hearing, LeaderState, Message};
 use formation_plant::Pose;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use formation_topology::{Scenario, Timing};
@@ -52,11 +52,11 @@ pub trait Body: Send {
         t_s: f64,
         dt_s: f64,
         leader: Option<&LeaderState>,
-        neighbours: &[LeaderState],
+        neighbours: &[Message],
         last: bool,
-    ) -> (FollowerSample, LeaderState);
+    ) -> (FollowerSample, Message);
     /// The message for step 0.
-    fn initial_message(&self) -> LeaderState;
+    fn initial_message(&self) -> Message;
     /// The first quantity that is not finite, if any.
     fn check_finite(&self) -> Result<(), &'static str>;
     /// Consecutive steps without any source (SPEC §14's isolation).
@@ -74,13 +74,13 @@ impl Body for SimFollower {
         t_s: f64,
         dt_s: f64,
         leader: Option<&LeaderState>,
-        neighbours: &[LeaderState],
+        neighbours: &[Message],
         last: bool,
-    ) -> (FollowerSample, LeaderState) {
+    ) -> (FollowerSample, Message) {
         SimFollower::step(self, t_s, dt_s, leader, neighbours, last)
     }
-    fn initial_message(&self) -> LeaderState {
-        self.brain.message()
+    fn initial_message(&self) -> Message {
+        self.brain.tagged_message()
     }
     fn check_finite(&self) -> Result<(), &'static str> {
         SimFollower::check_finite(self)
@@ -129,7 +129,7 @@ pub(crate) struct Shared {
 
 /// Runs one follower to the end of the scenario.
 pub async fn run(args: &AgentArgs) -> Result<(), Error> {
-    let (scenario, keys) = args.node.load()?;
+    let (scenario, keys) = args.node.load(&crate::certs::agent_name(args.id))?;
     let index = scenario.index_of(args.id).ok_or_else(|| {
         let ids: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
         Error::Input(format!("scenario {} has no follower {} (ids: {})", scenario.name, args.id, ids.join(", ")))
@@ -137,7 +137,7 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
     if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
         return Err(Error::Input("--stall-timeout must be positive".into()));
     }
-    let session = args.node.open().await?;
+    let session = args.node.open(&crate::certs::agent_name(args.id)).await?;
     let body = Box::new(SimFollower::new(&scenario, index));
     let stall = Duration::from_secs_f64(args.stall_timeout);
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
@@ -495,9 +495,10 @@ fn control_loop(
     estimate_pub: &Publisher<'_>,
     telemetry: &Courier,
 ) -> Result<(), String> {
-    let msg = |k: u64, state: LeaderState| EstimateMsg {
+    let msg = |k: u64, m: Message| EstimateMsg {
         header: Header { version: FORMAT_VERSION, sender: c.id, step: k, time_s: k as f64 * c.dt_s },
-        state,
+        state: m.state,
+        fresh: m.fresh,
     };
     let mut sent = 0u64;
     let mut republished = 0u64;
@@ -511,10 +512,10 @@ fn control_loop(
     }
 
     let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s));
-    let mut inputs: Vec<LeaderState> = Vec::with_capacity(c.neighbours + 1);
+    let mut inputs: Vec<Message> = Vec::with_capacity(c.neighbours + 1);
     // Lock-step: each source's step-k message (None: removed by the fault
     // table), and the newest delivered one per source (SPEC §14).
-    let mut taken: Vec<Option<LeaderState>> = Vec::with_capacity(c.neighbours + 1);
+    let mut taken: Vec<Option<Message>> = Vec::with_capacity(c.neighbours + 1);
     let mut hearing = Hearing::new(c.neighbours + usize::from(c.has_leader), c.silence_steps);
     // Real time: who is heard, for the timeline.
     let mut heard = Heard(vec![false; c.neighbours + usize::from(c.has_leader)]);
@@ -580,7 +581,7 @@ fn control_loop(
                 inputs.clear();
                 inputs.extend((0..c.neighbours).filter_map(|slot| hearing.heard(slot, k)).copied());
                 if c.has_leader {
-                    hearing.heard(c.neighbours, k).copied()
+                    hearing.heard(c.neighbours, k).map(|m| m.state)
                 } else {
                     None
                 }
@@ -595,7 +596,7 @@ fn control_loop(
                 if c.has_leader {
                     let s = inbox.latest(c.neighbours, k, c.silence_steps);
                     heard.note(c.neighbours, k, s.is_some(), &c.source_ids, &mut events);
-                    s
+                    s.map(|m| m.state)
                 } else {
                     None
                 }

@@ -47,6 +47,10 @@ pub struct BenchNetArgs {
     /// First loopback port to use (about 20 consecutive ports).
     #[arg(long, default_value_t = 17900)]
     pub base_port: u16,
+    /// Also measure with mutual TLS, with the certificates in DIR (made by
+    /// `formation certs SCENARIO --out DIR`), side by side with plain TCP.
+    #[arg(long, value_name = "DIR")]
+    pub tls: Option<PathBuf>,
 }
 
 fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: &str) -> LaunchArgs {
@@ -57,6 +61,7 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
             run: Some(run.to_string()),
             time_scale: None,
             quiet: true,
+            tls: a.tls.clone(),
         },
         mode: LaunchMode::Peer,
         base_port: Some(port),
@@ -163,6 +168,7 @@ fn estimate(sender: u32, step: u64) -> Vec<u8> {
     wire::encode(&EstimateMsg {
         header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
         state: LeaderState { v: 1.0, w: 0.5, ..Default::default() },
+        fresh: true,
     })
 }
 

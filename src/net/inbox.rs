@@ -5,7 +5,7 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
-use formation_agent::{LeaderState, LinkLoss};
+use formation_agent::{LinkLoss, Message};
 use formation_topology::wire::{self, EstimateMsg, Reject};
 
 use crate::net::counters::Counters;
@@ -45,13 +45,13 @@ pub fn check(
 #[derive(Debug, Default)]
 pub struct Inbox {
     /// Lock-step: every step received and not yet used, by step.
-    pending: Vec<BTreeMap<u64, LeaderState>>,
+    pending: Vec<BTreeMap<u64, Message>>,
     /// The last step used (lock-step) or held (real time), per source.
     newest: Vec<Option<u64>>,
     /// Per source, the furthest step heard (see [`Inbox::heard_max`]).
     heard_max: Vec<Option<u64>>,
     /// Real time: the recent messages per source, in step order.
-    history: Vec<VecDeque<(u64, LeaderState)>>,
+    history: Vec<VecDeque<(u64, Message)>>,
     pub counters: Counters,
     lockstep: bool,
     /// The receiver's current step (set by its control loop).
@@ -153,13 +153,14 @@ impl Inbox {
             return;
         }
         self.counters.received += 1;
+        let m = Message { state: msg.state, fresh: msg.fresh };
         if self.lockstep {
             // A republication of a pending step keeps the first copy.
-            self.pending[slot].entry(step).or_insert(msg.state);
+            self.pending[slot].entry(step).or_insert(m);
         } else {
             self.newest[slot] = Some(step);
             let h = &mut self.history[slot];
-            h.push_back((step, msg.state));
+            h.push_back((step, m));
             if h.len() > HISTORY {
                 h.pop_front();
             }
@@ -183,7 +184,7 @@ impl Inbox {
 
     /// Lock-step: takes each source's step-k message, `None` where the fault
     /// table removed it (call after `has_all`).
-    pub fn take(&mut self, k: u64, out: &mut Vec<Option<LeaderState>>) {
+    pub fn take(&mut self, k: u64, out: &mut Vec<Option<Message>>) {
         out.clear();
         for (slot, p) in self.pending.iter_mut().enumerate() {
             // Drop anything older (cannot happen with has_all, but keeps memory bounded).
@@ -202,7 +203,7 @@ impl Inbox {
     /// k (a node running behind the shared schedule never uses values from
     /// its future), if it is at most `max_age_steps` older than k; else the
     /// source counts as silent.
-    pub fn latest(&mut self, slot: usize, k: u64, max_age_steps: u64) -> Option<LeaderState> {
+    pub fn latest(&mut self, slot: usize, k: u64, max_age_steps: u64) -> Option<Message> {
         let h = &mut self.history[slot];
         // Keep the newest entry ≤ k and everything after it.
         while h.len() > 1 && h[1].0 <= k {
@@ -229,7 +230,8 @@ mod tests {
     fn msg(sender: u32, step: u64) -> EstimateMsg {
         EstimateMsg {
             header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
-            state: LeaderState { v: step as f64, ..Default::default() },
+            state: formation_agent::LeaderState { v: step as f64, ..Default::default() },
+            fresh: true,
         }
     }
 
@@ -271,8 +273,8 @@ mod tests {
         assert_eq!(inbox.counters.late, 1);
         inbox.accept(0, &msg(1, 6));
         // At step 5 the message stamped 6 is in the future: use 3.
-        assert_eq!(inbox.latest(0, 5, 10).map(|s| s.v), Some(3.0));
-        assert_eq!(inbox.latest(0, 6, 10).map(|s| s.v), Some(6.0));
+        assert_eq!(inbox.latest(0, 5, 10).map(|m| m.state.v), Some(3.0));
+        assert_eq!(inbox.latest(0, 6, 10).map(|m| m.state.v), Some(6.0));
         assert_eq!(inbox.latest(0, 17, 10), None);
         assert_eq!(inbox.counters.silent, 2);
     }
@@ -311,10 +313,10 @@ mod tests {
         inbox.accept(0, &msg(1, 6));
         inbox.accept(0, &msg(1, 1));
         assert_eq!(inbox.counters.rejected.future, 2);
-        assert_eq!(inbox.latest(0, 1, 10).map(|s| s.v), Some(1.0));
+        assert_eq!(inbox.latest(0, 1, 10).map(|m| m.state.v), Some(1.0));
         inbox.set_step(10);
         inbox.accept(0, &msg(1, 9));
-        assert_eq!(inbox.latest(0, 10, 10).map(|s| s.v), Some(9.0));
+        assert_eq!(inbox.latest(0, 10, 10).map(|m| m.state.v), Some(9.0));
     }
 
     #[test]
@@ -324,6 +326,6 @@ mod tests {
         inbox.accept(0, &msg(1, 8));
         // Held message newer than k: not used (and not "0 steps old").
         assert_eq!(inbox.latest(0, 5, 10), None);
-        assert_eq!(inbox.latest(0, 8, 10).map(|s| s.v), Some(8.0));
+        assert_eq!(inbox.latest(0, 8, 10).map(|m| m.state.v), Some(8.0));
     }
 }

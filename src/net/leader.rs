@@ -60,7 +60,7 @@ fn zerr(what: &str, e: impl std::fmt::Display) -> Error {
 }
 
 pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
-    let (scenario, keys) = args.node.load()?;
+    let (scenario, keys) = args.node.load(crate::certs::LEADER)?;
     let time_scale = args.time_scale.unwrap_or(scenario.network.time_scale);
     if !(time_scale.is_finite() && time_scale > 0.0) {
         return Err(Error::Input(format!("--time-scale must be a positive number, not {time_scale}")));
@@ -68,7 +68,7 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     if !(args.start_lead.is_finite() && args.start_lead >= 0.0) {
         return Err(Error::Input("--start-lead must be ≥ 0".into()));
     }
-    let session = args.node.open().await?;
+    let session = args.node.open(crate::certs::LEADER).await?;
     let lead = Duration::from_secs_f64(args.start_lead);
     let result = run_leader(&session, &scenario, &keys, time_scale, lead, args.print_start).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
@@ -177,6 +177,7 @@ fn leader_loop(
         wire::encode(&EstimateMsg {
             header: Header { version: FORMAT_VERSION, sender: wire::LEADER_ID, step: k, time_s: k as f64 * dt },
             state,
+            fresh: true,
         })
     };
     let mut leader = s.leader();

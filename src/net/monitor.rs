@@ -612,14 +612,14 @@ const ACK_PERIOD: Duration = Duration::from_millis(100);
 /// Runs the monitor to the end of the run (or Ctrl-C / SIGTERM / idle timeout).
 /// Returns how the run ended (`Idle` is an error).
 pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
-    let (scenario, keys) = args.node.load()?;
+    let (scenario, keys) = args.node.load(crate::certs::MONITOR)?;
     if !args.idle_timeout.is_finite() || args.idle_timeout <= 0.0 {
         return Err(Error::Input("--idle-timeout must be positive".into()));
     }
     let dir = args.out.clone().unwrap_or_else(|| PathBuf::from("runs").join(&keys.run));
     let opts = RecordOptions { dir, every: args.every.max(1), csv: true };
     let recorder = Recorder::new(&scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
-    let session = match args.node.open().await {
+    let session = match args.node.open(crate::certs::MONITOR).await {
         Ok(s) => s,
         Err(e) => {
             // Nothing was recorded: leave no empty `<out>.partial` behind.

@@ -42,18 +42,31 @@ pub struct NodeArgs {
 
 impl NodeArgs {
     /// Loads the scenario and resolves the run name (bad input: exit 2).
-    pub fn load(&self) -> Result<(Scenario, Keys), Error> {
+    ///
+    /// `identity` is the node's name in its certificate (`leader`,
+    /// `monitor`, `agent-<id>`): with `--tls`, its files are checked here,
+    /// and the folder's policy must be the one this scenario's topology gives.
+    pub fn load(&self, identity: &str) -> Result<(Scenario, Keys), Error> {
         let scenario = Scenario::load(&self.scenario, &self.overrides).map_err(|e| Error::Input(e.to_string()))?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
         session::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
-        self.zenoh.to_config().map_err(|e| Error::Input(format!("zenoh options: {e}")))?;
+        let zenoh = self.zenoh_as(identity);
+        zenoh.to_config().map_err(|e| Error::Input(format!("zenoh options: {e}")))?;
+        if let Some(dir) = &self.zenoh.tls {
+            crate::certs::identity_for(dir, identity, &scenario).map_err(Error::Input)?;
+        }
         Ok((scenario, Keys::new(&run)))
+    }
+
+    fn zenoh_as(&self, identity: &str) -> ZenohArgs {
+        ZenohArgs { identity: Some(identity.to_string()), ..self.zenoh.clone() }
     }
 
     /// Opens the session; says once after a few seconds what it is waiting
     /// for, and gives up after `--open-timeout` naming the endpoints.
-    pub async fn open(&self) -> Result<zenoh::Session, Error> {
-        let opening = session::open(&self.zenoh);
+    pub async fn open(&self, identity: &str) -> Result<zenoh::Session, Error> {
+        let zenoh = self.zenoh_as(identity);
+        let opening = session::open(&zenoh);
         tokio::pin!(opening);
         if !(self.open_timeout.is_finite() && self.open_timeout > 0.0) {
             return Err(Error::Input(format!("--open-timeout must be positive, not {}", self.open_timeout)));

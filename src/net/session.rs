@@ -69,6 +69,16 @@ pub struct ZenohArgs {
     /// whatever it says.
     #[arg(long = "config", value_name = "FILE.json5")]
     pub config: Option<PathBuf>,
+    /// Mutual TLS on every link with the certificates and policy in DIR
+    /// (made by `formation certs`): endpoints become tls/…, only the folder's
+    /// authority is trusted, plain TCP is refused, and each node may publish
+    /// and receive only what its role in the topology needs.
+    #[arg(long = "tls", value_name = "DIR")]
+    pub tls: Option<PathBuf>,
+    /// The node's name in its certificate (`router`, `leader`, `monitor`,
+    /// `agent-<id>`): set by the node, not on the command line.
+    #[arg(skip)]
+    pub identity: Option<String>,
 }
 
 /// Link lease, ms: a link silent this long is declared dead (overridable
@@ -157,6 +167,15 @@ impl ZenohArgs {
         if !self.connect.is_empty() {
             set(&mut config, "connect/endpoints", &Value::from(self.connect.clone()))?;
         }
+        if let Some(dir) = &self.tls {
+            let name = self.identity.as_deref().ok_or_else(|| anyhow!("--tls: this node has no name to look for"))?;
+            let id = crate::certs::identity(dir, name).map_err(|e| anyhow!(e))?;
+            for (key, value) in crate::certs::zenoh_tls(&id) {
+                set(&mut config, key, &value)?;
+            }
+            let connect = get(&config, "connect/endpoints")?;
+            set(&mut config, "connect/endpoints", &tls_endpoints(&connect, "connect")?)?;
+        }
 
         // Listen: never zenoh's all-interfaces default.
         let builtin_listen = get(&zenoh::Config::default(), "listen/endpoints")?;
@@ -174,7 +193,35 @@ impl ZenohArgs {
         if let Some(listen) = listen {
             set(&mut config, "listen/endpoints", &Value::from(listen))?;
         }
+        if self.tls.is_some() {
+            let listen = get(&config, "listen/endpoints")?;
+            set(&mut config, "listen/endpoints", &tls_endpoints(&listen, "listen")?)?;
+        }
         Ok(config)
+    }
+}
+
+/// `--tls`: every `tcp/` endpoint of a list becomes `tls/`; any other
+/// protocol than tcp or tls is refused (it would bypass TLS).
+fn tls_endpoints(list: &Value, what: &str) -> anyhow::Result<Value> {
+    let convert = |e: &Value| -> anyhow::Result<Value> {
+        let s = e.as_str().ok_or_else(|| anyhow!("--tls: {what} endpoint {e} is not a string"))?;
+        if let Some(rest) = s.strip_prefix("tcp/") {
+            Ok(Value::from(format!("tls/{rest}")))
+        } else if s.starts_with("tls/") {
+            Ok(Value::from(s))
+        } else {
+            bail!("--tls: {what} endpoint {s} is not tcp/ or tls/ (every link must be TLS)")
+        }
+    };
+    match list {
+        Value::Array(a) => Ok(Value::Array(a.iter().map(convert).collect::<anyhow::Result<_>>()?)),
+        // Mode-dependent lists ({ router: [...], peer: [...], client: [...] }).
+        Value::Object(m) => Ok(Value::Object(
+            m.iter().map(|(k, v)| Ok((k.clone(), tls_endpoints(v, what)?))).collect::<anyhow::Result<_>>()?,
+        )),
+        Value::Null => Ok(Value::Null),
+        other => bail!("--tls: {what} endpoints {other} are not a list"),
     }
 }
 
@@ -309,6 +356,7 @@ mod tests {
             connect: vec!["tcp/127.0.0.1:7001".into()],
             listen: vec!["tcp/127.0.0.1:7002".into()],
             config: Some(f.path().into()),
+            ..Default::default()
         };
         let c = args.to_config().unwrap();
         assert_eq!(json(&c, "mode"), "peer");

@@ -10,7 +10,7 @@ use formation_agent::LeaderState;
 use serde::{Deserialize, Serialize};
 
 /// Bumped on any change of the encoding.
-pub const FORMAT_VERSION: u16 = 1;
+pub const FORMAT_VERSION: u16 = 2;
 
 /// Leader id on the wire.
 pub const LEADER_ID: u32 = 0;
@@ -27,11 +27,14 @@ pub struct Header {
 }
 
 /// An estimate message: from the leader, its true state; from follower i,
-/// (P_ir, Ṗ_ir, v_ir, ω_ir).
+/// (P_ir, Ṗ_ir, v_ir, ω_ir) and whether that estimate is fresh (SPEC §14:
+/// not held through an isolation since it last came from the leader; the
+/// leader's is always fresh). Format 2 added `fresh`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EstimateMsg {
     pub header: Header,
     pub state: LeaderState,
+    pub fresh: bool,
 }
 
 /// Why a received message was not used.
@@ -87,6 +90,7 @@ mod tests {
         EstimateMsg {
             header: Header { version: FORMAT_VERSION, sender: 3, step: 42, time_s: 0.042 },
             state: LeaderState { pose: Pose::new(1.0, 2.0, 0.5), pose_rate: Pose::new(0.1, 0.2, 0.3), v: 1.0, w: -0.5 },
+            fresh: false,
         }
     }
 

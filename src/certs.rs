@@ -1,0 +1,419 @@
+//! Identities and permissions for a secure deployment.
+//!
+//! `formation certs SCENARIO --out DIR` makes a certificate authority and,
+//! for every node of the scenario (`router`, `leader`, `monitor`,
+//! `agent-<id>`), a key and a certificate whose subject common name is the
+//! node's name, valid for the addresses the node listens on (loopback, the
+//! lab's, and any `--san`). It also writes `policy.json5`: zenoh access
+//! control derived from the topology, so that a node may publish only its
+//! own estimate and telemetry and receive only what its role needs.
+//!
+//! With `--tls DIR`, a node checks its files at start ([`identity`]), and
+//! its session runs mutual TLS with the authority as the only trust root,
+//! TLS-only links, and the policy ([`zenoh_tls`]).
+
+use std::net::IpAddr;
+use std::path::{Path, PathBuf};
+
+use formation_topology::Scenario;
+use serde_json::{json, Value};
+
+use crate::error::Error;
+
+/// The authority's certificate and key in a certificate folder.
+pub const CA_CERT: &str = "ca.pem";
+pub const CA_KEY: &str = "ca.key";
+/// The access-control policy in a certificate folder.
+pub const POLICY: &str = "policy.json5";
+
+pub const ROUTER: &str = "router";
+pub const LEADER: &str = "leader";
+pub const MONITOR: &str = "monitor";
+
+/// A follower's node name (its certificate's common name).
+pub fn agent_name(id: u32) -> String {
+    format!("agent-{id}")
+}
+
+/// Every node of a scenario, in the lab's host order (router, monitor,
+/// leader, agents in id order).
+pub fn node_names(scenario: &Scenario) -> Vec<String> {
+    let mut names = vec![ROUTER.to_string(), MONITOR.to_string(), LEADER.to_string()];
+    names.extend(scenario.graph.ids().iter().map(|&id| agent_name(id)));
+    names
+}
+
+/// `formation certs`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct CertsArgs {
+    #[command(flatten)]
+    pub scenario: crate::cli::ScenarioArgs,
+    /// Folder for the authority, the nodes' keys and certificates and the
+    /// policy. An authority already there is used, never replaced.
+    #[arg(long, value_name = "DIR", required_unless_present = "policy")]
+    pub out: Option<PathBuf>,
+    /// Another address (IP or DNS name) that every node's certificate is
+    /// valid for, e.g. the LAN address of the host that runs the router or a
+    /// peer (repeatable). Loopback and the lab's addresses are always in.
+    #[arg(long = "san", value_name = "ADDRESS")]
+    pub san: Vec<String>,
+    /// How long the certificates are valid, in days.
+    #[arg(long, default_value_t = 365, value_name = "DAYS")]
+    pub days: u32,
+    /// First day of validity, YYYY-MM-DD [default: now]. With --days, makes
+    /// expired or not-yet-valid certificates (for testing that they are refused).
+    #[arg(long, value_name = "DATE")]
+    pub not_before: Option<String>,
+    /// Only (re)issue these nodes' certificates (repeatable) [default: every node].
+    #[arg(long = "node", value_name = "NAME")]
+    pub nodes: Vec<String>,
+    /// Print the access-control policy derived from the topology and write nothing.
+    #[arg(long)]
+    pub policy: bool,
+}
+
+/// The lab's addresses of a node, in client mode (with a router, host
+/// index i) and in peer mode (no router, index i − 1).
+fn lab_addresses(index: usize) -> Vec<IpAddr> {
+    let mut v = vec![IpAddr::V4(crate::lab::netns::host_addr(index))];
+    if index > 0 {
+        v.push(IpAddr::V4(crate::lab::netns::host_addr(index - 1)));
+    }
+    v
+}
+
+/// `formation certs`.
+pub fn run(a: &CertsArgs) -> Result<(), Error> {
+    let scenario = a.scenario.load().map_err(|e| Error::Input(e.to_string()))?;
+    let policy = policy(&scenario);
+    if a.policy {
+        println!("{}", serde_json::to_string_pretty(&policy).unwrap_or_default());
+        return Ok(());
+    }
+    let Some(dir) = a.out.as_deref() else {
+        return Err(Error::Input("--out DIR is required (or --policy to print the policy)".into()));
+    };
+    if a.days == 0 {
+        return Err(Error::Input("--days must be at least 1".into()));
+    }
+    let not_before = match &a.not_before {
+        None => time::OffsetDateTime::now_utc() - time::Duration::minutes(5),
+        Some(d) => parse_date(d).ok_or_else(|| Error::Input(format!("--not-before {d:?}: expected YYYY-MM-DD")))?,
+    };
+    let not_after = not_before + time::Duration::days(i64::from(a.days));
+    let names = node_names(&scenario);
+    for n in &a.nodes {
+        if !names.contains(n) {
+            return Err(Error::Input(format!("--node {n}: the scenario's nodes are {}", names.join(", "))));
+        }
+    }
+    let mut extra = Vec::new();
+    for s in &a.san {
+        extra.push(san(s).map_err(|e| Error::Input(format!("--san {s}: {e}")))?);
+    }
+    std::fs::create_dir_all(dir).map_err(|e| Error::Run(format!("creating {}: {e}", dir.display())))?;
+
+    let (issuer, made) = authority(dir, not_before)?;
+    println!("{} authority {}", if made { "made the" } else { "using the existing" }, dir.join(CA_CERT).display());
+    for (index, name) in names.iter().enumerate() {
+        if !a.nodes.is_empty() && !a.nodes.contains(name) {
+            continue;
+        }
+        let mut sans: Vec<rcgen::SanType> = vec![
+            rcgen::SanType::IpAddress("127.0.0.1".parse().expect("an address")),
+            rcgen::SanType::IpAddress("::1".parse().expect("an address")),
+            san("localhost").expect("a name"),
+        ];
+        sans.extend(lab_addresses(index).into_iter().map(rcgen::SanType::IpAddress));
+        sans.extend(extra.iter().cloned());
+        let mut p = rcgen::CertificateParams::default();
+        p.distinguished_name.push(rcgen::DnType::CommonName, name.as_str());
+        p.subject_alt_names = sans;
+        p.not_before = not_before;
+        p.not_after = not_after;
+        p.use_authority_key_identifier_extension = true;
+        p.key_usages = vec![rcgen::KeyUsagePurpose::DigitalSignature];
+        // A peer both listens and dials: it needs both.
+        p.extended_key_usages =
+            vec![rcgen::ExtendedKeyUsagePurpose::ServerAuth, rcgen::ExtendedKeyUsagePurpose::ClientAuth];
+        let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making {name}'s key: {e}")))?;
+        let cert = p.signed_by(&key, &issuer).map_err(|e| Error::Run(format!("signing {name}'s certificate: {e}")))?;
+        write_private(&dir.join(format!("{name}.key")), &key.serialize_pem())?;
+        write(&dir.join(format!("{name}.pem")), &cert.pem())?;
+        println!("  {name}: {name}.pem, {name}.key (valid {} to {})", day(not_before), day(not_after));
+    }
+    let text = format!(
+        "// zenoh access control for scenario {:?}, made by `formation certs` from its topology.\n\
+         // Every node loads it with --tls; edit the scenario and run `formation certs` again instead.\n{}\n",
+        scenario.name,
+        serde_json::to_string_pretty(&policy).unwrap_or_default()
+    );
+    write(&dir.join(POLICY), &text)?;
+    println!("  {POLICY}: who may publish and receive what");
+    Ok(())
+}
+
+fn san(s: &str) -> Result<rcgen::SanType, String> {
+    match s.parse::<IpAddr>() {
+        Ok(ip) => Ok(rcgen::SanType::IpAddress(ip)),
+        Err(_) => s
+            .to_string()
+            .try_into()
+            .map(rcgen::SanType::DnsName)
+            .map_err(|e| format!("not an address or DNS name: {e}")),
+    }
+}
+
+fn parse_date(s: &str) -> Option<time::OffsetDateTime> {
+    let mut it = s.split('-');
+    let (y, m, d) = (it.next()?.parse().ok()?, it.next()?.parse::<u8>().ok()?, it.next()?.parse().ok()?);
+    if it.next().is_some() {
+        return None;
+    }
+    let date = time::Date::from_calendar_date(y, time::Month::try_from(m).ok()?, d).ok()?;
+    Some(date.midnight().assume_utc())
+}
+
+fn day(t: time::OffsetDateTime) -> String {
+    format!("{:04}-{:02}-{:02}", t.year(), u8::from(t.month()), t.day())
+}
+
+/// The folder's authority, made if there is none (`true`), used if there is
+/// one with its key, refused if only half of it is there.
+fn authority(
+    dir: &Path,
+    not_before: time::OffsetDateTime,
+) -> Result<(rcgen::Issuer<'static, rcgen::KeyPair>, bool), Error> {
+    let (cert_path, key_path) = (dir.join(CA_CERT), dir.join(CA_KEY));
+    match (cert_path.exists(), key_path.exists()) {
+        (true, true) => {
+            let key = read(&key_path)?;
+            let key = rcgen::KeyPair::from_pem(&key)
+                .map_err(|e| Error::Input(format!("{}: not a private key: {e}", key_path.display())))?;
+            let pem = read(&cert_path)?;
+            let issuer = rcgen::Issuer::from_ca_cert_pem(&pem, key)
+                .map_err(|e| Error::Input(format!("{}: not a certificate: {e}", cert_path.display())))?;
+            Ok((issuer, false))
+        }
+        (false, false) => {
+            let mut p = rcgen::CertificateParams::default();
+            p.distinguished_name.push(rcgen::DnType::CommonName, "formation certificate authority");
+            p.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+            p.key_usages = vec![
+                rcgen::KeyUsagePurpose::KeyCertSign,
+                rcgen::KeyUsagePurpose::CrlSign,
+                rcgen::KeyUsagePurpose::DigitalSignature,
+            ];
+            p.not_before = not_before.min(time::OffsetDateTime::now_utc() - time::Duration::minutes(5));
+            p.not_after = time::OffsetDateTime::now_utc() + time::Duration::days(10 * 365);
+            let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making the authority's key: {e}")))?;
+            let cert = p.self_signed(&key).map_err(|e| Error::Run(format!("signing the authority: {e}")))?;
+            write_private(&key_path, &key.serialize_pem())?;
+            write(&cert_path, &cert.pem())?;
+            Ok((rcgen::Issuer::new(p, key), true))
+        }
+        (true, false) => Err(Error::Input(format!(
+            "{} is there without its key {}: not replacing an authority (move the folder away to make a new one)",
+            cert_path.display(),
+            key_path.display()
+        ))),
+        (false, true) => Err(Error::Input(format!(
+            "{} is there without its certificate {}: not replacing an authority (move the folder away to make a new one)",
+            key_path.display(),
+            cert_path.display()
+        ))),
+    }
+}
+
+fn read(path: &Path) -> Result<String, Error> {
+    std::fs::read_to_string(path).map_err(|e| Error::Input(format!("reading {}: {e}", path.display())))
+}
+
+fn write(path: &Path, text: &str) -> Result<(), Error> {
+    std::fs::write(path, text).map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))
+}
+
+/// Writes a private key readable by its owner only (created 0600, not
+/// chmod-ed after the fact).
+fn write_private(path: &Path, text: &str) -> Result<(), Error> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let _ = std::fs::remove_file(path);
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o600)
+        .open(path)
+        .map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))?;
+    f.write_all(text.as_bytes()).map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))
+}
+
+/// What one node may publish (`put` in) and receive (subscribe to, `put` out).
+struct Role {
+    name: String,
+    publish: Vec<String>,
+    receive: Vec<String>,
+}
+
+/// Any run's key: `formation/*/<rest>` (certificates are per scenario, not per run).
+fn any_run(rest: &str) -> String {
+    format!("formation/*/{rest}")
+}
+
+fn roles(scenario: &Scenario) -> Vec<Role> {
+    let control = any_run("control/**");
+    let mut roles = vec![
+        Role {
+            name: LEADER.into(),
+            publish: vec![
+                any_run("estimate/0"),
+                any_run("telemetry/0"),
+                any_run("control/hello/0"),
+                any_run("control/start"),
+                any_run("control/abort"),
+            ],
+            // Every estimate (lock-step pacing, and its own for twins) and telemetry (who finished).
+            receive: vec![any_run("estimate/*"), any_run("telemetry/*"), control.clone()],
+        },
+        Role {
+            name: MONITOR.into(),
+            publish: vec![any_run("control/hello/monitor"), any_run("control/ready/monitor"), any_run("control/ack")],
+            receive: vec![any_run("telemetry/*"), control.clone()],
+        },
+    ];
+    for (index, &id) in scenario.graph.ids().iter().enumerate() {
+        let mut receive: Vec<String> =
+            scenario.sources_of(index).iter().map(|s| any_run(&format!("estimate/{s}"))).collect();
+        // Its own estimate and telemetry: a second process with its identity is refused (twins).
+        receive.push(any_run(&format!("estimate/{id}")));
+        receive.push(any_run(&format!("telemetry/{id}")));
+        receive.push(control.clone());
+        roles.push(Role {
+            name: agent_name(id),
+            publish: vec![
+                any_run(&format!("estimate/{id}")),
+                any_run(&format!("telemetry/{id}")),
+                any_run(&format!("control/hello/{id}")),
+                any_run(&format!("control/ready/{id}")),
+            ],
+            receive,
+        });
+    }
+    roles
+}
+
+/// zenoh's `access_control` section for a scenario: deny by default; each
+/// node (known by its certificate's common name) may put only on its own
+/// keys and declare subscribers and be sent puts only on the keys its role
+/// reads; the router is trusted to forward. Enforced by every node that
+/// loads it: the router for its clients, each peer for its own links.
+pub fn policy(scenario: &Scenario) -> Value {
+    let mut rules = vec![
+        json!({ "id": "router-forwards", "messages": ["put", "declare_subscriber"],
+                "flows": ["ingress", "egress"], "permission": "allow", "key_exprs": ["formation/**"] }),
+        // Subscriber declarations travel to every node, so that publishers
+        // know where to send; what is sent is what the rules below allow.
+        json!({ "id": "declarations-out", "messages": ["declare_subscriber"], "flows": ["egress"],
+                "permission": "allow", "key_exprs": ["formation/**"] }),
+    ];
+    let mut subjects = vec![json!({ "id": ROUTER, "cert_common_names": [ROUTER] })];
+    let mut policies = vec![json!({ "rules": ["router-forwards"], "subjects": [ROUTER] })];
+    for r in roles(scenario) {
+        let (publish, receive) = (format!("{}-publishes", r.name), format!("{}-receives", r.name));
+        let subscribe = format!("{}-subscribes", r.name);
+        rules.push(json!({ "id": publish, "messages": ["put"], "flows": ["ingress"],
+                           "permission": "allow", "key_exprs": r.publish }));
+        rules.push(json!({ "id": subscribe, "messages": ["declare_subscriber"], "flows": ["ingress"],
+                           "permission": "allow", "key_exprs": r.receive }));
+        rules.push(json!({ "id": receive, "messages": ["put"], "flows": ["egress"],
+                           "permission": "allow", "key_exprs": r.receive }));
+        subjects.push(json!({ "id": r.name, "cert_common_names": [r.name] }));
+        policies.push(json!({ "rules": [publish, subscribe, receive, "declarations-out"], "subjects": [r.name] }));
+    }
+    json!({ "enabled": true, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies })
+}
+
+/// A node's files in a certificate folder, checked.
+#[derive(Clone, Debug)]
+pub struct Identity {
+    pub ca: PathBuf,
+    pub cert: PathBuf,
+    pub key: PathBuf,
+    pub policy: Value,
+}
+
+/// Checks `dir` for node `name`: the authority, the node's certificate
+/// (issued by the authority, for this node, valid now) and key (matching
+/// it), and the policy. Each problem is one line.
+pub fn identity(dir: &Path, name: &str) -> Result<Identity, String> {
+    use x509_parser::prelude::*;
+    let (ca, cert, key) = (dir.join(CA_CERT), dir.join(format!("{name}.pem")), dir.join(format!("{name}.key")));
+    let read = |p: &Path| -> Result<Vec<u8>, String> {
+        std::fs::read(p).map_err(|e| format!("--tls {}: cannot read {}: {e}", dir.display(), p.display()))
+    };
+    let pem_of = |p: &Path, bytes: &[u8]| -> Result<Pem, String> {
+        let (_, pem) = parse_x509_pem(bytes).map_err(|e| format!("{}: not a PEM certificate: {e}", p.display()))?;
+        Ok(pem)
+    };
+    let ca_bytes = read(&ca)?;
+    let ca_pem = pem_of(&ca, &ca_bytes)?;
+    let ca_x509 = ca_pem.parse_x509().map_err(|e| format!("{}: not a certificate: {e}", ca.display()))?;
+    let cert_bytes = read(&cert)?;
+    let cert_pem = pem_of(&cert, &cert_bytes)?;
+    let x509 = cert_pem.parse_x509().map_err(|e| format!("{}: not a certificate: {e}", cert.display()))?;
+    let cn = x509.subject().iter_common_name().next().and_then(|c| c.as_str().ok()).unwrap_or("").to_string();
+    if cn != name {
+        return Err(format!("{} is the certificate of {cn:?}, not of {name}", cert.display()));
+    }
+    if x509.verify_signature(Some(ca_x509.public_key())).is_err() {
+        return Err(format!("{} was not issued by the authority {}", cert.display(), ca.display()));
+    }
+    let now = ASN1Time::now();
+    let validity = x509.validity();
+    if now < validity.not_before {
+        return Err(format!("{} is not valid yet: valid from {} (now {})", cert.display(), validity.not_before, now));
+    }
+    if now > validity.not_after {
+        return Err(format!("{} expired on {} (now {})", cert.display(), validity.not_after, now));
+    }
+    let key_text = String::from_utf8(read(&key)?).map_err(|_| format!("{}: not a PEM private key", key.display()))?;
+    let pair = rcgen::KeyPair::from_pem(&key_text).map_err(|e| format!("{}: not a private key: {e}", key.display()))?;
+    if rcgen::PublicKeyData::der_bytes(&pair) != &x509.public_key().subject_public_key.data[..] {
+        return Err(format!("{} is not the key of {}", key.display(), cert.display()));
+    }
+    let policy_path = dir.join(POLICY);
+    let text = String::from_utf8(read(&policy_path)?).map_err(|_| format!("{}: not UTF-8", policy_path.display()))?;
+    let policy: Value = json5::from_str(&text).map_err(|e| format!("{}: {e}", policy_path.display()))?;
+    Ok(Identity { ca, cert, key, policy })
+}
+
+/// `identity` for a node of `scenario`, whose policy must also be the one
+/// the scenario's topology gives.
+pub fn identity_for(dir: &Path, name: &str, scenario: &Scenario) -> Result<Identity, String> {
+    let id = identity(dir, name)?;
+    if id.policy != policy(scenario) {
+        return Err(format!(
+            "--tls {}: {POLICY} was made for another topology than scenario {}'s (run `formation certs` again)",
+            dir.display(),
+            scenario.name
+        ));
+    }
+    Ok(id)
+}
+
+/// The zenoh settings of `--tls`: mutual TLS with the authority as the
+/// only root, names checked on connect, TLS-only links, and the policy.
+pub fn zenoh_tls(id: &Identity) -> Vec<(&'static str, Value)> {
+    let p = |p: &Path| Value::from(p.display().to_string());
+    vec![
+        ("transport/link/tls/root_ca_certificate", p(&id.ca)),
+        ("transport/link/tls/listen_certificate", p(&id.cert)),
+        ("transport/link/tls/listen_private_key", p(&id.key)),
+        ("transport/link/tls/connect_certificate", p(&id.cert)),
+        ("transport/link/tls/connect_private_key", p(&id.key)),
+        ("transport/link/tls/enable_mtls", Value::Bool(true)),
+        ("transport/link/tls/verify_name_on_connect", Value::Bool(true)),
+        ("transport/link/protocols", json!(["tls"])),
+        ("access_control", id.policy.clone()),
+    ]
+}
