@@ -1,0 +1,425 @@
+//! `formation certs` and `--tls`: mutual TLS on every link and access
+//! control derived from the topology (ports 17660–17699, 127.0.0.1 only,
+//! multicast scouting off in every session). Every count in a message is
+//! what the test measured.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use common::{Group, LIMIT, SCENARIO};
+use formation::net::session::{self, ZenohArgs, ZenohMode};
+use formation_agent::LeaderState;
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+
+/// `formation certs SCENARIO --out DIR EXTRA…`; its output.
+fn certs(dir: &Path, extra: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["certs", SCENARIO, "--out"])
+        .arg(dir)
+        .args(extra)
+        .output()
+        .expect("formation certs")
+}
+
+fn certs_ok(dir: &Path) {
+    let o = certs(dir, &[]);
+    assert!(o.status.success(), "formation certs: {}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// A TLS router child on `port`, up and listening.
+fn router(port: u16, dir: &Path) -> Group {
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let d = dir.display().to_string();
+    let g = Group::spawn(&["node", "router", "--listen", &ep, "--tls", &d]);
+    let t = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(t.elapsed() < Duration::from_secs(20), "the TLS router did not listen on {port} within 20 s");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    g
+}
+
+fn client(port: u16) -> ZenohArgs {
+    ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }
+}
+
+/// A client with `name`'s identity from `dir`.
+async fn open_as(dir: &Path, name: &str, port: u16) -> zenoh::Session {
+    let args = ZenohArgs { tls: Some(dir.into()), identity: Some(name.into()), ..client(port) };
+    tokio::time::timeout(Duration::from_secs(20), session::open(&args))
+        .await
+        .unwrap_or_else(|_| panic!("{name}: no session within 20 s"))
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+fn estimate(sender: u32, step: u64) -> Vec<u8> {
+    wire::encode(&EstimateMsg {
+        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
+        state: LeaderState { v: 1.0, ..Default::default() },
+        fresh: true,
+    })
+}
+
+/// Counts the samples arriving on `key`.
+async fn counter(s: &zenoh::Session, key: &str) -> (zenoh::pubsub::Subscriber<()>, Arc<AtomicU64>) {
+    let n = Arc::new(AtomicU64::new(0));
+    let m = n.clone();
+    let sub = s
+        .declare_subscriber(key)
+        .callback(move |_| {
+            m.fetch_add(1, Ordering::Relaxed);
+        })
+        .await
+        .expect("subscriber");
+    (sub, n)
+}
+
+/// Waits up to `limit` for `n` to reach `want`; its last value.
+async fn settle(n: &AtomicU64, want: u64, limit: Duration) -> u64 {
+    let t = Instant::now();
+    while n.load(Ordering::Relaxed) < want && t.elapsed() < limit {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    n.load(Ordering::Relaxed)
+}
+
+#[test]
+fn certs_makes_an_authority_and_one_private_identity_per_node_and_never_replaces_the_authority() {
+    use std::os::unix::fs::PermissionsExt;
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("certs");
+    certs_ok(&dir);
+    let names = ["router", "leader", "monitor", "agent-1", "agent-2", "agent-3", "agent-4"];
+    for n in names {
+        let id = formation::certs::identity(&dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
+        let mode = std::fs::metadata(&id.key).expect("key").permissions().mode() & 0o777;
+        assert_eq!(mode, 0o600, "{n}'s key is {mode:o}, not readable by its owner only");
+    }
+    let ca_mode = std::fs::metadata(dir.join("ca.key")).expect("ca.key").permissions().mode() & 0o777;
+    assert_eq!(ca_mode, 0o600, "the authority's key is {ca_mode:o}");
+    // Again: the same authority, new node certificates that it signed.
+    let ca = std::fs::read(dir.join("ca.pem")).expect("ca.pem");
+    let o = certs(&dir, &[]);
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success() && said.contains("using the existing authority"), "second run said: {said}");
+    assert_eq!(std::fs::read(dir.join("ca.pem")).expect("ca.pem"), ca, "the authority was replaced");
+    formation::certs::identity(&dir, "agent-3").expect("re-issued agent-3 under the same authority");
+    // Half an authority is refused, not replaced.
+    std::fs::remove_file(dir.join("ca.key")).expect("rm ca.key");
+    let o = certs(&dir, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "half an authority: {err}");
+    assert!(err.contains("not replacing an authority"), "{err}");
+    // The policy, for review.
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["certs", SCENARIO, "--policy"])
+        .output()
+        .expect("certs --policy");
+    let policy: serde_json::Value = serde_json::from_slice(&o.stdout).expect("--policy prints JSON");
+    assert_eq!(policy["default_permission"], "deny");
+    let rules = policy["rules"].as_array().expect("rules");
+    let agent3 = rules.iter().find(|r| r["id"] == "agent-3-publishes").expect("agent-3-publishes");
+    assert_eq!(
+        agent3["key_exprs"],
+        serde_json::json!([
+            "formation/*/estimate/3",
+            "formation/*/telemetry/3",
+            "formation/*/control/hello/3",
+            "formation/*/control/ready/3"
+        ])
+    );
+}
+
+/// `formation launch --tls` in lock-step equals `formation sim` byte for
+/// byte; with `forge`, a session with agent 2's valid identity floods agent
+/// 3's and the leader's estimate keys through the router during the run.
+fn tls_same_as_sim(mode: &str, port: u16, run: &str, forge: bool) {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("certs");
+    certs_ok(&dir);
+    let net = tmp.path().join("net");
+    let d = dir.display().to_string();
+    let p = port.to_string();
+    let mut g = Group::launch(&net, &["duration=1"], &["--mode", mode, "--base-port", &p, "--run", run, "--tls", &d]);
+    let sim = tmp.path().join("sim");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["sim", SCENARIO, "-q", "--set", "duration=1", "--out"])
+        .arg(&sim)
+        .output()
+        .expect("sim");
+    assert!(o.status.success());
+    if forge {
+        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("rt");
+        let sent = rt.block_on(flood(&dir, port, run));
+        assert_eq!(sent, 20_000, "the forger's puts that returned Ok");
+    }
+    let status = g.wait(LIMIT);
+    assert!(status.success(), "{mode} --tls: formation launch failed: {status}");
+    if forge {
+        let n = common::json(&net, "network.json");
+        for id in ["1", "2", "3", "4"] {
+            let node = &n["nodes"][id];
+            assert_eq!(
+                (&node["rejected_invalid"], &node["late"]),
+                (&serde_json::json!(0), &serde_json::json!(0)),
+                "follower {id} saw forged messages: {node}"
+            );
+        }
+    }
+    for f in ["summary.json", "follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv", "leader.csv"] {
+        let a = std::fs::read(net.join(f)).expect("net file");
+        let b = std::fs::read(sim.join(f)).expect("sim file");
+        assert!(a == b, "{mode} --tls: {f} differs from formation sim's ({} against {} bytes)", a.len(), b.len());
+    }
+}
+
+#[test]
+fn tls_lockstep_equals_the_simulator_in_peer_mode() {
+    tls_same_as_sim("peer", 17660, "tls-peer", false);
+}
+
+#[test]
+fn tls_lockstep_equals_the_simulator_in_client_mode() {
+    tls_same_as_sim("client", 17670, "tls-client", false);
+}
+
+/// The issue's case: agent 2's own valid certificate, 10,000 estimates on
+/// agent 3's key and 10,000 on the leader's during a run (steps 0–9,999,
+/// which a receiver without access control would take or count as
+/// rejected): none reaches a follower, and the run equals the simulator.
+#[test]
+fn forged_estimates_from_a_valid_agent_during_a_tls_run_change_nothing() {
+    tls_same_as_sim("client", 17675, "tls-forged", true);
+}
+
+/// Connects as agent 2 to the run's router and puts 10,000 forged estimates
+/// on each of agent 3's and the leader's keys; the puts that returned Ok.
+async fn flood(dir: &Path, port: u16, run: &str) -> u64 {
+    let forger = open_as(dir, "agent-2", port).await;
+    // Once the run is under way (agent 2 may hear follower 1).
+    let (_sub, running) = counter(&forger, &format!("formation/{run}/estimate/1")).await;
+    let seen = settle(&running, 1, Duration::from_secs(30)).await;
+    assert!(seen > 0, "the forger never saw the run start");
+    let mut sent = 0;
+    for k in 0..10_000u64 {
+        for sender in [3u32, 0] {
+            let key = format!("formation/{run}/estimate/{sender}");
+            if forger.put(&key, estimate(sender, k)).await.is_ok() {
+                sent += 1;
+            }
+        }
+    }
+    sent
+}
+
+/// A zenoh config file for a rogue: give up after 3 s instead of waiting,
+/// plus `extra` (json5 members).
+fn rogue_config(tmp: &Path, name: &str, extra: &str) -> PathBuf {
+    let f = tmp.join(format!("{name}.json5"));
+    std::fs::write(&f, format!("{{ connect: {{ timeout_ms: 3000, exit_on_failure: true }}, {extra} }}"))
+        .expect("write");
+    f
+}
+
+/// Opens `args`; if it opens, puts 1,000 estimates on agent 2's key.
+/// Returns (opened, puts that returned Ok).
+async fn rogue(args: &ZenohArgs) -> (bool, u64) {
+    let Ok(Ok(s)) = tokio::time::timeout(Duration::from_secs(10), session::open(args)).await else {
+        return (false, 0);
+    };
+    let mut sent = 0;
+    for k in 0..1000 {
+        if s.put("formation/sec/estimate/2", estimate(2, k)).await.is_ok() {
+            sent += 1;
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    (true, sent)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("certs");
+    let other = tmp.path().join("other");
+    certs_ok(&dir);
+    certs_ok(&other);
+    let port = 17680;
+    let _router = router(port, &dir);
+    // The receiver (the leader may receive every estimate) and a positive
+    // control: agent 2 itself, whose messages must arrive.
+    let leader = open_as(&dir, "leader", port).await;
+    let (_sub, heard) = counter(&leader, "formation/sec/estimate/*").await;
+    let agent2 = open_as(&dir, "agent-2", port).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for k in 0..100 {
+        agent2.put("formation/sec/estimate/2", estimate(2, k)).await.expect("put");
+    }
+    let control = settle(&heard, 100, Duration::from_secs(5)).await;
+    assert_eq!(control, 100, "the genuine agent 2's 100 estimates: {control} reached the leader");
+    heard.store(0, Ordering::Relaxed);
+
+    let ca = dir.join("ca.pem").display().to_string();
+    let no_cert = ZenohArgs {
+        connect: vec![format!("tls/127.0.0.1:{port}")],
+        config: Some(rogue_config(
+            tmp.path(),
+            "no-cert",
+            &format!("transport: {{ link: {{ tls: {{ root_ca_certificate: {ca:?} }} }} }}"),
+        )),
+        ..client(port)
+    };
+    let foreign_ca = ZenohArgs {
+        tls: Some(other.clone()),
+        identity: Some("agent-2".into()),
+        config: Some(rogue_config(tmp.path(), "foreign", "")),
+        ..client(port)
+    };
+    let plain_tcp = ZenohArgs { config: Some(rogue_config(tmp.path(), "tcp", "")), ..client(port) };
+    for (what, args) in
+        [("no certificate", no_cert), ("a certificate from another authority", foreign_ca), ("plain TCP", plain_tcp)]
+    {
+        let (opened, sent) = rogue(&args).await;
+        let got = settle(&heard, 1, Duration::from_millis(500)).await;
+        assert_eq!(
+            got, 0,
+            "a session with {what} (opened: {opened}, {sent} puts returned Ok): {got} of its messages reached the leader"
+        );
+        assert!(!opened, "a session with {what} opened a session with the TLS router ({sent} puts returned Ok)");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_valid_agent_cannot_speak_for_another_node() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("certs");
+    certs_ok(&dir);
+    let port = 17685;
+    let _router = router(port, &dir);
+    // Receivers: follower 1 (hears the leader and follower 2... and may
+    // receive estimates 0 and its neighbours'), follower 4 (a neighbour of
+    // follower 3), the monitor (telemetry).
+    let f1 = open_as(&dir, "agent-1", port).await;
+    let (_s1, f1_heard) = counter(&f1, "formation/sec/estimate/0").await;
+    let f4 = open_as(&dir, "agent-4", port).await;
+    let (_s4, f4_heard) = counter(&f4, "formation/sec/estimate/3").await;
+    let monitor = open_as(&dir, "monitor", port).await;
+    let (_sm, mon_heard) = counter(&monitor, "formation/sec/telemetry/*").await;
+    let forger = open_as(&dir, "agent-2", port).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let mut sent = 0u64;
+    for k in 0..10_000u64 {
+        for (key, sender) in [("formation/sec/estimate/3", 3), ("formation/sec/estimate/0", 0)] {
+            if forger.put(key, estimate(sender, k)).await.is_ok() {
+                sent += 1;
+            }
+        }
+        if k % 10 == 0 && forger.put("formation/sec/telemetry/3", vec![0u8; 64]).await.is_ok() {
+            sent += 1;
+        }
+    }
+    // A positive control through the same router: the genuine follower 3.
+    let f3 = open_as(&dir, "agent-3", port).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for k in 0..50 {
+        f3.put("formation/sec/estimate/3", estimate(3, k)).await.expect("put");
+    }
+    let control = settle(&f4_heard, 50, Duration::from_secs(5)).await;
+    let (a, b, c) = (f1_heard.load(Ordering::Relaxed), control.saturating_sub(50), mon_heard.load(Ordering::Relaxed));
+    assert_eq!(
+        (a, b, c),
+        (0, 0, 0),
+        "agent 2 sent {sent} forged messages: {a} of its leader estimates reached follower 1, {b} of its follower-3 \
+         estimates follower 4, {c} of its follower-3 telemetry the monitor"
+    );
+    assert_eq!(control, 50, "the genuine follower 3's 50 estimates: {control} reached follower 4");
+}
+
+/// A copy of `dir` where agent 2's certificate is re-issued with the given
+/// validity (same authority).
+fn reissued(tmp: &Path, dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
+    let copy = tmp.join(name);
+    std::fs::create_dir_all(&copy).expect("mkdir");
+    for e in std::fs::read_dir(dir).expect("read_dir").flatten() {
+        std::fs::copy(e.path(), copy.join(e.file_name())).expect("copy");
+    }
+    let mut args = vec!["--node", "agent-2"];
+    args.extend_from_slice(extra);
+    let o = certs(&copy, &args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    copy
+}
+
+/// `formation node agent --id 2 --tls DIR` against a port nobody listens
+/// on: its status and stderr (it must fail before it dials).
+fn agent2(dir: &Path) -> (Option<i32>, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["node", "agent", "--id", "2", "--scenario", SCENARIO, "--mode", "client"])
+        .args(["--connect", "tcp/127.0.0.1:17699", "--open-timeout", "3", "--tls"])
+        .arg(dir)
+        .output()
+        .expect("agent");
+    (o.status.code(), String::from_utf8_lossy(&o.stderr).trim().to_string())
+}
+
+#[test]
+fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("certs");
+    certs_ok(&dir);
+    let expired = reissued(tmp.path(), &dir, "expired", &["--not-before", "2020-01-01", "--days", "30"]);
+    let future = reissued(tmp.path(), &dir, "future", &["--not-before", "2099-01-01"]);
+    let wrong_node = reissued(tmp.path(), &dir, "wrong-node", &[]);
+    std::fs::copy(dir.join("agent-1.pem"), wrong_node.join("agent-2.pem")).expect("copy");
+    let wrong_key = reissued(tmp.path(), &dir, "wrong-key", &[]);
+    std::fs::copy(dir.join("agent-1.key"), wrong_key.join("agent-2.key")).expect("copy");
+    let foreign = tmp.path().join("foreign");
+    certs_ok(&foreign);
+    let mixed = reissued(tmp.path(), &dir, "mixed", &[]);
+    std::fs::copy(foreign.join("agent-2.pem"), mixed.join("agent-2.pem")).expect("copy");
+    std::fs::copy(foreign.join("agent-2.key"), mixed.join("agent-2.key")).expect("copy");
+    let no_key = reissued(tmp.path(), &dir, "no-key", &[]);
+    std::fs::remove_file(no_key.join("agent-2.key")).expect("rm");
+    let garbage = reissued(tmp.path(), &dir, "garbage", &[]);
+    std::fs::write(garbage.join("agent-2.pem"), "not a certificate").expect("write");
+    let no_policy = reissued(tmp.path(), &dir, "no-policy", &[]);
+    std::fs::remove_file(no_policy.join("policy.json5")).expect("rm");
+    let other_topology = reissued(tmp.path(), &dir, "other-topology", &[]);
+    std::fs::write(other_topology.join("policy.json5"), "{ enabled: true, default_permission: \"allow\" }").expect("w");
+    let cases: [(&str, &Path, &str); 10] = [
+        ("expired", &expired, "expired on"),
+        ("not yet valid", &future, "not valid yet"),
+        ("another node's certificate", &wrong_node, "is the certificate of \"agent-1\""),
+        ("another node's key", &wrong_key, "is not the key of"),
+        ("another authority", &mixed, "was not issued by the authority"),
+        ("no key", &no_key, "cannot read"),
+        ("garbage", &garbage, "not a PEM certificate"),
+        ("no policy", &no_policy, "policy.json5"),
+        ("a policy for another topology", &other_topology, "another topology"),
+        ("no folder", &tmp.path().join("absent"), "cannot read"),
+    ];
+    for (what, d, says) in cases {
+        let (code, err) = agent2(d);
+        assert_eq!(code, Some(2), "{what}: exit {code:?}, said {err:?}");
+        assert_eq!(err.lines().count(), 1, "{what}: not one line: {err:?}");
+        assert!(err.contains(says), "{what}: {err:?} does not say {says:?}");
+    }
+    // launch checks every node before it starts any.
+    let out = tmp.path().join("run");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["launch", SCENARIO, "-q", "--base-port", "17690", "--tls"])
+        .arg(&expired)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("launch");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "launch with an expired agent-2: {err}");
+    assert!(err.contains("agent-2.pem expired on"), "{err}");
+    assert!(!out.exists() && !tmp.path().join("run.partial").exists(), "launch left a run folder behind");
+}
