@@ -44,6 +44,15 @@ fn router(port: u16, dir: &Path) -> Group {
     g
 }
 
+/// A folder of certificates and a TLS router using them on `port`.
+fn tls_router(port: u16) -> (tempfile::TempDir, PathBuf, Group) {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("certs");
+    certs_ok(&dir);
+    let g = router(port, &dir);
+    (tmp, dir, g)
+}
+
 fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }
 }
@@ -244,13 +253,10 @@ async fn rogue(args: &ZenohArgs) -> (bool, u64) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let dir = tmp.path().join("certs");
-    let other = tmp.path().join("other");
-    certs_ok(&dir);
-    certs_ok(&other);
     let port = 17680;
-    let _router = router(port, &dir);
+    let (tmp, dir, _router) = tls_router(port);
+    let other = tmp.path().join("other");
+    certs_ok(&other);
     // The receiver (the leader may receive every estimate) and a positive
     // control: agent 2 itself, whose messages must arrive.
     let leader = open_as(&dir, "leader", port).await;
@@ -296,11 +302,8 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_valid_agent_cannot_speak_for_another_node() {
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let dir = tmp.path().join("certs");
-    certs_ok(&dir);
     let port = 17685;
-    let _router = router(port, &dir);
+    let (_tmp, dir, _router) = tls_router(port);
     // Receivers: follower 1 (hears the leader and follower 2... and may
     // receive estimates 0 and its neighbours'), follower 4 (a neighbour of
     // follower 3), the monitor (telemetry).
@@ -422,4 +425,44 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
     assert_eq!(o.status.code(), Some(2), "launch with an expired agent-2: {err}");
     assert!(err.contains("agent-2.pem expired on"), "{err}");
     assert!(!out.exists() && !tmp.path().join("run.partial").exists(), "launch left a run folder behind");
+}
+
+/// Peer links never pass a router: each peer enforces the policy itself.
+/// Follower 4 as a TLS peer; agent 2's valid identity dials it directly and
+/// publishes on agent 3's key; the genuine follower 3 does the same.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_peer_refuses_a_valid_agent_speaking_for_another() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("certs");
+    certs_ok(&dir);
+    let port = 17688;
+    let peer = |name: &str, listen: Vec<String>, connect: Vec<String>| ZenohArgs {
+        mode: Some(ZenohMode::Peer),
+        listen,
+        connect,
+        tls: Some(dir.clone()),
+        identity: Some(name.into()),
+        ..Default::default()
+    };
+    let open = |a: ZenohArgs| async move {
+        tokio::time::timeout(Duration::from_secs(20), session::open(&a)).await.expect("open in 20 s").expect("open")
+    };
+    let f4 = open(peer("agent-4", vec![format!("tcp/127.0.0.1:{port}")], vec![])).await;
+    let (_s4, heard) = counter(&f4, "formation/sec/estimate/3").await;
+    let forger = open(peer("agent-2", vec![], vec![format!("tcp/127.0.0.1:{port}")])).await;
+    let f3 = open(peer("agent-3", vec![], vec![format!("tcp/127.0.0.1:{port}")])).await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let mut sent = 0u64;
+    for k in 0..10_000 {
+        if forger.put("formation/sec/estimate/3", estimate(3, k)).await.is_ok() {
+            sent += 1;
+        }
+    }
+    let forged = settle(&heard, 1, Duration::from_millis(500)).await;
+    for k in 0..50 {
+        f3.put("formation/sec/estimate/3", estimate(3, k)).await.expect("put");
+    }
+    let genuine = settle(&heard, forged + 50, Duration::from_secs(5)).await - forged;
+    assert_eq!(forged, 0, "agent 2 put {sent} estimates on agent 3's key to peer agent 4: {forged} arrived");
+    assert_eq!(genuine, 50, "the genuine follower 3's 50 estimates to peer agent 4: {genuine} arrived");
 }
