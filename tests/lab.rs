@@ -332,6 +332,23 @@ fn lockstep_with_follower_3_cut_off_physically_equals_the_simulator() {
     lockstep_equals_sim("lab-ls-cut", &["faults+={node=3, from=4, to=7}"], &[]);
 }
 
+/// The same across hosts with mutual TLS and access control (peer mode:
+/// every peer checks the others' certificates and enforces the policy; the
+/// certificates carry the lab's addresses).
+#[test]
+fn lockstep_over_tls_with_follower_3_cut_off_physically_equals_the_simulator() {
+    let certs = tempfile::tempdir().expect("tempdir");
+    let dir = certs.path().join("certs");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["certs", common::SCENARIO, "--out"])
+        .arg(&dir)
+        .output()
+        .expect("formation certs");
+    assert!(o.status.success(), "formation certs: {}", String::from_utf8_lossy(&o.stderr));
+    let d = dir.display().to_string();
+    lockstep_equals_sim("lab-ls-tls", &["faults+={node=3, from=4, to=7}"], &["--mode", "peer", "--tls", &d]);
+}
+
 #[test]
 #[ignore = "flaky as of 2026-11-22: 1 of 6 runs stalled after the router restart (follower 1 never got the \
             leader's step-8400 message and the leader waited for follower 1: both stall timeouts fired); the other 5 \
