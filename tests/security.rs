@@ -287,9 +287,40 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
         ..client(port)
     };
     let plain_tcp = ZenohArgs { config: Some(rogue_config(tmp.path(), "tcp", "")), ..client(port) };
-    for (what, args) in
-        [("no certificate", no_cert), ("a certificate from another authority", foreign_ca), ("plain TCP", plain_tcp)]
-    {
+    // The authority's own certificate for agent 2, expired, given to zenoh
+    // directly (our start-up check would refuse it before dialling).
+    let expired = reissued(tmp.path(), &dir, "expired", &["--not-before", "2020-01-01", "--days", "30"]);
+    let raw_tls = |name: &str, certs: &Path| {
+        let (cert, key) =
+            (certs.join("agent-2.pem").display().to_string(), certs.join("agent-2.key").display().to_string());
+        ZenohArgs {
+            connect: vec![format!("tls/127.0.0.1:{port}")],
+            config: Some(rogue_config(
+                tmp.path(),
+                name,
+                &format!(
+                    "transport: {{ link: {{ tls: {{ root_ca_certificate: {ca:?}, connect_certificate: {cert:?}, \
+                     connect_private_key: {key:?}, enable_mtls: true }} }} }}"
+                ),
+            )),
+            ..client(port)
+        }
+    };
+    // Control: the same raw configuration with the valid certificate connects.
+    let (opened, sent) = rogue(&raw_tls("valid", &dir)).await;
+    let got = settle(&heard, 1000, Duration::from_secs(5)).await;
+    assert!(
+        opened && got == 1000,
+        "the raw TLS configuration with agent 2's valid certificate: opened {opened}, {sent} sent, {got} arrived"
+    );
+    heard.store(0, Ordering::Relaxed);
+    let expired_cert = raw_tls("expired", &expired);
+    for (what, args) in [
+        ("no certificate", no_cert),
+        ("a certificate from another authority", foreign_ca),
+        ("plain TCP", plain_tcp),
+        ("an expired certificate of the authority", expired_cert),
+    ] {
         let (opened, sent) = rogue(&args).await;
         let got = settle(&heard, 1, Duration::from_millis(500)).await;
         assert_eq!(
