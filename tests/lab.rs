@@ -458,26 +458,43 @@ fn restarted(tag: &str) -> Run {
 /// completes. Up to the crash the others' rows are the simulator's.
 #[test]
 fn lockstep_an_agent_restarted_rejoins_and_the_run_completes() {
+    lockstep_restart("3", "lab-ls-restart");
+}
+
+/// The same for follower 1, which hears the leader: it also takes the
+/// leader's messages from where it resumes, which the leader keeps (it runs
+/// at most 200 steps ahead) and repeats while it waits.
+#[test]
+fn lockstep_the_follower_that_hears_the_leader_restarted_rejoins_and_the_run_completes() {
+    lockstep_restart("1", "lab-ls-restart-1");
+}
+
+fn lockstep_restart(victim: &str, tag: &str) {
     let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
     if !lab_available() {
         return;
     }
     let base = ["duration=30"];
-    let r = lab_on(&base, "lab-ls-restart", &[], &["--restart-agent", "3@4:2"]);
+    let plan = format!("{victim}@4:2");
+    let r = lab_on(&base, tag, &[], &["--restart-agent", &plan]);
     let (_dir, s) = sim_on(&base, &[]);
-    let timeline = r.network["nodes"]["3"]["timeline"].as_array().expect("timeline").clone();
+    let timeline = r.network["nodes"][victim]["timeline"].as_array().expect("timeline").clone();
     let resumed = timeline
         .iter()
         .find(|e| e["event"].as_str().is_some_and(|w| w.contains("restarted")))
         .map(|e| num(&e["t"]))
-        .unwrap_or_else(|| panic!("no restart in follower 3's timeline: {timeline:?}"));
-    // Follower 3: every step recorded but the last telemetry its killed
+        .unwrap_or_else(|| panic!("no restart in follower {victim}'s timeline: {timeline:?}"));
+    // The victim: every step recorded but the last telemetry its killed
     // process had not delivered (a gap marked "restarted").
-    let lost: f64 =
-        r.network["nodes"]["3"]["gaps"].as_array().expect("gaps").iter().map(|g| num(&g["to"]) - num(&g["from"])).sum();
-    let rows3 = std::fs::read_to_string(r.out.join("follower_3.csv")).expect("csv").lines().count() - 1;
-    assert_eq!(rows3 as f64 + lost, 30001.0, "follower 3: {rows3} rows and {lost} steps in gaps, of 30001");
-    for id in ["1", "2", "4"] {
+    let lost: f64 = r.network["nodes"][victim]["gaps"]
+        .as_array()
+        .expect("gaps")
+        .iter()
+        .map(|g| num(&g["to"]) - num(&g["from"]))
+        .sum();
+    let rows = std::fs::read_to_string(r.out.join(format!("follower_{victim}.csv"))).expect("csv").lines().count() - 1;
+    assert_eq!(rows as f64 + lost, 30001.0, "follower {victim}: {rows} rows and {lost} steps in gaps, of 30001");
+    for id in IDS.iter().filter(|&&i| i != victim) {
         let a = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("lab csv");
         let b = std::fs::read_to_string(s.join(format!("follower_{id}.csv"))).expect("sim csv");
         let (a, b): (Vec<&str>, Vec<&str>) = (a.lines().collect(), b.lines().collect());
@@ -490,5 +507,5 @@ fn lockstep_an_agent_restarted_rejoins_and_the_run_completes() {
             "follower {id}: row {first:?} differs from the simulator's before the restart at {resumed} s"
         );
     }
-    eprintln!("lock-step restart: follower 3 resumed at t = {resumed} s, the run completed");
+    eprintln!("lock-step restart: follower {victim} resumed at t = {resumed} s, the run completed");
 }

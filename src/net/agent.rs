@@ -247,7 +247,7 @@ pub async fn run_follower(
     let late = barrier::unix_ns().saturating_sub(start.epoch_unix_ns) > LATE.as_nanos() as u64;
     let first_step = if lockstep {
         if late {
-            lockstep_rejoin_step(&shared, neighbour_ids.len(), hears_leader, id).await?
+            lockstep_rejoin_step(&shared, neighbour_ids.len()).await?
         } else {
             0
         }
@@ -440,7 +440,7 @@ fn rejoin_step(start: &Start, scenario: &Scenario) -> Result<u64, Error> {
 /// and resumes one step before the least advanced of them (it adopts from
 /// their messages of that step and publishes the message they wait for).
 /// 0 for a run that is only starting.
-async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize, hears_leader: bool, id: u32) -> Result<u64, Error> {
+async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize) -> Result<u64, Error> {
     if neighbours == 0 {
         return Ok(0);
     }
@@ -453,12 +453,9 @@ async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize, hears_leader: 
     if !heard.iter().flatten().any(|&k| k > ahead) {
         return Ok(0);
     }
-    if hears_leader {
-        return Err(Error::Run(format!(
-            "follower {id}: the lock-step run is past step {ahead}; a follower that hears the leader cannot rejoin \
-             it yet (the leader does not repeat the steps it is past). Start the run again, or use real time"
-        )));
-    }
+    // A follower that hears the leader also needs the leader's messages from
+    // k0 on: the leader runs at most WINDOW steps ahead, keeps those steps
+    // and repeats the ones the slowest follower lacks while it waits.
     let k0 = heard.iter().flatten().min().copied().unwrap_or(1).saturating_sub(1);
     Ok(k0)
 }
