@@ -49,6 +49,9 @@ pub enum Command {
     /// access-control policy of a scenario, for `--tls DIR` (mutual TLS on
     /// every link, each node allowed to speak only for itself).
     Certs(crate::certs::CertsArgs),
+    /// Write a scenario of any size: N followers on formation slots, a graph
+    /// of the given kind checked against Lemma 1, λ_min(H) in its header.
+    Generate(GenerateArgs),
     /// A single node of a networked run (used by `launch`).
     #[command(hide = true)]
     Node(crate::launch::NodeCommand),
@@ -69,6 +72,73 @@ impl ScenarioArgs {
     pub fn load(&self) -> Result<Scenario, CliError> {
         Scenario::load(&self.scenario, &self.overrides).map_err(|e| CliError::Input(e.to_string()))
     }
+}
+
+#[derive(Args, Debug)]
+pub struct GenerateArgs {
+    /// Number of followers (ids 1..=N).
+    #[arg(long, value_name = "N")]
+    pub followers: u32,
+    /// ring (a cycle, plus --chords), grid (4-neighbours), random-geometric
+    /// (random slots, linked within --radius), complete, line.
+    #[arg(long, value_parser = ["ring", "grid", "random-geometric", "complete", "line"])]
+    pub graph: String,
+    /// Extra random edges of a ring.
+    #[arg(long, default_value_t = 0, value_name = "M")]
+    pub chords: u32,
+    /// How many followers hear the leader (those nearest to it).
+    #[arg(long, default_value_t = 1, value_name = "K")]
+    pub leader_links: u32,
+    /// Link radius of a random geometric graph, m [default: about the
+    /// connectivity threshold for the followers' density].
+    #[arg(long, value_name = "METRES")]
+    pub radius: Option<f64>,
+    /// Seed of the layout, the chords and the scenario's noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// The scenario file to write.
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+    /// Replace FILE if it exists.
+    #[arg(long)]
+    pub force: bool,
+}
+
+fn generate(a: &GenerateArgs) -> Result<(), CliError> {
+    use formation_topology::generate::{self, GraphKind, Spec};
+    let graph = GraphKind::parse(&a.graph).ok_or_else(|| CliError::Input(format!("--graph {}: unknown", a.graph)))?;
+    let spec = Spec {
+        chords: a.chords,
+        leader_links: a.leader_links,
+        radius: a.radius,
+        seed: a.seed,
+        ..Spec::new(a.followers, graph)
+    };
+    let text = generate::toml(&spec).map_err(|e| {
+        let hint = match (&e, graph) {
+            (formation_topology::ScenarioError::GraphNotConnected { .. }, GraphKind::RandomGeometric) => {
+                " (try a larger --radius, more --leader-links or another --seed)"
+            }
+            (formation_topology::ScenarioError::GraphNotConnected { .. }, _) => " (try more --leader-links)",
+            _ => "",
+        };
+        CliError::Input(format!("{e}{hint}"))
+    })?;
+    if a.out.exists() && !a.force {
+        return Err(CliError::Input(format!("{} exists (--force to replace it)", a.out.display())));
+    }
+    std::fs::write(&a.out, &text).map_err(|e| CliError::Run(format!("writing {}: {e}", a.out.display())))?;
+    let s = Scenario::load(&a.out, &[]).map_err(|e| CliError::Run(e.to_string()))?;
+    println!(
+        "wrote {}: {} followers, {} graph with {} edges, {} hearing the leader, λ_min(H) = {:.6}",
+        a.out.display(),
+        s.followers.len(),
+        graph.name(),
+        s.graph.edge_count(),
+        (0..s.graph.len()).filter(|&i| s.graph.hears_leader(i)).count(),
+        s.graph.lambda_min_h().unwrap_or(f64::NAN)
+    );
+    Ok(())
 }
 
 #[derive(Args, Debug)]
@@ -132,6 +202,7 @@ pub fn main() -> ExitCode {
         Command::Lab(a) => crate::lab::run(&a),
         Command::BenchNet(a) => crate::net::bench::run(&a),
         Command::Certs(a) => crate::certs::run(&a),
+        Command::Generate(a) => generate(&a),
         Command::Node(a) => crate::launch::run_node(&a),
     };
     match result {
