@@ -157,7 +157,15 @@ pub struct SimArgs {
     /// Print nothing but errors.
     #[arg(long, short)]
     pub quiet: bool,
+    /// Threads that step the followers: 0 uses every core for formations of
+    /// PARALLEL_FROM followers or more and one thread below. Results are bit
+    /// for bit the same for any number.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub threads: usize,
 }
+
+/// From this many followers `--threads 0` steps them on every core.
+pub const PARALLEL_FROM: usize = 256;
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
@@ -251,7 +259,13 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
     at_least_one("--every", a.every)?;
     let scenario = a.scenario.load()?;
     let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
-    let (summary, dir) = run_to_folder(&scenario, &RecordOptions { dir, every: a.every, csv: !a.no_csv }, a.quiet)?;
+    let threads = match a.threads {
+        0 if scenario.followers.len() >= PARALLEL_FROM => std::thread::available_parallelism().map_or(1, |n| n.get()),
+        0 => 1,
+        n => n,
+    };
+    let opts = RecordOptions { dir, every: a.every, csv: !a.no_csv };
+    let (summary, dir) = run_to_folder_on(&scenario, &opts, a.quiet, threads)?;
     if !a.quiet {
         print!("{}", summary.table());
         println!("wrote {}", dir.display());
@@ -261,11 +275,38 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
 
 /// Runs a scenario in process and writes its run folder.
 pub fn run_to_folder(scenario: &Scenario, opts: &RecordOptions, quiet: bool) -> Result<(Summary, PathBuf), CliError> {
+    run_to_folder_on(scenario, opts, quiet, 1)
+}
+
+/// [`run_to_folder`] with the followers of each step on `threads` threads.
+pub fn run_to_folder_on(
+    scenario: &Scenario,
+    opts: &RecordOptions,
+    quiet: bool,
+    threads: usize,
+) -> Result<(Summary, PathBuf), CliError> {
+    if threads > 1 {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .map_err(|e| CliError::Run(format!("starting {threads} threads: {e}")))?;
+        return pool.install(|| run_folder(scenario, opts, quiet, true));
+    }
+    run_folder(scenario, opts, quiet, false)
+}
+
+fn run_folder(
+    scenario: &Scenario,
+    opts: &RecordOptions,
+    quiet: bool,
+    parallel: bool,
+) -> Result<(Summary, PathBuf), CliError> {
     let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
     let mut writer = RunWriter::create(opts, &ids)?;
     let steps = scenario.steps();
     let mut progress = Progress::new(steps + 1, &scenario.name, quiet);
     let mut sim = Simulation::new(scenario);
+    sim.set_parallel(parallel);
     let result = {
         let mut observer = FolderObserver { writer: &mut writer, steps, dt: scenario.dt_s };
         sim.run(&mut observer, |k| progress.set(k))

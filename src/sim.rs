@@ -156,7 +156,51 @@ pub struct Simulation<'s> {
     next_messages: Vec<Message>,
     /// Per follower, `Some` where the fault table touches its incoming links.
     receptions: Vec<Option<Reception>>,
+    /// The samples of the current step, by index (the parallel step's output).
+    samples: Vec<FollowerSample>,
+    /// Step the followers of a step on rayon's threads (see [`Simulation::set_parallel`]).
+    parallel: bool,
     k: u64,
+}
+
+/// Follower `i`'s step k: its inputs (through its reception when the fault
+/// table touches it), brain and robot; its sample and its next message.
+#[allow(clippy::too_many_arguments)]
+fn step_follower(
+    s: &Scenario,
+    i: usize,
+    f: &mut SimFollower,
+    rx: &mut Option<Reception>,
+    messages: &[Message],
+    leader: &LeaderState,
+    k: u64,
+    last: bool,
+) -> (FollowerSample, Message) {
+    let (t, dt) = (k as f64 * s.dt_s, s.dt_s);
+    match rx {
+        None => {
+            let heard = s.graph.hears_leader(i).then_some(leader);
+            let neighbours = s.graph.neighbours(i).iter().map(|&j| &messages[j]);
+            f.step(t, dt, heard, neighbours, last)
+        }
+        Some(rx) => {
+            // SPEC §14: deliver what the table lets through, then
+            // hear each source's newest message within the timeout.
+            let ns = s.graph.neighbours(i);
+            for (slot, &j) in ns.iter().enumerate() {
+                rx.offer(slot, k, &messages[j]);
+            }
+            let heard = if s.graph.hears_leader(i) {
+                rx.offer(ns.len(), k, &Message::fresh(*leader));
+                rx.hearing.heard(ns.len(), k).map(|m| &m.state)
+            } else {
+                None
+            };
+            let hearing = &rx.hearing;
+            let neighbours = (0..ns.len()).filter_map(|slot| hearing.heard(slot, k));
+            f.step(t, dt, heard, neighbours, last)
+        }
+    }
 }
 
 impl<'s> Simulation<'s> {
@@ -172,8 +216,21 @@ impl<'s> Simulation<'s> {
             messages,
             followers,
             receptions,
+            samples: vec![FollowerSample::default(); scenario.followers.len()],
+            parallel: false,
             k: 0,
         }
+    }
+
+    /// Steps the followers of each step on rayon's threads (the current
+    /// pool: `ThreadPool::install` chooses how many). The followers of a step
+    /// are independent once the step's messages are known, and each one's
+    /// arithmetic is the same, so the results are bit for bit the
+    /// single-thread run's; samples still reach the observer in index order.
+    /// (The parallel step allocates in rayon's scheduler; the sequential one
+    /// allocates nothing.)
+    pub fn set_parallel(&mut self, on: bool) {
+        self.parallel = on;
     }
 
     /// Steps done so far.
@@ -214,33 +271,30 @@ impl<'s> Simulation<'s> {
         let last = k == s.steps();
         let leader = self.leader.state(t);
         observer.leader(k, &leader)?;
+        if self.parallel {
+            use rayon::prelude::*;
+            let messages = &self.messages;
+            let leader_ref = &leader;
+            self.followers
+                .par_iter_mut()
+                .zip(self.receptions.par_iter_mut())
+                .zip(self.next_messages.par_iter_mut())
+                .zip(self.samples.par_iter_mut())
+                .enumerate()
+                .for_each(|(i, (((f, rx), next), sample))| {
+                    (*sample, *next) = step_follower(s, i, f, rx, messages, leader_ref, k, last);
+                });
+        } else {
+            for (i, f) in self.followers.iter_mut().enumerate() {
+                let (sample, next) = step_follower(s, i, f, &mut self.receptions[i], &self.messages, &leader, k, last);
+                self.samples[i] = sample;
+                self.next_messages[i] = next;
+            }
+        }
+        // In index order, as a sequential run: metrics, the observer, and
+        // the first follower that diverged.
         for (i, f) in self.followers.iter_mut().enumerate() {
-            let (sample, next) = match &mut self.receptions[i] {
-                None => {
-                    let heard = s.graph.hears_leader(i).then_some(&leader);
-                    let neighbours = s.graph.neighbours(i).iter().map(|&j| &self.messages[j]);
-                    f.step(t, dt, heard, neighbours, last)
-                }
-                Some(rx) => {
-                    // SPEC §14: deliver what the table lets through, then
-                    // hear each source's newest message within the timeout.
-                    let ns = s.graph.neighbours(i);
-                    for (slot, &j) in ns.iter().enumerate() {
-                        rx.offer(slot, k, &self.messages[j]);
-                    }
-                    let heard = if s.graph.hears_leader(i) {
-                        rx.offer(ns.len(), k, &Message::fresh(leader));
-                        rx.hearing.heard(ns.len(), k).map(|m| &m.state)
-                    } else {
-                        None
-                    };
-                    let hearing = &rx.hearing;
-                    let neighbours = (0..ns.len()).filter_map(|slot| hearing.heard(slot, k));
-                    f.step(t, dt, heard, neighbours, last)
-                }
-            };
-            self.next_messages[i] = next;
-            let row = Row::new(&sample, &leader, s.followers[i].offset, dt);
+            let row = Row::new(&self.samples[i], &leader, s.followers[i].offset, dt);
             f.metrics.push(k, &row);
             observer.follower(i, k, &row, last)?;
             f.check_finite().map_err(|quantity| Diverged { follower: s.followers[i].id, step: k, t_s: t, quantity })?;
