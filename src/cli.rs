@@ -129,14 +129,14 @@ fn generate(a: &GenerateArgs) -> Result<(), CliError> {
     }
     std::fs::write(&a.out, &text).map_err(|e| CliError::Run(format!("writing {}: {e}", a.out.display())))?;
     let s = Scenario::load(&a.out, &[]).map_err(|e| CliError::Run(e.to_string()))?;
+    let lambda = s.graph.lambda_min_h().map_or_else(|| "not computed at this size".to_string(), |l| format!("{l:.6}"));
     println!(
-        "wrote {}: {} followers, {} graph with {} edges, {} hearing the leader, λ_min(H) = {:.6}",
+        "wrote {}: {} followers, {} graph with {} edges, {} hearing the leader, λ_min(H) = {lambda}",
         a.out.display(),
         s.followers.len(),
         graph.name(),
         s.graph.edge_count(),
         (0..s.graph.len()).filter(|&i| s.graph.hears_leader(i)).count(),
-        s.graph.lambda_min_h().unwrap_or(f64::NAN)
     );
     Ok(())
 }

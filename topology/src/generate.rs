@@ -220,11 +220,13 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
         let _ = writeln!(t);
     }
     let scenario = Scenario::from_toml(&t, "generated scenario", "generated", &[])?;
-    let lambda = scenario.graph.lambda_min_h().unwrap_or(f64::NAN);
-    Ok(t.replace(
-        "#LAMBDA#",
-        &format!("# λ_min(H) = {lambda:.6} (Lemma 1: positive, the leader reaches every follower)."),
-    ))
+    let line = match scenario.graph.lambda_min_h() {
+        Some(l) => format!("# λ_min(H) = {l:.6} (Lemma 1: positive, the leader reaches every follower)."),
+        None => format!(
+            "# λ_min(H) not computed for {n} followers (dense eigenvalues); Lemma 1 holds: the leader reaches every follower."
+        ),
+    };
+    Ok(t.replace("#LAMBDA#", &line))
 }
 
 /// The smallest link radius that connects `points`: the longest edge of
