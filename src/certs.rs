@@ -390,8 +390,19 @@ pub fn identity(dir: &Path, name: &str) -> Result<Identity, String> {
 /// `identity` for a node of `scenario`, whose policy must also be the one
 /// the scenario's topology gives.
 pub fn identity_for(dir: &Path, name: &str, scenario: &Scenario) -> Result<Identity, String> {
+    checked(dir, name, scenario, &policy(scenario))
+}
+
+/// Every node of `scenario` has its files in `dir` (what `launch`, `lab`
+/// and `bench-net` check before they start any process).
+pub fn check_all(dir: &Path, scenario: &Scenario) -> Result<(), String> {
+    let expected = policy(scenario);
+    node_names(scenario).iter().try_for_each(|name| checked(dir, name, scenario, &expected).map(drop))
+}
+
+fn checked(dir: &Path, name: &str, scenario: &Scenario, expected: &Value) -> Result<Identity, String> {
     let id = identity(dir, name)?;
-    if id.policy != policy(scenario) {
+    if &id.policy != expected {
         return Err(format!(
             "--tls {}: {POLICY} was made for another topology than scenario {}'s (run `formation certs` again)",
             dir.display(),

@@ -76,9 +76,7 @@ impl RunOptions {
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
         if let Some(dir) = &self.tls {
             // Every node's files, checked before any process starts.
-            for name in crate::certs::node_names(&scenario) {
-                crate::certs::identity_for(dir, &name, &scenario).map_err(CliError::Input)?;
-            }
+            crate::certs::check_all(dir, &scenario).map_err(CliError::Input)?;
         }
         Ok((scenario, run, out))
     }

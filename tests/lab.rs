@@ -339,12 +339,7 @@ fn lockstep_with_follower_3_cut_off_physically_equals_the_simulator() {
 fn lockstep_over_tls_with_follower_3_cut_off_physically_equals_the_simulator() {
     let certs = tempfile::tempdir().expect("tempdir");
     let dir = certs.path().join("certs");
-    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["certs", common::SCENARIO, "--out"])
-        .arg(&dir)
-        .output()
-        .expect("formation certs");
-    assert!(o.status.success(), "formation certs: {}", String::from_utf8_lossy(&o.stderr));
+    common::certs(&dir);
     let d = dir.display().to_string();
     lockstep_equals_sim("lab-ls-tls", &["faults+={node=3, from=4, to=7}"], &["--mode", "peer", "--tls", &d]);
 }

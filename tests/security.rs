@@ -26,11 +26,6 @@ fn certs(dir: &Path, extra: &[&str]) -> std::process::Output {
         .expect("formation certs")
 }
 
-fn certs_ok(dir: &Path) {
-    let o = certs(dir, &[]);
-    assert!(o.status.success(), "formation certs: {}", String::from_utf8_lossy(&o.stderr));
-}
-
 /// A TLS router child on `port`, up and listening.
 fn router(port: u16, dir: &Path) -> Group {
     let ep = format!("tcp/127.0.0.1:{port}");
@@ -48,7 +43,7 @@ fn router(port: u16, dir: &Path) -> Group {
 fn tls_router(port: u16) -> (tempfile::TempDir, PathBuf, Group) {
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
-    certs_ok(&dir);
+    common::certs(&dir);
     let g = router(port, &dir);
     (tmp, dir, g)
 }
@@ -102,7 +97,7 @@ fn certs_makes_an_authority_and_one_private_identity_per_node_and_never_replaces
     use std::os::unix::fs::PermissionsExt;
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
-    certs_ok(&dir);
+    common::certs(&dir);
     let names = ["router", "leader", "monitor", "agent-1", "agent-2", "agent-3", "agent-4"];
     for n in names {
         let id = formation::certs::identity(&dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
@@ -150,7 +145,7 @@ fn certs_makes_an_authority_and_one_private_identity_per_node_and_never_replaces
 fn tls_same_as_sim(mode: &str, port: u16, run: &str, forge: bool) {
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
-    certs_ok(&dir);
+    common::certs(&dir);
     let net = tmp.path().join("net");
     let d = dir.display().to_string();
     let p = port.to_string();
@@ -256,7 +251,7 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
     let port = 17680;
     let (tmp, dir, _router) = tls_router(port);
     let other = tmp.path().join("other");
-    certs_ok(&other);
+    common::certs(&other);
     // The receiver (the leader may receive every estimate) and a positive
     // control: agent 2 itself, whose messages must arrive.
     let leader = open_as(&dir, "leader", port).await;
@@ -405,7 +400,7 @@ fn agent2(dir: &Path) -> (Option<i32>, String) {
 fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
-    certs_ok(&dir);
+    common::certs(&dir);
     let expired = reissued(tmp.path(), &dir, "expired", &["--not-before", "2020-01-01", "--days", "30"]);
     let future = reissued(tmp.path(), &dir, "future", &["--not-before", "2099-01-01"]);
     let wrong_node = reissued(tmp.path(), &dir, "wrong-node", &[]);
@@ -413,7 +408,7 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
     let wrong_key = reissued(tmp.path(), &dir, "wrong-key", &[]);
     std::fs::copy(dir.join("agent-1.key"), wrong_key.join("agent-2.key")).expect("copy");
     let foreign = tmp.path().join("foreign");
-    certs_ok(&foreign);
+    common::certs(&foreign);
     let mixed = reissued(tmp.path(), &dir, "mixed", &[]);
     std::fs::copy(foreign.join("agent-2.pem"), mixed.join("agent-2.pem")).expect("copy");
     std::fs::copy(foreign.join("agent-2.key"), mixed.join("agent-2.key")).expect("copy");
@@ -465,7 +460,7 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
 async fn a_peer_refuses_a_valid_agent_speaking_for_another() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
-    certs_ok(&dir);
+    common::certs(&dir);
     let port = 17688;
     let peer = |name: &str, listen: Vec<String>, connect: Vec<String>| ZenohArgs {
         mode: Some(ZenohMode::Peer),

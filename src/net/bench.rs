@@ -99,9 +99,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     crate::cli::at_least_one("--round-trips", a.round_trips as u64)?;
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     if let Some(dir) = &a.tls {
-        for name in crate::certs::node_names(&scenario) {
-            crate::certs::identity_for(dir, &name, &scenario).map_err(Error::Input)?;
-        }
+        crate::certs::check_all(dir, &scenario).map_err(Error::Input)?;
     }
     let n = scenario.followers.len();
     let sim_s = formation_topology::Scenario::load(&a.scenario, &lockstep_sets(a.lockstep_duration))
@@ -110,8 +108,8 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     Simulation::new(&sim_s).run(&mut NoRecord, |_| {}).map_err(|e| Error::Run(e.to_string()))?;
     let sim_rate = sim_s.steps() as f64 / t.elapsed().as_secs_f64();
 
-    let mut tcp = measure(a, None, a.base_port)?;
-    let mut tls = a.tls.as_deref().map(|d| measure(a, Some(d), a.base_port + 50)).transpose()?;
+    let mut tcp = measure(a, &scenario, None, a.base_port)?;
+    let mut tls = a.tls.as_deref().map(|d| measure(a, &scenario, Some(d), a.base_port + 50)).transpose()?;
     match (&mut tls, a.tls.as_deref()) {
         (Some(t), Some(d)) => latencies(a, &mut [(&mut tcp, None), (t, Some(d))])?,
         _ => latencies(a, &mut [(&mut tcp, None)])?,
@@ -152,10 +150,14 @@ fn lockstep_sets(d: f64) -> Vec<String> {
 
 /// Every figure over one transport: plain TCP (`tls` None) or mutual TLS
 /// with the certificates in `tls`, on ports from `port`.
-fn measure(a: &BenchNetArgs, tls: Option<&std::path::Path>, port: u16) -> Result<Figures, Error> {
+fn measure(
+    a: &BenchNetArgs,
+    scenario: &formation_topology::Scenario,
+    tls: Option<&std::path::Path>,
+    port: u16,
+) -> Result<Figures, Error> {
     let kind = if tls.is_some() { "tls" } else { "tcp" };
     let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-{kind}", std::process::id()));
-    let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     eprintln!("bench-net ({kind}): lock-step runs …");
     // 1. Lock-step: two runs of different length; the difference is the stepping.
     let short = 2.0;

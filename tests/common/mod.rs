@@ -104,3 +104,9 @@ pub fn run_ok(cmd: &mut Command) -> std::process::Output {
     );
     out
 }
+
+/// `formation certs SCENARIO --out DIR`: an authority and every node's
+/// identity for `--tls DIR`.
+pub fn certs(dir: &Path) {
+    run_ok(Command::new(env!("CARGO_BIN_EXE_formation")).args(["certs", SCENARIO, "--out"]).arg(dir));
+}
