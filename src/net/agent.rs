@@ -12,6 +12,7 @@
 //! subscriber callbacks through a shared [`Inbox`]; start-up and shut-down
 //! are async.
 
+use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
@@ -435,8 +436,8 @@ fn rejoin_step(start: &Start, scenario: &Scenario) -> Result<u64, Error> {
 }
 
 /// Lock-step: where a restarted process resumes. Its neighbours, waiting
-/// for its message of the step they are at, repeat their last two messages
-/// every 100 ms; a process that hears them well past step 0 is a restart
+/// for its message of the step they are at, repeat their last [`REPEATED`]
+/// messages every 100 ms; a process that hears them well past step 0 is a restart
 /// and resumes one step before the least advanced of them (it adopts from
 /// their messages of that step and publishes the message they wait for).
 /// 0 for a run that is only starting.
@@ -459,6 +460,16 @@ async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize) -> Result<u64,
     let k0 = heard.iter().flatten().min().copied().unwrap_or(1).saturating_sub(1);
     Ok(k0)
 }
+
+/// Lock-step: a wait this long for one step's inputs is reported once on
+/// stderr (the stall timeout ends it).
+pub(crate) const STALL_WARNING: Duration = Duration::from_secs(5);
+
+/// Lock-step: how many of its last messages a waiting follower repeats.
+/// Neighbours are at most one step apart, so a restarted neighbour, which
+/// resumes one step before the least advanced of them, may need a message
+/// two steps behind the most advanced one's newest.
+const REPEATED: usize = inbox::LOCKSTEP_AHEAD as usize + 1;
 
 /// A process that hears a start older than this is a restart.
 const LATE: Duration = Duration::from_millis(200);
@@ -499,13 +510,14 @@ fn control_loop(
     };
     let mut sent = 0u64;
     let mut republished = 0u64;
-    // The messages for the previous and the current step (republished while waiting).
-    let mut previous: Option<Vec<u8>> = None;
-    // A restart publishes nothing until it has adopted an estimate.
-    let mut current = wire::encode(&msg(c.first_step, body.initial_message()));
+    // The last REPEATED messages published, oldest first (republished while
+    // waiting). A restart publishes nothing until it has adopted an estimate.
+    let mut recent: VecDeque<Vec<u8>> = VecDeque::with_capacity(REPEATED + 1);
     if c.first_step == 0 {
-        put(estimate_pub, &current)?;
+        let first = wire::encode(&msg(0, body.initial_message()));
+        put(estimate_pub, &first)?;
         sent += 1;
+        recent.push_back(first);
     }
 
     let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s));
@@ -532,6 +544,7 @@ fn control_loop(
             if c.lockstep {
                 let waited = Instant::now();
                 let mut said = Instant::now();
+                let mut warned = false;
                 while !inbox.has_all(k) {
                     // Woken by every message that arrives (others' repeats
                     // included): repeat on a clock of our own, not only
@@ -556,10 +569,23 @@ fn control_loop(
                             c.stall_timeout.as_secs_f64()
                         ));
                     }
+                    if !warned && waited.elapsed() > STALL_WARNING {
+                        warned = true;
+                        let missing = inbox.missing(k);
+                        let names: Vec<&str> = missing.iter().map(|&s| c.source_names[s].as_str()).collect();
+                        crate::net::node::say(&format!(
+                            "follower {}: waiting {:.0} s for step {k} from {} (stall timeout {:.0} s); repeating its \
+                             last messages meanwhile",
+                            c.id,
+                            waited.elapsed().as_secs_f64(),
+                            names.join(" and "),
+                            c.stall_timeout.as_secs_f64()
+                        ));
+                    }
                     if said.elapsed() >= Duration::from_millis(100) {
                         // Safety net for messages lost on the way: say it again.
                         drop(inbox);
-                        for bytes in previous.iter().chain(std::iter::once(&current)) {
+                        for bytes in &recent {
                             put(estimate_pub, bytes)?;
                             sent += 1;
                             republished += 1;
@@ -617,7 +643,10 @@ fn control_loop(
             let bytes = wire::encode(&msg(k + 1, next));
             put(estimate_pub, &bytes)?;
             sent += 1;
-            previous = Some(std::mem::replace(&mut current, bytes));
+            if recent.len() == REPEATED {
+                recent.pop_front();
+            }
+            recent.push_back(bytes);
         }
         if batch.len() >= c.batch || last || diverged.is_some() {
             let mut counters: Counters = shared.inbox.lock().unwrap_or_else(|p| p.into_inner()).counters;
@@ -660,7 +689,7 @@ fn control_loop(
                 break;
             }
             if said.elapsed() >= Duration::from_millis(200) {
-                for bytes in previous.iter().chain(std::iter::once(&current)) {
+                for bytes in &recent {
                     put(estimate_pub, bytes)?;
                 }
                 said = Instant::now();

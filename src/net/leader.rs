@@ -21,6 +21,7 @@ use crate::net::barrier::{self, Start};
 use crate::net::codec;
 use crate::net::counters::Counters;
 use crate::net::courier::Courier;
+use crate::net::inbox;
 use crate::net::keys::{self, Keys, MONITOR};
 use crate::net::node::{estimate_congestion, NodeArgs};
 use crate::net::telemetry::{self, Telemetry};
@@ -212,7 +213,7 @@ fn leader_loop(
             counters.sent += 1;
             if lockstep {
                 recent.push_back((k + 1, bytes));
-                if recent.len() > WINDOW as usize + 1 {
+                if recent.len() > KEPT {
                     recent.pop_front();
                 }
             }
@@ -249,7 +250,7 @@ fn leader_loop(
                 let slowest =
                     progress.reached.lock().unwrap_or_else(|e| e.into_inner()).iter().map(|r| r.unwrap_or(0)).min();
                 for (step, bytes) in &recent {
-                    if *step >= slowest.unwrap_or(0) {
+                    if *step >= from_step(slowest.unwrap_or(0)) {
                         put(estimate_pub, bytes.clone())?;
                     }
                 }
@@ -259,6 +260,18 @@ fn leader_loop(
         }
     }
     Ok(())
+}
+
+/// Lock-step: the leader's messages kept for repeating, newest last.
+const KEPT: usize = WINDOW as usize + 1 + inbox::LOCKSTEP_AHEAD as usize;
+
+/// Lock-step: the first step the leader repeats while the slowest hearing
+/// follower has published `slowest`. A killed follower may have delivered
+/// its last messages to the leader and not yet to its neighbours; restarted,
+/// it resumes one step before the least advanced of them, which can be
+/// LOCKSTEP_AHEAD steps before what the leader heard from it.
+fn from_step(slowest: u64) -> u64 {
+    slowest.saturating_sub(inbox::LOCKSTEP_AHEAD)
 }
 
 /// Lock-step: how long the leader keeps republishing after its last step.
@@ -274,29 +287,44 @@ fn wait_window(
 ) -> Result<(), String> {
     let Some(need) = k.checked_sub(WINDOW) else { return Ok(()) };
     let waited = Instant::now();
+    let mut said = Instant::now();
+    let mut warned = false;
     let mut reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
     loop {
         let slowest = reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(u64::MAX);
         if slowest >= need {
             return Ok(());
         }
-        let (g, timeout) =
+        let (g, _) =
             progress.moved.wait_timeout(reached, Duration::from_millis(200)).unwrap_or_else(|e| e.into_inner());
         reached = g;
-        if timeout.timed_out() {
-            if waited.elapsed() > Duration::from_secs(60) {
-                return Err(format!("followers stopped before step {need} (no progress for 60 s)"));
-            }
-            // Safety net: repeat what the slowest follower may have missed.
+        if waited.elapsed() > Duration::from_secs(60) {
+            return Err(format!("followers stopped before step {need} (no progress for 60 s)"));
+        }
+        // Safety net: repeat what the slowest follower may have missed, on a
+        // clock of our own: a follower that keeps publishing without
+        // advancing (a restart waiting for these very messages) wakes this
+        // wait at every message.
+        if said.elapsed() >= Duration::from_millis(200) {
             let slowest = reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(0);
+            if !warned && waited.elapsed() > crate::net::agent::STALL_WARNING {
+                warned = true;
+                crate::net::node::say(&format!(
+                    "leader: waiting {:.0} s at step {k} for the followers that hear it (slowest at step {slowest}, \
+                     {WINDOW} steps behind allowed); repeating steps {} on",
+                    waited.elapsed().as_secs_f64(),
+                    from_step(slowest)
+                ));
+            }
             drop(reached);
             for (step, bytes) in recent {
-                if *step >= slowest {
+                if *step >= from_step(slowest) {
                     put(estimate_pub, bytes.clone())?;
                     counters.sent += 1;
                     counters.republished += 1;
                 }
             }
+            said = Instant::now();
             reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
         }
     }

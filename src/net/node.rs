@@ -166,3 +166,13 @@ pub mod priority {
     pub const ACK: Priority = Priority::InteractiveHigh;
     pub const TELEMETRY: Priority = Priority::DataLow;
 }
+
+/// One line on stderr in a single write, so that the lines of processes
+/// sharing a terminal do not interleave mid-line.
+pub fn say(line: &str) {
+    use std::io::Write;
+    let mut l = String::with_capacity(line.len() + 1);
+    l.push_str(line);
+    l.push('\n');
+    let _ = std::io::stderr().lock().write_all(l.as_bytes());
+}
