@@ -114,6 +114,8 @@ pub const MISMATCH_GRACE: Duration = Duration::from_secs(5);
 /// How long a node waits at the barrier before giving up.
 pub const START_TIMEOUT: Duration = Duration::from_secs(120);
 const TICK: Duration = Duration::from_millis(50);
+/// A ready carries the scenario's key digests once in this many.
+const DIGESTS_EVERY: u64 = 20;
 
 #[derive(Default)]
 struct Heard {
@@ -162,8 +164,12 @@ impl Heard {
         } else {
             self.ignored += 1;
             self.ready_foreign.insert(name.to_string());
-            let keys = differing_keys(&self.mine, &r.keys);
-            self.differ.entry(name.to_string()).or_insert((keys, Instant::now()));
+            // Most readies carry no digests: the keys that differ are known
+            // from the first that does.
+            let e = self.differ.entry(name.to_string()).or_insert_with(|| (Vec::new(), Instant::now()));
+            if e.0.is_empty() && !r.keys.is_empty() {
+                e.0 = differing_keys(&self.mine, &r.keys);
+            }
         }
     }
 }
@@ -176,23 +182,47 @@ fn lock(h: &Mutex<Heard>) -> std::sync::MutexGuard<'_, Heard> {
     h.lock().unwrap_or_else(|p| p.into_inner())
 }
 
+/// Whose hellos and readies a node listens to: everybody's (one wildcard
+/// subscriber), or only the named nodes' (one subscriber each, so that the
+/// router forwards a node's barrier traffic only to those who need it: with
+/// N nodes, N·degree messages a tick instead of N²).
+#[derive(Clone, Copy)]
+enum Whom<'a> {
+    All,
+    Only(&'a [String]),
+}
+
+impl Whom<'_> {
+    fn keys(self, all: String, one: impl Fn(&str) -> String) -> Vec<String> {
+        match self {
+            Whom::All => vec![all],
+            Whom::Only(names) => names.iter().map(|n| one(n)).collect(),
+        }
+    }
+}
+
+/// A node needing more nodes than this listens to everybody's barrier traffic.
+const FEW: usize = 32;
+
 async fn listen(
     session: &zenoh::Session,
     keys: &Keys,
     heard: &Arc<Mutex<Heard>>,
-    ready_too: bool,
+    from: Whom<'_>,
 ) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, Error> {
     let mut subs = Vec::new();
-    let h = heard.clone();
-    subs.push(
-        session
-            .declare_subscriber(keys.hello("*"))
-            .callback(move |s| {
-                lock(&h).hello.insert(keys::last_chunk(s.key_expr().as_str()).to_string());
-            })
-            .await
-            .map_err(|e| zerr("declaring the hello subscriber", e))?,
-    );
+    for key in from.keys(keys.hello("*"), |n| keys.hello(n)) {
+        let h = heard.clone();
+        subs.push(
+            session
+                .declare_subscriber(key)
+                .callback(move |s| {
+                    lock(&h).hello.insert(keys::last_chunk(s.key_expr().as_str()).to_string());
+                })
+                .await
+                .map_err(|e| zerr("declaring the hello subscriber", e))?,
+        );
+    }
     let h = heard.clone();
     subs.push(
         session
@@ -218,11 +248,11 @@ async fn listen(
             .await
             .map_err(|e| zerr("declaring the abort subscriber", e))?,
     );
-    if ready_too {
+    for key in from.keys(keys.ready_all(), |n| keys.ready(n)) {
         let h = heard.clone();
         subs.push(
             session
-                .declare_subscriber(keys.ready_all())
+                .declare_subscriber(key)
                 .callback(move |s| {
                     if let Some(r) = codec::decode::<Ready>(&s.payload().to_bytes()) {
                         lock(&h).on_ready(keys::last_chunk(s.key_expr().as_str()), r);
@@ -254,9 +284,14 @@ pub async fn wait_for_start(
     let mut h0 = Heard::new(fingerprint, needs);
     h0.mine = key_digests(scenario);
     let heard = Arc::new(Mutex::new(h0));
-    let _subs = listen(session, keys, &heard, true).await?;
+    let from = if needs.len() <= FEW { Whom::Only(needs) } else { Whom::All };
+    let _subs = listen(session, keys, &heard, from).await?;
     let began = Instant::now();
-    let ready = codec::encode(&Ready { fingerprint, keys: key_digests(scenario) });
+    // The key digests (a few KB for a large scenario) go with every
+    // DIGESTS_EVERY-th ready only; the fingerprint with every one.
+    let ready_full = codec::encode(&Ready { fingerprint, keys: key_digests(scenario) });
+    let ready_short = codec::encode(&Ready { fingerprint, keys: Vec::new() });
+    let mut readies = 0u64;
     let mut warned = false;
     loop {
         let (start, waiting, ignored, foreign_since, mismatched) = {
@@ -308,6 +343,8 @@ pub async fn wait_for_start(
         }
         session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
         if waiting.is_empty() {
+            let ready = if readies % DIGESTS_EVERY == 0 { &ready_full } else { &ready_short };
+            readies += 1;
             session.put(keys.ready(me), ready.clone()).await.map_err(|e| zerr("saying ready", e))?;
         }
         if began.elapsed() > START_TIMEOUT {
@@ -351,7 +388,7 @@ pub async fn lead_start(
     let mut h0 = Heard::new(fingerprint, expect_ready);
     h0.mine = key_digests(scenario);
     let heard = Arc::new(Mutex::new(h0));
-    let subs = listen(session, keys, &heard, true).await?;
+    let subs = listen(session, keys, &heard, Whom::All).await?;
     let began = Instant::now();
     let me = keys::LEADER_NODE;
     let mut warned: Vec<String> = Vec::new();
