@@ -395,6 +395,9 @@ async fn launch(
         if let Some(l) = listen {
             c.arg("--listen").arg(ep(l));
         }
+        // The links below are every pair that talks (agent–neighbour,
+        // agent–leader, node–monitor): no full mesh by gossip.
+        c.arg("--no-gossip");
         for &q in connect {
             c.arg("--connect").arg(ep(q));
         }

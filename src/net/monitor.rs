@@ -285,6 +285,10 @@ pub struct Recorder {
     leader_base: u64,
     nodes: BTreeMap<u32, NodeStats>,
     malformed: u64,
+    /// Wall clock: the monitor's start to the leader's start, and the start
+    /// to the end of the record (network.json's `wall`).
+    startup_s: Option<f64>,
+    run_s: Option<f64>,
 }
 
 impl Recorder {
@@ -319,6 +323,8 @@ impl Recorder {
             leader_base: 0,
             nodes,
             malformed: 0,
+            startup_s: None,
+            run_s: None,
         })
     }
 
@@ -589,6 +595,13 @@ impl Recorder {
             "recorded_steps": self.recorded_steps(),
             "lost_steps": lost,
             "malformed_telemetry": self.malformed,
+            // Start-up (every node ready, from the monitor's start) and the
+            // run itself, wall clock.
+            "wall": {
+                "startup_s": self.startup_s,
+                "run_s": self.run_s,
+                "steps_per_s": self.run_s.filter(|&r| r > 0.0).map(|r| self.recorded_steps() as f64 / r),
+            },
             "nodes": nodes,
         });
         serde_json::to_string_pretty(&v).unwrap_or_default() + "\n"
@@ -596,6 +609,12 @@ impl Recorder {
 
     /// Writes `network.json` and `summary.json` (metrics of what was
     /// received) and moves the folder into place.
+    /// The wall-clock figures of network.json's `wall`.
+    pub fn set_wall(&mut self, startup_s: Option<f64>, run_s: Option<f64>) {
+        self.startup_s = startup_s;
+        self.run_s = run_s;
+    }
+
     pub fn finish(self, ending: Ending) -> std::io::Result<(Summary, PathBuf)> {
         self.writer.write_file("network.json", &self.network_json(ending))?;
         let metrics = self.followers.iter().map(|f| (f.id, f.metrics.finish())).collect();
@@ -612,6 +631,7 @@ const ACK_PERIOD: Duration = Duration::from_millis(100);
 /// Runs the monitor to the end of the run (or Ctrl-C / SIGTERM / idle timeout).
 /// Returns how the run ended (`Idle` is an error).
 pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
+    let began = Instant::now();
     let (scenario, keys) = args.node.load(crate::certs::MONITOR)?;
     if !args.idle_timeout.is_finite() || args.idle_timeout <= 0.0 {
         return Err(Error::Input("--idle-timeout must be positive".into()));
@@ -627,7 +647,7 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
             return Err(e);
         }
     };
-    let result = monitor(&session, &scenario, &keys, recorder, args).await;
+    let result = monitor(&session, &scenario, &keys, recorder, args, began).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -638,6 +658,7 @@ async fn monitor(
     keys: &Keys,
     mut recorder: Recorder,
     args: &MonitorArgs,
+    began: Instant,
 ) -> Result<Ending, Error> {
     let (tx, mut rx) = mpsc::unbounded_channel::<(Option<u32>, Vec<u8>)>();
     let _sub = session
@@ -669,6 +690,8 @@ async fn monitor(
     let barrier = barrier::wait_for_start(session, keys, MONITOR, &needs, scenario);
     tokio::pin!(barrier);
     let mut started = false;
+    let mut started_at: Option<Instant> = None;
+    let mut startup_s: Option<f64> = None;
 
     let idle = Duration::from_secs_f64(args.idle_timeout);
     let tty = std::io::stderr().is_terminal();
@@ -686,6 +709,15 @@ async fn monitor(
                 }
                 started = true;
                 last_heard = Instant::now();
+                started_at = Some(last_heard);
+                let startup = began.elapsed().as_secs_f64();
+                startup_s = Some(startup);
+                if live {
+                    crate::net::node::say(&format!(
+                        "started: all {} nodes ready {startup:.1} s after the monitor's start",
+                        needs.len() + 1
+                    ));
+                }
             }
             m = rx.recv() => {
                 let Some((id, bytes)) = m else { break Ending::Idle };
@@ -713,6 +745,7 @@ async fn monitor(
             }
         }
     };
+    let run_s = started_at.map(|t| t.elapsed().as_secs_f64());
     if matches!(ending, Ending::Interrupted | Ending::Terminated) {
         // Keep what already arrived (stop listening first, so this ends).
         drop(_sub);
@@ -733,6 +766,7 @@ async fn monitor(
     }
     let recorded = recorder.recorded_steps();
     let unfinished = recorder.unfinished();
+    recorder.set_wall(startup_s, run_s);
     let (summary, dir) = recorder.finish(ending).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
     match ending {
         Ending::Complete => {

@@ -75,6 +75,13 @@ pub struct ZenohArgs {
     /// and receive only what its role in the topology needs.
     #[arg(long = "tls", value_name = "DIR")]
     pub tls: Option<PathBuf>,
+    /// Peer mode: link only to the --connect endpoints and to whoever dials
+    /// this node. By default zenoh's gossip makes every pair of peers dial
+    /// each other: N(N−1)/2 links, which 100 nodes on one host do not
+    /// survive. Off, a node hears only the peers it is linked to (peers do
+    /// not relay), so the links must cover every pair that talks.
+    #[arg(long = "no-gossip")]
+    pub no_gossip: bool,
     /// The node's name in its certificate (`router`, `leader`, `monitor`,
     /// `agent-<id>`): set by the node, not on the command line.
     #[arg(skip)]
@@ -138,6 +145,9 @@ impl ZenohArgs {
         // Multicast scouting: off, always.
         set(&mut config, "scouting/multicast/enabled", &Value::Bool(false))?;
         set_if_unset(&mut config, "scouting/delay", Value::from(0))?;
+        if self.no_gossip {
+            set(&mut config, "scouting/gossip/enabled", &Value::Bool(false))?;
+        }
 
         // A dead link is noticed within about a second (zenoh's default
         // lease is 10 s): keep-alives every 250 ms, lease 1 s.

@@ -1,0 +1,63 @@
+//! 100 agents as processes on one host (issue 12): a generated ring of 100
+//! followers through `formation launch` in client mode (router port 17646,
+//! 127.0.0.1 only), lock-step, equals the simulator byte for byte.
+
+mod common;
+
+use std::process::Command;
+
+use common::Group;
+
+const AGENTS: usize = 100;
+
+#[test]
+fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scenario = dir.path().join("ring100.toml");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["generate", "--followers", &AGENTS.to_string(), "--graph", "ring", "--chords", "10", "--out"])
+        .arg(&scenario)
+        .output()
+        .expect("formation generate");
+    assert!(o.status.success(), "formation generate: {}", String::from_utf8_lossy(&o.stderr));
+    let scenario = scenario.display().to_string();
+    let sets = ["duration=0.1"];
+
+    let net = dir.path().join("net");
+    let net_s = net.display().to_string();
+    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--mode", "client"];
+    args.extend(["--base-port", "17646", "--run", "scale100"]);
+    for s in sets {
+        args.extend(["--set", s]);
+    }
+    let mut g = Group::spawn(&args);
+    let status = g.wait(std::time::Duration::from_secs(240));
+    assert!(status.success(), "formation launch with {AGENTS} agents failed: {status}");
+    g.assert_group_empty();
+
+    let sim = dir.path().join("sim");
+    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+    c.args(["sim", &scenario, "-q", "--out"]).arg(&sim);
+    for s in sets {
+        c.args(["--set", s]);
+    }
+    let o = c.output().expect("formation sim");
+    assert!(o.status.success(), "formation sim: {}", String::from_utf8_lossy(&o.stderr));
+
+    let network = common::json(&net, "network.json");
+    assert_eq!(network["complete"], true, "record not complete: {}", network["ending"]);
+    let startup = network["wall"]["startup_s"].as_f64().expect("wall.startup_s");
+    assert!(startup < 60.0, "{AGENTS} agents took {startup:.1} s to start");
+    let mut differ = Vec::new();
+    for id in 1..=AGENTS {
+        let f = format!("follower_{id}.csv");
+        let (a, b) = (std::fs::read(net.join(&f)), std::fs::read(sim.join(&f)));
+        if a.as_ref().ok() != b.as_ref().ok() || a.is_err() {
+            differ.push(id);
+        }
+    }
+    assert!(differ.is_empty(), "followers {differ:?} differ from the simulator (of {AGENTS})");
+    let (a, b) = (std::fs::read(net.join("summary.json")), std::fs::read(sim.join("summary.json")));
+    assert!(a.is_ok() && a.ok() == b.ok(), "summary.json differs from the simulator's");
+    eprintln!("{AGENTS} agents: every node ready {startup:.1} s after the monitor's start");
+}
