@@ -41,7 +41,7 @@ pub fn measure(scenario: &Scenario, steps: u64, record: bool) -> Result<Measurem
     if record {
         let dir = std::env::temp_dir().join(format!("formation-bench-{}", std::process::id()));
         started = Instant::now();
-        crate::cli::run_to_folder(&s, &RecordOptions { dir: dir.clone(), every: 1, csv: true }, true)?;
+        crate::cli::run_to_folder(&s, &RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false }, true)?;
         let seconds = started.elapsed().as_secs_f64();
         let _ = std::fs::remove_dir_all(&dir);
         return Ok(Measurement {
@@ -130,7 +130,7 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
     let paper = scenario_for(4, &a.scenario)?;
     let dir = std::env::temp_dir().join(format!("formation-bench-paper-{}", std::process::id()));
     let started = Instant::now();
-    crate::cli::run_to_folder(&paper, &RecordOptions { dir: dir.clone(), every: 1, csv: true }, true)?;
+    crate::cli::run_to_folder(&paper, &RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false }, true)?;
     println!(
         "paper scenario end to end ({} follower-steps, CSV of every sample): {:.3} s",
         paper.followers.len() as u64 * (paper.steps() + 1),

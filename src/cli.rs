@@ -154,6 +154,12 @@ pub struct SimArgs {
     /// Write summary.json only, no CSV time series.
     #[arg(long)]
     pub no_csv: bool,
+    /// Also write run.mcap: the CSVs' rows as an MCAP recording that
+    /// Foxglove and the mcap tools open (poses as foxglove.PoseInFrame, every
+    /// column as numbers, network events). About 1.6 KB per follower row:
+    /// combine with --every for long runs.
+    #[arg(long)]
+    pub mcap: bool,
     /// Print nothing but errors.
     #[arg(long, short)]
     pub quiet: bool,
@@ -264,7 +270,7 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
         0 => 1,
         n => n,
     };
-    let opts = RecordOptions { dir, every: a.every, csv: !a.no_csv };
+    let opts = RecordOptions { dir, every: a.every, csv: !a.no_csv, mcap: a.mcap };
     let (summary, dir) = run_to_folder_on(&scenario, &opts, a.quiet, threads)?;
     if !a.quiet {
         print!("{}", summary.table());

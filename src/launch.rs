@@ -60,6 +60,12 @@ pub struct RunOptions {
     /// the certificates in DIR (made by `formation certs SCENARIO --out DIR`).
     #[arg(long, value_name = "DIR")]
     pub tls: Option<PathBuf>,
+    /// Also write run.mcap: the CSVs' rows as an MCAP recording that
+    /// Foxglove and the mcap tools open (poses as foxglove.PoseInFrame, every
+    /// column as numbers, network events). About 1.6 KB per follower row:
+    /// combine with --every for long runs.
+    #[arg(long)]
+    pub mcap: bool,
 }
 
 impl RunOptions {
@@ -419,6 +425,9 @@ async fn launch(
     c.arg("--out").arg(out).stdout(Stdio::null());
     if a.opts.quiet {
         c.arg("--quiet");
+    }
+    if a.opts.mcap {
+        c.arg("--mcap");
     }
     endpoints(&mut c, Some(mon_port), &[]);
     spawn(children, "monitor", c)?;

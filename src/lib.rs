@@ -7,6 +7,7 @@ pub mod cli;
 pub mod error;
 pub mod lab;
 pub mod launch;
+pub mod mcap_file;
 pub mod net;
 pub mod outage;
 pub mod paper;

@@ -238,7 +238,8 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     let results: Vec<Result<SeedRecord, CliError>> = jobs
         .par_iter()
         .map(|&(c, s)| {
-            let record = (s == 0).then(|| RecordOptions { dir: a.out.join(&runs[c].0), every: a.every, csv: true });
+            let record =
+                (s == 0).then(|| RecordOptions { dir: a.out.join(&runs[c].0), every: a.every, csv: true, mcap: false });
             let r = run_seed(&runs[c].1, seeds[s], record.as_ref());
             bar.inc(1);
             r

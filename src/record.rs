@@ -492,6 +492,8 @@ pub struct RecordOptions {
     pub every: u64,
     /// Write CSVs at all.
     pub csv: bool,
+    /// Also write run.mcap from the CSVs ([`crate::mcap_file`]).
+    pub mcap: bool,
 }
 
 /// Writes a run folder. Rows are buffered per follower and appended to the
@@ -503,6 +505,7 @@ pub struct RunWriter {
     dir: PathBuf,
     every: u64,
     csv: bool,
+    mcap: bool,
     ids: Vec<u32>,
     buffers: Vec<Vec<u8>>,
     leader_buffer: Vec<u8>,
@@ -529,6 +532,7 @@ impl RunWriter {
             dir,
             every: opts.every.max(1),
             csv: opts.csv,
+            mcap: opts.mcap,
             ids: ids.to_vec(),
             buffers: vec![FOLLOWER_HEADER.as_bytes().to_vec(); ids.len()],
             leader_buffer: LEADER_HEADER.as_bytes().to_vec(),
@@ -624,6 +628,9 @@ impl RunWriter {
     pub fn finish(mut self, summary: &Summary) -> std::io::Result<PathBuf> {
         self.flush_all()?;
         self.write_file("summary.json", &summary.to_json())?;
+        if self.csv && self.mcap {
+            crate::mcap_file::write(&self.dir, &self.ids)?;
+        }
         refuse_foreign_folder(&self.final_dir)?;
         if self.final_dir.exists() {
             fs::remove_dir_all(&self.final_dir).map_err(at_path(&self.final_dir, "cannot replace the old run"))?;

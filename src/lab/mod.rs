@@ -327,6 +327,9 @@ impl Ctx<'_> {
         }
         let mut c = self.node("monitor", "monitor");
         c.arg("--out").arg(self.out).stdout(Stdio::null());
+        if self.a.opts.mcap {
+            c.arg("--mcap");
+        }
         if self.a.opts.quiet {
             c.arg("--quiet");
         }

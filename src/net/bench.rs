@@ -66,6 +66,7 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
             time_scale: None,
             quiet: true,
             tls: None,
+            mcap: false,
         },
         mode: LaunchMode::Peer,
         base_port: Some(port),

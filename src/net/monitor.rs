@@ -38,6 +38,12 @@ pub struct MonitorArgs {
     /// Write every N-th sample to the CSVs (metrics always use every sample).
     #[arg(long, default_value_t = 1, value_name = "N")]
     pub every: u64,
+    /// Also write run.mcap: the CSVs' rows as an MCAP recording that
+    /// Foxglove and the mcap tools open (poses as foxglove.PoseInFrame, every
+    /// column as numbers, network events). About 1.6 KB per follower row:
+    /// combine with --every for long runs.
+    #[arg(long)]
+    pub mcap: bool,
     /// Give up when no telemetry arrives for this long (s).
     #[arg(long, default_value_t = 60.0, value_name = "SECONDS")]
     pub idle_timeout: f64,
@@ -637,7 +643,7 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
         return Err(Error::Input("--idle-timeout must be positive".into()));
     }
     let dir = args.out.clone().unwrap_or_else(|| PathBuf::from("runs").join(&keys.run));
-    let opts = RecordOptions { dir, every: args.every.max(1), csv: true };
+    let opts = RecordOptions { dir, every: args.every.max(1), csv: true, mcap: args.mcap };
     let recorder = Recorder::new(&scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
     let session = match args.node.open(crate::certs::MONITOR).await {
         Ok(s) => s,
@@ -863,7 +869,7 @@ mod tests {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
         let scenario = Scenario::load(&path, &["duration=0.01".to_string()]).expect("scenario");
         let dir = tempfile::tempdir().expect("tempdir");
-        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true };
+        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false };
         let r = Recorder::new(&scenario, &opts).expect("recorder");
         (dir, scenario, r)
     }
