@@ -354,7 +354,7 @@ fn lockstep_with_the_router_killed_equals_the_simulator() {
 
 #[test]
 #[ignore = "flaky as of 2026-11-22: failed in 3 of 6 runs before the leader's repeat fix; since, 5 of 5 passed \
-            on a quiet machine and 1 of 3 under CPU load (2 busy loops on 2 cores; the other 2 stalled: formation \
+            on a quiet machine and 6 of 8 under CPU load (2 busy loops on 2 cores; the other 2 stalled: formation \
             lab exit 1). A lock-step wait over 5 s now names what each node waits for on stderr; issue 9"]
 fn lockstep_with_30_percent_loss_on_follower_2_equals_the_simulator() {
     lockstep_equals_sim("lab-ls-loss", &["faults+={node=2, from=3, to=13, loss=0.3}"], &[]);
