@@ -46,34 +46,22 @@ fn columns_schema(title: &str, columns: &[&str]) -> String {
     json!({"title": title, "type": "object", "properties": props}).to_string()
 }
 
-/// A CSV file's header and its rows of numbers.
-type Table = (Vec<String>, Vec<Vec<f64>>);
+/// The column names of a header [`crate::record`] writes.
+fn names(header: &'static str) -> Vec<&'static str> {
+    header.trim_end().split(',').collect()
+}
 
-/// A CSV file's table, or None when it is absent.
-fn read_csv(path: &Path) -> std::io::Result<Option<Table>> {
-    let text = match std::fs::read_to_string(path) {
-        Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(err(format_args!("reading {}: {e}", path.display()))),
-    };
-    let mut lines = text.lines();
-    let header: Vec<String> = lines.next().unwrap_or("").split(',').map(str::to_string).collect();
-    let mut rows = Vec::new();
-    for (n, line) in lines.enumerate() {
-        let row: Result<Vec<f64>, _> = line.split(',').map(str::parse::<f64>).collect();
-        let row = row.map_err(|e| err(format_args!("{} line {}: {e}", path.display(), n + 2)))?;
-        if row.len() != header.len() {
-            return Err(err(format_args!(
-                "{} line {}: {} fields, header has {}",
-                path.display(),
-                n + 2,
-                row.len(),
-                header.len()
-            )));
-        }
-        rows.push(row);
+/// A run-folder CSV's columns `names`, or None when the file is absent.
+fn read(path: &Path, names: &[&str]) -> std::io::Result<Option<Vec<Vec<f64>>>> {
+    if !path.exists() {
+        return Ok(None);
     }
-    Ok(Some((header, rows)))
+    crate::report::plots::read_columns(path, names).map(Some).map_err(err)
+}
+
+/// The index of a column the record's header has.
+fn column(names: &[&str], name: &str) -> std::io::Result<usize> {
+    names.iter().position(|n| *n == name).ok_or_else(|| err(format_args!("no column {name}")))
 }
 
 /// Run time t (s) as ns, and as Foxglove's {sec, nsec}.
@@ -91,8 +79,9 @@ fn pose_in_frame(stamp: &Value, x: f64, y: f64, theta: f64) -> Value {
     })
 }
 
-fn row_object(header: &[String], row: &[f64]) -> Value {
-    Value::Object(header.iter().zip(row).map(|(h, v)| (h.clone(), json!(v))).collect())
+/// Row `r` of `columns` as one JSON object, by column name.
+fn row_object(names: &[&str], columns: &[Vec<f64>], r: usize) -> Value {
+    Value::Object(names.iter().zip(columns).map(|(n, c)| (n.to_string(), json!(c[r]))).collect())
 }
 
 struct Out<W: Write + std::io::Seek> {
@@ -127,36 +116,34 @@ pub fn write(dir: &Path, ids: &[u32]) -> std::io::Result<()> {
         .map_err(err)?;
     let mut out = Out { w, sequence: BTreeMap::new() };
 
-    if let Some((header, rows)) = read_csv(&dir.join("leader.csv"))? {
-        let cols: Vec<&str> = header.iter().map(String::as_str).collect();
+    let names = self::names(crate::record::LEADER_HEADER);
+    if let Some(cols) = read(&dir.join("leader.csv"), &names)? {
+        let schema = columns_schema("formation.LeaderState", &names);
         let pose = out.channel("/leader/pose", "foxglove.PoseInFrame", POSE_IN_FRAME)?;
-        let state =
-            out.channel("/leader/state", "formation.LeaderState", &columns_schema("formation.LeaderState", &cols))?;
-        let at = |name: &str| header.iter().position(|h| h == name);
-        let (t, x, y, th) = (at("t"), at("x"), at("y"), at("theta"));
-        for row in &rows {
-            let get = |i: Option<usize>| i.map_or(f64::NAN, |i| row[i]);
-            let (ns, st) = stamp(get(t));
-            out.put(pose, ns, &pose_in_frame(&st, get(x), get(y), get(th)))?;
-            out.put(state, ns, &row_object(&header, row))?;
+        let state = out.channel("/leader/state", "formation.LeaderState", &schema)?;
+        let c = |n: &str| column(&names, n).map(|i| &cols[i]);
+        let (t, x, y, th) = (c("t")?, c("x")?, c("y")?, c("theta")?);
+        for r in 0..t.len() {
+            let (ns, st) = stamp(t[r]);
+            out.put(pose, ns, &pose_in_frame(&st, x[r], y[r], th[r]))?;
+            out.put(state, ns, &row_object(&names, &cols, r))?;
         }
     }
+    let names = self::names(crate::record::FOLLOWER_HEADER);
     for id in ids {
-        let Some((header, rows)) = read_csv(&dir.join(format!("follower_{id}.csv")))? else { continue };
-        let cols: Vec<&str> = header.iter().map(String::as_str).collect();
+        let Some(cols) = read(&dir.join(format!("follower_{id}.csv")), &names)? else { continue };
+        let schema = columns_schema("formation.FollowerState", &names);
         let pose = out.channel(&format!("/follower_{id}/pose"), "foxglove.PoseInFrame", POSE_IN_FRAME)?;
         let estimate = out.channel(&format!("/follower_{id}/estimate"), "foxglove.PoseInFrame", POSE_IN_FRAME)?;
-        let schema = columns_schema("formation.FollowerState", &cols);
         let state = out.channel(&format!("/follower_{id}/state"), "formation.FollowerState", &schema)?;
-        let at = |name: &str| header.iter().position(|h| h == name);
-        let idx = ["t", "x", "y", "theta", "x_ir", "y_ir", "theta_ir"].map(at);
-        for row in &rows {
-            let get = |i: Option<usize>| i.map_or(f64::NAN, |i| row[i]);
-            let [t, x, y, th, xe, ye, the] = idx.map(get);
-            let (ns, st) = stamp(t);
-            out.put(pose, ns, &pose_in_frame(&st, x, y, th))?;
-            out.put(estimate, ns, &pose_in_frame(&st, xe, ye, the))?;
-            out.put(state, ns, &row_object(&header, row))?;
+        let c = |n: &str| column(&names, n).map(|i| &cols[i]);
+        let (t, x, y, th) = (c("t")?, c("x")?, c("y")?, c("theta")?);
+        let (xe, ye, the) = (c("x_ir")?, c("y_ir")?, c("theta_ir")?);
+        for r in 0..t.len() {
+            let (ns, st) = stamp(t[r]);
+            out.put(pose, ns, &pose_in_frame(&st, x[r], y[r], th[r]))?;
+            out.put(estimate, ns, &pose_in_frame(&st, xe[r], ye[r], the[r]))?;
+            out.put(state, ns, &row_object(&names, &cols, r))?;
         }
     }
     if let Ok(text) = std::fs::read_to_string(dir.join("network.json")) {

@@ -512,8 +512,8 @@ pub struct RunWriter {
     flush_at: usize,
 }
 
-const FOLLOWER_HEADER: &str = "t,x,y,theta,v,w,v_hat,w_hat,x_ir,y_ir,theta_ir,v_ir,w_ir,v_c,w_c,tau_l,tau_r,formation_error,heading_error,estimator_error,estimator_v_error,estimator_w_error\n";
-const LEADER_HEADER: &str = "t,x,y,theta,v,w\n";
+pub(crate) const FOLLOWER_HEADER: &str = "t,x,y,theta,v,w,v_hat,w_hat,x_ir,y_ir,theta_ir,v_ir,w_ir,v_c,w_c,tau_l,tau_r,formation_error,heading_error,estimator_error,estimator_v_error,estimator_w_error\n";
+pub(crate) const LEADER_HEADER: &str = "t,x,y,theta,v,w\n";
 
 impl RunWriter {
     pub fn create(opts: &RecordOptions, ids: &[u32]) -> std::io::Result<Self> {
