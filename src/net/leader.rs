@@ -7,6 +7,7 @@
 //! ahead of the slowest follower that hears it (it watches their estimate
 //! keys), so its messages never pile up without bound.
 
+use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
@@ -184,7 +185,7 @@ fn leader_loop(
     let mut leader = s.leader();
     let mut counters = Counters::default();
     // Lock-step: the last WINDOW messages, republished if followers stall.
-    let mut recent: std::collections::VecDeque<(u64, Vec<u8>)> = Default::default();
+    let mut recent: VecDeque<(u64, Vec<u8>)> = Default::default();
     let mut state = leader.state(0.0);
     let first = msg(0, state);
     put(estimate_pub, first.clone())?;
@@ -247,13 +248,8 @@ fn leader_loop(
                 break;
             }
             if said.elapsed() >= Duration::from_millis(200) {
-                let slowest =
-                    progress.reached.lock().unwrap_or_else(|e| e.into_inner()).iter().map(|r| r.unwrap_or(0)).min();
-                for (step, bytes) in &recent {
-                    if *step >= from_step(slowest.unwrap_or(0)) {
-                        put(estimate_pub, bytes.clone())?;
-                    }
-                }
+                let slowest = slowest_step(&progress.reached.lock().unwrap_or_else(|e| e.into_inner()));
+                repeat(estimate_pub, &recent, slowest)?;
                 said = Instant::now();
             }
             std::thread::sleep(Duration::from_millis(10));
@@ -274,6 +270,22 @@ fn from_step(slowest: u64) -> u64 {
     slowest.saturating_sub(inbox::LOCKSTEP_AHEAD)
 }
 
+/// The newest step the slowest hearing follower has published (0 for one
+/// not heard yet).
+fn slowest_step(reached: &[Option<u64>]) -> u64 {
+    reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(0)
+}
+
+/// Repeats the kept messages from [`from_step`]`(slowest)` on; how many.
+fn repeat(estimate_pub: &Publisher<'_>, recent: &VecDeque<(u64, Vec<u8>)>, slowest: u64) -> Result<u64, String> {
+    let mut n = 0;
+    for (_, bytes) in recent.iter().filter(|(step, _)| *step >= from_step(slowest)) {
+        put(estimate_pub, bytes.clone())?;
+        n += 1;
+    }
+    Ok(n)
+}
+
 /// Lock-step: how long the leader keeps republishing after its last step.
 const LINGER: Duration = Duration::from_secs(2);
 
@@ -282,7 +294,7 @@ fn wait_window(
     k: u64,
     progress: &Progress,
     estimate_pub: &Publisher<'_>,
-    recent: &std::collections::VecDeque<(u64, Vec<u8>)>,
+    recent: &VecDeque<(u64, Vec<u8>)>,
     counters: &mut Counters,
 ) -> Result<(), String> {
     let Some(need) = k.checked_sub(WINDOW) else { return Ok(()) };
@@ -306,7 +318,7 @@ fn wait_window(
         // advancing (a restart waiting for these very messages) wakes this
         // wait at every message.
         if said.elapsed() >= Duration::from_millis(200) {
-            let slowest = reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(0);
+            let slowest = slowest_step(&reached);
             if !warned && waited.elapsed() > crate::net::agent::STALL_WARNING {
                 warned = true;
                 crate::net::node::say(&format!(
@@ -317,13 +329,9 @@ fn wait_window(
                 ));
             }
             drop(reached);
-            for (step, bytes) in recent {
-                if *step >= from_step(slowest) {
-                    put(estimate_pub, bytes.clone())?;
-                    counters.sent += 1;
-                    counters.republished += 1;
-                }
-            }
+            let n = repeat(estimate_pub, recent, slowest)?;
+            counters.sent += n;
+            counters.republished += n;
             said = Instant::now();
             reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
         }
