@@ -158,7 +158,7 @@ pub struct SimArgs {
     /// Foxglove and the mcap tools open (poses as foxglove.PoseInFrame, every
     /// column as numbers, network events). About 1.6 KB per follower row:
     /// combine with --every for long runs.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "no_csv")]
     pub mcap: bool,
     /// Print nothing but errors.
     #[arg(long, short)]

@@ -66,12 +66,15 @@ pub struct RunOptions {
     /// combine with --every for long runs.
     #[arg(long)]
     pub mcap: bool,
+    #[command(flatten)]
+    pub web: crate::net::monitor::WebArgs,
 }
 
 impl RunOptions {
     /// The scenario, the run name and the run folder, checked (bad input: exit 2).
     pub fn resolve(&self) -> Result<(Scenario, String, PathBuf), CliError> {
         let scenario = self.scenario.load()?;
+        crate::net::node::networked(&scenario).map_err(CliError::Input)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
         session::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
         if let Some(x) = self.time_scale {
@@ -429,6 +432,7 @@ async fn launch(
     if a.opts.mcap {
         c.arg("--mcap");
     }
+    c.args(a.opts.web.to_args());
     endpoints(&mut c, Some(mon_port), &[]);
     spawn(children, "monitor", c)?;
 

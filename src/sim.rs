@@ -154,6 +154,9 @@ pub struct Simulation<'s> {
     /// Every follower's message for the current step, by index.
     messages: Vec<Message>,
     next_messages: Vec<Message>,
+    /// With `network.delay_steps` d > 0: the messages and the leader's
+    /// state of the last d + 1 steps, step j at j mod (d + 1).
+    past: Vec<(Vec<Message>, LeaderState)>,
     /// Per follower, `Some` where the fault table touches its incoming links.
     receptions: Vec<Option<Reception>>,
     /// The samples of the current step, by index (the parallel step's output).
@@ -161,6 +164,14 @@ pub struct Simulation<'s> {
     /// Step the followers of a step on rayon's threads (see [`Simulation::set_parallel`]).
     parallel: bool,
     k: u64,
+}
+
+/// Slots of [`Simulation::past`]: d + 1 with a delay of d steps, else none.
+fn delay_slots(s: &Scenario) -> usize {
+    match s.network.delay_steps {
+        0 => 0,
+        d => d as usize + 1,
+    }
 }
 
 /// Follower `i`'s step k: its inputs (through its reception when the fault
@@ -174,6 +185,7 @@ fn step_follower(
     messages: &[Message],
     leader: &LeaderState,
     k: u64,
+    sent_k: u64,
     last: bool,
 ) -> (FollowerSample, Message) {
     let (t, dt) = (k as f64 * s.dt_s, s.dt_s);
@@ -187,17 +199,18 @@ fn step_follower(
             // SPEC §14: deliver what the table lets through, then
             // hear each source's newest message within the timeout.
             let ns = s.graph.neighbours(i);
+            // (`sent_k`: the step the inputs were sent at, k − delay.)
             for (slot, &j) in ns.iter().enumerate() {
-                rx.offer(slot, k, &messages[j]);
+                rx.offer(slot, sent_k, &messages[j]);
             }
             let heard = if s.graph.hears_leader(i) {
-                rx.offer(ns.len(), k, &Message::fresh(*leader));
-                rx.hearing.heard(ns.len(), k).map(|m| &m.state)
+                rx.offer(ns.len(), sent_k, &Message::fresh(*leader));
+                rx.hearing.heard(ns.len(), sent_k).map(|m| &m.state)
             } else {
                 None
             };
             let hearing = &rx.hearing;
-            let neighbours = (0..ns.len()).filter_map(|slot| hearing.heard(slot, k));
+            let neighbours = (0..ns.len()).filter_map(|slot| hearing.heard(slot, sent_k));
             f.step(t, dt, heard, neighbours, last)
         }
     }
@@ -213,6 +226,7 @@ impl<'s> Simulation<'s> {
             scenario,
             leader: scenario.leader(),
             next_messages: messages.clone(),
+            past: vec![(messages.clone(), LeaderState::default()); delay_slots(scenario)],
             messages,
             followers,
             receptions,
@@ -271,10 +285,23 @@ impl<'s> Simulation<'s> {
         let last = k == s.steps();
         let leader = self.leader.state(t);
         observer.leader(k, &leader)?;
+        // The inputs: step k's messages and leader state, or with a delay
+        // of d steps those of step k − d (step 0's before step d).
+        let (inputs, heard_leader, sent_k) = if self.past.is_empty() {
+            (&self.messages, &leader, k)
+        } else {
+            let slots = self.past.len() as u64;
+            let now = &mut self.past[(k % slots) as usize];
+            now.0.copy_from_slice(&self.messages);
+            now.1 = leader;
+            let sent_k = k.saturating_sub(slots - 1);
+            let then = &self.past[(sent_k % slots) as usize];
+            (&then.0, &then.1, sent_k)
+        };
         if self.parallel {
             use rayon::prelude::*;
-            let messages = &self.messages;
-            let leader_ref = &leader;
+            let messages = inputs;
+            let leader_ref = heard_leader;
             self.followers
                 .par_iter_mut()
                 .zip(self.receptions.par_iter_mut())
@@ -282,11 +309,12 @@ impl<'s> Simulation<'s> {
                 .zip(self.samples.par_iter_mut())
                 .enumerate()
                 .for_each(|(i, (((f, rx), next), sample))| {
-                    (*sample, *next) = step_follower(s, i, f, rx, messages, leader_ref, k, last);
+                    (*sample, *next) = step_follower(s, i, f, rx, messages, leader_ref, k, sent_k, last);
                 });
         } else {
             for (i, f) in self.followers.iter_mut().enumerate() {
-                let (sample, next) = step_follower(s, i, f, &mut self.receptions[i], &self.messages, &leader, k, last);
+                let (sample, next) =
+                    step_follower(s, i, f, &mut self.receptions[i], inputs, heard_leader, k, sent_k, last);
                 self.samples[i] = sample;
                 self.next_messages[i] = next;
             }

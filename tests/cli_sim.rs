@@ -393,3 +393,19 @@ fn noise_free_runs_are_smooth() {
     let rmse = s["followers"]["1"]["rmse_v"].as_f64().unwrap();
     assert!(rmse < 1e-3, "noise-free linear RMSE {rmse}");
 }
+
+#[test]
+fn a_communication_delay_beyond_the_limit_or_in_lockstep_is_refused() {
+    assert_rejected(&paper_text(), &["--set", "network.delay_steps=1001"], &["network.delay_steps", "more than 1000"]);
+    assert_rejected(&paper_text(), &["--set", "network.delay_steps=-1"], &["network.delay_steps"]);
+    // A networked lock-step run uses each step's own messages: refused
+    // before any process starts (the simulator runs it).
+    let dir = tempfile::tempdir().unwrap();
+    let scenario = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
+    let out = dir.path().join("out");
+    let o = formation(&["launch", scenario, "-q", "--set", "network.delay_steps=1", "--out", out.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("network.delay_steps = 1") && stderr.contains("lock-step"), "{stderr}");
+    assert!(!out.exists(), "a run folder was made for a refused launch");
+}

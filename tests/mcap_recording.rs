@@ -87,6 +87,24 @@ fn a_run_folder_holds_an_mcap_recording_with_the_csvs_numbers() {
     let (_, leader) = csv(&out.join("leader.csv"));
     assert_eq!(by_topic["/leader/pose"].len(), leader.len(), "leader poses vs leader.csv rows");
 
+    // `formation report` takes the folder as any other.
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["report", "-q"])
+        .arg(&out)
+        .arg("--out")
+        .arg(dir.path().join("report"))
+        .output()
+        .expect("formation report");
+    assert!(o.status.success(), "formation report on a folder with run.mcap: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(dir.path().join("report").join("report.md").exists());
+
+    // run.mcap is written from the CSVs: --no-csv with --mcap is refused.
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["sim", SCENARIO, "-q", "--no-csv", "--mcap"])
+        .output()
+        .expect("formation sim");
+    assert_eq!(o.status.code(), Some(2), "--no-csv --mcap: {}", String::from_utf8_lossy(&o.stderr));
+
     // Without --mcap: no recording (it costs about as much as the CSVs).
     let plain = dir.path().join("plain");
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))

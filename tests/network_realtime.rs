@@ -64,3 +64,31 @@ fn realtime_run_ends_within_spec_bounds() {
         assert!((est - est_ref).abs() < 0.1, "follower {id}: estimator error {est} vs simulator {est_ref} {context}");
     }
 }
+
+/// SPEC §14's communication delay: with `network.delay_steps = d` a step
+/// uses only messages that had d periods to arrive, so the real-time run
+/// is the one `formation sim` predicts with the same delay (with d = 0,
+/// each step mixes step-k and step-(k−1) messages as they happen to
+/// arrive, which nothing models: 26 % more torque variation measured). Here
+/// d = 2 at time scale 2 (10 ms of wall-clock slack), because the test
+/// build on a loaded 2-core machine is often a period late; on a quiet
+/// machine d = 1 does as well (see issue 12's note).
+#[test]
+fn a_realtime_run_with_a_communication_delay_is_the_one_the_simulator_predicts() {
+    let sets = ["timing=realtime", "dt=0.01", "duration=20", "network.silence_timeout=0.2", "network.delay_steps=2"];
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("net");
+    let mut g = Group::launch(&out, &sets, &["--time-scale", "2", "--base-port", "17720", "--run", "rt-delay"]);
+    let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
+    sim.args(["sim", SCENARIO, "-q", "--out"]).arg(tmp.path().join("sim"));
+    for s in sets {
+        sim.args(["--set", s]);
+    }
+    assert!(sim.status().expect("formation sim").success());
+    let status = g.wait(common::LIMIT);
+    assert!(status.success(), "formation launch failed: {status}");
+    let (got, reference, network) =
+        (json(&out, "summary.json"), json(&tmp.path().join("sim"), "summary.json"), json(&out, "network.json"));
+    let bad = common::unlike_the_simulator(&got, &reference, &network, 0.10);
+    assert!(bad.is_empty(), "the real-time run is not the simulator's (10 %):\n{}", bad.join("\n"));
+}

@@ -61,3 +61,44 @@ fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
     assert!(a.is_ok() && a.ok() == b.ok(), "summary.json differs from the simulator's");
     eprintln!("{AGENTS} agents: every node ready {startup:.1} s after the monitor's start");
 }
+
+/// Issue 12's real-time goal: 50 agents at 100 Hz behave like the
+/// simulator with the same one-step communication delay — formation
+/// metrics and torque variation within 10 %, no source silent after the
+/// first second. Ignored: it needs a quiet machine (52 processes at 100 Hz
+/// on two cores; run it with `--ignored` and nothing else running).
+#[test]
+#[ignore = "needs a quiet machine: 52 processes at 100 Hz (measured: see issue 12's note)"]
+fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scenario = dir.path().join("ring50.toml");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["generate", "--followers", "50", "--graph", "ring", "--chords", "10", "--seed", "1", "--out"])
+        .arg(&scenario)
+        .output()
+        .expect("formation generate");
+    assert!(o.status.success(), "formation generate: {}", String::from_utf8_lossy(&o.stderr));
+    let scenario = scenario.display().to_string();
+    let sets = ["timing=realtime", "dt=0.01", "duration=10", "network.delay_steps=1"];
+    let net = dir.path().join("net");
+    let net_s = net.display().to_string();
+    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", "18100", "--run", "rt50"];
+    for s in sets {
+        args.extend(["--set", s]);
+    }
+    let mut g = Group::spawn(&args);
+    let status = g.wait(std::time::Duration::from_secs(120));
+    assert!(status.success(), "formation launch with 50 agents failed: {status}");
+    g.assert_group_empty();
+    let sim = dir.path().join("sim");
+    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+    c.args(["sim", &scenario, "-q", "--out"]).arg(&sim);
+    for s in sets {
+        c.args(["--set", s]);
+    }
+    common::run_ok(&mut c);
+    let (got, want, network) =
+        (common::json(&net, "summary.json"), common::json(&sim, "summary.json"), common::json(&net, "network.json"));
+    let bad = common::unlike_the_simulator(&got, &want, &network, 0.10);
+    assert!(bad.is_empty(), "50 agents in real time are not the simulator's (10 %):\n{}", bad.join("\n"));
+}

@@ -1,6 +1,7 @@
 //! The simulator on several threads equals the single-thread run byte for
 //! byte: 1,000 generated followers, every CSV and the summary, with a fault
-//! table so that the lossy-link path runs too.
+//! table so that the lossy-link path runs too, without and with a
+//! communication delay (`network.delay_steps`).
 
 use std::path::Path;
 use std::process::Command;
@@ -17,8 +18,8 @@ fn a_thousand_followers_on_two_threads_equal_one_thread_byte_for_byte() {
     let file = tmp.path().join("ring1000.toml");
     let f = file.display().to_string();
     formation(&["generate", "--followers", "1000", "--graph", "ring", "--chords", "200", "--seed", "3", "--out", &f]);
-    let run = |threads: &str| {
-        let out = tmp.path().join(format!("t{threads}"));
+    let run = |threads: &str, delay: &str| {
+        let out = tmp.path().join(format!("t{threads}-d{delay}"));
         formation(&[
             "sim",
             &f,
@@ -31,13 +32,20 @@ fn a_thousand_followers_on_two_threads_equal_one_thread_byte_for_byte() {
             "faults+={node=3, from=0.1, to=0.2}",
             "--set",
             "faults+={link=[1, 2], from=0, to=0.3, loss=0.3}",
+            "--set",
+            &format!("network.delay_steps={delay}"),
             "--out",
             &out.display().to_string(),
         ]);
         out
     };
-    let (one, two) = (run("1"), run("2"));
-    let mut files: Vec<String> = std::fs::read_dir(&one)
+    for delay in ["0", "2"] {
+        same(&run("1", delay), &run("2", delay), delay);
+    }
+}
+
+fn same(one: &Path, two: &Path, delay: &str) {
+    let mut files: Vec<String> = std::fs::read_dir(one)
         .expect("run folder")
         .flatten()
         .map(|e| e.file_name().to_string_lossy().into_owned())
@@ -45,10 +53,10 @@ fn a_thousand_followers_on_two_threads_equal_one_thread_byte_for_byte() {
     files.sort();
     assert_eq!(files.len(), 1002, "1,000 follower CSVs, the leader's and summary.json: {}", files.len());
     let read = |dir: &Path, f: &str| std::fs::read(dir.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
-    let differ: Vec<&String> = files.iter().filter(|f| read(&one, f) != read(&two, f)).collect();
+    let differ: Vec<&String> = files.iter().filter(|f| read(one, f) != read(two, f)).collect();
     assert!(
         differ.is_empty(),
-        "{} of {} files differ between 1 and 2 threads, e.g. {:?}",
+        "delay {delay} steps: {} of {} files differ between 1 and 2 threads, e.g. {:?}",
         differ.len(),
         files.len(),
         differ.first()

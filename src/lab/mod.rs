@@ -175,6 +175,13 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     };
     match privilege {
         netns::Privilege::Root => {}
+        netns::Privilege::Unshare if a.opts.web.web.is_some() => {
+            return Err(Error::Input(
+                "--web needs root here: without it the lab runs in a network namespace of its own, \
+                 which a browser on this machine cannot reach"
+                    .into(),
+            ));
+        }
         netns::Privilege::Unshare => {
             // Not root: the same command inside a user and network namespace of its own.
             let status = netns::reexec()
@@ -230,6 +237,15 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         println!("wrote {}", out.display());
     }
     Ok(())
+}
+
+/// A file removed when dropped.
+struct RemoveOnDrop(std::path::PathBuf);
+
+impl Drop for RemoveOnDrop {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
 }
 
 struct Ctx<'a> {
@@ -327,6 +343,20 @@ impl Ctx<'_> {
         }
         let mut c = self.node("monitor", "monitor");
         c.arg("--out").arg(self.out).stdout(Stdio::null());
+        // The live page: the monitor serves it on a Unix socket (a path,
+        // which no network namespace hides) and the lab forwards a port of
+        // the machine's own loopback to it.
+        let _socket = match self.a.opts.web.web {
+            Some(addr) => {
+                let socket =
+                    RemoveOnDrop(std::env::temp_dir().join(format!("formation-lab-{}-web.sock", std::process::id())));
+                let bound = crate::web::forward(addr, socket.0.clone()).await?;
+                c.arg("--web-unix").arg(&socket.0).arg("--web-linger").arg(self.a.opts.web.web_linger.to_string());
+                eprintln!("live page: http://{bound}/");
+                Some(socket)
+            }
+            None => None,
+        };
         if self.a.opts.mcap {
             c.arg("--mcap");
         }

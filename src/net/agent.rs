@@ -299,6 +299,7 @@ pub async fn run_follower(
         has_leader: hears_leader,
         neighbours: neighbour_ids.len(),
         silence_steps: scenario.silence_steps(),
+        delay_steps: scenario.network.delay_steps,
         rejoin_after_steps: scenario.control.rejoin.after_steps,
         first_step,
         latest,
@@ -393,6 +394,8 @@ struct LoopCtx {
     has_leader: bool,
     neighbours: usize,
     silence_steps: u64,
+    /// Real time: step k uses the newest messages stamped at or before k − d.
+    delay_steps: u64,
     /// `network.rejoin_after` in steps (SPEC §14).
     rejoin_after_steps: u64,
     /// The first step this process computes (> 0: a restart).
@@ -609,15 +612,17 @@ fn control_loop(
                     None
                 }
             } else {
-                // Latest values; a source silent too long is left out.
+                // Latest values as of step k − d (network.delay_steps); a
+                // source silent too long is left out.
                 inputs.clear();
+                let sent_k = k.saturating_sub(c.delay_steps);
                 for slot in 0..c.neighbours {
-                    let s = inbox.latest(slot, k, c.silence_steps);
+                    let s = inbox.latest(slot, sent_k, c.silence_steps);
                     heard.note(slot, k, s.is_some(), &c.source_ids, &mut events);
                     inputs.extend(s);
                 }
                 if c.has_leader {
-                    let s = inbox.latest(c.neighbours, k, c.silence_steps);
+                    let s = inbox.latest(c.neighbours, sent_k, c.silence_steps);
                     heard.note(c.neighbours, k, s.is_some(), &c.source_ids, &mut events);
                     s.map(|m| m.state)
                 } else {

@@ -67,6 +67,7 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
             quiet: true,
             tls: None,
             mcap: false,
+            web: Default::default(),
         },
         mode: LaunchMode::Peer,
         base_port: Some(port),

@@ -56,4 +56,9 @@ pub struct Counters {
     /// Messages removed by the scenario's fault table at this receiver (SPEC §14).
     #[serde(default)]
     pub fault_lost: u64,
+    /// (Real time) neighbour-steps that used a message older than step
+    /// k − d (`network.delay_steps`): the one of k − d had not arrived in
+    /// time. The simulator's model has none.
+    #[serde(default)]
+    pub older: u64,
 }

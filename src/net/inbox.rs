@@ -210,7 +210,10 @@ impl Inbox {
             h.pop_front();
         }
         match h.front() {
-            Some(&(s, state)) if s <= k && k - s <= max_age_steps => Some(state),
+            Some(&(s, state)) if s <= k && k - s <= max_age_steps => {
+                self.counters.older += u64::from(s < k);
+                Some(state)
+            }
             _ => {
                 self.counters.silent += 1;
                 None
@@ -274,7 +277,9 @@ mod tests {
         inbox.accept(0, &msg(1, 6));
         // At step 5 the message stamped 6 is in the future: use 3.
         assert_eq!(inbox.latest(0, 5, 10).map(|m| m.state.v), Some(3.0));
+        assert_eq!(inbox.counters.older, 1, "step 5 used step 3's message");
         assert_eq!(inbox.latest(0, 6, 10).map(|m| m.state.v), Some(6.0));
+        assert_eq!(inbox.counters.older, 1);
         assert_eq!(inbox.latest(0, 17, 10), None);
         assert_eq!(inbox.counters.silent, 2);
     }

@@ -23,7 +23,7 @@ use crate::net::codec;
 use crate::net::counters::Counters;
 use crate::net::keys::{self, Keys, MONITOR};
 use crate::net::node::NodeArgs;
-use crate::net::telemetry::{Ack, Delivery, NetEvent, Telemetry};
+use crate::net::telemetry::{Ack, Delivery, EventKind, NetEvent, Telemetry};
 use crate::net::timing::LoopStats;
 use crate::record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
 
@@ -50,6 +50,37 @@ pub struct MonitorArgs {
     /// No live line.
     #[arg(long, short)]
     pub quiet: bool,
+    #[command(flatten)]
+    pub web: WebArgs,
+    /// Serve the live page on this Unix socket instead (the lab forwards a
+    /// port of the machine's own namespace to it).
+    #[arg(long, value_name = "PATH", hide = true, conflicts_with = "web")]
+    pub web_unix: Option<PathBuf>,
+}
+
+/// The live page's options (the monitor's, and `launch`'s and the lab's).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct WebArgs {
+    /// Serve a live page of the run at this address (open http://ADDR/ in a
+    /// browser): the plane, errors against time, the network and its events.
+    /// `--web` alone: 127.0.0.1:8765. Port 0: any free port (the line
+    /// `live page: http://…` says which).
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8765")]
+    pub web: Option<std::net::SocketAddr>,
+    /// With --web: keep the page served this long after the run ends, so
+    /// that open pages get the end of the run.
+    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    pub web_linger: f64,
+}
+
+impl WebArgs {
+    /// The same options on another node's command line.
+    pub fn to_args(&self) -> Vec<String> {
+        match self.web {
+            Some(addr) => vec!["--web".into(), addr.to_string(), "--web-linger".into(), self.web_linger.to_string()],
+            None => Vec::new(),
+        }
+    }
 }
 
 /// How a monitored run ended.
@@ -63,6 +94,18 @@ pub enum Ending {
     Terminated,
     /// No telemetry for the idle timeout.
     Idle,
+}
+
+impl Ending {
+    /// As the live page says it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Ending::Complete => "complete",
+            Ending::Interrupted => "interrupted",
+            Ending::Terminated => "terminated",
+            Ending::Idle => "idle",
+        }
+    }
 }
 
 #[derive(Default)]
@@ -80,7 +123,15 @@ struct NodeStats {
     done: bool,
     /// What the network did to this node, as it noticed it.
     timeline: std::collections::BTreeSet<NetEvent>,
+    /// When its last checked batch arrived.
+    heard: Option<Instant>,
 }
+
+/// The live page names a node whose telemetry stopped this long ago (s).
+const SILENT_NODE_S: f64 = 2.0;
+
+/// Network events the live page lists.
+const RECENT_EVENTS: usize = 50;
 
 /// Events taken from one batch (a forged batch cannot fill the monitor's memory).
 const MAX_EVENTS_PER_BATCH: usize = 256;
@@ -98,6 +149,7 @@ impl NodeStats {
     ) {
         self.messages += 1;
         self.bytes += bytes as u64;
+        self.heard = Some(Instant::now());
         self.done |= done;
         let at = (delivery.incarnation, first_k);
         if self.newest.is_none_or(|n| at >= n) {
@@ -278,6 +330,8 @@ struct FollowerTrack {
     unpaired: u64,
     metrics: MetricsAccumulator,
     formation_error: f64,
+    /// The newest row and the leader state it was measured against (the live page).
+    latest: Option<(Row, LeaderState)>,
 }
 
 /// The monitor's bookkeeping, independent of zenoh (fed with telemetry payloads).
@@ -313,6 +367,7 @@ impl Recorder {
                 unpaired: 0,
                 metrics: MetricsAccumulator::for_scenario(scenario),
                 formation_error: f64::NAN,
+                latest: None,
             })
             .collect();
         let mut nodes = BTreeMap::new();
@@ -412,6 +467,7 @@ impl Recorder {
                 let row = Row::new(&sample, &l, f.offset, dt);
                 f.metrics.push(k, &row);
                 f.formation_error = row.formation_error;
+                f.latest = Some((row, l));
                 if self.writer.wants(k, k == steps) {
                     self.writer.follower_row(index, &row)?;
                 }
@@ -496,6 +552,124 @@ impl Recorder {
         line
     }
 
+    /// The live page's scene: what does not change during the run.
+    pub fn scene_json(s: &Scenario, run: &str) -> String {
+        let g = &s.graph;
+        let mut edges = Vec::new();
+        for i in 0..g.len() {
+            for &j in g.neighbours(i) {
+                if i < j {
+                    edges.push([g.id(i), g.id(j)]);
+                }
+            }
+        }
+        let leader_links: Vec<u32> = (0..g.len()).filter(|&i| g.hears_leader(i)).map(|i| g.id(i)).collect();
+        let mode = match s.timing {
+            formation_topology::Timing::Lockstep => "lockstep",
+            formation_topology::Timing::Realtime => "realtime",
+        };
+        json!({
+            "run": run,
+            "scenario": s.name,
+            "dt": s.dt_s,
+            "steps": s.steps(),
+            "duration": s.duration_s,
+            "mode": mode,
+            "followers": s.followers.iter().map(|f| json!({"id": f.id, "offset": f.offset})).collect::<Vec<_>>(),
+            "edges": edges,
+            "leader_links": leader_links,
+        })
+        .to_string()
+    }
+
+    /// One frame of the live page (see [`crate::web`]): every follower's
+    /// newest row, the nodes' counters and what the network did.
+    pub fn live_frame(&self, seq: u64, wall_s: f64, state: &str, viewers: usize) -> String {
+        let dt = self.scenario.dt_s;
+        let steps = self.scenario.steps();
+        let k = self.recorded_steps();
+        let t = k.saturating_sub(1) as f64 * dt;
+        let running = state == "running";
+        let now = Instant::now();
+        let finite = |x: f64| if x.is_finite() { json!(x) } else { serde_json::Value::Null };
+        // The leader as the least advanced follower saw it (the frame's t).
+        let leader = self
+            .followers
+            .iter()
+            .filter_map(|f| f.latest.as_ref())
+            .min_by(|a, b| a.0.t.total_cmp(&b.0.t))
+            .map(|(_, l)| json!([l.pose.x, l.pose.y, l.pose.theta]));
+        let followers: Vec<_> = self
+            .followers
+            .iter()
+            .map(|f| match &f.latest {
+                Some((r, _)) => json!({
+                    "id": f.id, "k": (r.t / dt).round() as u64, "t": r.t,
+                    "pose": [r.x, r.y, r.theta], "estimate": [r.x_ir, r.y_ir],
+                    "ef": finite(r.formation_error), "ee": finite(r.estimator_error),
+                }),
+                None => {
+                    json!({"id": f.id, "k": null, "t": null, "pose": null, "estimate": null, "ef": null, "ee": null})
+                }
+            })
+            .collect();
+        let name = |id: u32| if id == 0 { "leader".to_string() } else { format!("follower {id}") };
+        let mut gone = Vec::new();
+        let mut recent: Vec<(u64, u32, String)> = Vec::new();
+        let nodes: Vec<_> = self
+            .nodes
+            .iter()
+            .map(|(&id, n)| {
+                let heard_s = n.heard.map(|h| now.duration_since(h).as_secs_f64());
+                if running && !n.done && heard_s.is_none_or(|h| h > SILENT_NODE_S) {
+                    gone.push(match heard_s {
+                        Some(h) => format!("no telemetry from {} for {h:.1} s", name(id)),
+                        None => format!("no telemetry from {} yet", name(id)),
+                    });
+                }
+                // The sources this node counts as silent now: the newest event about each.
+                let mut silent = std::collections::BTreeSet::new();
+                for e in &n.timeline {
+                    match e.what {
+                        EventKind::Silent(s) => {
+                            silent.insert(s);
+                        }
+                        EventKind::Heard(s) => {
+                            silent.remove(&s);
+                        }
+                        _ => {}
+                    }
+                }
+                recent.extend(n.timeline.iter().rev().take(RECENT_EVENTS).map(|e| (e.k, id, e.what.describe())));
+                let c = &n.counters;
+                json!({
+                    "id": id, "name": name(id), "heard_s": heard_s, "done": n.done,
+                    "sent": c.sent, "received": c.received, "late": c.late, "rejected": c.rejected.invalid(),
+                    "silent": c.silent, "fault_lost": c.fault_lost, "silent_sources": silent,
+                })
+            })
+            .collect();
+        let events: usize = self.nodes.values().map(|n| n.timeline.len()).sum();
+        recent.sort();
+        let recent: Vec<_> = recent[recent.len().saturating_sub(RECENT_EVENTS)..]
+            .iter()
+            .map(|(k, id, what)| json!({"t": *k as f64 * dt, "node": name(*id), "what": what}))
+            .collect();
+        let message = match gone.len() {
+            0 => None,
+            1..=3 => Some(gone.join("; ")),
+            n => Some(format!("{}; and {} more nodes", gone[..3].join("; "), n - 3)),
+        };
+        json!({
+            "seq": seq, "wall": wall_s, "k": k, "t": t,
+            "progress": k as f64 / (steps + 1) as f64,
+            "state": state, "viewers": viewers,
+            "leader": leader, "followers": followers, "nodes": nodes,
+            "events": events, "recent_events": recent, "message": message,
+        })
+        .to_string()
+    }
+
     /// `network.json`: per-node message counts and loop timing.
     pub fn network_json(&self, ending: Ending) -> String {
         let nodes: serde_json::Map<String, serde_json::Value> = self
@@ -571,6 +745,7 @@ impl Recorder {
                         "received": c.received,
                         "late": c.late,
                         "silent": c.silent,
+                        "older": c.older,
                         "fault_lost": c.fault_lost,
                         "rejected": c.rejected,
                         "rejected_invalid": c.rejected.invalid(),
@@ -644,6 +819,25 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
     }
     let dir = args.out.clone().unwrap_or_else(|| PathBuf::from("runs").join(&keys.run));
     let opts = RecordOptions { dir, every: args.every.max(1), csv: true, mcap: args.mcap };
+    if !(args.web.web_linger.is_finite() && args.web.web_linger >= 0.0) {
+        return Err(Error::Input(format!("--web-linger must be 0 or more seconds, not {}", args.web.web_linger)));
+    }
+    let bind = match (args.web.web, &args.web_unix) {
+        (Some(addr), _) => Some(crate::web::Bind::Tcp(addr)),
+        (None, Some(path)) => Some(crate::web::Bind::Unix(path.clone())),
+        (None, None) => None,
+    };
+    let web = match bind {
+        Some(bind) => {
+            let live = crate::web::Live::new(Recorder::scene_json(&scenario, &keys.run));
+            let at = crate::web::serve(bind, live.clone()).await?;
+            if args.web_unix.is_none() {
+                crate::net::node::say(&format!("live page: {at}"));
+            }
+            Some(live)
+        }
+        None => None,
+    };
     let recorder = Recorder::new(&scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
     let session = match args.node.open(crate::certs::MONITOR).await {
         Ok(s) => s,
@@ -653,7 +847,7 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
             return Err(e);
         }
     };
-    let result = monitor(&session, &scenario, &keys, recorder, args, began).await;
+    let result = monitor(&session, &scenario, &keys, recorder, args, began, web.as_deref()).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -665,6 +859,7 @@ async fn monitor(
     mut recorder: Recorder,
     args: &MonitorArgs,
     began: Instant,
+    web: Option<&crate::web::Live>,
 ) -> Result<Ending, Error> {
     let (tx, mut rx) = mpsc::unbounded_channel::<(Option<u32>, Vec<u8>)>();
     let _sub = session
@@ -704,6 +899,15 @@ async fn monitor(
     let mut last_heard = Instant::now();
     let mut status = tokio::time::interval(if tty { Duration::from_millis(250) } else { Duration::from_secs(2) });
     let live = !args.quiet;
+    let mut frames = tokio::time::interval(crate::web::FRAME_PERIOD);
+    frames.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut seq = 0u64;
+    let mut publish = |recorder: &Recorder, state: &str| {
+        if let Some(w) = web {
+            seq += 1;
+            w.publish(recorder.live_frame(seq, began.elapsed().as_secs_f64(), state, w.viewers()));
+        }
+    };
     let ending = loop {
         tokio::select! {
             r = &mut barrier, if !started => {
@@ -736,6 +940,9 @@ async fn monitor(
             _ = ack_tick.tick(), if started => {
                 let _ = acks.put(codec::encode(&recorder.ack())).await;
             }
+            _ = frames.tick(), if web.is_some() => {
+                publish(&recorder, if started { "running" } else { "waiting" });
+            }
             _ = sigint.recv() => break Ending::Interrupted,
             _ = sigterm.recv() => break Ending::Terminated,
             _ = status.tick() => {
@@ -752,6 +959,7 @@ async fn monitor(
         }
     };
     let run_s = started_at.map(|t| t.elapsed().as_secs_f64());
+    publish(&recorder, ending.name());
     if matches!(ending, Ending::Interrupted | Ending::Terminated) {
         // Keep what already arrived (stop listening first, so this ends).
         drop(_sub);
@@ -774,7 +982,7 @@ async fn monitor(
     let unfinished = recorder.unfinished();
     recorder.set_wall(startup_s, run_s);
     let (summary, dir) = recorder.finish(ending).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
-    match ending {
+    let result = match ending {
         Ending::Complete => {
             if !args.quiet {
                 print!("{}", summary.table());
@@ -794,7 +1002,12 @@ async fn monitor(
             unfinished.join(", "),
             dir.display()
         ))),
+    };
+    if web.is_some_and(|w| w.viewers() > 0) && matches!(ending, Ending::Complete | Ending::Idle) {
+        // Open pages get the final frame before the server ends with the process.
+        tokio::time::sleep(Duration::from_secs_f64(args.web.web_linger)).await;
     }
+    result
 }
 
 #[cfg(test)]

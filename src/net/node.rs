@@ -21,6 +21,18 @@ use crate::error::Error;
 use crate::net::keys::Keys;
 use crate::net::session::{self, ZenohArgs};
 
+/// What a networked run refuses of a scenario that `formation sim` runs.
+pub fn networked(scenario: &Scenario) -> Result<(), String> {
+    let d = scenario.network.delay_steps;
+    if d > 0 && scenario.timing == formation_topology::Timing::Lockstep {
+        return Err(format!(
+            "network.delay_steps = {d} applies to formation sim and real-time runs; a lock-step run uses each \
+             step's own messages (set timing = \"realtime\", or network.delay_steps = 0)"
+        ));
+    }
+    Ok(())
+}
+
 /// Arguments every node takes.
 #[derive(clap::Args, Debug, Clone)]
 pub struct NodeArgs {
@@ -48,6 +60,7 @@ impl NodeArgs {
     /// and the folder's policy must be the one this scenario's topology gives.
     pub fn load(&self, identity: &str) -> Result<(Scenario, Keys), Error> {
         let scenario = Scenario::load(&self.scenario, &self.overrides).map_err(|e| Error::Input(e.to_string()))?;
+        networked(&scenario).map_err(Error::Input)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
         session::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
         let zenoh = self.zenoh_as(identity);

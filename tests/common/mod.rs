@@ -110,3 +110,43 @@ pub fn run_ok(cmd: &mut Command) -> std::process::Output {
 pub fn certs(dir: &Path) {
     run_ok(Command::new(env!("CARGO_BIN_EXE_formation")).args(["certs", SCENARIO, "--out"]).arg(dir));
 }
+
+/// Per follower, the metrics a real-time run must share with the simulator.
+const COMPARED: [&str; 4] = ["formation_rms_last10", "formation_final", "estimator_error_final", "torque_tv"];
+
+/// Where a real-time run's summary differs from the simulator's by more
+/// than `rel` (relative), with every figure, and any source counted silent
+/// after the first second.
+pub fn unlike_the_simulator(
+    got: &serde_json::Value,
+    sim: &serde_json::Value,
+    network: &serde_json::Value,
+    rel: f64,
+) -> Vec<String> {
+    let mut bad = Vec::new();
+    for (id, r) in sim["followers"].as_object().expect("followers") {
+        for m in COMPARED {
+            let (g, s) = (got["followers"][id][m].as_f64().unwrap_or(f64::NAN), r[m].as_f64().unwrap_or(f64::NAN));
+            if (g - s).abs() > rel * s.abs() || g.is_nan() || s.is_nan() {
+                bad.push(format!("follower {id} {m}: {g:.5} in real time, {s:.5} in formation sim"));
+            }
+        }
+    }
+    let nodes = network["nodes"].as_object().expect("nodes");
+    let older: u64 = nodes.values().map(|v| v["older"].as_u64().unwrap_or(0)).sum();
+    let p99 = nodes.values().map(|v| v["loop"]["lateness_p99_us"].as_f64().unwrap_or(0.0)).fold(0.0, f64::max);
+    if !bad.is_empty() {
+        bad.push(format!(
+            "(source-steps that used a message older than the delay allows: {older}; worst loop lateness p99 {p99:.0} µs)"
+        ));
+    }
+    for (node, v) in nodes {
+        for e in v["timeline"].as_array().into_iter().flatten() {
+            let (t, what) = (e["t"].as_f64().unwrap_or(0.0), e["event"].as_str().unwrap_or(""));
+            if t > 1.0 && what.ends_with("silent") {
+                bad.push(format!("node {node} at t = {t} s: {what}"));
+            }
+        }
+    }
+    bad
+}

@@ -240,6 +240,16 @@ pub struct NetworkFile {
     /// Seconds without any source before hearing one again is a rejoin.
     #[serde(default = "d::rejoin_after")]
     pub rejoin_after: f64,
+    /// Communication delay in steps (SPEC §14's addition): at step k a
+    /// follower uses its sources' messages of step k − d. 0: the paper's
+    /// model. A real-time run with 1 uses only messages that had a whole
+    /// period to arrive, and `formation sim` with 1 predicts it.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub delay_steps: u64,
+}
+
+fn is_zero(x: &u64) -> bool {
+    *x == 0
 }
 
 /// Fixed-length arrays read exactly. toml fills a `[T; N]` from the first N
@@ -363,7 +373,8 @@ default_impl!(NetworkFile {
     time_scale: d::time_scale(),
     telemetry_batch: d::telemetry_batch(),
     rejoin: d::rejoin(),
-    rejoin_after: d::rejoin_after()
+    rejoin_after: d::rejoin_after(),
+    delay_steps: 0
 });
 
 /// SPEC §10's values, the defaults of every key.

@@ -51,7 +51,12 @@ pub struct NetworkSettings {
     pub silence_timeout_s: f64,
     pub time_scale: f64,
     pub telemetry_batch: u32,
+    /// At step k a follower uses its sources' messages of step k − d.
+    pub delay_steps: u64,
 }
+
+/// Largest `network.delay_steps` accepted.
+pub const MAX_DELAY_STEPS: u64 = 1000;
 
 /// What a link fault covers (SPEC §14).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -623,6 +628,9 @@ fn validate(
     if n.telemetry_batch == 0 {
         return Err(c.fail("network.telemetry_batch", "must be at least 1"));
     }
+    if n.delay_steps > MAX_DELAY_STEPS {
+        return Err(c.fail("network.delay_steps", format!("{} is more than {MAX_DELAY_STEPS}", n.delay_steps)));
+    }
 
     Ok(Scenario {
         name,
@@ -667,6 +675,7 @@ fn validate(
             silence_timeout_s: n.silence_timeout,
             time_scale: n.time_scale,
             telemetry_batch: n.telemetry_batch,
+            delay_steps: n.delay_steps,
         },
         faults,
         source: file,
