@@ -418,6 +418,9 @@ async fn launch(
             if a.mode == LaunchMode::Peer { "peer" } else { "client" },
             if a.mode == LaunchMode::Client { ", router" } else { "" },
         );
+        if let Some(hint) = crate::net::node::realtime_hint(scenario) {
+            eprintln!("{hint}");
+        }
     }
     if a.mode == LaunchMode::Client {
         start_router(children, exe, p[0], &a.opts)?;

@@ -217,6 +217,9 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         for n in &notes {
             eprintln!("lab: {n}");
         }
+        if let Some(hint) = crate::net::node::realtime_hint(&scenario) {
+            eprintln!("lab: {hint}");
+        }
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)

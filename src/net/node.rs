@@ -33,6 +33,16 @@ pub fn networked(scenario: &Scenario) -> Result<(), String> {
     Ok(())
 }
 
+/// A real-time run without a communication delay: what it will not match.
+pub fn realtime_hint(scenario: &Scenario) -> Option<String> {
+    (scenario.timing == formation_topology::Timing::Realtime && scenario.network.delay_steps == 0).then(|| {
+        "note: real time with network.delay_steps = 0: each step uses whichever of its sources' step-k and \
+         step-(k−1) messages has arrived, which formation sim does not model; with network.delay_steps = 1 the run \
+         is the one `formation sim --set network.delay_steps=1` predicts"
+            .to_string()
+    })
+}
+
 /// Arguments every node takes.
 #[derive(clap::Args, Debug, Clone)]
 pub struct NodeArgs {
