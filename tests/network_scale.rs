@@ -82,7 +82,7 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let sets = ["timing=realtime", "dt=0.01", "duration=10", "network.delay_steps=1"];
     let net = dir.path().join("net");
     let net_s = net.display().to_string();
-    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", "18100", "--run", "rt50"];
+    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", "18200", "--run", "rt50"];
     for s in sets {
         args.extend(["--set", s]);
     }

@@ -583,8 +583,10 @@ impl Recorder {
     }
 
     /// One frame of the live page (see [`crate::web`]): every follower's
-    /// newest row, the nodes' counters and what the network did.
-    pub fn live_frame(&self, seq: u64, wall_s: f64, state: &str, viewers: usize) -> String {
+    /// newest row, the nodes' counters and what the network did; and the
+    /// same frame for the history, without the nodes and events (a late
+    /// viewer needs those only from the newest frame).
+    pub fn live_frame(&self, seq: u64, wall_s: f64, state: &str, viewers: usize) -> (String, String) {
         let dt = self.scenario.dt_s;
         let steps = self.scenario.steps();
         let k = self.recorded_steps();
@@ -660,14 +662,19 @@ impl Recorder {
             1..=3 => Some(gone.join("; ")),
             n => Some(format!("{}; and {} more nodes", gone[..3].join("; "), n - 3)),
         };
-        json!({
+        let mut frame = json!({
             "seq": seq, "wall": wall_s, "k": k, "t": t,
             "progress": k as f64 / (steps + 1) as f64,
             "state": state, "viewers": viewers,
             "leader": leader, "followers": followers, "nodes": nodes,
             "events": events, "recent_events": recent, "message": message,
-        })
-        .to_string()
+        });
+        let full = frame.to_string();
+        if let Some(f) = frame.as_object_mut() {
+            f.insert("nodes".into(), json!([]));
+            f.insert("recent_events".into(), json!([]));
+        }
+        (full, frame.to_string())
     }
 
     /// `network.json`: per-node message counts and loop timing.
@@ -905,7 +912,8 @@ async fn monitor(
     let mut publish = |recorder: &Recorder, state: &str| {
         if let Some(w) = web {
             seq += 1;
-            w.publish(recorder.live_frame(seq, began.elapsed().as_secs_f64(), state, w.viewers()));
+            let (frame, past) = recorder.live_frame(seq, began.elapsed().as_secs_f64(), state, w.viewers());
+            w.publish(frame, past);
         }
     };
     let ending = loop {

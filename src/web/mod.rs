@@ -91,11 +91,11 @@ impl Live {
         Arc::new(Self { scene, latest, history: Mutex::new(History::default()) })
     }
 
-    /// Publishes a frame (JSON) to every viewer and to the history.
-    pub fn publish(&self, frame: String) {
-        let frame: Arc<str> = Arc::from(frame);
-        self.history.lock().unwrap_or_else(|p| p.into_inner()).push(frame.clone());
-        self.latest.send_replace(frame);
+    /// Publishes a frame (JSON) to every viewer, and its lighter copy
+    /// (`past`: without what only the newest frame needs) to the history.
+    pub fn publish(&self, frame: String, past: String) {
+        self.history.lock().unwrap_or_else(|p| p.into_inner()).push(Arc::from(past));
+        self.latest.send_replace(Arc::from(frame));
     }
 
     /// Viewers connected to the event stream now.
