@@ -82,7 +82,7 @@ fn realtime_applies_the_table_at_the_receiver() {
     let dir = tempfile::tempdir().expect("tempdir");
     let net = dir.path().join("net");
     let sets = ["timing=realtime", "dt=0.01", "duration=8", "network.time_scale=2", "faults+={node=3, from=3, to=4}"];
-    let mut g = Group::launch(&net, &sets, &["--base-port", "17830", "--run", "fl-rt"]);
+    let mut g = Group::launch(&net, &sets, &["--base-port", "17830", "--run", "fl-rt", "--mcap"]);
     let status = g.wait(LIMIT);
     assert!(status.success(), "formation launch failed: {status}");
     let n = common::json(&net, "network.json");
@@ -100,4 +100,28 @@ fn realtime_applies_the_table_at_the_receiver() {
     let s = common::json(&net, "summary.json");
     let e3 = s["faults"][0]["followers"]["3"]["peak_estimator_error"].as_f64().expect("peak");
     assert!(e3 > 0.3, "follower 3 alone for 1 s stayed within {e3} m: the table was not applied");
+
+    // run.mcap (--mcap) carries network.json's timelines, one message per
+    // event, stamped with its run time.
+    let timeline: Vec<(u64, String)> = n["nodes"]
+        .as_object()
+        .expect("nodes")
+        .values()
+        .flat_map(|v| v["timeline"].as_array().cloned().unwrap_or_default())
+        .map(|e| ((e["t"].as_f64().expect("t") * 1e9).round() as u64, e["event"].as_str().unwrap_or("").to_string()))
+        .collect();
+    assert!(timeline.iter().any(|e| e.1.ends_with("silent")), "no silence in the timeline: {n}");
+    let bytes = std::fs::read(net.join("run.mcap")).expect("run.mcap");
+    let mut recorded: Vec<(u64, String)> = Vec::new();
+    for m in mcap::MessageStream::new(&bytes).expect("an MCAP file") {
+        let m = m.expect("a readable message");
+        if m.channel.topic == "/network/events" {
+            let v: serde_json::Value = serde_json::from_slice(&m.data).expect("JSON");
+            recorded.push((m.log_time, v["event"].as_str().unwrap_or("").to_string()));
+        }
+    }
+    let (mut a, mut b) = (timeline, recorded);
+    a.sort();
+    b.sort();
+    assert_eq!(b, a, "run.mcap's /network/events against network.json's timelines");
 }

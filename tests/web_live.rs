@@ -191,7 +191,9 @@ fn two_browsers_watch_a_lockstep_run_that_still_equals_the_simulator() {
     let Some((chromium, chromedriver)) = browser_or_skip(test) else { return };
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
-    let sets = ["duration=20"];
+    // Long enough (about 10 s of wall-clock time) for both browsers to
+    // start and one of them to close while the run goes on.
+    let sets = ["duration=30"];
     let page_port = 18020;
     let web = format!("127.0.0.1:{page_port}");
     let mut g =

@@ -150,3 +150,12 @@ pub fn unlike_the_simulator(
     }
     bad
 }
+
+/// The machine's CPU time so far as (stolen by the host, total), in clock
+/// ticks (`/proc/stat`): a real-time test names the share stolen during it.
+pub fn cpu_steal() -> (u64, u64) {
+    let stat = std::fs::read_to_string("/proc/stat").unwrap_or_default();
+    let f: Vec<u64> =
+        stat.lines().next().unwrap_or("").split_whitespace().skip(1).filter_map(|x| x.parse().ok()).collect();
+    (f.get(7).copied().unwrap_or(0), f.iter().take(8).sum())
+}
