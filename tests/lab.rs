@@ -150,8 +150,9 @@ fn recovered_at(e: &[(f64, f64)], from: f64) -> Option<f64> {
     None
 }
 
-/// The fault-free lab against the simulator: `timely` adds the checks that
-/// this machine does not yet pass every time (see the ignored test).
+/// The fault-free lab; `timely` also compares it with the simulator: no
+/// source silent after 100 ms, formation error and torque variation within
+/// 10 % (judged when the host was quiet during the run).
 fn fault_free(tag: &str, timely: bool) {
     let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
     if !lab_available() {
@@ -162,9 +163,29 @@ fn fault_free(tag: &str, timely: bool) {
     // predicts (without it, each step mixes step-k and step-(k−1) messages
     // as they happen to arrive: torque variation 12 % above the simulator's).
     let delay: &[&str] = if timely { &["network.delay_steps=5"] } else { &[] };
+    let before = common::cpu_steal();
     let r = lab(tag, delay, &[]);
+    let after = common::cpu_steal();
+    let steal = 100.0 * (after.0 - before.0) as f64 / (after.1 - before.1).max(1) as f64;
     every_step_recorded("fault-free", &r);
     let s = sim(delay);
+    // Source-steps that had to use a message older than the modelled delay:
+    // the run left the modelled system there (a sender late by more than
+    // 5 ms). The host's CPU steal makes them; the numbers say how many.
+    let (mut older, mut used) = (0.0, 0.0);
+    for id in IDS {
+        let node = &r.network["nodes"][id];
+        older += num(&node["older"]);
+        used += num(&node["received"]).max(1.0);
+    }
+    let older_share = older / used;
+    let context = format!(
+        "{older} of about {used} source-steps used a message older than the modelled delay ({:.2} %), \
+         the host stole {steal:.1} % of the CPU during the run",
+        100.0 * older_share
+    );
+    // What the run should show: judged on a quiet host, printed otherwise.
+    let mut wrong: Vec<String> = Vec::new();
     for id in IDS {
         let silent: Vec<&serde_json::Value> = r.network["nodes"][id]["timeline"]
             .as_array()
@@ -172,31 +193,43 @@ fn fault_free(tag: &str, timely: bool) {
             .iter()
             .filter(|e| e["event"].as_str().is_some_and(|w| w.ends_with("silent")) && num(&e["t"]) > 0.1)
             .collect();
-        if timely {
-            assert!(silent.is_empty(), "follower {id}: sources silent after the first 100 ms: {silent:?}");
+        if !silent.is_empty() {
+            wrong.push(format!("follower {id}: sources silent after the first 100 ms: {silent:?}"));
         }
         let (a, b) = (&r.summary["followers"][id], &s["followers"][id]);
-        let metrics: &[&str] = if timely { &["formation_rms_last10", "torque_tv"] } else { &[] };
-        for &m in metrics {
+        for m in ["formation_rms_last10", "torque_tv"] {
             let ratio = num(&a[m]) / num(&b[m]);
-            assert!(
-                (0.9..=1.1).contains(&ratio),
-                "follower {id}: {m} {} in the lab vs {} simulated ({ratio:.3})",
-                a[m],
-                b[m]
-            );
+            if !(0.9..=1.1).contains(&ratio) {
+                wrong.push(format!("follower {id}: {m} {} in the lab vs {} simulated ({ratio:.3})", a[m], b[m]));
+            }
         }
     }
+    if !timely || wrong.is_empty() {
+        return;
+    }
+    // A host that takes the CPU away for milliseconds at a time makes
+    // senders late by more than the modelled delay, whatever the network
+    // code does (measured: 4,500 older source-steps of 60,000 and torque
+    // variation 20–46 % above the simulator's while the host stole 14–47 %;
+    // at 31 % sources fell silent). There the test names what it saw and does
+    // not judge; on a quiet host a difference is the network code's.
+    let judged = steal <= QUIET_STEAL_PERCENT;
+    let verdict = format!("{}; {context}", wrong.join("; "));
+    assert!(!judged, "{verdict}");
+    eprintln!("fault-free lab: not judged (the host stole more than {QUIET_STEAL_PERCENT} % of the CPU): {verdict}");
 }
+
+/// The CPU share a host may steal during a real-time run that is judged
+/// against the simulator.
+const QUIET_STEAL_PERCENT: f64 = 3.0;
 
 #[test]
 fn fault_free_clients_through_a_router_record_every_step() {
     fault_free("lab-free", false);
 }
 
-/// (Ignored until network.delay_steps: the torque variation moved with the
-/// host's load. With a delay of 5 steps a release run was byte-identical to
-/// the simulator.)
+/// With a modelled delay of 5 steps a release run on a quiet host was
+/// byte-identical to the simulator; under CPU steal see [`fault_free`].
 #[test]
 fn fault_free_clients_through_a_router_match_the_simulator() {
     fault_free("lab-free-timely", true);
