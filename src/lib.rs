@@ -5,6 +5,7 @@ pub mod bench;
 pub mod certs;
 pub mod cli;
 pub mod error;
+pub mod foxglove_live;
 pub mod lab;
 pub mod launch;
 pub mod mcap_file;

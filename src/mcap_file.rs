@@ -29,25 +29,25 @@ fn err(e: impl std::fmt::Display) -> std::io::Error {
     std::io::Error::other(format!("{FILE}: {e}"))
 }
 
-const POSE_IN_FRAME: &str = r#"{"title":"foxglove.PoseInFrame","type":"object","properties":{
+pub(crate) const POSE_IN_FRAME: &str = r#"{"title":"foxglove.PoseInFrame","type":"object","properties":{
 "timestamp":{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}},
 "frame_id":{"type":"string"},
 "pose":{"type":"object","properties":{
 "position":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}},
 "orientation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"},"w":{"type":"number"}}}}}}}"#;
 
-const EVENT: &str = r#"{"title":"formation.NetworkEvent","type":"object","properties":{
+pub(crate) const EVENT: &str = r#"{"title":"formation.NetworkEvent","type":"object","properties":{
 "node":{"type":"string"},"t":{"type":"number"},"event":{"type":"string"}}}"#;
 
 /// A JSON schema of one object with a number per column.
-fn columns_schema(title: &str, columns: &[&str]) -> String {
+pub(crate) fn columns_schema(title: &str, columns: &[&str]) -> String {
     let props: serde_json::Map<String, Value> =
         columns.iter().map(|c| (c.to_string(), json!({"type": ["number", "null"]}))).collect();
     json!({"title": title, "type": "object", "properties": props}).to_string()
 }
 
 /// The column names of a header [`crate::record`] writes.
-fn names(header: &'static str) -> Vec<&'static str> {
+pub(crate) fn names(header: &'static str) -> Vec<&'static str> {
     header.trim_end().split(',').collect()
 }
 
@@ -65,12 +65,12 @@ fn column(names: &[&str], name: &str) -> std::io::Result<usize> {
 }
 
 /// Run time t (s) as ns, and as Foxglove's {sec, nsec}.
-fn stamp(t: f64) -> (u64, Value) {
+pub(crate) fn stamp(t: f64) -> (u64, Value) {
     let ns = (t.max(0.0) * 1e9).round() as u64;
     (ns, json!({"sec": ns / 1_000_000_000, "nsec": ns % 1_000_000_000}))
 }
 
-fn pose_in_frame(stamp: &Value, x: f64, y: f64, theta: f64) -> Value {
+pub(crate) fn pose_in_frame(stamp: &Value, x: f64, y: f64, theta: f64) -> Value {
     let (s, c) = (theta / 2.0).sin_cos();
     json!({
         "timestamp": stamp,

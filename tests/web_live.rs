@@ -283,18 +283,7 @@ fn two_browsers_watch_a_lockstep_run_that_still_equals_the_simulator() {
     }
 
     // Two browsers did not disturb the run: byte for byte the simulator's.
-    let sim = tmp.path().join("sim");
-    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
-    c.args(["sim", SCENARIO, "-q", "--out"]).arg(&sim);
-    for s in sets {
-        c.args(["--set", s]);
-    }
-    common::run_ok(&mut c);
-    for f in ["summary.json", "leader.csv", "follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv"] {
-        let got = std::fs::read(out.join(f)).expect("run file");
-        let want = std::fs::read(sim.join(f)).expect("sim file");
-        assert!(got == want, "{f} of the watched lock-step run differs from formation sim's");
-    }
+    common::assert_equals_the_simulator(&out, &tmp.path().join("sim"), &sets, "the watched lock-step run");
     g.assert_group_empty();
 }
 

@@ -167,6 +167,13 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     let (events, notes) = plan(a, &scenario)?;
     // Inside the re-run under unshare, uid 0 is the mapped user: prepare
     // the namespace there whatever privilege() says.
+    if a.opts.web.foxglove.is_some() {
+        return Err(Error::Input(
+            "--foxglove is not available in the lab (its monitor lives in a network namespace of its own); \
+             use --web here, or --foxglove on launch or monitor"
+                .into(),
+        ));
+    }
     let privilege = if std::env::var_os(netns::UNSHARED_ENV).is_some() {
         netns::prepare_unshared().map_err(Error::Run)?;
         netns::Privilege::Root

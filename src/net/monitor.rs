@@ -71,15 +71,26 @@ pub struct WebArgs {
     /// that open pages get the end of the run.
     #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
     pub web_linger: f64,
+    /// Serve the run live to Foxglove (Foxglove WebSocket protocol) at this
+    /// address: the channels of run.mcap (poses, estimates, every CSV
+    /// column, network events) at up to 50 messages per channel and second
+    /// of run time. In Foxglove: Open connection, Foxglove WebSocket,
+    /// ws://ADDR. `--foxglove` alone: 127.0.0.1:8766; port 0: any free port.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8766")]
+    pub foxglove: Option<std::net::SocketAddr>,
 }
 
 impl WebArgs {
     /// The same options on another node's command line.
     pub fn to_args(&self) -> Vec<String> {
-        match self.web {
+        let mut args = match self.web {
             Some(addr) => vec!["--web".into(), addr.to_string(), "--web-linger".into(), self.web_linger.to_string()],
             None => Vec::new(),
+        };
+        if let Some(addr) = self.foxglove {
+            args.extend(["--foxglove".to_string(), addr.to_string()]);
         }
+        args
     }
 }
 
@@ -349,6 +360,8 @@ pub struct Recorder {
     /// to the end of the record (network.json's `wall`).
     startup_s: Option<f64>,
     run_s: Option<f64>,
+    /// `--foxglove`: the rows and events as they are recorded.
+    foxglove: Option<crate::foxglove_live::FoxgloveLive>,
 }
 
 impl Recorder {
@@ -386,7 +399,18 @@ impl Recorder {
             malformed: 0,
             startup_s: None,
             run_s: None,
+            foxglove: None,
         })
+    }
+
+    /// Sends every row and network event from now on to `live` as well.
+    pub fn set_foxglove(&mut self, live: crate::foxglove_live::FoxgloveLive) {
+        self.foxglove = Some(live);
+    }
+
+    /// The Foxglove server, taken out to stop it.
+    pub fn take_foxglove(&mut self) -> Option<crate::foxglove_live::FoxgloveLive> {
+        self.foxglove.take()
     }
 
     /// Files one telemetry message received on `telemetry/<key_id>`.
@@ -416,6 +440,9 @@ impl Recorder {
                     if self.writer.wants(k, k == steps) {
                         self.writer.leader_row(k as f64 * self.scenario.dt_s, &s)?;
                     }
+                    if let Some(live) = &self.foxglove {
+                        live.leader(k, &s);
+                    }
                     while self.leader_base + (self.leader.len() as u64) < k {
                         self.leader.push_back(None);
                     }
@@ -440,7 +467,11 @@ impl Recorder {
                 let n = self.nodes.entry(id).or_default();
                 n.note(bytes.len(), first_k, counters, done, loop_stats, delivery);
                 // A batch sent again repeats its events: a set keeps each once.
-                n.timeline.extend(events.into_iter().take(MAX_EVENTS_PER_BATCH));
+                for e in events.into_iter().take(MAX_EVENTS_PER_BATCH) {
+                    if let (true, Some(live)) = (n.timeline.insert(e), &self.foxglove) {
+                        live.event(&id.to_string(), e.k, &e.what.describe());
+                    }
+                }
                 let mut fresh = Vec::new();
                 f.stream.file(first_k, samples, delivery.available_from, delivery.incarnation, &mut fresh);
                 n.samples += fresh.len() as u64;
@@ -470,6 +501,9 @@ impl Recorder {
                 f.latest = Some((row, l));
                 if self.writer.wants(k, k == steps) {
                     self.writer.follower_row(index, &row)?;
+                }
+                if let Some(live) = &self.foxglove {
+                    live.follower(index, k, &row);
                 }
             }
             if f.pending.is_empty() {
@@ -845,7 +879,20 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
         }
         None => None,
     };
-    let recorder = Recorder::new(&scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
+    let foxglove = match args.web.foxglove {
+        Some(addr) => {
+            let live =
+                crate::foxglove_live::FoxgloveLive::start(addr, &scenario, &keys.run).await.map_err(Error::Input)?;
+            crate::net::node::say(&format!("foxglove: ws://{}:{}", addr.ip(), live.port()));
+            Some(live)
+        }
+        None => None,
+    };
+    let mut recorder =
+        Recorder::new(&scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
+    if let Some(live) = foxglove {
+        recorder.set_foxglove(live);
+    }
     let session = match args.node.open(crate::certs::MONITOR).await {
         Ok(s) => s,
         Err(e) => {
@@ -988,6 +1035,7 @@ async fn monitor(
     }
     let recorded = recorder.recorded_steps();
     let unfinished = recorder.unfinished();
+    let foxglove = recorder.take_foxglove();
     recorder.set_wall(startup_s, run_s);
     let (summary, dir) = recorder.finish(ending).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
     let result = match ending {
@@ -1011,9 +1059,13 @@ async fn monitor(
             dir.display()
         ))),
     };
-    if web.is_some_and(|w| w.viewers() > 0) && matches!(ending, Ending::Complete | Ending::Idle) {
+    let watched = web.is_some_and(|w| w.viewers() > 0) || foxglove.as_ref().is_some_and(|f| f.viewers() > 0);
+    if watched && matches!(ending, Ending::Complete | Ending::Idle) {
         // Open pages get the final frame before the server ends with the process.
         tokio::time::sleep(Duration::from_secs_f64(args.web.web_linger)).await;
+    }
+    if let Some(f) = foxglove {
+        f.stop().await;
     }
     result
 }

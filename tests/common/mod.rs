@@ -105,6 +105,22 @@ pub fn run_ok(cmd: &mut Command) -> std::process::Output {
     out
 }
 
+/// Asserts that the paper scenario's run folder `out` (with `sets`) is
+/// byte for byte what `formation sim` writes into `sim`; `what` names the run.
+pub fn assert_equals_the_simulator(out: &Path, sim: &Path, sets: &[&str], what: &str) {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+    c.args(["sim", SCENARIO, "-q", "--out"]).arg(sim);
+    for s in sets {
+        c.args(["--set", s]);
+    }
+    run_ok(&mut c);
+    for f in ["summary.json", "leader.csv", "follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv"] {
+        let got = std::fs::read(out.join(f)).expect("run file");
+        let want = std::fs::read(sim.join(f)).expect("sim file");
+        assert!(got == want, "{f} of {what} differs from formation sim's");
+    }
+}
+
 /// `formation certs SCENARIO --out DIR`: an authority and every node's
 /// identity for `--tls DIR`.
 pub fn certs(dir: &Path) {

@@ -1,0 +1,216 @@
+//! `--foxglove`: the run live over the Foxglove WebSocket protocol (ports
+//! 18300–18319, 127.0.0.1 only), read by a client of our own that speaks
+//! the protocol as Foxglove does (subprotocol `foxglove.sdk.v1`, JSON
+//! advertise and subscribe, binary message frames), and compared with the
+//! run folder the monitor wrote.
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use common::{Group, SCENARIO};
+use futures_util::{SinkExt, StreamExt};
+use serde_json::{json, Value};
+use tokio_tungstenite::tungstenite::{client::IntoClientRequest, Message};
+
+/// The CSV `name` of a run folder as rows of numbers, by column name.
+fn csv(dir: &Path, name: &str) -> (Vec<String>, Vec<Vec<f64>>) {
+    let text = std::fs::read_to_string(dir.join(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
+    let mut lines = text.lines();
+    let header: Vec<String> = lines.next().expect("header").split(',').map(str::to_string).collect();
+    let rows = lines.map(|l| l.split(',').map(|x| x.parse::<f64>().expect("number")).collect()).collect();
+    (header, rows)
+}
+
+/// One message frame: (subscription id, log time in ns, JSON payload).
+fn message_frame(bytes: &[u8]) -> Option<(u32, u64, Value)> {
+    if bytes.len() < 13 || bytes[0] != 1 {
+        return None;
+    }
+    let sub = u32::from_le_bytes(bytes[1..5].try_into().ok()?);
+    let ns = u64::from_le_bytes(bytes[5..13].try_into().ok()?);
+    Some((sub, ns, serde_json::from_slice(&bytes[13..]).ok()?))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn foxglove_sees_the_channels_of_a_lockstep_run_as_recorded_and_the_run_still_equals_the_simulator() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let sets = ["duration=20"];
+    let port = 18300;
+    let addr = format!("127.0.0.1:{port}");
+    let mut g = Group::launch(
+        &out,
+        &sets,
+        &["--base-port", "18305", "--run", "fox-ls", "--foxglove", &addr, "--web-linger", "2"],
+    );
+
+    // Connect as Foxglove does, retrying until the monitor listens.
+    let t0 = Instant::now();
+    let mut ws = loop {
+        let mut req = format!("ws://{addr}").into_client_request().expect("request");
+        req.headers_mut().insert("sec-websocket-protocol", "foxglove.sdk.v1".parse().expect("header"));
+        match tokio_tungstenite::connect_async(req).await {
+            Ok((ws, _)) => break ws,
+            Err(e) => {
+                assert!(t0.elapsed() < common::LIMIT, "no Foxglove server at {addr} within {:?}: {e}", common::LIMIT);
+                assert!(
+                    g.0.try_wait().expect("try_wait").is_none(),
+                    "launch ended before its Foxglove server was reached"
+                );
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+    };
+
+    // serverInfo, then the channels.
+    let mut channels: BTreeMap<String, Value> = BTreeMap::new();
+    let mut server_info = Value::Null;
+    let expected: Vec<String> = ["/leader/pose", "/leader/state", "/network/events"]
+        .into_iter()
+        .map(str::to_string)
+        .chain((1..=4).flat_map(|i| ["pose", "estimate", "state"].map(|c| format!("/follower_{i}/{c}"))))
+        .collect();
+    while channels.len() < expected.len() {
+        let m = tokio::time::timeout(Duration::from_secs(20), ws.next())
+            .await
+            .expect("no advertise within 20 s")
+            .expect("the server closed the connection")
+            .expect("websocket");
+        if let Message::Text(text) = m {
+            let v: Value = serde_json::from_str(text.as_str()).expect("JSON");
+            match v["op"].as_str() {
+                Some("serverInfo") => server_info = v,
+                Some("advertise") => {
+                    for c in v["channels"].as_array().expect("channels") {
+                        channels.insert(c["topic"].as_str().expect("topic").to_string(), c.clone());
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+    assert!(server_info["name"].as_str().is_some_and(|n| n.contains("fox-ls")), "serverInfo: {server_info}");
+    let mut topics: Vec<String> = channels.keys().cloned().collect();
+    topics.sort();
+    let mut want = expected.clone();
+    want.sort();
+    assert_eq!(topics, want, "the advertised channels");
+    for (topic, c) in &channels {
+        assert_eq!(c["encoding"], "json", "{topic}: {c}");
+        assert_eq!(c["schemaEncoding"], "jsonschema", "{topic}: {c}");
+        if topic.ends_with("/pose") || topic.ends_with("/estimate") {
+            assert_eq!(c["schemaName"], "foxglove.PoseInFrame", "{topic}: {c}");
+        }
+    }
+
+    // Subscribe to a follower's every column, the leader's pose and a follower's pose.
+    let watched = ["/follower_1/state", "/leader/pose", "/follower_3/pose"];
+    let subscriptions: Vec<Value> =
+        watched.iter().enumerate().map(|(i, t)| json!({"id": i + 1, "channelId": channels[*t]["id"]})).collect();
+    ws.send(Message::text(json!({"op": "subscribe", "subscriptions": subscriptions}).to_string()))
+        .await
+        .expect("subscribe");
+
+    // Everything until the server closes (after the run and its linger).
+    let mut got: Vec<Vec<(u64, Value)>> = vec![Vec::new(); watched.len()];
+    let t1 = Instant::now();
+    loop {
+        assert!(t1.elapsed() < Duration::from_secs(180), "the Foxglove stream did not end within 180 s");
+        match tokio::time::timeout(Duration::from_secs(30), ws.next()).await {
+            Ok(Some(Ok(Message::Binary(b)))) => {
+                let (sub, ns, v) = message_frame(&b).unwrap_or_else(|| panic!("a malformed frame: {b:?}"));
+                got[sub as usize - 1].push((ns, v));
+            }
+            Ok(Some(Ok(Message::Close(_)))) | Ok(None) | Ok(Some(Err(_))) => break,
+            Ok(Some(Ok(_))) => {}
+            Err(_) => panic!("nothing from the Foxglove server for 30 s"),
+        }
+    }
+    let status = g.wait(Duration::from_secs(60));
+    assert!(status.success(), "formation launch --foxglove failed: {status}");
+
+    // What Foxglove received is what the run recorded at that step.
+    let last_k = 20_000u64;
+    let (names, f1) = csv(&out, "follower_1.csv");
+    let (_, leader) = csv(&out, "leader.csv");
+    let (_, f3) = csv(&out, "follower_3.csv");
+    let counts: Vec<usize> = got.iter().map(Vec::len).collect();
+    eprintln!("foxglove_live: messages received per subscription {watched:?}: {counts:?}");
+    for (i, msgs) in got.iter().enumerate() {
+        // Subscribed mid-run: at least a second of run time at 50 per second.
+        assert!(msgs.len() >= 50, "{}: only {} messages", watched[i], msgs.len());
+        let mut prev = None;
+        for (ns, _) in msgs {
+            let k = (*ns as f64 * 1e-6).round() as u64;
+            assert_eq!(*ns, k * 1_000_000, "{}: log time {ns} ns is not a step's run time", watched[i]);
+            assert!(
+                k % 20 == 0 || k == last_k,
+                "{}: step {k} is not one of the thinned steps (every 20th)",
+                watched[i]
+            );
+            assert!(prev.is_none_or(|p| k > p), "{}: step {k} after step {prev:?}", watched[i]);
+            prev = Some(k);
+        }
+        assert_eq!(prev, Some(last_k), "{}: the final step was not sent", watched[i]);
+    }
+    for (ns, v) in &got[0] {
+        let k = (*ns / 1_000_000) as usize;
+        for (c, name) in names.iter().enumerate() {
+            let sent = v[name].as_f64().unwrap_or_else(|| panic!("/follower_1/state at step {k}: no {name}: {v}"));
+            assert_eq!(sent, f1[k][c], "/follower_1/state at step {k}: {name} sent {sent}, recorded {}", f1[k][c]);
+        }
+    }
+    let pose_matches = |v: &Value, row: &[f64]| {
+        let p = &v["pose"]["position"];
+        let q = &v["pose"]["orientation"];
+        p["x"].as_f64() == Some(row[1])
+            && p["y"].as_f64() == Some(row[2])
+            && (q["z"].as_f64().unwrap_or(f64::NAN) - (row[3] / 2.0).sin()).abs() < 1e-12
+            && v["frame_id"] == "world"
+    };
+    for (ns, v) in &got[1] {
+        let k = (*ns / 1_000_000) as usize;
+        assert!(pose_matches(v, &leader[k]), "/leader/pose at step {k}: sent {v}, recorded {:?}", &leader[k][..4]);
+    }
+    for (ns, v) in &got[2] {
+        let k = (*ns / 1_000_000) as usize;
+        assert!(pose_matches(v, &f3[k]), "/follower_3/pose at step {k}: sent {v}, recorded {:?}", &f3[k][..4]);
+    }
+
+    // A viewer did not disturb the run: byte for byte the simulator's.
+    common::assert_equals_the_simulator(&out, &tmp.path().join("sim"), &sets, "the lock-step run watched in Foxglove");
+    g.assert_group_empty();
+}
+
+#[test]
+fn a_foxglove_address_that_cannot_be_used_gets_one_clear_line_and_no_folder() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:18301").expect("bind 18301");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["node", "monitor", "--scenario", SCENARIO, "--foxglove", "127.0.0.1:18301", "--open-timeout", "2"])
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("formation monitor");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "exit status; stderr: {err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains("--foxglove 127.0.0.1:18301"), "stderr: {err}");
+    drop(taken);
+    let leftovers: Vec<_> = std::fs::read_dir(tmp.path()).expect("tmp").flatten().map(|e| e.file_name()).collect();
+    assert!(leftovers.is_empty(), "a failed start left {leftovers:?}");
+
+    // The lab's monitor lives in a namespace of its own: refused, in one line.
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["lab", SCENARIO, "--foxglove", "127.0.0.1:18302"])
+        .output()
+        .expect("formation lab");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "lab --foxglove: exit status; stderr: {err}");
+    assert!(err.contains("--foxglove is not available in the lab"), "stderr: {err}");
+}
