@@ -265,14 +265,16 @@ fn follower_3_cut_off(tag: &str, mode: &str) {
 #[test]
 #[ignore = "flaky as of 2026-11-22 (noisy 2-core VM, 25-30 % CPU steal): the others' peak estimator error was \
             0.015-0.023 m over 3 runs against 0.02 asked (simulator 0.011-0.018 m), follower 3 recovered 0.3-0.7 s \
-            later than simulated (it reconnects about 0.18 s after the link is back); issue 9"]
+            later than simulated (it reconnects about 0.18 s after the link is back); issue 9. The simulator itself \
+            puts the others above 0.02 m with a communication delay of one step (0.041 m; 0.131 m with 5 steps, \
+            where follower 3 never gets below 0.02 m): the bound holds only for same-step delivery"]
 fn follower_3_cut_off_for_3_s_as_a_client() {
     follower_3_cut_off("lab-cut-client", "client");
 }
 
 #[test]
 #[ignore = "flaky as of 2026-11-22 (noisy 2-core VM): the others' peak estimator error was 0.015-0.027 m over \
-            3 runs against 0.02 asked (simulator 0.011-0.018 m); issue 9"]
+            3 runs against 0.02 asked (simulator 0.011-0.018 m; with a one-step delay 0.041 m); issue 9"]
 fn follower_3_cut_off_for_3_s_as_a_peer() {
     follower_3_cut_off("lab-cut-peer", "peer");
 }
