@@ -1,6 +1,8 @@
 //! `formation bench`: follower-steps per second of the in-process simulator,
-//! for the paper scenario and generated rings, with recording off and
-//! (optionally) on. Wall-clock timing lives here, in a shell, never in the core.
+//! for the paper scenario and generated rings, on one thread and on several,
+//! with recording off and (optionally) on, each the fastest of `--repeat`
+//! runs; and the simulator's memory per follower. Wall-clock timing lives
+//! here, in a shell, never in the core.
 
 use std::time::Instant;
 
@@ -17,6 +19,10 @@ pub struct Measurement {
     pub steps: u64,
     pub seconds: f64,
     pub recording: bool,
+    /// Threads the followers were stepped on (1: one after another).
+    pub threads: usize,
+    /// [`Simulation::bytes_per_follower`] (without recording).
+    pub bytes_per_follower: usize,
 }
 
 impl Measurement {
@@ -33,35 +39,60 @@ fn scenario_for(n: u32, paper: &std::path::Path) -> Result<Scenario, CliError> {
     }
 }
 
-/// Steps `scenario` (shortened to `steps`) and times it.
-pub fn measure(scenario: &Scenario, steps: u64, record: bool) -> Result<Measurement, CliError> {
+/// A rayon pool of `threads` threads.
+fn pool(threads: usize) -> Result<rayon::ThreadPool, CliError> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| CliError::Run(format!("starting {threads} threads: {e}")))
+}
+
+/// Steps `scenario` (shortened to `steps`) on `threads` threads (1: the
+/// sequential step; more: the parallel step in a pool of that many) and
+/// times it, the fastest of `repeat` runs.
+pub fn measure(
+    scenario: &Scenario,
+    steps: u64,
+    record: bool,
+    threads: usize,
+    repeat: u32,
+) -> Result<Measurement, CliError> {
     let mut s = scenario.clone();
     s.duration_s = steps as f64 * s.dt_s;
-    let started;
-    if record {
-        let dir = std::env::temp_dir().join(format!("formation-bench-{}", std::process::id()));
-        started = Instant::now();
-        crate::cli::run_to_folder(&s, &RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false }, true)?;
-        let seconds = started.elapsed().as_secs_f64();
-        let _ = std::fs::remove_dir_all(&dir);
-        return Ok(Measurement {
-            followers: s.followers.len(),
-            edges: s.graph.edge_count(),
-            steps: steps + 1,
-            seconds,
-            recording: true,
-        });
+    let pool = if threads > 1 { Some(pool(threads)?) } else { None };
+    let mut best = f64::INFINITY;
+    let mut bytes_per_follower = 0;
+    for _ in 0..repeat.max(1) {
+        let seconds = if record {
+            let dir = std::env::temp_dir().join(format!("formation-bench-{}", std::process::id()));
+            let opts = RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false };
+            let started = Instant::now();
+            crate::cli::run_to_folder_on(&s, &opts, true, threads)?;
+            let seconds = started.elapsed().as_secs_f64();
+            let _ = std::fs::remove_dir_all(&dir);
+            seconds
+        } else {
+            let mut sim = Simulation::new(&s);
+            sim.set_parallel(pool.is_some());
+            let started = Instant::now();
+            match &pool {
+                Some(pool) => pool.install(|| sim.run(&mut NoRecord, |_| {}))?,
+                None => sim.run(&mut NoRecord, |_| {})?,
+            };
+            let seconds = started.elapsed().as_secs_f64();
+            bytes_per_follower = sim.bytes_per_follower();
+            seconds
+        };
+        best = best.min(seconds);
     }
-    let mut sim = Simulation::new(&s);
-    started = Instant::now();
-    sim.run(&mut NoRecord, |_| {})?;
-    let seconds = started.elapsed().as_secs_f64();
     Ok(Measurement {
         followers: s.followers.len(),
         edges: s.graph.edge_count(),
         steps: steps + 1,
-        seconds,
-        recording: false,
+        seconds: best,
+        recording: record,
+        threads,
+        bytes_per_follower,
     })
 }
 
@@ -78,7 +109,7 @@ pub const FAULT_CASES: [(&str, &[&str]); 3] = [
 ];
 
 /// Follower-steps/s of the paper scenario (its own duration) for each fault
-/// case, the best of three repetitions of at least `work` follower-steps.
+/// case, the best of `--repeat` repetitions of at least `work` follower-steps.
 fn fault_cases(a: &BenchArgs) -> Result<(), CliError> {
     println!("\n{:<36} {:>9} {:>20} {:>7}", "paper scenario, fault table", "runs", "follower-steps/s", "ratio");
     let mut base = None;
@@ -88,7 +119,7 @@ fn fault_cases(a: &BenchArgs) -> Result<(), CliError> {
         let per_run = s.followers.len() as u64 * (s.steps() + 1);
         let runs = a.work.div_ceil(per_run).max(1);
         let mut best = 0.0f64;
-        for _ in 0..3 {
+        for _ in 0..a.repeat.max(1) {
             let started = Instant::now();
             for _ in 0..runs {
                 Simulation::new(&s).run(&mut NoRecord, |_| {})?;
@@ -105,25 +136,35 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
     if a.faults {
         return fault_cases(a);
     }
+    crate::cli::at_least_one("--repeat", a.repeat.into())?;
+    let mut threads = a.threads.clone();
+    threads.dedup();
     println!(
-        "{:>9} {:>7} {:>8} {:>9} {:>9} {:>20}",
-        "followers", "edges", "steps", "record", "seconds", "follower-steps/s"
+        "{:>9} {:>7} {:>8} {:>7} {:>6} {:>9} {:>17} {:>12}",
+        "followers", "edges", "steps", "threads", "record", "seconds", "follower-steps/s", "B/follower"
     );
     for &n in &a.followers {
         let scenario = scenario_for(n, &a.scenario)?;
         let steps = (a.work / u64::from(n.max(1))).max(100);
         let modes: &[bool] = if a.record { &[false, true] } else { &[false] };
+        let mut first = true;
         for &record in modes {
-            let m = measure(&scenario, steps, record)?;
-            println!(
-                "{:>9} {:>7} {:>8} {:>9} {:>9.3} {:>20.0}",
-                m.followers,
-                m.edges,
-                m.steps,
-                if m.recording { "csv" } else { "off" },
-                m.seconds,
-                m.follower_steps_per_second()
-            );
+            for &t in &threads {
+                let m = measure(&scenario, steps, record, t, a.repeat)?;
+                // The simulator's state per follower, once per size.
+                let bytes = if std::mem::take(&mut first) { m.bytes_per_follower.to_string() } else { String::new() };
+                println!(
+                    "{:>9} {:>7} {:>8} {:>7} {:>6} {:>9.3} {:>17.0} {:>12}",
+                    m.followers,
+                    m.edges,
+                    m.steps,
+                    m.threads,
+                    if m.recording { "csv" } else { "off" },
+                    m.seconds,
+                    m.follower_steps_per_second(),
+                    bytes,
+                );
+            }
         }
     }
     // The paper scenario end to end, recording included.

@@ -177,11 +177,18 @@ pub const PARALLEL_FROM: usize = 256;
 pub struct BenchArgs {
     /// Follower counts to measure; 4 is the paper scenario, larger counts are
     /// generated rings with n/5 random chords.
-    #[arg(long, value_delimiter = ',', default_values_t = vec![4, 100, 10_000])]
+    #[arg(long, value_delimiter = ',', default_values_t = vec![4, 100, 10_000, 100_000])]
     pub followers: Vec<u32>,
-    /// Minimum follower-steps per measurement.
+    /// Threads to measure each count on: 1 steps the followers one after
+    /// another, N > 1 on N threads (as `sim --threads N`), `all` on every core.
+    #[arg(long, value_delimiter = ',', default_values = ["1", "all"], value_parser = parse_threads, value_name = "N|all")]
+    pub threads: Vec<usize>,
+    /// Minimum follower-steps per measurement (at least 100 steps).
     #[arg(long, default_value_t = 2_000_000)]
     pub work: u64,
+    /// Runs per measurement; the fastest is reported.
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    pub repeat: u32,
     /// Also measure with recording on (CSV of every sample into a temporary folder).
     #[arg(long)]
     pub record: bool,
@@ -192,6 +199,17 @@ pub struct BenchArgs {
     /// for 3 s and with 30 % loss on every link, side by side (SPEC §14).
     #[arg(long)]
     pub faults: bool,
+}
+
+/// `--threads` of `bench`: a count of at least 1, or `all` for every core.
+fn parse_threads(s: &str) -> Result<usize, String> {
+    match s {
+        "all" => Ok(std::thread::available_parallelism().map_or(1, |n| n.get())),
+        _ => match s.parse::<usize>() {
+            Ok(0) | Err(_) => Err(format!("{s:?} is neither a thread count of at least 1 nor `all`")),
+            Ok(n) => Ok(n),
+        },
+    }
 }
 
 /// Every command ends with [`crate::error::Error`]: one line and its exit status.

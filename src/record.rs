@@ -109,13 +109,18 @@ impl Row {
             w_c: s.command.w,
             tau_l: s.torque_l,
             tau_r: s.torque_r,
-            formation_error: norm(p.x - leader.pose.x - offset[0], p.y - leader.pose.y - offset[1]),
+            formation_error: formation_error(p, leader, offset),
             heading_error: wrap(p.theta - leader.pose.theta).abs(),
             estimator_error: norm(e.pose.x - leader.pose.x, e.pose.y - leader.pose.y),
             estimator_v_error: (e.v - leader.v).abs(),
             estimator_w_error: (e.w - leader.w).abs(),
         }
     }
+}
+
+/// [`Row::formation_error`].
+fn formation_error(p: &Pose, leader: &LeaderState, offset: [f64; 2]) -> f64 {
+    norm(p.x - leader.pose.x - offset[0], p.y - leader.pose.y - offset[1])
 }
 
 /// ‖(a, b)‖. Plain sqrt(a² + b²): `hypot`'s overflow guard costs a third of
@@ -199,6 +204,14 @@ pub fn last10_from_k(steps: u64, dt_s: f64) -> u64 {
     }
 }
 
+/// One sample's formation error (read in the last 10 s only) and its
+/// (estimate, true) velocities.
+struct Errors {
+    formation: f64,
+    v: [f64; 2],
+    w: [f64; 2],
+}
+
 /// Streaming accumulator of [`FollowerMetrics`] (O(1) memory per follower).
 #[derive(Clone, Debug, Default)]
 pub struct MetricsAccumulator {
@@ -219,7 +232,9 @@ pub struct MetricsAccumulator {
     reached_final: bool,
     /// The step after the last one pushed.
     next_k: u64,
-    last: Row,
+    /// The errors at t = T (formation, heading, estimator position, v, ω):
+    /// the sample of step `steps`, valid when `reached_final`.
+    finals: [f64; 5],
     /// One per fault window of the scenario (SPEC §14's metrics under faults).
     outages: Vec<crate::outage::OutageAccumulator>,
 }
@@ -248,26 +263,54 @@ impl MetricsAccumulator {
 
     /// Adds the sample of step k (samples must come in step order).
     pub fn push(&mut self, k: u64, r: &Row) {
-        if k >= self.last10_from_k {
-            self.sum_formation_sq_last10 += r.formation_error * r.formation_error;
-            self.n_last10 += 1;
+        let errors = Errors { formation: r.formation_error, v: [r.v_hat, r.v], w: [r.w_hat, r.w] };
+        self.accumulate(k, &errors, r.v_c, r.tau_l, r.tau_r);
+        if k == self.steps {
+            self.finals =
+                [r.formation_error, r.heading_error, r.estimator_error, r.estimator_v_error, r.estimator_w_error];
         }
-        self.sum_v_sq += (r.v_hat - r.v) * (r.v_hat - r.v);
-        self.sum_w_sq += (r.w_hat - r.w) * (r.w_hat - r.w);
-        self.vc_peak = self.vc_peak.max(r.v_c.abs());
-        self.torque_peak = self.torque_peak.max(r.tau_l.abs()).max(r.tau_r.abs());
-        // Across a gap in the record (a node that was down) there is no Δτ to add.
-        if let Some((_, l, rr)) = self.prev_torque.filter(|p| p.0 + 1 == k) {
-            self.tv += (r.tau_l - l).abs() + (r.tau_r - rr).abs();
-        }
-        self.prev_torque = Some((k, r.tau_l, r.tau_r));
-        self.samples += 1;
-        self.next_k = k + 1;
-        self.reached_final = k == self.steps;
-        self.last = *r;
         for o in &mut self.outages {
             o.push(k, r);
         }
+    }
+
+    /// [`MetricsAccumulator::push`] of `Row::new(s, leader, offset, dt_s)`,
+    /// the same numbers, but computing only what the metrics read when no
+    /// one else needs the row (the simulator without an observer).
+    pub fn push_sample(&mut self, k: u64, s: &FollowerSample, leader: &LeaderState, offset: [f64; 2], dt_s: f64) {
+        if k == self.steps || !self.outages.is_empty() {
+            return self.push(k, &Row::new(s, leader, offset, dt_s));
+        }
+        // Row::new's formation error, needed only in the last 10 s.
+        let formation = if k >= self.last10_from_k { formation_error(&s.pose, leader, offset) } else { 0.0 };
+        let errors =
+            Errors { formation, v: [s.velocity_estimate.v, s.velocity.v], w: [s.velocity_estimate.w, s.velocity.w] };
+        self.accumulate(k, &errors, s.command.v, s.torque_l, s.torque_r);
+    }
+
+    /// What every sample adds (in this order: the same sums whichever way in).
+    fn accumulate(&mut self, k: u64, e: &Errors, v_c: f64, tau_l: f64, tau_r: f64) {
+        if k >= self.last10_from_k {
+            self.sum_formation_sq_last10 += e.formation * e.formation;
+            self.n_last10 += 1;
+        }
+        self.sum_v_sq += (e.v[0] - e.v[1]) * (e.v[0] - e.v[1]);
+        self.sum_w_sq += (e.w[0] - e.w[1]) * (e.w[0] - e.w[1]);
+        self.vc_peak = self.vc_peak.max(v_c.abs());
+        self.torque_peak = self.torque_peak.max(tau_l.abs()).max(tau_r.abs());
+        // Across a gap in the record (a node that was down) there is no Δτ to add.
+        if let Some((_, l, rr)) = self.prev_torque.filter(|p| p.0 + 1 == k) {
+            self.tv += (tau_l - l).abs() + (tau_r - rr).abs();
+        }
+        self.prev_torque = Some((k, tau_l, tau_r));
+        self.samples += 1;
+        self.next_k = k + 1;
+        self.reached_final = k == self.steps;
+    }
+
+    /// Bytes this holds on the heap (one accumulator per fault window).
+    pub fn heap_bytes(&self) -> usize {
+        self.outages.capacity() * std::mem::size_of::<crate::outage::OutageAccumulator>()
     }
 
     /// The metrics of the samples pushed so far; `None` for a metric whose
@@ -281,11 +324,11 @@ impl MetricsAccumulator {
         FollowerMetrics {
             formation_rms_last10: (self.n_last10 > 0)
                 .then(|| (self.sum_formation_sq_last10 / self.n_last10 as f64).sqrt()),
-            formation_final: at_t(self.last.formation_error),
-            heading_final: at_t(self.last.heading_error),
-            estimator_error_final: at_t(self.last.estimator_error),
-            estimator_v_error_final: at_t(self.last.estimator_v_error),
-            estimator_w_error_final: at_t(self.last.estimator_w_error),
+            formation_final: at_t(self.finals[0]),
+            heading_final: at_t(self.finals[1]),
+            estimator_error_final: at_t(self.finals[2]),
+            estimator_v_error_final: at_t(self.finals[3]),
+            estimator_w_error_final: at_t(self.finals[4]),
             vc_peak: any.then_some(self.vc_peak),
             torque_tv: any.then(|| if span_s > 0.0 { self.tv / span_s } else { 0.0 }),
             torque_peak: any.then_some(self.torque_peak),

@@ -72,11 +72,30 @@ impl SimFollower {
         I: IntoIterator<Item = &'a Message>,
         I::IntoIter: Clone,
     {
-        let out = self.brain.step(&self.robot.pose, self.measurement, leader, neighbours);
+        self.step_disturbed(self.robot.disturbance.at(t_s), dt_s, leader, neighbours, last)
+    }
+
+    /// [`SimFollower::step`] with the robot's disturbance at t_k given (the
+    /// simulator computes it once per step for every robot): the same numbers.
+    pub fn step_disturbed<'a, I>(
+        &mut self,
+        disturbance: (f64, f64),
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: I,
+        last: bool,
+    ) -> (FollowerSample, Message)
+    where
+        I: IntoIterator<Item = &'a Message>,
+        I::IntoIter: Clone,
+    {
+        // sin/cos of θ(k), for the brain's body-frame error and the robot's move.
+        let heading = self.robot.pose.theta.sin_cos();
+        let out = self.brain.step_with_heading(&self.robot.pose, heading, self.measurement, leader, neighbours);
         let sample = FollowerSample::new(&out, self.robot.pose, self.robot.velocity);
         if !last {
             let draw = self.noise.draw();
-            self.measurement = self.robot.advance(out.torque, t_s, dt_s, draw);
+            self.measurement = self.robot.advance_with(out.torque, heading, disturbance, dt_s, draw);
         }
         (sample, out.next_message)
     }
@@ -131,11 +150,20 @@ pub trait Observer {
     fn follower(&mut self, _index: usize, _k: u64, _row: &Row, _last: bool) -> std::io::Result<()> {
         Ok(())
     }
+    /// Whether [`Observer::follower`] does anything: when not, the
+    /// simulator builds no rows (metrics only).
+    fn wants_rows(&self) -> bool {
+        true
+    }
 }
 
 /// Observes nothing (benchmarks, metrics only).
 pub struct NoRecord;
-impl Observer for NoRecord {}
+impl Observer for NoRecord {
+    fn wants_rows(&self) -> bool {
+        false
+    }
+}
 
 /// Why a simulation stopped early.
 #[derive(Debug, thiserror::Error)]
@@ -158,13 +186,20 @@ pub struct Simulation<'s> {
     /// state of the last d + 1 steps, step j at j mod (d + 1).
     past: Vec<(Vec<Message>, LeaderState)>,
     /// Per follower, `Some` where the fault table touches its incoming links.
-    receptions: Vec<Option<Reception>>,
-    /// The samples of the current step, by index (the parallel step's output).
+    receptions: Vec<Option<Box<Reception>>>,
+    /// The samples of the current step, by index: the parallel step's
+    /// output for an observer that wants rows (empty until then).
     samples: Vec<FollowerSample>,
     /// Step the followers of a step on rayon's threads (see [`Simulation::set_parallel`]).
     parallel: bool,
     k: u64,
 }
+
+/// Followers a thread of the parallel step takes at a time.
+const CHUNK: usize = 64;
+
+/// How many followers ahead a step asks the cache for.
+const AHEAD: usize = 2;
 
 /// Slots of [`Simulation::past`]: d + 1 with a delay of d steps, else none.
 fn delay_slots(s: &Scenario) -> usize {
@@ -174,26 +209,33 @@ fn delay_slots(s: &Scenario) -> usize {
     }
 }
 
+/// What every follower's step k reads: the scenario, the inputs (step k's
+/// messages and leader state, or with a delay those sent at `sent_k`), Δt,
+/// whether k is the last step, and the robots' disturbance at t_k.
+struct StepInputs<'a> {
+    s: &'a Scenario,
+    messages: &'a [Message],
+    leader: &'a LeaderState,
+    sent_k: u64,
+    dt: f64,
+    last: bool,
+    disturbance: (f64, f64),
+}
+
 /// Follower `i`'s step k: its inputs (through its reception when the fault
 /// table touches it), brain and robot; its sample and its next message.
-#[allow(clippy::too_many_arguments)]
 fn step_follower(
-    s: &Scenario,
+    x: &StepInputs,
     i: usize,
     f: &mut SimFollower,
-    rx: &mut Option<Reception>,
-    messages: &[Message],
-    leader: &LeaderState,
-    k: u64,
-    sent_k: u64,
-    last: bool,
+    rx: &mut Option<Box<Reception>>,
 ) -> (FollowerSample, Message) {
-    let (t, dt) = (k as f64 * s.dt_s, s.dt_s);
+    let (s, messages, leader, sent_k) = (x.s, x.messages, x.leader, x.sent_k);
     match rx {
         None => {
             let heard = s.graph.hears_leader(i).then_some(leader);
             let neighbours = s.graph.neighbours(i).iter().map(|&j| &messages[j]);
-            f.step(t, dt, heard, neighbours, last)
+            f.step_disturbed(x.disturbance, x.dt, heard, neighbours, x.last)
         }
         Some(rx) => {
             // SPEC §14: deliver what the table lets through, then
@@ -211,9 +253,67 @@ fn step_follower(
             };
             let hearing = &rx.hearing;
             let neighbours = (0..ns.len()).filter_map(|slot| hearing.heard(slot, sent_k));
-            f.step(t, dt, heard, neighbours, last)
+            f.step_disturbed(x.disturbance, x.dt, heard, neighbours, x.last)
         }
     }
+}
+
+/// After follower `i`'s step k: its metrics against the true leader state
+/// at k, the observer's row (when it wants rows) and its finiteness.
+#[allow(clippy::too_many_arguments)]
+fn account(
+    s: &Scenario,
+    i: usize,
+    f: &mut SimFollower,
+    sample: &FollowerSample,
+    leader: &LeaderState,
+    k: u64,
+    last: bool,
+    observer: &mut impl Observer,
+) -> Result<(), SimError> {
+    // (The brain's copy of the scenario's offset: already in cache.)
+    let offset = f.brain.config.offset;
+    if observer.wants_rows() {
+        let row = Row::new(sample, leader, offset, s.dt_s);
+        f.metrics.push(k, &row);
+        observer.follower(i, k, &row, last)?;
+    } else {
+        f.metrics.push_sample(k, sample, leader, offset, s.dt_s);
+    }
+    f.check_finite().map_err(|quantity| diverged(s, i, k, quantity))?;
+    Ok(())
+}
+
+/// Asks the cache for the lines of follower `i`, `f`, and of its
+/// neighbours' messages a few followers ahead of its step: large
+/// formations stream their followers from memory, and a chord's message
+/// is anywhere in `messages`. (Only a hint: no effect on any number.)
+#[inline(always)]
+fn prefetch(x: &StepInputs, i: usize, f: Option<&SimFollower>) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(f) = f {
+        fn line<T>(p: *const T, offset: usize) {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            // SAFETY: SSE is part of x86_64; a prefetch reads nothing and
+            // cannot fault, whatever the address.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast::<i8>().wrapping_add(offset)) };
+        }
+        for offset in (0..std::mem::size_of::<SimFollower>()).step_by(64) {
+            line(f, offset);
+        }
+        for &j in x.s.graph.neighbours(i) {
+            if let Some(m) = x.messages.get(j) {
+                line(m, 0);
+                line(m, std::mem::size_of::<Message>() - 1);
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (x, i, f);
+}
+
+fn diverged(s: &Scenario, i: usize, k: u64, quantity: &'static str) -> SimError {
+    Diverged { follower: s.followers[i].id, step: k, t_s: k as f64 * s.dt_s, quantity }.into()
 }
 
 impl<'s> Simulation<'s> {
@@ -221,7 +321,7 @@ impl<'s> Simulation<'s> {
         let followers: Vec<SimFollower> =
             (0..scenario.followers.len()).map(|i| SimFollower::new(scenario, i)).collect();
         let messages: Vec<Message> = followers.iter().map(|f| f.brain.tagged_message()).collect();
-        let receptions = (0..followers.len()).map(|i| Reception::new(scenario, i)).collect();
+        let receptions = (0..followers.len()).map(|i| Reception::new(scenario, i).map(Box::new)).collect();
         Self {
             scenario,
             leader: scenario.leader(),
@@ -230,7 +330,7 @@ impl<'s> Simulation<'s> {
             messages,
             followers,
             receptions,
-            samples: vec![FollowerSample::default(); scenario.followers.len()],
+            samples: Vec::new(),
             parallel: false,
             k: 0,
         }
@@ -245,6 +345,29 @@ impl<'s> Simulation<'s> {
     /// allocates nothing.)
     pub fn set_parallel(&mut self, on: bool) {
         self.parallel = on;
+    }
+
+    /// Bytes of the simulator's state per follower: every follower (brain,
+    /// robot, noise generator, metrics and the heap they own), its current
+    /// and next message and those of the delay line, its reception with its
+    /// heap, and the parallel step's sample once allocated; over the
+    /// follower count. (The scenario and its graph, read-only, are not counted.)
+    pub fn bytes_per_follower(&self) -> usize {
+        use std::mem::size_of;
+        let message = size_of::<Message>();
+        let mut bytes = self.followers.capacity() * size_of::<SimFollower>()
+            + self.followers.iter().map(|f| f.metrics.heap_bytes()).sum::<usize>()
+            + (self.messages.capacity() + self.next_messages.capacity()) * message
+            + self.past.iter().map(|(m, _)| m.capacity() * message).sum::<usize>()
+            + self.receptions.capacity() * size_of::<Option<Box<Reception>>>()
+            + self.samples.capacity() * size_of::<FollowerSample>();
+        for rx in self.receptions.iter().flatten() {
+            bytes += size_of::<Reception>()
+                + rx.links.capacity() * size_of::<LinkLoss>()
+                + rx.links.iter().map(LinkLoss::heap_bytes).sum::<usize>()
+                + rx.hearing.heap_bytes();
+        }
+        bytes / self.followers.len().max(1)
     }
 
     /// Steps done so far.
@@ -298,34 +421,77 @@ impl<'s> Simulation<'s> {
             let then = &self.past[(sent_k % slots) as usize];
             (&then.0, &then.1, sent_k)
         };
-        if self.parallel {
-            use rayon::prelude::*;
-            let messages = inputs;
-            let leader_ref = heard_leader;
-            self.followers
-                .par_iter_mut()
-                .zip(self.receptions.par_iter_mut())
-                .zip(self.next_messages.par_iter_mut())
-                .zip(self.samples.par_iter_mut())
-                .enumerate()
-                .for_each(|(i, (((f, rx), next), sample))| {
-                    (*sample, *next) = step_follower(s, i, f, rx, messages, leader_ref, k, sent_k, last);
-                });
-        } else {
-            for (i, f) in self.followers.iter_mut().enumerate() {
-                let (sample, next) =
-                    step_follower(s, i, f, &mut self.receptions[i], inputs, heard_leader, k, sent_k, last);
-                self.samples[i] = sample;
+        let x = StepInputs {
+            s,
+            messages: inputs,
+            leader: heard_leader,
+            sent_k,
+            dt,
+            last,
+            disturbance: s.disturbance.at(t),
+        };
+        // Metrics, the observer (in index order, as a sequential run) and
+        // the first follower that diverged; every follower steps even when
+        // one before it diverged, as the parallel step does.
+        if !self.parallel {
+            let mut stop = None;
+            for i in 0..self.followers.len() {
+                prefetch(&x, i + AHEAD, self.followers.get(i + AHEAD));
+                let f = &mut self.followers[i];
+                let (sample, next) = step_follower(&x, i, f, &mut self.receptions[i]);
                 self.next_messages[i] = next;
+                if stop.is_none() {
+                    stop = account(s, i, f, &sample, &leader, k, last, observer).err();
+                }
             }
-        }
-        // In index order, as a sequential run: metrics, the observer, and
-        // the first follower that diverged.
-        for (i, f) in self.followers.iter_mut().enumerate() {
-            let row = Row::new(&self.samples[i], &leader, s.followers[i].offset, dt);
-            f.metrics.push(k, &row);
-            observer.follower(i, k, &row, last)?;
-            f.check_finite().map_err(|quantity| Diverged { follower: s.followers[i].id, step: k, t_s: t, quantity })?;
+            if let Some(e) = stop {
+                return Err(e);
+            }
+        } else if observer.wants_rows() {
+            use rayon::prelude::*;
+            self.samples.resize(self.followers.len(), FollowerSample::default());
+            self.followers
+                .par_chunks_mut(CHUNK)
+                .zip(self.receptions.par_chunks_mut(CHUNK))
+                .zip(self.next_messages.par_chunks_mut(CHUNK))
+                .zip(self.samples.par_chunks_mut(CHUNK))
+                .enumerate()
+                .for_each(|(c, (((fs, rxs), nexts), samples))| {
+                    for j in 0..fs.len() {
+                        prefetch(&x, c * CHUNK + j + AHEAD, fs.get(j + AHEAD));
+                        (samples[j], nexts[j]) = step_follower(&x, c * CHUNK + j, &mut fs[j], &mut rxs[j]);
+                    }
+                });
+            for (i, f) in self.followers.iter_mut().enumerate() {
+                account(s, i, f, &self.samples[i], &leader, k, last, observer)?;
+            }
+        } else {
+            // Metrics only: each follower's own, on its thread.
+            use rayon::prelude::*;
+            let first_diverged = self
+                .followers
+                .par_chunks_mut(CHUNK)
+                .zip(self.receptions.par_chunks_mut(CHUNK))
+                .zip(self.next_messages.par_chunks_mut(CHUNK))
+                .enumerate()
+                .filter_map(|(c, ((fs, rxs), nexts))| {
+                    let mut first = None;
+                    for j in 0..fs.len() {
+                        prefetch(&x, c * CHUNK + j + AHEAD, fs.get(j + AHEAD));
+                        let (i, f) = (c * CHUNK + j, &mut fs[j]);
+                        let sample;
+                        (sample, nexts[j]) = step_follower(&x, i, f, &mut rxs[j]);
+                        f.metrics.push_sample(k, &sample, &leader, f.brain.config.offset, dt);
+                        if first.is_none() {
+                            first = f.check_finite().err().map(|quantity| (i, quantity));
+                        }
+                    }
+                    first
+                })
+                .min_by_key(|&(i, _)| i);
+            if let Some((i, quantity)) = first_diverged {
+                return Err(diverged(s, i, k, quantity));
+            }
         }
         std::mem::swap(&mut self.messages, &mut self.next_messages);
         self.leader.advance(&leader, dt);

@@ -62,3 +62,45 @@ fn same(one: &Path, two: &Path, delay: &str) {
         differ.first()
     );
 }
+
+/// Counts rows: an observer that wants them, so the simulator builds every row.
+struct Rows(u64);
+impl formation::sim::Observer for Rows {
+    fn follower(&mut self, _: usize, _: u64, _: &formation::record::Row, _: bool) -> std::io::Result<()> {
+        self.0 += 1;
+        Ok(())
+    }
+}
+
+/// Without an observer the simulator builds no rows (metrics only), on one
+/// thread or on two: the metrics are those of the run that builds every row,
+/// bit for bit, with and without faults and delay.
+#[test]
+fn metrics_without_rows_equal_metrics_from_rows_on_one_and_two_threads() {
+    use formation::sim::{NoRecord, Simulation};
+    let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+    // The paper's 4 followers for 12 s: the last 10 s start after step 0.
+    let mut cases = vec![formation_topology::Scenario::load(&paper, &["duration=12".to_string()]).expect("paper")];
+    for delay in ["0", "2"] {
+        let mut s = formation_topology::generate::ring_with_chords(1000, 200, 3).expect("ring");
+        s.duration_s = 0.3;
+        cases.push(s);
+        let sets = ["duration=12", "faults+={node=3, from=1, to=2}", "faults+={link=[1, 2], from=0, to=3, loss=0.3}"];
+        let mut sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        sets.push(format!("network.delay_steps={delay}"));
+        cases.push(formation_topology::Scenario::load(&paper, &sets).expect("paper"));
+    }
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().expect("pool");
+    for s in &cases {
+        let bits = |m: Vec<formation::record::FollowerMetrics>| format!("{m:?}");
+        let mut rows = Rows(0);
+        let with_rows = bits(Simulation::new(s).run(&mut rows, |_| {}).expect("run"));
+        assert_eq!(rows.0, s.followers.len() as u64 * (s.steps() + 1));
+        let one = bits(Simulation::new(s).run(&mut NoRecord, |_| {}).expect("run"));
+        let mut sim = Simulation::new(s);
+        sim.set_parallel(true);
+        let two = bits(pool.install(|| sim.run(&mut NoRecord, |_| {})).expect("run"));
+        assert_eq!(one, with_rows, "{}: metrics without rows", s.name);
+        assert_eq!(two, with_rows, "{}: metrics without rows on two threads", s.name);
+    }
+}

@@ -51,10 +51,11 @@ pub fn channel_gain(kind: FilterKind, p_minus: f64, s: f64, innovation: f64, rho
     }
 }
 
-/// A velocity filter's state: ζ̂ and the diagonal of P.
+/// A velocity filter's state: ζ̂ and the diagonal of P. Its parameters are
+/// not copied in: every follower of a scenario shares them
+/// ([`crate::ControlParams::filter`]) and passes them to each update.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VelocityFilter {
-    pub params: FilterParams,
     pub estimate: [f64; 2],
     pub p: [f64; 2],
     /// The gain of the last update, per channel (telemetry).
@@ -63,15 +64,15 @@ pub struct VelocityFilter {
 
 impl VelocityFilter {
     /// ζ̂(0) = ξ(0), P(0) = R (SPEC §8).
-    pub fn new(params: FilterParams, initial: Velocity) -> Self {
-        Self { params, estimate: [initial.v, initial.w], p: params.r, gain: [0.0; 2] }
+    pub fn new(params: &FilterParams, initial: Velocity) -> Self {
+        Self { estimate: [initial.v, initial.w], p: params.r, gain: [0.0; 2] }
     }
 
     pub fn estimate(&self) -> Velocity {
         Velocity::new(self.estimate[0], self.estimate[1])
     }
 
-    /// One predict-update cycle with the torque τ(k), the filter's model at
+    /// One predict-update cycle, with the filter's `params`, the torque τ(k), the filter's model at
     /// t_k and the measurement z(k+1):
     ///
     /// predict  ζ⁻ = ζ̂ + B_h τ, P⁻ = P + Q                      (eq. 57–58)
@@ -80,9 +81,9 @@ impl VelocityFilter {
     ///          P = (I − K) P⁻ (I − K)ᵀ + K R Kᵀ                 (eq. 62)
     ///
     /// With the filter `none`, ζ̂ = z.
-    pub fn update(&mut self, model: &RobotParams, tau: Torque, dt_s: f64, z: Velocity) {
+    pub fn update(&mut self, params: &FilterParams, model: &RobotParams, tau: Torque, dt_s: f64, z: Velocity) {
         let z = [z.v, z.w];
-        if self.params.kind == FilterKind::None {
+        if params.kind == FilterKind::None {
             self.estimate = z;
             self.gain = [1.0; 2];
             return;
@@ -91,12 +92,12 @@ impl VelocityFilter {
         let b_tau = [a.v * dt_s, a.w * dt_s];
         for i in 0..2 {
             let prior = self.estimate[i] + b_tau[i];
-            let p_minus = self.p[i] + self.params.q[i];
+            let p_minus = self.p[i] + params.q[i];
             let innovation = z[i] - prior;
-            let s = p_minus + self.params.r[i];
-            let k = channel_gain(self.params.kind, p_minus, s, innovation, self.params.rho_max[i]);
+            let s = p_minus + params.r[i];
+            let k = channel_gain(params.kind, p_minus, s, innovation, params.rho_max[i]);
             self.estimate[i] = prior + k * innovation;
-            self.p[i] = (1.0 - k) * p_minus * (1.0 - k) + k * self.params.r[i] * k;
+            self.p[i] = (1.0 - k) * p_minus * (1.0 - k) + k * params.r[i] * k;
             self.gain[i] = k;
         }
     }
@@ -139,9 +140,9 @@ mod tests {
     fn kalman_covariance_reaches_the_riccati_fixed_point() {
         // With Q = R = q the steady state solves P² + qP − q² = 0: P = q (√5 − 1)/2.
         let model = RobotParams { mass_kg: 10.0, inertia_kgm2: 5.0, wheel_radius_m: 0.05, half_axle_m: 0.2 };
-        let mut f = VelocityFilter::new(params(FilterKind::Kf), Velocity::default());
+        let mut f = VelocityFilter::new(&params(FilterKind::Kf), Velocity::default());
         for _ in 0..200 {
-            f.update(&model, Torque::default(), 1e-3, Velocity::default());
+            f.update(&params(FilterKind::Kf), &model, Torque::default(), 1e-3, Velocity::default());
         }
         let golden = (5f64.sqrt() - 1.0) / 2.0;
         assert!((f.p[0] / 1.6e-4 - golden).abs() < 1e-9, "P_v = {}", f.p[0]);
@@ -151,8 +152,8 @@ mod tests {
     #[test]
     fn none_passes_the_measurement_through() {
         let model = RobotParams { mass_kg: 10.0, inertia_kgm2: 5.0, wheel_radius_m: 0.05, half_axle_m: 0.2 };
-        let mut f = VelocityFilter::new(params(FilterKind::None), Velocity::default());
-        f.update(&model, Torque { left: 3.0, right: 1.0 }, 1e-3, Velocity::new(0.25, -0.5));
+        let mut f = VelocityFilter::new(&params(FilterKind::None), Velocity::default());
+        f.update(&params(FilterKind::None), &model, Torque { left: 3.0, right: 1.0 }, 1e-3, Velocity::new(0.25, -0.5));
         assert_eq!(f.estimate(), Velocity::new(0.25, -0.5));
     }
 
@@ -162,9 +163,9 @@ mod tests {
         // measurement equal to the prediction the update keeps the prediction.
         let model = RobotParams { mass_kg: 10.0, inertia_kgm2: 5.0, wheel_radius_m: 0.05, half_axle_m: 0.2 };
         let tau = model.acceleration_to_torque(2.0, -1.0);
-        let mut f = VelocityFilter::new(params(FilterKind::Asif), Velocity::new(1.0, 0.5));
+        let mut f = VelocityFilter::new(&params(FilterKind::Asif), Velocity::new(1.0, 0.5));
         let predicted = Velocity::new(1.0 + 2.0e-3, 0.5 - 1.0e-3);
-        f.update(&model, tau, 1e-3, predicted);
+        f.update(&params(FilterKind::Asif), &model, tau, 1e-3, predicted);
         assert!((f.estimate[0] - predicted.v).abs() < 1e-15 && (f.estimate[1] - predicted.w).abs() < 1e-15);
     }
 }

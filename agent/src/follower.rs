@@ -137,7 +137,7 @@ impl Follower {
     /// A follower at step 0 with its initial leader estimate and the robot's
     /// initial velocity ξ(0) (ζ̂(0) = ξ(0), SPEC §8). Ṗ_ir starts at zero.
     pub fn new(config: FollowerConfig, initial_estimate: LeaderState, initial_velocity: Velocity) -> Self {
-        let filter = VelocityFilter::new(config.control.filter, initial_velocity);
+        let filter = VelocityFilter::new(&config.control.filter, initial_velocity);
         let estimate = LeaderState { pose_rate: Pose::default(), ..initial_estimate };
         Self {
             config,
@@ -186,7 +186,7 @@ impl Follower {
     /// 7) at step `k`, taking its estimate from the first step that hears a
     /// source, as `adopt` does.
     pub fn resume_at(&mut self, k: u64) {
-        self.filter = VelocityFilter::new(self.config.control.filter, Velocity::default());
+        self.filter = VelocityFilter::new(&self.config.control.filter, Velocity::default());
         self.next_k = k;
         self.last_k = k.saturating_sub(1);
         self.adopt_pending = true;
@@ -236,13 +236,31 @@ impl Follower {
         I: IntoIterator<Item = &'a Message>,
         I::IntoIter: Clone,
     {
+        self.step_with_heading(pose, pose.theta.sin_cos(), z, leader, neighbours)
+    }
+
+    /// [`Follower::step`] with `heading = pose.theta.sin_cos()` already
+    /// computed (a simulated robot advancing from the same pose needs it
+    /// too): the same numbers, one sin/cos fewer.
+    pub fn step_with_heading<'a, I>(
+        &mut self,
+        pose: &Pose,
+        heading: (f64, f64),
+        z: Velocity,
+        leader: Option<&LeaderState>,
+        neighbours: I,
+    ) -> StepOutput
+    where
+        I: IntoIterator<Item = &'a Message>,
+        I::IntoIter: Clone,
+    {
         let neighbours = neighbours.into_iter();
         let cfg = &*self.config.control;
         let dt = cfg.dt_s;
         let k = self.next_k;
         if k > 0 {
             let model = cfg.filter_model_at(self.last_k);
-            self.filter.update(&model, self.last_torque, dt, z);
+            self.filter.update(&cfg.filter, &model, self.last_torque, dt, z);
         } else if cfg.filter.kind == crate::FilterKind::None {
             self.filter.estimate = [z.v, z.w];
         }
@@ -263,7 +281,7 @@ impl Follower {
         let neighbours = neighbours.filter(move |m| m.fresh || !only_fresh);
 
         // Kinematic controller (eq. 29, 35–36).
-        let body_error = kinematic::body_error(&estimate.pose, self.config.offset, pose);
+        let body_error = kinematic::body_error_with(&estimate.pose, self.config.offset, pose, heading);
         let command =
             kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, estimate.v, estimate.w);
         let command_rate = match self.last_command {

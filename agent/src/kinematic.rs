@@ -39,9 +39,14 @@ pub struct BodyError {
 /// e_x = x_ir + Δx − x, e_y = y_ir + Δy − y, e_θ = wrap(θ_ir − θ);
 /// x̂ = cos θ e_x + sin θ e_y, ŷ = −sin θ e_x + cos θ e_y, θ̂ = e_θ.
 pub fn body_error(leader_estimate: &Pose, offset: [f64; 2], pose: &Pose) -> BodyError {
+    body_error_with(leader_estimate, offset, pose, pose.theta.sin_cos())
+}
+
+/// [`body_error`] with `pose.theta.sin_cos()` already computed (the
+/// simulator's robot needs it too; same numbers).
+pub fn body_error_with(leader_estimate: &Pose, offset: [f64; 2], pose: &Pose, (s, c): (f64, f64)) -> BodyError {
     let ex = leader_estimate.x + offset[0] - pose.x;
     let ey = leader_estimate.y + offset[1] - pose.y;
-    let (s, c) = pose.theta.sin_cos();
     BodyError { x: c * ex + s * ey, y: -s * ex + c * ey, theta: wrap(leader_estimate.theta - pose.theta) }
 }
 

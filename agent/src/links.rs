@@ -85,6 +85,11 @@ impl LinkLoss {
     }
 
     /// No fault ever covers this link.
+    /// Bytes this link's loss table holds on the heap.
+    pub fn heap_bytes(&self) -> usize {
+        self.segments.capacity() * std::mem::size_of::<Segment>()
+    }
+
     pub fn is_empty(&self) -> bool {
         self.segments.is_empty()
     }
@@ -163,6 +168,11 @@ impl Hearing {
             Some((s, msg)) if *s <= k && k - s <= self.timeout_steps => Some(msg),
             _ => None,
         }
+    }
+
+    /// Bytes this holds on the heap.
+    pub fn heap_bytes(&self) -> usize {
+        self.last.capacity() * std::mem::size_of::<Option<(u64, Message)>>()
     }
 
     pub fn sources(&self) -> usize {

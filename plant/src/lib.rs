@@ -189,8 +189,12 @@ impl Robot {
     /// The true accelerations under torque τ at time t (eq. 4):
     /// v̇ = (τ_R + τ_L)/(m r) + d_1/m, ω̇ = c (τ_R − τ_L)/(I r) + d_2/I.
     pub fn acceleration(&self, tau: Torque, t_s: f64) -> Velocity {
+        self.acceleration_with(tau, self.disturbance.at(t_s))
+    }
+
+    /// [`Robot::acceleration`] with the disturbance (d_1, d_2) at t given.
+    pub fn acceleration_with(&self, tau: Torque, (d1, d2): (f64, f64)) -> Velocity {
         let a = self.params.torque_to_acceleration(tau);
-        let (d1, d2) = self.disturbance.at(t_s);
         Velocity::new(a.v + d1 / self.params.mass_kg, a.w + d2 / self.params.inertia_kgm2)
     }
 
@@ -198,9 +202,23 @@ impl Robot {
     /// with ξ(k) (eq. 3), then ξ(k+1) = ξ(k) + Δt·(accelerations at k) + α_k
     /// (eq. 55). Returns the measurement z(k+1) = ξ(k+1) + β (eq. 56).
     pub fn advance(&mut self, tau: Torque, t_s: f64, dt_s: f64, noise: NoiseDraw) -> Velocity {
+        self.advance_with(tau, self.pose.theta.sin_cos(), self.disturbance.at(t_s), dt_s, noise)
+    }
+
+    /// [`Robot::advance`] with `heading = self.pose.theta.sin_cos()` and the
+    /// disturbance `self.disturbance.at(t)` already computed (a simulator
+    /// computes the disturbance once per step for all robots and shares the
+    /// heading with the controller's body-frame error): the same numbers.
+    pub fn advance_with(
+        &mut self,
+        tau: Torque,
+        (s, c): (f64, f64),
+        disturbance: (f64, f64),
+        dt_s: f64,
+        noise: NoiseDraw,
+    ) -> Velocity {
         let Velocity { v, w } = self.velocity;
-        let (s, c) = self.pose.theta.sin_cos();
-        let acc = self.acceleration(tau, t_s);
+        let acc = self.acceleration_with(tau, disturbance);
         self.pose.x += dt_s * v * c;
         self.pose.y += dt_s * v * s;
         self.pose.theta += dt_s * w;
@@ -239,6 +257,21 @@ mod tests {
         }
         assert!((robot.velocity.v - 0.5).abs() < 1e-12, "v = {}", robot.velocity.v);
         assert!((robot.velocity.w + 0.25).abs() < 1e-12, "ω = {}", robot.velocity.w);
+    }
+
+    #[test]
+    fn advance_with_precomputed_trig_is_advance() {
+        let d = Disturbance { linear_n: 0.5, angular_nm: -0.25 };
+        let start = Robot::new(PAPER, d, Pose::new(1.0, -2.0, 0.7), Velocity::new(0.3, -0.1));
+        let noise = NoiseDraw { process: Velocity::new(1e-3, -2e-3), measurement: Velocity::new(3e-3, 4e-3) };
+        let tau = Torque { left: 0.4, right: -0.2 };
+        let (mut a, mut b) = (start.clone(), start);
+        for k in 0..100 {
+            let t = k as f64 * 1e-3;
+            let za = a.advance(tau, t, 1e-3, noise);
+            let zb = b.advance_with(tau, b.pose.theta.sin_cos(), d.at(t), 1e-3, noise);
+            assert_eq!((za, a.pose, a.velocity), (zb, b.pose, b.velocity));
+        }
     }
 
     #[test]
