@@ -84,12 +84,12 @@ impl LinkLoss {
         Self { segments: Vec::new(), rng: ChaCha8Rng::seed_from_u64(0), cursor: 0 }
     }
 
-    /// No fault ever covers this link.
     /// Bytes this link's loss table holds on the heap.
     pub fn heap_bytes(&self) -> usize {
         self.segments.capacity() * std::mem::size_of::<Segment>()
     }
 
+    /// No fault ever covers this link.
     pub fn is_empty(&self) -> bool {
         self.segments.is_empty()
     }
