@@ -45,6 +45,8 @@ struct Run {
     out: std::path::PathBuf,
     summary: serde_json::Value,
     network: serde_json::Value,
+    /// The machine during the run: (% stolen by the host, % used by others).
+    host: (f64, f64),
 }
 
 fn lab(tag: &str, sets: &[&str], extra: &[&str]) -> Run {
@@ -61,9 +63,11 @@ fn lab_on(base: &[&str], tag: &str, sets: &[&str], extra: &[&str]) -> Run {
         args.extend(["--set", s]);
     }
     args.extend_from_slice(extra);
+    let before = common::Host::now();
     let mut g = Group::spawn(&args);
     let pid = g.0.id();
     let status = g.wait(LIMIT);
+    let host = common::Host::now().since(&before);
     // Nothing of this lab may be left: no namespace named after its pid.
     let list = Command::new("ip").args(["netns", "list"]).output().expect("ip netns list");
     let left: Vec<String> = String::from_utf8_lossy(&list.stdout)
@@ -75,7 +79,7 @@ fn lab_on(base: &[&str], tag: &str, sets: &[&str], extra: &[&str]) -> Run {
     assert!(status.success(), "{tag}: formation lab failed: {status}");
     let summary = common::json(&out, "summary.json");
     let network = common::json(&out, "network.json");
-    Run { _dir: dir, out, summary, network }
+    Run { _dir: dir, out, summary, network, host }
 }
 
 fn sim(sets: &[&str]) -> serde_json::Value {
@@ -122,7 +126,12 @@ fn estimator_error(r: &Run, id: &str) -> Vec<(f64, f64)> {
 
 /// Column `name` of follower `id`'s CSV per row: (t, value).
 fn column(r: &Run, id: &str, name: &str) -> Vec<(f64, f64)> {
-    let text = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv");
+    csv_column(&r.out, id, name)
+}
+
+/// Column `name` of `follower_{id}.csv` in the run folder `dir`: (t, value).
+fn csv_column(dir: &std::path::Path, id: &str, name: &str) -> Vec<(f64, f64)> {
+    let text = std::fs::read_to_string(dir.join(format!("follower_{id}.csv"))).expect("csv");
     let mut lines = text.lines();
     let head: Vec<&str> = lines.next().expect("header").split(',').collect();
     let col = head.iter().position(|h| *h == name).expect("column");
@@ -150,6 +159,27 @@ fn recovered_at(e: &[(f64, f64)], from: f64) -> Option<f64> {
     None
 }
 
+/// Source-steps that had to use a message older than the modelled delay
+/// allows: where the run left the modelled system (a sender late by more
+/// than the delay). A busy machine makes them; the numbers say how many.
+fn older_messages(r: &Run) -> String {
+    let (mut older, mut used) = (0.0, 0.0);
+    for id in IDS {
+        let node = &r.network["nodes"][id];
+        older += num(&node["older"]);
+        used += num(&node["received"]).max(1.0);
+    }
+    format!(
+        "{older} of about {used} source-steps used a message older than the modelled delay ({:.2} %)",
+        100.0 * older / used
+    )
+}
+
+/// Follower `id`'s peak estimator error from 5 s on, and when: (m, s).
+fn peak_from_5_s(e: &[(f64, f64)]) -> (f64, f64) {
+    e.iter().filter(|(t, _)| *t >= 5.0).fold((0.0, 0.0), |m, &(t, x)| if x > m.0 { (x, t) } else { m })
+}
+
 /// The fault-free lab; `timely` also compares it with the simulator: no
 /// source silent after 100 ms, formation error and torque variation within
 /// 10 % (judged when the host was quiet during the run).
@@ -163,27 +193,10 @@ fn fault_free(tag: &str, timely: bool) {
     // predicts (without it, each step mixes step-k and step-(k−1) messages
     // as they happen to arrive: torque variation 12 % above the simulator's).
     let delay: &[&str] = if timely { &["network.delay_steps=5"] } else { &[] };
-    let before = common::cpu_steal();
     let r = lab(tag, delay, &[]);
-    let after = common::cpu_steal();
-    let steal = 100.0 * (after.0 - before.0) as f64 / (after.1 - before.1).max(1) as f64;
     every_step_recorded("fault-free", &r);
     let s = sim(delay);
-    // Source-steps that had to use a message older than the modelled delay:
-    // the run left the modelled system there (a sender late by more than
-    // 5 ms). The host's CPU steal makes them; the numbers say how many.
-    let (mut older, mut used) = (0.0, 0.0);
-    for id in IDS {
-        let node = &r.network["nodes"][id];
-        older += num(&node["older"]);
-        used += num(&node["received"]).max(1.0);
-    }
-    let older_share = older / used;
-    let context = format!(
-        "{older} of about {used} source-steps used a message older than the modelled delay ({:.2} %), \
-         the host stole {steal:.1} % of the CPU during the run",
-        100.0 * older_share
-    );
+    let context = older_messages(&r);
     // What the run should show: judged on a quiet host, printed otherwise.
     let mut wrong: Vec<String> = Vec::new();
     for id in IDS {
@@ -204,24 +217,16 @@ fn fault_free(tag: &str, timely: bool) {
             }
         }
     }
-    if !timely || wrong.is_empty() {
-        return;
+    if timely {
+        // A host that takes the CPU away for milliseconds at a time makes
+        // senders late by more than the modelled delay, whatever the network
+        // code does (measured: 4,500 older source-steps of 60,000 and torque
+        // variation 20–46 % above the simulator's while the host stole 14–47 %;
+        // at 31 % sources fell silent). There the test names what it saw and
+        // does not judge; on a quiet machine a difference is the network code's.
+        common::judge_if_quiet("fault-free lab", &wrong, r.host, &context);
     }
-    // A host that takes the CPU away for milliseconds at a time makes
-    // senders late by more than the modelled delay, whatever the network
-    // code does (measured: 4,500 older source-steps of 60,000 and torque
-    // variation 20–46 % above the simulator's while the host stole 14–47 %;
-    // at 31 % sources fell silent). There the test names what it saw and does
-    // not judge; on a quiet host a difference is the network code's.
-    let judged = steal <= QUIET_STEAL_PERCENT;
-    let verdict = format!("{}; {context}", wrong.join("; "));
-    assert!(!judged, "{verdict}");
-    eprintln!("fault-free lab: not judged (the host stole more than {QUIET_STEAL_PERCENT} % of the CPU): {verdict}");
 }
-
-/// The CPU share a host may steal during a real-time run that is judged
-/// against the simulator.
-const QUIET_STEAL_PERCENT: f64 = 3.0;
 
 #[test]
 fn fault_free_clients_through_a_router_record_every_step() {
@@ -235,48 +240,101 @@ fn fault_free_clients_through_a_router_match_the_simulator() {
     fault_free("lab-free-timely", true);
 }
 
-/// Follower 3's link down for 3 s: the others do not notice, follower 3
-/// recovers as the simulator predicts, and the record is whole.
-fn follower_3_cut_off(tag: &str, mode: &str) {
+/// Follower 3's link down for 3 s (8-11 s) with `rejoin` (SPEC §14): the
+/// lab run, the simulator's folder for the same outage, and what differs
+/// from the model. The record and the exit statuses are judged always.
+fn follower_3_cut_off(tag: &str, mode: &str, rejoin: &str) -> Option<CutOff> {
     let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
     if !lab_available() {
-        return;
+        return None;
     }
-    let fault = "faults+={node=3, from=8, to=11}";
-    let r = lab(tag, &[fault], &["--mode", mode]);
+    let sets = ["faults+={node=3, from=8, to=11}", rejoin];
+    let r = lab(tag, &sets, &["--mode", mode]);
     every_step_recorded(tag, &r);
-    let s = sim(&[fault]);
-    let (lab3, sim3) = (&r.summary["faults"][0]["followers"]["3"], &s["faults"][0]["followers"]["3"]);
+    let (_dir, sim_dir) = sim_on(&BASE, &sets);
+    let s = common::json(&sim_dir, "summary.json");
+    let mut others = Vec::new();
     for id in ["1", "2", "4"] {
-        let peak = estimator_error(&r, id).iter().filter(|(t, _)| *t >= 5.0).map(|e| e.1).fold(0.0, f64::max);
-        assert!(peak < 0.02, "{tag}: follower {id}'s estimator error reached {peak:.4} m (from 5 s on)");
+        let (peak, at) = peak_from_5_s(&estimator_error(&r, id));
+        let (sim_peak, sim_at) = peak_from_5_s(&csv_column(&sim_dir, id, "estimator_error"));
+        eprintln!(
+            "{tag}: follower {id}'s peak estimator error {peak:.4} m at {at:.3} s (simulator {sim_peak:.4} m at \
+             {sim_at:.3} s)"
+        );
+        if peak >= 0.02 {
+            others.push(format!(
+                "follower {id}'s estimator error reached {peak:.4} m at t = {at:.3} s (0.02 allowed; simulator \
+                 {sim_peak:.4} m at {sim_at:.3} s)"
+            ));
+        }
     }
+    let (lab3, sim3) = (&r.summary["faults"][0]["followers"]["3"], &s["faults"][0]["followers"]["3"]);
     let (rl, rs) = (num(&lab3["recovery_s"]), num(&sim3["recovery_s"]));
     let (pl, ps) = (num(&lab3["peak_estimator_error"]), num(&sim3["peak_estimator_error"]));
     eprintln!("{tag}: follower 3 recovery {rl} s (sim {rs} s), peak estimator error {pl:.3} m (sim {ps:.3} m)");
-    assert!(rl <= rs + 0.5, "{tag}: follower 3 recovered in {rl} s, simulator {rs} s (+0.5 s allowed)");
-    assert!((rl / rs - 1.0).abs() <= 0.25, "{tag}: recovery {rl} s vs simulated {rs} s: more than 25 % apart");
-    assert!(
-        (pl / ps - 1.0).abs() <= 0.25,
-        "{tag}: peak estimator error {pl} m vs simulated {ps} m: more than 25 % apart"
-    );
+    let mut three = Vec::new();
+    let in_time = rl <= rs + 0.5;
+    if !in_time {
+        three.push(format!("follower 3 recovered in {rl} s, simulator {rs} s (+0.5 s allowed)"));
+    }
+    if rejoin.ends_with("consensus") {
+        // The same outage as the simulator predicts it (the issue's 25 %).
+        let (recovery_near, peak_near) = ((rl / rs - 1.0).abs() <= 0.25, (pl / ps - 1.0).abs() <= 0.25);
+        if !recovery_near {
+            three.push(format!("follower 3's recovery {rl} s vs simulated {rs} s: more than 25 % apart"));
+        }
+        if !peak_near {
+            three.push(format!("follower 3's peak estimator error {pl} m vs simulated {ps} m: more than 25 % apart"));
+        }
+    }
+    Some(CutOff { r, others, three })
+}
+
+/// What [`follower_3_cut_off`] found unlike the model: about the others and
+/// about follower 3.
+struct CutOff {
+    r: Run,
+    others: Vec<String>,
+    three: Vec<String>,
+}
+
+/// The issue's cut-off, judged (on a quiet machine) as asked: the others
+/// below 0.02 m throughout and follower 3 recovered no later than the
+/// simulator predicts plus 0.5 s. With `adopt` (SPEC §14): follower 3
+/// rejoins at once and its drifted estimate is kept out of the others' sums.
+/// Measured on a quiet machine: the others' peaks 0.006-0.009 m (the
+/// fault-free run's, at t = 13.3 s), follower 3 back 0.12 s after its link.
+fn cut_off_others_unaffected(tag: &str, mode: &str) {
+    if let Some(c) = follower_3_cut_off(tag, mode, "network.rejoin=adopt") {
+        let wrong = [c.others, c.three].concat();
+        common::judge_if_quiet(tag, &wrong, c.r.host, &older_messages(&c.r));
+    }
 }
 
 #[test]
-#[ignore = "flaky as of 2026-11-22 (noisy 2-core VM, 25-30 % CPU steal): the others' peak estimator error was \
-            0.015-0.023 m over 3 runs against 0.02 asked (simulator 0.011-0.018 m), follower 3 recovered 0.3-0.7 s \
-            later than simulated (it reconnects about 0.18 s after the link is back); issue 9. The simulator itself \
-            puts the others above 0.02 m with a communication delay of one step (0.041 m; 0.131 m with 5 steps, \
-            where follower 3 never gets below 0.02 m): the bound holds only for same-step delivery"]
 fn follower_3_cut_off_for_3_s_as_a_client() {
-    follower_3_cut_off("lab-cut-client", "client");
+    cut_off_others_unaffected("lab-cut-client", "client");
 }
 
 #[test]
-#[ignore = "flaky as of 2026-11-22 (noisy 2-core VM): the others' peak estimator error was 0.015-0.027 m over \
-            3 runs against 0.02 asked (simulator 0.011-0.018 m; with a one-step delay 0.041 m); issue 9"]
 fn follower_3_cut_off_for_3_s_as_a_peer() {
-    follower_3_cut_off("lab-cut-peer", "peer");
+    cut_off_others_unaffected("lab-cut-peer", "peer");
+}
+
+/// The real-time run agrees with the simulator's prediction of the same
+/// outage under the paper's law (`consensus`, the default): follower 3's
+/// peak estimator error and recovery time within 25 % (judged on a quiet
+/// machine). The others' peaks are printed, not judged here: under
+/// `consensus` follower 3's drifted estimate pulls them (simulator 0.011,
+/// 0.015 and 0.018 m), and how hard depends on which step's message each
+/// neighbour uses in the first steps after the rejoin (the estimator's
+/// sign terms alternate step by step): measured 0.010-0.028 m over 7 runs.
+#[test]
+fn follower_3_cut_off_as_the_simulator_predicts() {
+    let tag = "lab-cut-model";
+    if let Some(c) = follower_3_cut_off(tag, "client", "network.rejoin=consensus") {
+        common::judge_if_quiet(tag, &c.three, c.r.host, &older_messages(&c.r));
+    }
 }
 
 /// The router killed at 8 s for 3 s: the restart time and the run.
@@ -439,20 +497,24 @@ fn an_agent_killed_and_restarted_rejoins_the_running_formation() {
     restarted("lab-restart");
 }
 
+/// Measured on a quiet machine: 0.0059, 0.0080 and 0.0088 m (the peaks of the
+/// fault-free run, at t = 13.3 s); 0.024 m in two runs on a busy one.
 #[test]
-#[ignore = "flaky as of 2026-11-22 on a noisy 2-core VM: with agent 3 restarted, the others' estimator error \
-            reached 0.0246 m (follower 1) and 0.0240 m (follower 2) in two test-profile runs (0.006-0.009 m in \
-            release runs; the simulator predicts 0.011-0.018 m for a 3 s silence of follower 3); 0.02 asked; issue 10"]
 fn an_agent_killed_and_restarted_goes_unnoticed_by_the_others() {
     let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
     if !lab_available() {
         return;
     }
     let r = restarted("lab-restart-others");
+    let mut wrong = Vec::new();
     for id in ["1", "2", "4"] {
-        let peak = estimator_error(&r, id).iter().filter(|(t, _)| *t >= 5.0).map(|e| e.1).fold(0.0, f64::max);
-        assert!(peak < 0.02, "follower {id}'s estimator error reached {peak:.4} m (from 5 s on)");
+        let (peak, at) = peak_from_5_s(&estimator_error(&r, id));
+        eprintln!("restart: follower {id}'s peak estimator error {peak:.4} m at {at:.3} s");
+        if peak >= 0.02 {
+            wrong.push(format!("follower {id}'s estimator error reached {peak:.4} m at t = {at:.3} s (0.02 allowed)"));
+        }
     }
+    common::judge_if_quiet("agent 3 restarted", &wrong, r.host, &older_messages(&r));
 }
 
 /// The lab run of the restart tests, with its own checks.

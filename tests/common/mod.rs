@@ -170,8 +170,66 @@ pub fn unlike_the_simulator(
 /// The machine's CPU time so far as (stolen by the host, total), in clock
 /// ticks (`/proc/stat`): a real-time test names the share stolen during it.
 pub fn cpu_steal() -> (u64, u64) {
-    let stat = std::fs::read_to_string("/proc/stat").unwrap_or_default();
-    let f: Vec<u64> =
-        stat.lines().next().unwrap_or("").split_whitespace().skip(1).filter_map(|x| x.parse().ok()).collect();
-    (f.get(7).copied().unwrap_or(0), f.iter().take(8).sum())
+    let s = Host::now();
+    (s.steal, s.total)
+}
+
+/// What a real-time run shares the machine with, measured over the run:
+/// the CPU the host stole, and the CPU that processes other than this test
+/// and the children it waited for (the run's nodes) used. A run is compared
+/// with the simulator's timing-free model only on a quiet machine: anything
+/// else that holds a core for milliseconds makes senders late by more than
+/// the model allows, whatever the network code does.
+#[derive(Clone, Copy, Debug)]
+pub struct Host {
+    steal: u64,
+    busy: u64,
+    total: u64,
+    ours: u64,
+}
+
+impl Host {
+    /// The counters now (clock ticks).
+    pub fn now() -> Self {
+        let stat = std::fs::read_to_string("/proc/stat").unwrap_or_default();
+        let f: Vec<u64> =
+            stat.lines().next().unwrap_or("").split_whitespace().skip(1).filter_map(|x| x.parse().ok()).collect();
+        let at = |i: usize| f.get(i).copied().unwrap_or(0);
+        // user nice system idle iowait irq softirq steal
+        let busy = at(0) + at(1) + at(2) + at(5) + at(6);
+        // This process and its waited-for children: utime stime cutime cstime.
+        let me = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+        let after = me.rsplit_once(')').map_or("", |(_, r)| r);
+        let g: Vec<&str> = after.split_whitespace().collect();
+        // Fields 14-17 of the file (utime stime cutime cstime): 11-14 after the name.
+        let ours = (11..15).map(|i| g.get(i).and_then(|x| x.parse::<u64>().ok()).unwrap_or(0)).sum();
+        Self { steal: at(7), busy, total: f.iter().take(8).sum(), ours }
+    }
+
+    /// Since `before`: (share of the CPU stolen, share used by others), in %.
+    pub fn since(&self, before: &Host) -> (f64, f64) {
+        let total = self.total.saturating_sub(before.total).max(1) as f64;
+        let others = self.busy.saturating_sub(before.busy).saturating_sub(self.ours.saturating_sub(before.ours));
+        (100.0 * self.steal.saturating_sub(before.steal) as f64 / total, 100.0 * others as f64 / total)
+    }
+}
+
+/// Stolen and foreign CPU shares (%) a real-time run may share the machine
+/// with and still be judged against the simulator.
+pub const QUIET: (f64, f64) = (3.0, 10.0);
+
+/// The verdict of a real-time comparison with the model: `wrong` fails the
+/// test on a quiet machine; on a busy one it is printed with what the
+/// machine did, and not judged.
+pub fn judge_if_quiet(tag: &str, wrong: &[String], host: (f64, f64), context: &str) {
+    if wrong.is_empty() {
+        return;
+    }
+    let machine = format!("the host stole {:.1} % of the CPU and other processes used {:.1} %", host.0, host.1);
+    let verdict = format!("{tag}: {}; {context}; {machine}", wrong.join("; "));
+    assert!(host.0 > QUIET.0 || host.1 > QUIET.1, "{verdict}");
+    eprintln!(
+        "{tag}: not judged against the model (more than {} % stolen or {} % used by others): {verdict}",
+        QUIET.0, QUIET.1
+    );
 }
