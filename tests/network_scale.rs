@@ -70,7 +70,8 @@ fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
 /// running). On this project's VM it passes when the host steals no CPU
 /// and fails when it steals 6–30 % (the failure message says how much).
 #[test]
-#[ignore = "needs a quiet machine: 52 processes at 100 Hz (measured: see issue 12's note)"]
+/// Compared with the model on a quiet machine only (see
+/// [`common::judge_if_quiet`]): 52 processes at 100 Hz on 2 cores.
 fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let dir = tempfile::tempdir().expect("tempdir");
     let scenario = dir.path().join("ring50.toml");
@@ -88,11 +89,10 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     for s in sets {
         args.extend(["--set", s]);
     }
-    let before = common::cpu_steal();
+    let before = common::Host::now();
     let mut g = Group::spawn(&args);
     let status = g.wait(std::time::Duration::from_secs(120));
-    let after = common::cpu_steal();
-    let stolen = 100.0 * (after.0 - before.0) as f64 / (after.1 - before.1).max(1) as f64;
+    let host = common::Host::now().since(&before);
     assert!(status.success(), "formation launch with 50 agents failed: {status}");
     g.assert_group_empty();
     let sim = dir.path().join("sim");
@@ -105,9 +105,5 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let (got, want, network) =
         (common::json(&net, "summary.json"), common::json(&sim, "summary.json"), common::json(&net, "network.json"));
     let bad = common::unlike_the_simulator(&got, &want, &network, 0.10);
-    assert!(
-        bad.is_empty(),
-        "50 agents in real time are not the simulator's (10 %), with {stolen:.0} % of the CPU stolen by the host:\n{}",
-        bad.join("\n")
-    );
+    common::judge_if_quiet("50 agents in real time, against the simulator (10 %)", &bad, host, "at 100 Hz");
 }

@@ -167,13 +167,6 @@ pub fn unlike_the_simulator(
     bad
 }
 
-/// The machine's CPU time so far as (stolen by the host, total), in clock
-/// ticks (`/proc/stat`): a real-time test names the share stolen during it.
-pub fn cpu_steal() -> (u64, u64) {
-    let s = Host::now();
-    (s.steal, s.total)
-}
-
 /// What a real-time run shares the machine with, measured over the run:
 /// the CPU the host stole, and the CPU that processes other than this test
 /// and the children it waited for (the run's nodes) used. A run is compared
