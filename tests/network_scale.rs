@@ -65,13 +65,11 @@ fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
 /// Issue 12's real-time goal: 50 agents at 100 Hz behave like the
 /// simulator with the same one-step communication delay — formation
 /// metrics and torque variation within 10 %, no source silent after the
-/// first second. Ignored: it needs a quiet machine (52 processes at 100 Hz
-/// on two cores; run it with `--release -- --ignored` and nothing else
-/// running). On this project's VM it passes when the host steals no CPU
-/// and fails when it steals 6–30 % (the failure message says how much).
+/// first second. Judged against the simulator on a quiet machine only (52
+/// processes at 100 Hz on two cores; see [`common::judge_if_quiet`]): on
+/// this project's VM it passes when the host steals no CPU and failed when
+/// it stole 6–30 %; the message says what the machine did.
 #[test]
-/// Compared with the model on a quiet machine only (see
-/// [`common::judge_if_quiet`]): 52 processes at 100 Hz on 2 cores.
 fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let dir = tempfile::tempdir().expect("tempdir");
     let scenario = dir.path().join("ring50.toml");

@@ -11,6 +11,14 @@
 //!    inbox path) next to a plain zenoh ping-pong of the same size, measured
 //!    interleaved between the same two peer sessions over loopback TCP.
 //! 4. The time to open a client session to a listening peer (the handshake).
+//! 5. Scale (`--agents 50,100`): generated rings (n/5 chords, as `formation
+//!    bench`) as clients of one router — the topology that scales (N links,
+//!    where a peer mesh needs N(N−1)/2): lock-step steps/s (two runs, the
+//!    difference), start-up (monitor start to every node ready, from
+//!    network.json) and, at 100 Hz in real time, the CPU seconds every
+//!    process of the run used per agent and per simulated second (the
+//!    router, leader and monitor included: their share is the cost of
+//!    scale too), with the silent source-steps.
 //!
 //! With `--tls DIR` every figure is measured twice, over plain TCP and over
 //! mutual TLS with access control, and printed side by side.
@@ -55,6 +63,14 @@ pub struct BenchNetArgs {
     /// `formation certs SCENARIO --out DIR`), side by side with plain TCP.
     #[arg(long, value_name = "DIR")]
     pub tls: Option<PathBuf>,
+    /// Scale: also run generated rings of these many agents (n/5 chords) as
+    /// clients of one router: lock-step steps/s, start-up, CPU per agent in
+    /// real time at 100 Hz. Empty (`--agents ''`) skips it.
+    #[arg(long, value_delimiter = ',', default_value = "50,100")]
+    pub agents: Vec<u32>,
+    /// Scale: run seconds of the real-time run at 100 Hz.
+    #[arg(long, default_value_t = 5.0)]
+    pub scale_realtime_duration: f64,
 }
 
 fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: &str) -> LaunchArgs {
@@ -110,6 +126,9 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     Simulation::new(&sim_s).run(&mut NoRecord, |_| {}).map_err(|e| Error::Run(e.to_string()))?;
     let sim_rate = sim_s.steps() as f64 / t.elapsed().as_secs_f64();
 
+    for &n in &a.agents {
+        crate::cli::at_least_one("--agents", u64::from(n))?;
+    }
     let mut tcp = measure(a, &scenario, None, a.base_port)?;
     let mut tls = a.tls.as_deref().map(|d| measure(a, &scenario, Some(d), a.base_port + 50)).transpose()?;
     match (&mut tls, a.tls.as_deref()) {
@@ -134,6 +153,34 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     row("one-hop plain zenoh latency p50/p99 µs", &|f| format!("{:.1} / {:.1}", f.plain.0, f.plain.1));
     row("opening a client session (handshake) ms", &|f| format!("{:.2}", f.open_ms));
     println!("in-process simulator, same scenario: {sim_rate:.0} steps/s");
+    if !a.agents.is_empty() {
+        let rows: Vec<Scale> = a
+            .agents
+            .iter()
+            .enumerate()
+            .map(|(i, &n)| scale(a, n, a.base_port + 100 + 20 * i as u16))
+            .collect::<Result<_, _>>()?;
+        println!("scale: generated rings (n/5 chords), clients of one router, plain TCP, on this machine");
+        println!(
+            "  {:>6} {:>12} {:>18} {:>16} {:>26} {:>8}",
+            "agents", "start-up s", "lock-step steps/s", "(wall s, runs)", "real time 100 Hz: CPU s", "silent"
+        );
+        for r in rows {
+            println!(
+                "  {:>6} {:>12.2} {:>18.0} {:>16} {:>26} {:>8}",
+                r.agents,
+                r.startup_s,
+                r.rate,
+                format!("{:.1} / {:.1}", r.t_short, r.t_long),
+                format!("{:.4} per agent and run-s", r.cpu_per_agent_s),
+                r.silent
+            );
+        }
+        println!(
+            "  (CPU: every process of the run — agents, leader, monitor, router — over the agents and the run \
+             seconds; silent: source-steps counted silent)"
+        );
+    }
     if let Some(t) = &tls {
         println!(
             "tls / tcp: latency p50 {:.2}, p99 {:.2}; lock-step rate {:.2}; session open {:.1}x",
@@ -200,6 +247,72 @@ fn measure(
     let _ = std::fs::remove_dir_all(&tmp);
     let nan = (f64::NAN, f64::NAN);
     Ok(Figures { net_rate, t_short, t_long, period, silent, estimate: nan, plain: nan, open_ms: f64::NAN })
+}
+
+/// One row of the scale table.
+struct Scale {
+    agents: u32,
+    startup_s: f64,
+    rate: f64,
+    t_short: f64,
+    t_long: f64,
+    cpu_per_agent_s: f64,
+    silent: u64,
+}
+
+/// CPU seconds (user + system) of this process's waited-for children so far.
+fn children_cpu_s() -> f64 {
+    // SAFETY: getrusage writes into the struct it is given, nothing else.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut u) } != 0 {
+        return f64::NAN;
+    }
+    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    s(u.ru_utime) + s(u.ru_stime)
+}
+
+/// `n` agents on a generated ring as clients of one router, ports from `port`.
+fn scale(a: &BenchNetArgs, n: u32, port: u16) -> Result<Scale, Error> {
+    let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-scale{n}", std::process::id()));
+    std::fs::create_dir_all(&tmp).map_err(|e| Error::Run(format!("{}: {e}", tmp.display())))?;
+    let spec = formation_topology::generate::Spec {
+        chords: n / 5,
+        ..formation_topology::generate::Spec::new(n, formation_topology::generate::GraphKind::Ring)
+    };
+    let text = formation_topology::generate::toml(&spec).map_err(|e| Error::Input(e.to_string()))?;
+    let file = tmp.join(format!("ring{n}.toml"));
+    std::fs::write(&file, text).map_err(|e| Error::Run(format!("{}: {e}", file.display())))?;
+    let launch = |sets: Vec<String>, p: u16, out: &str, run: &str| {
+        let mut l = launch_args(&BenchNetArgs { scenario: file.clone(), ..a.clone() }, &sets, p, tmp.join(out), run);
+        l.mode = LaunchMode::Client;
+        l
+    };
+    let wall = |out: &str| -> Result<serde_json::Value, Error> {
+        std::fs::read_to_string(tmp.join(out).join("network.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .ok_or_else(|| Error::Run(format!("reading the {n}-agent run's network.json")))
+    };
+    eprintln!("bench-net (scale): {n} agents, lock-step …");
+    // Lock-step: 200 and 1,200 steps at Δt = 1 ms; the difference is the stepping.
+    let (short, long) = (0.2, 1.2);
+    let t_short = timed_launch(&launch(lockstep_sets(short), port, "short", &format!("bench-s{n}a")))?;
+    let t_long = timed_launch(&launch(lockstep_sets(long), port + 5, "long", &format!("bench-s{n}b")))?;
+    let rate = ((long - short) / 0.001_f64).round() / (t_long - t_short).max(1e-9);
+    let startup_s = wall("long")?["wall"]["startup_s"].as_f64().unwrap_or(f64::NAN);
+    eprintln!("bench-net (scale): {n} agents, real time at 100 Hz …");
+    let d = a.scale_realtime_duration;
+    let sets =
+        vec![format!("duration={d}"), "timing=realtime".into(), "dt=0.01".into(), "network.delay_steps=1".into()];
+    let mut l = launch(sets, port + 10, "rt", &format!("bench-s{n}c"));
+    l.opts.time_scale = Some(1.0);
+    let cpu0 = children_cpu_s();
+    crate::launch::run(&l)?;
+    let cpu = children_cpu_s() - cpu0;
+    let net = wall("rt")?;
+    let silent = net["nodes"].as_object().map_or(0, |m| m.values().map(|v| v["silent"].as_u64().unwrap_or(0)).sum());
+    let _ = std::fs::remove_dir_all(&tmp);
+    Ok(Scale { agents: n, startup_s, rate, t_short, t_long, cpu_per_agent_s: cpu / f64::from(n) / d, silent })
 }
 
 /// Latency and session opening, the transports alternating over `ROUNDS`

@@ -13,6 +13,8 @@
 //
 #[cfg(all(feature = "uring", target_os = "linux"))]
 use std::os::fd::RawFd;
+#[cfg(target_family = "unix")]
+use std::os::fd::{AsFd, OwnedFd};
 use std::{
     convert::TryInto,
     fmt::{self, Debug},
@@ -53,6 +55,15 @@ use crate::{
 #[derive(Default, Debug, PartialEq, Eq, Hash)]
 pub struct TlsCommonName(String);
 
+// PATCHED (formation): bound on the graceful part of `close` (flush, then
+// close_notify and FIN). zenoh awaits a link's close before it removes the
+// transport (TransportUnicastUniversal::del_link -> delete), so a close that
+// waits on a peer that no longer reads (full send buffer, zero window: TCP
+// never times that out) keeps a dead transport registered, and a reconnecting
+// peer is attached to it (stale RX sequence numbers). zenoh's TCP link close
+// is a bare shutdown and never waits.
+const TLS_CLOSE_TIMEOUT: Duration = Duration::from_secs(1);
+
 pub struct LinkUnicastTls {
     // The underlying socket as returned from the async-rustls library, split
     // with tokio::io::split, which locks the stream for every poll of either
@@ -64,6 +75,12 @@ pub struct LinkUnicastTls {
     // rustls::Error::clone within a second of a 4-follower run).
     reader: AsyncMutex<ReadHalf<TlsStream<TcpStream>>>,
     writer: AsyncMutex<WriteHalf<TlsStream<TcpStream>>>,
+    // A duplicate of the TCP socket's descriptor (the split halves do not
+    // give the stream back): `close` shuts the socket down through it when
+    // the graceful close cannot finish, which also wakes any read or write
+    // still pending on the socket with an error.
+    #[cfg(target_family = "unix")]
+    sock: Option<OwnedFd>,
     // The source socket address of this link (address used on the local host)
     src_addr: SocketAddr,
     src_locator: Locator,
@@ -131,11 +148,16 @@ impl LinkUnicastTls {
             mtu = (mtu as u32).min(tgt) as BatchSize;
         }
 
+        #[cfg(target_family = "unix")]
+        let sock = tcp_stream.as_fd().try_clone_to_owned().ok();
+
         // Build the Tls object
         let (reader, writer) = tokio::io::split(socket);
         LinkUnicastTls {
             reader: AsyncMutex::new(reader),
             writer: AsyncMutex::new(writer),
+            #[cfg(target_family = "unix")]
+            sock,
             src_addr,
             src_locator: Locator::new(TLS_LOCATOR_PREFIX, src_addr.to_string(), "").unwrap(),
             dst_addr,
@@ -149,12 +171,34 @@ impl LinkUnicastTls {
     async fn close(&self) -> ZResult<()> {
         tracing::trace!("Closing TLS link: {}", self);
         // Flush the TLS stream, send close_notify and shut the TCP stream
-        // down for writing (TlsStream::poll_shutdown does all three).
-        let mut writer = zasynclock!(self.writer);
-        let res = writer.flush().await;
-        tracing::trace!("TLS link flush {}: {:?}", self, res);
-        let res = writer.shutdown().await;
-        tracing::trace!("TLS link shutdown {}: {:?}", self, res);
+        // down for writing (TlsStream::poll_shutdown does all three), for
+        // at most TLS_CLOSE_TIMEOUT (dropping the future frees the lock).
+        let graceful = async {
+            let mut writer = zasynclock!(self.writer);
+            let res = writer.flush().await;
+            tracing::trace!("TLS link flush {}: {:?}", self, res);
+            let res = writer.shutdown().await;
+            tracing::trace!("TLS link shutdown {}: {:?}", self, res);
+            res
+        };
+        let res = match tokio::time::timeout(TLS_CLOSE_TIMEOUT, graceful).await {
+            Ok(res) => res,
+            Err(_) => {
+                tracing::debug!(
+                    "TLS link {}: close timed out after {:?}, shutting the socket down",
+                    self,
+                    TLS_CLOSE_TIMEOUT
+                );
+                Err(std::io::ErrorKind::TimedOut.into())
+            }
+        };
+        // Either way the link is finished: shut both directions down now
+        // (non-blocking; queued bytes still go out, the peer sees the end,
+        // pending polls on this socket wake with an error).
+        #[cfg(target_family = "unix")]
+        if let Some(sock) = &self.sock {
+            let _ = socket2::SockRef::from(sock).shutdown(std::net::Shutdown::Both);
+        }
         res.map_err(|e| zerror!(e).into())
     }
 }
@@ -186,7 +230,17 @@ impl LinkUnicastTrait for LinkUnicastTls {
 
     async fn write_all(&self, buffer: &[u8], _priority: Option<Priority>) -> ZResult<()> {
         let mut writer = zasynclock!(self.writer);
-        writer.write_all(buffer).await.map_err(|e| {
+        // PATCHED (formation): TlsStream::poll_write returns Ok once rustls
+        // has taken the bytes, even when the socket would block, leaving up
+        // to 64 KiB of records in rustls that nothing sends until the next
+        // write (tokio-rustls behaves like a BufWriter). Flush, so that a
+        // batch is in the kernel when this returns, as on a TCP link.
+        // (A no-op when rustls holds nothing: no syscall.)
+        let res = match writer.write_all(buffer).await {
+            Ok(()) => writer.flush().await,
+            Err(e) => Err(e),
+        };
+        res.map_err(|e| {
             tracing::trace!("Write error on TLS link {}: {}", self, e);
             zerror!(e).into()
         })
