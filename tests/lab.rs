@@ -433,11 +433,13 @@ fn lockstep_with_follower_3_cut_off_physically_equals_the_simulator() {
 /// The same across hosts with mutual TLS and access control (peer mode:
 /// every peer checks the others' certificates and enforces the policy; the
 /// certificates carry the lab's addresses).
+///
+/// (Stalled in 1 of 5 runs, with a build beside it, until the TLS link's
+/// close was bounded: vendor/zenoh-link-tls/README.md. Since, 11 of 11 by
+/// hand with two busy loops on the two cores and 5 of 6 in test loops; the
+/// other, with two busy loops and a cargo build beside it, ended with agent 2
+/// stopping at its 60 s stall timeout, cause not found.)
 #[test]
-#[ignore = "flaky as of 2026-11-22: stalled in 1 of 5 runs (the full suite, with a build beside it): after the \
-            link came back, followers 1 and 3 each waited 60 s for the other's step 8740 over TLS while both \
-            repeated their messages; 4 of 4 passed alone, 3 of them with a busy loop beside; the same fault \
-            over plain TCP runs in CI; issue 9"]
 fn lockstep_over_tls_with_follower_3_cut_off_physically_equals_the_simulator() {
     let certs = tempfile::tempdir().expect("tempdir");
     let dir = certs.path().join("certs");
@@ -454,10 +456,10 @@ fn lockstep_with_the_router_killed_equals_the_simulator() {
     lockstep_equals_sim("lab-ls-router", &[], &["--kill-router", "4:3"]);
 }
 
+/// (Failed in 3 of 6 runs before the leader repeated on a clock of its own,
+/// then in 2 of 8 under CPU load; since the 50 ms reconnect, 6 of 6 by hand
+/// with two busy loops on the two cores.)
 #[test]
-#[ignore = "flaky as of 2026-11-22: failed in 3 of 6 runs before the leader's repeat fix; since, 5 of 5 passed \
-            on a quiet machine and 6 of 8 under CPU load (2 busy loops on 2 cores; the other 2 stalled: formation \
-            lab exit 1). A lock-step wait over 5 s now names what each node waits for on stderr; issue 9"]
 fn lockstep_with_30_percent_loss_on_follower_2_equals_the_simulator() {
     lockstep_equals_sim("lab-ls-loss", &["faults+={node=2, from=3, to=13, loss=0.3}"], &[]);
 }
