@@ -217,8 +217,13 @@ pub async fn run_follower(
                     Ok((Source::Leader, msg)) => inbox.accept(n, &msg),
                     Err(r) => inbox.reject(r),
                 }
+                // Wake the control loop only when its step is complete: one
+                // wake-up per step instead of one per message.
+                let wake = inbox.completes_wait();
                 drop(inbox);
-                shared.arrived.notify_all();
+                if wake {
+                    shared.arrived.notify_all();
+                }
             })
             .await
             .map_err(|e| zerr("declaring a subscriber", e))?;

@@ -177,6 +177,13 @@ impl Inbox {
         (0..self.pending.len()).all(|s| self.pending[s].contains_key(&k) || self.links[s].lost(k))
     }
 
+    /// Lock-step: whether the step the receiver waits for now has all its
+    /// inputs (false in real time, where nobody waits): a message that
+    /// completes it wakes the control loop, the others need not.
+    pub fn completes_wait(&mut self) -> bool {
+        self.lockstep && self.has_all(self.current)
+    }
+
     /// Lock-step: the slots whose step-k message is missing (and not removed by the table).
     pub fn missing(&mut self, k: u64) -> Vec<usize> {
         (0..self.pending.len()).filter(|&s| !self.pending[s].contains_key(&k) && !self.links[s].lost(k)).collect()

@@ -54,6 +54,10 @@ struct Progress {
     /// The latest step the leader has published: a follower that hears it
     /// cannot be more than one step further (a claim beyond is forged).
     published: std::sync::atomic::AtomicU64,
+    /// The step every hearing follower must reach for the leader's wait to
+    /// end (0: not waiting): only the message that gets the slowest there
+    /// wakes it, not every message.
+    need: std::sync::atomic::AtomicU64,
     moved: Condvar,
 }
 
@@ -92,6 +96,7 @@ pub async fn run_leader(
     let progress = Arc::new(Progress {
         reached: Mutex::new(vec![None; hearing.len()]),
         published: std::sync::atomic::AtomicU64::new(0),
+        need: std::sync::atomic::AtomicU64::new(0),
         moved: Condvar::new(),
     });
     let mut subs = Vec::new();
@@ -107,8 +112,12 @@ pub async fn run_leader(
                         if key_id == Some(m.header.sender) && m.header.step <= published.saturating_add(1) {
                             let mut r = p.reached.lock().unwrap_or_else(|e| e.into_inner());
                             r[slot] = Some(r[slot].map_or(m.header.step, |x| x.max(m.header.step)));
+                            let need = p.need.load(std::sync::atomic::Ordering::Acquire);
+                            let wake = need > 0 && r.iter().all(|x| x.is_some_and(|x| x >= need));
                             drop(r);
-                            p.moved.notify_all();
+                            if wake {
+                                p.moved.notify_all();
+                            }
                         }
                     }
                 })
@@ -302,9 +311,12 @@ fn wait_window(
     let mut said = Instant::now();
     let mut warned = false;
     let mut reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
+    // (Set under the lock the callbacks take: none can miss it.)
+    progress.need.store(need, std::sync::atomic::Ordering::Release);
     loop {
         let slowest = reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(u64::MAX);
         if slowest >= need {
+            progress.need.store(0, std::sync::atomic::Ordering::Release);
             return Ok(());
         }
         let (g, _) =
