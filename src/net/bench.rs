@@ -226,10 +226,7 @@ fn measure(
     let mut l = launch(&rt_sets, port + 20, "rt", "bench-rt");
     l.opts.time_scale = Some(1.0);
     crate::launch::run(&l)?;
-    let net: serde_json::Value = std::fs::read_to_string(tmp.join("rt").join("network.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str(&t).ok())
-        .ok_or_else(|| Error::Run("reading the real-time run's network.json".into()))?;
+    let net = network_json(&tmp.join("rt"), "the real-time run")?;
     let mut period = (0.0f64, 0.0f64, 0.0f64);
     let mut silent = 0;
     if let Some(nodes) = net["nodes"].as_object() {
@@ -247,6 +244,14 @@ fn measure(
     let _ = std::fs::remove_dir_all(&tmp);
     let nan = (f64::NAN, f64::NAN);
     Ok(Figures { net_rate, t_short, t_long, period, silent, estimate: nan, plain: nan, open_ms: f64::NAN })
+}
+
+/// The run folder `dir`'s network.json (`what`: the run, for the error).
+fn network_json(dir: &std::path::Path, what: &str) -> Result<serde_json::Value, Error> {
+    std::fs::read_to_string(dir.join("network.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .ok_or_else(|| Error::Run(format!("reading {what}'s network.json")))
 }
 
 /// One row of the scale table.
@@ -287,12 +292,8 @@ fn scale(a: &BenchNetArgs, n: u32, port: u16) -> Result<Scale, Error> {
         l.mode = LaunchMode::Client;
         l
     };
-    let wall = |out: &str| -> Result<serde_json::Value, Error> {
-        std::fs::read_to_string(tmp.join(out).join("network.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok())
-            .ok_or_else(|| Error::Run(format!("reading the {n}-agent run's network.json")))
-    };
+    let what = format!("the {n}-agent run");
+    let wall = |out: &str| network_json(&tmp.join(out), &what);
     eprintln!("bench-net (scale): {n} agents, lock-step …");
     // Lock-step: 200 and 1,200 steps at Δt = 1 ms; the difference is the stepping.
     let (short, long) = (0.2, 1.2);
