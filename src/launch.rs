@@ -101,6 +101,12 @@ pub struct LaunchArgs {
     /// Use consecutive loopback ports from this one [default: free ports].
     #[arg(long, value_name = "PORT")]
     pub base_port: Option<u16>,
+    /// Followers per agent process (consecutive ids share one zenoh session,
+    /// and what they say to each other stays in the process). 1 (the
+    /// default) is one process per follower, as on separate machines; more
+    /// fits large formations on few cores. Not with --tls.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub group: usize,
 }
 
 /// The child processes of a launch; every one still running is killed on drop.
@@ -300,6 +306,16 @@ async fn router(z: &session::ZenohArgs) -> Result<(), CliError> {
 
 /// `formation launch`.
 pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
+    if a.group == 0 {
+        return Err(CliError::Input("--group 0: give 1 or more followers per agent process".into()));
+    }
+    if a.group > 1 && a.opts.tls.is_some() {
+        return Err(CliError::Input(
+            "--group with --tls: each follower has its own certificate and access rights, so each needs a process \
+             of its own (leave --group out)"
+                .into(),
+        ));
+    }
     let (scenario, run, out) = a.opts.resolve()?;
     let exe = std::env::current_exe().map_err(|e| CliError::Run(format!("locating this executable: {e}")))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -393,8 +409,11 @@ async fn launch(
     let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
         .map_err(|e| CliError::Run(format!("installing the SIGINT handler: {e}")))?;
     let n = scenario.followers.len();
-    // Ports: monitor, leader, followers by index (peer); or the router (client).
-    let count = if a.mode == LaunchMode::Peer { n + 2 } else { 1 };
+    // Agent processes: followers by index, `group` consecutive ones each.
+    let groups: Vec<std::ops::Range<usize>> = (0..n).step_by(a.group).map(|i| i..(i + a.group).min(n)).collect();
+    let group_of = |i: usize| i / a.group;
+    // Ports: monitor, leader, agent processes (peer); or the router (client).
+    let count = if a.mode == LaunchMode::Peer { groups.len() + 2 } else { 1 };
     let p = ports(a.base_port, count)?;
     let endpoints = |c: &mut Command, listen: Option<u16>, connect: &[u16]| {
         if a.mode == LaunchMode::Client {
@@ -413,9 +432,14 @@ async fn launch(
     };
     if !a.opts.quiet {
         eprintln!(
-            "launching {} processes ({} mode, run {run}): leader, {n} agents, monitor{}",
-            n + 2 + usize::from(a.mode == LaunchMode::Client),
+            "launching {} processes ({} mode, run {run}): leader, {n} agents{}, monitor{}",
+            groups.len() + 2 + usize::from(a.mode == LaunchMode::Client),
             if a.mode == LaunchMode::Peer { "peer" } else { "client" },
+            if groups.len() < n {
+                format!(" in {} processes of up to {}", groups.len(), a.group)
+            } else {
+                String::new()
+            },
             if a.mode == LaunchMode::Client { ", router" } else { "" },
         );
         if let Some(hint) = crate::net::node::realtime_hint(scenario) {
@@ -446,16 +470,25 @@ async fn launch(
     endpoints(&mut c, Some(lead_port), &[mon_port]);
     spawn(children, "leader", c)?;
 
-    for i in 0..n {
-        let id = scenario.graph.id(i);
+    for (g, members) in groups.iter().enumerate() {
+        let ids: Vec<String> = members.clone().map(|i| scenario.graph.id(i).to_string()).collect();
         let mut c = node_command(exe, "agent", a, run);
-        c.arg("--id").arg(id.to_string());
+        c.arg("--id").arg(ids.join(","));
         let mut connect = vec![mon_port, lead_port];
         if a.mode == LaunchMode::Peer {
-            connect.extend(scenario.graph.neighbours(i).iter().filter(|&&j| j < i).map(|&j| p[2 + j]));
+            // Every earlier process that holds a neighbour, once.
+            let mut dial: Vec<usize> = members
+                .clone()
+                .flat_map(|i| scenario.graph.neighbours(i).iter().map(|&j| group_of(j)).collect::<Vec<_>>())
+                .filter(|&h| h < g)
+                .collect();
+            dial.sort_unstable();
+            dial.dedup();
+            connect.extend(dial.into_iter().map(|h| p[2 + h]));
         }
-        endpoints(&mut c, a.mode.eq(&LaunchMode::Peer).then(|| p.get(2 + i).copied().unwrap_or(0)), &connect);
-        spawn(children, &format!("agent {id}"), c)?;
+        endpoints(&mut c, a.mode.eq(&LaunchMode::Peer).then(|| p.get(2 + g).copied().unwrap_or(0)), &connect);
+        let name = if ids.len() == 1 { format!("agent {}", ids[0]) } else { format!("agents {}", ids.join(",")) };
+        spawn(children, &name, c)?;
     }
 
     let mut tick = tokio::time::interval(Duration::from_millis(50));

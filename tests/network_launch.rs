@@ -74,6 +74,46 @@ fn base_port_zero_is_refused_up_front() {
     g.assert_group_empty();
 }
 
+/// `--group`: 0 followers per process, and several followers per process
+/// with TLS (one certificate per follower), are refused before anything
+/// starts, with one line naming the option.
+#[test]
+fn a_bad_group_is_refused_up_front() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let certs = tmp.path().join("certs");
+    for (extra, why) in [
+        (vec!["--group", "0"], "--group 0"),
+        (vec!["--group", "2", "--tls", certs.to_str().expect("utf-8")], "--group with --tls"),
+    ] {
+        let out = tmp.path().join("run");
+        let out_s = out.display().to_string();
+        let mut args = vec!["launch", common::SCENARIO, "-q", "--out", &out_s, "--base-port", "17620"];
+        args.extend(extra.iter().copied());
+        // Refused before any child starts: nothing to wait for.
+        let o = Command::new(env!("CARGO_BIN_EXE_formation")).args(&args).output().expect("formation launch");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?} must be bad input: {:?}; stderr: {stderr}", o.status);
+        assert!(stderr.contains(why), "{extra:?}: stderr does not say {why:?}: {stderr}");
+        assert_eq!(stderr.trim().lines().count(), 1, "{extra:?}: one line, not {stderr}");
+        assert!(!out.exists(), "{extra:?}: a run folder was made");
+    }
+}
+
+/// An agent process given the same follower twice, or one the scenario does
+/// not have, says so in one line and exits 2.
+#[test]
+fn an_agent_refuses_a_repeated_or_unknown_follower() {
+    for (ids, why) in [("1,2,1", "follower 1 is given twice"), ("1,9", "has no follower 9")] {
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["node", "agent", "--scenario", common::SCENARIO, "--id", ids, "--connect", "tcp/127.0.0.1:17629"])
+            .output()
+            .expect("formation node agent");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "--id {ids}: {:?}; stderr: {stderr}", o.status);
+        assert!(stderr.contains(why), "--id {ids}: stderr does not say {why:?}: {stderr}");
+    }
+}
+
 /// SIGTERM ends the monitor with 143 (128 + 15, the convention), Ctrl-C with
 /// 130, and the folder says which signal interrupted the run.
 #[test]

@@ -1,6 +1,7 @@
 //! 100 agents as processes on one host (issue 12): a generated ring of 100
-//! followers through `formation launch` in client mode (router port 17646,
-//! 127.0.0.1 only), lock-step, equals the simulator byte for byte.
+//! followers through `formation launch`, lock-step, equals the simulator
+//! byte for byte: one process per agent in client mode (router port 17646),
+//! and 50 agents per process in peer mode (ports 18420–18423), 127.0.0.1 only.
 
 mod common;
 
@@ -12,6 +13,17 @@ const AGENTS: usize = 100;
 
 #[test]
 fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
+    hundred_agents_in_lockstep(&["--mode", "client", "--base-port", "17646", "--run", "scale100"], 0.1);
+}
+
+/// `launch --group 50`: two agent processes of 50 followers each, their
+/// in-process messages never on a socket; still the simulator's bytes.
+#[test]
+fn a_hundred_agents_in_two_processes_in_lockstep_equal_the_simulator() {
+    hundred_agents_in_lockstep(&["--group", "50", "--base-port", "18420", "--run", "scale100g"], 0.5);
+}
+
+fn hundred_agents_in_lockstep(launch_args: &[&str], duration: f64) {
     let dir = tempfile::tempdir().expect("tempdir");
     let scenario = dir.path().join("ring100.toml");
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))
@@ -21,12 +33,13 @@ fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
         .expect("formation generate");
     assert!(o.status.success(), "formation generate: {}", String::from_utf8_lossy(&o.stderr));
     let scenario = scenario.display().to_string();
-    let sets = ["duration=0.1"];
+    let duration = format!("duration={duration}");
+    let sets = [duration.as_str()];
 
     let net = dir.path().join("net");
     let net_s = net.display().to_string();
-    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--mode", "client"];
-    args.extend(["--base-port", "17646", "--run", "scale100"]);
+    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s];
+    args.extend(launch_args);
     for s in sets {
         args.extend(["--set", s]);
     }
@@ -59,7 +72,7 @@ fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
     assert!(differ.is_empty(), "followers {differ:?} differ from the simulator (of {AGENTS})");
     let (a, b) = (std::fs::read(net.join("summary.json")), std::fs::read(sim.join("summary.json")));
     assert!(a.is_ok() && a.ok() == b.ok(), "summary.json differs from the simulator's");
-    eprintln!("{AGENTS} agents: every node ready {startup:.1} s after the monitor's start");
+    eprintln!("{AGENTS} agents ({launch_args:?}): every node ready {startup:.1} s after the monitor's start");
 }
 
 /// Issue 12's real-time goal: 50 agents at 100 Hz behave like the

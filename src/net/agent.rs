@@ -102,9 +102,13 @@ impl Body for SimFollower {
 pub struct AgentArgs {
     #[command(flatten)]
     pub node: NodeArgs,
-    /// The follower id this process runs.
-    #[arg(long)]
-    pub id: u32,
+    /// The follower this process runs, or several (`--id 1,2,3`) that share
+    /// one zenoh session: what they say to each other stays inside the
+    /// process (no socket, no router), which is how many agents fit on few
+    /// cores. Each keeps its own control loop, inbox, telemetry and
+    /// checkpoint; one failing ends the process.
+    #[arg(long, value_delimiter = ',', required = true, value_name = "ID[,ID…]")]
+    pub id: Vec<u32>,
     /// Give up if lock-step inputs stop arriving for this long (s).
     #[arg(long, default_value_t = 60.0, value_name = "SECONDS")]
     pub stall_timeout: f64,
@@ -128,27 +132,57 @@ pub(crate) struct Shared {
     pub events: Mutex<Vec<NetEvent>>,
 }
 
-/// Runs one follower to the end of the scenario.
+/// Runs the follower(s) of `--id` to the end of the scenario.
 pub async fn run(args: &AgentArgs) -> Result<(), Error> {
-    let (scenario, keys) = args.node.load(&crate::certs::agent_name(args.id))?;
-    let index = scenario.index_of(args.id).ok_or_else(|| {
-        let ids: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
-        Error::Input(format!("scenario {} has no follower {} (ids: {})", scenario.name, args.id, ids.join(", ")))
-    })?;
+    let ids = &args.id;
+    let first = *ids.first().ok_or_else(|| Error::Input("--id: give at least one follower id".into()))?;
+    if let Some(twice) = ids.iter().enumerate().find_map(|(i, id)| ids[..i].contains(id).then_some(id)) {
+        return Err(Error::Input(format!("--id: follower {twice} is given twice")));
+    }
+    if ids.len() > 1 && args.node.zenoh.tls.is_some() {
+        return Err(Error::Input(
+            "--id with several followers and --tls: each follower has its own certificate and access rights, so \
+             each needs a process of its own"
+                .into(),
+        ));
+    }
+    let (scenario, keys) = args.node.load(&crate::certs::agent_name(first))?;
+    let mut indices = Vec::with_capacity(ids.len());
+    for &id in ids {
+        indices.push(scenario.index_of(id).ok_or_else(|| {
+            let all: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
+            Error::Input(format!("scenario {} has no follower {id} (ids: {})", scenario.name, all.join(", ")))
+        })?);
+    }
     if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
         return Err(Error::Input("--stall-timeout must be positive".into()));
     }
-    let session = args.node.open(&crate::certs::agent_name(args.id)).await?;
-    let body = Box::new(SimFollower::new(&scenario, index));
+    let session = args.node.open(&crate::certs::agent_name(first)).await?;
     let stall = Duration::from_secs_f64(args.stall_timeout);
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
-    let checkpoint = checkpoint::path(&checkpoint_dir, &keys.run, args.id);
-    let opts = FollowerOptions {
-        stall_timeout: stall,
-        physical_node_faults: args.physical_node_faults,
-        checkpoint: Some(checkpoint),
-    };
-    let result = run_follower(&session, &scenario, &keys, index, body, opts).await;
+    let mut followers: futures_util::stream::FuturesUnordered<_> = ids
+        .iter()
+        .zip(&indices)
+        .map(|(&id, &index)| {
+            let opts = FollowerOptions {
+                stall_timeout: stall,
+                physical_node_faults: args.physical_node_faults,
+                checkpoint: Some(checkpoint::path(&checkpoint_dir, &keys.run, id)),
+            };
+            let body = Box::new(SimFollower::new(&scenario, index));
+            run_follower(&session, &scenario, &keys, index, body, opts)
+        })
+        .collect();
+    // The first failure ends the process (its neighbours in here would only
+    // wait for it); the others' ends are not waited for.
+    let mut result = Ok(());
+    while let Some(r) = futures_util::StreamExt::next(&mut followers).await {
+        if r.is_err() {
+            result = r;
+            break;
+        }
+    }
+    drop(followers);
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -285,9 +319,7 @@ pub async fn run_follower(
         body.resume(first_step, pose);
     }
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
-    let stop_writer = Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let writer = checkpoint
-        .map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone(), stop_writer.clone()));
+    let writer = checkpoint.map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone()));
     if !lockstep {
         // The shared clock bounds how far ahead a genuine message can be.
         let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
@@ -348,9 +380,8 @@ pub async fn run_follower(
         .await
         .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
     telemetry::finish_delivery(delivery, &format!("follower {id}")).await;
-    stop_writer.store(true, std::sync::atomic::Ordering::Relaxed);
     if let Some(w) = writer {
-        let _ = w.join();
+        w.stop();
     }
     drop(acks);
     if let Some(w) = watcher {

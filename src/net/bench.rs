@@ -87,6 +87,7 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
         },
         mode: LaunchMode::Peer,
         base_port: Some(port),
+        group: 1,
     }
 }
 

@@ -58,21 +58,30 @@ pub fn read(path: &Path, fingerprint: u64, epoch_unix_ns: u64) -> Result<Checkpo
 /// The latest (step, pose), updated by the control loop.
 pub type Latest = Arc<Mutex<Option<(u64, Pose)>>>;
 
+/// The thread that writes a follower's checkpoint; [`Writer::stop`] ends it at once.
+pub struct Writer {
+    stop: std::sync::mpsc::Sender<()>,
+    thread: std::thread::JoinHandle<()>,
+}
+
+impl Writer {
+    /// Ends the writer (it is woken, not waited for a period) and joins it.
+    pub fn stop(self) {
+        drop(self.stop);
+        let _ = self.thread.join();
+    }
+}
+
 /// Writes `latest` to `path` every [`PERIOD`] (atomically: a temporary file
-/// renamed over the old one) until `stop` is set. Errors are said once.
-pub fn start_writer(
-    path: PathBuf,
-    fingerprint: u64,
-    epoch_unix_ns: u64,
-    latest: Latest,
-    stop: Arc<std::sync::atomic::AtomicBool>,
-) -> std::thread::JoinHandle<()> {
-    std::thread::spawn(move || {
+/// renamed over the old one) until stopped. Errors are said once.
+pub fn start_writer(path: PathBuf, fingerprint: u64, epoch_unix_ns: u64, latest: Latest) -> Writer {
+    let (stop, stopped) = std::sync::mpsc::channel::<()>();
+    let thread = std::thread::spawn(move || {
         let mut said = false;
         let tmp = path.with_extension("json.tmp");
         let mut written = None;
-        while !stop.load(std::sync::atomic::Ordering::Relaxed) {
-            std::thread::sleep(PERIOD);
+        // Sleeps a period, or ends as soon as the sender is dropped.
+        while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = stopped.recv_timeout(PERIOD) {
             let Some((k, pose)) = *latest.lock().unwrap_or_else(|p| p.into_inner()) else { continue };
             if written == Some(k) {
                 continue;
@@ -95,7 +104,8 @@ pub fn start_writer(
                 Err(_) => {}
             }
         }
-    })
+    });
+    Writer { stop, thread }
 }
 
 #[cfg(test)]
@@ -107,11 +117,12 @@ mod tests {
         let dir = tempfile::tempdir().expect("tempdir");
         let p = path(dir.path(), "paper", 3);
         let latest: Latest = Arc::new(Mutex::new(Some((1234, Pose::new(1.0, 2.0, 0.5)))));
-        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let w = start_writer(p.clone(), 7, 99, latest, stop.clone());
+        let w = start_writer(p.clone(), 7, 99, latest);
         std::thread::sleep(PERIOD * 3);
-        stop.store(true, std::sync::atomic::Ordering::Relaxed);
-        w.join().expect("writer");
+        let stopping = std::time::Instant::now();
+        w.stop();
+        // A stop wakes the writer: it does not sleep out its period.
+        assert!(stopping.elapsed() < PERIOD / 2, "stop took {:?}", stopping.elapsed());
         let c = read(&p, 7, 99).expect("the run's own checkpoint");
         assert_eq!((c.k, c.pose()), (1234, Pose::new(1.0, 2.0, 0.5)));
         assert!(read(&p, 8, 99).is_err(), "another scenario");
