@@ -150,10 +150,14 @@ impl Children {
         None
     }
 
-    /// Waits up to `limit` for every child, then kills the rest.
+    /// Waits up to `limit` for every child but the router, then kills the rest.
     pub(crate) fn reap(&mut self, limit: Duration) {
         let t = Instant::now();
-        while t.elapsed() < limit && self.list.iter_mut().any(|(_, c)| matches!(c.try_wait(), Ok(None))) {
+        // The router never ends by itself: wait for the nodes only.
+        let running = |list: &mut Vec<(String, Child)>| {
+            list.iter_mut().any(|(name, c)| name != "router" && matches!(c.try_wait(), Ok(None)))
+        };
+        while t.elapsed() < limit && running(&mut self.list) {
             std::thread::sleep(Duration::from_millis(20));
         }
         self.kill_all();

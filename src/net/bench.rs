@@ -71,6 +71,20 @@ pub struct BenchNetArgs {
     /// Scale: run seconds of the real-time run at 100 Hz.
     #[arg(long, default_value_t = 5.0)]
     pub scale_realtime_duration: f64,
+    /// Every lock-step and scale figure is measured twice: one process per
+    /// agent (as on separate machines), and `launch --group N` (N followers
+    /// per agent process on one session). 0: every follower in one process.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub group: usize,
+}
+
+/// Followers per agent process of the grouped runs for `n` followers.
+fn group_size(a: &BenchNetArgs, n: usize) -> usize {
+    if a.group > 0 {
+        a.group.min(n)
+    } else {
+        n
+    }
 }
 
 fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: &str) -> LaunchArgs {
@@ -103,6 +117,9 @@ struct Figures {
     net_rate: f64,
     t_short: f64,
     t_long: f64,
+    /// The same with `group` followers per agent process (NaN with TLS, which needs one process each).
+    grouped_rate: f64,
+    group: usize,
     /// Real time at 1 kHz: the worst node's |period − 1 ms| p50, p99, max (µs).
     period: (f64, f64, f64),
     /// Silent neighbour-steps summed over the agents.
@@ -147,6 +164,13 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     println!("  {:<50}{:>18}{}", "", "tcp", if tls.is_some() { format!("{:>18}", "tls") } else { String::new() });
     row("lock-step steps/s over zenoh", &|f| format!("{:.0}", f.net_rate));
     row("  wall s of the 2 s / long run", &|f| format!("{:.2} / {:.2}", f.t_short, f.t_long));
+    row(&format!("  with {} followers per agent process (--group)", tcp.group), &|f| {
+        if f.grouped_rate.is_nan() {
+            "—".into()
+        } else {
+            format!("{:.0}", f.grouped_rate)
+        }
+    });
     row("real time 1 kHz |period − 1 ms| p50/p99 µs", &|f| format!("{:.1} / {:.1}", f.period.0, f.period.1));
     row("  max µs (worst node)", &|f| format!("{:.1}", f.period.2));
     row("  silent neighbour-steps", &|f| f.silent.to_string());
@@ -155,21 +179,31 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     row("opening a client session (handshake) ms", &|f| format!("{:.2}", f.open_ms));
     println!("in-process simulator, same scenario: {sim_rate:.0} steps/s");
     if !a.agents.is_empty() {
-        let rows: Vec<Scale> = a
-            .agents
-            .iter()
-            .enumerate()
-            .map(|(i, &n)| scale(a, n, a.base_port + 100 + 20 * i as u16))
-            .collect::<Result<_, _>>()?;
+        let mut rows: Vec<Scale> = Vec::new();
+        for (i, &n) in a.agents.iter().enumerate() {
+            let port = a.base_port + 100 + 40 * i as u16;
+            rows.push(scale(a, n, 1, port)?);
+            let g = group_size(a, n as usize);
+            if g > 1 {
+                rows.push(scale(a, n, g, port + 20)?);
+            }
+        }
         println!("scale: generated rings (n/5 chords), clients of one router, plain TCP, on this machine");
         println!(
-            "  {:>6} {:>12} {:>18} {:>16} {:>26} {:>8}",
-            "agents", "start-up s", "lock-step steps/s", "(wall s, runs)", "real time 100 Hz: CPU s", "silent"
+            "  {:>6} {:>12} {:>12} {:>18} {:>16} {:>26} {:>8}",
+            "agents",
+            "per process",
+            "start-up s",
+            "lock-step steps/s",
+            "(wall s, runs)",
+            "real time 100 Hz: CPU s",
+            "silent"
         );
         for r in rows {
             println!(
-                "  {:>6} {:>12.2} {:>18.0} {:>16} {:>26} {:>8}",
+                "  {:>6} {:>12} {:>12.2} {:>18.0} {:>16} {:>26} {:>8}",
                 r.agents,
+                r.group,
                 r.startup_s,
                 r.rate,
                 format!("{:.1} / {:.1}", r.t_short, r.t_long),
@@ -220,6 +254,20 @@ fn measure(
     let t_long = timed_launch(&launch(&lockstep_sets(a.lockstep_duration), port + 10, "ls-long", "bench-ls2"))?;
     let dsteps = ((a.lockstep_duration - short) / scenario.dt_s).round();
     let net_rate = dsteps / (t_long - t_short).max(1e-9);
+    let group = group_size(a, scenario.followers.len());
+    let grouped_rate = if tls.is_none() {
+        eprintln!("bench-net ({kind}): lock-step runs, {group} followers per agent process …");
+        let grouped = |sets: &[String], p: u16, out: &str, run: &str| {
+            let mut l = launch(sets, p, out, run);
+            l.group = group;
+            l
+        };
+        let g_short = timed_launch(&grouped(&lockstep_sets(short), port + 30, "lsg-short", "bench-lsg1"))?;
+        let g_long = timed_launch(&grouped(&lockstep_sets(a.lockstep_duration), port + 34, "lsg-long", "bench-lsg2"))?;
+        dsteps / (g_long - g_short).max(1e-9)
+    } else {
+        f64::NAN
+    };
 
     // 2. Real-time period error at 1 kHz.
     eprintln!("bench-net ({kind}): real time at 1 kHz …");
@@ -244,7 +292,18 @@ fn measure(
 
     let _ = std::fs::remove_dir_all(&tmp);
     let nan = (f64::NAN, f64::NAN);
-    Ok(Figures { net_rate, t_short, t_long, period, silent, estimate: nan, plain: nan, open_ms: f64::NAN })
+    Ok(Figures {
+        net_rate,
+        t_short,
+        t_long,
+        grouped_rate,
+        group,
+        period,
+        silent,
+        estimate: nan,
+        plain: nan,
+        open_ms: f64::NAN,
+    })
 }
 
 /// The run folder `dir`'s network.json (`what`: the run, for the error).
@@ -258,6 +317,8 @@ fn network_json(dir: &std::path::Path, what: &str) -> Result<serde_json::Value, 
 /// One row of the scale table.
 struct Scale {
     agents: u32,
+    /// Followers per agent process.
+    group: usize,
     startup_s: f64,
     rate: f64,
     t_short: f64,
@@ -277,9 +338,10 @@ fn children_cpu_s() -> f64 {
     s(u.ru_utime) + s(u.ru_stime)
 }
 
-/// `n` agents on a generated ring as clients of one router, ports from `port`.
-fn scale(a: &BenchNetArgs, n: u32, port: u16) -> Result<Scale, Error> {
-    let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-scale{n}", std::process::id()));
+/// `n` agents on a generated ring as clients of one router, `group`
+/// followers per agent process, ports from `port`.
+fn scale(a: &BenchNetArgs, n: u32, group: usize, port: u16) -> Result<Scale, Error> {
+    let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-scale{n}-{group}", std::process::id()));
     std::fs::create_dir_all(&tmp).map_err(|e| Error::Run(format!("{}: {e}", tmp.display())))?;
     let spec = formation_topology::generate::Spec {
         chords: n / 5,
@@ -291,18 +353,19 @@ fn scale(a: &BenchNetArgs, n: u32, port: u16) -> Result<Scale, Error> {
     let launch = |sets: Vec<String>, p: u16, out: &str, run: &str| {
         let mut l = launch_args(&BenchNetArgs { scenario: file.clone(), ..a.clone() }, &sets, p, tmp.join(out), run);
         l.mode = LaunchMode::Client;
+        l.group = group;
         l
     };
     let what = format!("the {n}-agent run");
     let wall = |out: &str| network_json(&tmp.join(out), &what);
-    eprintln!("bench-net (scale): {n} agents, lock-step …");
+    eprintln!("bench-net (scale): {n} agents, {group} per process, lock-step …");
     // Lock-step: 200 and 1,200 steps at Δt = 1 ms; the difference is the stepping.
     let (short, long) = (0.2, 1.2);
     let t_short = timed_launch(&launch(lockstep_sets(short), port, "short", &format!("bench-s{n}a")))?;
     let t_long = timed_launch(&launch(lockstep_sets(long), port + 5, "long", &format!("bench-s{n}b")))?;
     let rate = ((long - short) / 0.001_f64).round() / (t_long - t_short).max(1e-9);
     let startup_s = wall("long")?["wall"]["startup_s"].as_f64().unwrap_or(f64::NAN);
-    eprintln!("bench-net (scale): {n} agents, real time at 100 Hz …");
+    eprintln!("bench-net (scale): {n} agents, {group} per process, real time at 100 Hz …");
     let d = a.scale_realtime_duration;
     let sets =
         vec![format!("duration={d}"), "timing=realtime".into(), "dt=0.01".into(), "network.delay_steps=1".into()];
@@ -314,7 +377,7 @@ fn scale(a: &BenchNetArgs, n: u32, port: u16) -> Result<Scale, Error> {
     let net = wall("rt")?;
     let silent = net["nodes"].as_object().map_or(0, |m| m.values().map(|v| v["silent"].as_u64().unwrap_or(0)).sum());
     let _ = std::fs::remove_dir_all(&tmp);
-    Ok(Scale { agents: n, startup_s, rate, t_short, t_long, cpu_per_agent_s: cpu / f64::from(n) / d, silent })
+    Ok(Scale { agents: n, group, startup_s, rate, t_short, t_long, cpu_per_agent_s: cpu / f64::from(n) / d, silent })
 }
 
 /// Latency and session opening, the transports alternating over `ROUNDS`
