@@ -504,11 +504,47 @@ async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize) -> Result<u64,
 /// stderr (the stall timeout ends it).
 pub(crate) const STALL_WARNING: Duration = Duration::from_secs(5);
 
-/// Lock-step: how many of its last messages a waiting follower repeats.
-/// Neighbours are at most one step apart, so a restarted neighbour, which
-/// resumes one step before the least advanced of them, may need a message
-/// two steps behind the most advanced one's newest.
+/// Lock-step: how many of its last messages a waiting follower repeats at
+/// least. Without faults neighbours are at most one step apart, so a
+/// restarted neighbour, which resumes one step before the least advanced of
+/// them, may need a message two steps behind the most advanced one's newest.
 const REPEATED: usize = inbox::LOCKSTEP_AHEAD as usize + 1;
+
+/// Lock-step: how many published messages a follower keeps for neighbours
+/// that are behind. The fault table lets a node run ahead of a neighbour
+/// whose messages to it the table removes (it does not wait for them), by
+/// as many steps as the table removes in a row: 30 % loss removes 5 in a
+/// row once in 400 steps. A neighbour further behind than this is not
+/// helped and ends at its stall timeout, naming us.
+const KEPT: usize = 256;
+
+/// At most this many messages are repeated in one round (100 ms).
+const REPEAT_BURST: usize = 64;
+
+/// Lock-step: the messages a follower has published, the last [`KEPT`].
+#[derive(Default)]
+struct Sent(VecDeque<(u64, Vec<u8>)>);
+
+impl Sent {
+    fn push(&mut self, step: u64, bytes: Vec<u8>) {
+        if self.0.len() == KEPT {
+            self.0.pop_front();
+        }
+        self.0.push_back((step, bytes));
+    }
+
+    /// What the neighbours may still wait for, oldest first: the last
+    /// [`REPEATED`], and up to [`REPEAT_BURST`] from the step of the least
+    /// advanced neighbour (`heard`: each neighbour's newest message, whose
+    /// step is the one it waits for).
+    fn needed(&self, heard: &[Option<u64>]) -> impl Iterator<Item = &Vec<u8>> {
+        let newest = self.0.back().map_or(0, |m| m.0);
+        let last = newest.saturating_sub(REPEATED as u64 - 1);
+        let from = heard.iter().flatten().copied().min().map_or(last, |m| m.min(last));
+        let burst = from.saturating_add(REPEAT_BURST as u64);
+        self.0.iter().filter(move |m| m.0 >= last || (m.0 >= from && m.0 < burst)).map(|m| &m.1)
+    }
+}
 
 /// A process that hears a start older than this is a restart.
 const LATE: Duration = Duration::from_millis(200);
@@ -549,14 +585,15 @@ fn control_loop(
     };
     let mut sent = 0u64;
     let mut republished = 0u64;
-    // The last REPEATED messages published, oldest first (republished while
-    // waiting). A restart publishes nothing until it has adopted an estimate.
-    let mut recent: VecDeque<Vec<u8>> = VecDeque::with_capacity(REPEATED + 1);
+    // The messages published, oldest first, the last KEPT of them
+    // (republished while waiting). A restart publishes nothing until it has
+    // adopted an estimate.
+    let mut recent = Sent::default();
     if c.first_step == 0 {
         let first = wire::encode(&msg(0, body.initial_message()));
         put(estimate_pub, &first)?;
         sent += 1;
-        recent.push_back(first);
+        recent.push(0, first);
     }
 
     let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s));
@@ -622,9 +659,11 @@ fn control_loop(
                         ));
                     }
                     if said.elapsed() >= Duration::from_millis(100) {
-                        // Safety net for messages lost on the way: say it again.
+                        // Safety net for messages lost on the way: say again
+                        // what the neighbours still need.
+                        let heard: Vec<Option<u64>> = (0..c.neighbours).map(|s| inbox.heard_max(s)).collect();
                         drop(inbox);
-                        for bytes in &recent {
+                        for bytes in recent.needed(&heard) {
                             put(estimate_pub, bytes)?;
                             sent += 1;
                             republished += 1;
@@ -684,10 +723,7 @@ fn control_loop(
             let bytes = wire::encode(&msg(k + 1, next));
             put(estimate_pub, &bytes)?;
             sent += 1;
-            if recent.len() == REPEATED {
-                recent.pop_front();
-            }
-            recent.push_back(bytes);
+            recent.push(k + 1, bytes);
         }
         if batch.len() >= c.batch || last || diverged.is_some() {
             let mut counters: Counters = shared.inbox.lock().unwrap_or_else(|p| p.into_inner()).counters;
@@ -730,7 +766,11 @@ fn control_loop(
                 break;
             }
             if said.elapsed() >= Duration::from_millis(200) {
-                for bytes in &recent {
+                let heard: Vec<Option<u64>> = {
+                    let inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
+                    (0..c.neighbours).map(|s| inbox.heard_max(s)).collect()
+                };
+                for bytes in recent.needed(&heard) {
                     put(estimate_pub, bytes)?;
                 }
                 said = Instant::now();
@@ -746,4 +786,45 @@ const LINGER: Duration = Duration::from_secs(1);
 
 fn shared_len(s: &Mutex<std::collections::BTreeSet<u32>>) -> usize {
     s.lock().unwrap_or_else(|p| p.into_inner()).len()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn steps(s: &Sent, heard: &[Option<u64>]) -> Vec<u64> {
+        s.needed(heard).map(|b| u64::from(b[0]) + 256 * u64::from(b[1])).collect()
+    }
+
+    fn sent(upto: u64) -> Sent {
+        let mut s = Sent::default();
+        for k in 0..=upto {
+            s.push(k, vec![(k % 256) as u8, (k / 256) as u8]);
+        }
+        s
+    }
+
+    /// The fault table let us run ahead of a neighbour: what it waits for is
+    /// repeated, not only our last messages (a lock-step run stalled on
+    /// this under 30 % loss).
+    #[test]
+    fn a_neighbour_left_behind_gets_the_message_it_waits_for() {
+        let s = sent(5272);
+        assert_eq!(steps(&s, &[Some(5269), Some(5272)]), vec![5269, 5270, 5271, 5272]);
+        assert_eq!(steps(&s, &[None, None]), vec![5270, 5271, 5272], "nobody heard: the last {REPEATED}");
+        assert_eq!(steps(&s, &[Some(5273)]), vec![5270, 5271, 5272], "a neighbour ahead");
+    }
+
+    #[test]
+    fn what_is_repeated_is_bounded_and_always_holds_the_newest() {
+        let s = sent(10_000);
+        assert_eq!(s.0.len(), KEPT);
+        let far = steps(&s, &[Some(100), Some(9_999)]);
+        // Older than what is kept: the last REPEATED only.
+        assert_eq!(far, vec![9_998, 9_999, 10_000]);
+        let behind = steps(&s, &[Some(9_800)]);
+        assert_eq!(behind.len(), REPEAT_BURST + REPEATED, "{behind:?}");
+        assert_eq!((behind[0], behind[REPEAT_BURST - 1]), (9_800, 9_863));
+        assert_eq!(&behind[REPEAT_BURST..], &[9_998, 9_999, 10_000]);
+    }
 }
