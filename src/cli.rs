@@ -224,6 +224,7 @@ pub fn at_least_one(flag: &str, value: u64) -> Result<(), CliError> {
 }
 
 pub fn main() -> ExitCode {
+    crate::net::session::default_runtime();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Sim(a) => sim(&a).map(|_| ()),

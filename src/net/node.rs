@@ -133,6 +133,7 @@ where
     F: FnOnce() -> Fut,
     Fut: std::future::Future<Output = Result<std::process::ExitCode, Error>>,
 {
+    crate::net::session::default_runtime();
     let _ = tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
         .with_writer(std::io::stderr)
