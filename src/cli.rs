@@ -224,7 +224,6 @@ pub fn at_least_one(flag: &str, value: u64) -> Result<(), CliError> {
 }
 
 pub fn main() -> ExitCode {
-    crate::net::session::default_runtime();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Sim(a) => sim(&a).map(|_| ()),
@@ -233,7 +232,11 @@ pub fn main() -> ExitCode {
         Command::Report(a) => crate::report::run(&a),
         Command::Launch(a) => crate::launch::run(&a),
         Command::Lab(a) => crate::lab::run(&a),
-        Command::BenchNet(a) => crate::net::bench::run(&a),
+        Command::BenchNet(a) => {
+            // Its latency sessions run in this process: as in the nodes.
+            crate::net::session::default_runtime();
+            crate::net::bench::run(&a)
+        }
         Command::Certs(a) => crate::certs::run(&a),
         Command::Generate(a) => generate(&a),
         Command::Node(a) => crate::launch::run_node(&a),

@@ -271,6 +271,11 @@ pub enum Node {
 
 /// Runs a node on a multi-thread runtime.
 pub fn run_node(cmd: &NodeCommand) -> Result<(), CliError> {
+    // Before the runtime's threads start; a router keeps zenoh's own threads
+    // (it forwards, and a forwarding task may wait for a full queue).
+    if !matches!(cmd.node, Node::Router(_)) {
+        session::default_runtime();
+    }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -368,10 +373,17 @@ pub(crate) fn spawn(children: &mut Children, name: &str, mut c: Command) -> Resu
 }
 
 /// Starts a router child and waits for its "router listening" line.
-fn start_router(children: &mut Children, exe: &Path, port: u16, opts: &RunOptions) -> Result<(), CliError> {
+fn start_router(
+    children: &mut Children,
+    exe: &Path,
+    port: u16,
+    opts: &RunOptions,
+    timing: formation_topology::Timing,
+) -> Result<(), CliError> {
     let mut c = Command::new(exe);
     c.args(["node", "router", "--listen"]).arg(ep(port));
     tls_arg(&mut c, opts);
+    session::router_runtime(&mut c, timing);
     start_router_with(children, c)
 }
 
@@ -451,7 +463,7 @@ async fn launch(
         }
     }
     if a.mode == LaunchMode::Client {
-        start_router(children, exe, p[0], &a.opts)?;
+        start_router(children, exe, p[0], &a.opts, scenario.timing)?;
     }
     let (mon_port, lead_port) = if a.mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
 

@@ -16,8 +16,6 @@ struct Cli {
 }
 
 fn main() -> anyhow::Result<()> {
-    // Before any thread starts: zenoh reads it when it first needs a runtime.
-    session::default_runtime();
     tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

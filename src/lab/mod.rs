@@ -317,6 +317,7 @@ impl Ctx<'_> {
         let mut c = self.lab.command("router", self.exe);
         c.args(["node", "router", "--listen", &self.ep("router")]);
         launch::tls_arg(&mut c, &self.a.opts);
+        crate::net::session::router_runtime(&mut c, self.scenario.timing);
         c
     }
 

@@ -99,17 +99,44 @@ pub const LEASE_MS: u64 = 1000;
 /// application runtime of one worker. Zenoh's default (six threads, two of
 /// them receiving) spreads one message over several thread wake-ups; on a
 /// host shared by many nodes that costs CPU and, worse, late messages.
-/// Measured on the 2-core VM (paper scenario, clients of a router, real time
-/// at 1 kHz, 10 s): estimates one step old at a follower's step 54–75 times
-/// against 555–626, and about 11 % less CPU with 50 agents.
+/// Measured on the 2-core VM (release): one-hop latency of an estimate p50
+/// 20 µs against 36 µs, p99 29 µs against 65 µs; about 11 % less CPU with 50
+/// agents. Nodes that forward nothing only: see [`router_runtime`].
 pub const RUNTIME: &str = "(rx: (handover: app), acc: (handover: app), tx: (handover: app), net: (handover: app), \
                            app: (worker_threads: 1))";
+
+/// A router's command gets [`RUNTIME`] too when the run is real time (unless
+/// `ZENOH_RUNTIME` is set). Not in lock-step: there estimates are
+/// non-droppable, and a forwarding task that waits for room in a full
+/// transmit queue would hold the one thread that empties it (50 agents in
+/// lock-step stalled at their first step that way). Real-time traffic is
+/// droppable and never waits. Measured (paper scenario, clients, 1 kHz, 10
+/// s): one-step-old estimates 54–137 with the router on one thread, 499–549
+/// with zenoh's threads.
+pub fn router_runtime(c: &mut std::process::Command, timing: formation_topology::Timing) {
+    if user_runtime() {
+        return;
+    }
+    if timing == formation_topology::Timing::Realtime {
+        c.env("ZENOH_RUNTIME", RUNTIME);
+    } else {
+        // This process may have set it for itself (bench-net).
+        c.env_remove("ZENOH_RUNTIME");
+    }
+}
+
+/// Whether the user set `ZENOH_RUNTIME` (as this process found it the first
+/// time it asked, before [`default_runtime`] sets it).
+fn user_runtime() -> bool {
+    static USER: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *USER.get_or_init(|| std::env::var_os("ZENOH_RUNTIME").is_some())
+}
 
 /// Sets [`RUNTIME`] for this process's zenoh unless `ZENOH_RUNTIME` is set.
 /// Call first thing in `main`, before any thread starts (zenoh reads the
 /// variable once, when it first needs a runtime; child processes inherit it).
 pub fn default_runtime() {
-    if std::env::var_os("ZENOH_RUNTIME").is_none() {
+    if !user_runtime() {
         std::env::set_var("ZENOH_RUNTIME", RUNTIME);
     }
 }
