@@ -89,9 +89,23 @@ fn realtime_applies_the_table_at_the_receiver() {
     // 100 steps of 10 ms cut each way on 1–3 and 3–4. Real time publishes
     // estimates droppable (newest wins), so on a loaded machine a few of them
     // never arrive to be dropped by the table: count most, not all.
-    for node in ["1", "3", "4"] {
-        assert!(lost(&n, node) >= 50, "follower {node} dropped {} messages by the table: {n}", lost(&n, node));
+    assert!(lost(&n, "3") >= 100, "follower 3 dropped {} messages of 1 and 4 by the table: {n}", lost(&n, "3"));
+    // Follower 3 publishes until it is isolated (silent for 5 steps, then
+    // isolated after network.rejoin_after = 10 more), then keeps quiet until
+    // it hears again (README, "Decisions beyond SPEC.md"): 1 and 4 drop its
+    // first ~15 messages of the window, and it sends ~85 fewer.
+    for node in ["1", "4"] {
+        let l = lost(&n, node);
+        assert!((10..=30).contains(&l), "follower {node} dropped {l} of follower 3's messages by the table: {n}");
     }
+    let sent = |id: &str| n["nodes"][id]["estimates_sent"].as_u64().expect("estimates_sent");
+    assert!(
+        sent("2") - sent("3") >= 60,
+        "isolated follower 3 kept quiet for only {} steps (sent {} of {}): {n}",
+        sent("2") - sent("3"),
+        sent("3"),
+        sent("2")
+    );
     assert_eq!(lost(&n, "2"), 0, "follower 2 has no faulted link: {n}");
     // The simulator predicts 0.59 m for follower 3 alone for 1 s at Δt = 10 ms
     // (`formation sim … --set dt=0.01 --set duration=8 --set 'faults+={node=3, from=3, to=4}'`);
