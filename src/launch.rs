@@ -495,7 +495,8 @@ async fn launch(
             // Every earlier process that holds a neighbour, once.
             let mut dial: Vec<usize> = members
                 .clone()
-                .flat_map(|i| scenario.graph.neighbours(i).iter().map(|&j| group_of(j)).collect::<Vec<_>>())
+                .flat_map(|i| scenario.graph.neighbours(i))
+                .map(|&j| group_of(j))
                 .filter(|&h| h < g)
                 .collect();
             dial.sort_unstable();

@@ -534,13 +534,13 @@ impl Sent {
     }
 
     /// What the neighbours may still wait for, oldest first: the last
-    /// [`REPEATED`], and up to [`REPEAT_BURST`] from the step of the least
-    /// advanced neighbour (`heard`: each neighbour's newest message, whose
-    /// step is the one it waits for).
-    fn needed(&self, heard: &[Option<u64>]) -> impl Iterator<Item = &Vec<u8>> {
+    /// [`REPEATED`], and up to [`REPEAT_BURST`] from `slowest`, the step the
+    /// least advanced neighbour waits for (the step of its newest message,
+    /// [`Inbox::slowest_heard`]).
+    fn needed(&self, slowest: Option<u64>) -> impl Iterator<Item = &Vec<u8>> {
         let newest = self.0.back().map_or(0, |m| m.0);
         let last = newest.saturating_sub(REPEATED as u64 - 1);
-        let from = heard.iter().flatten().copied().min().map_or(last, |m| m.min(last));
+        let from = slowest.map_or(last, |m| m.min(last));
         let burst = from.saturating_add(REPEAT_BURST as u64);
         self.0.iter().filter(move |m| m.0 >= last || (m.0 >= from && m.0 < burst)).map(|m| &m.1)
     }
@@ -661,9 +661,9 @@ fn control_loop(
                     if said.elapsed() >= Duration::from_millis(100) {
                         // Safety net for messages lost on the way: say again
                         // what the neighbours still need.
-                        let heard: Vec<Option<u64>> = (0..c.neighbours).map(|s| inbox.heard_max(s)).collect();
+                        let slowest = inbox.slowest_heard(c.neighbours);
                         drop(inbox);
-                        for bytes in recent.needed(&heard) {
+                        for bytes in recent.needed(slowest) {
                             put(estimate_pub, bytes)?;
                             sent += 1;
                             republished += 1;
@@ -774,11 +774,8 @@ fn control_loop(
                 break;
             }
             if said.elapsed() >= Duration::from_millis(200) {
-                let heard: Vec<Option<u64>> = {
-                    let inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
-                    (0..c.neighbours).map(|s| inbox.heard_max(s)).collect()
-                };
-                for bytes in recent.needed(&heard) {
+                let slowest = shared.inbox.lock().unwrap_or_else(|p| p.into_inner()).slowest_heard(c.neighbours);
+                for bytes in recent.needed(slowest) {
                     put(estimate_pub, bytes)?;
                 }
                 said = Instant::now();
@@ -801,7 +798,8 @@ mod tests {
     use super::*;
 
     fn steps(s: &Sent, heard: &[Option<u64>]) -> Vec<u64> {
-        s.needed(heard).map(|b| u64::from(b[0]) + 256 * u64::from(b[1])).collect()
+        let slowest = heard.iter().flatten().copied().min();
+        s.needed(slowest).map(|b| u64::from(b[0]) + 256 * u64::from(b[1])).collect()
     }
 
     fn sent(upto: u64) -> Sent {

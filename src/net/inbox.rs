@@ -119,6 +119,12 @@ impl Inbox {
         self.heard_max[slot]
     }
 
+    /// The least advanced of the first `slots` sources, by the furthest step
+    /// heard from each ([`Inbox::heard_max`]); None if none was heard.
+    pub fn slowest_heard(&self, slots: usize) -> Option<u64> {
+        self.heard_max[..slots].iter().flatten().copied().min()
+    }
+
     /// The step the receiver is at (or waiting for).
     pub fn set_step(&mut self, k: u64) {
         self.current = self.current.max(k);
@@ -339,5 +345,18 @@ mod tests {
         // Held message newer than k: not used (and not "0 steps old").
         assert_eq!(inbox.latest(0, 5, 10), None);
         assert_eq!(inbox.latest(0, 8, 10).map(|m| m.state.v), Some(8.0));
+    }
+
+    /// The slowest neighbour by its newest message, heard or not accepted;
+    /// the leader's slot (the last) is left out by the caller.
+    #[test]
+    fn the_slowest_heard_neighbour_is_the_least_advanced_one() {
+        let mut inbox = Inbox::new(3, true);
+        assert_eq!(inbox.slowest_heard(2), None);
+        inbox.accept(0, &msg(1, 7));
+        assert_eq!(inbox.slowest_heard(2), Some(7), "one heard");
+        inbox.accept(1, &msg(2, 1));
+        inbox.accept(2, &msg(0, 0));
+        assert_eq!(inbox.slowest_heard(2), Some(1), "slot 2 is not counted");
     }
 }
