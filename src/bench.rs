@@ -4,13 +4,16 @@
 //! runs; and the simulator's memory per follower. Wall-clock timing lives
 //! here, in a shell, never in the core.
 
+use std::path::PathBuf;
 use std::time::Instant;
 
 use formation_topology::{generate, Scenario};
 
-use crate::cli::{BenchArgs, CliError};
-use crate::record::RecordOptions;
-use crate::sim::{NoRecord, Simulation};
+use clap::Args;
+
+use crate::error::CliError;
+use formation_record::RecordOptions;
+use formation_sim::{NoRecord, Simulation};
 
 /// One measurement.
 pub struct Measurement {
@@ -67,7 +70,7 @@ pub fn measure(
             let dir = std::env::temp_dir().join(format!("formation-bench-{}", std::process::id()));
             let opts = RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false };
             let started = Instant::now();
-            crate::cli::run_to_folder_on(&s, &opts, true, threads)?;
+            formation_sim::run_to_folder(&s, &opts, threads, |_| {})?;
             let seconds = started.elapsed().as_secs_f64();
             let _ = std::fs::remove_dir_all(&dir);
             seconds
@@ -136,7 +139,7 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
     if a.faults {
         return fault_cases(a);
     }
-    crate::cli::at_least_one("--repeat", a.repeat.into())?;
+    crate::error::at_least_one("--repeat", a.repeat.into())?;
     let mut threads = a.threads.clone();
     threads.dedup();
     println!(
@@ -171,7 +174,12 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
     let paper = scenario_for(4, &a.scenario)?;
     let dir = std::env::temp_dir().join(format!("formation-bench-paper-{}", std::process::id()));
     let started = Instant::now();
-    crate::cli::run_to_folder(&paper, &RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false }, true)?;
+    formation_sim::run_to_folder(
+        &paper,
+        &RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false },
+        1,
+        |_| {},
+    )?;
     println!(
         "paper scenario end to end ({} follower-steps, CSV of every sample): {:.3} s",
         paper.followers.len() as u64 * (paper.steps() + 1),
@@ -179,4 +187,43 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
     );
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Follower counts to measure; 4 is the paper scenario, larger counts are
+    /// generated rings with n/5 random chords.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![4, 100, 10_000, 100_000])]
+    pub followers: Vec<u32>,
+    /// Threads to measure each count on: 1 steps the followers one after
+    /// another, N > 1 on N threads (as `sim --threads N`), `all` on every core.
+    #[arg(long, value_delimiter = ',', default_values = ["1", "all"], value_parser = parse_threads, value_name = "N|all")]
+    pub threads: Vec<usize>,
+    /// Minimum follower-steps per measurement (at least 100 steps).
+    #[arg(long, default_value_t = 2_000_000)]
+    pub work: u64,
+    /// Runs per measurement; the fastest is reported.
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    pub repeat: u32,
+    /// Also measure with recording on (CSV of every sample into a temporary folder).
+    #[arg(long)]
+    pub record: bool,
+    /// The paper scenario file, for n = 4.
+    #[arg(long, default_value = "scenarios/paper.toml")]
+    pub scenario: PathBuf,
+    /// Instead: the paper scenario without faults, with follower 3 cut off
+    /// for 3 s and with 30 % loss on every link, side by side (docs/model.md §14).
+    #[arg(long)]
+    pub faults: bool,
+}
+
+/// `--threads` of `bench`: a count of at least 1, or `all` for every core.
+fn parse_threads(s: &str) -> Result<usize, String> {
+    match s {
+        "all" => Ok(std::thread::available_parallelism().map_or(1, |n| n.get())),
+        _ => match s.parse::<usize>() {
+            Ok(0) | Err(_) => Err(format!("{s:?} is neither a thread count of at least 1 nor `all`")),
+            Ok(n) => Ok(n),
+        },
+    }
 }

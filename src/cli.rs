@@ -3,14 +3,15 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::{Duration, Instant};
 
 use clap::{Args, Parser, Subcommand};
+use formation_record::{RecordOptions, Summary};
 use formation_topology::Scenario;
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
-use crate::record::{RecordOptions, Row, RunWriter, Summary};
-use crate::sim::{Observer, Simulation};
+use crate::args::ScenarioArgs;
+use crate::bench::BenchArgs;
+use crate::error::{at_least_one, CliError};
+use crate::progress::Progress;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -44,7 +45,7 @@ pub enum Command {
     /// Needs root or unprivileged user namespaces.
     Lab(crate::lab::LabArgs),
     /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
-    BenchNet(crate::net::bench::BenchNetArgs),
+    BenchNet(crate::bench_net::BenchNetArgs),
     /// Make a certificate authority, a certificate and key per node and the
     /// access-control policy of a scenario, for `--tls DIR` (mutual TLS on
     /// every link, each node allowed to speak only for itself).
@@ -54,24 +55,7 @@ pub enum Command {
     Generate(GenerateArgs),
     /// A single node of a networked run (used by `launch`).
     #[command(hide = true)]
-    Node(crate::launch::NodeCommand),
-}
-
-/// Scenario selection shared by every command that runs one.
-#[derive(Args, Debug, Clone)]
-pub struct ScenarioArgs {
-    /// Scenario file (TOML). See scenarios/paper.toml for every key.
-    pub scenario: PathBuf,
-    /// Override a scenario value without editing the file, e.g.
-    /// `--set filter=kf --set fault.time=10 --set duration=5`. Repeatable.
-    #[arg(long = "set", value_name = "KEY=VALUE")]
-    pub overrides: Vec<String>,
-}
-
-impl ScenarioArgs {
-    pub fn load(&self) -> Result<Scenario, CliError> {
-        Scenario::load(&self.scenario, &self.overrides).map_err(|e| CliError::Input(e.to_string()))
-    }
+    Node(crate::node::NodeCommand),
 }
 
 #[derive(Args, Debug)]
@@ -173,56 +157,6 @@ pub struct SimArgs {
 /// From this many followers `--threads 0` steps them on every core.
 pub const PARALLEL_FROM: usize = 256;
 
-#[derive(Args, Debug)]
-pub struct BenchArgs {
-    /// Follower counts to measure; 4 is the paper scenario, larger counts are
-    /// generated rings with n/5 random chords.
-    #[arg(long, value_delimiter = ',', default_values_t = vec![4, 100, 10_000, 100_000])]
-    pub followers: Vec<u32>,
-    /// Threads to measure each count on: 1 steps the followers one after
-    /// another, N > 1 on N threads (as `sim --threads N`), `all` on every core.
-    #[arg(long, value_delimiter = ',', default_values = ["1", "all"], value_parser = parse_threads, value_name = "N|all")]
-    pub threads: Vec<usize>,
-    /// Minimum follower-steps per measurement (at least 100 steps).
-    #[arg(long, default_value_t = 2_000_000)]
-    pub work: u64,
-    /// Runs per measurement; the fastest is reported.
-    #[arg(long, default_value_t = 3, value_name = "N")]
-    pub repeat: u32,
-    /// Also measure with recording on (CSV of every sample into a temporary folder).
-    #[arg(long)]
-    pub record: bool,
-    /// The paper scenario file, for n = 4.
-    #[arg(long, default_value = "scenarios/paper.toml")]
-    pub scenario: PathBuf,
-    /// Instead: the paper scenario without faults, with follower 3 cut off
-    /// for 3 s and with 30 % loss on every link, side by side (SPEC §14).
-    #[arg(long)]
-    pub faults: bool,
-}
-
-/// `--threads` of `bench`: a count of at least 1, or `all` for every core.
-fn parse_threads(s: &str) -> Result<usize, String> {
-    match s {
-        "all" => Ok(std::thread::available_parallelism().map_or(1, |n| n.get())),
-        _ => match s.parse::<usize>() {
-            Ok(0) | Err(_) => Err(format!("{s:?} is neither a thread count of at least 1 nor `all`")),
-            Ok(n) => Ok(n),
-        },
-    }
-}
-
-/// Every command ends with [`crate::error::Error`]: one line and its exit status.
-pub use crate::error::Error as CliError;
-
-/// Refuses 0 for a count option that must be at least 1.
-pub fn at_least_one(flag: &str, value: u64) -> Result<(), CliError> {
-    match value {
-        0 => Err(CliError::Input(format!("{flag} must be at least 1, not 0"))),
-        _ => Ok(()),
-    }
-}
-
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
@@ -234,12 +168,12 @@ pub fn main() -> ExitCode {
         Command::Lab(a) => crate::lab::run(&a),
         Command::BenchNet(a) => {
             // Its latency sessions run in this process: as in the nodes.
-            crate::net::session::default_runtime();
-            crate::net::bench::run(&a)
+            formation_net::session::default_runtime();
+            crate::bench_net::run(&a)
         }
         Command::Certs(a) => crate::certs::run(&a),
         Command::Generate(a) => generate(&a),
-        Command::Node(a) => crate::launch::run_node(&a),
+        Command::Node(a) => return crate::node::run(a.node),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -247,38 +181,6 @@ pub fn main() -> ExitCode {
             eprintln!("error: {e}");
             e.exit_code()
         }
-    }
-}
-
-/// A progress bar that appears only once work has taken more than a second.
-pub struct Progress {
-    bar: ProgressBar,
-    started: Instant,
-    shown: bool,
-    quiet: bool,
-}
-
-impl Progress {
-    pub fn new(len: u64, what: &str, quiet: bool) -> Self {
-        let bar = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::hidden());
-        let style = ProgressStyle::with_template("{msg} [{bar:30}] {percent:>3}% {elapsed} (eta {eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> ");
-        bar.set_style(style);
-        bar.set_message(what.to_string());
-        Self { bar, started: Instant::now(), shown: false, quiet }
-    }
-
-    pub fn set(&mut self, pos: u64) {
-        if !self.shown && !self.quiet && self.started.elapsed() > Duration::from_secs(1) {
-            self.bar.set_draw_target(ProgressDrawTarget::stderr());
-            self.shown = true;
-        }
-        self.bar.set_position(pos);
-    }
-
-    pub fn finish(&self) {
-        self.bar.finish_and_clear();
     }
 }
 
@@ -293,7 +195,7 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
         n => n,
     };
     let opts = RecordOptions { dir, every: a.every, csv: !a.no_csv, mcap: a.mcap };
-    let (summary, dir) = run_to_folder_on(&scenario, &opts, a.quiet, threads)?;
+    let (summary, dir) = run_to_folder(&scenario, &opts, a.quiet, threads)?;
     if !a.quiet {
         print!("{}", summary.table());
         println!("wrote {}", dir.display());
@@ -301,85 +203,16 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
     Ok((summary, dir))
 }
 
-/// Runs a scenario in process and writes its run folder.
-pub fn run_to_folder(scenario: &Scenario, opts: &RecordOptions, quiet: bool) -> Result<(Summary, PathBuf), CliError> {
-    run_to_folder_on(scenario, opts, quiet, 1)
-}
-
-/// [`run_to_folder`] with the followers of each step on `threads` threads.
-pub fn run_to_folder_on(
+/// Runs a scenario in process on `threads` threads and writes its run
+/// folder, with a progress line unless `quiet`.
+pub fn run_to_folder(
     scenario: &Scenario,
     opts: &RecordOptions,
     quiet: bool,
     threads: usize,
 ) -> Result<(Summary, PathBuf), CliError> {
-    if threads > 1 {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .map_err(|e| CliError::Run(format!("starting {threads} threads: {e}")))?;
-        return pool.install(|| run_folder(scenario, opts, quiet, true));
-    }
-    run_folder(scenario, opts, quiet, false)
-}
-
-fn run_folder(
-    scenario: &Scenario,
-    opts: &RecordOptions,
-    quiet: bool,
-    parallel: bool,
-) -> Result<(Summary, PathBuf), CliError> {
-    let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
-    let mut writer = RunWriter::create(opts, &ids)?;
-    let steps = scenario.steps();
-    let mut progress = Progress::new(steps + 1, &scenario.name, quiet);
-    let mut sim = Simulation::new(scenario);
-    sim.set_parallel(parallel);
-    let result = {
-        let mut observer = FolderObserver { writer: &mut writer, steps, dt: scenario.dt_s };
-        sim.run(&mut observer, |k| progress.set(k))
-    };
+    let mut progress = Progress::new(scenario.steps() + 1, &scenario.name, quiet);
+    let result = formation_sim::run_to_folder(scenario, opts, threads, |k| progress.set(k));
     progress.finish();
-    match result {
-        Ok(metrics) => {
-            let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect())
-                .with_outages(scenario, &sim.outages());
-            let dir = writer.finish(&summary)?;
-            Ok((summary, dir))
-        }
-        Err(e) => {
-            // Keep what was recorded up to the failure, with the summary of
-            // an incomplete run (`complete: false`).
-            let metrics = sim.followers().iter().map(|f| f.metrics.finish());
-            let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect());
-            let _ = writer.flush();
-            let _ = writer.write_file("summary.json", &summary.to_json());
-            Err(CliError::Run(format!(
-                "{e} (samples so far and their summary.json kept in {})",
-                writer.partial_dir().display()
-            )))
-        }
-    }
-}
-
-/// Writes every sample the writer wants.
-struct FolderObserver<'w> {
-    writer: &'w mut RunWriter,
-    steps: u64,
-    dt: f64,
-}
-
-impl Observer for FolderObserver<'_> {
-    fn leader(&mut self, k: u64, state: &formation_agent::LeaderState) -> std::io::Result<()> {
-        if self.writer.wants(k, k == self.steps) {
-            self.writer.leader_row(k as f64 * self.dt, state)?;
-        }
-        Ok(())
-    }
-    fn follower(&mut self, index: usize, k: u64, row: &Row, last: bool) -> std::io::Result<()> {
-        if self.writer.wants(k, last) {
-            self.writer.follower_row(index, row)?;
-        }
-        Ok(())
-    }
+    Ok(result?)
 }

@@ -1,5 +1,6 @@
 //! The error every command and node ends with: one line, and the exit
 //! status that says whose fault it was (2: bad input, 1: the run failed).
+//! The one place where the libraries' errors become exit statuses.
 
 use std::process::ExitCode;
 
@@ -13,6 +14,9 @@ pub enum Error {
     Run(String),
 }
 
+/// The name the command modules use.
+pub use self::Error as CliError;
+
 impl Error {
     pub fn exit_code(&self) -> ExitCode {
         match self {
@@ -22,9 +26,36 @@ impl Error {
     }
 }
 
-impl From<crate::sim::SimError> for Error {
-    fn from(e: crate::sim::SimError) -> Self {
-        Error::Run(e.to_string())
+impl From<formation_sim::SimError> for Error {
+    fn from(e: formation_sim::SimError) -> Self {
+        match e {
+            formation_sim::SimError::Io(e) => e.into(),
+            e => Error::Run(e.to_string()),
+        }
+    }
+}
+
+impl From<formation_record::RecordError> for Error {
+    fn from(e: formation_record::RecordError) -> Self {
+        match e {
+            formation_record::RecordError::Malformed { .. } => Error::Input(e.to_string()),
+            formation_record::RecordError::Io { .. } => Error::Input(e.to_string()),
+        }
+    }
+}
+
+impl From<formation_net::Error> for Error {
+    fn from(e: formation_net::Error) -> Self {
+        match e {
+            formation_net::Error::Input(m) => Error::Input(m),
+            formation_net::Error::Run(m) => Error::Run(m),
+        }
+    }
+}
+
+impl From<formation_net::session::SessionError> for Error {
+    fn from(e: formation_net::session::SessionError) -> Self {
+        formation_net::Error::from(e).into()
     }
 }
 
@@ -38,5 +69,13 @@ impl From<std::io::Error> for Error {
             ErrorKind::AlreadyExists | ErrorKind::NotADirectory => Error::Input(e.to_string()),
             _ => Error::Run(e.to_string()),
         }
+    }
+}
+
+/// Refuses 0 for a count option that must be at least 1.
+pub fn at_least_one(flag: &str, value: u64) -> Result<(), Error> {
+    match value {
+        0 => Err(Error::Input(format!("{flag} must be at least 1, not 0"))),
+        _ => Ok(()),
     }
 }

@@ -25,9 +25,11 @@ use std::time::{Duration, Instant};
 use clap::Args;
 use formation_topology::Scenario;
 
-use crate::cli::{CliError, ScenarioArgs};
-use crate::net::session;
-use crate::record::Summary;
+use formation_net::session;
+use formation_record::Summary;
+
+use crate::args::ScenarioArgs;
+use crate::error::CliError;
 
 /// How the launched nodes reach each other.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -67,16 +69,16 @@ pub struct RunOptions {
     #[arg(long)]
     pub mcap: bool,
     #[command(flatten)]
-    pub web: crate::net::monitor::WebArgs,
+    pub web: formation_net::monitor::WebArgs,
 }
 
 impl RunOptions {
     /// The scenario, the run name and the run folder, checked (bad input: exit 2).
     pub fn resolve(&self) -> Result<(Scenario, String, PathBuf), CliError> {
         let scenario = self.scenario.load()?;
-        crate::net::node::networked(&scenario).map_err(CliError::Input)?;
+        formation_net::node::networked(&scenario).map_err(CliError::Input)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
-        session::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
+        formation_net::names::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
         if let Some(x) = self.time_scale {
             if !(x.is_finite() && x > 0.0) {
                 return Err(CliError::Input(format!("--time-scale must be a positive number, not {x}")));
@@ -85,7 +87,7 @@ impl RunOptions {
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
         if let Some(dir) = &self.tls {
             // Every node's files, checked before any process starts.
-            crate::certs::check_all(dir, &scenario).map_err(CliError::Input)?;
+            formation_net::identity::check_all(dir, &scenario).map_err(CliError::Input)?;
         }
         Ok((scenario, run, out))
     }
@@ -248,71 +250,6 @@ fn ports(base: Option<u16>, count: usize) -> Result<Vec<u16>, CliError> {
         .map_err(|e| CliError::Run(format!("finding free loopback ports: {e}")))
 }
 
-/// `formation node …`: the node binaries' work inside the `formation`
-/// executable, so that `formation launch` always starts nodes built from the
-/// same code as itself (`cargo run -- launch` builds only this binary).
-#[derive(Args, Debug, Clone)]
-pub struct NodeCommand {
-    #[command(subcommand)]
-    pub node: Node,
-}
-
-#[derive(clap::Subcommand, Debug, Clone)]
-pub enum Node {
-    /// One follower (as the `agent` binary).
-    Agent(crate::net::agent::AgentArgs),
-    /// The virtual leader (as the `leader` binary).
-    Leader(crate::net::leader::LeaderArgs),
-    /// The monitor (as the `monitor` binary; exit status 1 when interrupted).
-    Monitor(crate::net::monitor::MonitorArgs),
-    /// A zenoh router for client mode (as the `router` binary).
-    Router(session::ZenohArgs),
-}
-
-/// Runs a node on a multi-thread runtime.
-pub fn run_node(cmd: &NodeCommand) -> Result<(), CliError> {
-    // Before the runtime's threads start; a router keeps zenoh's own threads
-    // (it forwards, and a forwarding task may wait for a full queue).
-    if !matches!(cmd.node, Node::Router(_)) {
-        session::default_runtime();
-    }
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
-    let result = runtime.block_on(async {
-        match &cmd.node {
-            Node::Agent(a) => crate::net::agent::run(a).await,
-            Node::Leader(a) => crate::net::leader::run(a).await,
-            Node::Monitor(a) => match crate::net::monitor::run(a).await? {
-                crate::net::monitor::Ending::Complete => Ok(()),
-                _ => Err(CliError::Run("the monitor was interrupted".into())),
-            },
-            Node::Router(z) => router(z).await,
-        }
-    });
-    runtime.shutdown_timeout(Duration::from_secs(1));
-    result
-}
-
-/// A zenoh router until SIGINT/SIGTERM; prints `router listening on …` once open.
-async fn router(z: &session::ZenohArgs) -> Result<(), CliError> {
-    let mut z = z.clone();
-    z.mode = Some(session::ZenohMode::Router);
-    z.identity = Some(crate::certs::ROUTER.to_string());
-    let s = session::open(&z).await.map_err(|e| CliError::Run(e.to_string()))?;
-    println!("router listening on {} (zid {})", z.listen.join(", "), s.zid());
-    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| CliError::Run(format!("installing the SIGTERM handler: {e}")))?;
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => {}
-        _ = term.recv() => {}
-    }
-    let _ = tokio::time::timeout(Duration::from_secs(5), s.close()).await;
-    Ok(())
-}
-
 /// `formation launch`.
 pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
     if a.group == 0 {
@@ -458,7 +395,7 @@ async fn launch(
             },
             if a.mode == LaunchMode::Client { ", router" } else { "" },
         );
-        if let Some(hint) = crate::net::node::realtime_hint(scenario) {
+        if let Some(hint) = formation_net::node::realtime_hint(scenario) {
             eprintln!("{hint}");
         }
     }

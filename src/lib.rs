@@ -1,19 +1,19 @@
-//! The `formation` shells around the pure core: the in-process simulator,
-//! run recording and metrics, the zenoh nodes and the command line.
+//! The `formation` command line and its tools, above the libraries: the
+//! model (`formation-plant`, `-leader`, `-agent`, `-topology`), the run
+//! record (`formation-record`), the simulator (`formation-sim`) and the
+//! network (`formation-net`). This crate alone knows exit statuses and clap
+//! commands; docs/architecture.md draws the layers.
 
+pub mod args;
 pub mod bench;
+pub mod bench_net;
 pub mod certs;
 pub mod cli;
 pub mod error;
-pub mod foxglove_live;
 pub mod lab;
 pub mod launch;
-pub mod mcap_file;
-pub mod net;
-pub mod outage;
+pub mod node;
 pub mod paper;
-pub mod record;
+pub mod progress;
 pub mod report;
-pub mod sim;
 pub mod study;
-pub mod web;

@@ -1,4 +1,4 @@
-//! `formation paper`: runs every case the paper compares (SPEC §12) on the
+//! `formation paper`: runs every case the paper compares (docs/model.md §12) on the
 //! paper scenario, for one or many seeds in parallel, and writes the report
 //! (figures, tables, claims) next to the cases' run folders.
 //!
@@ -15,11 +15,11 @@ use formation_topology::Scenario;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 
-use crate::cli::{at_least_one, CliError};
-use crate::record::{at_path, RecordOptions, Row, RunWriter, Summary};
+use crate::error::{at_least_one, CliError};
 use crate::report::{self, tables, Case, Context, SeedRecord, ESTIMATOR_CHECK_TIMES_S, SEEDS_FILE};
-use crate::sim::{Observer, Simulation};
 use crate::study;
+use formation_record::{at_path, RecordOptions, Row, RunWriter, Summary};
+use formation_sim::{FolderObserver, Observer, Simulation};
 
 #[derive(clap::Args, Debug)]
 pub struct PaperArgs {
@@ -43,7 +43,7 @@ pub struct PaperArgs {
     /// Print nothing but errors.
     #[arg(long, short)]
     pub quiet: bool,
-    /// Skip the outage study (SPEC §14) that follows the paper's cases.
+    /// Skip the outage study (docs/model.md §14) that follows the paper's cases.
     #[arg(long)]
     pub no_study: bool,
 }
@@ -62,7 +62,7 @@ pub struct PaperCase {
 
 const PROPOSED: &[&str] = &["kinematic=bio", "dynamic=bio", "filter=asif", "estimate_init=leader"];
 
-/// Every case of SPEC §12.
+/// Every case of docs/model.md §12.
 pub const CASES: [PaperCase; 8] = [
     PaperCase {
         name: "proposed",
@@ -148,32 +148,26 @@ pub fn scenario_with(path: &Path, user: &[String], keys: &[String], fault: bool)
     Ok(s)
 }
 
-/// Records the first seed's CSVs (if any) and the estimator error at the
-/// check times.
-struct PaperObserver {
-    writer: Option<RunWriter>,
-    steps: u64,
-    dt_s: f64,
+/// The estimator error of every follower at the check times (and, through
+/// the folder observer, the first seed's CSVs).
+struct PaperObserver<'w> {
+    folder: Option<FolderObserver<'w>>,
     ids: Vec<u32>,
     check_steps: [Option<u64>; 2],
     at_checks: [BTreeMap<u32, f64>; 2],
 }
 
-impl Observer for PaperObserver {
+impl Observer for PaperObserver<'_> {
     fn leader(&mut self, k: u64, state: &formation_agent::LeaderState) -> std::io::Result<()> {
-        if let Some(w) = &mut self.writer {
-            if w.wants(k, k == self.steps) {
-                w.leader_row(k as f64 * self.dt_s, state)?;
-            }
+        match &mut self.folder {
+            Some(f) => f.leader(k, state),
+            None => Ok(()),
         }
-        Ok(())
     }
 
     fn follower(&mut self, index: usize, k: u64, row: &Row, last: bool) -> std::io::Result<()> {
-        if let Some(w) = &mut self.writer {
-            if w.wants(k, last) {
-                w.follower_row(index, row)?;
-            }
+        if let Some(f) = &mut self.folder {
+            f.follower(index, k, row, last)?;
         }
         for (slot, at) in self.check_steps.iter().zip(&mut self.at_checks) {
             if *slot == Some(k) {
@@ -194,16 +188,19 @@ pub fn run_seed(scenario: &Scenario, seed: u64, record: Option<&RecordOptions>) 
         let k = (t / s.dt_s).round() as u64;
         (k <= steps).then_some(k)
     });
-    let writer = record.map(|o| RunWriter::create(o, &ids)).transpose()?;
-    let mut obs =
-        PaperObserver { writer, steps, dt_s: s.dt_s, ids: ids.clone(), check_steps, at_checks: Default::default() };
+    let mut writer = record.map(|o| RunWriter::create(o, &ids)).transpose()?;
     let mut sim = Simulation::new(&s);
-    let metrics = sim.run(&mut obs, |_| {}).map_err(|e| CliError::Run(format!("{} seed {seed}: {e}", s.name)))?;
+    let (metrics, at_checks) = {
+        let folder = writer.as_mut().map(|w| FolderObserver::new(w, &s));
+        let mut obs = PaperObserver { folder, ids: ids.clone(), check_steps, at_checks: Default::default() };
+        let metrics = sim.run(&mut obs, |_| {}).map_err(|e| CliError::Run(format!("{} seed {seed}: {e}", s.name)))?;
+        (metrics, obs.at_checks)
+    };
     let summary = Summary::new(&s, ids.iter().copied().zip(metrics).collect()).with_outages(&s, &sim.outages());
-    if let Some(w) = obs.writer.take() {
+    if let Some(w) = writer {
         w.finish(&summary)?;
     }
-    let [e4, e6] = obs.at_checks;
+    let [e4, e6] = at_checks;
     Ok(SeedRecord { seed, summary, estimator_error_4s: e4, estimator_error_6s: e6 })
 }
 
@@ -300,7 +297,7 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
             a.every
         ),
     ];
-    let ctx = Context { paper: true, command, params: tables::ClaimParams::from_scenario(&base), notes, study };
+    let ctx = Context { paper: true, command, params: report::ClaimParams::from_scenario(&base), notes, study };
     let (path, built) = report::write_report(&a.out, &cases, &ctx)?;
     if !a.quiet {
         print!("{}", tables::claims_text(&built.claims));

@@ -1,16 +1,17 @@
 //! The outage study `formation paper` runs after the paper's cases
-//! (SPEC §14): follower 3 cut off for 3 s at t = 10 s, rejoining with
+//! (docs/model.md §14): follower 3 cut off for 3 s at t = 10 s, rejoining with
 //! `adopt` or `consensus`, under bioinspired and conventional backstepping;
 //! and loss on follower 3's links over the whole run, p = 0 … 1.
 //!
-//! Each case is the proposed method of SPEC §12 (bioinspired SMC, ASIF,
+//! Each case is the proposed method of docs/model.md §12 (bioinspired SMC, ASIF,
 //! estimate started at the leader, no filter fault) with a fault table and a
 //! rejoin policy; the user's `--set` overrides apply first, as for the
 //! paper's cases.
 
 use formation_topology::Scenario;
 
-use crate::report::faults::{Study, STUDY_NODE};
+use crate::report::case::Study;
+use crate::report::faults::STUDY_NODE;
 
 /// The outage window, s of run time: [from, to).
 pub const OUTAGE_S: (f64, f64) = (10.0, 13.0);
@@ -18,7 +19,7 @@ pub const OUTAGE_S: (f64, f64) = (10.0, 13.0);
 pub const LOSSES: [f64; 6] = [0.0, 0.1, 0.3, 0.5, 0.9, 1.0];
 /// The kinematic controllers compared: scenario value and name.
 const KINEMATICS: [(&str, &str); 2] = [("bio", "bioinspired"), ("conventional", "conventional")];
-/// The rejoin policies compared (SPEC §14).
+/// The rejoin policies compared (docs/model.md §14).
 const REJOINS: [&str; 2] = ["adopt", "consensus"];
 /// The sweep's policy; [`plan`]'s notes say why one is enough.
 const SWEEP_REJOIN: &str = "consensus";
@@ -45,9 +46,9 @@ pub struct Plan {
 }
 
 /// The part the outage cases need: the window and the 5 s after it over
-/// which SPEC §14 takes the peaks.
+/// which docs/model.md §14 takes the peaks.
 pub fn outage_needs_s() -> f64 {
-    OUTAGE_S.1 + crate::outage::AFTER_S
+    OUTAGE_S.1 + formation_record::outage::AFTER_S
 }
 
 /// The cases for `base` (the scenario with the user's overrides): the outage
@@ -84,9 +85,9 @@ pub fn plan(base: &Scenario) -> Plan {
     } else {
         skipped.push(format!(
             "The outage cases were skipped: they need T ≥ {} s (follower {node}'s links down {from}–{to} s and the \
-             {} s after, over which SPEC §14 takes the peaks), and this run has T = {} s.",
+             {} s after, over which docs/model.md §14 takes the peaks), and this run has T = {} s.",
             outage_needs_s(),
-            crate::outage::AFTER_S,
+            formation_record::outage::AFTER_S,
             base.duration_s
         ));
     }

@@ -6,7 +6,7 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use formation::sim::{NoRecord, Simulation};
+use formation_sim::{NoRecord, Simulation};
 use formation_topology::{generate, Scenario};
 
 struct Counting;

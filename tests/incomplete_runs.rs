@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use formation::record::{FollowerMetrics, MetricsAccumulator, Row, Summary};
+use formation_record::{FollowerMetrics, MetricsAccumulator, Row, Summary};
 use formation_topology::Scenario;
 use serde_json::{json, Value};
 

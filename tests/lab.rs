@@ -240,7 +240,7 @@ fn fault_free_clients_through_a_router_match_the_simulator() {
     fault_free("lab-free-timely", true);
 }
 
-/// Follower 3's link down for 3 s (8-11 s) with `rejoin` (SPEC §14): the
+/// Follower 3's link down for 3 s (8-11 s) with `rejoin` (docs/model.md §14): the
 /// lab run, the simulator's folder for the same outage, and what differs
 /// from the model. The record and the exit statuses are judged always.
 fn follower_3_cut_off(tag: &str, mode: &str, rejoin: &str) -> Option<CutOff> {
@@ -300,7 +300,7 @@ struct CutOff {
 
 /// The issue's cut-off, judged (on a quiet machine) as asked: the others
 /// below 0.02 m throughout and follower 3 recovered no later than the
-/// simulator predicts plus 0.5 s. With `adopt` (SPEC §14): follower 3
+/// simulator predicts plus 0.5 s. With `adopt` (docs/model.md §14): follower 3
 /// rejoins at once and its drifted estimate is kept out of the others' sums.
 /// Measured on a quiet machine: the others' peaks 0.006-0.009 m (the
 /// fault-free run's, at t = 13.3 s), follower 3 back 0.12 s after its link.
@@ -327,8 +327,8 @@ fn follower_3_cut_off_for_3_s_as_a_peer() {
 /// machine), and the others below 0.02 m throughout under the default rejoin
 /// too. Follower 3's drifted estimate pulls them (simulator 0.011, 0.015 and
 /// 0.018 m); how hard depended on which direction of its link came back
-/// first, until an isolated follower kept quiet (README, "Decisions beyond
-/// SPEC.md"): before, 0.011-0.034 m over 11 runs; since, 0.0111-0.0113 m
+/// first, until an isolated follower kept quiet (docs/decisions.md):
+/// before, 0.011-0.034 m over 11 runs; since, 0.0111-0.0113 m
 /// for follower 4 in 4 of 4, follower 3 recovered in 5.65-5.69 s (simulator
 /// 5.49 s) with a peak of 3.20-3.25 m (simulator 2.99 m).
 #[test]
@@ -375,7 +375,7 @@ fn a_router_killed_for_3_s_costs_nothing_recorded_and_traffic_is_back_within_1_s
 
 /// A router restart isolates every follower at once. Under `consensus` the
 /// model itself needs 5.4-5.6 s to reconverge (see link_faults.rs), so the
-/// 2 s asked for is a matter of `adopt`, with SPEC §14's freshness: the
+/// 2 s asked for is a matter of `adopt`, with docs/model.md §14's freshness: the
 /// simulator predicts recovery within 2 ms of the links' return.
 #[test]
 fn a_router_killed_for_3_s_every_follower_recovers_within_2_s() {
@@ -496,7 +496,7 @@ fn a_bad_plan_is_refused_before_any_namespace_is_made() {
 }
 
 /// Agent 3 killed at 8 s and started again 2 s later (real time, 1 kHz):
-/// it rejoins the running formation from its checkpointed pose (SPEC §14's
+/// it rejoins the running formation from its checkpointed pose (docs/model.md §14's
 /// restarted agent), the record marks the gap and nothing else jumps.
 #[test]
 fn an_agent_killed_and_restarted_rejoins_the_running_formation() {

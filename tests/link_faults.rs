@@ -1,10 +1,10 @@
-//! SPEC §14 in the simulator: the paper scenario with follower 3 cut off
+//! docs/model.md §14 in the simulator: the paper scenario with follower 3 cut off
 //! for 3 s at t = 10 s, under both rejoin policies, and loss on a link.
 //! Each assertion carries the number it measured.
 
-use formation::outage::OutageMetrics;
-use formation::record::Row;
-use formation::sim::{Observer, Simulation};
+use formation_record::outage::OutageMetrics;
+use formation_record::Row;
+use formation_sim::{Observer, Simulation};
 use formation_topology::Scenario;
 
 const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
@@ -81,7 +81,7 @@ fn outage_of_follower_3_under_both_rejoin_policies() {
 /// What a router restart is to the model: every follower cut off at once
 /// (8–11.12 s, as the lab's 3 s router outage plus its reconnection). Every
 /// estimate is held through the isolation, so under `adopt` none may be
-/// taken from a neighbour until it has come back from the leader (SPEC §14's
+/// taken from a neighbour until it has come back from the leader (docs/model.md §14's
 /// freshness); then every follower recovers within a few steps, where
 /// `consensus` needs over 5 s.
 #[test]
@@ -149,7 +149,7 @@ fn fnv(bytes: &[u8]) -> u64 {
 /// A fault-free paper run is byte for byte what main gave before the fault
 /// table existed: the golden values are the FNV-1a hashes of
 /// `formation sim scenarios/paper.toml` (30 s, every sample) built from
-/// commit 5d6dd50, the last commit before SPEC §14.
+/// commit 5d6dd50, the last commit before docs/model.md §14.
 #[test]
 fn a_fault_free_paper_run_is_byte_identical_to_before_the_fault_table() {
     const GOLDEN: [(&str, u64); 6] = [

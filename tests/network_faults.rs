@@ -1,4 +1,4 @@
-//! SPEC §14's fault table in networked runs (ports 17800–17899, 127.0.0.1
+//! docs/model.md §14's fault table in networked runs (ports 17800–17899, 127.0.0.1
 //! only, multicast scouting off): lock-step runs with a fault table equal
 //! `formation sim` with the same table byte for byte (a node never waits for
 //! a message the table removes), and real-time runs apply the table at the
@@ -92,7 +92,7 @@ fn realtime_applies_the_table_at_the_receiver() {
     assert!(lost(&n, "3") >= 100, "follower 3 dropped {} messages of 1 and 4 by the table: {n}", lost(&n, "3"));
     // Follower 3 publishes until it is isolated (silent for 5 steps, then
     // isolated after network.rejoin_after = 10 more), then keeps quiet until
-    // it hears again (README, "Decisions beyond SPEC.md"): 1 and 4 drop its
+    // it hears again (docs/decisions.md): 1 and 4 drop its
     // first ~15 messages of the window, and it sends ~85 fewer.
     for node in ["1", "4"] {
         let l = lost(&n, node);

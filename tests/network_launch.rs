@@ -115,13 +115,23 @@ fn an_agent_refuses_a_repeated_or_unknown_follower() {
 }
 
 /// SIGTERM ends the monitor with 143 (128 + 15, the convention), Ctrl-C with
-/// 130, and the folder says which signal interrupted the run.
+/// 130, and the folder says which signal interrupted the run: the same for
+/// the `monitor` binary and for `formation node monitor` (what `launch` and
+/// the lab start), which share one node shell.
 #[test]
 fn the_monitor_exits_143_on_sigterm_and_130_on_sigint() {
-    for (signal, code, port) in [("-TERM", 143, "17620"), ("-INT", 130, "17621")] {
+    let by_hand: &[&str] = &[];
+    let by_launch: &[&str] = &["node", "monitor"];
+    for (signal, code, port, exe, first) in [
+        ("-TERM", 143, "17620", env!("CARGO_BIN_EXE_monitor"), by_hand),
+        ("-INT", 130, "17621", env!("CARGO_BIN_EXE_monitor"), by_hand),
+        ("-TERM", 143, "17622", env!("CARGO_BIN_EXE_formation"), by_launch),
+        ("-INT", 130, "17623", env!("CARGO_BIN_EXE_formation"), by_launch),
+    ] {
         let tmp = tempfile::tempdir().expect("tempdir");
         let out = tmp.path().join("run");
-        let child = Command::new(env!("CARGO_BIN_EXE_monitor"))
+        let child = Command::new(exe)
+            .args(first)
             .args(["--scenario", common::SCENARIO, "-q", "--run", "mon-sig", "--listen"])
             .arg(format!("tcp/127.0.0.1:{port}"))
             .arg("--out")
@@ -136,7 +146,7 @@ fn the_monitor_exits_143_on_sigterm_and_130_on_sigint() {
         let sent = Command::new("kill").args([signal, &g.0.id().to_string()]).status().expect("kill");
         assert!(sent.success());
         let status = g.wait(Duration::from_secs(20));
-        assert_eq!(status.code(), Some(code), "monitor after kill {signal}: {status}");
+        assert_eq!(status.code(), Some(code), "{exe} {first:?} after kill {signal}: {status}");
         let network = common::json(&out, "network.json");
         assert_eq!(network["ending"], "interrupted", "{network}");
         assert_eq!(network["signal"], if code == 143 { "SIGTERM" } else { "SIGINT" }, "{network}");

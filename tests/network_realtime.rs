@@ -10,7 +10,7 @@
 //! (20 steps, 100 ms of wall-clock time). On a machine so overloaded that
 //! the nodes fall more than that behind, the run degrades as real time
 //! should, and this test fails: its message then shows each node's
-//! lateness. Bounds: SPEC §12's formation
+//! lateness. Bounds: docs/model.md §12's formation
 //! bound as it stands (RMS over the last 10 s below 0.2 m); the estimator
 //! bound relaxed from 0.01 m to 0.1 m at t = T, because at Δt = 10 ms the
 //! in-process simulator itself ends at 0.04–0.06 m (forward Euler at a
@@ -65,7 +65,7 @@ fn realtime_run_ends_within_spec_bounds() {
     }
 }
 
-/// SPEC §14's communication delay: with `network.delay_steps = d` a step
+/// docs/model.md §14's communication delay: with `network.delay_steps = d` a step
 /// uses only messages that had d periods to arrive, so the real-time run
 /// is the one `formation sim` predicts with the same delay (with d = 0,
 /// each step mixes step-k and step-(k−1) messages as they happen to

@@ -1,11 +1,11 @@
-//! SPEC §12: what the paper scenario must show, each claim a test, on the
+//! docs/model.md §12: what the paper scenario must show, each claim a test, on the
 //! paper scenario with noise on and its fixed seed. Every assertion prints
 //! the number it measured.
 
 use std::path::Path;
 
-use formation::record::{FollowerMetrics, Row};
-use formation::sim::{NoRecord, Observer, Simulation};
+use formation_record::{FollowerMetrics, Row};
+use formation_sim::{NoRecord, Observer, Simulation};
 use formation_topology::Scenario;
 
 fn scenario(overrides: &[&str]) -> Scenario {
@@ -138,7 +138,7 @@ fn paper_graph_reports_lambda_min() {
 
 #[test]
 fn initial_body_errors_match_the_spec() {
-    // SPEC §10: x = (5, 2, 5, 2), y = 3 + Δy, θ = 0.
+    // docs/model.md §10: x = (5, 2, 5, 2), y = 3 + Δy, θ = 0.
     let s = scenario(&[]);
     for (f, x) in s.followers.iter().zip([5.0, 2.0, 5.0, 2.0]) {
         assert!(

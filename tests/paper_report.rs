@@ -1,6 +1,6 @@
 //! End to end: `formation paper` and `formation report` write every figure
 //! and table, the tables hold the runs' own numbers, and the report states
-//! each SPEC §12 claim with its measurement.
+//! each docs/model.md §12 claim with its measurement.
 
 mod common;
 
@@ -9,8 +9,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use formation::record::{FollowerMetrics, Summary};
 use formation::report::SeedRecord;
+use formation_record::{FollowerMetrics, Summary};
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_formation"))
@@ -145,12 +145,12 @@ fn named_metric(name: &str, m: &FollowerMetrics) -> Option<f64> {
     Some(v[name].as_f64().unwrap_or_else(|| panic!("metric {name}")))
 }
 
-/// Every claim of SPEC §12 is stated, with a result and, when measured, a number.
+/// Every claim of docs/model.md §12 is stated, with a result and, when measured, a number.
 fn check_claims(dir: &Path) -> BTreeMap<String, String> {
     let rows = read_csv(&dir.join("claims.csv"));
-    assert_eq!(rows.len(), 15, "15 statements of SPEC §12");
+    assert_eq!(rows.len(), 15, "15 statements of docs/model.md §12");
     let report = std::fs::read_to_string(dir.join("report.md")).unwrap();
-    assert!(report.contains("## Claims (SPEC §12)"));
+    assert!(report.contains("## Claims (docs/model.md §12)"));
     let mut results = BTreeMap::new();
     for row in &rows {
         let result = row["result"].clone();
@@ -354,7 +354,7 @@ fn outage_study_shows_adopt_recovering_at_once_and_consensus_smoothly() {
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains("### What the outage study shows") && report.contains("(fig_outage_errors.png)"));
 
-    // Follower 3 around its rejoin, from the table: SPEC §14's trade-off.
+    // Follower 3 around its rejoin, from the table: docs/model.md §14's trade-off.
     let rows = read_csv(&out.join("table_outage.csv"));
     let f3 = |case: &str, metric: &str| -> f64 {
         let r = rows.iter().find(|r| r["case"] == case && r["follower"] == "3" && r["metric"] == metric);

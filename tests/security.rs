@@ -12,8 +12,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::{Group, LIMIT, SCENARIO};
-use formation::net::session::{self, ZenohArgs, ZenohMode};
 use formation_agent::LeaderState;
+use formation_net::session::{self, ZenohArgs, ZenohMode};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 
 /// `formation certs SCENARIO --out DIR EXTRA…`; its output.
@@ -100,7 +100,7 @@ fn certs_makes_an_authority_and_one_private_identity_per_node_and_never_replaces
     common::certs(&dir);
     let names = ["router", "leader", "monitor", "agent-1", "agent-2", "agent-3", "agent-4"];
     for n in names {
-        let id = formation::certs::identity(&dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
+        let id = formation_net::identity::identity(&dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
         let mode = std::fs::metadata(&id.key).expect("key").permissions().mode() & 0o777;
         assert_eq!(mode, 0o600, "{n}'s key is {mode:o}, not readable by its owner only");
     }
@@ -112,7 +112,7 @@ fn certs_makes_an_authority_and_one_private_identity_per_node_and_never_replaces
     let said = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success() && said.contains("using the existing authority"), "second run said: {said}");
     assert_eq!(std::fs::read(dir.join("ca.pem")).expect("ca.pem"), ca, "the authority was replaced");
-    formation::certs::identity(&dir, "agent-3").expect("re-issued agent-3 under the same authority");
+    formation_net::identity::identity(&dir, "agent-3").expect("re-issued agent-3 under the same authority");
     // Half an authority is refused, not replaced.
     std::fs::remove_file(dir.join("ca.key")).expect("rm ca.key");
     let o = certs(&dir, &[]);

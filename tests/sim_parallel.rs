@@ -65,8 +65,8 @@ fn same(one: &Path, two: &Path, delay: &str) {
 
 /// Counts rows: an observer that wants them, so the simulator builds every row.
 struct Rows(u64);
-impl formation::sim::Observer for Rows {
-    fn follower(&mut self, _: usize, _: u64, _: &formation::record::Row, _: bool) -> std::io::Result<()> {
+impl formation_sim::Observer for Rows {
+    fn follower(&mut self, _: usize, _: u64, _: &formation_record::Row, _: bool) -> std::io::Result<()> {
         self.0 += 1;
         Ok(())
     }
@@ -77,7 +77,7 @@ impl formation::sim::Observer for Rows {
 /// bit for bit, with and without faults and delay.
 #[test]
 fn metrics_without_rows_equal_metrics_from_rows_on_one_and_two_threads() {
-    use formation::sim::{NoRecord, Simulation};
+    use formation_sim::{NoRecord, Simulation};
     let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
     // The paper's 4 followers for 12 s: the last 10 s start after step 0.
     let mut cases = vec![formation_topology::Scenario::load(&paper, &["duration=12".to_string()]).expect("paper")];
@@ -92,7 +92,7 @@ fn metrics_without_rows_equal_metrics_from_rows_on_one_and_two_threads() {
     }
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().expect("pool");
     for s in &cases {
-        let bits = |m: Vec<formation::record::FollowerMetrics>| format!("{m:?}");
+        let bits = |m: Vec<formation_record::FollowerMetrics>| format!("{m:?}");
         let mut rows = Rows(0);
         let with_rows = bits(Simulation::new(s).run(&mut rows, |_| {}).expect("run"));
         assert_eq!(rows.0, s.followers.len() as u64 * (s.steps() + 1));

@@ -1,14 +1,14 @@
 //! End-to-end zenoh transport tests on loopback (ports 17400–17499):
 //! two peers in one process, and two clients through the `router` binary,
 //! including a router crash and restart. Multicast scouting is off in every
-//! session (see `formation::net::session`).
+//! session (see `formation_net::session`).
 
 use std::future::IntoFuture;
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use formation::net::session::{self, ZenohArgs, ZenohMode};
+use formation_net::session::{self, ZenohArgs, ZenohMode};
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;

@@ -1,4 +1,4 @@
-//! Dynamic (torque) controllers (SPEC §7): bioinspired sliding mode
+//! Dynamic (torque) controllers (docs/model.md §7): bioinspired sliding mode
 //! (eq. 37–43), conventional sliding mode and super-twisting (the baselines).
 //! Each returns the demanded accelerations (a_v, a_ω); the torque mapping
 //! that realises them is [`formation_plant::RobotParams::acceleration_to_torque`].
@@ -21,7 +21,7 @@ pub enum DynamicKind {
     SuperTwisting,
 }
 
-/// C_a, C_b, the two shunting models and the super-twisting gains (SPEC §10).
+/// C_a, C_b, the two shunting models and the super-twisting gains (docs/model.md §10).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DynamicGains {
     pub ca: f64,

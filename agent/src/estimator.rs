@@ -1,4 +1,4 @@
-//! The distributed leader estimator (eq. 11–15, SPEC §5).
+//! The distributed leader estimator (eq. 11–15, docs/model.md §5).
 //!
 //! Every follower keeps an estimate (P_ir, v_ir, ω_ir) of the leader's pose
 //! and velocities and drives it by consensus with its neighbours' estimates
@@ -10,7 +10,7 @@ use crate::math::{sat, wrap};
 use formation_leader::LeaderState;
 use formation_plant::Pose;
 
-/// k_i (diagonal of a 3×3 gain), k_a1, k_a2, k_b1, k_b2 (SPEC §10).
+/// k_i (diagonal of a 3×3 gain), k_a1, k_a2, k_b1, k_b2 (docs/model.md §10).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EstimatorGains {
     /// Diagonal of k_i, for (x, y, θ).
@@ -30,7 +30,7 @@ pub struct EstimatorRates {
     pub v_rate: f64,
     /// ω̇_ir (eq. 15).
     pub w_rate: f64,
-    /// How many sources entered the sums: ξ_i of SPEC §2 restricted to the
+    /// How many sources entered the sums: ξ_i of docs/model.md §2 restricted to the
     /// neighbours (and leader) actually heard at this step.
     pub sources: u32,
 }
@@ -40,7 +40,7 @@ pub struct EstimatorRates {
 /// `own` is this follower's estimate, whose `pose_rate` is its own latest
 /// Ṗ_ir. `leader` is `Some` only for a follower with a_i0 = 1 that holds the
 /// leader's state; `neighbours` yields the neighbours' latest estimates in
-/// ascending id (SPEC §1), each with the Ṗ_jr its sender computed last.
+/// ascending id (docs/model.md §1), each with the Ṗ_jr its sender computed last.
 ///
 /// e_ip = a_i0 (P_ir − P_r) + Σ_j a_ij (P_ir − P_jr)                (eq. 11)
 /// Ṗ_ir = ( −k_i e_ip + Σ_j a_ij Ṗ_jr + a_i0 Ṗ_r ) / ξ_i            (eq. 12)
@@ -73,7 +73,7 @@ pub fn rates<'a>(
         e_w += own.w - other.w;
         sources += 1;
     };
-    // SPEC §1: the leader term first, then neighbours in ascending id.
+    // docs/model.md §1: the leader term first, then neighbours in ascending id.
     if let Some(l) = leader {
         add(l);
     }

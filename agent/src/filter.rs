@@ -1,4 +1,4 @@
-//! Velocity filters (SPEC §8): the Kalman filter baseline and the adaptive
+//! Velocity filters (docs/model.md §8): the Kalman filter baseline and the adaptive
 //! sliding innovation filter (ASIF, eq. 57–65).
 //!
 //! State ζ = (v, ω), A_h = I, H = I, B_h = M̄⁻¹ B̄ Δt. Q, R and P(0) = R are
@@ -63,7 +63,7 @@ pub struct VelocityFilter {
 }
 
 impl VelocityFilter {
-    /// ζ̂(0) = ξ(0), P(0) = R (SPEC §8).
+    /// ζ̂(0) = ξ(0), P(0) = R (docs/model.md §8).
     pub fn new(params: &FilterParams, initial: Velocity) -> Self {
         Self { estimate: [initial.v, initial.w], p: params.r, gain: [0.0; 2] }
     }

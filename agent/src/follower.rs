@@ -1,5 +1,5 @@
 //! One follower's brain: estimator, kinematic and dynamic controller and
-//! velocity filter, stepped in SPEC §9's order. The plant is not in here:
+//! velocity filter, stepped in docs/model.md §9's order. The plant is not in here:
 //! the follower sees only its measured pose and the velocity measurement,
 //! so a real robot driver can take the simulated robot's place.
 
@@ -39,7 +39,7 @@ pub struct ControlParams {
     /// The nominal model the controller's torque mapping and the filter use.
     pub model: RobotParams,
     pub fault: Option<Fault>,
-    /// What a follower does when it hears a source again after isolation (SPEC §14).
+    /// What a follower does when it hears a source again after isolation (docs/model.md §14).
     pub rejoin: RejoinRule,
     pub dt_s: f64,
 }
@@ -98,7 +98,7 @@ pub struct StepOutput {
     /// (and, under `adopt`, the estimate was replaced before the outputs).
     pub rejoined: bool,
     /// The message to publish for step k+1: P_ir(k+1), v_ir(k+1), ω_ir(k+1)
-    /// and the Ṗ_ir computed at k, with its freshness (SPEC §14).
+    /// and the Ṗ_ir computed at k, with its freshness (docs/model.md §14).
     pub next_message: Message,
 }
 
@@ -128,14 +128,14 @@ pub struct Follower {
     adopt_pending: bool,
     /// The estimate has been held through an isolation (or is a restart's
     /// placeholder) and has not since been taken from a fresh source: its
-    /// message is not fresh (SPEC §14), and under `adopt` it is replaced as
+    /// message is not fresh (docs/model.md §14), and under `adopt` it is replaced as
     /// soon as the leader or a fresh neighbour is heard.
     stale: bool,
 }
 
 impl Follower {
     /// A follower at step 0 with its initial leader estimate and the robot's
-    /// initial velocity ξ(0) (ζ̂(0) = ξ(0), SPEC §8). Ṗ_ir starts at zero.
+    /// initial velocity ξ(0) (ζ̂(0) = ξ(0), docs/model.md §8). Ṗ_ir starts at zero.
     pub fn new(config: FollowerConfig, initial_estimate: LeaderState, initial_velocity: Velocity) -> Self {
         let filter = VelocityFilter::new(&config.control.filter, initial_velocity);
         let estimate = LeaderState { pose_rate: Pose::default(), ..initial_estimate };
@@ -164,24 +164,24 @@ impl Follower {
         self.next_k
     }
 
-    /// SPEC §13's message for the coming step: P_ir(k), Ṗ_ir(k−1), v_ir(k), ω_ir(k).
+    /// docs/model.md §13's message for the coming step: P_ir(k), Ṗ_ir(k−1), v_ir(k), ω_ir(k).
     pub fn message(&self) -> LeaderState {
         self.estimate
     }
 
-    /// The message with its freshness (SPEC §14), as neighbours receive it.
+    /// The message with its freshness (docs/model.md §14), as neighbours receive it.
     pub fn tagged_message(&self) -> Message {
         Message { state: self.estimate, fresh: !self.stale }
     }
 
     /// Takes the estimate from the first step that hears a source, as
-    /// `adopt` does, whatever `network.rejoin` says (SPEC §14's restarted agent).
+    /// `adopt` does, whatever `network.rejoin` says (docs/model.md §14's restarted agent).
     pub fn adopt_on_next_source(&mut self) {
         self.adopt_pending = true;
         self.stale = true;
     }
 
-    /// A restarted agent (SPEC §14): the follower as new (fresh filter with
+    /// A restarted agent (docs/model.md §14): the follower as new (fresh filter with
     /// ζ̂ = 0, P = R, fresh controller with the first-step rules of section
     /// 7) at step `k`, taking its estimate from the first step that hears a
     /// source, as `adopt` does.
@@ -215,7 +215,7 @@ impl Follower {
         &self.filter
     }
 
-    /// One step k (SPEC §9).
+    /// One step k (docs/model.md §9).
     ///
     /// `pose` is the robot's pose at k and `z` the velocity measurement z(k)
     /// (ignored at k = 0, where ζ̂(0) = ξ(0)); `leader` is the leader's state
@@ -226,7 +226,7 @@ impl Follower {
     /// valid at t_(k−1), update with z(k)); the outputs are computed from the
     /// states at k; the estimator's rates; then every state advances to k+1.
     ///
-    /// SPEC §14: the sources not heard at k are simply not passed. After at
+    /// docs/model.md §14: the sources not heard at k are simply not passed. After at
     /// least `rejoin.after_steps` steps without any source, the first step
     /// that hears one is a rejoin, and the estimate is stale; under `adopt`
     /// it is replaced by [`links::adopted`] at the first step that hears the
@@ -261,7 +261,7 @@ impl Follower {
         if k > 0 {
             let model = cfg.filter_model_at(self.last_k);
             self.filter.update(&cfg.filter, &model, self.last_torque, dt, z);
-        } else if cfg.filter.kind == crate::FilterKind::None {
+        } else if cfg.filter.kind == crate::filter::FilterKind::None {
             self.filter.estimate = [z.v, z.w];
         }
         let leader = if self.config.hears_leader { leader } else { None };
@@ -276,7 +276,7 @@ impl Follower {
             }
         }
         let estimate = self.estimate;
-        // SPEC §14, `adopt`: a fresh estimate leaves stale ones out of its sums.
+        // docs/model.md §14, `adopt`: a fresh estimate leaves stale ones out of its sums.
         let only_fresh = cfg.rejoin.policy == RejoinPolicy::Adopt && !self.stale;
         let neighbours = neighbours.filter(move |m| m.fresh || !only_fresh);
 

@@ -1,5 +1,5 @@
-//! Kinematic controllers (SPEC §6): the tracking error (eq. 28–29, with
-//! SPEC §1's sign), bioinspired backstepping (eq. 35–36) and conventional
+//! Kinematic controllers (docs/model.md §6): the tracking error (eq. 28–29, with
+//! docs/model.md §1's sign), bioinspired backstepping (eq. 35–36) and conventional
 //! backstepping (the paper's baseline).
 
 use serde::{Deserialize, Serialize};
@@ -17,7 +17,7 @@ pub enum KinematicKind {
     Conventional,
 }
 
-/// C_1, C_2, C_3 and the shunting model driven by x̂ (SPEC §10).
+/// C_1, C_2, C_3 and the shunting model driven by x̂ (docs/model.md §10).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct KinematicGains {
     pub c1: f64,
@@ -35,7 +35,7 @@ pub struct BodyError {
 }
 
 /// The body-frame error of `pose` against the reference P_ir + (Δx, Δy)
-/// (eq. 28–29 with SPEC §1's sign, reference minus actual):
+/// (eq. 28–29 with docs/model.md §1's sign, reference minus actual):
 /// e_x = x_ir + Δx − x, e_y = y_ir + Δy − y, e_θ = wrap(θ_ir − θ);
 /// x̂ = cos θ e_x + sin θ e_y, ŷ = −sin θ e_x + cos θ e_y, θ̂ = e_θ.
 pub fn body_error(leader_estimate: &Pose, offset: [f64; 2], pose: &Pose) -> BodyError {

@@ -1,4 +1,4 @@
-//! Missing messages, link faults and rejoining (SPEC §14), on the receiving
+//! Missing messages, link faults and rejoining (docs/model.md §14), on the receiving
 //! side: which messages a fault removes, what a follower hears at step k,
 //! and how it takes up an estimate again after isolation.
 //!
@@ -16,7 +16,7 @@ use formation_leader::LeaderState;
 use formation_plant::Pose;
 
 /// Steps k with `from_k ≤ k < to_k` on which a message of the link is lost
-/// with probability `loss` (SPEC §14's fault window, in steps).
+/// with probability `loss` (docs/model.md §14's fault window, in steps).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LossWindow {
     pub from_k: u64,
@@ -37,7 +37,7 @@ struct Segment {
 /// The faults of one directed link (sender → receiver) and the receiver's
 /// generator for it.
 ///
-/// SPEC §14: a message of step k on a covered link is lost with probability
+/// docs/model.md §14: a message of step k on a covered link is lost with probability
 /// p (the largest p of the faults covering the link at k); the receiver
 /// decides with a generator of its own for the link, seeded from (scenario
 /// seed, sender, receiver), one uniform draw per covered step in step order.
@@ -122,9 +122,9 @@ pub fn link_seed(seed: u64, sender: u32, receiver: u32) -> u64 {
     mix(mix(mix(seed ^ 0x6c69_6e6b) ^ u64::from(sender)) ^ (u64::from(receiver) << 32))
 }
 
-/// SPEC §13's message from a follower: its estimate of the leader's state
+/// docs/model.md §13's message from a follower: its estimate of the leader's state
 /// and whether that estimate is *fresh*, i.e. not held through an isolation
-/// since it last came from the leader (SPEC §14: `adopt` takes only fresh
+/// since it last came from the leader (docs/model.md §14: `adopt` takes only fresh
 /// estimates). The leader's own state is always fresh.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Message {
@@ -139,7 +139,7 @@ impl Message {
 }
 
 /// What a receiver holds from each of its sources: the newest delivered
-/// message and its step. SPEC §14: at step k a source is heard through its
+/// message and its step. docs/model.md §14: at step k a source is heard through its
 /// newest delivered message stamped at or before k if that is at most the
 /// silence timeout old; otherwise it is silent.
 #[derive(Clone, Debug)]
@@ -181,7 +181,7 @@ impl Hearing {
 }
 
 /// What a follower does when it hears a source again after isolation
-/// (`network.rejoin`, SPEC §14).
+/// (`network.rejoin`, docs/model.md §14).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum RejoinPolicy {
@@ -208,7 +208,7 @@ impl Default for RejoinRule {
     }
 }
 
-/// The estimate `adopt` takes (SPEC §14): the leader's state if heard,
+/// The estimate `adopt` takes (docs/model.md §14): the leader's state if heard,
 /// otherwise the mean of the heard neighbours' *fresh* messages, θ as the
 /// first (lowest-id) of them's θ plus the mean of the wrapped differences to
 /// it. `None` when neither the leader nor a fresh neighbour is heard: an

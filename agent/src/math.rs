@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
-/// Maps an angle into [−π, π) (SPEC §1).
+/// Maps an angle into [−π, π) (docs/model.md §1).
 pub fn wrap(a: f64) -> f64 {
     let w = a - 2.0 * PI * ((a + PI) / (2.0 * PI)).floor();
     // Rounding can land exactly on π for inputs just below it.
@@ -15,7 +15,7 @@ pub fn wrap(a: f64) -> f64 {
     }
 }
 
-/// sat(e) = clamp(e, −1, 1) (SPEC §1).
+/// sat(e) = clamp(e, −1, 1) (docs/model.md §1).
 pub fn sat(e: f64) -> f64 {
     e.clamp(-1.0, 1.0)
 }
@@ -55,7 +55,7 @@ impl Shunting {
 
     /// V(k+1) from V(k) and the input at k.
     ///
-    /// Forward Euler (SPEC §9) is used whenever it keeps the bound, that is
+    /// Forward Euler (docs/model.md §9) is used whenever it keeps the bound, that is
     /// when Δt (A + |u|) ≤ 1 (it is then a convex combination of V and the
     /// equilibrium V∞). Beyond that, Euler would overshoot [−D, B] (a huge
     /// input in one step), so the step takes the exact solution for an input

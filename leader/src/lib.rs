@@ -1,6 +1,6 @@
 //! The virtual leader (node 0): unicycle kinematics (eq. 6) driven by a
 //! velocity profile (v_r(t), ω_r(t)); the pose is integrated by forward Euler
-//! like every other state (SPEC §3, §9).
+//! like every other state (docs/model.md §3, §9).
 
 use serde::{Deserialize, Serialize};
 
@@ -52,7 +52,7 @@ impl Profile {
         Velocity::new(v * ramp, w)
     }
 
-    /// An upper bound of v_r over all time (used for SPEC §12's speed bound).
+    /// An upper bound of v_r over all time (used for docs/model.md §12's speed bound).
     pub fn max_speed(&self) -> f64 {
         match self.trajectory {
             Trajectory::Paper => std::f64::consts::SQRT_2,
@@ -63,7 +63,7 @@ impl Profile {
     }
 }
 
-/// What the leader tells the followers that hear it (SPEC §13):
+/// What the leader tells the followers that hear it (docs/model.md §13):
 /// P_r, Ṗ_r, v_r, ω_r at one step.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct LeaderState {
@@ -91,7 +91,7 @@ impl Leader {
         Self { profile, pose }
     }
 
-    /// The leader's outputs at time t from its pose at step k (SPEC §9,
+    /// The leader's outputs at time t from its pose at step k (docs/model.md §9,
     /// step 1): Ṗ_r = (v_r cos θ_r, v_r sin θ_r, ω_r) (eq. 6).
     pub fn state(&self, t_s: f64) -> LeaderState {
         let Velocity { v, w } = self.profile.velocity(t_s);

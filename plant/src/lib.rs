@@ -1,4 +1,4 @@
-//! The differential-drive robot of the paper (SPEC §4): unicycle kinematics
+//! The differential-drive robot of the paper (docs/model.md §4): unicycle kinematics
 //! (eq. 3), torque-driven velocity dynamics with the centre of mass on the
 //! wheel axle (eq. 4, C̄ = 0), a bounded disturbance (Assumption 2) and the
 //! discrete process and measurement noise of eq. 55–56.
@@ -60,7 +60,7 @@ impl Torque {
     }
 }
 
-/// Physical parameters of one robot (SPEC §4, §10).
+/// Physical parameters of one robot (docs/model.md §4, §10).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RobotParams {
     /// m, kg.
@@ -96,7 +96,7 @@ impl RobotParams {
 }
 
 /// Bounded disturbance d_1 = D_v sin t (N), d_2 = D_ω cos t (N m)
-/// (Assumption 2; the form is decided in SPEC §4).
+/// (Assumption 2; the form is decided in docs/model.md §4).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Disturbance {
     pub linear_n: f64,
@@ -112,7 +112,7 @@ impl Disturbance {
 }
 
 /// Diagonal covariances Q (process) and R (measurement) per step, for the
-/// (v, ω) channels (SPEC §10). Diagonal by construction, so every filter
+/// (v, ω) channels (docs/model.md §10). Diagonal by construction, so every filter
 /// decouples into one scalar filter per channel.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct NoiseCov {
@@ -198,7 +198,7 @@ impl Robot {
         Velocity::new(a.v + d1 / self.params.mass_kg, a.w + d2 / self.params.inertia_kgm2)
     }
 
-    /// One forward-Euler step from k to k+1 (SPEC §9, step 4): the pose moves
+    /// One forward-Euler step from k to k+1 (docs/model.md §9, step 4): the pose moves
     /// with ξ(k) (eq. 3), then ξ(k+1) = ξ(k) + Δt·(accelerations at k) + α_k
     /// (eq. 55). Returns the measurement z(k+1) = ξ(k+1) + β (eq. 56).
     pub fn advance(&mut self, tau: Torque, t_s: f64, dt_s: f64, noise: NoiseDraw) -> Velocity {

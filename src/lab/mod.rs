@@ -31,7 +31,7 @@ use serde_json::json;
 
 use crate::error::Error;
 use crate::launch::{self, Children, LaunchMode, RunOptions};
-use crate::record::Summary;
+use formation_record::Summary;
 
 /// The port every node listens on, on its own address.
 const PORT: u16 = 7447;
@@ -224,7 +224,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         for n in &notes {
             eprintln!("lab: {n}");
         }
-        if let Some(hint) = crate::net::node::realtime_hint(&scenario) {
+        if let Some(hint) = formation_net::node::realtime_hint(&scenario) {
             eprintln!("lab: {hint}");
         }
     }
@@ -317,7 +317,7 @@ impl Ctx<'_> {
         let mut c = self.lab.command("router", self.exe);
         c.args(["node", "router", "--listen", &self.ep("router")]);
         launch::tls_arg(&mut c, &self.a.opts);
-        crate::net::session::router_runtime(&mut c, self.scenario.timing);
+        formation_net::session::router_runtime(&mut c, self.scenario.timing);
         c
     }
 
@@ -361,7 +361,7 @@ impl Ctx<'_> {
             Some(addr) => {
                 let socket =
                     RemoveOnDrop(std::env::temp_dir().join(format!("formation-lab-{}-web.sock", std::process::id())));
-                let bound = crate::web::forward(addr, socket.0.clone()).await?;
+                let bound = formation_net::web::forward(addr, socket.0.clone()).await?;
                 c.arg("--web-unix").arg(&socket.0).arg("--web-linger").arg(self.a.opts.web.web_linger.to_string());
                 eprintln!("live page: http://{bound}/");
                 Some(socket)
@@ -422,14 +422,14 @@ impl Ctx<'_> {
                 }
             }
             if let Some((epoch_ns, scale)) = clock {
-                let now_s = (crate::net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+                let now_s = (formation_net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
                 while next < events.len() && events[next].at_s <= now_s {
                     let e = &events[next];
                     if let Err(err) = self.act(children, &e.action) {
                         children.wind_down();
                         return Err(Error::Run(format!("performing '{}' at t = {} s: {err}", e.what, e.at_s)));
                     }
-                    let done_s = (crate::net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+                    let done_s = (formation_net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
                     if !self.a.opts.quiet {
                         eprintln!("lab: t = {done_s:.3} s: {}", e.what);
                     }

@@ -1,4 +1,4 @@
-//! Link faults in reports (SPEC §14): the table of metrics around each fault
+//! Link faults in reports (docs/model.md §14): the table of metrics around each fault
 //! window for every case that has faults (over its seeds), the figure of
 //! estimator and formation error with the windows shaded, and `formation
 //! paper`'s outage study: `adopt` against `consensus`, bioinspired against
@@ -10,34 +10,19 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
+use super::case::{Case, Study};
 use super::plots::{self, Figure, FigureSpec, Line, Panel};
 use super::stats::Stat;
 use super::tables::{csv_field, md_cell, sig, stat_fields, stat_text, Table, STAT_HEADER};
-use super::Case;
-use crate::cli::CliError;
-use crate::outage::{OutageMetrics, AFTER_S, RECOVERED_M, STAY_S};
-use crate::record::{at_path, Summary};
+use crate::error::CliError;
+use formation_record::outage::{OutageMetrics, AFTER_S, RECOVERED_M, STAY_S};
+use formation_record::{at_path, Summary};
 
 /// The follower whose links the outage study cuts.
 pub const STUDY_NODE: u32 = 3;
 
 /// Cases shown in the outage figure at most (two panels each).
 const MAX_FIGURE_CASES: usize = 8;
-
-/// `formation paper`'s outage study, loaded.
-#[derive(Clone, Debug)]
-pub struct Study {
-    /// The follower whose links are cut.
-    pub node: u32,
-    /// The outage cases (none when the run is too short for them).
-    pub outage: Vec<Case>,
-    /// The loss cases, in ascending loss.
-    pub sweep: Vec<Case>,
-    /// What the cases are.
-    pub notes: Vec<String>,
-    /// What was skipped, and why.
-    pub skipped: Vec<String>,
-}
 
 /// Reads one metric around a fault window (`None`: not measured).
 type OutageFn = fn(&OutageMetrics) -> Option<f64>;
@@ -149,7 +134,7 @@ fn fault_table(cases: &[&Case]) -> Table {
     );
     Table {
         file: "table_outage".into(),
-        title: "Metrics around each fault window (SPEC §14)".into(),
+        title: "Metrics around each fault window (docs/model.md §14)".into(),
         markdown: md,
         csv,
     }
@@ -561,7 +546,7 @@ pub fn write(out: &Path, faulted: &[&Case], study: Option<&Study>) -> Result<Wri
     if cases.is_empty() && study.is_none() {
         return Ok(Written::default());
     }
-    let mut md = String::from("## Link faults (SPEC §14)\n\n");
+    let mut md = String::from("## Link faults (docs/model.md §14)\n\n");
     let mut terminal = String::new();
     if let Some(s) = study {
         let _ = writeln!(md, "The outage study (`formation paper`; `--no-study` leaves it out):\n");
@@ -599,7 +584,7 @@ pub fn write(out: &Path, faulted: &[&Case], study: Option<&Study>) -> Result<Wri
             } else {
                 String::new()
             };
-            let _ = write!(terminal, "\n{}{first}:{}", c.label, crate::outage::table(&c.summary().faults));
+            let _ = write!(terminal, "\n{}{first}:{}", c.label, formation_record::outage::table(&c.summary().faults));
         }
     }
     if !cases.is_empty() {

@@ -1,5 +1,5 @@
 //! Reports over run folders: the paper's figures (Fig. 3–6) and tables
-//! (Tables I–II, speed jump and chattering), the SPEC §12 claims as pass or
+//! (Tables I–II, speed jump and chattering), the docs/model.md §12 claims as pass or
 //! fail, and `report.md` that shows it all. `formation paper` calls this on
 //! the cases it ran; `formation report` on any run folders, whether from
 //! `formation sim` or from a networked run's monitor.
@@ -15,6 +15,7 @@
 //! say how many seeds measured them, and every claim that uses the run is
 //! N/A with the reason, never PASS.
 
+pub mod case;
 pub mod faults;
 mod network;
 pub mod plots;
@@ -26,215 +27,10 @@ use std::fmt::Write as _;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use serde::{Deserialize, Serialize};
+use crate::error::CliError;
+use formation_record::at_path;
 
-use crate::cli::CliError;
-use crate::record::{at_path, Summary};
-
-/// File, in a case folder, with every seed's record (written by `formation paper`).
-pub const SEEDS_FILE: &str = "seeds.json";
-
-/// Times (s) at which SPEC §12 checks the estimator started from zero.
-pub const ESTIMATOR_CHECK_TIMES_S: [f64; 2] = [4.0, 6.0];
-
-/// What one seed of a case measured: its summary and the estimator's
-/// position error at [`ESTIMATOR_CHECK_TIMES_S`] (which `summary.json` does
-/// not hold).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct SeedRecord {
-    pub seed: u64,
-    pub summary: Summary,
-    /// Estimator position error ‖(x_ir, y_ir) − (x_r, y_r)‖ (m) at t = 4 s,
-    /// by follower id; empty if the run is shorter or was not sampled there.
-    #[serde(default)]
-    pub estimator_error_4s: BTreeMap<u32, f64>,
-    /// The same at t = 6 s.
-    #[serde(default)]
-    pub estimator_error_6s: BTreeMap<u32, f64>,
-}
-
-/// The part a case plays in the paper's comparisons (SPEC §12), read from
-/// its summary's settings.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub enum Role {
-    /// Bioinspired backstepping, bioinspired SMC, ASIF, normal case.
-    Proposed,
-    /// Conventional backstepping (bioinspired SMC, ASIF).
-    ConventionalBackstepping,
-    /// Conventional sliding mode control (bioinspired backstepping, ASIF).
-    ConventionalSmc,
-    /// Second-order (super-twisting) sliding mode control.
-    SuperTwisting,
-    /// The proposed controllers with a Kalman filter, normal case.
-    KfNormal,
-    /// The proposed controllers with a Kalman filter, fault case.
-    KfFault,
-    /// The proposed method, fault case.
-    AsifFault,
-    /// The proposed method with the estimator started from zero.
-    ZeroInit,
-    /// Anything else.
-    Other,
-}
-
-impl Role {
-    pub fn of(s: &Summary) -> Role {
-        let fault = s.fault_time.is_some();
-        let zero = s.estimate_init == "zero";
-        match (s.kinematic.as_str(), s.dynamic.as_str(), s.filter.as_str(), fault, zero) {
-            ("bio", "bio", "asif", false, false) => Role::Proposed,
-            ("conventional", "bio", "asif", false, false) => Role::ConventionalBackstepping,
-            ("bio", "smc", "asif", false, false) => Role::ConventionalSmc,
-            ("bio", "super-twisting", "asif", false, false) => Role::SuperTwisting,
-            ("bio", "bio", "kf", false, false) => Role::KfNormal,
-            ("bio", "bio", "kf", true, false) => Role::KfFault,
-            ("bio", "bio", "asif", true, false) => Role::AsifFault,
-            ("bio", "bio", "asif", false, true) => Role::ZeroInit,
-            _ => Role::Other,
-        }
-    }
-}
-
-/// One run folder with all its seeds.
-#[derive(Clone, Debug)]
-pub struct Case {
-    /// The folder's name; names the case in every figure and table.
-    pub label: String,
-    pub dir: PathBuf,
-    /// At least one; the first is the folder's own `summary.json`.
-    pub seeds: Vec<SeedRecord>,
-    pub role: Role,
-    /// The folder holds `leader.csv` and a CSV per follower.
-    pub has_csv: bool,
-    /// The folder came from a networked run (it holds `network.json`).
-    pub networked: bool,
-}
-
-impl Case {
-    pub fn summary(&self) -> &Summary {
-        &self.seeds[0].summary
-    }
-
-    /// Follower ids of the case, ascending.
-    pub fn follower_ids(&self) -> Vec<u32> {
-        self.summary().followers.keys().copied().collect()
-    }
-
-    /// A one-line description of the case's settings.
-    pub fn settings(&self) -> String {
-        let s = self.summary();
-        let fault = s.fault_time.map(|t| format!("fault at {t} s")).unwrap_or_else(|| "normal".into());
-        let seeds = if self.seeds.len() > 1 {
-            format!("seeds {}..{} ({})", self.seeds[0].seed, self.seeds[self.seeds.len() - 1].seed, self.seeds.len())
-        } else {
-            format!("seed {}", s.seed)
-        };
-        let short = self.incomplete_seeds();
-        let incomplete = match short.first() {
-            None => String::new(),
-            Some(r) if self.seeds.len() == 1 => {
-                format!(", INCOMPLETE: {}", r.summary.shortfall_text().unwrap_or_default())
-            }
-            Some(_) => format!(", INCOMPLETE: {} of {} seeds", short.len(), self.seeds.len()),
-        };
-        let links = if s.faults.is_empty() {
-            String::new()
-        } else {
-            let list: Vec<&str> = s.faults.iter().map(|f| f.fault.as_str()).collect();
-            format!(", link faults: {}, rejoin {}", list.join("; "), s.rejoin.as_deref().unwrap_or("consensus"))
-        };
-        format!(
-            "kinematic {}, dynamic {}, filter {}, {fault}, estimate init {}, T = {} s, noise {}, {seeds}{}{links}{incomplete}",
-            s.kinematic,
-            s.dynamic,
-            s.filter,
-            s.estimate_init,
-            s.duration,
-            if s.noise { "on" } else { "off" },
-            if self.networked { ", networked" } else { "" }
-        )
-    }
-
-    /// The seeds whose run did not record every sample.
-    pub fn incomplete_seeds(&self) -> Vec<&SeedRecord> {
-        self.seeds.iter().filter(|r| !r.summary.complete).collect()
-    }
-
-    /// Reads a run folder: `summary.json`, and `seeds.json` if present.
-    /// Without `seeds.json`, the estimator errors at 4 s and 6 s come from the
-    /// follower CSVs when they cover those times.
-    pub fn load(dir: &Path, label: String) -> Result<Case, CliError> {
-        if !dir.is_dir() {
-            return Err(CliError::Input(format!("{}: no such run folder", dir.display())));
-        }
-        let summary_path = dir.join("summary.json");
-        let text = fs::read_to_string(&summary_path).map_err(|e| {
-            CliError::Input(format!("{}: not a run folder (cannot read summary.json: {e})", dir.display()))
-        })?;
-        let mut summary: Summary = serde_json::from_str(&text)
-            .map_err(|e| CliError::Input(format!("{}: invalid summary.json: {e}", summary_path.display())))?;
-        summary.mark_unreached();
-        let ids: Vec<u32> = summary.followers.keys().copied().collect();
-        let has_csv =
-            dir.join("leader.csv").is_file() && ids.iter().all(|id| dir.join(format!("follower_{id}.csv")).is_file());
-        let seeds_path = dir.join(SEEDS_FILE);
-        let seeds = if seeds_path.is_file() {
-            let text = fs::read_to_string(&seeds_path).map_err(at_path(&seeds_path, "cannot read"))?;
-            let mut seeds: Vec<SeedRecord> = serde_json::from_str(&text)
-                .map_err(|e| CliError::Input(format!("{}: invalid: {e}", seeds_path.display())))?;
-            for r in &mut seeds {
-                r.summary.mark_unreached();
-            }
-            if seeds.is_empty() {
-                return Err(CliError::Input(format!("{}: no seeds", seeds_path.display())));
-            }
-            seeds
-        } else {
-            let (e4, e6) =
-                if has_csv { estimator_checkpoints_from_csv(dir, &ids, summary.dt)? } else { Default::default() };
-            vec![SeedRecord { seed: summary.seed, summary, estimator_error_4s: e4, estimator_error_6s: e6 }]
-        };
-        let role = Role::of(&seeds[0].summary);
-        Ok(Case { label, dir: dir.to_path_buf(), seeds, role, has_csv, networked: dir.join("network.json").is_file() })
-    }
-}
-
-/// A value per follower id.
-type ErrorById = BTreeMap<u32, f64>;
-
-/// The estimator position error at t = 4 s and 6 s from a folder's CSVs:
-/// the sample within half a step of the time, if there is one.
-fn estimator_checkpoints_from_csv(dir: &Path, ids: &[u32], dt_s: f64) -> Result<(ErrorById, ErrorById), CliError> {
-    let mut at = [BTreeMap::new(), BTreeMap::new()];
-    for &id in ids {
-        let table = plots::read_columns(&dir.join(format!("follower_{id}.csv")), &["t", "estimator_error"])?;
-        for (slot, &time) in at.iter_mut().zip(&ESTIMATOR_CHECK_TIMES_S) {
-            let hit = table[0].iter().position(|&t| (t - time).abs() <= 0.5 * dt_s + 1e-9);
-            if let Some(i) = hit {
-                slot.insert(id, table[1][i]);
-            }
-        }
-    }
-    let [a, b] = at;
-    Ok((a, b))
-}
-
-/// How the report was made and what it compares.
-#[derive(Clone, Debug)]
-pub struct Context {
-    /// Paper mode: the figures and tables pick the paper's cases by role
-    /// and use the paper's wording; otherwise every case is compared,
-    /// labelled by folder name.
-    pub paper: bool,
-    /// The exact command that made the report.
-    pub command: String,
-    /// Values the claims are checked against.
-    pub params: tables::ClaimParams,
-    /// Extra lines for the report's header (seeds, wall time, …).
-    pub notes: Vec<String>,
-    /// `formation paper`'s outage study, when it ran.
-    pub study: Option<faults::Study>,
-}
+pub use case::{Case, ClaimParams, Context, Role, SeedRecord, Study, ESTIMATOR_CHECK_TIMES_S, SEEDS_FILE};
 
 /// What a report shows besides its files: the claims, and text for the
 /// terminal about link faults (the study's findings, or each folder's table
@@ -267,7 +63,7 @@ pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBu
             md,
             "Xu, Yan, Yang, Gadsden, \"Distributed Leader Follower Formation Control of Mobile Robots based on \
              Bioinspired Neural Dynamics and Adaptive Sliding Innovation Filter\", IEEE TII 2023, section IV, \
-             reproduced on the scenario of SPEC §10.\n"
+             reproduced on the scenario of docs/model.md §10.\n"
         );
     }
     let _ = writeln!(md, "Made by:\n\n```\n{}\n```\n", ctx.command);
@@ -292,7 +88,7 @@ pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBu
     }
     md.push('\n');
 
-    let _ = writeln!(md, "## Claims (SPEC §12)\n");
+    let _ = writeln!(md, "## Claims (docs/model.md §12)\n");
     md += &tables::claims_markdown(&tables.claims);
     md.push('\n');
 
@@ -367,12 +163,13 @@ pub fn run(a: &ReportArgs) -> Result<(), CliError> {
         .chain(["--out".to_string(), a.out.display().to_string()])
         .collect::<Vec<_>>()
         .join(" ");
-    // Run folders do not record gains: the claims' thresholds are SPEC §10's.
-    let notes = vec!["Run folders do not record their gains, so the claims are checked against SPEC §10's values \
+    // Run folders do not record gains: the claims' thresholds are docs/model.md §10's.
+    let notes =
+        vec!["Run folders do not record their gains, so the claims are checked against docs/model.md §10's values \
          (C₁ = 3, B = 2, max v_r = √2, F4 starting at x̂ = 5, so a 15 m/s jump); for other scenarios use \
          `formation paper --scenario FILE`."
-        .to_string()];
-    let ctx = Context { paper: false, command, params: tables::ClaimParams::paper_defaults(), notes, study: None };
+            .to_string()];
+    let ctx = Context { paper: false, command, params: ClaimParams::paper_defaults(), notes, study: None };
     let (path, built) = write_report(&a.out, &cases, &ctx)?;
     if !a.quiet {
         print!("{}", tables::claims_text(&built.claims));

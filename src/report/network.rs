@@ -8,10 +8,10 @@ use std::path::Path;
 use plotters::style::RGBColor;
 use serde_json::Value;
 
+use super::case::Case;
 use super::plots::{self, Figure, FigureSpec, Line, Panel};
-use super::Case;
-use crate::cli::CliError;
-use crate::record::at_path;
+use crate::error::CliError;
+use formation_record::at_path;
 
 /// A follower's hearing: all sources, some, none (y offsets around its id).
 const ALL: f64 = 0.3;

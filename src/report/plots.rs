@@ -21,8 +21,8 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::{register_font, FontStyle};
 
-use super::{Case, Context, Role};
-use crate::cli::CliError;
+use super::case::{Case, Context, Role};
+use crate::error::CliError;
 
 /// DejaVu Sans (Bitstream Vera licence, `assets/DejaVuSans-LICENSE.txt`).
 static FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
@@ -37,28 +37,8 @@ fn register_fonts() {
     });
 }
 
-/// Reads the named columns of a CSV file with a header row.
-pub fn read_columns(path: &Path, names: &[&str]) -> Result<Vec<Vec<f64>>, CliError> {
-    let bad = |m: String| CliError::Input(format!("{}: {m}", path.display()));
-    let mut reader = csv::ReaderBuilder::new().has_headers(true).from_path(path).map_err(|e| bad(e.to_string()))?;
-    let headers = reader.headers().map_err(|e| bad(e.to_string()))?.clone();
-    let idx: Vec<usize> = names
-        .iter()
-        .map(|n| headers.iter().position(|h| h.trim() == *n).ok_or_else(|| bad(format!("no column `{n}`"))))
-        .collect::<Result<_, _>>()?;
-    let mut cols = vec![Vec::new(); names.len()];
-    for (line, rec) in reader.records().enumerate() {
-        let rec = rec.map_err(|e| bad(e.to_string()))?;
-        for ((col, &i), name) in cols.iter_mut().zip(&idx).zip(names) {
-            let v: f64 = rec
-                .get(i)
-                .and_then(|s| s.trim().parse().ok())
-                .ok_or_else(|| bad(format!("line {}: `{name}` is not a number", line + 2)))?;
-            col.push(v);
-        }
-    }
-    Ok(cols)
-}
+/// Reads the named columns of a run folder's CSV.
+pub use formation_record::read_columns;
 
 /// A colour per case: by method in paper mode, by position otherwise.
 pub fn colours(cases: &[Case], paper: bool) -> Vec<RGBColor> {
@@ -259,7 +239,7 @@ pub(super) fn write_figure(out: &Path, spec: &FigureSpec) -> Result<(), CliError
         render(&root, spec).map_err(|e| CliError::Run(format!("{}: {e}", png.display())))?;
     }
     let csv = out.join(format!("{}.csv", spec.figure.file));
-    fs::write(&csv, figure_csv(spec)).map_err(crate::record::at_path(&csv, "cannot write"))?;
+    fs::write(&csv, figure_csv(spec)).map_err(formation_record::at_path(&csv, "cannot write"))?;
     Ok(())
 }
 
@@ -638,7 +618,7 @@ fn fig4(cases: &[Case], idx: &[usize], data: &BTreeMap<usize, RunData>, ctx: &Co
             file: "fig4_formation_error".into(),
             title: "Fig. 4  Formation tracking errors of each follower for tracking a continuous path".into(),
             caption: "Formation error ‖(x_i − x_r − Δx_i, y_i − y_r − Δy_i)‖ of each follower against the true leader \
-                      (SPEC §11)."
+                      (docs/model.md §11)."
                 .into(),
         },
         panels,

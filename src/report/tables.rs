@@ -1,16 +1,13 @@
 //! The paper's tables (I: velocity RMSE, normal case; II: fault case), the
-//! speed-jump and chattering table, a table of every metric, and the SPEC §12
+//! speed-jump and chattering table, a table of every metric, and the docs/model.md §12
 //! claims checked on the cases. Each table comes as markdown and as a long
 //! CSV (one row per case, follower and quantity, with its statistics).
 
 use std::fmt::Write as _;
 
-use formation_agent::{kinematic, KinematicKind};
-use formation_topology::Scenario;
-
+use super::case::{Case, ClaimParams, Context, Role, SeedRecord, ESTIMATOR_CHECK_TIMES_S};
 use super::stats::Stat;
-use super::{Case, Context, Role, SeedRecord, ESTIMATOR_CHECK_TIMES_S};
-use crate::record::{last10_from_k, FollowerMetrics, Shortfall, Summary};
+use formation_record::{last10_from_k, FollowerMetrics, Shortfall, Summary};
 
 /// The paper's Table I (normal case) and Table II (fault case), ×10⁻²:
 /// per follower (linear KF, linear ASIF, angular KF, angular ASIF), copied
@@ -19,46 +16,6 @@ pub const PAPER_TABLE_I: [[f64; 4]; 4] =
     [[0.97, 0.97, 0.80, 0.80], [0.96, 0.96, 0.82, 0.82], [0.97, 0.97, 0.81, 0.81], [0.98, 0.98, 0.78, 0.78]];
 pub const PAPER_TABLE_II: [[f64; 4]; 4] =
     [[6.43, 1.18, 2.10, 1.03], [6.50, 1.15, 1.83, 1.01], [5.37, 1.19, 2.14, 1.03], [5.75, 1.19, 2.03, 1.05]];
-
-/// The scenario values the claims are checked against.
-#[derive(Clone, Debug, PartialEq)]
-pub struct ClaimParams {
-    /// C_1 of the backstepping controllers.
-    pub c1: f64,
-    /// B of the kinematic shunting model.
-    pub shunting_b: f64,
-    /// An upper bound of the leader's speed, m/s.
-    pub vr_max: f64,
-    /// The follower with the largest initial error x̂(0) (F4 in the paper)…
-    pub jump_follower: u32,
-    /// …and its conventional command at t = 0, C_1 x̂(0) + v_ir(0) cos θ̂(0), m/s.
-    pub jump_expected: f64,
-}
-
-impl ClaimParams {
-    /// SPEC §10's values (used for folders, which do not record gains):
-    /// C_1 = 3, B = 2, max v_r = √2, F4 jumps to 3 · 5 = 15 m/s.
-    pub fn paper_defaults() -> Self {
-        Self { c1: 3.0, shunting_b: 2.0, vr_max: std::f64::consts::SQRT_2, jump_follower: 4, jump_expected: 15.0 }
-    }
-
-    /// The values of a scenario, with x̂(0) from its initial estimate.
-    pub fn from_scenario(s: &Scenario) -> Self {
-        let est = s.initial_estimate();
-        let k = &s.control.kinematic_gains;
-        let (jump_follower, jump_expected) = s
-            .followers
-            .iter()
-            .map(|f| {
-                // v_c(0) of conventional backstepping: C_1 x̂(0) + v_ir cos θ̂ (eq. 29, 35).
-                let e = kinematic::body_error(&est.pose, f.offset, &f.pose);
-                let v_c = kinematic::command(KinematicKind::Conventional, k, 0.0, &e, est.v, est.w).v;
-                (f.id, v_c)
-            })
-            .fold((0, 0.0_f64), |best, x| if x.1.abs() > best.1.abs() { x } else { best });
-        Self { c1: k.c1, shunting_b: k.shunting.b, vr_max: s.leader_profile.max_speed(), jump_follower, jump_expected }
-    }
-}
 
 /// One table, ready to write.
 #[derive(Clone, Debug)]
@@ -333,7 +290,7 @@ const ALL_METRICS: [(&str, &str, MetricFn); 9] = [
     ("rmse_w", "rad/s", |m| m.rmse_w),
 ];
 
-/// Every SPEC §11 metric of every case and follower.
+/// Every docs/model.md §11 metric of every case and follower.
 fn all_metrics_table(cases: &[Case]) -> Table {
     let metrics = ALL_METRICS;
     let mut md = String::from("| case | follower |");
@@ -362,7 +319,7 @@ fn all_metrics_table(cases: &[Case]) -> Table {
     }
     Table {
         file: "table4_all_metrics".into(),
-        title: "Every metric of every case (SPEC §11)".into(),
+        title: "Every metric of every case (docs/model.md §11)".into(),
         markdown: md,
         csv,
     }
@@ -481,10 +438,10 @@ impl Cond {
     }
 }
 
-/// One checked statement of SPEC §12.
+/// One checked statement of docs/model.md §12.
 #[derive(Clone, Debug)]
 pub struct Check {
-    /// The statement, in SPEC §12's words.
+    /// The statement, in docs/model.md §12's words.
     pub claim: String,
     /// What is measured, per seed.
     pub quantity: String,
@@ -673,7 +630,7 @@ pub fn role_name(r: Role) -> &'static str {
     }
 }
 
-/// Every SPEC §12 claim, checked on the first case of the roles it needs.
+/// Every docs/model.md §12 claim, checked on the first case of the roles it needs.
 pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
     use Role::*;
     let mut b = ClaimBuilder { cases, out: vec![] };
@@ -920,8 +877,10 @@ pub fn claims_csv(checks: &[Check]) -> String {
 mod tests {
     use std::path::{Path, PathBuf};
 
+    use formation_topology::Scenario;
+
     use super::*;
-    use crate::record::{MetricsAccumulator, Row};
+    use formation_record::{MetricsAccumulator, Row};
 
     /// The paper's settings (the proposed method) at T = 20 s, Δt = 0.01 s: 2001 samples.
     fn scenario() -> Scenario {

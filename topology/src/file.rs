@@ -1,6 +1,6 @@
 //! The scenario file as written (TOML), before validation.
 //!
-//! Every value but the followers and edges has a default: SPEC §10's value,
+//! Every value but the followers and edges has a default: docs/model.md §10's value,
 //! so a scenario file states only what differs from the paper. Unknown keys
 //! are errors.
 
@@ -60,12 +60,12 @@ pub struct ScenarioFile {
     pub fault: FaultFile,
     #[serde(default)]
     pub network: NetworkFile,
-    /// Link faults (SPEC §14): outages and loss over windows of run time.
+    /// Link faults (docs/model.md §14): outages and loss over windows of run time.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub faults: Vec<LinkFaultFile>,
 }
 
-/// One row of SPEC §14's fault table: one link (both directions; 0 is the
+/// One row of docs/model.md §14's fault table: one link (both directions; 0 is the
 /// leader) or every link of one follower, over [from, to) s of run time,
 /// each message lost with probability `loss`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -234,13 +234,13 @@ pub struct NetworkFile {
     /// the message rate low).
     #[serde(default = "d::telemetry_batch")]
     pub telemetry_batch: u32,
-    /// After isolation: `consensus` (the paper's law) or `adopt` (SPEC §14).
+    /// After isolation: `consensus` (the paper's law) or `adopt` (docs/model.md §14).
     #[serde(default = "d::rejoin")]
     pub rejoin: String,
     /// Seconds without any source before hearing one again is a rejoin.
     #[serde(default = "d::rejoin_after")]
     pub rejoin_after: f64,
-    /// Communication delay in steps (SPEC §14's addition): at step k a
+    /// Communication delay in steps (docs/model.md §14's addition): at step k a
     /// follower uses its sources' messages of step k − d. 0: the paper's
     /// model. A real-time run with 1 uses only messages that had a whole
     /// period to arrive, and `formation sim` with 1 predicts it.
@@ -377,7 +377,7 @@ default_impl!(NetworkFile {
     delay_steps: 0
 });
 
-/// SPEC §10's values, the defaults of every key.
+/// docs/model.md §10's values, the defaults of every key.
 mod d {
     use super::*;
     pub fn seed() -> u64 {

@@ -1,4 +1,4 @@
-//! The communication graph (section II-A, SPEC §2).
+//! The communication graph (section II-A, docs/model.md §2).
 //!
 //! Followers are stored by index 0..n in ascending id. Adjacency is kept as
 //! sorted neighbour lists (CSR), so the cost of everything per step is
@@ -85,7 +85,7 @@ impl Graph {
         self.adjacency.len() / 2
     }
 
-    /// ξ_i = Σ_j a_ij + a_i0 (SPEC §2).
+    /// ξ_i = Σ_j a_ij + a_i0 (docs/model.md §2).
     pub fn xi(&self, index: usize) -> usize {
         self.neighbours(index).len() + usize::from(self.leader_links[index])
     }
@@ -150,7 +150,7 @@ mod tests {
 
     #[test]
     fn paper_graph_lambda_min_matches_spec() {
-        // SPEC §10: λ_min(H) ≈ 0.186.
+        // docs/model.md §10: λ_min(H) ≈ 0.186.
         let l = paper().lambda_min_h().expect("small graph");
         assert!((l - 0.186).abs() < 5e-4, "λ_min(H) = {l}");
     }

@@ -4,7 +4,7 @@
 //! values ([`Scenario`]). Past validation nothing re-checks and nothing
 //! panics on user input. The graph ([`graph`]) gives each follower its
 //! neighbours, L, H = L + diag(a_i0) and λ_min(H), and enforces Lemma 1.
-//! [`wire`] is the format of the messages of SPEC §13.
+//! [`wire`] is the format of the messages of docs/model.md §13.
 
 pub mod error;
 pub mod file;

@@ -19,7 +19,7 @@ use crate::graph::Graph;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum EstimateInit {
-    /// P_ir(0) = P_r(0), v_ir(0) = v_r(0), ω_ir(0) = ω_r(0) (SPEC §10).
+    /// P_ir(0) = P_r(0), v_ir(0) = v_r(0), ω_ir(0) = ω_r(0) (docs/model.md §10).
     Leader,
     /// Everything zero.
     Zero,
@@ -58,7 +58,7 @@ pub struct NetworkSettings {
 /// Largest `network.delay_steps` accepted.
 pub const MAX_DELAY_STEPS: u64 = 1000;
 
-/// What a link fault covers (SPEC §14).
+/// What a link fault covers (docs/model.md §14).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum FaultTarget {
@@ -130,7 +130,7 @@ pub struct Scenario {
     pub robot: RobotParams,
     pub disturbance: Disturbance,
     pub network: NetworkSettings,
-    /// SPEC §14's fault table (empty: perfect links).
+    /// docs/model.md §14's fault table (empty: perfect links).
     pub faults: Vec<LinkFault>,
     /// The file as it was read and overridden, for the record of a run.
     pub source: ScenarioFile,
@@ -167,7 +167,7 @@ impl Scenario {
         validate(file, "", name, None, &[])
     }
 
-    /// Number of steps T/Δt; the run has steps + 1 samples (SPEC §9).
+    /// Number of steps T/Δt; the run has steps + 1 samples (docs/model.md §9).
     pub fn steps(&self) -> u64 {
         (self.duration_s / self.dt_s).round() as u64
     }
@@ -194,7 +194,7 @@ impl Scenario {
         self.graph.index_of(id)
     }
 
-    /// `network.silence_timeout` in steps, rounded to the nearest (SPEC §14).
+    /// `network.silence_timeout` in steps, rounded to the nearest (docs/model.md §14).
     pub fn silence_steps(&self) -> u64 {
         (self.network.silence_timeout_s / self.dt_s).round() as u64
     }
@@ -682,7 +682,7 @@ fn validate(
     })
 }
 
-/// SPEC §14's fault table: each row one link of the graph or one follower,
+/// docs/model.md §14's fault table: each row one link of the graph or one follower,
 /// a window inside the run, a probability.
 fn validate_faults(
     c: &Check<'_>,

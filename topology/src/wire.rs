@@ -1,4 +1,4 @@
-//! What crosses the network (SPEC §13): a small header and the estimate
+//! What crosses the network (docs/model.md §13): a small header and the estimate
 //! payload, encoded with bincode 2 (standard config) through serde.
 //!
 //! Decoding checks what can be checked from the bytes alone: the format
@@ -27,7 +27,7 @@ pub struct Header {
 }
 
 /// An estimate message: from the leader, its true state; from follower i,
-/// (P_ir, Ṗ_ir, v_ir, ω_ir) and whether that estimate is fresh (SPEC §14:
+/// (P_ir, Ṗ_ir, v_ir, ω_ir) and whether that estimate is fresh (docs/model.md §14:
 /// not held through an isolation since it last came from the leader; the
 /// leader's is always fresh). Format 2 added `fresh`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -1,0 +1,22 @@
+//! The encoding of control and telemetry payloads (bincode 2, standard
+//! configuration); estimate messages have their own format (docs/model.md §13,
+//! `formation_topology::wire`).
+
+use serde::{Deserialize, Serialize};
+
+fn bincode_config() -> bincode::config::Configuration {
+    bincode::config::standard()
+}
+
+/// Encodes a control or telemetry payload.
+pub fn encode<T: Serialize>(v: &T) -> Vec<u8> {
+    bincode::serde::encode_to_vec(v, bincode_config()).unwrap_or_default()
+}
+
+/// Decodes a control or telemetry payload (None if malformed).
+pub fn decode<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Option<T> {
+    match bincode::serde::decode_from_slice::<T, _>(bytes, bincode_config()) {
+        Ok((v, used)) if used == bytes.len() => Some(v),
+        _ => None,
+    }
+}

@@ -1,0 +1,64 @@
+//! What a node counts about the estimate messages it sends and receives;
+//! sent with its telemetry and written to `network.json`.
+
+use formation_topology::wire::Reject;
+use serde::{Deserialize, Serialize};
+
+/// Per-reason counts of received estimate messages that were not used.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RejectCounts {
+    pub malformed: u64,
+    pub version: u64,
+    pub non_finite: u64,
+    pub wrong_sender: u64,
+    pub not_neighbour: u64,
+    /// An older step than one already used (also: duplicates of a used step).
+    pub stale: u64,
+    /// A step further ahead of the receiver's than any genuine sender can be.
+    #[serde(default)]
+    pub future: u64,
+}
+
+impl RejectCounts {
+    pub fn add(&mut self, r: Reject) {
+        match r {
+            Reject::Malformed => self.malformed += 1,
+            Reject::Version => self.version += 1,
+            Reject::NonFinite => self.non_finite += 1,
+            Reject::WrongSender => self.wrong_sender += 1,
+            Reject::NotNeighbour => self.not_neighbour += 1,
+            Reject::Stale => self.stale += 1,
+            Reject::Future => self.future += 1,
+        }
+    }
+    /// Everything but `stale` (which is lateness, not a bad message).
+    pub fn invalid(&self) -> u64 {
+        self.malformed + self.version + self.non_finite + self.wrong_sender + self.not_neighbour + self.future
+    }
+}
+
+/// A node's message counters, sent with every telemetry batch.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Counters {
+    /// Estimate messages published (republications included).
+    pub sent: u64,
+    /// Republications of a step's message while waiting (lock-step).
+    pub republished: u64,
+    /// Estimate messages received that passed every check.
+    pub received: u64,
+    /// Received too late to be used (lock-step: a duplicate of a used step;
+    /// real time: older than the latest already held). Also in `rejected.stale`.
+    pub late: u64,
+    pub rejected: RejectCounts,
+    /// (Real time) neighbour-steps left out of the estimator's sums because
+    /// the neighbour was silent longer than `network.silence_timeout`.
+    pub silent: u64,
+    /// Messages removed by the scenario's fault table at this receiver (docs/model.md §14).
+    #[serde(default)]
+    pub fault_lost: u64,
+    /// (Real time) neighbour-steps that used a message older than step
+    /// k − d (`network.delay_steps`): the one of k − d had not arrived in
+    /// time. The simulator's model has none.
+    #[serde(default)]
+    pub older: u64,
+}

@@ -1,0 +1,162 @@
+//! The lock-step gate's rules, shared by the leader and the agents: how far
+//! the leader may run ahead, when a wait is reported, and which of the
+//! messages a node has published it repeats for neighbours that are
+//! behind. Plain data, no IO and no clock: the nodes ask it what to send.
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use crate::inbox::LOCKSTEP_AHEAD;
+
+/// How many steps the leader may run ahead of the slowest follower that
+/// hears it.
+pub const WINDOW: u64 = 200;
+
+/// A wait this long for one step's inputs is reported once on stderr (the
+/// stall timeout ends it).
+pub const STALL_WARNING: Duration = Duration::from_secs(5);
+
+/// How many of its last messages a waiting follower repeats at least.
+/// Without faults neighbours are at most one step apart, so a restarted
+/// neighbour, which resumes one step before the least advanced of them, may
+/// need a message two steps behind the most advanced one's newest.
+pub const REPEATED: usize = LOCKSTEP_AHEAD as usize + 1;
+
+/// How many published messages a follower keeps for neighbours that are
+/// behind. The fault table lets a node run ahead of a neighbour whose
+/// messages to it the table removes (it does not wait for them), by as many
+/// steps as the table removes in a row: 30 % loss removes 5 in a row once
+/// in 400 steps. A neighbour further behind than this is not helped and
+/// ends at its stall timeout, naming us.
+pub const FOLLOWER_KEPT: usize = 256;
+
+/// At most this many messages a follower repeats from its slowest
+/// neighbour's step in one round (100 ms).
+pub const REPEAT_BURST: usize = 64;
+
+/// How many messages the leader keeps: the window and the steps a follower
+/// may be ahead.
+pub const LEADER_KEPT: usize = WINDOW as usize + 1 + LOCKSTEP_AHEAD as usize;
+
+/// The first step the leader repeats while the slowest hearing follower has
+/// published `slowest`. A killed follower may have delivered its last
+/// messages to the leader and not yet to its neighbours; restarted, it
+/// resumes one step before the least advanced of them, which can be
+/// [`LOCKSTEP_AHEAD`] steps before what the leader heard from it.
+pub fn leader_from_step(slowest: u64) -> u64 {
+    slowest.saturating_sub(LOCKSTEP_AHEAD)
+}
+
+/// The newest step the slowest hearing follower has published (0 for one
+/// not heard yet).
+pub fn slowest_step(reached: &[Option<u64>]) -> u64 {
+    reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(0)
+}
+
+/// The last messages a node has published, by step, oldest first, at most
+/// a fixed number of them.
+pub struct Kept {
+    capacity: usize,
+    messages: VecDeque<(u64, Vec<u8>)>,
+}
+
+impl Kept {
+    pub fn new(capacity: usize) -> Self {
+        Self { capacity: capacity.max(1), messages: VecDeque::with_capacity(capacity.max(1)) }
+    }
+
+    /// Keeps the message of `step`, forgetting the oldest when full.
+    pub fn push(&mut self, step: u64, bytes: Vec<u8>) {
+        if self.messages.len() == self.capacity {
+            self.messages.pop_front();
+        }
+        self.messages.push_back((step, bytes));
+    }
+
+    pub fn len(&self) -> usize {
+        self.messages.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.messages.is_empty()
+    }
+
+    /// What a waiting follower repeats, oldest first: its last [`REPEATED`],
+    /// and up to [`REPEAT_BURST`] from `slowest`, the step the least
+    /// advanced neighbour waits for (the step of its newest message).
+    pub fn follower_repeats(&self, slowest: Option<u64>) -> impl Iterator<Item = &Vec<u8>> {
+        let newest = self.messages.back().map_or(0, |m| m.0);
+        let last = newest.saturating_sub(REPEATED as u64 - 1);
+        let from = slowest.map_or(last, |m| m.min(last));
+        let burst = from.saturating_add(REPEAT_BURST as u64);
+        self.messages.iter().filter(move |m| m.0 >= last || (m.0 >= from && m.0 < burst)).map(|m| &m.1)
+    }
+
+    /// What the leader repeats while the slowest hearing follower has
+    /// published `slowest`: every kept message from [`leader_from_step`] on.
+    pub fn leader_repeats(&self, slowest: u64) -> impl Iterator<Item = &Vec<u8>> {
+        let from = leader_from_step(slowest);
+        self.messages.iter().filter(move |m| m.0 >= from).map(|m| &m.1)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn steps<'a>(it: impl Iterator<Item = &'a Vec<u8>>) -> Vec<u64> {
+        it.map(|b| u64::from(b[0]) + 256 * u64::from(b[1])).collect()
+    }
+
+    fn follower_steps(s: &Kept, heard: &[Option<u64>]) -> Vec<u64> {
+        let slowest = heard.iter().flatten().copied().min();
+        steps(s.follower_repeats(slowest))
+    }
+
+    fn kept(capacity: usize, upto: u64) -> Kept {
+        let mut s = Kept::new(capacity);
+        for k in 0..=upto {
+            s.push(k, vec![(k % 256) as u8, (k / 256) as u8]);
+        }
+        s
+    }
+
+    /// The fault table let us run ahead of a neighbour: what it waits for is
+    /// repeated, not only our last messages (a lock-step run stalled on
+    /// this under 30 % loss).
+    #[test]
+    fn a_neighbour_left_behind_gets_the_message_it_waits_for() {
+        let s = kept(FOLLOWER_KEPT, 5272);
+        assert_eq!(follower_steps(&s, &[Some(5269), Some(5272)]), vec![5269, 5270, 5271, 5272]);
+        assert_eq!(follower_steps(&s, &[None, None]), vec![5270, 5271, 5272], "nobody heard: the last {REPEATED}");
+        assert_eq!(follower_steps(&s, &[Some(5273)]), vec![5270, 5271, 5272], "a neighbour ahead");
+    }
+
+    #[test]
+    fn what_is_repeated_is_bounded_and_always_holds_the_newest() {
+        let s = kept(FOLLOWER_KEPT, 10_000);
+        assert_eq!(s.len(), FOLLOWER_KEPT);
+        let far = follower_steps(&s, &[Some(100), Some(9_999)]);
+        // Older than what is kept: the last REPEATED only.
+        assert_eq!(far, vec![9_998, 9_999, 10_000]);
+        let behind = follower_steps(&s, &[Some(9_800)]);
+        assert_eq!(behind.len(), REPEAT_BURST + REPEATED, "{behind:?}");
+        assert_eq!((behind[0], behind[REPEAT_BURST - 1]), (9_800, 9_863));
+        assert_eq!(&behind[REPEAT_BURST..], &[9_998, 9_999, 10_000]);
+    }
+
+    /// A restarted follower resumes up to LOCKSTEP_AHEAD steps before what
+    /// the leader heard from it: the leader repeats from there, and keeps
+    /// the whole window.
+    #[test]
+    fn the_leader_repeats_from_before_the_slowest_and_keeps_its_window() {
+        let s = kept(LEADER_KEPT, 1_000);
+        assert_eq!(s.len(), LEADER_KEPT, "the window and the steps ahead");
+        let from = steps(s.leader_repeats(990));
+        assert_eq!(from.first(), Some(&(990 - LOCKSTEP_AHEAD)), "{from:?}");
+        assert_eq!(from.last(), Some(&1_000));
+        assert_eq!(steps(s.leader_repeats(0)).len(), LEADER_KEPT, "not heard yet: everything kept");
+        assert_eq!(slowest_step(&[Some(7), None, Some(3)]), 0, "one not heard yet");
+        assert_eq!(slowest_step(&[Some(7), Some(3)]), 3);
+    }
+}

@@ -1,0 +1,202 @@
+//! A node's identity for a secure deployment: the files a certificate
+//! folder holds for it (checked at start), the access-control policy of a
+//! scenario's topology, and the zenoh settings of `--tls`.
+//!
+//! With `--tls DIR`, a node checks its files at start ([`identity`]), and
+//! its session runs mutual TLS with the authority as the only trust root,
+//! TLS-only links, and the policy ([`zenoh_tls`]). `formation certs` makes
+//! the folder.
+
+use std::path::{Path, PathBuf};
+
+use formation_topology::Scenario;
+use serde_json::{json, Value};
+
+use crate::names::{agent_name, node_names, LEADER, MONITOR, ROUTER};
+
+/// The authority's certificate and key in a certificate folder.
+pub const CA_CERT: &str = "ca.pem";
+pub const CA_KEY: &str = "ca.key";
+/// The access-control policy in a certificate folder.
+pub const POLICY: &str = "policy.json5";
+
+/// What one node may publish (`put` in) and receive (subscribe to, `put` out).
+struct Role {
+    name: String,
+    publish: Vec<String>,
+    receive: Vec<String>,
+}
+
+/// Any run's key: `formation/*/<rest>` (certificates are per scenario, not per run).
+fn any_run(rest: &str) -> String {
+    format!("formation/*/{rest}")
+}
+
+fn roles(scenario: &Scenario) -> Vec<Role> {
+    let control = any_run("control/**");
+    let mut roles = vec![
+        Role {
+            name: LEADER.into(),
+            publish: vec![
+                any_run("estimate/0"),
+                any_run("telemetry/0"),
+                any_run("control/hello/0"),
+                any_run("control/start"),
+                any_run("control/abort"),
+            ],
+            // Every estimate (lock-step pacing, and its own for twins) and telemetry (who finished).
+            receive: vec![any_run("estimate/*"), any_run("telemetry/*"), control.clone()],
+        },
+        Role {
+            name: MONITOR.into(),
+            publish: vec![any_run("control/hello/monitor"), any_run("control/ready/monitor"), any_run("control/ack")],
+            receive: vec![any_run("telemetry/*"), control.clone()],
+        },
+    ];
+    for (index, &id) in scenario.graph.ids().iter().enumerate() {
+        let mut receive: Vec<String> =
+            scenario.sources_of(index).iter().map(|s| any_run(&format!("estimate/{s}"))).collect();
+        // Its own estimate and telemetry: a second process with its identity is refused (twins).
+        receive.push(any_run(&format!("estimate/{id}")));
+        receive.push(any_run(&format!("telemetry/{id}")));
+        receive.push(control.clone());
+        roles.push(Role {
+            name: agent_name(id),
+            publish: vec![
+                any_run(&format!("estimate/{id}")),
+                any_run(&format!("telemetry/{id}")),
+                any_run(&format!("control/hello/{id}")),
+                any_run(&format!("control/ready/{id}")),
+            ],
+            receive,
+        });
+    }
+    roles
+}
+
+/// zenoh's `access_control` section for a scenario: deny by default; each
+/// node (known by its certificate's common name) may put only on its own
+/// keys and declare subscribers and be sent puts only on the keys its role
+/// reads; the router is trusted to forward. Enforced by every node that
+/// loads it: the router for its clients, each peer for its own links.
+pub fn policy(scenario: &Scenario) -> Value {
+    let mut rules = vec![
+        json!({ "id": "router-forwards", "messages": ["put", "declare_subscriber"],
+                "flows": ["ingress", "egress"], "permission": "allow", "key_exprs": ["formation/**"] }),
+        // Subscriber declarations travel to every node, so that publishers
+        // know where to send; what is sent is what the rules below allow.
+        json!({ "id": "declarations-out", "messages": ["declare_subscriber"], "flows": ["egress"],
+                "permission": "allow", "key_exprs": ["formation/**"] }),
+    ];
+    let mut subjects = vec![json!({ "id": ROUTER, "cert_common_names": [ROUTER] })];
+    let mut policies = vec![json!({ "rules": ["router-forwards"], "subjects": [ROUTER] })];
+    for r in roles(scenario) {
+        let (publish, receive) = (format!("{}-publishes", r.name), format!("{}-receives", r.name));
+        let subscribe = format!("{}-subscribes", r.name);
+        rules.push(json!({ "id": publish, "messages": ["put"], "flows": ["ingress"],
+                           "permission": "allow", "key_exprs": r.publish }));
+        rules.push(json!({ "id": subscribe, "messages": ["declare_subscriber"], "flows": ["ingress"],
+                           "permission": "allow", "key_exprs": r.receive }));
+        rules.push(json!({ "id": receive, "messages": ["put"], "flows": ["egress"],
+                           "permission": "allow", "key_exprs": r.receive }));
+        subjects.push(json!({ "id": r.name, "cert_common_names": [r.name] }));
+        policies.push(json!({ "rules": [publish, subscribe, receive, "declarations-out"], "subjects": [r.name] }));
+    }
+    json!({ "enabled": true, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies })
+}
+
+/// A node's files in a certificate folder, checked.
+#[derive(Clone, Debug)]
+pub struct Identity {
+    pub ca: PathBuf,
+    pub cert: PathBuf,
+    pub key: PathBuf,
+    pub policy: Value,
+}
+
+/// Checks `dir` for node `name`: the authority, the node's certificate
+/// (issued by the authority, for this node, valid now) and key (matching
+/// it), and the policy. Each problem is one line.
+pub fn identity(dir: &Path, name: &str) -> Result<Identity, String> {
+    use x509_parser::prelude::*;
+    let (ca, cert, key) = (dir.join(CA_CERT), dir.join(format!("{name}.pem")), dir.join(format!("{name}.key")));
+    let read = |p: &Path| -> Result<Vec<u8>, String> {
+        std::fs::read(p).map_err(|e| format!("--tls {}: cannot read {}: {e}", dir.display(), p.display()))
+    };
+    let pem_of = |p: &Path, bytes: &[u8]| -> Result<Pem, String> {
+        let (_, pem) = parse_x509_pem(bytes).map_err(|e| format!("{}: not a PEM certificate: {e}", p.display()))?;
+        Ok(pem)
+    };
+    let ca_bytes = read(&ca)?;
+    let ca_pem = pem_of(&ca, &ca_bytes)?;
+    let ca_x509 = ca_pem.parse_x509().map_err(|e| format!("{}: not a certificate: {e}", ca.display()))?;
+    let cert_bytes = read(&cert)?;
+    let cert_pem = pem_of(&cert, &cert_bytes)?;
+    let x509 = cert_pem.parse_x509().map_err(|e| format!("{}: not a certificate: {e}", cert.display()))?;
+    let cn = x509.subject().iter_common_name().next().and_then(|c| c.as_str().ok()).unwrap_or("").to_string();
+    if cn != name {
+        return Err(format!("{} is the certificate of {cn:?}, not of {name}", cert.display()));
+    }
+    if x509.verify_signature(Some(ca_x509.public_key())).is_err() {
+        return Err(format!("{} was not issued by the authority {}", cert.display(), ca.display()));
+    }
+    let now = ASN1Time::now();
+    let validity = x509.validity();
+    if now < validity.not_before {
+        return Err(format!("{} is not valid yet: valid from {} (now {})", cert.display(), validity.not_before, now));
+    }
+    if now > validity.not_after {
+        return Err(format!("{} expired on {} (now {})", cert.display(), validity.not_after, now));
+    }
+    let key_text = String::from_utf8(read(&key)?).map_err(|_| format!("{}: not a PEM private key", key.display()))?;
+    let pair = rcgen::KeyPair::from_pem(&key_text).map_err(|e| format!("{}: not a private key: {e}", key.display()))?;
+    if rcgen::PublicKeyData::der_bytes(&pair) != &x509.public_key().subject_public_key.data[..] {
+        return Err(format!("{} is not the key of {}", key.display(), cert.display()));
+    }
+    let policy_path = dir.join(POLICY);
+    let text = String::from_utf8(read(&policy_path)?).map_err(|_| format!("{}: not UTF-8", policy_path.display()))?;
+    let policy: Value = json5::from_str(&text).map_err(|e| format!("{}: {e}", policy_path.display()))?;
+    Ok(Identity { ca, cert, key, policy })
+}
+
+/// `identity` for a node of `scenario`, whose policy must also be the one
+/// the scenario's topology gives.
+pub fn identity_for(dir: &Path, name: &str, scenario: &Scenario) -> Result<Identity, String> {
+    checked(dir, name, scenario, &policy(scenario))
+}
+
+/// Every node of `scenario` has its files in `dir` (what `launch`, `lab`
+/// and `bench-net` check before they start any process).
+pub fn check_all(dir: &Path, scenario: &Scenario) -> Result<(), String> {
+    let expected = policy(scenario);
+    node_names(scenario).iter().try_for_each(|name| checked(dir, name, scenario, &expected).map(drop))
+}
+
+fn checked(dir: &Path, name: &str, scenario: &Scenario, expected: &Value) -> Result<Identity, String> {
+    let id = identity(dir, name)?;
+    if &id.policy != expected {
+        return Err(format!(
+            "--tls {}: {POLICY} was made for another topology than scenario {}'s (run `formation certs` again)",
+            dir.display(),
+            scenario.name
+        ));
+    }
+    Ok(id)
+}
+
+/// The zenoh settings of `--tls`: mutual TLS with the authority as the
+/// only root, names checked on connect, TLS-only links, and the policy.
+pub fn zenoh_tls(id: &Identity) -> Vec<(&'static str, Value)> {
+    let p = |p: &Path| Value::from(p.display().to_string());
+    vec![
+        ("transport/link/tls/root_ca_certificate", p(&id.ca)),
+        ("transport/link/tls/listen_certificate", p(&id.cert)),
+        ("transport/link/tls/listen_private_key", p(&id.key)),
+        ("transport/link/tls/connect_certificate", p(&id.cert)),
+        ("transport/link/tls/connect_private_key", p(&id.key)),
+        ("transport/link/tls/enable_mtls", Value::Bool(true)),
+        ("transport/link/tls/verify_name_on_connect", Value::Bool(true)),
+        ("transport/link/protocols", json!(["tls"])),
+        ("access_control", id.policy.clone()),
+    ]
+}

@@ -1,0 +1,362 @@
+//! The receiving side of estimate messages: the checks every message
+//! passes (docs/model.md §13), and the [`Inbox`] a control loop takes its inputs from
+//! (docs/model.md §14's fault table applied on arrival).
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::Duration;
+
+use formation_agent::{LinkLoss, Message};
+use formation_topology::wire::{self, EstimateMsg, Reject};
+
+use crate::counters::Counters;
+
+/// Where an estimate message came from, as the receiver sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Source {
+    Leader,
+    /// Index of the neighbour in the receiver's neighbour list.
+    Neighbour(usize),
+}
+
+/// The receiving side's checks (docs/model.md §13, issue 3): decodes, and checks that
+/// the header's sender is the key's, and that the sender is one this node
+/// listens to. Staleness is the caller's (it depends on the timing mode).
+pub fn check(
+    key_id: Option<u32>,
+    bytes: &[u8],
+    hears_leader: bool,
+    neighbour_ids: &[u32],
+) -> Result<(Source, EstimateMsg), Reject> {
+    let msg = wire::decode(bytes)?;
+    if key_id != Some(msg.header.sender) {
+        return Err(Reject::WrongSender);
+    }
+    let sender = msg.header.sender;
+    if sender == wire::LEADER_ID {
+        return if hears_leader { Ok((Source::Leader, msg)) } else { Err(Reject::NotNeighbour) };
+    }
+    match neighbour_ids.iter().position(|&j| j == sender) {
+        Some(n) => Ok((Source::Neighbour(n), msg)),
+        None => Err(Reject::NotNeighbour),
+    }
+}
+
+/// The estimate messages one node has received and not yet used, per source.
+#[derive(Debug, Default)]
+pub struct Inbox {
+    /// Lock-step: every step received and not yet used, by step.
+    pending: Vec<BTreeMap<u64, Message>>,
+    /// The last step used (lock-step) or held (real time), per source.
+    newest: Vec<Option<u64>>,
+    /// Per source, the furthest step heard (see [`Inbox::heard_max`]).
+    heard_max: Vec<Option<u64>>,
+    /// Real time: the recent messages per source, in step order.
+    history: Vec<VecDeque<(u64, Message)>>,
+    pub counters: Counters,
+    lockstep: bool,
+    /// The receiver's current step (set by its control loop).
+    current: u64,
+    /// Per source: how many steps ahead of the receiver's a message may be.
+    ahead: Vec<u64>,
+    /// Real time: the shared clock (epoch, period), once the start is known.
+    clock: Option<(std::time::Instant, Duration)>,
+    /// Per source: the fault table's loss decisions for the link (docs/model.md §14).
+    links: Vec<LinkLoss>,
+}
+
+/// Lock-step: how far ahead of the receiver's step a neighbour's message can
+/// be (it needs the receiver's step-k message before it publishes k + 1).
+pub const LOCKSTEP_AHEAD: u64 = 2;
+/// Real time: the default slack (steps) beyond the shared clock's step.
+pub const REALTIME_AHEAD: u64 = 10;
+
+impl Inbox {
+    /// `sources` = neighbours (+1 for the leader, at the last slot, if heard).
+    /// Every source may be `ahead` steps ahead of the receiver (see [`Inbox::set_ahead`]).
+    pub fn new(sources: usize, lockstep: bool) -> Self {
+        Self {
+            pending: vec![BTreeMap::new(); sources],
+            newest: vec![None; sources],
+            heard_max: vec![None; sources],
+            history: vec![VecDeque::new(); sources],
+            counters: Counters::default(),
+            lockstep,
+            current: 0,
+            ahead: vec![if lockstep { LOCKSTEP_AHEAD } else { REALTIME_AHEAD }; sources],
+            clock: None,
+            links: vec![LinkLoss::none(); sources],
+        }
+    }
+
+    /// The fault table's loss decisions per source (docs/model.md §14): a message the
+    /// table removes is dropped on arrival and counted (`fault_lost`), and
+    /// lock-step does not wait for it.
+    pub fn set_links(&mut self, links: Vec<LinkLoss>) {
+        debug_assert_eq!(links.len(), self.links.len());
+        if links.len() == self.links.len() {
+            self.links = links;
+        }
+    }
+
+    /// How many steps ahead of the receiver's step a message of `slot` may be
+    /// (further ahead: rejected as [`Reject::Future`]).
+    pub fn set_ahead(&mut self, slot: usize, steps: u64) {
+        self.ahead[slot] = steps;
+    }
+
+    /// Real time: the shared schedule (step k due at `epoch` + k `period`),
+    /// so that the receiver's step is at least the clock's.
+    pub fn set_clock(&mut self, epoch: std::time::Instant, period: Duration) {
+        if !period.is_zero() {
+            self.clock = Some((epoch, period));
+        }
+    }
+
+    /// The furthest step heard from `slot` in a checked message, accepted or
+    /// not (a restarted lock-step agent learns from it where its
+    /// neighbours wait).
+    pub fn heard_max(&self, slot: usize) -> Option<u64> {
+        self.heard_max[slot]
+    }
+
+    /// The least advanced of the first `slots` sources, by the furthest step
+    /// heard from each ([`Inbox::heard_max`]); None if none was heard.
+    pub fn slowest_heard(&self, slots: usize) -> Option<u64> {
+        self.heard_max[..slots].iter().flatten().copied().min()
+    }
+
+    /// The step the receiver is at (or waiting for).
+    pub fn set_step(&mut self, k: u64) {
+        self.current = self.current.max(k);
+    }
+
+    /// The furthest step of `slot` a genuine sender can have sent by now.
+    fn limit(&self, slot: usize) -> u64 {
+        let mut base = self.current;
+        if let Some((epoch, period)) = self.clock {
+            let since = std::time::Instant::now().saturating_duration_since(epoch);
+            base = base.max((since.as_secs_f64() / period.as_secs_f64()) as u64);
+        }
+        base.saturating_add(self.ahead[slot])
+    }
+
+    /// Files a checked message, or counts it as stale or from the future.
+    pub fn accept(&mut self, slot: usize, msg: &EstimateMsg) {
+        let step = msg.header.step;
+        let seen = &mut self.heard_max[slot];
+        *seen = Some(seen.map_or(step, |m| m.max(step)));
+        if step > self.limit(slot) {
+            self.counters.rejected.add(Reject::Future);
+            return;
+        }
+        if self.links[slot].lost(step) {
+            self.counters.fault_lost += 1;
+            return;
+        }
+        if self.newest[slot].is_some_and(|n| step <= n) {
+            self.counters.late += 1;
+            self.counters.rejected.add(Reject::Stale);
+            return;
+        }
+        self.counters.received += 1;
+        let m = Message { state: msg.state, fresh: msg.fresh };
+        if self.lockstep {
+            // A republication of a pending step keeps the first copy.
+            self.pending[slot].entry(step).or_insert(m);
+        } else {
+            self.newest[slot] = Some(step);
+            let h = &mut self.history[slot];
+            h.push_back((step, m));
+            if h.len() > HISTORY {
+                h.pop_front();
+            }
+        }
+    }
+
+    pub fn reject(&mut self, r: Reject) {
+        self.counters.rejected.add(r);
+    }
+
+    /// Lock-step: whether every source's step-k message is here (or removed
+    /// by the fault table, so not to be waited for).
+    pub fn has_all(&mut self, k: u64) -> bool {
+        (0..self.pending.len()).all(|s| self.pending[s].contains_key(&k) || self.links[s].lost(k))
+    }
+
+    /// Lock-step: whether the step the receiver waits for now has all its
+    /// inputs (false in real time, where nobody waits): a message that
+    /// completes it wakes the control loop, the others need not.
+    pub fn completes_wait(&mut self) -> bool {
+        self.lockstep && self.has_all(self.current)
+    }
+
+    /// Lock-step: the slots whose step-k message is missing (and not removed by the table).
+    pub fn missing(&mut self, k: u64) -> Vec<usize> {
+        (0..self.pending.len()).filter(|&s| !self.pending[s].contains_key(&k) && !self.links[s].lost(k)).collect()
+    }
+
+    /// Lock-step: takes each source's step-k message, `None` where the fault
+    /// table removed it (call after `has_all`).
+    pub fn take(&mut self, k: u64, out: &mut Vec<Option<Message>>) {
+        out.clear();
+        for (slot, p) in self.pending.iter_mut().enumerate() {
+            // Drop anything older (cannot happen with has_all, but keeps memory bounded).
+            while let Some((&s, _)) = p.first_key_value() {
+                if s >= k {
+                    break;
+                }
+                p.pop_first();
+            }
+            out.push(p.remove(&k));
+            self.newest[slot] = Some(k);
+        }
+    }
+
+    /// Real time: the newest message of a source stamped at or before step
+    /// k (a node running behind the shared schedule never uses values from
+    /// its future), if it is at most `max_age_steps` older than k; else the
+    /// source counts as silent.
+    pub fn latest(&mut self, slot: usize, k: u64, max_age_steps: u64) -> Option<Message> {
+        let h = &mut self.history[slot];
+        // Keep the newest entry ≤ k and everything after it.
+        while h.len() > 1 && h[1].0 <= k {
+            h.pop_front();
+        }
+        match h.front() {
+            Some(&(s, state)) if s <= k && k - s <= max_age_steps => {
+                self.counters.older += u64::from(s < k);
+                Some(state)
+            }
+            _ => {
+                self.counters.silent += 1;
+                None
+            }
+        }
+    }
+}
+
+/// Real time: messages kept per source (newer than the receiver's step).
+const HISTORY: usize = 1024;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use formation_topology::wire::{Header, FORMAT_VERSION};
+
+    fn msg(sender: u32, step: u64) -> EstimateMsg {
+        EstimateMsg {
+            header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
+            state: formation_agent::LeaderState { v: step as f64, ..Default::default() },
+            fresh: true,
+        }
+    }
+
+    #[test]
+    fn checks_name_the_reason() {
+        let bytes = wire::encode(&msg(2, 5));
+        assert_eq!(check(Some(2), &bytes, false, &[2, 3]).map(|r| r.0), Ok(Source::Neighbour(0)));
+        assert_eq!(check(Some(3), &bytes, false, &[2, 3]).map(|r| r.0), Err(Reject::WrongSender));
+        assert_eq!(check(Some(2), &bytes, false, &[3]).map(|r| r.0), Err(Reject::NotNeighbour));
+        assert_eq!(check(Some(2), b"junk", false, &[2]).map(|r| r.0), Err(Reject::Malformed));
+        let leader = wire::encode(&msg(0, 5));
+        assert_eq!(check(Some(0), &leader, true, &[2]).map(|r| r.0), Ok(Source::Leader));
+        assert_eq!(check(Some(0), &leader, false, &[2]).map(|r| r.0), Err(Reject::NotNeighbour));
+    }
+
+    #[test]
+    fn lockstep_inbox_waits_for_every_source_and_counts_stale() {
+        let mut inbox = Inbox::new(2, true);
+        inbox.accept(0, &msg(1, 0));
+        assert!(!inbox.has_all(0));
+        inbox.accept(1, &msg(2, 0));
+        inbox.accept(1, &msg(2, 1));
+        assert!(inbox.has_all(0));
+        let mut out = Vec::new();
+        inbox.take(0, &mut out);
+        assert_eq!(out.len(), 2);
+        assert!(out.iter().all(Option::is_some));
+        inbox.accept(0, &msg(1, 0));
+        assert_eq!(inbox.counters.rejected.stale, 1);
+        assert!(!inbox.has_all(1));
+    }
+
+    #[test]
+    fn realtime_inbox_keeps_the_latest_and_leaves_out_the_silent() {
+        let mut inbox = Inbox::new(1, false);
+        assert_eq!(inbox.latest(0, 0, 10), None);
+        inbox.accept(0, &msg(1, 3));
+        inbox.accept(0, &msg(1, 2));
+        assert_eq!(inbox.counters.late, 1);
+        inbox.accept(0, &msg(1, 6));
+        // At step 5 the message stamped 6 is in the future: use 3.
+        assert_eq!(inbox.latest(0, 5, 10).map(|m| m.state.v), Some(3.0));
+        assert_eq!(inbox.counters.older, 1, "step 5 used step 3's message");
+        assert_eq!(inbox.latest(0, 6, 10).map(|m| m.state.v), Some(6.0));
+        assert_eq!(inbox.counters.older, 1);
+        assert_eq!(inbox.latest(0, 17, 10), None);
+        assert_eq!(inbox.counters.silent, 2);
+    }
+
+    #[test]
+    fn far_future_steps_are_rejected_and_do_not_silence_the_sender() {
+        // Lock-step: neighbours at most 2 steps ahead, the leader (slot 1) 10.
+        let mut inbox = Inbox::new(2, true);
+        inbox.set_ahead(1, 10);
+        inbox.accept(0, &msg(1, u64::MAX));
+        for s in 3..1000 {
+            inbox.accept(0, &msg(1, s));
+        }
+        inbox.accept(1, &msg(0, 11));
+        assert_eq!(inbox.counters.rejected.future, 1 + 997 + 1);
+        assert_eq!(inbox.counters.rejected.stale, 0);
+        // Nothing pending from the flood; the genuine messages still get through.
+        assert!(inbox.pending.iter().all(|p| p.is_empty()));
+        for s in 0..=2 {
+            inbox.accept(0, &msg(1, s));
+        }
+        inbox.accept(1, &msg(0, 0));
+        inbox.accept(1, &msg(0, 10));
+        assert!(inbox.has_all(0));
+        let mut out = Vec::new();
+        inbox.take(0, &mut out);
+        inbox.set_step(1);
+        inbox.accept(0, &msg(1, 3));
+        assert_eq!(inbox.counters.rejected.future, 999);
+        assert_eq!(inbox.pending[0].len(), 3);
+
+        // Real time: a far-future message is not held, so later genuine ones are used.
+        let mut inbox = Inbox::new(1, false);
+        inbox.set_ahead(0, 5);
+        inbox.accept(0, &msg(1, u64::MAX));
+        inbox.accept(0, &msg(1, 6));
+        inbox.accept(0, &msg(1, 1));
+        assert_eq!(inbox.counters.rejected.future, 2);
+        assert_eq!(inbox.latest(0, 1, 10).map(|m| m.state.v), Some(1.0));
+        inbox.set_step(10);
+        inbox.accept(0, &msg(1, 9));
+        assert_eq!(inbox.latest(0, 10, 10).map(|m| m.state.v), Some(9.0));
+    }
+
+    #[test]
+    fn realtime_never_uses_a_message_from_the_receivers_future() {
+        let mut inbox = Inbox::new(1, false);
+        inbox.set_ahead(0, 10);
+        inbox.accept(0, &msg(1, 8));
+        // Held message newer than k: not used (and not "0 steps old").
+        assert_eq!(inbox.latest(0, 5, 10), None);
+        assert_eq!(inbox.latest(0, 8, 10).map(|m| m.state.v), Some(8.0));
+    }
+
+    /// The slowest neighbour by its newest message, heard or not accepted;
+    /// the leader's slot (the last) is left out by the caller.
+    #[test]
+    fn the_slowest_heard_neighbour_is_the_least_advanced_one() {
+        let mut inbox = Inbox::new(3, true);
+        assert_eq!(inbox.slowest_heard(2), None);
+        inbox.accept(0, &msg(1, 7));
+        assert_eq!(inbox.slowest_heard(2), Some(7), "one heard");
+        inbox.accept(1, &msg(2, 1));
+        inbox.accept(2, &msg(0, 0));
+        assert_eq!(inbox.slowest_heard(2), Some(1), "slot 2 is not counted");
+    }
+}

@@ -1,0 +1,37 @@
+//! The formation on a network: the protocol's rules as plain types that
+//! own no socket and no clock (start barrier, lock-step gate, inbox,
+//! courier), and the zenoh nodes that drive them: the leader, an agent per
+//! follower, the monitor that records the run, and the router.
+//!
+//! Layers, each module using only those of the layers below it:
+//!
+//! | layer | modules |
+//! | --- | --- |
+//! | names and wire | [`names`], [`codec`], [`counters`], [`error`] |
+//! | protocol rules (no IO) | [`inbox`], [`gate`], [`courier`], [`timing`], [`checkpoint`] |
+//! | zenoh session | [`identity`], [`session`], [`node`] |
+//! | shared node parts | [`barrier`], [`telemetry`] |
+//! | nodes | [`agent`], [`leader`], [`monitor`] (with [`web`] and [`foxglove`]), [`router`] |
+
+pub mod agent;
+pub mod barrier;
+pub mod checkpoint;
+pub mod codec;
+pub mod counters;
+pub mod courier;
+pub mod error;
+pub mod foxglove;
+pub mod gate;
+pub mod identity;
+pub mod inbox;
+pub mod leader;
+pub mod monitor;
+pub mod names;
+pub mod node;
+pub mod router;
+pub mod session;
+pub mod telemetry;
+pub mod timing;
+pub mod web;
+
+pub use error::Error;

@@ -1,0 +1,123 @@
+//! The names of a run's nodes (in certificates, key expressions and
+//! messages) and the key expressions of a run: the one place they are spelt.
+//!
+//! | key | who publishes | payload |
+//! | --- | --- | --- |
+//! | `estimate/<id>` | leader (id 0), follower id | `formation_topology::wire::EstimateMsg` (docs/model.md §13) |
+//! | `telemetry/<id>` | leader (id 0), follower id | `telemetry::Telemetry` |
+//! | `control/hello/<node>` | every node, until the start | empty |
+//! | `control/ready/<node>` | agents and monitor, until the start | `barrier::Ready` |
+//! | `control/start` | leader, every 100 ms during the run | `barrier::Start` |
+//! | `control/ack` | monitor, every 100 ms during the run | `telemetry::Ack` |
+//!
+//! `<node>` is `0` for the leader, the follower id, or `monitor`.
+
+use formation_topology::Scenario;
+
+/// The router's node name (its certificate's common name).
+pub const ROUTER: &str = "router";
+/// The leader's node name.
+pub const LEADER: &str = "leader";
+/// The monitor's node name, in certificates and in control keys.
+pub const MONITOR: &str = "monitor";
+/// The leader's name in control keys (its wire id).
+pub const LEADER_NODE: &str = "0";
+
+/// A follower's node name (its certificate's common name).
+pub fn agent_name(id: u32) -> String {
+    format!("agent-{id}")
+}
+
+/// Every node of a scenario, in the lab's host order (router, monitor,
+/// leader, agents in id order).
+pub fn node_names(scenario: &Scenario) -> Vec<String> {
+    let mut names = vec![ROUTER.to_string(), MONITOR.to_string(), LEADER.to_string()];
+    names.extend(scenario.graph.ids().iter().map(|&id| agent_name(id)));
+    names
+}
+
+/// Key expression of this project: `formation/<run>/<rest>`.
+pub fn key(run: &str, rest: &str) -> String {
+    format!("formation/{run}/{rest}")
+}
+
+/// A run name that is not one chunk of a key expression.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct BadRunName(String);
+
+/// Check a run name: non-empty, only `[A-Za-z0-9_-]` (so that it is one
+/// chunk of a key expression with no wildcard or separator in it).
+pub fn validate_run_name(run: &str) -> Result<(), BadRunName> {
+    if run.is_empty() {
+        return Err(BadRunName("run name is empty (allowed: letters, digits, '_' and '-')".into()));
+    }
+    if let Some(c) = run.chars().find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '-')) {
+        return Err(BadRunName(format!(
+            "run name {run:?} contains {c:?}: only letters, digits, '_' and '-' are allowed"
+        )));
+    }
+    Ok(())
+}
+
+/// The key expressions of one run.
+#[derive(Clone, Debug)]
+pub struct Keys {
+    pub run: String,
+}
+
+impl Keys {
+    pub fn new(run: &str) -> Self {
+        Self { run: run.to_string() }
+    }
+    pub fn estimate(&self, id: u32) -> String {
+        key(&self.run, &format!("estimate/{id}"))
+    }
+    pub fn telemetry(&self, id: u32) -> String {
+        key(&self.run, &format!("telemetry/{id}"))
+    }
+    pub fn telemetry_all(&self) -> String {
+        key(&self.run, "telemetry/*")
+    }
+    pub fn hello(&self, node: &str) -> String {
+        key(&self.run, &format!("control/hello/{node}"))
+    }
+    pub fn ready(&self, node: &str) -> String {
+        key(&self.run, &format!("control/ready/{node}"))
+    }
+    pub fn ready_all(&self) -> String {
+        key(&self.run, "control/ready/*")
+    }
+    pub fn ack(&self) -> String {
+        key(&self.run, "control/ack")
+    }
+    pub fn start(&self) -> String {
+        key(&self.run, "control/start")
+    }
+    /// The leader refuses the run before its start (the reason, UTF-8).
+    pub fn abort(&self) -> String {
+        key(&self.run, "control/abort")
+    }
+}
+
+/// The last chunk of a key expression (`…/estimate/3` → `3`).
+pub fn last_chunk(key: &str) -> &str {
+    key.rsplit('/').next().unwrap_or("")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_and_run_names() {
+        assert_eq!(key("run-1", "agent/3/state"), "formation/run-1/agent/3/state");
+        for ok in ["a", "run_1", "A-b-C_9"] {
+            validate_run_name(ok).unwrap();
+        }
+        for bad in ["", "a/b", "a*", "a b", "$x", "é", "a?"] {
+            let e = validate_run_name(bad).unwrap_err().to_string();
+            assert!(e.contains("run name"), "{e}");
+        }
+    }
+}

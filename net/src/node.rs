@@ -1,0 +1,162 @@
+//! What every node shares: its command-line arguments, loading its
+//! scenario, opening its session, the quality of service of its traffic,
+//! and its one-line messages. (The shell that runs a node, with its
+//! logging, runtime and exit status, is the `formation` binary's.)
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use formation_topology::Scenario;
+
+use crate::error::Error;
+use crate::names::Keys;
+use crate::session::{self, ZenohArgs};
+
+/// What a networked run refuses of a scenario that `formation sim` runs.
+pub fn networked(scenario: &Scenario) -> Result<(), String> {
+    let d = scenario.network.delay_steps;
+    if d > 0 && scenario.timing == formation_topology::Timing::Lockstep {
+        return Err(format!(
+            "network.delay_steps = {d} applies to formation sim and real-time runs; a lock-step run uses each \
+             step's own messages (set timing = \"realtime\", or network.delay_steps = 0)"
+        ));
+    }
+    Ok(())
+}
+
+/// A real-time run without a communication delay: what it will not match.
+pub fn realtime_hint(scenario: &Scenario) -> Option<String> {
+    (scenario.timing == formation_topology::Timing::Realtime && scenario.network.delay_steps == 0).then(|| {
+        "note: real time with network.delay_steps = 0: each step uses whichever of its sources' step-k and \
+         step-(k−1) messages has arrived, which formation sim does not model; with network.delay_steps = 1 the run \
+         is the one `formation sim --set network.delay_steps=1` predicts"
+            .to_string()
+    })
+}
+
+/// Arguments every node takes.
+#[derive(clap::Args, Debug, Clone)]
+pub struct NodeArgs {
+    /// Scenario file (TOML); every node of a run must load the same one.
+    #[arg(long, value_name = "FILE")]
+    pub scenario: PathBuf,
+    /// Override a scenario value, as `formation sim --set` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+    /// Run name: the key namespace `formation/<run>/…` [default: scenario name].
+    #[arg(long, value_name = "NAME")]
+    pub run: Option<String>,
+    #[command(flatten)]
+    pub zenoh: ZenohArgs,
+    /// Give up when no router or peer answers at start-up within this long (s).
+    #[arg(long, default_value_t = 10.0, value_name = "SECONDS")]
+    pub open_timeout: f64,
+}
+
+impl NodeArgs {
+    /// Loads the scenario and resolves the run name (bad input: exit 2).
+    ///
+    /// `identity` is the node's name in its certificate (`leader`,
+    /// `monitor`, `agent-<id>`): with `--tls`, its files are checked here,
+    /// and the folder's policy must be the one this scenario's topology gives.
+    pub fn load(&self, identity: &str) -> Result<(Scenario, Keys), Error> {
+        let scenario = Scenario::load(&self.scenario, &self.overrides).map_err(|e| Error::Input(e.to_string()))?;
+        networked(&scenario).map_err(Error::Input)?;
+        let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
+        crate::names::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
+        let zenoh = self.zenoh_as(identity);
+        zenoh.to_config().map_err(|e| Error::Input(format!("zenoh options: {e}")))?;
+        if let Some(dir) = &self.zenoh.tls {
+            crate::identity::identity_for(dir, identity, &scenario).map_err(Error::Input)?;
+        }
+        Ok((scenario, Keys::new(&run)))
+    }
+
+    fn zenoh_as(&self, identity: &str) -> ZenohArgs {
+        ZenohArgs { identity: Some(identity.to_string()), ..self.zenoh.clone() }
+    }
+
+    /// Opens the session; says once after a few seconds what it is waiting
+    /// for, and gives up after `--open-timeout` naming the endpoints.
+    pub async fn open(&self, identity: &str) -> Result<zenoh::Session, Error> {
+        let zenoh = self.zenoh_as(identity);
+        let opening = session::open(&zenoh);
+        tokio::pin!(opening);
+        if !(self.open_timeout.is_finite() && self.open_timeout > 0.0) {
+            return Err(Error::Input(format!("--open-timeout must be positive, not {}", self.open_timeout)));
+        }
+        let limit = Duration::from_secs_f64(self.open_timeout);
+        let began = std::time::Instant::now();
+        let mut said = false;
+        loop {
+            let wait = Duration::from_secs(3).min(limit.saturating_sub(began.elapsed()).max(Duration::from_millis(10)));
+            match tokio::time::timeout(wait, &mut opening).await {
+                Ok(result) => return result.map_err(|e| Error::Run(e.to_string())),
+                Err(_) if began.elapsed() >= limit => {
+                    return Err(Error::Run(format!(
+                        "no zenoh router or peer answered at {} within {} s (is the router running?)",
+                        self.endpoints(),
+                        self.open_timeout
+                    )))
+                }
+                Err(_) if !said => {
+                    eprintln!("waiting for {} …", self.endpoints());
+                    said = true;
+                }
+                Err(_) => {}
+            }
+        }
+    }
+
+    fn endpoints(&self) -> String {
+        if self.zenoh.connect.is_empty() {
+            "the configured endpoints".to_string()
+        } else {
+            self.zenoh.connect.join(", ")
+        }
+    }
+}
+
+/// How an estimate publisher meets a full queue (a slow or dead peer).
+/// Real time: `Drop`, the newest wins — every step re-sends the whole state,
+/// and a control loop that must meet its period never waits on a `put`.
+/// Lock-step: `Block`, since every step's message is needed and the loop
+/// waits for its peers by design (lost start-up messages are re-sent).
+pub fn estimate_congestion(scenario: &Scenario) -> zenoh::qos::CongestionControl {
+    match scenario.timing {
+        formation_topology::Timing::Realtime => zenoh::qos::CongestionControl::Drop,
+        formation_topology::Timing::Lockstep => zenoh::qos::CongestionControl::Block,
+    }
+}
+
+/// Whether estimates skip zenoh's batching. Lock-step: yes, every step
+/// waits for them. Real time: no. An express message takes a whole batch
+/// of its priority's queue (2 by default), so a transport that is held up
+/// for a few milliseconds (a router descheduled on a busy host) drops every
+/// estimate after the second; batched, a stall of that length costs a few
+/// kilobytes of queue and nothing is dropped. Without back-pressure a
+/// batched message leaves at once.
+pub fn estimate_express(scenario: &Scenario) -> bool {
+    scenario.timing == formation_topology::Timing::Lockstep
+}
+
+/// Zenoh priorities of a run's traffic. Each priority has a queue of its own
+/// in every transport (and the router's), served highest first: estimates
+/// never wait behind telemetry, not even behind the burst a node sends
+/// again after an outage. Acknowledgements come next, telemetry last.
+pub mod priority {
+    use zenoh::qos::Priority;
+    pub const ESTIMATE: Priority = Priority::RealTime;
+    pub const ACK: Priority = Priority::InteractiveHigh;
+    pub const TELEMETRY: Priority = Priority::DataLow;
+}
+
+/// One line on stderr in a single write, so that the lines of processes
+/// sharing a terminal do not interleave mid-line.
+pub fn say(line: &str) {
+    use std::io::Write;
+    let mut l = String::with_capacity(line.len() + 1);
+    l.push_str(line);
+    l.push('\n');
+    let _ = std::io::stderr().lock().write_all(l.as_bytes());
+}

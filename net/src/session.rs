@@ -1,0 +1,466 @@
+//! Opening zenoh sessions with this project's safety settings.
+//!
+//! Every session built here has multicast scouting **off** (only loopback
+//! traffic is allowed on our machines, and zenoh's default scouting sends to
+//! 224.0.0.224:7446) and never listens on all interfaces by default. See
+//! `/work/shared/ZENOH.md` for the measurements behind the other defaults.
+//!
+//! # How a `--config` file and our settings combine
+//!
+//! 1. The file (json5/json/yaml, zenoh's own format) is loaded first.
+//! 2. `--mode`, `--listen` and `--connect` given on the command line replace
+//!    the file's `mode`, `listen/endpoints` and `connect/endpoints`.
+//! 3. `scouting/multicast/enabled = false` is forced, always, whatever the
+//!    file says.
+//! 4. These are set only where the file left them unset:
+//!    `scouting/delay = 0`, `connect/timeout_ms = -1` (wait for the peer or
+//!    router instead of failing at once), `connect/exit_on_failure = false`,
+//!    and `connect/retry/{period_init_ms: 50, period_max_ms: 50,
+//!    period_increase_factor: 2}` (per field). The retry settings are what
+//!    makes a client reconnect about 0.12 s after its link or router is
+//!    back (measured in the lab; 0.16-0.21 s with 100-200 ms, and zenoh's
+//!    default retry is 1 s ×2 up to 4 s): a follower that reconnects later
+//!    has dead-reckoned longer, and pulls its neighbours harder. And
+//!    `transport/link/tx/lease = 1000` where the file leaves zenoh's
+//!    10 000 (with zenoh's 4 keep-alives per lease): a link cut without a
+//!    FIN is noticed within about a second instead of 10 s.
+//! 5. Listen endpoints: `--listen` if given; else the file's if it set any
+//!    (anything other than zenoh's built-in default); else
+//!    `tcp/127.0.0.1:0` for a peer (a peer needs a listener of its own:
+//!    routers do not forward between peers), `tcp/127.0.0.1:7447` for a
+//!    router and nothing for a client. Zenoh's built-in default (all
+//!    interfaces, `[::]`) is never used.
+
+use std::path::PathBuf;
+
+use serde_json::Value;
+
+/// Zenoh node kind, as in zenoh's `mode` config key.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ZenohMode {
+    Peer,
+    Client,
+    Router,
+}
+
+impl ZenohMode {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ZenohMode::Peer => "peer",
+            ZenohMode::Client => "client",
+            ZenohMode::Router => "router",
+        }
+    }
+}
+
+/// Zenoh connection options shared by every binary (`#[command(flatten)]`).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ZenohArgs {
+    /// Zenoh mode [default: peer, or the config file's mode].
+    #[arg(long, value_enum)]
+    pub mode: Option<ZenohMode>,
+    /// Endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable).
+    /// Default: tcp/127.0.0.1:0 for a peer, tcp/127.0.0.1:7447 for a router.
+    #[arg(long = "listen", value_name = "ENDPOINT")]
+    pub listen: Vec<String>,
+    /// Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable).
+    #[arg(long = "connect", value_name = "ENDPOINT")]
+    pub connect: Vec<String>,
+    /// Zenoh configuration file (json5); multicast scouting is forced off
+    /// whatever it says.
+    #[arg(long = "config", value_name = "FILE.json5")]
+    pub config: Option<PathBuf>,
+    /// Mutual TLS on every link with the certificates and policy in DIR
+    /// (made by `formation certs`): endpoints become tls/…, only the folder's
+    /// authority is trusted, plain TCP is refused, and each node may publish
+    /// and receive only what its role in the topology needs.
+    #[arg(long = "tls", value_name = "DIR")]
+    pub tls: Option<PathBuf>,
+    /// Peer mode: link only to the --connect endpoints and to whoever dials
+    /// this node. By default zenoh's gossip makes every pair of peers dial
+    /// each other: N(N−1)/2 links, which 100 nodes on one host do not
+    /// survive. Off, a node hears only the peers it is linked to (peers do
+    /// not relay), so the links must cover every pair that talks.
+    #[arg(long = "no-gossip")]
+    pub no_gossip: bool,
+    /// The node's name in its certificate (`router`, `leader`, `monitor`,
+    /// `agent-<id>`): set by the node, not on the command line.
+    #[arg(skip)]
+    pub identity: Option<String>,
+}
+
+/// Link lease, ms: a link silent this long is declared dead (overridable
+/// with `transport/link/tx/lease` in a `--config` file).
+pub const LEASE_MS: u64 = 1000;
+
+/// Zenoh's own threads, unless the environment sets `ZENOH_RUNTIME`: every
+/// zenoh runtime (receive, transmit, accept, network) handed over to one
+/// application runtime of one worker. Zenoh's default (six threads, two of
+/// them receiving) spreads one message over several thread wake-ups; on a
+/// host shared by many nodes that costs CPU and, worse, late messages.
+/// Measured on the 2-core VM (release): one-hop latency of an estimate p50
+/// 20 µs against 36 µs, p99 29 µs against 65 µs; about 11 % less CPU with 50
+/// agents. Nodes that forward nothing only: see [`router_runtime`].
+pub const RUNTIME: &str = "(rx: (handover: app), acc: (handover: app), tx: (handover: app), net: (handover: app), \
+                           app: (worker_threads: 1))";
+
+/// A router's command gets [`RUNTIME`] too when the run is real time (unless
+/// `ZENOH_RUNTIME` is set). Not in lock-step: there estimates are
+/// non-droppable, and a forwarding task that waits for room in a full
+/// transmit queue would hold the one thread that empties it (50 agents in
+/// lock-step stalled at their first step that way). Real-time traffic is
+/// droppable and never waits. Measured (paper scenario, clients, 1 kHz, 10
+/// s): one-step-old estimates 54–137 with the router on one thread, 499–549
+/// with zenoh's threads.
+pub fn router_runtime(c: &mut std::process::Command, timing: formation_topology::Timing) {
+    if user_runtime() {
+        return;
+    }
+    if timing == formation_topology::Timing::Realtime {
+        c.env("ZENOH_RUNTIME", RUNTIME);
+    } else {
+        // This process may have set it for itself (bench-net).
+        c.env_remove("ZENOH_RUNTIME");
+    }
+}
+
+/// Whether the user set `ZENOH_RUNTIME` (as this process found it the first
+/// time it asked, before [`default_runtime`] sets it).
+fn user_runtime() -> bool {
+    static USER: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *USER.get_or_init(|| std::env::var_os("ZENOH_RUNTIME").is_some())
+}
+
+/// Sets [`RUNTIME`] for this process's zenoh unless `ZENOH_RUNTIME` is set.
+/// Call first thing in `main`, before any thread starts (zenoh reads the
+/// variable once, when it first needs a runtime; child processes inherit it).
+pub fn default_runtime() {
+    if !user_runtime() {
+        std::env::set_var("ZENOH_RUNTIME", RUNTIME);
+    }
+}
+
+/// Default listen endpoint of a peer: an ephemeral loopback port.
+pub const PEER_DEFAULT_LISTEN: &str = "tcp/127.0.0.1:0";
+/// Default listen endpoint of a router.
+pub const ROUTER_DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7447";
+
+/// Why a zenoh session could not be configured or opened.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    /// The options or the configuration file are wrong: bad input.
+    #[error("{0}")]
+    Config(String),
+    /// The session could not be opened (no router, a port in use, …).
+    #[error("{0}")]
+    Open(String),
+}
+
+fn zerr(what: impl std::fmt::Display, e: impl std::fmt::Display) -> SessionError {
+    SessionError::Config(format!("{what}: {e}"))
+}
+
+fn get(config: &zenoh::Config, key: &str) -> Result<Value, SessionError> {
+    let json = config.get_json(key).map_err(|e| zerr(format_args!("zenoh config key {key}"), e))?;
+    serde_json::from_str(&json).map_err(|e| zerr(format_args!("zenoh config key {key}: {json}"), e))
+}
+
+fn set(config: &mut zenoh::Config, key: &str, value: &Value) -> Result<(), SessionError> {
+    config
+        .insert_json5(key, &value.to_string())
+        .map_err(|e| zerr(format_args!("setting zenoh config {key} = {value}"), e))
+}
+
+fn set_if_unset(config: &mut zenoh::Config, key: &str, value: Value) -> Result<(), SessionError> {
+    if get(config, key)?.is_null() {
+        set(config, key, &value)?;
+    }
+    Ok(())
+}
+
+impl ZenohArgs {
+    /// The mode the session will run in (flag, else config file, else peer).
+    fn effective_mode(&self, config: &zenoh::Config) -> Result<ZenohMode, SessionError> {
+        if let Some(m) = self.mode {
+            return Ok(m);
+        }
+        Ok(match get(config, "mode")? {
+            Value::String(s) if s == "client" => ZenohMode::Client,
+            Value::String(s) if s == "router" => ZenohMode::Router,
+            _ => ZenohMode::Peer,
+        })
+    }
+
+    /// Build the zenoh configuration (see the module docs for the rules).
+    pub fn to_config(&self) -> Result<zenoh::Config, SessionError> {
+        let mut config = match &self.config {
+            Some(path) => zenoh::Config::from_file(path)
+                .map_err(|e| zerr(format_args!("reading zenoh config {}", path.display()), e))?,
+            None => zenoh::Config::default(),
+        };
+        let mode = self.effective_mode(&config)?;
+        set(&mut config, "mode", &Value::from(mode.as_str()))?;
+
+        // Multicast scouting: off, always.
+        set(&mut config, "scouting/multicast/enabled", &Value::Bool(false))?;
+        set_if_unset(&mut config, "scouting/delay", Value::from(0))?;
+        if self.no_gossip {
+            set(&mut config, "scouting/gossip/enabled", &Value::Bool(false))?;
+        }
+
+        // A dead link is noticed within about a second (zenoh's default
+        // lease is 10 s): keep-alives every 250 ms, lease 1 s.
+        // (Only where the file left zenoh's defaults, 10 000 ms and 4.)
+        if get(&config, "transport/link/tx/lease")? == 10_000 {
+            set(&mut config, "transport/link/tx/lease", &Value::from(LEASE_MS))?;
+        }
+
+        // Connect: wait for the other side and retry fast.
+        set_if_unset(&mut config, "connect/timeout_ms", Value::from(-1))?;
+        set_if_unset(&mut config, "connect/exit_on_failure", Value::Bool(false))?;
+        let mut retry = match get(&config, "connect/retry")? {
+            Value::Object(m) => m,
+            _ => Default::default(),
+        };
+        for (k, v) in [
+            ("period_init_ms", Value::from(50)),
+            ("period_max_ms", Value::from(50)),
+            ("period_increase_factor", Value::from(2.0)),
+        ] {
+            if retry.get(k).is_none_or(Value::is_null) {
+                retry.insert(k.to_string(), v);
+            }
+        }
+        set(&mut config, "connect/retry", &Value::Object(retry))?;
+
+        if !self.connect.is_empty() {
+            set(&mut config, "connect/endpoints", &Value::from(self.connect.clone()))?;
+        }
+        if let Some(dir) = &self.tls {
+            let name = self
+                .identity
+                .as_deref()
+                .ok_or_else(|| SessionError::Config(format!("--tls: this node has no name to look for")))?;
+            let id = crate::identity::identity(dir, name).map_err(|e| SessionError::Config(e))?;
+            for (key, value) in crate::identity::zenoh_tls(&id) {
+                set(&mut config, key, &value)?;
+            }
+            let connect = get(&config, "connect/endpoints")?;
+            set(&mut config, "connect/endpoints", &tls_endpoints(&connect, "connect")?)?;
+        }
+
+        // Listen: never zenoh's all-interfaces default.
+        let builtin_listen = get(&zenoh::Config::default(), "listen/endpoints")?;
+        let listen: Option<Vec<String>> = if !self.listen.is_empty() {
+            Some(self.listen.clone())
+        } else if get(&config, "listen/endpoints")? != builtin_listen {
+            None // the file chose its own listeners: keep them
+        } else {
+            Some(match mode {
+                ZenohMode::Peer => vec![PEER_DEFAULT_LISTEN.to_string()],
+                ZenohMode::Router => vec![ROUTER_DEFAULT_LISTEN.to_string()],
+                ZenohMode::Client => vec![],
+            })
+        };
+        if let Some(listen) = listen {
+            set(&mut config, "listen/endpoints", &Value::from(listen))?;
+        }
+        if self.tls.is_some() {
+            let listen = get(&config, "listen/endpoints")?;
+            set(&mut config, "listen/endpoints", &tls_endpoints(&listen, "listen")?)?;
+        }
+        Ok(config)
+    }
+}
+
+/// `--tls`: every `tcp/` endpoint of a list becomes `tls/`; any other
+/// protocol than tcp or tls is refused (it would bypass TLS).
+fn tls_endpoints(list: &Value, what: &str) -> Result<Value, SessionError> {
+    let convert = |e: &Value| -> Result<Value, SessionError> {
+        let s =
+            e.as_str().ok_or_else(|| SessionError::Config(format!("--tls: {what} endpoint {e} is not a string")))?;
+        if let Some(rest) = s.strip_prefix("tcp/") {
+            Ok(Value::from(format!("tls/{rest}")))
+        } else if s.starts_with("tls/") {
+            Ok(Value::from(s))
+        } else {
+            return Err(SessionError::Config(format!(
+                "--tls: {what} endpoint {s} is not tcp/ or tls/ (every link must be TLS)"
+            )));
+        }
+    };
+    match list {
+        Value::Array(a) => Ok(Value::Array(a.iter().map(convert).collect::<Result<_, SessionError>>()?)),
+        // Mode-dependent lists ({ router: [...], peer: [...], client: [...] }).
+        Value::Object(m) => Ok(Value::Object(
+            m.iter().map(|(k, v)| Ok((k.clone(), tls_endpoints(v, what)?))).collect::<Result<_, SessionError>>()?,
+        )),
+        Value::Null => Ok(Value::Null),
+        other => return Err(SessionError::Config(format!("--tls: {what} endpoints {other} are not a list"))),
+    }
+}
+
+/// Endpoint lists of a config for messages: `listen [...], connect [...]`.
+pub fn describe_endpoints(config: &zenoh::Config) -> String {
+    let show = |key: &str| config.get_json(key).unwrap_or_else(|e| format!("<{e}>"));
+    format!("listen {}, connect {}", show("listen/endpoints"), show("connect/endpoints"))
+}
+
+/// Open a zenoh session from the command-line arguments.
+///
+/// A client (or a peer with `--connect`) whose router is not up yet waits
+/// for it (`connect/timeout_ms = -1`): wrap the call in a timeout if that
+/// is not wanted. The wait runs on a thread of its own (zenoh's `open`
+/// holds the thread that polls it while it waits), so a timeout around
+/// this call does fire.
+pub async fn open(args: &ZenohArgs) -> Result<zenoh::Session, SessionError> {
+    use zenoh::Wait;
+    let config = args.to_config()?;
+    let mode = config.get_json("mode").unwrap_or_default();
+    let endpoints = describe_endpoints(&config);
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    std::thread::Builder::new()
+        .name("zenoh-open".into())
+        .spawn(move || {
+            let _ = tx.send(zenoh::open(config).wait());
+        })
+        .map_err(|e| SessionError::Open(format!("cannot start a thread to open the zenoh session: {e}")))?;
+    rx.await
+        .map_err(|_| SessionError::Open(format!("opening the zenoh session stopped without an answer")))?
+        .map_err(|e| SessionError::Open(format!("cannot open zenoh session (mode {mode}, {endpoints}): {e}")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    fn json(config: &zenoh::Config, key: &str) -> Value {
+        get(config, key).unwrap()
+    }
+
+    fn file(contents: &str) -> tempfile::NamedTempFile {
+        let mut f = tempfile::Builder::new().suffix(".json5").tempfile().unwrap();
+        f.write_all(contents.as_bytes()).unwrap();
+        f
+    }
+
+    #[test]
+    fn defaults_are_safe() {
+        let c = ZenohArgs::default().to_config().unwrap();
+        assert_eq!(json(&c, "mode"), "peer");
+        assert_eq!(json(&c, "scouting/multicast/enabled"), false);
+        assert_eq!(json(&c, "scouting/delay"), 0);
+        assert_eq!(json(&c, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:0"]));
+        assert_eq!(json(&c, "connect/timeout_ms"), -1);
+        assert_eq!(json(&c, "connect/exit_on_failure"), false);
+        let retry = json(&c, "connect/retry");
+        assert_eq!(retry["period_init_ms"], 50);
+        assert_eq!(retry["period_max_ms"], 50);
+        assert_eq!(retry["period_increase_factor"], 2.0);
+        assert_eq!(json(&c, "transport/link/tx/lease"), 1000);
+        assert_eq!(json(&c, "transport/link/tx/keep_alive"), 4);
+    }
+
+    #[test]
+    fn modes_and_endpoints() {
+        let client = ZenohArgs {
+            mode: Some(ZenohMode::Client),
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            ..Default::default()
+        }
+        .to_config()
+        .unwrap();
+        assert_eq!(json(&client, "mode"), "client");
+        assert_eq!(json(&client, "listen/endpoints"), serde_json::json!([]));
+        assert_eq!(json(&client, "connect/endpoints"), serde_json::json!(["tcp/127.0.0.1:7447"]));
+        let router = ZenohArgs { mode: Some(ZenohMode::Router), ..Default::default() }.to_config().unwrap();
+        assert_eq!(json(&router, "listen/endpoints"), serde_json::json!([ROUTER_DEFAULT_LISTEN]));
+        let peer = ZenohArgs {
+            listen: vec!["tcp/127.0.0.1:17000".into(), "tcp/127.0.0.1:17001".into()],
+            ..Default::default()
+        }
+        .to_config()
+        .unwrap();
+        assert_eq!(json(&peer, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:17000", "tcp/127.0.0.1:17001"]));
+        assert!(ZenohArgs { listen: vec!["nonsense".into()], ..Default::default() }.to_config().is_err());
+    }
+
+    #[test]
+    fn multicast_forced_off_but_file_settings_kept() {
+        let f = file(
+            r#"{ mode: "client",
+                 scouting: { delay: 300, multicast: { enabled: true } },
+                 connect: { endpoints: ["tcp/127.0.0.1:7999"], timeout_ms: 2000,
+                            retry: { period_init_ms: 20 } },
+                 listen: { endpoints: ["tcp/127.0.0.1:7998"] } }"#,
+        );
+        let args = ZenohArgs { config: Some(f.path().into()), ..Default::default() };
+        let c = args.to_config().unwrap();
+        assert_eq!(json(&c, "scouting/multicast/enabled"), false);
+        assert_eq!(json(&c, "mode"), "client");
+        assert_eq!(json(&c, "scouting/delay"), 300);
+        assert_eq!(json(&c, "connect/timeout_ms"), 2000);
+        assert_eq!(json(&c, "connect/exit_on_failure"), false);
+        let retry = json(&c, "connect/retry");
+        assert_eq!(retry["period_init_ms"], 20);
+        assert_eq!(retry["period_max_ms"], 50);
+        assert_eq!(json(&c, "connect/endpoints"), serde_json::json!(["tcp/127.0.0.1:7999"]));
+        assert_eq!(json(&c, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:7998"]));
+
+        // Command-line flags win over the file.
+        let args = ZenohArgs {
+            mode: Some(ZenohMode::Peer),
+            connect: vec!["tcp/127.0.0.1:7001".into()],
+            listen: vec!["tcp/127.0.0.1:7002".into()],
+            config: Some(f.path().into()),
+            ..Default::default()
+        };
+        let c = args.to_config().unwrap();
+        assert_eq!(json(&c, "mode"), "peer");
+        assert_eq!(json(&c, "scouting/multicast/enabled"), false);
+        assert_eq!(json(&c, "connect/endpoints"), serde_json::json!(["tcp/127.0.0.1:7001"]));
+        assert_eq!(json(&c, "listen/endpoints"), serde_json::json!(["tcp/127.0.0.1:7002"]));
+    }
+
+    #[test]
+    fn file_without_listen_gets_loopback() {
+        let f = file(r#"{ scouting: { multicast: { enabled: true } } }"#);
+        let c = ZenohArgs { config: Some(f.path().into()), ..Default::default() }.to_config().unwrap();
+        assert_eq!(json(&c, "mode"), "peer");
+        assert_eq!(json(&c, "scouting/multicast/enabled"), false);
+        assert_eq!(json(&c, "scouting/delay"), 0);
+        assert_eq!(json(&c, "listen/endpoints"), serde_json::json!([PEER_DEFAULT_LISTEN]));
+    }
+
+    #[test]
+    fn missing_config_file_is_an_error() {
+        let args = ZenohArgs { config: Some("/nonexistent/zenoh.json5".into()), ..Default::default() };
+        let e = args.to_config().unwrap_err().to_string();
+        assert!(e.contains("/nonexistent/zenoh.json5"), "{e}");
+    }
+
+    #[test]
+    fn clap_parses_repeatable_flags() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            zenoh: ZenohArgs,
+        }
+        let cli = Cli::parse_from([
+            "x",
+            "--mode",
+            "client",
+            "--connect",
+            "tcp/127.0.0.1:1",
+            "--connect",
+            "tcp/127.0.0.1:2",
+            "--listen",
+            "tcp/127.0.0.1:3",
+        ]);
+        assert_eq!(cli.zenoh.mode, Some(ZenohMode::Client));
+        assert_eq!(cli.zenoh.connect.len(), 2);
+        assert_eq!(cli.zenoh.listen, vec!["tcp/127.0.0.1:3"]);
+    }
+}

@@ -1,0 +1,224 @@
+//! The run folder on disk: a CSV per follower, `leader.csv`,
+//! `summary.json` (and `run.mcap`), written under `<dir>.partial` and moved
+//! into place when complete.
+
+use std::fs::{self, File, OpenOptions};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use formation_agent::LeaderState;
+
+use crate::row::{Row, FOLLOWER_HEADER, LEADER_HEADER};
+use crate::summary::Summary;
+
+/// Where and how densely a run folder is written.
+#[derive(Clone, Debug)]
+pub struct RecordOptions {
+    pub dir: PathBuf,
+    /// Write every N-th sample to the CSVs (metrics use every sample).
+    pub every: u64,
+    /// Write CSVs at all.
+    pub csv: bool,
+    /// Also write run.mcap from the CSVs ([`crate::mcap`]).
+    pub mcap: bool,
+}
+
+/// Writes a run folder. Rows are buffered per follower and appended to the
+/// follower's CSV when the buffer fills, so any number of followers works
+/// with a bounded number of open files and bounded memory. The folder is
+/// built under `<dir>.partial` and renamed into place by [`RunWriter::finish`].
+pub struct RunWriter {
+    final_dir: PathBuf,
+    dir: PathBuf,
+    every: u64,
+    csv: bool,
+    mcap: bool,
+    ids: Vec<u32>,
+    buffers: Vec<Vec<u8>>,
+    leader_buffer: Vec<u8>,
+    flush_at: usize,
+}
+
+impl RunWriter {
+    pub fn create(opts: &RecordOptions, ids: &[u32]) -> std::io::Result<Self> {
+        refuse_foreign_folder(&opts.dir)?;
+        let mut partial = opts.dir.clone().into_os_string();
+        partial.push(".partial");
+        let dir = PathBuf::from(partial);
+        if dir.exists() {
+            fs::remove_dir_all(&dir).map_err(at_path(&dir, "cannot remove the old folder"))?;
+        }
+        fs::create_dir_all(&dir).map_err(at_path(&dir, "cannot create the folder"))?;
+        let flush_at = (64 << 20) / ids.len().max(1);
+        let flush_at = flush_at.clamp(4 << 10, 1 << 20);
+        let mut w = Self {
+            final_dir: opts.dir.clone(),
+            dir,
+            every: opts.every.max(1),
+            csv: opts.csv,
+            mcap: opts.mcap,
+            ids: ids.to_vec(),
+            buffers: vec![FOLLOWER_HEADER.as_bytes().to_vec(); ids.len()],
+            leader_buffer: LEADER_HEADER.as_bytes().to_vec(),
+            flush_at,
+        };
+        if w.csv {
+            for i in 0..ids.len() {
+                let path = w.follower_path(i);
+                File::create(&path).map_err(at_path(&path, "cannot create"))?;
+            }
+            let path = w.dir.join("leader.csv");
+            File::create(&path).map_err(at_path(&path, "cannot create"))?;
+        }
+        w.flush_all()?;
+        Ok(w)
+    }
+
+    fn follower_path(&self, index: usize) -> PathBuf {
+        self.dir.join(format!("follower_{}.csv", self.ids[index]))
+    }
+
+    /// Whether sample k goes into the CSVs.
+    pub fn wants(&self, k: u64, last: bool) -> bool {
+        self.csv && (k % self.every == 0 || last)
+    }
+
+    pub fn follower_row(&mut self, index: usize, r: &Row) -> std::io::Result<()> {
+        let b = &mut self.buffers[index];
+        let fields = [
+            r.t,
+            r.x,
+            r.y,
+            r.theta,
+            r.v,
+            r.w,
+            r.v_hat,
+            r.w_hat,
+            r.x_ir,
+            r.y_ir,
+            r.theta_ir,
+            r.v_ir,
+            r.w_ir,
+            r.v_c,
+            r.w_c,
+            r.tau_l,
+            r.tau_r,
+            r.formation_error,
+            r.heading_error,
+            r.estimator_error,
+            r.estimator_v_error,
+            r.estimator_w_error,
+        ];
+        write_fields(b, &fields);
+        if b.len() >= self.flush_at {
+            let path = self.follower_path(index);
+            append(&path, &mut self.buffers[index])?;
+        }
+        Ok(())
+    }
+
+    pub fn leader_row(&mut self, t: f64, l: &LeaderState) -> std::io::Result<()> {
+        write_fields(&mut self.leader_buffer, &[t, l.pose.x, l.pose.y, l.pose.theta, l.v, l.w]);
+        if self.leader_buffer.len() >= self.flush_at {
+            append(&self.dir.join("leader.csv"), &mut self.leader_buffer)?;
+        }
+        Ok(())
+    }
+
+    fn flush_all(&mut self) -> std::io::Result<()> {
+        if !self.csv {
+            return Ok(());
+        }
+        for i in 0..self.ids.len() {
+            let path = self.follower_path(i);
+            append(&path, &mut self.buffers[i])?;
+        }
+        append(&self.dir.join("leader.csv"), &mut self.leader_buffer)
+    }
+
+    /// Writes an extra file into the run folder.
+    pub fn write_file(&self, name: &str, contents: &str) -> std::io::Result<()> {
+        let path = self.dir.join(name);
+        fs::write(&path, contents).map_err(at_path(&path, "cannot write"))
+    }
+
+    /// Flushes the CSVs and writes what has been recorded so far, without
+    /// finishing (for a partial run that stops with an error).
+    pub fn flush(&mut self) -> std::io::Result<()> {
+        self.flush_all()
+    }
+
+    /// Flushes everything, writes `summary.json` and moves the folder into place.
+    pub fn finish(mut self, summary: &Summary) -> std::io::Result<PathBuf> {
+        self.flush_all()?;
+        self.write_file("summary.json", &summary.to_json())?;
+        if self.csv && self.mcap {
+            crate::mcap::write(&self.dir, &self.ids)?;
+        }
+        refuse_foreign_folder(&self.final_dir)?;
+        if self.final_dir.exists() {
+            fs::remove_dir_all(&self.final_dir).map_err(at_path(&self.final_dir, "cannot replace the old run"))?;
+        }
+        let what = format!("cannot move {} here", self.dir.display());
+        fs::rename(&self.dir, &self.final_dir).map_err(at_path(&self.final_dir, &what))?;
+        Ok(self.final_dir.clone())
+    }
+
+    /// Removes the `<dir>.partial` folder: nothing of it is worth keeping.
+    pub fn discard(self) {
+        let _ = fs::remove_dir_all(&self.dir);
+    }
+
+    /// The folder being written (`<dir>.partial` until finished).
+    pub fn partial_dir(&self) -> &Path {
+        &self.dir
+    }
+}
+
+/// A run folder is replaced by a new run only if it is one: empty, or
+/// holding a `summary.json` or `network.json`. Anything else (`--out .`,
+/// `--out ~`, a folder of the user's, a file) is refused rather than deleted.
+pub fn refuse_foreign_folder(dir: &Path) -> std::io::Result<()> {
+    if fs::metadata(dir).is_ok_and(|m| !m.is_dir()) {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::AlreadyExists,
+            format!("{} exists and is not a folder: refusing to replace it", dir.display()),
+        ));
+    }
+    let Ok(mut entries) = fs::read_dir(dir) else { return Ok(()) };
+    let is_run = dir.join("summary.json").is_file() || dir.join("network.json").is_file();
+    if is_run || entries.next().is_none() {
+        return Ok(());
+    }
+    Err(std::io::Error::new(
+        std::io::ErrorKind::AlreadyExists,
+        format!("{} exists and is not a run folder (no summary.json): refusing to replace it", dir.display()),
+    ))
+}
+
+fn write_fields(b: &mut Vec<u8>, fields: &[f64]) {
+    let mut buf = ryu::Buffer::new();
+    for (i, f) in fields.iter().enumerate() {
+        if i > 0 {
+            b.push(b',');
+        }
+        b.extend_from_slice(buf.format(*f).as_bytes());
+    }
+    b.push(b'\n');
+}
+
+fn append(path: &Path, buffer: &mut Vec<u8>) -> std::io::Result<()> {
+    if buffer.is_empty() {
+        return Ok(());
+    }
+    let mut f = OpenOptions::new().append(true).create(true).open(path).map_err(at_path(path, "cannot open"))?;
+    f.write_all(buffer).map_err(at_path(path, "cannot write"))?;
+    buffer.clear();
+    Ok(())
+}
+
+/// An IO error that names the path it is about (the OS message alone does
+/// not: "File name too long (os error 36)"), of the same kind.
+pub fn at_path<'a>(path: &'a Path, what: &'a str) -> impl FnOnce(std::io::Error) -> std::io::Error + 'a {
+    move |e| std::io::Error::new(e.kind(), format!("{}: {what}: {e}", path.display()))
+}

@@ -1,0 +1,193 @@
+//! `summary.json`: a run's settings and every follower's metrics, and
+//! what an incomplete run is missing.
+
+use std::collections::BTreeMap;
+
+use formation_topology::Scenario;
+use serde::{Deserialize, Serialize};
+
+use crate::metrics::FollowerMetrics;
+use crate::outage::{self, FaultSummary, OutageMetrics};
+
+/// `summary.json`: the run's settings and every follower's metrics, keyed by id.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    pub scenario: String,
+    pub seed: u64,
+    pub dt: f64,
+    pub duration: f64,
+    pub steps: u64,
+    pub noise: bool,
+    pub kinematic: String,
+    pub dynamic: String,
+    pub filter: String,
+    pub estimate_init: String,
+    pub fault_time: Option<f64>,
+    pub lambda_min_h: Option<f64>,
+    /// Every follower recorded all steps + 1 samples (t = 0 to T, docs/model.md §9).
+    /// Written only when false (`"complete": false` with `incomplete`), so a
+    /// complete run's summary.json is what it was before the key existed;
+    /// [`Summary::mark_unreached`] recomputes it on load.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub complete: bool,
+    /// The followers that recorded fewer samples, by id (absent when complete).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub incomplete: BTreeMap<u32, Shortfall>,
+    pub followers: BTreeMap<u32, FollowerMetrics>,
+    /// `network.rejoin`, when the scenario has link faults.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rejoin: Option<String>,
+    /// docs/model.md §14's metrics under faults, per fault window and follower.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub faults: Vec<FaultSummary>,
+}
+
+/// How many samples a follower of an incomplete run recorded, of how many.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Shortfall {
+    pub recorded: u64,
+    /// steps + 1.
+    pub expected: u64,
+    /// Of the missing ones, steps missing between recorded ones.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub in_gaps: u64,
+}
+
+impl Shortfall {
+    /// "follower 3 recorded 8150 of 20001 samples (to t = 8.149 s of T = 20 s)".
+    pub fn describe(&self, id: u32, dt_s: f64, duration_s: f64) -> String {
+        let reached = match self.recorded {
+            0 => String::new(),
+            // To the microsecond: 1499 × 0.001 prints as 1.499, not 1.4990000000000001.
+            n => format!(" (to t = {} s of T = {duration_s} s)", ((n - 1) as f64 * dt_s * 1e6).round() / 1e6),
+        };
+        if self.in_gaps > 0 && self.recorded + self.in_gaps == self.expected {
+            return format!(
+                "follower {id} recorded {} of {} samples ({} missing in gaps: an agent that was down or telemetry \
+                 lost for good; network.json lists them)",
+                self.recorded, self.expected, self.in_gaps
+            );
+        }
+        format!("follower {id} recorded {} of {} samples{reached}", self.recorded, self.expected)
+    }
+}
+
+impl Summary {
+    pub fn new(s: &Scenario, followers: BTreeMap<u32, FollowerMetrics>) -> Self {
+        let mut summary = Self {
+            scenario: s.name.clone(),
+            seed: s.seed,
+            dt: s.dt_s,
+            duration: s.duration_s,
+            steps: s.steps(),
+            noise: s.noise,
+            kinematic: name(&s.control.kinematic),
+            dynamic: name(&s.control.dynamic),
+            filter: name(&s.control.filter.kind),
+            estimate_init: name(&s.estimate_init),
+            fault_time: s.control.fault.map(|f| f.time_s),
+            lambda_min_h: s.graph.lambda_min_h(),
+            complete: true,
+            incomplete: BTreeMap::new(),
+            followers,
+            rejoin: (!s.faults.is_empty()).then(|| name(&s.control.rejoin.policy)),
+            faults: Vec::new(),
+        };
+        summary.mark_unreached();
+        summary
+    }
+
+    /// Marks what the recorded samples do not cover: `complete`,
+    /// `incomplete`, and null metrics whose window was not reached (older
+    /// `summary.json` files wrote 0 for them). Idempotent.
+    pub fn mark_unreached(&mut self) {
+        let expected = self.steps + 1;
+        for m in self.followers.values_mut() {
+            m.null_unreached(self.steps, self.dt);
+        }
+        self.incomplete = self
+            .followers
+            .iter()
+            .filter(|(_, m)| m.samples < expected)
+            .map(|(&id, m)| (id, Shortfall { recorded: m.samples, expected, in_gaps: m.gap_steps }))
+            .collect();
+        self.complete = self.incomplete.is_empty();
+    }
+
+    /// What the run is missing, a clause for each of the first three short
+    /// followers (`incomplete` lists them all); `None` when complete.
+    pub fn shortfall_text(&self) -> Option<String> {
+        let mut parts: Vec<String> =
+            self.incomplete.iter().take(3).map(|(&id, s)| s.describe(id, self.dt, self.duration)).collect();
+        if self.incomplete.len() > 3 {
+            parts.push(format!("and {} more followers", self.incomplete.len() - 3));
+        }
+        (!parts.is_empty()).then(|| parts.join("; "))
+    }
+
+    /// Adds the metrics under faults (by follower id, one per fault window).
+    pub fn with_outages(mut self, s: &Scenario, per_follower: &BTreeMap<u32, Vec<OutageMetrics>>) -> Self {
+        self.faults = FaultSummary::all(s, per_follower);
+        self
+    }
+
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).unwrap_or_default() + "\n"
+    }
+
+    /// A compact, aligned table of the metrics ("—": window not reached),
+    /// and a line saying so when the run is incomplete.
+    pub fn table(&self) -> String {
+        let mut out = format!(
+            "{:>8} {:>11} {:>10} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9} {:>9}\n",
+            "follower",
+            "form_rms10",
+            "form_fin",
+            "head_fin",
+            "est_fin",
+            "vc_peak",
+            "torque_tv",
+            "tau_peak",
+            "rmse_v",
+            "rmse_w"
+        );
+        let c = |x: Option<f64>, f: fn(f64) -> String| x.map_or_else(|| "—".to_string(), f);
+        for (id, m) in &self.followers {
+            out += &format!(
+                "{:>8} {:>11} {:>10} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9} {:>9}\n",
+                id,
+                c(m.formation_rms_last10, |x| format!("{x:.4}")),
+                c(m.formation_final, |x| format!("{x:.4}")),
+                c(m.heading_final, |x| format!("{x:.4}")),
+                c(m.estimator_error_final, |x| format!("{x:.2e}")),
+                c(m.vc_peak, |x| format!("{x:.3}")),
+                c(m.torque_tv, |x| format!("{x:.3}")),
+                c(m.torque_peak, |x| format!("{x:.3}")),
+                c(m.rmse_v, |x| format!("{x:.2e}")),
+                c(m.rmse_w, |x| format!("{x:.2e}"))
+            );
+        }
+        if let Some(short) = self.shortfall_text() {
+            out += &format!("incomplete run: {short}; — marks a metric whose window was not reached\n");
+        }
+        out += &outage::table(&self.faults);
+        out
+    }
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
+}
+
+/// The name of an enum choice as scenario files write it (`super-twisting`).
+pub fn name<T: Serialize>(v: &T) -> String {
+    serde_json::to_value(v).ok().and_then(|v| v.as_str().map(str::to_string)).unwrap_or_default()
+}

@@ -1,0 +1,508 @@
+//! The in-process simulator: the leader, every follower's brain and robot,
+//! stepped in lock-step in docs/model.md §9's order. Deterministic: the same scenario
+//! gives the same numbers, bit for bit.
+
+use formation_agent::{Follower, Hearing, LeaderState, LinkLoss, Message};
+use formation_leader::Leader;
+use formation_plant::{NoiseSource, Pose, Robot, Velocity};
+use formation_topology::Scenario;
+
+use formation_record::{FollowerMetrics, FollowerSample, MetricsAccumulator, OutageMetrics, Row};
+
+/// A run stopped because a state stopped being finite.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("follower {follower}: {quantity} is not finite at step {step} (t = {t_s} s); the run diverged")]
+pub struct Diverged {
+    pub follower: u32,
+    pub step: u64,
+    pub t_s: f64,
+    pub quantity: &'static str,
+}
+
+/// One follower as the simulator holds it: the brain and its own robot and
+/// noise generator.
+pub struct SimFollower {
+    pub brain: Follower,
+    pub robot: Robot,
+    pub noise: NoiseSource,
+    /// z(k), the velocity measurement the brain folds in at step k.
+    pub measurement: Velocity,
+    pub metrics: MetricsAccumulator,
+}
+
+impl SimFollower {
+    /// The follower at `index` of the scenario, at step 0. Its noise stream
+    /// is seeded from (scenario seed, follower id), as in its own process.
+    pub fn new(scenario: &Scenario, index: usize) -> Self {
+        let spec = &scenario.followers[index];
+        let brain = Follower::new(scenario.follower_config(index), scenario.initial_estimate(), spec.velocity);
+        let robot = Robot::new(scenario.robot, scenario.disturbance, spec.pose, spec.velocity);
+        Self {
+            brain,
+            robot,
+            noise: NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id),
+            // z(0) = ξ(0): the filter starts from ξ(0) and only `none` reads z(0).
+            measurement: spec.velocity,
+            metrics: MetricsAccumulator::for_scenario(scenario),
+        }
+    }
+
+    /// A restarted agent's follower (docs/model.md §14): at step `k`, its robot
+    /// stopped (v = ω = 0) at `pose`, a fresh brain that adopts its estimate
+    /// from the first source it hears.
+    pub fn resume(&mut self, k: u64, pose: Pose) {
+        self.brain.resume_at(k);
+        self.robot.pose = pose;
+        self.robot.velocity = Velocity::default();
+        self.measurement = Velocity::default();
+    }
+
+    /// One step of brain and robot with the leader's state (if heard) and the
+    /// neighbours' messages; returns the sample of step k. The robot advances
+    /// unless `last` (the final sample only computes outputs).
+    pub fn step<'a, I>(
+        &mut self,
+        t_s: f64,
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: I,
+        last: bool,
+    ) -> (FollowerSample, Message)
+    where
+        I: IntoIterator<Item = &'a Message>,
+        I::IntoIter: Clone,
+    {
+        self.step_disturbed(self.robot.disturbance.at(t_s), dt_s, leader, neighbours, last)
+    }
+
+    /// [`SimFollower::step`] with the robot's disturbance at t_k given (the
+    /// simulator computes it once per step for every robot): the same numbers.
+    pub fn step_disturbed<'a, I>(
+        &mut self,
+        disturbance: (f64, f64),
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: I,
+        last: bool,
+    ) -> (FollowerSample, Message)
+    where
+        I: IntoIterator<Item = &'a Message>,
+        I::IntoIter: Clone,
+    {
+        // sin/cos of θ(k), for the brain's body-frame error and the robot's move.
+        let heading = self.robot.pose.theta.sin_cos();
+        let out = self.brain.step_with_heading(&self.robot.pose, heading, self.measurement, leader, neighbours);
+        let sample = FollowerSample::new(&out, self.robot.pose, self.robot.velocity);
+        if !last {
+            let draw = self.noise.draw();
+            self.measurement = self.robot.advance_with(out.torque, heading, disturbance, dt_s, draw);
+        }
+        (sample, out.next_message)
+    }
+
+    /// The first non-finite quantity of brain or robot.
+    pub fn check_finite(&self) -> Result<(), &'static str> {
+        self.brain.check_finite().map_err(|e| e.0)?;
+        if !self.robot.pose.is_finite() {
+            return Err("robot pose");
+        }
+        if !self.robot.velocity.is_finite() {
+            return Err("robot velocity");
+        }
+        Ok(())
+    }
+}
+
+/// docs/model.md §14 on the receiving side of one follower: the fault table's loss
+/// decisions for each incoming link and what it holds from each source.
+/// Slots are the neighbours in ascending id, then the leader if heard.
+pub struct Reception {
+    pub links: Vec<LinkLoss>,
+    pub hearing: Hearing,
+}
+
+impl Reception {
+    /// The follower at `index`'s reception, or `None` when no fault of the
+    /// table touches its incoming links (then it hears every step-k message).
+    pub fn new(scenario: &Scenario, index: usize) -> Option<Self> {
+        let id = scenario.graph.id(index);
+        let links: Vec<LinkLoss> = scenario.sources_of(index).iter().map(|&src| scenario.link_loss(src, id)).collect();
+        if links.iter().all(LinkLoss::is_empty) {
+            return None;
+        }
+        let hearing = Hearing::new(links.len(), scenario.silence_steps());
+        Some(Self { links, hearing })
+    }
+
+    /// Step k's message of `slot` was sent: delivered unless the table removes it.
+    pub fn offer(&mut self, slot: usize, k: u64, msg: &Message) {
+        if !self.links[slot].lost(k) {
+            self.hearing.deliver(slot, k, *msg);
+        }
+    }
+}
+
+/// Receives every sample of a run (recording, plotting, …).
+pub trait Observer {
+    fn leader(&mut self, _k: u64, _state: &LeaderState) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn follower(&mut self, _index: usize, _k: u64, _row: &Row, _last: bool) -> std::io::Result<()> {
+        Ok(())
+    }
+    /// Whether [`Observer::follower`] does anything: when not, the
+    /// simulator builds no rows (metrics only).
+    fn wants_rows(&self) -> bool {
+        true
+    }
+}
+
+/// Observes nothing (benchmarks, metrics only).
+pub struct NoRecord;
+impl Observer for NoRecord {
+    fn wants_rows(&self) -> bool {
+        false
+    }
+}
+
+/// Why a simulation stopped early.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error(transparent)]
+    Diverged(#[from] Diverged),
+    #[error("writing the run folder: {0}")]
+    Io(#[from] std::io::Error),
+    /// The run stopped early; what it recorded is kept, with the summary
+    /// of an incomplete run.
+    #[error("{source} (samples so far and their summary.json kept in {})", kept.display())]
+    Kept { source: Box<SimError>, kept: std::path::PathBuf },
+    /// rayon could not start the threads asked for.
+    #[error("starting {threads} threads: {what}")]
+    Threads { threads: usize, what: String },
+}
+
+/// The whole formation in one process.
+pub struct Simulation<'s> {
+    scenario: &'s Scenario,
+    leader: Leader,
+    followers: Vec<SimFollower>,
+    /// Every follower's message for the current step, by index.
+    messages: Vec<Message>,
+    next_messages: Vec<Message>,
+    /// With `network.delay_steps` d > 0: the messages and the leader's
+    /// state of the last d + 1 steps, step j at j mod (d + 1).
+    past: Vec<(Vec<Message>, LeaderState)>,
+    /// Per follower, `Some` where the fault table touches its incoming links.
+    receptions: Vec<Option<Box<Reception>>>,
+    /// The samples of the current step, by index: the parallel step's
+    /// output for an observer that wants rows (empty until then).
+    samples: Vec<FollowerSample>,
+    /// Step the followers of a step on rayon's threads (see [`Simulation::set_parallel`]).
+    parallel: bool,
+    k: u64,
+}
+
+/// Followers a thread of the parallel step takes at a time.
+const CHUNK: usize = 64;
+
+/// How many followers ahead a step asks the cache for.
+const AHEAD: usize = 2;
+
+/// Slots of [`Simulation::past`]: d + 1 with a delay of d steps, else none.
+fn delay_slots(s: &Scenario) -> usize {
+    match s.network.delay_steps {
+        0 => 0,
+        d => d as usize + 1,
+    }
+}
+
+/// What every follower's step k reads: the scenario, the inputs (step k's
+/// messages and leader state, or with a delay those sent at `sent_k`), Δt,
+/// whether k is the last step, and the robots' disturbance at t_k.
+struct StepInputs<'a> {
+    s: &'a Scenario,
+    messages: &'a [Message],
+    leader: &'a LeaderState,
+    sent_k: u64,
+    dt: f64,
+    last: bool,
+    disturbance: (f64, f64),
+}
+
+/// Follower `i`'s step k: its inputs (through its reception when the fault
+/// table touches it), brain and robot; its sample and its next message.
+fn step_follower(
+    x: &StepInputs,
+    i: usize,
+    f: &mut SimFollower,
+    rx: &mut Option<Box<Reception>>,
+) -> (FollowerSample, Message) {
+    let (s, messages, leader, sent_k) = (x.s, x.messages, x.leader, x.sent_k);
+    match rx {
+        None => {
+            let heard = s.graph.hears_leader(i).then_some(leader);
+            let neighbours = s.graph.neighbours(i).iter().map(|&j| &messages[j]);
+            f.step_disturbed(x.disturbance, x.dt, heard, neighbours, x.last)
+        }
+        Some(rx) => {
+            // docs/model.md §14: deliver what the table lets through, then
+            // hear each source's newest message within the timeout.
+            let ns = s.graph.neighbours(i);
+            // (`sent_k`: the step the inputs were sent at, k − delay.)
+            for (slot, &j) in ns.iter().enumerate() {
+                rx.offer(slot, sent_k, &messages[j]);
+            }
+            let heard = if s.graph.hears_leader(i) {
+                rx.offer(ns.len(), sent_k, &Message::fresh(*leader));
+                rx.hearing.heard(ns.len(), sent_k).map(|m| &m.state)
+            } else {
+                None
+            };
+            let hearing = &rx.hearing;
+            let neighbours = (0..ns.len()).filter_map(|slot| hearing.heard(slot, sent_k));
+            f.step_disturbed(x.disturbance, x.dt, heard, neighbours, x.last)
+        }
+    }
+}
+
+/// After follower `i`'s step k: its metrics against the true leader state
+/// at k, the observer's row (when it wants rows) and its finiteness.
+#[allow(clippy::too_many_arguments)]
+fn account(
+    s: &Scenario,
+    i: usize,
+    f: &mut SimFollower,
+    sample: &FollowerSample,
+    leader: &LeaderState,
+    k: u64,
+    last: bool,
+    observer: &mut impl Observer,
+) -> Result<(), SimError> {
+    // (The brain's copy of the scenario's offset: already in cache.)
+    let offset = f.brain.config.offset;
+    if observer.wants_rows() {
+        let row = Row::new(sample, leader, offset, s.dt_s);
+        f.metrics.push(k, &row);
+        observer.follower(i, k, &row, last)?;
+    } else {
+        f.metrics.push_sample(k, sample, leader, offset, s.dt_s);
+    }
+    f.check_finite().map_err(|quantity| diverged(s, i, k, quantity))?;
+    Ok(())
+}
+
+/// Asks the cache for the lines of follower `i`, `f`, and of its
+/// neighbours' messages a few followers ahead of its step: large
+/// formations stream their followers from memory, and a chord's message
+/// is anywhere in `messages`. (Only a hint: no effect on any number.)
+#[inline(always)]
+fn prefetch(x: &StepInputs, i: usize, f: Option<&SimFollower>) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(f) = f {
+        fn line<T>(p: *const T, offset: usize) {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            // SAFETY: SSE is part of x86_64; a prefetch reads nothing and
+            // cannot fault, whatever the address.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast::<i8>().wrapping_add(offset)) };
+        }
+        for offset in (0..std::mem::size_of::<SimFollower>()).step_by(64) {
+            line(f, offset);
+        }
+        for &j in x.s.graph.neighbours(i) {
+            if let Some(m) = x.messages.get(j) {
+                line(m, 0);
+                line(m, std::mem::size_of::<Message>() - 1);
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (x, i, f);
+}
+
+fn diverged(s: &Scenario, i: usize, k: u64, quantity: &'static str) -> SimError {
+    Diverged { follower: s.followers[i].id, step: k, t_s: k as f64 * s.dt_s, quantity }.into()
+}
+
+impl<'s> Simulation<'s> {
+    pub fn new(scenario: &'s Scenario) -> Self {
+        let followers: Vec<SimFollower> =
+            (0..scenario.followers.len()).map(|i| SimFollower::new(scenario, i)).collect();
+        let messages: Vec<Message> = followers.iter().map(|f| f.brain.tagged_message()).collect();
+        let receptions = (0..followers.len()).map(|i| Reception::new(scenario, i).map(Box::new)).collect();
+        Self {
+            scenario,
+            leader: scenario.leader(),
+            next_messages: messages.clone(),
+            past: vec![(messages.clone(), LeaderState::default()); delay_slots(scenario)],
+            messages,
+            followers,
+            receptions,
+            samples: Vec::new(),
+            parallel: false,
+            k: 0,
+        }
+    }
+
+    /// Steps the followers of each step on rayon's threads (the current
+    /// pool: `ThreadPool::install` chooses how many). The followers of a step
+    /// are independent once the step's messages are known, and each one's
+    /// arithmetic is the same, so the results are bit for bit the
+    /// single-thread run's; samples still reach the observer in index order.
+    /// (The parallel step allocates in rayon's scheduler; the sequential one
+    /// allocates nothing.)
+    pub fn set_parallel(&mut self, on: bool) {
+        self.parallel = on;
+    }
+
+    /// Bytes of the simulator's state per follower: every follower (brain,
+    /// robot, noise generator, metrics and the heap they own), its current
+    /// and next message and those of the delay line, its reception with its
+    /// heap, and the parallel step's sample once allocated; over the
+    /// follower count. (The scenario and its graph, read-only, are not counted.)
+    pub fn bytes_per_follower(&self) -> usize {
+        use std::mem::size_of;
+        let message = size_of::<Message>();
+        let mut bytes = self.followers.capacity() * size_of::<SimFollower>()
+            + self.followers.iter().map(|f| f.metrics.heap_bytes()).sum::<usize>()
+            + (self.messages.capacity() + self.next_messages.capacity()) * message
+            + self.past.iter().map(|(m, _)| m.capacity() * message).sum::<usize>()
+            + self.receptions.capacity() * size_of::<Option<Box<Reception>>>()
+            + self.samples.capacity() * size_of::<FollowerSample>();
+        for rx in self.receptions.iter().flatten() {
+            bytes += size_of::<Reception>()
+                + rx.links.capacity() * size_of::<LinkLoss>()
+                + rx.links.iter().map(LinkLoss::heap_bytes).sum::<usize>()
+                + rx.hearing.heap_bytes();
+        }
+        bytes / self.followers.len().max(1)
+    }
+
+    /// Steps done so far.
+    pub fn step_index(&self) -> u64 {
+        self.k
+    }
+
+    pub fn followers(&self) -> &[SimFollower] {
+        &self.followers
+    }
+
+    /// Every follower's metrics around each fault window, by id.
+    pub fn outages(&self) -> std::collections::BTreeMap<u32, Vec<OutageMetrics>> {
+        self.followers.iter().map(|f| (f.brain.id(), f.metrics.outages())).collect()
+    }
+
+    /// Runs to t = T, calling `progress(k)` every 1000 steps.
+    pub fn run(
+        &mut self,
+        observer: &mut impl Observer,
+        mut progress: impl FnMut(u64),
+    ) -> Result<Vec<FollowerMetrics>, SimError> {
+        let steps = self.scenario.steps();
+        while self.k <= steps {
+            self.step(observer)?;
+            if self.k % 1000 == 0 {
+                progress(self.k);
+            }
+        }
+        Ok(self.followers.iter().map(|f| f.metrics.finish()).collect())
+    }
+
+    /// One step k of docs/model.md §9 for the whole formation.
+    pub fn step(&mut self, observer: &mut impl Observer) -> Result<(), SimError> {
+        let s = self.scenario;
+        let (k, dt) = (self.k, s.dt_s);
+        let t = k as f64 * dt;
+        let last = k == s.steps();
+        let leader = self.leader.state(t);
+        observer.leader(k, &leader)?;
+        // The inputs: step k's messages and leader state, or with a delay
+        // of d steps those of step k − d (step 0's before step d).
+        let (inputs, heard_leader, sent_k) = if self.past.is_empty() {
+            (&self.messages, &leader, k)
+        } else {
+            let slots = self.past.len() as u64;
+            let now = &mut self.past[(k % slots) as usize];
+            now.0.copy_from_slice(&self.messages);
+            now.1 = leader;
+            let sent_k = k.saturating_sub(slots - 1);
+            let then = &self.past[(sent_k % slots) as usize];
+            (&then.0, &then.1, sent_k)
+        };
+        let x = StepInputs {
+            s,
+            messages: inputs,
+            leader: heard_leader,
+            sent_k,
+            dt,
+            last,
+            disturbance: s.disturbance.at(t),
+        };
+        // Metrics, the observer (in index order, as a sequential run) and
+        // the first follower that diverged; every follower steps even when
+        // one before it diverged, as the parallel step does.
+        if !self.parallel {
+            let mut stop = None;
+            for i in 0..self.followers.len() {
+                prefetch(&x, i + AHEAD, self.followers.get(i + AHEAD));
+                let f = &mut self.followers[i];
+                let (sample, next) = step_follower(&x, i, f, &mut self.receptions[i]);
+                self.next_messages[i] = next;
+                if stop.is_none() {
+                    stop = account(s, i, f, &sample, &leader, k, last, observer).err();
+                }
+            }
+            if let Some(e) = stop {
+                return Err(e);
+            }
+        } else if observer.wants_rows() {
+            use rayon::prelude::*;
+            self.samples.resize(self.followers.len(), FollowerSample::default());
+            self.followers
+                .par_chunks_mut(CHUNK)
+                .zip(self.receptions.par_chunks_mut(CHUNK))
+                .zip(self.next_messages.par_chunks_mut(CHUNK))
+                .zip(self.samples.par_chunks_mut(CHUNK))
+                .enumerate()
+                .for_each(|(c, (((fs, rxs), nexts), samples))| {
+                    for j in 0..fs.len() {
+                        prefetch(&x, c * CHUNK + j + AHEAD, fs.get(j + AHEAD));
+                        (samples[j], nexts[j]) = step_follower(&x, c * CHUNK + j, &mut fs[j], &mut rxs[j]);
+                    }
+                });
+            for (i, f) in self.followers.iter_mut().enumerate() {
+                account(s, i, f, &self.samples[i], &leader, k, last, observer)?;
+            }
+        } else {
+            // Metrics only: each follower's own, on its thread.
+            use rayon::prelude::*;
+            let first_diverged = self
+                .followers
+                .par_chunks_mut(CHUNK)
+                .zip(self.receptions.par_chunks_mut(CHUNK))
+                .zip(self.next_messages.par_chunks_mut(CHUNK))
+                .enumerate()
+                .filter_map(|(c, ((fs, rxs), nexts))| {
+                    let mut first = None;
+                    for j in 0..fs.len() {
+                        prefetch(&x, c * CHUNK + j + AHEAD, fs.get(j + AHEAD));
+                        let (i, f) = (c * CHUNK + j, &mut fs[j]);
+                        let sample;
+                        (sample, nexts[j]) = step_follower(&x, i, f, &mut rxs[j]);
+                        f.metrics.push_sample(k, &sample, &leader, f.brain.config.offset, dt);
+                        if first.is_none() {
+                            first = f.check_finite().err().map(|quantity| (i, quantity));
+                        }
+                    }
+                    first
+                })
+                .min_by_key(|&(i, _)| i);
+            if let Some((i, quantity)) = first_diverged {
+                return Err(diverged(s, i, k, quantity));
+            }
+        }
+        std::mem::swap(&mut self.messages, &mut self.next_messages);
+        self.leader.advance(&leader, dt);
+        self.k += 1;
+        Ok(())
+    }
+}

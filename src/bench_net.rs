@@ -1,0 +1,605 @@
+//! `formation bench-net`: speed of the networked formation on this machine.
+//!
+//! 1. Lock-step steps per second over zenoh (`formation launch` of the
+//!    paper scenario, peer mode) next to the in-process simulator's. Two
+//!    runs of different length are timed and the difference is used, so
+//!    process start-up and the start barrier do not count.
+//! 2. Real-time control-loop period error (p50, p99, max) at 1 kHz with the
+//!    scenario's agents (from the nodes' own loop statistics).
+//! 3. One-hop latency of an estimate message (half the round trip through
+//!    the agents' encode → put → subscriber callback → decode and checks →
+//!    inbox path) next to a plain zenoh ping-pong of the same size, measured
+//!    interleaved between the same two peer sessions over loopback TCP.
+//! 4. The time to open a client session to a listening peer (the handshake).
+//! 5. Scale (`--agents 50,100`): generated rings (n/5 chords, as `formation
+//!    bench`) as clients of one router — the topology that scales (N links,
+//!    where a peer mesh needs N(N−1)/2): lock-step steps/s (two runs, the
+//!    difference), start-up (monitor start to every node ready, from
+//!    network.json) and, at 100 Hz in real time, the CPU seconds every
+//!    process of the run used per agent and per simulated second (the
+//!    router, leader and monitor included: their share is the cost of
+//!    scale too), with the silent source-steps.
+//!
+//! With `--tls DIR` every figure is measured twice, over plain TCP and over
+//! mutual TLS with access control, and printed side by side.
+
+use std::path::PathBuf;
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use formation_agent::LeaderState;
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use zenoh::qos::CongestionControl;
+use zenoh::Wait;
+
+use crate::args::ScenarioArgs;
+use crate::error::Error;
+use crate::launch::{LaunchArgs, LaunchMode, RunOptions};
+use formation_net::inbox::{self, Inbox, Source};
+use formation_net::names;
+use formation_net::session::{self, ZenohArgs};
+use formation_net::timing;
+use formation_sim::{NoRecord, Simulation};
+
+#[derive(Args, Debug, Clone)]
+pub struct BenchNetArgs {
+    /// The scenario (the paper's 4 followers by default).
+    #[arg(long, default_value = "scenarios/paper.toml")]
+    pub scenario: PathBuf,
+    /// Lock-step: run-time seconds of the long run (the short one is 2 s).
+    #[arg(long, default_value_t = 20.0)]
+    pub lockstep_duration: f64,
+    /// Real time: run-time seconds at 1 kHz.
+    #[arg(long, default_value_t = 5.0)]
+    pub realtime_duration: f64,
+    /// Latency: round trips per kind.
+    #[arg(long, default_value_t = 5000)]
+    pub round_trips: usize,
+    /// First loopback port to use (about 20 consecutive ports).
+    #[arg(long, default_value_t = 17900)]
+    pub base_port: u16,
+    /// Also measure with mutual TLS, with the certificates in DIR (made by
+    /// `formation certs SCENARIO --out DIR`), side by side with plain TCP.
+    #[arg(long, value_name = "DIR")]
+    pub tls: Option<PathBuf>,
+    /// Scale: also run generated rings of these many agents (n/5 chords) as
+    /// clients of one router: lock-step steps/s, start-up, CPU per agent in
+    /// real time at 100 Hz. Empty (`--agents ''`) skips it.
+    #[arg(long, value_delimiter = ',', default_value = "50,100")]
+    pub agents: Vec<u32>,
+    /// Scale: run seconds of the real-time run at 100 Hz.
+    #[arg(long, default_value_t = 5.0)]
+    pub scale_realtime_duration: f64,
+    /// Every lock-step and scale figure is measured twice: one process per
+    /// agent (as on separate machines), and `launch --group N` (N followers
+    /// per agent process on one session). 0: every follower in one process.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub group: usize,
+}
+
+/// Followers per agent process of the grouped runs for `n` followers.
+fn group_size(a: &BenchNetArgs, n: usize) -> usize {
+    if a.group > 0 {
+        a.group.min(n)
+    } else {
+        n
+    }
+}
+
+fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: &str) -> LaunchArgs {
+    LaunchArgs {
+        opts: RunOptions {
+            scenario: ScenarioArgs { scenario: a.scenario.clone(), overrides: sets.to_vec() },
+            out: Some(out),
+            run: Some(run.to_string()),
+            time_scale: None,
+            quiet: true,
+            tls: None,
+            mcap: false,
+            web: Default::default(),
+        },
+        mode: LaunchMode::Peer,
+        base_port: Some(port),
+        group: 1,
+    }
+}
+
+fn timed_launch(l: &LaunchArgs) -> Result<f64, Error> {
+    let t = Instant::now();
+    crate::launch::run(l)?;
+    Ok(t.elapsed().as_secs_f64())
+}
+
+/// What one transport measured.
+struct Figures {
+    /// Lock-step steps/s over zenoh, and the wall times of the short and long runs.
+    net_rate: f64,
+    t_short: f64,
+    t_long: f64,
+    /// The same with `group` followers per agent process (NaN with TLS, which needs one process each).
+    grouped_rate: f64,
+    group: usize,
+    /// Real time at 1 kHz: the worst node's |period − 1 ms| p50, p99, max (µs).
+    period: (f64, f64, f64),
+    /// Silent neighbour-steps summed over the agents.
+    silent: u64,
+    /// One-hop latency (half round trip, µs): estimate path (p50, p99), plain (p50, p99).
+    estimate: (f64, f64),
+    plain: (f64, f64),
+    /// Median time to open a client session to a listening peer, ms.
+    open_ms: f64,
+}
+
+pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
+    crate::error::at_least_one("--round-trips", a.round_trips as u64)?;
+    let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
+    if let Some(dir) = &a.tls {
+        formation_net::identity::check_all(dir, &scenario).map_err(Error::Input)?;
+    }
+    let n = scenario.followers.len();
+    let sim_s = formation_topology::Scenario::load(&a.scenario, &lockstep_sets(a.lockstep_duration))
+        .map_err(|e| Error::Input(e.to_string()))?;
+    let t = Instant::now();
+    Simulation::new(&sim_s).run(&mut NoRecord, |_| {}).map_err(|e| Error::Run(e.to_string()))?;
+    let sim_rate = sim_s.steps() as f64 / t.elapsed().as_secs_f64();
+
+    for &n in &a.agents {
+        crate::error::at_least_one("--agents", u64::from(n))?;
+    }
+    let mut tcp = measure(a, &scenario, None, a.base_port)?;
+    let mut tls = a.tls.as_deref().map(|d| measure(a, &scenario, Some(d), a.base_port + 50)).transpose()?;
+    match (&mut tls, a.tls.as_deref()) {
+        (Some(t), Some(d)) => latencies(a, &mut [(&mut tcp, None), (t, Some(d))])?,
+        _ => latencies(a, &mut [(&mut tcp, None)])?,
+    }
+    let row = |what: &str, f: &dyn Fn(&Figures) -> String| {
+        let t = tls.as_ref().map_or(String::new(), |x| format!("{:>18}", f(x)));
+        println!("  {what:<50}{:>18}{t}", f(&tcp));
+    };
+    println!(
+        "{n} followers + leader, peer processes on this machine{}",
+        if tls.is_some() { "; plain TCP against mutual TLS with access control" } else { "" }
+    );
+    println!("  {:<50}{:>18}{}", "", "tcp", if tls.is_some() { format!("{:>18}", "tls") } else { String::new() });
+    row("lock-step steps/s over zenoh", &|f| format!("{:.0}", f.net_rate));
+    row("  wall s of the 2 s / long run", &|f| format!("{:.2} / {:.2}", f.t_short, f.t_long));
+    row(&format!("  with {} followers per agent process (--group)", tcp.group), &|f| {
+        if f.grouped_rate.is_nan() {
+            "—".into()
+        } else {
+            format!("{:.0}", f.grouped_rate)
+        }
+    });
+    row("real time 1 kHz |period − 1 ms| p50/p99 µs", &|f| format!("{:.1} / {:.1}", f.period.0, f.period.1));
+    row("  max µs (worst node)", &|f| format!("{:.1}", f.period.2));
+    row("  silent neighbour-steps", &|f| f.silent.to_string());
+    row("one-hop estimate latency p50/p99 µs (best of 3)", &|f| format!("{:.1} / {:.1}", f.estimate.0, f.estimate.1));
+    row("one-hop plain zenoh latency p50/p99 µs", &|f| format!("{:.1} / {:.1}", f.plain.0, f.plain.1));
+    row("opening a client session (handshake) ms", &|f| format!("{:.2}", f.open_ms));
+    println!("in-process simulator, same scenario: {sim_rate:.0} steps/s");
+    if !a.agents.is_empty() {
+        let mut rows: Vec<Scale> = Vec::new();
+        for (i, &n) in a.agents.iter().enumerate() {
+            let port = a.base_port + 100 + 40 * i as u16;
+            rows.push(scale(a, n, 1, port)?);
+            let g = group_size(a, n as usize);
+            if g > 1 {
+                rows.push(scale(a, n, g, port + 20)?);
+            }
+        }
+        println!("scale: generated rings (n/5 chords), clients of one router, plain TCP, on this machine");
+        println!(
+            "  {:>6} {:>12} {:>12} {:>18} {:>16} {:>26} {:>8}",
+            "agents",
+            "per process",
+            "start-up s",
+            "lock-step steps/s",
+            "(wall s, runs)",
+            "real time 100 Hz: CPU s",
+            "silent"
+        );
+        for r in rows {
+            println!(
+                "  {:>6} {:>12} {:>12.2} {:>18.0} {:>16} {:>26} {:>8}",
+                r.agents,
+                r.group,
+                r.startup_s,
+                r.rate,
+                format!("{:.1} / {:.1}", r.t_short, r.t_long),
+                format!("{:.4} per agent and run-s", r.cpu_per_agent_s),
+                r.silent
+            );
+        }
+        println!(
+            "  (CPU: every process of the run — agents, leader, monitor, router — over the agents and the run \
+             seconds; silent: source-steps counted silent)"
+        );
+    }
+    if let Some(t) = &tls {
+        println!(
+            "tls / tcp: latency p50 {:.2}, p99 {:.2}; lock-step rate {:.2}; session open {:.1}x",
+            t.estimate.0 / tcp.estimate.0,
+            t.estimate.1 / tcp.estimate.1,
+            t.net_rate / tcp.net_rate,
+            t.open_ms / tcp.open_ms
+        );
+    }
+    Ok(())
+}
+
+fn lockstep_sets(d: f64) -> Vec<String> {
+    vec![format!("duration={d}"), "timing=lockstep".to_string()]
+}
+
+/// Every figure over one transport: plain TCP (`tls` None) or mutual TLS
+/// with the certificates in `tls`, on ports from `port`.
+fn measure(
+    a: &BenchNetArgs,
+    scenario: &formation_topology::Scenario,
+    tls: Option<&std::path::Path>,
+    port: u16,
+) -> Result<Figures, Error> {
+    let kind = if tls.is_some() { "tls" } else { "tcp" };
+    let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-{kind}", std::process::id()));
+    eprintln!("bench-net ({kind}): lock-step runs …");
+    // 1. Lock-step: two runs of different length; the difference is the stepping.
+    let short = 2.0;
+    let launch = |sets: &[String], p: u16, out: &str, run: &str| {
+        let mut l = launch_args(a, sets, p, tmp.join(out), run);
+        l.opts.tls = tls.map(std::path::Path::to_path_buf);
+        l
+    };
+    let t_short = timed_launch(&launch(&lockstep_sets(short), port, "ls-short", "bench-ls1"))?;
+    let t_long = timed_launch(&launch(&lockstep_sets(a.lockstep_duration), port + 10, "ls-long", "bench-ls2"))?;
+    let dsteps = ((a.lockstep_duration - short) / scenario.dt_s).round();
+    let net_rate = dsteps / (t_long - t_short).max(1e-9);
+    let group = group_size(a, scenario.followers.len());
+    let grouped_rate = if tls.is_none() {
+        eprintln!("bench-net ({kind}): lock-step runs, {group} followers per agent process …");
+        let grouped = |sets: &[String], p: u16, out: &str, run: &str| {
+            let mut l = launch(sets, p, out, run);
+            l.group = group;
+            l
+        };
+        let g_short = timed_launch(&grouped(&lockstep_sets(short), port + 30, "lsg-short", "bench-lsg1"))?;
+        let g_long = timed_launch(&grouped(&lockstep_sets(a.lockstep_duration), port + 34, "lsg-long", "bench-lsg2"))?;
+        dsteps / (g_long - g_short).max(1e-9)
+    } else {
+        f64::NAN
+    };
+
+    // 2. Real-time period error at 1 kHz.
+    eprintln!("bench-net ({kind}): real time at 1 kHz …");
+    let rt_sets = vec![format!("duration={}", a.realtime_duration), "timing=realtime".into(), "dt=0.001".into()];
+    let mut l = launch(&rt_sets, port + 20, "rt", "bench-rt");
+    l.opts.time_scale = Some(1.0);
+    crate::launch::run(&l)?;
+    let net = network_json(&tmp.join("rt"), "the real-time run")?;
+    let mut period = (0.0f64, 0.0f64, 0.0f64);
+    let mut silent = 0;
+    if let Some(nodes) = net["nodes"].as_object() {
+        for v in nodes.values() {
+            let f = |k: &str| v["loop"][k].as_f64().unwrap_or(0.0);
+            period = (
+                period.0.max(f("period_error_p50_us")),
+                period.1.max(f("period_error_p99_us")),
+                period.2.max(f("period_error_max_us")),
+            );
+            silent += v["silent"].as_u64().unwrap_or(0);
+        }
+    }
+
+    let _ = std::fs::remove_dir_all(&tmp);
+    let nan = (f64::NAN, f64::NAN);
+    Ok(Figures {
+        net_rate,
+        t_short,
+        t_long,
+        grouped_rate,
+        group,
+        period,
+        silent,
+        estimate: nan,
+        plain: nan,
+        open_ms: f64::NAN,
+    })
+}
+
+/// The run folder `dir`'s network.json (`what`: the run, for the error).
+fn network_json(dir: &std::path::Path, what: &str) -> Result<serde_json::Value, Error> {
+    std::fs::read_to_string(dir.join("network.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .ok_or_else(|| Error::Run(format!("reading {what}'s network.json")))
+}
+
+/// One row of the scale table.
+struct Scale {
+    agents: u32,
+    /// Followers per agent process.
+    group: usize,
+    startup_s: f64,
+    rate: f64,
+    t_short: f64,
+    t_long: f64,
+    cpu_per_agent_s: f64,
+    silent: u64,
+}
+
+/// CPU seconds (user + system) of this process's waited-for children so far.
+fn children_cpu_s() -> f64 {
+    // SAFETY: getrusage writes into the struct it is given, nothing else.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut u) } != 0 {
+        return f64::NAN;
+    }
+    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    s(u.ru_utime) + s(u.ru_stime)
+}
+
+/// `n` agents on a generated ring as clients of one router, `group`
+/// followers per agent process, ports from `port`.
+fn scale(a: &BenchNetArgs, n: u32, group: usize, port: u16) -> Result<Scale, Error> {
+    let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-scale{n}-{group}", std::process::id()));
+    std::fs::create_dir_all(&tmp).map_err(|e| Error::Run(format!("{}: {e}", tmp.display())))?;
+    let spec = formation_topology::generate::Spec {
+        chords: n / 5,
+        ..formation_topology::generate::Spec::new(n, formation_topology::generate::GraphKind::Ring)
+    };
+    let text = formation_topology::generate::toml(&spec).map_err(|e| Error::Input(e.to_string()))?;
+    let file = tmp.join(format!("ring{n}.toml"));
+    std::fs::write(&file, text).map_err(|e| Error::Run(format!("{}: {e}", file.display())))?;
+    let launch = |sets: Vec<String>, p: u16, out: &str, run: &str| {
+        let mut l = launch_args(&BenchNetArgs { scenario: file.clone(), ..a.clone() }, &sets, p, tmp.join(out), run);
+        l.mode = LaunchMode::Client;
+        l.group = group;
+        l
+    };
+    let what = format!("the {n}-agent run");
+    let wall = |out: &str| network_json(&tmp.join(out), &what);
+    eprintln!("bench-net (scale): {n} agents, {group} per process, lock-step …");
+    // Lock-step: 200 and 1,200 steps at Δt = 1 ms; the difference is the stepping.
+    let (short, long) = (0.2, 1.2);
+    let t_short = timed_launch(&launch(lockstep_sets(short), port, "short", &format!("bench-s{n}a")))?;
+    let t_long = timed_launch(&launch(lockstep_sets(long), port + 5, "long", &format!("bench-s{n}b")))?;
+    let rate = ((long - short) / 0.001_f64).round() / (t_long - t_short).max(1e-9);
+    let startup_s = wall("long")?["wall"]["startup_s"].as_f64().unwrap_or(f64::NAN);
+    eprintln!("bench-net (scale): {n} agents, {group} per process, real time at 100 Hz …");
+    let d = a.scale_realtime_duration;
+    let sets =
+        vec![format!("duration={d}"), "timing=realtime".into(), "dt=0.01".into(), "network.delay_steps=1".into()];
+    let mut l = launch(sets, port + 10, "rt", &format!("bench-s{n}c"));
+    l.opts.time_scale = Some(1.0);
+    let cpu0 = children_cpu_s();
+    crate::launch::run(&l)?;
+    let cpu = children_cpu_s() - cpu0;
+    let net = wall("rt")?;
+    let silent = net["nodes"].as_object().map_or(0, |m| m.values().map(|v| v["silent"].as_u64().unwrap_or(0)).sum());
+    let _ = std::fs::remove_dir_all(&tmp);
+    Ok(Scale { agents: n, group, startup_s, rate, t_short, t_long, cpu_per_agent_s: cpu / f64::from(n) / d, silent })
+}
+
+/// Latency and session opening, the transports alternating over `ROUNDS`
+/// rounds so that both see the same machine; the best round of each.
+fn latencies(a: &BenchNetArgs, figures: &mut [(&mut Figures, Option<&std::path::Path>)]) -> Result<(), Error> {
+    const ROUNDS: u16 = 3;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
+    for round in 0..ROUNDS {
+        for (i, (f, tls)) in figures.iter_mut().enumerate() {
+            let kind = if tls.is_some() { "tls" } else { "tcp" };
+            eprintln!("bench-net ({kind}): latency, round {} of {ROUNDS} …", round + 1);
+            let port = a.base_port + 40 + 50 * i as u16 + 2 * round;
+            let (e, p, o) = runtime
+                .block_on(latency(port, a.round_trips, *tls))
+                .map_err(|e| Error::Run(format!("latency benchmark ({kind}): {e}")))?;
+            // NaN (no round yet) or a better round.
+            if f.estimate.0.is_nan() || e.0 < f.estimate.0 {
+                f.estimate = e;
+            }
+            if f.plain.0.is_nan() || p.0 < f.plain.0 {
+                f.plain = p;
+            }
+            if f.open_ms.is_nan() || o < f.open_ms {
+                f.open_ms = o;
+            }
+        }
+    }
+    Ok(())
+}
+
+#[derive(Default)]
+struct Flag {
+    hits: Mutex<u64>,
+    cv: Condvar,
+}
+
+impl Flag {
+    fn hit(&self) {
+        *self.hits.lock().unwrap_or_else(|p| p.into_inner()) += 1;
+        self.cv.notify_all();
+    }
+    fn wait_for(&self, n: u64) -> bool {
+        let mut g = self.hits.lock().unwrap_or_else(|p| p.into_inner());
+        while *g < n {
+            let (ng, to) = self.cv.wait_timeout(g, Duration::from_secs(2)).unwrap_or_else(|p| p.into_inner());
+            g = ng;
+            if to.timed_out() {
+                return false;
+            }
+        }
+        true
+    }
+}
+
+fn estimate(sender: u32, step: u64) -> Vec<u8> {
+    wire::encode(&EstimateMsg {
+        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
+        state: LeaderState { v: 1.0, w: 0.5, ..Default::default() },
+        fresh: true,
+    })
+}
+
+/// Receive path of an agent: decode + checks + inbox.
+fn receive(inbox: &Mutex<Inbox>, key: &str, bytes: &[u8], neighbours: &[u32]) -> bool {
+    let key_id = names::last_chunk(key).parse::<u32>().ok();
+    let mut i = inbox.lock().unwrap_or_else(|p| p.into_inner());
+    match inbox::check(key_id, bytes, false, neighbours) {
+        Ok((Source::Neighbour(slot), m)) => {
+            i.accept(slot, &m);
+            true
+        }
+        _ => false,
+    }
+}
+
+/// ((p50, p99) estimate one-hop, (p50, p99) plain one-hop) in µs, and the
+/// median time to open a client session to a listening peer in ms. The two
+/// sessions are agents 1 and 2 (with their identities under `tls`); the
+/// plain ping-pong uses the same keys in another run's namespace, so the
+/// access-control policy lets it through.
+async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> anyhow::Result<((f64, f64), (f64, f64), f64)> {
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let as_agent = |id: u32| ZenohArgs {
+        tls: tls.map(std::path::Path::to_path_buf),
+        identity: Some(formation_net::names::agent_name(id)),
+        ..Default::default()
+    };
+    let a = session::open(&ZenohArgs { listen: vec![ep.clone()], ..as_agent(1) }).await?;
+    let b = session::open(&ZenohArgs {
+        listen: vec![format!("tcp/127.0.0.1:{}", port + 1)],
+        connect: vec![ep.clone()],
+        ..as_agent(2)
+    })
+    .await?;
+    // Handshakes: a client of agent 2's identity opening to A, 20 times.
+    let mut opens = Vec::with_capacity(20);
+    for _ in 0..20 {
+        let t = Instant::now();
+        let c = session::open(&ZenohArgs {
+            mode: Some(session::ZenohMode::Client),
+            connect: vec![ep.clone()],
+            ..as_agent(2)
+        })
+        .await?;
+        opens.push(t.elapsed().as_secs_f64() * 1e3);
+        let _ = c.close().await;
+    }
+    let (open_ms, _, _) = timing::percentiles(&mut opens);
+    let run = "bench-lat";
+    let k = |rest: &str| names::key(run, rest);
+    // The plain ping-pong rides on the same key shapes in another namespace.
+    let ping = names::key("bench-ping", "estimate/1");
+    let pong = names::key("bench-ping", "estimate/2");
+    // B: echo plain pings, answer estimates from "follower 1" with its own as "follower 2".
+    let b_plain_pub = b
+        .declare_publisher(pong.clone())
+        .express(true)
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let b_est_pub = b
+        .declare_publisher(k("estimate/2"))
+        .express(true)
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _b_plain = b
+        .declare_subscriber(ping.clone())
+        .callback(move |s| {
+            let _ = b_plain_pub.put(s.payload().to_bytes().into_owned()).wait();
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let b_inbox = Arc::new(Mutex::new(Inbox::new(1, false)));
+    let bi = b_inbox.clone();
+    let _b_est = b
+        .declare_subscriber(k("estimate/1"))
+        .callback(move |s| {
+            let bytes = s.payload().to_bytes();
+            if receive(&bi, s.key_expr().as_str(), &bytes, &[1]) {
+                let step = wire::decode(&bytes).map(|m| m.header.step).unwrap_or(0);
+                let _ = b_est_pub.put(estimate(2, step)).wait();
+            }
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    // A: count answers.
+    let plain_flag = Arc::new(Flag::default());
+    let est_flag = Arc::new(Flag::default());
+    let pf = plain_flag.clone();
+    let _a_plain = a.declare_subscriber(pong).callback(move |_| pf.hit()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let a_inbox = Arc::new(Mutex::new(Inbox::new(1, false)));
+    let (ai, ef) = (a_inbox.clone(), est_flag.clone());
+    let _a_est = a
+        .declare_subscriber(k("estimate/2"))
+        .callback(move |s| {
+            if receive(&ai, s.key_expr().as_str(), &s.payload().to_bytes(), &[2]) {
+                ef.hit();
+            }
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let a_plain_pub = a
+        .declare_publisher(ping)
+        .express(true)
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let a_est_pub = a
+        .declare_publisher(k("estimate/1"))
+        .express(true)
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let size = estimate(1, 0).len();
+
+    let measured = tokio::task::spawn_blocking(move || -> anyhow::Result<(Vec<f64>, Vec<f64>)> {
+        // Wait until both directions carry traffic.
+        let t = Instant::now();
+        let mut step = 0u64;
+        loop {
+            step += 1;
+            a_est_pub.put(estimate(1, step)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+            a_plain_pub.put(vec![0u8; size]).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+            std::thread::sleep(Duration::from_millis(20));
+            if *est_flag.hits.lock().unwrap_or_else(|p| p.into_inner()) > 0
+                && *plain_flag.hits.lock().unwrap_or_else(|p| p.into_inner()) > 0
+            {
+                break;
+            }
+            anyhow::ensure!(t.elapsed() < Duration::from_secs(10), "the two sessions did not connect");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+        let (mut e_done, mut p_done) = (
+            *est_flag.hits.lock().unwrap_or_else(|p| p.into_inner()),
+            *plain_flag.hits.lock().unwrap_or_else(|p| p.into_inner()),
+        );
+        let (mut est, mut plain) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        for _ in 0..n {
+            step += 1;
+            let t = Instant::now();
+            a_est_pub.put(estimate(1, step)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+            e_done += 1;
+            anyhow::ensure!(est_flag.wait_for(e_done), "estimate answer lost");
+            est.push(t.elapsed().as_secs_f64() * 1e6 / 2.0);
+            let t = Instant::now();
+            a_plain_pub.put(vec![0u8; size]).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+            p_done += 1;
+            anyhow::ensure!(plain_flag.wait_for(p_done), "pong lost");
+            plain.push(t.elapsed().as_secs_f64() * 1e6 / 2.0);
+        }
+        Ok((est, plain))
+    })
+    .await??;
+    let (mut est, mut plain) = measured;
+    let (e50, e99, _) = timing::percentiles(&mut est);
+    let (p50, p99, _) = timing::percentiles(&mut plain);
+    let _ = a.close().await;
+    let _ = b.close().await;
+    Ok(((e50, e99), (p50, p99), open_ms))
+}

@@ -1,0 +1,370 @@
+//! The workspace's layers, read from its own files: every crate depends
+//! only on crates of lower layers; inside every crate no module imports one
+//! that imports it, directly or around a circle; and exit statuses are the
+//! `formation` binary crate's alone. Each failure names the files and the
+//! path that breaks the rule.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+/// The layers, lowest first: a crate may use only crates listed before it.
+const LAYERS: [&str; 8] = [
+    "formation-plant",
+    "formation-leader",
+    "formation-agent",
+    "formation-topology",
+    "formation-record",
+    "formation-sim",
+    "formation-net",
+    "formation",
+];
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// (package name, folder) of every workspace member.
+fn members() -> Vec<(String, PathBuf)> {
+    let text = std::fs::read_to_string(root().join("Cargo.toml")).expect("Cargo.toml");
+    let line = text.lines().find(|l| l.trim_start().starts_with("members")).expect("workspace members");
+    let list = line.split_once('[').and_then(|(_, r)| r.split_once(']')).expect("members = [...]").0;
+    list.split(',')
+        .map(|m| m.trim().trim_matches('"'))
+        .filter(|m| !m.is_empty())
+        .map(|m| {
+            let dir = root().join(m);
+            let manifest = std::fs::read_to_string(dir.join("Cargo.toml")).expect("member Cargo.toml");
+            (package_name(&manifest), dir)
+        })
+        .collect()
+}
+
+fn package_name(manifest: &str) -> String {
+    let mut in_package = false;
+    for l in manifest.lines() {
+        let l = l.trim();
+        if l.starts_with('[') {
+            in_package = l == "[package]";
+        } else if in_package && l.starts_with("name") {
+            return l.split('=').nth(1).unwrap_or("").trim().trim_matches('"').to_string();
+        }
+    }
+    panic!("no [package] name")
+}
+
+/// The workspace crates a manifest names under [dependencies] (not dev-).
+fn workspace_deps(manifest: &str) -> Vec<String> {
+    let mut in_deps = false;
+    let mut deps = Vec::new();
+    for l in manifest.lines() {
+        let l = l.trim();
+        if l.starts_with('[') {
+            in_deps = l == "[dependencies]";
+        } else if in_deps {
+            let name = l.split(['=', '.', ' ']).next().unwrap_or("");
+            if name.starts_with("formation-") {
+                deps.push(name.to_string());
+            }
+        }
+    }
+    deps
+}
+
+#[test]
+fn every_crate_depends_only_on_lower_layers() {
+    let mut wrong = Vec::new();
+    let members = members();
+    assert_eq!(members.len(), LAYERS.len(), "members {members:?} against the layers {LAYERS:?}");
+    for (name, dir) in &members {
+        let Some(rank) = LAYERS.iter().position(|l| l == name) else {
+            wrong.push(format!("{name} ({}) is in no layer", dir.display()));
+            continue;
+        };
+        let manifest = std::fs::read_to_string(dir.join("Cargo.toml")).expect("Cargo.toml");
+        for dep in workspace_deps(&manifest) {
+            match LAYERS.iter().position(|l| *l == dep) {
+                Some(r) if r < rank => {}
+                _ => wrong.push(format!("{name} depends on {dep}, which is not below it")),
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
+/// Every .rs file under `src` of a crate (binaries in src/bin excluded: each
+/// is a crate root of its own with one `main`).
+fn sources(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.join("src")];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+            let p = e.path();
+            if p.is_dir() && p.file_name().is_some_and(|n| n != "bin") {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// A file's module path in its crate: src/lib.rs → [], src/a.rs → [a],
+/// src/a/mod.rs → [a], src/a/b.rs → [a, b].
+fn module_of(src: &Path, file: &Path) -> Vec<String> {
+    let rel = file.strip_prefix(src).expect("under src");
+    let mut parts: Vec<String> = rel.iter().map(|p| p.to_string_lossy().to_string()).collect();
+    let last = parts.pop().unwrap_or_default();
+    let stem = last.trim_end_matches(".rs");
+    if stem != "lib" && stem != "mod" && stem != "main" {
+        parts.push(stem.to_string());
+    }
+    parts
+}
+
+/// The code of a file without its comments, string contents and
+/// `#[cfg(test)]` module.
+fn code(text: &str) -> String {
+    let cut = text.find("#[cfg(test)]\nmod ").map_or(text, |i| &text[..i]);
+    let mut out = String::new();
+    for line in cut.lines() {
+        let l = line.trim_start();
+        if l.starts_with("//") {
+            continue;
+        }
+        let l = l.split(" // ").next().unwrap_or(l);
+        // Drop string literals' contents (a message may read "crate::x").
+        let mut in_str = false;
+        for c in l.chars() {
+            if c == '"' {
+                in_str = !in_str;
+                out.push(c);
+            } else if !in_str {
+                out.push(c);
+            }
+        }
+        out.push('\n');
+    }
+    out
+}
+
+/// A file's code outside and inside inline `mod x { … }` blocks.
+fn split_inline_modules(code: &str) -> (String, String) {
+    let (mut outside, mut inside) = (String::new(), String::new());
+    let mut depth = 0i64;
+    let mut opened: Vec<i64> = Vec::new();
+    for line in code.lines() {
+        let t = line.trim_start();
+        let t = t.strip_prefix("pub ").or_else(|| t.strip_prefix("pub(crate) ")).unwrap_or(t);
+        if t.starts_with("mod ") && t.trim_end().ends_with('{') {
+            opened.push(depth);
+        }
+        if opened.is_empty() {
+            outside.push_str(line);
+            outside.push('\n');
+        } else {
+            inside.push_str(line);
+            inside.push('\n');
+        }
+        depth += line.matches('{').count() as i64 - line.matches('}').count() as i64;
+        while opened.last().is_some_and(|&d| depth <= d) {
+            opened.pop();
+        }
+    }
+    (outside, inside)
+}
+
+/// The module paths a piece of code names: `crate::a::b`, `super::x`, and
+/// `crate::{a, b::c}` / `super::{x, y}` groups, each as written after the prefix.
+fn named_paths(code: &str, prefix: &str) -> Vec<Vec<String>> {
+    let mut out = Vec::new();
+    let mut rest = code;
+    while let Some(i) = rest.find(prefix) {
+        let before = rest[..i].chars().last();
+        let nested = rest[..i].ends_with("super::");
+        rest = &rest[i + prefix.len()..];
+        if nested || before.is_some_and(|c| c.is_alphanumeric() || c == '_') {
+            continue;
+        }
+        if let Some(group) = rest.strip_prefix('{') {
+            let inner = group.split('}').next().unwrap_or("");
+            for item in inner.split(',') {
+                out.push(path_words(item.trim()));
+            }
+        } else {
+            out.push(path_words(rest));
+        }
+    }
+    out
+}
+
+fn path_words(s: &str) -> Vec<String> {
+    let end = s.find(|c: char| !(c.is_alphanumeric() || c == '_' || c == ':')).unwrap_or(s.len());
+    s[..end].split("::").filter(|w| !w.is_empty()).map(str::to_string).collect()
+}
+
+/// The longest known module that a path starting at `base` names.
+fn resolve(modules: &BTreeSet<Vec<String>>, base: &[String], words: &[String]) -> Option<Vec<String>> {
+    let mut best = None;
+    let mut path = base.to_vec();
+    if modules.contains(&path) {
+        best = Some(path.clone());
+    }
+    for w in words {
+        path.push(w.clone());
+        if modules.contains(&path) {
+            best = Some(path.clone());
+        } else {
+            break;
+        }
+    }
+    best
+}
+
+/// Every module's imports within its crate (edges to itself and to the
+/// crate root's `mod` declarations are not imports).
+fn module_graph(dir: &Path) -> BTreeMap<Vec<String>, (PathBuf, BTreeSet<Vec<String>>)> {
+    let src = dir.join("src");
+    let files = sources(dir);
+    let modules: BTreeSet<Vec<String>> = files.iter().map(|f| module_of(&src, f)).collect();
+    let mut graph = BTreeMap::new();
+    for f in &files {
+        let me = module_of(&src, f);
+        let text = code(&std::fs::read_to_string(f).expect("source"));
+        let mut to = BTreeSet::new();
+        for words in named_paths(&text, "crate::") {
+            if let Some(m) = resolve(&modules, &[], &words) {
+                to.insert(m);
+            }
+        }
+        // `super::` from a file module a/b.rs (or a/b/mod.rs) is module a.
+        let parent: Vec<String> = me[..me.len().saturating_sub(1)].to_vec();
+        // Inside an inline `mod x { … }` of this file, `super` is this file's module.
+        let (file_level, inline) = split_inline_modules(&text);
+        for (text, base_of_super) in [(&file_level, &parent), (&inline, &me)] {
+            for words in named_paths(text, "super::") {
+                let ups = words.iter().take_while(|w| *w == "super").count();
+                let base = &base_of_super[..base_of_super.len().saturating_sub(ups)];
+                if let Some(m) = resolve(&modules, base, &words[ups..]) {
+                    to.insert(m);
+                }
+            }
+        }
+        // Plain `use x::…` of a child module declared here (`mod x;`).
+        for l in text.lines() {
+            let l = l.trim();
+            if let Some(r) = l.strip_prefix("pub use ").or_else(|| l.strip_prefix("use ")) {
+                let words = path_words(r.trim_start_matches("self::"));
+                let mut child = me.clone();
+                if let Some(w) = words.first() {
+                    child.push(w.clone());
+                    if modules.contains(&child) {
+                        to.insert(child);
+                    }
+                }
+            }
+        }
+        to.remove(&me);
+        graph.insert(me, (f.clone(), to));
+    }
+    graph
+}
+
+/// A circle of the graph, as the files around it, if there is one.
+fn circle(graph: &BTreeMap<Vec<String>, (PathBuf, BTreeSet<Vec<String>>)>) -> Option<Vec<PathBuf>> {
+    // Depth-first search with colours: 1 on the stack, 2 done.
+    fn visit(
+        n: &Vec<String>,
+        g: &BTreeMap<Vec<String>, (PathBuf, BTreeSet<Vec<String>>)>,
+        colour: &mut BTreeMap<Vec<String>, u8>,
+        stack: &mut Vec<Vec<String>>,
+    ) -> Option<Vec<PathBuf>> {
+        colour.insert(n.clone(), 1);
+        stack.push(n.clone());
+        for m in g.get(n).map(|x| &x.1).into_iter().flatten() {
+            match colour.get(m).copied().unwrap_or(0) {
+                1 => {
+                    let from = stack.iter().position(|s| s == m).unwrap_or(0);
+                    let mut files: Vec<PathBuf> = stack[from..].iter().map(|s| g[s].0.clone()).collect();
+                    files.push(g[m].0.clone());
+                    return Some(files);
+                }
+                0 => {
+                    if let Some(c) = visit(m, g, colour, stack) {
+                        return Some(c);
+                    }
+                }
+                _ => {}
+            }
+        }
+        stack.pop();
+        colour.insert(n.clone(), 2);
+        None
+    }
+    let mut colour = BTreeMap::new();
+    for n in graph.keys() {
+        if colour.get(n).copied().unwrap_or(0) == 0 {
+            if let Some(c) = visit(n, graph, &mut colour, &mut Vec::new()) {
+                return Some(c);
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn no_module_imports_one_that_imports_it() {
+    let mut circles = Vec::new();
+    let mut counted = 0;
+    for (name, dir) in members() {
+        let graph = module_graph(&dir);
+        counted += graph.len();
+        if let Some(files) = circle(&graph) {
+            let names: Vec<String> =
+                files.iter().map(|f| f.strip_prefix(root()).unwrap_or(f).display().to_string()).collect();
+            circles.push(format!("{name}: {}", names.join(" -> ")));
+        }
+    }
+    assert!(counted > 40, "read only {counted} modules: is the reader broken?");
+    assert!(circles.is_empty(), "import circles:\n{}", circles.join("\n"));
+}
+
+/// The reader finds a circle where there is one (a test that cannot fail
+/// would prove nothing).
+#[test]
+fn the_circle_reader_finds_a_planted_circle() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let src = dir.path().join("src");
+    std::fs::create_dir_all(src.join("a")).expect("mkdir");
+    std::fs::write(src.join("lib.rs"), "pub mod a;\npub mod b;\n").expect("write");
+    std::fs::write(src.join("a/mod.rs"), "pub mod c;\nuse crate::b::X;\n").expect("write");
+    std::fs::write(src.join("a/c.rs"), "// crate::b in a comment\nuse super::super::b;\n").expect("write");
+    std::fs::write(src.join("b.rs"), "pub struct X;\nfn f() { crate::a::c::g(); }\n").expect("write");
+    let graph = module_graph(dir.path());
+    let c = circle(&graph).expect("a -> b -> a/c ... must be seen");
+    assert!(c.len() >= 3, "{c:?}");
+    // `super` inside an inline module of b is b itself, not b's parent.
+    std::fs::write(src.join("b.rs"), "pub struct X;\nmod inner {\n    use super::X;\n}\n").expect("write");
+    assert_eq!(circle(&module_graph(dir.path())), None, "no circle once b no longer names a");
+}
+
+/// Exit statuses are decided in one place: the `formation` crate.
+#[test]
+fn only_the_binary_crate_knows_exit_statuses() {
+    let mut wrong = Vec::new();
+    for (name, dir) in members() {
+        if name == "formation" {
+            continue;
+        }
+        for f in sources(&dir) {
+            let text = code(&std::fs::read_to_string(&f).expect("source"));
+            for needle in ["ExitCode", "exit_code", "process::exit"] {
+                if text.contains(needle) {
+                    wrong.push(format!("{}: {needle}", f.display()));
+                }
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "below the binary crate:\n{}", wrong.join("\n"));
+}
