@@ -89,6 +89,6 @@ fn a_realtime_run_with_a_communication_delay_is_the_one_the_simulator_predicts()
     assert!(status.success(), "formation launch failed: {status}");
     let (got, reference, network) =
         (json(&out, "summary.json"), json(&tmp.path().join("sim"), "summary.json"), json(&out, "network.json"));
-    let bad = common::unlike_the_simulator(&got, &reference, &network, 0.10);
+    let bad = common::unlike_the_simulator(&got, &reference, &network, 0.10, &common::COMPARED);
     assert!(bad.is_empty(), "the real-time run is not the simulator's (10 %):\n{}", bad.join("\n"));
 }

@@ -55,35 +55,34 @@ pub struct CourierStats {
     pub peak_held_bytes: u64,
 }
 
-#[derive(Debug, Default)]
-struct State {
+/// The courier's state and rules without a thread, a lock or a clock:
+/// batches are handed over ([`Store::push`]), acknowledged
+/// ([`Store::ack`]), and [`Store::due`] says, for the time `now` it is
+/// given, which batches to send. Tested in virtual time.
+#[derive(Debug)]
+pub struct Store {
     queue: VecDeque<Batch>,
+    capacity_steps: u64,
     /// Steps below this are held by the monitor.
     acked: u64,
     held_steps: u64,
     held_bytes: u64,
-    closed: bool,
     stats: CourierStats,
     /// The current resend timeout (see the module docs).
     resend: Duration,
 }
 
-/// The store between a control loop and the network (see the module docs).
-#[derive(Debug)]
-pub struct Courier {
-    state: Mutex<State>,
-    changed: Condvar,
-    capacity_steps: u64,
-}
-
-impl Courier {
+impl Store {
     pub fn new(capacity_steps: u64) -> Self {
-        let state = State { resend: RESEND, ..State::default() };
-        Self { state: Mutex::new(state), changed: Condvar::new(), capacity_steps: capacity_steps.max(1) }
-    }
-
-    fn lock(&self) -> MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
+        Self {
+            queue: VecDeque::new(),
+            capacity_steps: capacity_steps.max(1),
+            acked: 0,
+            held_steps: 0,
+            held_bytes: 0,
+            stats: CourierStats::default(),
+            resend: RESEND,
+        }
     }
 
     /// The first step the sender can still deliver, with `next_k` the first
@@ -92,93 +91,155 @@ impl Courier {
     /// process holds nothing of its predecessor's). Batches carry it so that
     /// the monitor knows which missing steps will never come.
     pub fn available_from(&self, next_k: u64) -> u64 {
-        self.lock().queue.front().map_or(next_k, |b| b.first_k)
+        self.queue.front().map_or(next_k, |b| b.first_k)
     }
 
-    /// Hands over the batch of steps first_k..end_k; never waits. Drops the
-    /// oldest batches while the store would exceed its capacity.
-    pub fn push(&self, first_k: u64, end_k: u64, bytes: Vec<u8>) {
-        let mut s = self.lock();
+    /// Takes the batch of steps first_k..end_k. Drops the oldest batches
+    /// while the store would exceed its capacity.
+    pub fn push(&mut self, first_k: u64, end_k: u64, bytes: Vec<u8>) {
         let steps = end_k.saturating_sub(first_k);
-        while !s.queue.is_empty() && s.held_steps + steps > self.capacity_steps {
-            if let Some(old) = s.queue.pop_front() {
+        while !self.queue.is_empty() && self.held_steps + steps > self.capacity_steps {
+            if let Some(old) = self.queue.pop_front() {
                 let n = old.end_k - old.first_k;
-                s.held_steps -= n;
-                s.held_bytes -= old.bytes.len() as u64;
-                s.stats.lost_steps += n;
+                self.held_steps -= n;
+                self.held_bytes -= old.bytes.len() as u64;
+                self.stats.lost_steps += n;
             }
         }
-        s.held_steps += steps;
-        s.held_bytes += bytes.len() as u64;
-        s.stats.peak_held_bytes = s.stats.peak_held_bytes.max(s.held_bytes);
-        s.stats.batches += 1;
-        s.queue.push_back(Batch { first_k, end_k, bytes: Arc::new(bytes), sent: None });
-        drop(s);
-        self.changed.notify_all();
+        self.held_steps += steps;
+        self.held_bytes += bytes.len() as u64;
+        self.stats.peak_held_bytes = self.stats.peak_held_bytes.max(self.held_bytes);
+        self.stats.batches += 1;
+        self.queue.push_back(Batch { first_k, end_k, bytes: Arc::new(bytes), sent: None });
     }
 
     /// The monitor holds every step below `next_k`: forget those batches.
-    pub fn ack(&self, next_k: u64) {
-        let mut s = self.lock();
+    pub fn ack(&mut self, next_k: u64) {
         // An acknowledgement arrived: the way to the monitor is open again.
-        s.resend = RESEND;
-        if next_k <= s.acked {
+        self.resend = RESEND;
+        if next_k <= self.acked {
             return;
         }
-        s.acked = next_k;
-        while s.queue.front().is_some_and(|b| b.end_k <= next_k) {
-            if let Some(b) = s.queue.pop_front() {
-                s.held_steps -= b.end_k - b.first_k;
-                s.held_bytes -= b.bytes.len() as u64;
+        self.acked = next_k;
+        while self.queue.front().is_some_and(|b| b.end_k <= next_k) {
+            if let Some(b) = self.queue.pop_front() {
+                self.held_steps -= b.end_k - b.first_k;
+                self.held_bytes -= b.bytes.len() as u64;
             }
         }
-        drop(s);
-        self.changed.notify_all();
     }
 
     pub fn stats(&self) -> CourierStats {
-        self.lock().stats
+        self.stats
     }
 
     /// Steps handed over and not yet acknowledged.
     pub fn unacknowledged_steps(&self) -> u64 {
-        self.lock().held_steps
+        self.held_steps
     }
 
-    /// The batches due now, oldest first, marked sent: if the oldest in
+    pub fn is_empty(&self) -> bool {
+        self.queue.is_empty()
+    }
+
+    /// Forgets everything held (the end of a run).
+    pub fn clear(&mut self) {
+        self.queue.clear();
+    }
+
+    /// The batches due at `now`, oldest first, marked sent: if the oldest in
     /// flight has waited the resend timeout, everything in flight goes again
     /// (and the timeout doubles until an acknowledgement arrives); then
-    /// batches never sent, while the window allows. Waits up to [`TICK`] for
-    /// work.
-    fn due(&self) -> Option<Vec<Arc<Vec<u8>>>> {
-        let mut s = self.lock();
+    /// batches never sent, while the window allows.
+    pub fn due(&mut self, now: Instant) -> Vec<Arc<Vec<u8>>> {
         let mut out = Vec::new();
-        for attempt in 0..2 {
-            let now = Instant::now();
-            let State { queue, resend, stats, .. } = &mut *s;
-            if queue.front().and_then(|b| b.sent).is_some_and(|t| now.duration_since(t) >= *resend) {
-                for b in queue.iter_mut().take_while(|b| b.sent.is_some()) {
-                    b.sent = None;
-                    stats.resent += 1;
-                }
-                *resend = (*resend * 2).min(MAX_RESEND);
+        let Self { queue, resend, stats, .. } = self;
+        if queue.front().and_then(|b| b.sent).is_some_and(|t| now.saturating_duration_since(t) >= *resend) {
+            for b in queue.iter_mut().take_while(|b| b.sent.is_some()) {
+                b.sent = None;
+                stats.resent += 1;
             }
-            let mut in_flight: u64 = queue.iter().filter(|b| b.sent.is_some()).map(|b| b.bytes.len() as u64).sum();
-            for b in queue.iter_mut().filter(|b| b.sent.is_none()) {
-                let n = b.bytes.len() as u64;
-                if in_flight > 0 && in_flight + n > WINDOW_BYTES {
-                    break;
-                }
-                in_flight += n;
-                out.push(b.bytes.clone());
-                b.sent = Some(now);
-            }
-            if !out.is_empty() || (s.closed && s.queue.is_empty()) || attempt == 1 {
+            *resend = (*resend * 2).min(MAX_RESEND);
+        }
+        let mut in_flight: u64 = queue.iter().filter(|b| b.sent.is_some()).map(|b| b.bytes.len() as u64).sum();
+        for b in queue.iter_mut().filter(|b| b.sent.is_none()) {
+            let n = b.bytes.len() as u64;
+            if in_flight > 0 && in_flight + n > WINDOW_BYTES {
                 break;
             }
-            s = self.changed.wait_timeout(s, TICK).unwrap_or_else(|p| p.into_inner()).0;
+            in_flight += n;
+            out.push(b.bytes.clone());
+            b.sent = Some(now);
         }
-        if s.closed && s.queue.is_empty() {
+        out
+    }
+
+    /// When the oldest batch in flight is due again (None: nothing in flight).
+    pub fn next_resend(&self) -> Option<Instant> {
+        self.queue.front().and_then(|b| b.sent).map(|t| t + self.resend)
+    }
+}
+
+#[derive(Debug)]
+struct State {
+    store: Store,
+    closed: bool,
+}
+
+/// The store between a control loop and the network (see the module
+/// docs): a [`Store`] behind a lock, shared by the loop that hands batches
+/// over and the thread that sends them.
+#[derive(Debug)]
+pub struct Courier {
+    state: Mutex<State>,
+    changed: Condvar,
+}
+
+impl Courier {
+    pub fn new(capacity_steps: u64) -> Self {
+        Self { state: Mutex::new(State { store: Store::new(capacity_steps), closed: false }), changed: Condvar::new() }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// [`Store::available_from`].
+    pub fn available_from(&self, next_k: u64) -> u64 {
+        self.lock().store.available_from(next_k)
+    }
+
+    /// Hands over the batch of steps first_k..end_k; never waits.
+    pub fn push(&self, first_k: u64, end_k: u64, bytes: Vec<u8>) {
+        self.lock().store.push(first_k, end_k, bytes);
+        self.changed.notify_all();
+    }
+
+    /// The monitor holds every step below `next_k`.
+    pub fn ack(&self, next_k: u64) {
+        self.lock().store.ack(next_k);
+        self.changed.notify_all();
+    }
+
+    pub fn stats(&self) -> CourierStats {
+        self.lock().store.stats()
+    }
+
+    /// Steps handed over and not yet acknowledged.
+    pub fn unacknowledged_steps(&self) -> u64 {
+        self.lock().store.unacknowledged_steps()
+    }
+
+    /// The batches due now ([`Store::due`]); waits up to [`TICK`] for work.
+    /// None once closed and empty.
+    fn due(&self) -> Option<Vec<Arc<Vec<u8>>>> {
+        let mut s = self.lock();
+        let mut out = s.store.due(Instant::now());
+        if out.is_empty() && !(s.closed && s.store.is_empty()) {
+            s = self.changed.wait_timeout(s, TICK).unwrap_or_else(|p| p.into_inner()).0;
+            out = s.store.due(Instant::now());
+        }
+        if s.closed && s.store.is_empty() {
             return None;
         }
         Some(out)
@@ -189,7 +250,7 @@ impl Courier {
     pub fn drain(&self, limit: Duration) -> bool {
         let began = Instant::now();
         loop {
-            if self.lock().queue.is_empty() {
+            if self.lock().store.is_empty() {
                 return true;
             }
             if began.elapsed() >= limit {
@@ -231,7 +292,7 @@ impl Delivery {
         let left = self.courier.unacknowledged_steps();
         {
             let mut s = self.courier.lock();
-            s.queue.clear();
+            s.store.clear();
             s.closed = true;
         }
         self.courier.changed.notify_all();
@@ -245,11 +306,15 @@ impl Delivery {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::atomic::{AtomicBool, Ordering};
+
+    /// Virtual time: `t0 + ms`.
+    fn at(t0: Instant, ms: u64) -> Instant {
+        t0 + Duration::from_millis(ms)
+    }
 
     #[test]
     fn a_full_store_drops_the_oldest_and_says_what_is_still_available() {
-        let c = Courier::new(100);
+        let mut c = Store::new(100);
         for i in 0..5u64 {
             c.push(i * 40, (i + 1) * 40, vec![i as u8; 10]);
         }
@@ -265,77 +330,63 @@ mod tests {
         assert_eq!(c.available_from(200), 200, "all acknowledged: the next batch is the first available");
     }
 
+    /// A link dead for 700 ms loses every put; what it lost is sent again
+    /// once the resend timeout passes, until acknowledged.
     #[test]
     fn unacknowledged_batches_are_sent_again_until_acknowledged() {
-        // The link is dead for the first 700 ms: every put fails.
-        let link_up = Arc::new(AtomicBool::new(false));
-        let delivered = Arc::new(Mutex::new(Vec::<u8>::new()));
-        let (up, got) = (link_up.clone(), delivered.clone());
-        let d = Delivery::start(1000, move |b| {
-            if up.load(Ordering::SeqCst) {
-                got.lock().unwrap().push(b[0]);
-                Ok(())
-            } else {
-                Err("down".into())
-            }
-        });
-        let began = Instant::now();
-        for i in 0..10u8 {
-            d.courier.push(u64::from(i) * 10, u64::from(i + 1) * 10, vec![i]);
+        let t0 = Instant::now();
+        let mut c = Store::new(1000);
+        for i in 0..10u64 {
+            c.push(i * 10, (i + 1) * 10, vec![i as u8]);
         }
-        assert!(began.elapsed() < Duration::from_millis(100), "pushing waited {:?}", began.elapsed());
-        std::thread::sleep(Duration::from_millis(700));
-        link_up.store(true, Ordering::SeqCst);
-        // Acknowledge what arrives, as the monitor does.
-        let t = Instant::now();
-        while t.elapsed() < Duration::from_secs(3) {
-            let mut got: Vec<u8> = delivered.lock().unwrap().clone();
-            got.sort_unstable();
-            got.dedup();
-            if got.len() == 10 {
-                d.courier.ack(100);
+        let mut delivered = std::collections::BTreeSet::new();
+        // Every 20 ms the sender asks what is due; the link is up from 700 ms.
+        for ms in (0..3000).step_by(20) {
+            for b in c.due(at(t0, ms)) {
+                if ms >= 700 {
+                    delivered.insert(b[0]);
+                }
+            }
+            if delivered.len() == 10 {
+                c.ack(100);
                 break;
             }
-            std::thread::sleep(Duration::from_millis(10));
         }
-        let stats = d.courier.stats();
-        assert_eq!(d.finish(Duration::from_secs(1)), 0, "every step acknowledged ({stats:?})");
+        let stats = c.stats();
+        assert_eq!(c.unacknowledged_steps(), 0, "every step acknowledged ({stats:?}, delivered {delivered:?})");
         assert!(stats.resent >= 10, "the batches lost to the dead link were sent again: {stats:?}");
+        assert_eq!(c.next_resend(), None, "nothing left in flight");
     }
 
     #[test]
     fn sending_again_is_windowed_and_backs_off_while_nothing_is_acknowledged() {
-        // A dead link for good: count the puts.
-        let puts = Arc::new(Mutex::new(Vec::<(Duration, usize)>::new()));
-        let p = puts.clone();
-        let began = Instant::now();
-        let d = Delivery::start(1_000_000, move |b| {
-            p.lock().unwrap().push((began.elapsed(), b.len()));
-            Err("down".into())
-        });
+        let t0 = Instant::now();
+        let mut c = Store::new(1_000_000);
         // 100 batches of 10 kB: four times the window.
         for i in 0..100u64 {
-            d.courier.push(i * 50, i * 50 + 50, vec![0; 10 * 1024]);
+            c.push(i * 50, i * 50 + 50, vec![0; 10 * 1024]);
         }
-        std::thread::sleep(Duration::from_millis(2000));
-        let log = puts.lock().unwrap().clone();
-        let first: usize = log.iter().filter(|(t, _)| *t < Duration::from_millis(150)).count();
-        assert_eq!(first as u64, WINDOW_BYTES / (10 * 1024), "the first try sends one window: {first} batches");
-        // Tries at 0, 0.3 and 0.9 s (then 2.1 s): three windows in 2 s, not seven.
-        let tries = log.len() / first;
-        assert!(tries <= 3, "{tries} windows sent in 2 s without an acknowledgement (puts at {:?})", {
-            let mut at: Vec<u128> = log.iter().map(|(t, _)| t.as_millis()).collect();
-            at.dedup_by(|a, b| a.abs_diff(*b) < 50);
-            at
-        });
+        let window = (WINDOW_BYTES / (10 * 1024)) as usize;
+        // A dead link for good: which milliseconds send how many batches.
+        let mut tries = Vec::new();
+        for ms in (0..5000).step_by(10) {
+            let n = c.due(at(t0, ms)).len();
+            if n > 0 {
+                tries.push((ms, n));
+            }
+        }
+        // One window at 0, then again after 0.3, 0.6, 1.2, 2.4 and 2.4 s.
+        assert_eq!(tries, vec![(0, window), (300, window), (900, window), (2100, window), (4500, window)]);
+        assert_eq!(c.next_resend(), Some(at(t0, 4500) + MAX_RESEND), "the timeout stops doubling at MAX_RESEND");
         // An acknowledgement resets the pace and frees the window.
-        d.courier.ack(50 * 25);
-        std::thread::sleep(Duration::from_millis(150));
-        let after = puts.lock().unwrap().len() - log.len();
-        assert_eq!(after as u64, WINDOW_BYTES / (10 * 1024), "after the acknowledgement, the next window: {after}");
-        d.finish(Duration::from_millis(10));
+        c.ack(50 * 25);
+        assert_eq!(c.due(at(t0, 4510)).len(), window, "after the acknowledgement, the next window at once");
+        assert_eq!(c.next_resend(), Some(at(t0, 4510) + RESEND), "and the resend timeout is back to RESEND");
     }
 
+    /// The thread around the store: a publisher stuck for good in a put
+    /// does not hold the end of the run; the steps never acknowledged are
+    /// reported.
     #[test]
     fn a_publisher_stuck_for_good_does_not_hold_the_end_of_the_run() {
         let d = Delivery::start(1000, |_| loop {
@@ -344,9 +395,7 @@ mod tests {
         for i in 0..10u64 {
             d.courier.push(i * 5, i * 5 + 5, vec![0; 8]);
         }
-        let began = Instant::now();
         let lost = d.finish(Duration::from_millis(200));
-        assert!(began.elapsed() < Duration::from_secs(2), "finish waited {:?}", began.elapsed());
         assert_eq!(lost, 50, "ten batches of five steps never acknowledged");
     }
 }

@@ -156,19 +156,19 @@ pub enum SessionError {
     Open(String),
 }
 
-fn zerr(what: impl std::fmt::Display, e: impl std::fmt::Display) -> SessionError {
+fn config_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> SessionError {
     SessionError::Config(format!("{what}: {e}"))
 }
 
 fn get(config: &zenoh::Config, key: &str) -> Result<Value, SessionError> {
-    let json = config.get_json(key).map_err(|e| zerr(format_args!("zenoh config key {key}"), e))?;
-    serde_json::from_str(&json).map_err(|e| zerr(format_args!("zenoh config key {key}: {json}"), e))
+    let json = config.get_json(key).map_err(|e| config_err(format_args!("zenoh config key {key}"), e))?;
+    serde_json::from_str(&json).map_err(|e| config_err(format_args!("zenoh config key {key}: {json}"), e))
 }
 
 fn set(config: &mut zenoh::Config, key: &str, value: &Value) -> Result<(), SessionError> {
     config
         .insert_json5(key, &value.to_string())
-        .map_err(|e| zerr(format_args!("setting zenoh config {key} = {value}"), e))
+        .map_err(|e| config_err(format_args!("setting zenoh config {key} = {value}"), e))
 }
 
 fn set_if_unset(config: &mut zenoh::Config, key: &str, value: Value) -> Result<(), SessionError> {
@@ -195,7 +195,7 @@ impl ZenohArgs {
     pub fn to_config(&self) -> Result<zenoh::Config, SessionError> {
         let mut config = match &self.config {
             Some(path) => zenoh::Config::from_file(path)
-                .map_err(|e| zerr(format_args!("reading zenoh config {}", path.display()), e))?,
+                .map_err(|e| config_err(format_args!("reading zenoh config {}", path.display()), e))?,
             None => zenoh::Config::default(),
         };
         let mode = self.effective_mode(&config)?;
