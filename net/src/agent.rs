@@ -485,15 +485,7 @@ async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize) -> Result<u64,
         let inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
         (0..neighbours).map(|slot| inbox.heard_max(slot)).collect()
     };
-    let ahead = inbox::LOCKSTEP_AHEAD + 2;
-    if !heard.iter().flatten().any(|&k| k > ahead) {
-        return Ok(0);
-    }
-    // A follower that hears the leader also needs the leader's messages from
-    // k0 on: the leader runs at most WINDOW steps ahead, keeps those steps
-    // and repeats the ones the slowest follower lacks while it waits.
-    let k0 = heard.iter().flatten().min().copied().unwrap_or(1).saturating_sub(1);
-    Ok(k0)
+    Ok(gate::resume_step(&heard))
 }
 
 /// A process that hears a start older than this is a restart.

@@ -53,6 +53,23 @@ pub fn slowest_step(reached: &[Option<u64>]) -> u64 {
     reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(0)
 }
 
+/// Lock-step: where a restarted follower resumes, from the furthest step
+/// heard from each neighbour (None: not heard) a moment after it joined.
+/// Waiting neighbours repeat their last messages every 100 ms, so one heard
+/// well past step 0 (beyond [`LOCKSTEP_AHEAD`] + 2) means the run is under
+/// way: resume one step before the least advanced of them (adopt from their
+/// messages of that step, and publish the message they wait for). 0 for a
+/// run that is only starting. (A follower that hears the leader also needs
+/// the leader's messages from there on: the leader keeps [`WINDOW`] steps
+/// and repeats what the slowest follower lacks.)
+pub fn resume_step(heard: &[Option<u64>]) -> u64 {
+    let ahead = LOCKSTEP_AHEAD + 2;
+    if !heard.iter().flatten().any(|&k| k > ahead) {
+        return 0;
+    }
+    heard.iter().flatten().min().copied().unwrap_or(1).saturating_sub(1)
+}
+
 /// The last messages a node has published, by step, oldest first, at most
 /// a fixed number of them.
 pub struct Kept {
@@ -158,5 +175,16 @@ mod tests {
         assert_eq!(steps(s.leader_repeats(0)).len(), LEADER_KEPT, "not heard yet: everything kept");
         assert_eq!(slowest_step(&[Some(7), None, Some(3)]), 0, "one not heard yet");
         assert_eq!(slowest_step(&[Some(7), Some(3)]), 3);
+    }
+
+    /// A restarted follower resumes one step before the least advanced
+    /// neighbour; one that hears only the first steps is at the start.
+    #[test]
+    fn a_restart_resumes_one_step_before_the_least_advanced_neighbour() {
+        assert_eq!(resume_step(&[Some(5_731), Some(5_730)]), 5_729, "one before the slowest");
+        assert_eq!(resume_step(&[None, Some(900)]), 899, "a neighbour not heard yet does not count");
+        assert_eq!(resume_step(&[Some(LOCKSTEP_AHEAD + 2), Some(1)]), 0, "only starting: step 0");
+        assert_eq!(resume_step(&[None, None]), 0, "nobody heard");
+        assert_eq!(resume_step(&[]), 0, "no neighbours");
     }
 }
