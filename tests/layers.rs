@@ -91,6 +91,30 @@ fn every_crate_depends_only_on_lower_layers() {
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
 }
 
+/// The libraries build without a command line: clap is the `formation`
+/// crate's, and a library may offer its arguments to it only behind an
+/// optional feature (formation-net's `clap`).
+#[test]
+fn no_library_needs_clap() {
+    let mut wrong = Vec::new();
+    for (name, dir) in members() {
+        if name == "formation" {
+            continue;
+        }
+        let manifest = std::fs::read_to_string(dir.join("Cargo.toml")).expect("Cargo.toml");
+        let mut in_deps = false;
+        for l in manifest.lines() {
+            let t = l.trim();
+            if t.starts_with('[') {
+                in_deps = t == "[dependencies]";
+            } else if in_deps && t.starts_with("clap") && !t.contains("optional = true") {
+                wrong.push(format!("{name}: {t}"));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "libraries that need clap to build:\n{}", wrong.join("\n"));
+}
+
 /// Every .rs file under `src` of a crate (binaries in src/bin excluded: each
 /// is a crate root of its own with one `main`).
 fn sources(dir: &Path) -> Vec<PathBuf> {

@@ -98,29 +98,30 @@ impl Body for SimFollower {
 }
 
 /// `agent` arguments.
-#[derive(clap::Args, Debug, Clone)]
+#[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct AgentArgs {
-    #[command(flatten)]
+    #[cfg_attr(feature = "clap", command(flatten))]
     pub node: NodeArgs,
     /// The follower this process runs, or several (`--id 1,2,3`) that share
     /// one zenoh session: what they say to each other stays inside the
     /// process (no socket, no router), which is how many agents fit on few
     /// cores. Each keeps its own control loop, inbox, telemetry and
     /// checkpoint; one failing ends the process.
-    #[arg(long, value_delimiter = ',', required = true, value_name = "ID[,ID…]")]
+    #[cfg_attr(feature = "clap", arg(long, value_delimiter = ',', required = true, value_name = "ID[,ID…]"))]
     pub id: Vec<u32>,
     /// Give up if lock-step inputs stop arriving for this long (s).
-    #[arg(long, default_value_t = 60.0, value_name = "SECONDS")]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 60.0, value_name = "SECONDS"))]
     pub stall_timeout: f64,
     /// The network itself performs the fault table's `node = …` rows
     /// (`formation lab` takes the link down): do not drop their messages
     /// again in software. `link = …` rows are still applied here.
-    #[arg(long, hide = true)]
+    #[cfg_attr(feature = "clap", arg(long, hide = true))]
     pub physical_node_faults: bool,
     /// Where the robot's pose is checkpointed every 100 ms, so that a
     /// restarted agent resumes from it (default: formation-checkpoints in
     /// the system's temporary folder).
-    #[arg(long, value_name = "DIR")]
+    #[cfg_attr(feature = "clap", arg(long, value_name = "DIR"))]
     pub checkpoint_dir: Option<std::path::PathBuf>,
 }
 

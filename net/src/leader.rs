@@ -28,19 +28,20 @@ use crate::telemetry::{self, Telemetry};
 use crate::timing::Pacer;
 
 /// `leader` arguments.
-#[derive(clap::Args, Debug, Clone)]
+#[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct LeaderArgs {
-    #[command(flatten)]
+    #[cfg_attr(feature = "clap", command(flatten))]
     pub node: NodeArgs,
     /// Real-time mode: run time per wall-clock second [default: network.time_scale].
-    #[arg(long, value_name = "X")]
+    #[cfg_attr(feature = "clap", arg(long, value_name = "X"))]
     pub time_scale: Option<f64>,
     /// Real-time mode: the epoch is announced this long before step 0 (s).
-    #[arg(long, default_value_t = 0.5, value_name = "SECONDS")]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.5, value_name = "SECONDS"))]
     pub start_lead: f64,
     /// Print `start <epoch ns since the Unix epoch> <time scale>` on stdout
     /// once the run starts (for `formation lab`, which times faults by it).
-    #[arg(long, hide = true)]
+    #[cfg_attr(feature = "clap", arg(long, hide = true))]
     pub print_start: bool,
 }
 

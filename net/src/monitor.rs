@@ -28,55 +28,57 @@ use crate::timing::LoopStats;
 use formation_record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
 
 /// `monitor` arguments.
-#[derive(clap::Args, Debug, Clone)]
+#[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct MonitorArgs {
-    #[command(flatten)]
+    #[cfg_attr(feature = "clap", command(flatten))]
     pub node: NodeArgs,
     /// Run folder to write [default: runs/<run name>]. Replaced if it is a run folder; any other existing folder is refused.
-    #[arg(long, value_name = "DIR")]
+    #[cfg_attr(feature = "clap", arg(long, value_name = "DIR"))]
     pub out: Option<PathBuf>,
     /// Write every N-th sample to the CSVs (metrics always use every sample).
-    #[arg(long, default_value_t = 1, value_name = "N")]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1, value_name = "N"))]
     pub every: u64,
     /// Also write run.mcap: the CSVs' rows as an MCAP recording that
     /// Foxglove and the mcap tools open (poses as foxglove.PoseInFrame, every
     /// column as numbers, network events). About 1.6 KB per follower row:
     /// combine with --every for long runs.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub mcap: bool,
     /// Give up when no telemetry arrives for this long (s).
-    #[arg(long, default_value_t = 60.0, value_name = "SECONDS")]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 60.0, value_name = "SECONDS"))]
     pub idle_timeout: f64,
     /// No live line.
-    #[arg(long, short)]
+    #[cfg_attr(feature = "clap", arg(long, short))]
     pub quiet: bool,
-    #[command(flatten)]
+    #[cfg_attr(feature = "clap", command(flatten))]
     pub web: WebArgs,
     /// Serve the live page on this Unix socket instead (the lab forwards a
     /// port of the machine's own namespace to it).
-    #[arg(long, value_name = "PATH", hide = true, conflicts_with = "web")]
+    #[cfg_attr(feature = "clap", arg(long, value_name = "PATH", hide = true, conflicts_with = "web"))]
     pub web_unix: Option<PathBuf>,
 }
 
 /// The live page's options (the monitor's, and `launch`'s and the lab's).
-#[derive(clap::Args, Debug, Clone, Default)]
+#[derive(Debug, Clone, Default)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct WebArgs {
     /// Serve a live page of the run at this address (open http://ADDR/ in a
     /// browser): the plane, errors against time, the network and its events.
     /// `--web` alone: 127.0.0.1:8765. Port 0: any free port (the line
     /// `live page: http://…` says which).
-    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8765")]
+    #[cfg_attr(feature = "clap", arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8765"))]
     pub web: Option<std::net::SocketAddr>,
     /// With --web: keep the page served this long after the run ends, so
     /// that open pages get the end of the run.
-    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 3.0, value_name = "SECONDS"))]
     pub web_linger: f64,
     /// Serve the run live to Foxglove (Foxglove WebSocket protocol) at this
     /// address: the channels of run.mcap (poses, estimates, every CSV
     /// column, network events) at up to 50 messages per channel and second
     /// of run time. In Foxglove: Open connection, Foxglove WebSocket,
     /// ws://ADDR. `--foxglove` alone: 127.0.0.1:8766; port 0: any free port.
-    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8766")]
+    #[cfg_attr(feature = "clap", arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8766"))]
     pub foxglove: Option<std::net::SocketAddr>,
 }
 

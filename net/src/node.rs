@@ -35,21 +35,22 @@ pub fn realtime_hint(scenario: &Scenario) -> Option<String> {
 }
 
 /// Arguments every node takes.
-#[derive(clap::Args, Debug, Clone)]
+#[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct NodeArgs {
     /// Scenario file (TOML); every node of a run must load the same one.
-    #[arg(long, value_name = "FILE")]
+    #[cfg_attr(feature = "clap", arg(long, value_name = "FILE"))]
     pub scenario: PathBuf,
     /// Override a scenario value, as `formation sim --set` (repeatable).
-    #[arg(long = "set", value_name = "KEY=VALUE")]
+    #[cfg_attr(feature = "clap", arg(long = "set", value_name = "KEY=VALUE"))]
     pub overrides: Vec<String>,
     /// Run name: the key namespace `formation/<run>/…` [default: scenario name].
-    #[arg(long, value_name = "NAME")]
+    #[cfg_attr(feature = "clap", arg(long, value_name = "NAME"))]
     pub run: Option<String>,
-    #[command(flatten)]
+    #[cfg_attr(feature = "clap", command(flatten))]
     pub zenoh: ZenohArgs,
     /// Give up when no router or peer answers at start-up within this long (s).
-    #[arg(long, default_value_t = 10.0, value_name = "SECONDS")]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 10.0, value_name = "SECONDS"))]
     pub open_timeout: f64,
 }
 

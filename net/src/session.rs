@@ -36,7 +36,8 @@ use std::path::PathBuf;
 use serde_json::Value;
 
 /// Zenoh node kind, as in zenoh's `mode` config key.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum ZenohMode {
     Peer,
     Client,
@@ -54,38 +55,39 @@ impl ZenohMode {
 }
 
 /// Zenoh connection options shared by every binary (`#[command(flatten)]`).
-#[derive(clap::Args, Clone, Debug, Default)]
+#[derive(Clone, Debug, Default)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct ZenohArgs {
     /// Zenoh mode [default: peer, or the config file's mode].
-    #[arg(long, value_enum)]
+    #[cfg_attr(feature = "clap", arg(long, value_enum))]
     pub mode: Option<ZenohMode>,
     /// Endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable).
     /// Default: tcp/127.0.0.1:0 for a peer, tcp/127.0.0.1:7447 for a router.
-    #[arg(long = "listen", value_name = "ENDPOINT")]
+    #[cfg_attr(feature = "clap", arg(long = "listen", value_name = "ENDPOINT"))]
     pub listen: Vec<String>,
     /// Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable).
-    #[arg(long = "connect", value_name = "ENDPOINT")]
+    #[cfg_attr(feature = "clap", arg(long = "connect", value_name = "ENDPOINT"))]
     pub connect: Vec<String>,
     /// Zenoh configuration file (json5); multicast scouting is forced off
     /// whatever it says.
-    #[arg(long = "config", value_name = "FILE.json5")]
+    #[cfg_attr(feature = "clap", arg(long = "config", value_name = "FILE.json5"))]
     pub config: Option<PathBuf>,
     /// Mutual TLS on every link with the certificates and policy in DIR
     /// (made by `formation certs`): endpoints become tls/…, only the folder's
     /// authority is trusted, plain TCP is refused, and each node may publish
     /// and receive only what its role in the topology needs.
-    #[arg(long = "tls", value_name = "DIR")]
+    #[cfg_attr(feature = "clap", arg(long = "tls", value_name = "DIR"))]
     pub tls: Option<PathBuf>,
     /// Peer mode: link only to the --connect endpoints and to whoever dials
     /// this node. By default zenoh's gossip makes every pair of peers dial
     /// each other: N(N−1)/2 links, which 100 nodes on one host do not
     /// survive. Off, a node hears only the peers it is linked to (peers do
     /// not relay), so the links must cover every pair that talks.
-    #[arg(long = "no-gossip")]
+    #[cfg_attr(feature = "clap", arg(long = "no-gossip"))]
     pub no_gossip: bool,
     /// The node's name in its certificate (`router`, `leader`, `monitor`,
     /// `agent-<id>`): set by the node, not on the command line.
-    #[arg(skip)]
+    #[cfg_attr(feature = "clap", arg(skip))]
     pub identity: Option<String>,
 }
 
@@ -440,12 +442,13 @@ mod tests {
         assert!(e.contains("/nonexistent/zenoh.json5"), "{e}");
     }
 
+    #[cfg(feature = "clap")]
     #[test]
     fn clap_parses_repeatable_flags() {
         use clap::Parser;
         #[derive(clap::Parser)]
         struct Cli {
-            #[command(flatten)]
+            #[cfg_attr(feature = "clap", command(flatten))]
             zenoh: ZenohArgs,
         }
         let cli = Cli::parse_from([
