@@ -135,7 +135,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     crate::error::at_least_one("--round-trips", a.round_trips as u64)?;
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     if let Some(dir) = &a.tls {
-        formation_net::identity::check_all(dir, &scenario).map_err(Error::Input)?;
+        formation_net::identity::check_all(dir, &scenario).map_err(|e| Error::Input(e.0))?;
     }
     let n = scenario.followers.len();
     let sim_s = formation_topology::Scenario::load(&a.scenario, &lockstep_sets(a.lockstep_duration))
@@ -462,7 +462,7 @@ fn receive(inbox: &Mutex<Inbox>, key: &str, bytes: &[u8], neighbours: &[u32]) ->
 /// sessions are agents 1 and 2 (with their identities under `tls`); the
 /// plain ping-pong uses the same keys in another run's namespace, so the
 /// access-control policy lets it through.
-async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> anyhow::Result<((f64, f64), (f64, f64), f64)> {
+async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<((f64, f64), (f64, f64), f64), Error> {
     let ep = format!("tcp/127.0.0.1:{port}");
     let as_agent = |id: u32| ZenohArgs {
         tls: tls.map(std::path::Path::to_path_buf),
@@ -501,20 +501,20 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> anyhow::
         .express(true)
         .congestion_control(CongestionControl::Block)
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(|e| Error::Run(e.to_string()))?;
     let b_est_pub = b
         .declare_publisher(k("estimate/2"))
         .express(true)
         .congestion_control(CongestionControl::Block)
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(|e| Error::Run(e.to_string()))?;
     let _b_plain = b
         .declare_subscriber(ping.clone())
         .callback(move |s| {
             let _ = b_plain_pub.put(s.payload().to_bytes().into_owned()).wait();
         })
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(|e| Error::Run(e.to_string()))?;
     let b_inbox = Arc::new(Mutex::new(Inbox::new(1, false)));
     let bi = b_inbox.clone();
     let _b_est = b
@@ -527,12 +527,12 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> anyhow::
             }
         })
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(|e| Error::Run(e.to_string()))?;
     // A: count answers.
     let plain_flag = Arc::new(Flag::default());
     let est_flag = Arc::new(Flag::default());
     let pf = plain_flag.clone();
-    let _a_plain = a.declare_subscriber(pong).callback(move |_| pf.hit()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _a_plain = a.declare_subscriber(pong).callback(move |_| pf.hit()).await.map_err(|e| Error::Run(e.to_string()))?;
     let a_inbox = Arc::new(Mutex::new(Inbox::new(1, false)));
     let (ai, ef) = (a_inbox.clone(), est_flag.clone());
     let _a_est = a
@@ -543,36 +543,38 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> anyhow::
             }
         })
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(|e| Error::Run(e.to_string()))?;
     let a_plain_pub = a
         .declare_publisher(ping)
         .express(true)
         .congestion_control(CongestionControl::Block)
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(|e| Error::Run(e.to_string()))?;
     let a_est_pub = a
         .declare_publisher(k("estimate/1"))
         .express(true)
         .congestion_control(CongestionControl::Block)
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(|e| Error::Run(e.to_string()))?;
     let size = estimate(1, 0).len();
 
-    let measured = tokio::task::spawn_blocking(move || -> anyhow::Result<(Vec<f64>, Vec<f64>)> {
+    let measured = tokio::task::spawn_blocking(move || -> Result<(Vec<f64>, Vec<f64>), Error> {
         // Wait until both directions carry traffic.
         let t = Instant::now();
         let mut step = 0u64;
         loop {
             step += 1;
-            a_est_pub.put(estimate(1, step)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
-            a_plain_pub.put(vec![0u8; size]).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+            a_est_pub.put(estimate(1, step)).wait().map_err(|e| Error::Run(e.to_string()))?;
+            a_plain_pub.put(vec![0u8; size]).wait().map_err(|e| Error::Run(e.to_string()))?;
             std::thread::sleep(Duration::from_millis(20));
             if *est_flag.hits.lock().unwrap_or_else(|p| p.into_inner()) > 0
                 && *plain_flag.hits.lock().unwrap_or_else(|p| p.into_inner()) > 0
             {
                 break;
             }
-            anyhow::ensure!(t.elapsed() < Duration::from_secs(10), "the two sessions did not connect");
+            if t.elapsed() >= Duration::from_secs(10) {
+                return Err(Error::Run("the two sessions did not connect".into()));
+            }
         }
         std::thread::sleep(Duration::from_millis(100));
         let (mut e_done, mut p_done) = (
@@ -583,19 +585,24 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> anyhow::
         for _ in 0..n {
             step += 1;
             let t = Instant::now();
-            a_est_pub.put(estimate(1, step)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+            a_est_pub.put(estimate(1, step)).wait().map_err(|e| Error::Run(e.to_string()))?;
             e_done += 1;
-            anyhow::ensure!(est_flag.wait_for(e_done), "estimate answer lost");
+            if !est_flag.wait_for(e_done) {
+                return Err(Error::Run("estimate answer lost".into()));
+            }
             est.push(t.elapsed().as_secs_f64() * 1e6 / 2.0);
             let t = Instant::now();
-            a_plain_pub.put(vec![0u8; size]).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+            a_plain_pub.put(vec![0u8; size]).wait().map_err(|e| Error::Run(e.to_string()))?;
             p_done += 1;
-            anyhow::ensure!(plain_flag.wait_for(p_done), "pong lost");
+            if !plain_flag.wait_for(p_done) {
+                return Err(Error::Run("pong lost".into()));
+            }
             plain.push(t.elapsed().as_secs_f64() * 1e6 / 2.0);
         }
         Ok((est, plain))
     })
-    .await??;
+    .await
+    .map_err(|e| Error::Run(format!("the latency measurement panicked: {e}")))??;
     let (mut est, mut plain) = measured;
     let (e50, e99, _) = timing::percentiles(&mut est);
     let (p50, p99, _) = timing::percentiles(&mut plain);

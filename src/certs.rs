@@ -86,7 +86,7 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
     }
     let mut extra = Vec::new();
     for s in &a.san {
-        extra.push(san(s).map_err(|e| Error::Input(format!("--san {s}: {e}")))?);
+        extra.push(san(s)?);
     }
     std::fs::create_dir_all(dir).map_err(|e| Error::Run(format!("creating {}: {e}", dir.display())))?;
 
@@ -130,14 +130,15 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
     Ok(())
 }
 
-fn san(s: &str) -> Result<rcgen::SanType, String> {
+/// A `--san` value: an IP address, or a DNS name.
+fn san(s: &str) -> Result<rcgen::SanType, Error> {
     match s.parse::<IpAddr>() {
         Ok(ip) => Ok(rcgen::SanType::IpAddress(ip)),
         Err(_) => s
             .to_string()
             .try_into()
             .map(rcgen::SanType::DnsName)
-            .map_err(|e| format!("not an address or DNS name: {e}")),
+            .map_err(|e| Error::Input(format!("--san {s}: not an address or DNS name: {e}"))),
     }
 }
 

@@ -76,7 +76,7 @@ impl RunOptions {
     /// The scenario, the run name and the run folder, checked (bad input: exit 2).
     pub fn resolve(&self) -> Result<(Scenario, String, PathBuf), CliError> {
         let scenario = self.scenario.load()?;
-        formation_net::node::networked(&scenario).map_err(CliError::Input)?;
+        formation_net::node::networked(&scenario)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
         formation_net::names::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
         if let Some(x) = self.time_scale {
@@ -87,7 +87,7 @@ impl RunOptions {
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
         if let Some(dir) = &self.tls {
             // Every node's files, checked before any process starts.
-            formation_net::identity::check_all(dir, &scenario).map_err(CliError::Input)?;
+            formation_net::identity::check_all(dir, &scenario).map_err(|e| CliError::Input(e.0))?;
         }
         Ok((scenario, run, out))
     }

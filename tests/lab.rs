@@ -25,7 +25,7 @@ fn lab_available() -> bool {
         Ok(formation::lab::netns::Privilege::Root) if nft => None,
         Ok(formation::lab::netns::Privilege::Root) => Some("`nft` (nftables) is missing".to_string()),
         Ok(formation::lab::netns::Privilege::Unshare) => Some("not root".to_string()),
-        Err(e) => Some(e),
+        Err(e) => Some(e.0),
     };
     match why {
         None => true,

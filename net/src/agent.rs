@@ -25,6 +25,8 @@ use zenoh::Wait;
 use crate::error::{zerr, Error};
 
 use crate::barrier::{self, Start};
+use crate::clock;
+use crate::startup;
 use crate::checkpoint;
 use crate::codec;
 use crate::counters::Counters;
@@ -211,7 +213,7 @@ pub async fn run_follower(
     let mut body = body;
     let id = scenario.graph.id(index);
     // Nothing of this process goes out before it knows it has no twin.
-    barrier::refuse_twin(session, keys, id, scenario.steps()).await?;
+    startup::refuse_twin(session, keys, id, scenario.steps()).await?;
     let hears_leader = scenario.graph.hears_leader(index);
     let neighbour_ids: Vec<u32> = scenario.graph.neighbours(index).iter().map(|&j| scenario.graph.id(j)).collect();
     let lockstep = scenario.timing == Timing::Lockstep;
@@ -279,9 +281,9 @@ pub async fn run_follower(
         needs.push(wire::LEADER_ID.to_string());
     }
     let fingerprint = barrier::fingerprint(scenario);
-    let start = barrier::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
+    let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
     // A run that began a while ago: this process is a restart (docs/model.md §14).
-    let late = barrier::unix_ns().saturating_sub(start.epoch_unix_ns) > LATE.as_nanos() as u64;
+    let late = clock::unix_ns().saturating_sub(start.epoch_unix_ns) > LATE.as_nanos() as u64;
     let first_step = if lockstep {
         if late {
             lockstep_rejoin_step(&shared, neighbour_ids.len()).await?
@@ -322,7 +324,7 @@ pub async fn run_follower(
         let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
         let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
         set_window(&mut inbox, scenario, slots, hears_leader, scale);
-        inbox.set_clock(start.epoch_instant(), Duration::from_secs_f64(scenario.dt_s / scale));
+        inbox.set_clock(clock::epoch_instant(&start), Duration::from_secs_f64(scenario.dt_s / scale));
     }
     let loop_ctx = LoopCtx {
         id,
@@ -339,7 +341,7 @@ pub async fn run_follower(
         latest,
         start,
         stall_timeout,
-        incarnation: barrier::unix_ns(),
+        incarnation: clock::unix_ns(),
         neighbours_done,
         source_ids: sources.clone(),
         source_names: sources
@@ -353,7 +355,7 @@ pub async fn run_follower(
     let watcher = (has_router && !lockstep).then(|| {
         let session = session.clone();
         let shared = shared.clone();
-        let (epoch, step) = (start.epoch_instant(), Duration::from_secs_f64(scenario.dt_s / start_scale(&start)));
+        let (epoch, step) = (clock::epoch_instant(&start), Duration::from_secs_f64(scenario.dt_s / start_scale(&start)));
         tokio::spawn(async move {
             let mut had = true;
             loop {
@@ -447,8 +449,8 @@ struct LoopCtx {
     source_ids: Vec<u32>,
 }
 
-fn put(p: &Publisher<'_>, bytes: &[u8]) -> Result<(), String> {
-    p.put(bytes.to_vec()).wait().map_err(|e| format!("publishing: {e}"))
+fn put(p: &Publisher<'_>, bytes: &[u8]) -> Result<(), Error> {
+    p.put(bytes.to_vec()).wait().map_err(|e| zerr("publishing", e))
 }
 
 /// Real time: the step a process that hears the start `start` should begin
@@ -456,7 +458,7 @@ fn put(p: &Publisher<'_>, bytes: &[u8]) -> Result<(), String> {
 /// otherwise a restart, which resumes [`LATE`] ahead of the run's current
 /// step (time to set up before that step is due).
 fn rejoin_step(start: &Start, scenario: &Scenario) -> Result<u64, Error> {
-    let now = barrier::unix_ns();
+    let now = clock::unix_ns();
     let elapsed_s = now.saturating_sub(start.epoch_unix_ns) as f64 * 1e-9 * start_scale(start);
     if elapsed_s < LATE.as_secs_f64() {
         return Ok(0);
@@ -520,7 +522,7 @@ fn control_loop(
     shared: &Shared,
     estimate_pub: &Publisher<'_>,
     telemetry: &Courier,
-) -> Result<(), String> {
+) -> Result<(), Error> {
     let msg = |k: u64, m: Message| EstimateMsg {
         header: Header { version: FORMAT_VERSION, sender: c.id, step: k, time_s: k as f64 * c.dt_s },
         state: m.state,
@@ -561,47 +563,42 @@ fn control_loop(
             let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
             inbox.set_step(k);
             if c.lockstep {
-                let waited = Instant::now();
-                let mut said = Instant::now();
-                let mut warned = false;
+                let mut wait = gate::Wait::new(Instant::now(), gate::FOLLOWER_REPEAT_EVERY, c.stall_timeout);
                 while !inbox.has_all(k) {
-                    // Woken by every message that arrives (others' repeats
-                    // included): repeat on a clock of our own, not only
-                    // after a quiet 100 ms, or nodes that keep waking each
-                    // other would never repeat anything.
+                    // Woken by every message that arrives (others' repeats included).
                     let (g, _) = shared
                         .arrived
-                        .wait_timeout(inbox, Duration::from_millis(100))
+                        .wait_timeout(inbox, gate::FOLLOWER_REPEAT_EVERY)
                         .unwrap_or_else(|p| p.into_inner());
                     inbox = g;
                     if inbox.has_all(k) {
                         break;
                     }
-                    if waited.elapsed() > c.stall_timeout {
-                        let missing = inbox.missing(k);
-                        let names: Vec<&str> = missing.iter().map(|&s| c.source_names[s].as_str()).collect();
-                        return Err(format!(
-                            "{} stopped answering: no input for step {k} from {} for {:.0} s (stall timeout; a \
+                    let now = Instant::now();
+                    let mut missing = || {
+                        let names: Vec<&str> = inbox.missing(k).iter().map(|&s| c.source_names[s].as_str()).collect();
+                        (names.join(" and "), names.len())
+                    };
+                    let gate::WaitStep::Wait { repeat, warn } = wait.poll(now) else {
+                        let (names, n) = missing();
+                        return Err(Error::Run(format!(
+                            "{names} stopped answering: no input for step {k} from {} for {:.0} s (stall timeout; a \
                              process that is down, or a link that does not carry its messages)",
-                            names.join(" and "),
-                            if names.len() == 1 { "it" } else { "them" },
+                            if n == 1 { "it" } else { "them" },
                             c.stall_timeout.as_secs_f64()
-                        ));
-                    }
-                    if !warned && waited.elapsed() > gate::STALL_WARNING {
-                        warned = true;
-                        let missing = inbox.missing(k);
-                        let names: Vec<&str> = missing.iter().map(|&s| c.source_names[s].as_str()).collect();
+                        )));
+                    };
+                    if warn {
                         crate::node::say(&format!(
                             "follower {}: waiting {:.0} s for step {k} from {} (stall timeout {:.0} s); repeating its \
                              last messages meanwhile",
                             c.id,
-                            waited.elapsed().as_secs_f64(),
-                            names.join(" and "),
+                            wait.waited(now).as_secs_f64(),
+                            missing().0,
                             c.stall_timeout.as_secs_f64()
                         ));
                     }
-                    if said.elapsed() >= Duration::from_millis(100) {
+                    if repeat {
                         // Safety net for messages lost on the way: say again
                         // what the neighbours still need.
                         let slowest = inbox.slowest_heard(c.neighbours);
@@ -611,7 +608,6 @@ fn control_loop(
                             sent += 1;
                             republished += 1;
                         }
-                        said = Instant::now();
                         inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
                     }
                 }
@@ -704,24 +700,22 @@ fn control_loop(
             first_k = k + 1;
         }
         if let Some(q) = diverged {
-            return Err(format!("{q} is not finite at step {k} (t = {t} s); the run diverged"));
+            return Err(Error::Run(format!("{q} is not finite at step {k} (t = {t} s); the run diverged")));
         }
     }
     if c.lockstep {
         // A neighbour may still wait for our final message (lost?): say it
         // again until every neighbour reports its final step, for at most LINGER.
-        let began = Instant::now();
-        let mut said = Instant::now();
-        while began.elapsed() < LINGER {
+        let mut linger = gate::Wait::new(Instant::now(), gate::LINGER_REPEAT_EVERY, LINGER);
+        while let gate::WaitStep::Wait { repeat, .. } = linger.poll(Instant::now()) {
             if shared_len(&c.neighbours_done) >= c.neighbours {
                 break;
             }
-            if said.elapsed() >= Duration::from_millis(200) {
+            if repeat {
                 let slowest = shared.inbox.lock().unwrap_or_else(|p| p.into_inner()).slowest_heard(c.neighbours);
                 for bytes in recent.follower_repeats(slowest) {
                     put(estimate_pub, bytes)?;
                 }
-                said = Instant::now();
             }
             std::thread::sleep(Duration::from_millis(10));
         }

@@ -11,17 +11,20 @@
 //! agent and the monitor ready with its own fingerprint, repeats `start`
 //! (the run's epoch and time scale). Nobody stops saying `hello` before the
 //! start, so nobody waits forever for a hello.
+//!
+//! This module holds the barrier's rules as two plain state machines, fed
+//! what a node heard and the time, and asked every [`TICK`] what to do:
+//! [`Join`] (an agent or the monitor) and [`Lead`] (the leader). They own
+//! no socket and read no clock, so their tests run in virtual time;
+//! [`crate::startup`] puts them on zenoh.
 
-use std::collections::BTreeSet;
-use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::{Duration, Instant};
 
 use formation_topology::Scenario;
 use serde::{Deserialize, Serialize};
 
-use crate::codec;
-use crate::error::{zerr, Error};
-use crate::names::{self, Keys};
+use crate::error::Error;
 
 /// "I can hear everyone I need": sent by agents and the monitor.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -40,23 +43,6 @@ pub struct Start {
     pub fingerprint: u64,
     pub epoch_unix_ns: u64,
     pub time_scale: f64,
-}
-
-impl Start {
-    /// The epoch as a tokio/std instant of this process.
-    pub fn epoch_instant(&self) -> std::time::Instant {
-        let now_i = std::time::Instant::now();
-        let now_ns = unix_ns();
-        if self.epoch_unix_ns >= now_ns {
-            now_i + Duration::from_nanos(self.epoch_unix_ns - now_ns)
-        } else {
-            now_i.checked_sub(Duration::from_nanos(now_ns - self.epoch_unix_ns)).unwrap_or(now_i)
-        }
-    }
-}
-
-pub fn unix_ns() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
 }
 
 /// A fingerprint of the scenario as loaded (file plus overrides), so that
@@ -113,15 +99,18 @@ pub const MISMATCH_GRACE: Duration = Duration::from_secs(5);
 
 /// How long a node waits at the barrier before giving up.
 pub const START_TIMEOUT: Duration = Duration::from_secs(120);
-const TICK: Duration = Duration::from_millis(50);
+/// How often a waiting node says hello (and ready) and asks its machine
+/// what to do.
+pub const TICK: Duration = Duration::from_millis(50);
 /// A ready carries the scenario's key digests once in this many.
 const DIGESTS_EVERY: u64 = 20;
 
+/// What a node heard at the barrier, filed by [`Join`] and [`Lead`].
 #[derive(Default)]
 struct Heard {
     /// This node's scenario fingerprint: Start and Ready with another are ignored.
     fingerprint: u64,
-    /// The leader: the nodes whose Ready counts (any other name is ignored).
+    /// The nodes whose Ready counts (any other name is ignored).
     expected: BTreeSet<String>,
     hello: BTreeSet<String>,
     /// Expected nodes heard ready with this node's fingerprint.
@@ -135,7 +124,7 @@ struct Heard {
     /// This node's key digests, and per node ready with another
     /// fingerprint, the keys that differ and when it was first heard so.
     mine: Vec<(String, u64)>,
-    differ: std::collections::BTreeMap<String, (Vec<String>, Instant)>,
+    differ: BTreeMap<String, (Vec<String>, Instant)>,
     /// When a start with another fingerprint was first heard.
     foreign_start: Option<Instant>,
     /// The leader's reason for refusing the run, if it did.
@@ -143,20 +132,31 @@ struct Heard {
 }
 
 impl Heard {
-    fn new(fingerprint: u64, expected: &[String]) -> Self {
-        Self { fingerprint, expected: expected.iter().cloned().collect(), ..Self::default() }
+    fn new(scenario: &Scenario, expected: &[String]) -> Self {
+        Self {
+            fingerprint: fingerprint(scenario),
+            expected: expected.iter().cloned().collect(),
+            mine: key_digests(scenario),
+            ..Self::default()
+        }
     }
 
-    fn on_start(&mut self, start: Start) {
+    fn on_hello(&mut self, name: &str) {
+        if !self.hello.contains(name) {
+            self.hello.insert(name.to_string());
+        }
+    }
+
+    fn on_start(&mut self, start: Start, now: Instant) {
         if start.fingerprint == self.fingerprint {
             self.start.get_or_insert(start);
         } else {
             self.ignored += 1;
-            self.foreign_start.get_or_insert_with(Instant::now);
+            self.foreign_start.get_or_insert(now);
         }
     }
 
-    fn on_ready(&mut self, name: &str, r: Ready) {
+    fn on_ready(&mut self, name: &str, r: Ready, now: Instant) {
         if !self.expected.contains(name) {
             self.ignored += 1;
         } else if r.fingerprint == self.fingerprint {
@@ -166,386 +166,505 @@ impl Heard {
             self.ready_foreign.insert(name.to_string());
             // Most readies carry no digests: the keys that differ are known
             // from the first that does.
-            let e = self.differ.entry(name.to_string()).or_insert_with(|| (Vec::new(), Instant::now()));
+            let e = self.differ.entry(name.to_string()).or_insert_with(|| (Vec::new(), now));
             if e.0.is_empty() && !r.keys.is_empty() {
                 e.0 = differing_keys(&self.mine, &r.keys);
             }
         }
     }
-}
 
-fn lock(h: &Mutex<Heard>) -> std::sync::MutexGuard<'_, Heard> {
-    h.lock().unwrap_or_else(|p| p.into_inner())
-}
-
-/// Whose hellos and readies a node listens to: everybody's (one wildcard
-/// subscriber), or only the named nodes' (one subscriber each, so that the
-/// router forwards a node's barrier traffic only to those who need it: with
-/// N nodes, N·degree messages a tick instead of N²).
-#[derive(Clone, Copy)]
-enum Whom<'a> {
-    All,
-    Only(&'a [String]),
-}
-
-impl Whom<'_> {
-    fn keys(self, all: String, one: impl Fn(&str) -> String) -> Vec<String> {
-        match self {
-            Whom::All => vec![all],
-            Whom::Only(names) => names.iter().map(|n| one(n)).collect(),
+    fn on_abort(&mut self, reason: &str) {
+        let reason: String = reason.chars().take(500).collect();
+        if !reason.is_empty() {
+            self.abort.get_or_insert(reason);
         }
+    }
+
+    fn missing(&self, of: &BTreeSet<String>, needs: &[String]) -> Vec<String> {
+        needs.iter().filter(|n| !of.contains(*n)).cloned().collect()
     }
 }
 
-/// A node needing more nodes than this listens to everybody's barrier traffic.
-const FEW: usize = 32;
-
-async fn listen(
-    session: &zenoh::Session,
-    keys: &Keys,
-    heard: &Arc<Mutex<Heard>>,
-    from: Whom<'_>,
-) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, Error> {
-    let mut subs = Vec::new();
-    for key in from.keys(keys.hello("*"), |n| keys.hello(n)) {
-        let h = heard.clone();
-        subs.push(
-            session
-                .declare_subscriber(key)
-                .callback(move |s| {
-                    lock(&h).hello.insert(names::last_chunk(s.key_expr().as_str()).to_string());
-                })
-                .await
-                .map_err(|e| zerr("declaring the hello subscriber", e))?,
-        );
+/// "node 3" or "the leader", for a node name in control keys.
+fn node_phrase(n: &str) -> String {
+    if n == crate::names::LEADER_NODE {
+        "the leader".to_string()
+    } else {
+        format!("node {n}")
     }
-    let h = heard.clone();
-    subs.push(
-        session
-            .declare_subscriber(keys.start())
-            .callback(move |s| {
-                if let Some(start) = codec::decode::<Start>(&s.payload().to_bytes()) {
-                    lock(&h).on_start(start);
-                }
-            })
-            .await
-            .map_err(|e| zerr("declaring the start subscriber", e))?,
-    );
-    let h = heard.clone();
-    subs.push(
-        session
-            .declare_subscriber(keys.abort())
-            .callback(move |s| {
-                let reason = String::from_utf8_lossy(&s.payload().to_bytes()).chars().take(500).collect::<String>();
-                if !reason.is_empty() {
-                    lock(&h).abort.get_or_insert(reason);
-                }
-            })
-            .await
-            .map_err(|e| zerr("declaring the abort subscriber", e))?,
-    );
-    for key in from.keys(keys.ready_all(), |n| keys.ready(n)) {
-        let h = heard.clone();
-        subs.push(
-            session
-                .declare_subscriber(key)
-                .callback(move |s| {
-                    if let Some(r) = codec::decode::<Ready>(&s.payload().to_bytes()) {
-                        lock(&h).on_ready(names::last_chunk(s.key_expr().as_str()), r);
-                    }
-                })
-                .await
-                .map_err(|e| zerr("declaring the ready subscriber", e))?,
-        );
-    }
-    Ok(subs)
 }
 
-fn missing(have: impl Fn(&str) -> bool, needs: &[String]) -> Vec<String> {
-    needs.iter().filter(|n| !have(n)).cloned().collect()
+/// What a node waiting for the start does at a tick.
+#[derive(Debug, PartialEq)]
+pub enum JoinStep {
+    /// Say hello; say ready too (with the key digests, or without) once
+    /// every needed node is heard; print `warning` if there is one.
+    Wait { ready: Option<ReadyForm>, warning: Option<String> },
+    /// The leader's start with this node's scenario: run.
+    Started(Start),
+    /// Give up, with the line to end on.
+    Failed(Error),
 }
 
-/// An agent or the monitor (`me`): says hello until it has heard every node
-/// in `needs`, then says ready until the leader's start, which it returns.
-/// Call after declaring the node's data subscribers.
-pub async fn wait_for_start(
-    session: &zenoh::Session,
-    keys: &Keys,
-    me: &str,
-    needs: &[String],
-    scenario: &Scenario,
-) -> Result<Start, Error> {
-    let fingerprint = self::fingerprint(scenario);
-    // The nodes it needs count when they say ready with another scenario.
-    let mut h0 = Heard::new(fingerprint, needs);
-    h0.mine = key_digests(scenario);
-    let heard = Arc::new(Mutex::new(h0));
-    let from = if needs.len() <= FEW { Whom::Only(needs) } else { Whom::All };
-    let _subs = listen(session, keys, &heard, from).await?;
-    let began = Instant::now();
-    // The key digests (a few KB for a large scenario) go with every
-    // DIGESTS_EVERY-th ready only; the fingerprint with every one.
-    let ready_full = codec::encode(&Ready { fingerprint, keys: key_digests(scenario) });
-    let ready_short = codec::encode(&Ready { fingerprint, keys: Vec::new() });
-    let mut readies = 0u64;
-    let mut warned = false;
-    loop {
-        let (start, waiting, ignored, foreign_since, mismatched) = {
-            let h = lock(&heard);
-            let mismatched = h
-                .differ
-                .iter()
-                .find(|(n, (_, since))| !h.ready.contains(*n) && since.elapsed() >= MISMATCH_GRACE)
-                .map(|(n, (k, _))| (n.clone(), k.clone()));
-            (h.start, missing(|n| h.hello.contains(n), needs), h.ignored, h.foreign_start, mismatched)
-        };
-        if let Some(start) = start {
-            return Ok(start);
+/// Which of the two encodings of this node's [`Ready`] to send.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ReadyForm {
+    /// With every key's digest, so that a mismatch can name the keys.
+    Full,
+    /// The fingerprint alone.
+    Short,
+}
+
+/// The barrier of an agent or the monitor (`me`): hello until it has heard
+/// every node it needs, then ready, until the leader's start.
+pub struct Join {
+    me: String,
+    run: String,
+    needs: Vec<String>,
+    heard: Heard,
+    began: Instant,
+    readies: u64,
+    warned: bool,
+}
+
+impl Join {
+    /// `needs`: the nodes `me` receives from (they count when they say
+    /// ready with another scenario); `now`: when it began waiting.
+    pub fn new(me: &str, run: &str, needs: &[String], scenario: &Scenario, now: Instant) -> Self {
+        Self {
+            me: me.to_string(),
+            run: run.to_string(),
+            needs: needs.to_vec(),
+            heard: Heard::new(scenario, needs),
+            began: now,
+            readies: 0,
+            warned: false,
         }
-        if let Some(reason) = lock(&heard).abort.clone() {
-            return Err(Error::Input(format!("node {me}: the leader refused run {}: {reason}", keys.run)));
+    }
+
+    pub fn on_hello(&mut self, from: &str) {
+        self.heard.on_hello(from);
+    }
+
+    pub fn on_ready(&mut self, from: &str, ready: Ready, now: Instant) {
+        self.heard.on_ready(from, ready, now);
+    }
+
+    pub fn on_start(&mut self, start: Start, now: Instant) {
+        self.heard.on_start(start, now);
+    }
+
+    pub fn on_abort(&mut self, reason: &str) {
+        self.heard.on_abort(reason);
+    }
+
+    /// Start and Ready messages ignored (another scenario, or an unexpected sender).
+    pub fn ignored(&self) -> u64 {
+        self.heard.ignored
+    }
+
+    /// What to do at `now` (called every [`TICK`]).
+    pub fn poll(&mut self, now: Instant) -> JoinStep {
+        let (me, run, h) = (&self.me, &self.run, &self.heard);
+        if let Some(start) = h.start {
+            return JoinStep::Started(start);
         }
-        if let Some((n, differ)) = mismatched {
-            let n = if n == "0" { "the leader".to_string() } else { format!("node {n}") };
-            return Err(Error::Input(format!(
-                "node {me}: {n} of run {} runs another scenario, {} (another file or --set values)",
-                keys.run,
+        if let Some(reason) = &h.abort {
+            return JoinStep::Failed(Error::Input(format!("node {me}: the leader refused run {run}: {reason}")));
+        }
+        let mismatched = h
+            .differ
+            .iter()
+            .find(|(n, (_, since))| !h.ready.contains(*n) && now.saturating_duration_since(*since) >= MISMATCH_GRACE);
+        if let Some((n, (differ, _))) = mismatched {
+            return JoinStep::Failed(Error::Input(format!(
+                "node {me}: {} of run {run} runs another scenario, {} (another file or --set values)",
+                node_phrase(n),
                 if differ.is_empty() {
                     "with other keys".to_string()
                 } else {
-                    format!("differing in {}", key_list(&differ))
+                    format!("differing in {}", key_list(differ))
                 }
             )));
         }
-        if foreign_since.is_some_and(|t| t.elapsed() >= MISMATCH_GRACE * 2) {
+        let foreign_for = h.foreign_start.map(|t| now.saturating_duration_since(t));
+        if foreign_for.is_some_and(|d| d >= MISMATCH_GRACE * 2) {
             // Heard for 10 s: the leader of this run has another scenario.
-            return Err(Error::Input(format!(
-                "node {me}: the leader of run {} has another scenario (another file or --set values; the \
+            return JoinStep::Failed(Error::Input(format!(
+                "node {me}: the leader of run {run} has another scenario (another file or --set values; the \
                  leader's own message names the keys that differ); no start for this one in {} s",
-                keys.run,
                 (MISMATCH_GRACE * 2).as_secs()
             )));
         }
-        if foreign_since.is_some() && !warned {
-            // Said at once, not only at the time limit; not fatal, since a
-            // forged announcement must not stop a genuine run.
-            eprintln!(
-                "node {me}: the leader of run {} announces another scenario (another file or --set values?); \
-                 waiting up to {} s for a start with this one",
-                keys.run,
-                (MISMATCH_GRACE * 2).as_secs()
-            );
-            warned = true;
-        }
-        session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
-        if waiting.is_empty() {
-            let ready = if readies % DIGESTS_EVERY == 0 { &ready_full } else { &ready_short };
-            readies += 1;
-            session.put(keys.ready(me), ready.clone()).await.map_err(|e| zerr("saying ready", e))?;
-        }
-        if began.elapsed() > START_TIMEOUT {
-            let what = if waiting.is_empty() {
-                "the leader's start".to_string()
-            } else {
-                format!("nodes {}", waiting.join(", "))
-            };
-            if waiting.is_empty() && foreign_since.is_some() {
-                return Err(Error::Input(format!(
-                    "node {me}: no start for this scenario within {} s; ignored {ignored} start announcements \
-                     of run {} with another scenario fingerprint (a leader with another scenario or --set values?)",
+        let waiting = h.missing(&h.hello, &self.needs);
+        if now.saturating_duration_since(self.began) > START_TIMEOUT {
+            if waiting.is_empty() && foreign_for.is_some() {
+                return JoinStep::Failed(Error::Input(format!(
+                    "node {me}: no start for this scenario within {} s; ignored {} start announcements of run \
+                     {run} with another scenario fingerprint (a leader with another scenario or --set values?)",
                     START_TIMEOUT.as_secs(),
-                    keys.run
+                    h.ignored
                 )));
             }
-            return Err(Error::Run(format!(
-                "node {me}: no word from {what} within {} s (run {})",
-                START_TIMEOUT.as_secs(),
-                keys.run
-            )));
-        }
-        tokio::time::sleep(TICK).await;
-    }
-}
-
-/// The leader: says hello until it has heard the hellos in `needs_hello`
-/// and every node of `expect_ready` ready (with this scenario's
-/// fingerprint); then announces [`Start`] (epoch `lead` from now) and keeps
-/// announcing it every 100 ms until the returned task is aborted.
-pub async fn lead_start(
-    session: &zenoh::Session,
-    keys: &Keys,
-    needs_hello: &[String],
-    expect_ready: &[String],
-    scenario: &Scenario,
-    time_scale: f64,
-    lead: Duration,
-) -> Result<(Start, tokio::task::JoinHandle<()>), Error> {
-    let fingerprint = self::fingerprint(scenario);
-    let mut h0 = Heard::new(fingerprint, expect_ready);
-    h0.mine = key_digests(scenario);
-    let heard = Arc::new(Mutex::new(h0));
-    let subs = listen(session, keys, &heard, Whom::All).await?;
-    let began = Instant::now();
-    let me = names::LEADER_NODE;
-    let mut warned: Vec<String> = Vec::new();
-    loop {
-        let (hello_missing, ready_missing, foreign) = {
-            let h = lock(&heard);
-            // Nodes heard only with another fingerprint (possibly forged): still missing.
-            let foreign: Vec<(String, Vec<String>, Duration)> = h
-                .ready_foreign
-                .iter()
-                .filter(|n| !h.ready.contains(*n))
-                .map(|n| {
-                    let (keys, since) = h.differ.get(n).cloned().unwrap_or_else(|| (Vec::new(), Instant::now()));
-                    (n.clone(), keys, since.elapsed())
-                })
-                .collect();
-            (missing(|n| h.hello.contains(n), needs_hello), missing(|n| h.ready.contains(n), expect_ready), foreign)
-        };
-        if hello_missing.is_empty() && ready_missing.is_empty() {
-            break;
-        }
-        let differs = |keys_differ: &[String]| {
-            if keys_differ.is_empty() {
-                "(the keys that differ are not known: an older build?)".to_string()
-            } else {
-                format!("differing in {}", key_list(keys_differ))
-            }
-        };
-        for (n, keys_differ, since) in &foreign {
-            if *since >= MISMATCH_GRACE {
-                let reason = format!("node {n} runs another scenario, {}", differs(keys_differ));
-                // Tell every node waiting for the start, so none waits it out.
-                for _ in 0..5 {
-                    let _ = session.put(keys.abort(), reason.clone().into_bytes()).await;
-                    tokio::time::sleep(TICK).await;
-                }
-                return Err(Error::Input(format!(
-                    "leader: {reason} in run {} (another file or --set values)",
-                    keys.run
-                )));
-            }
-            if warned.contains(n) {
-                continue;
-            }
-            eprintln!(
-                "leader: node {n} of run {} is ready with another scenario, {}; waiting up to {} s for it to run \
-                 this one",
-                keys.run,
-                differs(keys_differ),
-                MISMATCH_GRACE.as_secs()
-            );
-            warned.push(n.clone());
-        }
-        session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
-        if began.elapsed() > START_TIMEOUT {
-            let mut waiting: BTreeSet<String> = hello_missing.into_iter().collect();
-            waiting.extend(ready_missing);
-            return Err(Error::Run(format!(
-                "leader: nodes {} of run {} not ready within {} s",
-                waiting.into_iter().collect::<Vec<_>>().join(", "),
-                keys.run,
+            let what =
+                if waiting.is_empty() { "the leader's start".to_string() } else { format!("nodes {}", waiting.join(", ")) };
+            return JoinStep::Failed(Error::Run(format!(
+                "node {me}: no word from {what} within {} s (run {run})",
                 START_TIMEOUT.as_secs()
             )));
         }
-        tokio::time::sleep(TICK).await;
+        // Said at once, not only at the time limit; not fatal, since a
+        // forged announcement must not stop a genuine run.
+        let warning = (foreign_for.is_some() && !self.warned).then(|| {
+            format!(
+                "node {me}: the leader of run {run} announces another scenario (another file or --set values?); \
+                 waiting up to {} s for a start with this one",
+                (MISMATCH_GRACE * 2).as_secs()
+            )
+        });
+        self.warned |= warning.is_some();
+        // The key digests (a few KB for a large scenario) go with every
+        // DIGESTS_EVERY-th ready only; the fingerprint with every one.
+        let ready = waiting.is_empty().then(|| {
+            let form = if self.readies % DIGESTS_EVERY == 0 { ReadyForm::Full } else { ReadyForm::Short };
+            self.readies += 1;
+            form
+        });
+        JoinStep::Wait { ready, warning }
     }
-    drop(subs);
-    let start = Start { fingerprint, epoch_unix_ns: unix_ns() + lead.as_nanos() as u64, time_scale };
-    let bytes = codec::encode(&start);
-    let session = session.clone();
-    let key = keys.start();
-    let task = tokio::spawn(async move {
-        loop {
-            if session.put(&key, bytes.clone()).await.is_err() {
-                return;
-            }
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-    });
-    Ok((start, task))
 }
 
-/// How long a node listens for a twin before it joins a run.
-pub const TWIN_LISTEN: Duration = Duration::from_millis(300);
+/// What the leader does at a tick of the barrier.
+#[derive(Debug, PartialEq)]
+pub enum LeadStep {
+    /// Say hello; print each warning.
+    Wait { warnings: Vec<String> },
+    /// Every node is heard and ready with this scenario: announce the start.
+    Go,
+    /// A node runs another scenario: tell every waiting node `reason`
+    /// (the abort key), then end with `error`.
+    Refuse { reason: String, error: Error },
+    /// Give up, with the line to end on.
+    Failed(Error),
+}
 
-/// Refuses to take part in a run where a process with this node's identity
-/// (`id`: 0 the leader, else a follower) already publishes estimates: a
-/// second formation started with the same run name, or a second process
-/// for one follower. Called before the node publishes anything; listens to
-/// its own estimate key for [`TWIN_LISTEN`]. (A forged message can still
-/// make a node refuse: traffic is not authenticated yet.)
-pub async fn refuse_twin(session: &zenoh::Session, keys: &Keys, id: u32, steps: u64) -> Result<(), Error> {
-    let heard = Arc::new(std::sync::atomic::AtomicU64::new(0));
-    let h = heard.clone();
-    let sub = session
-        .declare_subscriber(keys.estimate(id))
-        .callback(move |sample| {
-            // Only a well-formed estimate from this very id, of a step of
-            // the run, counts (garbage on the key is the inbox's business).
-            let bytes = sample.payload().to_bytes();
-            if formation_topology::wire::decode(&bytes).is_ok_and(|m| m.header.sender == id && m.header.step <= steps) {
-                h.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            }
-        })
-        .await
-        .map_err(|e| zerr("listening for a twin", e))?;
-    tokio::time::sleep(TWIN_LISTEN).await;
-    drop(sub);
-    let n = heard.load(std::sync::atomic::Ordering::Relaxed);
-    if n == 0 {
-        return Ok(());
+/// The leader's barrier: hello until it has heard the hellos it needs and
+/// every expected node ready with its scenario.
+pub struct Lead {
+    run: String,
+    needs_hello: Vec<String>,
+    expect_ready: Vec<String>,
+    heard: Heard,
+    began: Instant,
+    warned: BTreeSet<String>,
+}
+
+impl Lead {
+    pub fn new(run: &str, needs_hello: &[String], expect_ready: &[String], scenario: &Scenario, now: Instant) -> Self {
+        Self {
+            run: run.to_string(),
+            needs_hello: needs_hello.to_vec(),
+            expect_ready: expect_ready.to_vec(),
+            heard: Heard::new(scenario, expect_ready),
+            began: now,
+            warned: BTreeSet::new(),
+        }
     }
-    let who = if id == 0 { "the leader".to_string() } else { format!("follower {id}") };
-    Err(Error::Input(format!(
-        "run {}: {who} is already running on this network ({n} of its estimates in {} ms): another formation \
-         with the same run name, or a second process for {who}. Give this formation another name with --run \
-         NAME, or stop the other process",
-        keys.run,
-        TWIN_LISTEN.as_millis()
-    )))
+
+    pub fn on_hello(&mut self, from: &str) {
+        self.heard.on_hello(from);
+    }
+
+    pub fn on_ready(&mut self, from: &str, ready: Ready, now: Instant) {
+        self.heard.on_ready(from, ready, now);
+    }
+
+    /// Start and Ready messages ignored (another scenario, or an unexpected sender).
+    pub fn ignored(&self) -> u64 {
+        self.heard.ignored
+    }
+
+    /// What to do at `now` (called every [`TICK`]).
+    pub fn poll(&mut self, now: Instant) -> LeadStep {
+        let (run, h) = (&self.run, &self.heard);
+        let hello_missing = h.missing(&h.hello, &self.needs_hello);
+        let ready_missing = h.missing(&h.ready, &self.expect_ready);
+        if hello_missing.is_empty() && ready_missing.is_empty() {
+            return LeadStep::Go;
+        }
+        let differs = |keys: &[String]| {
+            if keys.is_empty() {
+                "(the keys that differ are not known: an older build?)".to_string()
+            } else {
+                format!("differing in {}", key_list(keys))
+            }
+        };
+        let mut warnings = Vec::new();
+        // Nodes heard only with another fingerprint (possibly forged): still missing.
+        for n in h.ready_foreign.iter().filter(|n| !h.ready.contains(*n)) {
+            let (keys, since) = h.differ.get(n).cloned().unwrap_or((Vec::new(), now));
+            if now.saturating_duration_since(since) >= MISMATCH_GRACE {
+                let reason = format!("node {n} runs another scenario, {}", differs(&keys));
+                let error = Error::Input(format!("leader: {reason} in run {run} (another file or --set values)"));
+                return LeadStep::Refuse { reason, error };
+            }
+            if self.warned.insert(n.clone()) {
+                warnings.push(format!(
+                    "leader: node {n} of run {run} is ready with another scenario, {}; waiting up to {} s for it to \
+                     run this one",
+                    differs(&keys),
+                    MISMATCH_GRACE.as_secs()
+                ));
+            }
+        }
+        if now.saturating_duration_since(self.began) > START_TIMEOUT {
+            let waiting: BTreeSet<String> = hello_missing.into_iter().chain(ready_missing).collect();
+            return LeadStep::Failed(Error::Run(format!(
+                "leader: nodes {} of run {run} not ready within {} s",
+                waiting.into_iter().collect::<Vec<_>>().join(", "),
+                START_TIMEOUT.as_secs()
+            )));
+        }
+        LeadStep::Wait { warnings }
+    }
+
+    /// The start to announce, `lead` after `now_unix_ns` (the wall clock
+    /// when the machine said [`LeadStep::Go`]).
+    pub fn start(&self, now_unix_ns: u64, lead: Duration, time_scale: f64) -> Start {
+        Start { fingerprint: self.heard.fingerprint, epoch_unix_ns: now_unix_ns + lead.as_nanos() as u64, time_scale }
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn paper(sets: &[&str]) -> Scenario {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+        Scenario::load(&path, &sets.iter().map(|s| s.to_string()).collect::<Vec<_>>()).expect("scenario")
+    }
+
+    fn names(n: &[&str]) -> Vec<String> {
+        n.iter().map(|s| s.to_string()).collect()
+    }
+
+    fn ready(s: &Scenario) -> Ready {
+        Ready { fingerprint: fingerprint(s), keys: key_digests(s) }
+    }
+
+    fn start(s: &Scenario) -> Start {
+        Start { fingerprint: fingerprint(s), epoch_unix_ns: 1, time_scale: 1.0 }
+    }
+
+    /// Polls every tick from `from` to `to` (virtual time), returning every step.
+    fn ticks<S>(poll: &mut impl FnMut(Instant) -> S, t0: Instant, from: Duration, to: Duration) -> Vec<S> {
+        let mut out = Vec::new();
+        let mut t = from;
+        while t <= to {
+            out.push(poll(t0 + t));
+            t += TICK;
+        }
+        out
+    }
+
     #[test]
     fn foreign_start_and_ready_are_ignored_and_counted() {
-        let mut h = Heard::new(7, &["1".to_string(), "monitor".to_string()]);
-        let start = |fingerprint| Start { fingerprint, epoch_unix_ns: 1, time_scale: 1.0 };
+        let t = Instant::now();
+        let s = paper(&[]);
+        let other = paper(&["dt=0.002"]);
+        let mut h = Heard::new(&s, &names(&["1", "monitor"]));
         // A foreign start first is not kept; the genuine one after it is.
-        h.on_start(start(8));
+        h.on_start(start(&other), t);
         assert_eq!(h.start, None);
-        h.on_start(start(7));
-        h.on_start(start(9));
-        assert_eq!(h.start.map(|s| s.fingerprint), Some(7));
+        h.on_start(start(&s), t);
+        h.on_start(start(&paper(&["dt=0.005"])), t);
+        assert_eq!(h.start.map(|x| x.fingerprint), Some(fingerprint(&s)));
         // Ready from names outside the expected set, or with another fingerprint, does not count.
-        let ready = |fingerprint| Ready { fingerprint, keys: vec![] };
-        h.on_ready("rogue", ready(8));
-        h.on_ready("rogue", ready(7));
-        h.on_ready("1", ready(8));
+        h.on_ready("rogue", ready(&other), t);
+        h.on_ready("rogue", ready(&s), t);
+        h.on_ready("1", ready(&other), t);
         assert!(h.ready.is_empty());
         assert_eq!(h.ready_foreign.iter().collect::<Vec<_>>(), ["1"]);
-        h.on_ready("1", ready(7));
-        h.on_ready("monitor", ready(7));
+        h.on_ready("1", ready(&s), t);
+        h.on_ready("monitor", ready(&s), t);
         assert_eq!(h.ready.len(), 2);
         assert_eq!(h.ignored, 5);
     }
 
     #[test]
     fn a_mismatch_names_the_keys_that_differ() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
-        let a = Scenario::load(&path, &[]).expect("scenario");
-        let b = Scenario::load(&path, &["robot.mass=12".to_string(), "dt=0.002".to_string()]).expect("scenario");
+        let a = paper(&[]);
+        let b = paper(&["robot.mass=12", "dt=0.002"]);
         let (da, db) = (key_digests(&a), key_digests(&b));
         assert!(da.len() > 20, "{} keys", da.len());
         assert_eq!(differing_keys(&da, &da), Vec::<String>::new());
         assert_eq!(differing_keys(&da, &db), ["dt", "robot.mass"]);
-        let mut h = Heard::new(fingerprint(&a), &["3".to_string()]);
-        h.mine = da;
-        h.on_ready("3", Ready { fingerprint: fingerprint(&b), keys: db });
+        let mut h = Heard::new(&a, &names(&["3"]));
+        h.on_ready("3", ready(&b), Instant::now());
         assert_eq!(h.differ["3"].0, ["dt", "robot.mass"]);
+    }
+
+    #[test]
+    fn an_agent_says_hello_then_ready_until_the_start() {
+        let (s, t0) = (paper(&[]), Instant::now());
+        let mut j = Join::new("2", "r", &names(&["1", "3", "0"]), &s, t0);
+        assert_eq!(j.poll(t0), JoinStep::Wait { ready: None, warning: None }, "hello only, nobody heard");
+        j.on_hello("1");
+        j.on_hello("0");
+        j.on_hello("7"); // not needed: changes nothing
+        assert_eq!(j.poll(t0 + TICK), JoinStep::Wait { ready: None, warning: None }, "node 3 not heard yet");
+        j.on_hello("3");
+        // Ready, with the key digests once in DIGESTS_EVERY.
+        let forms: Vec<_> = ticks(&mut |t| j.poll(t), t0, TICK * 2, TICK * 42)
+            .into_iter()
+            .map(|x| match x {
+                JoinStep::Wait { ready: Some(f), warning: None } => f,
+                other => panic!("{other:?}"),
+            })
+            .collect();
+        assert_eq!(forms.len(), 41);
+        let full: Vec<usize> = forms.iter().enumerate().filter(|(_, f)| **f == ReadyForm::Full).map(|(i, _)| i).collect();
+        assert_eq!(full, [0, 20, 40]);
+        j.on_start(start(&s), t0 + TICK * 43);
+        assert_eq!(j.poll(t0 + TICK * 43), JoinStep::Started(start(&s)));
+    }
+
+    #[test]
+    fn an_agent_gives_up_after_the_timeout_naming_who_it_never_heard() {
+        let (s, t0) = (paper(&[]), Instant::now());
+        let mut j = Join::new("2", "r", &names(&["1", "3", "0"]), &s, t0);
+        j.on_hello("1");
+        assert!(matches!(j.poll(t0 + START_TIMEOUT), JoinStep::Wait { .. }), "not before the timeout");
+        match j.poll(t0 + START_TIMEOUT + TICK) {
+            JoinStep::Failed(Error::Run(m)) => {
+                assert_eq!(m, "node 2: no word from nodes 3, 0 within 120 s (run r)")
+            }
+            other => panic!("{other:?}"),
+        }
+        // Every node heard, but no start: the leader's start is what is missing.
+        let mut j = Join::new("monitor", "r", &names(&["0"]), &s, t0);
+        j.on_hello("0");
+        match j.poll(t0 + START_TIMEOUT + TICK) {
+            JoinStep::Failed(Error::Run(m)) => assert!(m.contains("no word from the leader's start"), "{m}"),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_foreign_start_warns_once_and_ends_the_wait_after_ten_seconds() {
+        let (s, t0) = (paper(&[]), Instant::now());
+        let other = paper(&["robot.mass=12"]);
+        let mut j = Join::new("4", "r", &names(&["0"]), &s, t0);
+        j.on_hello("0");
+        j.on_start(start(&other), t0 + Duration::from_secs(1));
+        let steps = ticks(&mut |t| j.poll(t), t0, Duration::from_secs(1), Duration::from_secs(11) - TICK);
+        let warnings: Vec<_> =
+            steps.iter().filter(|x| matches!(x, JoinStep::Wait { warning: Some(_), .. })).collect();
+        assert_eq!(warnings.len(), 1, "warned once, at once: {:?}", &steps[..2]);
+        assert!(matches!(steps[0], JoinStep::Wait { warning: Some(_), .. }));
+        assert!(steps.iter().all(|x| matches!(x, JoinStep::Wait { .. })), "still waiting before 10 s");
+        match j.poll(t0 + Duration::from_secs(11)) {
+            JoinStep::Failed(Error::Input(m)) => assert!(m.contains("the leader of run r has another scenario"), "{m}"),
+            other => panic!("{other:?}"),
+        }
+        // A genuine start within the 10 s wins over the forged one.
+        let mut j = Join::new("4", "r", &names(&["0"]), &s, t0);
+        j.on_start(start(&other), t0);
+        j.on_start(start(&s), t0 + Duration::from_secs(9));
+        assert_eq!(j.poll(t0 + Duration::from_secs(12)), JoinStep::Started(start(&s)));
+        assert_eq!(j.ignored(), 1);
+    }
+
+    #[test]
+    fn a_neighbour_with_another_scenario_ends_the_wait_naming_the_keys() {
+        let (s, t0) = (paper(&[]), Instant::now());
+        let other = paper(&["robot.mass=12"]);
+        let mut j = Join::new("1", "r", &names(&["2", "0"]), &s, t0);
+        j.on_ready("2", ready(&other), t0);
+        assert!(matches!(j.poll(t0 + MISMATCH_GRACE - TICK), JoinStep::Wait { .. }));
+        match j.poll(t0 + MISMATCH_GRACE) {
+            JoinStep::Failed(Error::Input(m)) => {
+                assert_eq!(m, "node 1: node 2 of run r runs another scenario, differing in robot.mass (another file or --set values)")
+            }
+            other => panic!("{other:?}"),
+        }
+        // One that comes round to this scenario in time is no mismatch.
+        let mut j = Join::new("1", "r", &names(&["2", "0"]), &s, t0);
+        j.on_ready("2", ready(&other), t0);
+        j.on_ready("2", ready(&s), t0 + TICK);
+        assert!(matches!(j.poll(t0 + MISMATCH_GRACE * 2), JoinStep::Wait { .. }));
+    }
+
+    #[test]
+    fn the_leaders_refusal_ends_every_wait_with_its_reason() {
+        let (s, t0) = (paper(&[]), Instant::now());
+        let mut j = Join::new("3", "r", &names(&["0"]), &s, t0);
+        j.on_abort("");
+        assert!(matches!(j.poll(t0), JoinStep::Wait { .. }), "an empty abort is no reason");
+        j.on_abort(&"x".repeat(2000));
+        match j.poll(t0 + TICK) {
+            JoinStep::Failed(Error::Input(m)) => {
+                assert!(m.starts_with("node 3: the leader refused run r: xxx"), "{m}");
+                assert!(m.len() < 600, "a reason is cut to 500 characters: {}", m.len());
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn the_leader_goes_once_every_node_is_heard_and_ready() {
+        let (s, t0) = (paper(&[]), Instant::now());
+        let mut l = Lead::new("r", &names(&["1", "2"]), &names(&["1", "2", "monitor"]), &s, t0);
+        assert_eq!(l.poll(t0), LeadStep::Wait { warnings: vec![] });
+        l.on_hello("1");
+        l.on_hello("2");
+        l.on_ready("1", ready(&s), t0);
+        l.on_ready("2", ready(&s), t0);
+        l.on_ready("intruder", ready(&s), t0);
+        assert_eq!(l.poll(t0 + TICK), LeadStep::Wait { warnings: vec![] }, "the monitor is not ready");
+        l.on_ready("monitor", ready(&s), t0 + TICK);
+        assert_eq!(l.poll(t0 + TICK * 2), LeadStep::Go);
+        assert_eq!(l.ignored(), 1);
+        let go = l.start(1_000, Duration::from_millis(300), 2.0);
+        assert_eq!(go, Start { fingerprint: fingerprint(&s), epoch_unix_ns: 300_001_000, time_scale: 2.0 });
+    }
+
+    #[test]
+    fn the_leader_warns_once_then_refuses_a_node_with_another_scenario() {
+        let (s, t0) = (paper(&[]), Instant::now());
+        let other = paper(&["dt=0.002"]);
+        let mut l = Lead::new("r", &names(&["1"]), &names(&["1"]), &s, t0);
+        l.on_hello("1");
+        l.on_ready("1", ready(&other), t0 + TICK);
+        let steps = ticks(&mut |t| l.poll(t), t0, TICK, MISMATCH_GRACE);
+        let warned: Vec<_> = steps
+            .iter()
+            .flat_map(|x| match x {
+                LeadStep::Wait { warnings } => warnings.clone(),
+                other => panic!("{other:?}"),
+            })
+            .collect();
+        assert_eq!(warned.len(), 1, "{warned:?}");
+        assert!(warned[0].contains("node 1 of run r is ready with another scenario, differing in dt"), "{}", warned[0]);
+        match l.poll(t0 + TICK + MISMATCH_GRACE) {
+            LeadStep::Refuse { reason, error: Error::Input(m) } => {
+                assert_eq!(reason, "node 1 runs another scenario, differing in dt");
+                assert_eq!(m, "leader: node 1 runs another scenario, differing in dt in run r (another file or --set values)");
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn the_leader_gives_up_naming_the_nodes_not_ready() {
+        let (s, t0) = (paper(&[]), Instant::now());
+        let mut l = Lead::new("r", &names(&["1", "2"]), &names(&["1", "2", "monitor"]), &s, t0);
+        l.on_hello("1");
+        l.on_ready("1", ready(&s), t0);
+        assert!(matches!(l.poll(t0 + START_TIMEOUT), LeadStep::Wait { .. }));
+        match l.poll(t0 + START_TIMEOUT + TICK) {
+            LeadStep::Failed(Error::Run(m)) => assert_eq!(m, "leader: nodes 2, monitor of run r not ready within 120 s"),
+            other => panic!("{other:?}"),
+        }
     }
 }

@@ -2,6 +2,7 @@
 //! robot's pose, written every [`PERIOD`] to a small file where the next
 //! process with the same run, id and scenario finds it.
 
+use crate::error::Error;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -42,15 +43,15 @@ pub fn default_dir() -> PathBuf {
 
 /// Reads a checkpoint; None if there is none, it cannot be read, or it
 /// belongs to another scenario or run.
-pub fn read(path: &Path, fingerprint: u64, epoch_unix_ns: u64) -> Result<Checkpoint, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("no checkpoint at {} ({e})", path.display()))?;
+pub fn read(path: &Path, fingerprint: u64, epoch_unix_ns: u64) -> Result<Checkpoint, Error> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::Input(format!("no checkpoint at {} ({e})", path.display())))?;
     let c: Checkpoint =
-        serde_json::from_str(&text).map_err(|e| format!("{}: not a checkpoint ({e})", path.display()))?;
+        serde_json::from_str(&text).map_err(|e| Error::Input(format!("{}: not a checkpoint ({e})", path.display())))?;
     if c.fingerprint != fingerprint || c.epoch_unix_ns != epoch_unix_ns {
-        return Err(format!("{}: a checkpoint of another run or scenario", path.display()));
+        return Err(Error::Input(format!("{}: a checkpoint of another run or scenario", path.display())));
     }
     if !c.pose.iter().all(|x| x.is_finite()) {
-        return Err(format!("{}: a pose that is not finite", path.display()));
+        return Err(Error::Input(format!("{}: a pose that is not finite", path.display())));
     }
     Ok(c)
 }

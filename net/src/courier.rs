@@ -262,22 +262,23 @@ impl Courier {
 }
 
 /// A courier and the thread that publishes from it with `publish` (which
-/// may block on a slow or dead link; the loop never notices).
+/// may block on a slow or dead link; the loop never notices). A put that
+/// fails is like a lost one: sent again after the resend back-off, so
+/// `publish` returns nothing.
 pub struct Delivery {
     pub courier: Arc<Courier>,
     thread: std::thread::JoinHandle<()>,
 }
 
 impl Delivery {
-    pub fn start(capacity_steps: u64, publish: impl FnMut(&[u8]) -> Result<(), String> + Send + 'static) -> Self {
+    pub fn start(capacity_steps: u64, publish: impl FnMut(&[u8]) + Send + 'static) -> Self {
         let courier = Arc::new(Courier::new(capacity_steps));
         let c = courier.clone();
         let mut publish = publish;
         let thread = std::thread::spawn(move || {
             while let Some(batches) = c.due() {
                 for bytes in batches {
-                    // A failed put is like a lost one: sent again after RESEND.
-                    let _ = publish(&bytes);
+                    publish(&bytes);
                 }
             }
         });

@@ -1,9 +1,7 @@
 //! The error a node ends with: one line, and whose fault it was. The
 //! binaries map the kind to an exit status; nothing here knows one.
 
-use crate::session::SessionError;
-
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, PartialEq, Eq, thiserror::Error)]
 pub enum Error {
     /// Bad input: a malformed scenario, a bad option, a mismatched node.
     #[error("{0}")]
@@ -11,15 +9,6 @@ pub enum Error {
     /// The run failed: a node stopped answering, a file could not be written.
     #[error("{0}")]
     Run(String),
-}
-
-impl From<SessionError> for Error {
-    fn from(e: SessionError) -> Self {
-        match e {
-            SessionError::Config(m) => Error::Input(m),
-            SessionError::Open(m) => Error::Run(m),
-        }
-    }
 }
 
 impl From<std::io::Error> for Error {

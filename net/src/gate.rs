@@ -1,10 +1,12 @@
 //! The lock-step gate's rules, shared by the leader and the agents: how far
 //! the leader may run ahead, when a wait is reported, and which of the
 //! messages a node has published it repeats for neighbours that are
-//! behind. Plain data, no IO and no clock: the nodes ask it what to send.
+//! behind, and when a waiting node repeats, warns or gives up ([`Wait`]).
+//! Plain data, no IO and no clock: the nodes tell it the time and ask it
+//! what to send.
 
 use std::collections::VecDeque;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use crate::inbox::LOCKSTEP_AHEAD;
 
@@ -117,6 +119,71 @@ impl Kept {
     }
 }
 
+/// A follower waiting for its step's inputs repeats what its neighbours
+/// may lack this often.
+pub const FOLLOWER_REPEAT_EVERY: Duration = Duration::from_millis(100);
+
+/// The leader waiting for its window repeats this often.
+pub const LEADER_REPEAT_EVERY: Duration = Duration::from_millis(200);
+
+/// How long the leader waits for its window before it gives up.
+pub const LEADER_STALL: Duration = Duration::from_secs(60);
+
+/// After its last step a node repeats this often what a neighbour may still
+/// wait for.
+pub const LINGER_REPEAT_EVERY: Duration = Duration::from_millis(200);
+
+/// What a waiting node does at a moment of its wait.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WaitStep {
+    /// Go on waiting; `repeat`: say again what the others may lack;
+    /// `warn`: report the wait once (it has lasted [`STALL_WARNING`]).
+    Wait { repeat: bool, warn: bool },
+    /// The wait has lasted its limit: give up (a lock-step wait), or stop
+    /// lingering.
+    Over,
+}
+
+/// One lock-step wait, by the clock the node passes in: a follower's for
+/// its step's inputs, the leader's for its window, or either's linger
+/// after its last step. Repeats come on the wait's own clock, not only
+/// after a quiet period: nodes that keep waking each other with their
+/// repeats would otherwise never repeat anything.
+#[derive(Clone, Debug)]
+pub struct Wait {
+    began: Instant,
+    said: Instant,
+    every: Duration,
+    limit: Duration,
+    warned: bool,
+}
+
+impl Wait {
+    /// A wait begun at `now` that repeats `every` and is over after `limit`.
+    pub fn new(now: Instant, every: Duration, limit: Duration) -> Self {
+        Self { began: now, said: now, every, limit, warned: false }
+    }
+
+    /// How long it has waited at `now`.
+    pub fn waited(&self, now: Instant) -> Duration {
+        now.saturating_duration_since(self.began)
+    }
+
+    /// What to do at `now`.
+    pub fn poll(&mut self, now: Instant) -> WaitStep {
+        if self.waited(now) > self.limit {
+            return WaitStep::Over;
+        }
+        let warn = !self.warned && self.waited(now) > STALL_WARNING;
+        self.warned |= warn;
+        let repeat = now.saturating_duration_since(self.said) >= self.every;
+        if repeat {
+            self.said = now;
+        }
+        WaitStep::Wait { repeat, warn }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -186,5 +253,25 @@ mod tests {
         assert_eq!(resume_step(&[Some(LOCKSTEP_AHEAD + 2), Some(1)]), 0, "only starting: step 0");
         assert_eq!(resume_step(&[None, None]), 0, "nobody heard");
         assert_eq!(resume_step(&[]), 0, "no neighbours");
+    }
+
+    /// A wait repeats on its own clock, warns once after STALL_WARNING and
+    /// is over after its limit (virtual time).
+    #[test]
+    fn a_wait_repeats_on_its_clock_warns_once_and_ends_at_its_limit() {
+        let t0 = Instant::now();
+        let ms = |m: u64| t0 + Duration::from_millis(m);
+        let mut w = Wait::new(t0, FOLLOWER_REPEAT_EVERY, Duration::from_secs(8));
+        assert_eq!(w.poll(ms(0)), WaitStep::Wait { repeat: false, warn: false });
+        assert_eq!(w.poll(ms(99)), WaitStep::Wait { repeat: false, warn: false });
+        assert_eq!(w.poll(ms(100)), WaitStep::Wait { repeat: true, warn: false });
+        // Woken often (by others' repeats): still one repeat per 100 ms.
+        let repeats = (101..=1_000).filter(|&m| w.poll(ms(m)) == WaitStep::Wait { repeat: true, warn: false }).count();
+        assert_eq!(repeats, 9);
+        let warns: Vec<u64> =
+            (1_001..=8_000).filter(|&m| matches!(w.poll(ms(m)), WaitStep::Wait { warn: true, .. })).collect();
+        assert_eq!(warns, [5_001], "once, just past {STALL_WARNING:?}");
+        assert_eq!(w.poll(ms(8_001)), WaitStep::Over);
+        assert_eq!(w.waited(ms(8_001)), Duration::from_millis(8_001));
     }
 }

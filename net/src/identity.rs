@@ -14,6 +14,11 @@ use serde_json::{json, Value};
 
 use crate::names::{agent_name, node_names, LEADER, MONITOR, ROUTER};
 
+/// A TLS identity or policy that cannot be used: the file and what is wrong with it.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct IdentityError(pub String);
+
 /// The authority's certificate and key in a certificate folder.
 pub const CA_CERT: &str = "ca.pem";
 pub const CA_KEY: &str = "ca.key";
@@ -117,69 +122,69 @@ pub struct Identity {
 /// Checks `dir` for node `name`: the authority, the node's certificate
 /// (issued by the authority, for this node, valid now) and key (matching
 /// it), and the policy. Each problem is one line.
-pub fn identity(dir: &Path, name: &str) -> Result<Identity, String> {
+pub fn identity(dir: &Path, name: &str) -> Result<Identity, IdentityError> {
     use x509_parser::prelude::*;
     let (ca, cert, key) = (dir.join(CA_CERT), dir.join(format!("{name}.pem")), dir.join(format!("{name}.key")));
-    let read = |p: &Path| -> Result<Vec<u8>, String> {
-        std::fs::read(p).map_err(|e| format!("--tls {}: cannot read {}: {e}", dir.display(), p.display()))
+    let read = |p: &Path| -> Result<Vec<u8>, IdentityError> {
+        std::fs::read(p).map_err(|e| IdentityError(format!("--tls {}: cannot read {}: {e}", dir.display(), p.display())))
     };
-    let pem_of = |p: &Path, bytes: &[u8]| -> Result<Pem, String> {
-        let (_, pem) = parse_x509_pem(bytes).map_err(|e| format!("{}: not a PEM certificate: {e}", p.display()))?;
+    let pem_of = |p: &Path, bytes: &[u8]| -> Result<Pem, IdentityError> {
+        let (_, pem) = parse_x509_pem(bytes).map_err(|e| IdentityError(format!("{}: not a PEM certificate: {e}", p.display())))?;
         Ok(pem)
     };
     let ca_bytes = read(&ca)?;
     let ca_pem = pem_of(&ca, &ca_bytes)?;
-    let ca_x509 = ca_pem.parse_x509().map_err(|e| format!("{}: not a certificate: {e}", ca.display()))?;
+    let ca_x509 = ca_pem.parse_x509().map_err(|e| IdentityError(format!("{}: not a certificate: {e}", ca.display())))?;
     let cert_bytes = read(&cert)?;
     let cert_pem = pem_of(&cert, &cert_bytes)?;
-    let x509 = cert_pem.parse_x509().map_err(|e| format!("{}: not a certificate: {e}", cert.display()))?;
+    let x509 = cert_pem.parse_x509().map_err(|e| IdentityError(format!("{}: not a certificate: {e}", cert.display())))?;
     let cn = x509.subject().iter_common_name().next().and_then(|c| c.as_str().ok()).unwrap_or("").to_string();
     if cn != name {
-        return Err(format!("{} is the certificate of {cn:?}, not of {name}", cert.display()));
+        return Err(IdentityError(format!("{} is the certificate of {cn:?}, not of {name}", cert.display())));
     }
     if x509.verify_signature(Some(ca_x509.public_key())).is_err() {
-        return Err(format!("{} was not issued by the authority {}", cert.display(), ca.display()));
+        return Err(IdentityError(format!("{} was not issued by the authority {}", cert.display(), ca.display())));
     }
     let now = ASN1Time::now();
     let validity = x509.validity();
     if now < validity.not_before {
-        return Err(format!("{} is not valid yet: valid from {} (now {})", cert.display(), validity.not_before, now));
+        return Err(IdentityError(format!("{} is not valid yet: valid from {} (now {})", cert.display(), validity.not_before, now)));
     }
     if now > validity.not_after {
-        return Err(format!("{} expired on {} (now {})", cert.display(), validity.not_after, now));
+        return Err(IdentityError(format!("{} expired on {} (now {})", cert.display(), validity.not_after, now)));
     }
-    let key_text = String::from_utf8(read(&key)?).map_err(|_| format!("{}: not a PEM private key", key.display()))?;
-    let pair = rcgen::KeyPair::from_pem(&key_text).map_err(|e| format!("{}: not a private key: {e}", key.display()))?;
+    let key_text = String::from_utf8(read(&key)?).map_err(|_| IdentityError(format!("{}: not a PEM private key", key.display())))?;
+    let pair = rcgen::KeyPair::from_pem(&key_text).map_err(|e| IdentityError(format!("{}: not a private key: {e}", key.display())))?;
     if rcgen::PublicKeyData::der_bytes(&pair) != &x509.public_key().subject_public_key.data[..] {
-        return Err(format!("{} is not the key of {}", key.display(), cert.display()));
+        return Err(IdentityError(format!("{} is not the key of {}", key.display(), cert.display())));
     }
     let policy_path = dir.join(POLICY);
-    let text = String::from_utf8(read(&policy_path)?).map_err(|_| format!("{}: not UTF-8", policy_path.display()))?;
-    let policy: Value = json5::from_str(&text).map_err(|e| format!("{}: {e}", policy_path.display()))?;
+    let text = String::from_utf8(read(&policy_path)?).map_err(|_| IdentityError(format!("{}: not UTF-8", policy_path.display())))?;
+    let policy: Value = json5::from_str(&text).map_err(|e| IdentityError(format!("{}: {e}", policy_path.display())))?;
     Ok(Identity { ca, cert, key, policy })
 }
 
 /// `identity` for a node of `scenario`, whose policy must also be the one
 /// the scenario's topology gives.
-pub fn identity_for(dir: &Path, name: &str, scenario: &Scenario) -> Result<Identity, String> {
+pub fn identity_for(dir: &Path, name: &str, scenario: &Scenario) -> Result<Identity, IdentityError> {
     checked(dir, name, scenario, &policy(scenario))
 }
 
 /// Every node of `scenario` has its files in `dir` (what `launch`, `lab`
 /// and `bench-net` check before they start any process).
-pub fn check_all(dir: &Path, scenario: &Scenario) -> Result<(), String> {
+pub fn check_all(dir: &Path, scenario: &Scenario) -> Result<(), IdentityError> {
     let expected = policy(scenario);
     node_names(scenario).iter().try_for_each(|name| checked(dir, name, scenario, &expected).map(drop))
 }
 
-fn checked(dir: &Path, name: &str, scenario: &Scenario, expected: &Value) -> Result<Identity, String> {
+fn checked(dir: &Path, name: &str, scenario: &Scenario, expected: &Value) -> Result<Identity, IdentityError> {
     let id = identity(dir, name)?;
     if &id.policy != expected {
-        return Err(format!(
+        return Err(IdentityError(format!(
             "--tls {}: {POLICY} was made for another topology than scenario {}'s (run `formation certs` again)",
             dir.display(),
             scenario.name
-        ));
+        )));
     }
     Ok(id)
 }

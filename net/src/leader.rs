@@ -16,7 +16,9 @@ use formation_topology::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
 use zenoh::Wait;
 
-use crate::barrier::{self, Start};
+use crate::barrier::Start;
+use crate::clock;
+use crate::startup;
 use crate::codec;
 use crate::counters::Counters;
 use crate::courier::Courier;
@@ -58,6 +60,24 @@ struct Reached {
     moved: Condvar,
 }
 
+/// Lock-step: files a hearing follower's message (`slot`, received on the
+/// key of `key_id`) in how far each has reached. Counted only from the
+/// follower itself and for a step it can have reached: at most one past the
+/// leader's newest (`published`). Whether it was counted.
+fn note_reached(reached: &mut [Option<u64>], slot: usize, key_id: Option<u32>, h: &Header, published: u64) -> bool {
+    if key_id != Some(h.sender) || h.step > published.saturating_add(1) || slot >= reached.len() {
+        return false;
+    }
+    reached[slot] = Some(reached[slot].map_or(h.step, |x| x.max(h.step)));
+    true
+}
+
+/// Lock-step: whether every hearing follower has reached `need` (0: the
+/// leader is not waiting).
+fn window_reached(reached: &[Option<u64>], need: u64) -> bool {
+    need > 0 && reached.iter().all(|x| x.is_some_and(|x| x >= need))
+}
+
 pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     let (scenario, keys) = args.node.load(crate::names::LEADER)?;
     let time_scale = args.time_scale.unwrap_or(scenario.network.time_scale);
@@ -83,7 +103,7 @@ pub async fn run_leader(
     print_start: bool,
 ) -> Result<(), Error> {
     // A second formation with this run name: refuse before saying anything.
-    barrier::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps()).await?;
+    startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps()).await?;
     let hearing: Vec<u32> =
         (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
     let progress = Arc::new(Reached {
@@ -102,11 +122,9 @@ pub async fn run_leader(
                     let key_id = names::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
                     if let Ok(m) = wire::decode(&s.payload().to_bytes()) {
                         let published = p.published.load(std::sync::atomic::Ordering::Acquire);
-                        if key_id == Some(m.header.sender) && m.header.step <= published.saturating_add(1) {
-                            let mut r = p.reached.lock().unwrap_or_else(|e| e.into_inner());
-                            r[slot] = Some(r[slot].map_or(m.header.step, |x| x.max(m.header.step)));
-                            let need = p.need.load(std::sync::atomic::Ordering::Acquire);
-                            let wake = need > 0 && r.iter().all(|x| x.is_some_and(|x| x >= need));
+                        let mut r = p.reached.lock().unwrap_or_else(|e| e.into_inner());
+                        if note_reached(&mut r, slot, key_id, &m.header, published) {
+                            let wake = window_reached(&r, p.need.load(std::sync::atomic::Ordering::Acquire));
                             drop(r);
                             if wake {
                                 p.moved.notify_all();
@@ -137,7 +155,7 @@ pub async fn run_leader(
     let mut ready: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     ready.push(MONITOR.to_string());
     let lead = if lockstep { Duration::ZERO } else { start_lead };
-    let (start, announcer) = barrier::lead_start(session, keys, &hellos, &ready, scenario, time_scale, lead).await?;
+    let (start, announcer) = startup::lead_start(session, keys, &hellos, &ready, scenario, time_scale, lead).await?;
     if print_start {
         use std::io::Write;
         let mut out = std::io::stdout().lock();
@@ -161,8 +179,8 @@ pub async fn run_leader(
     outcome.map_err(|e| Error::Run(format!("leader: {e}")))
 }
 
-fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), String> {
-    p.put(bytes).wait().map_err(|e| format!("publishing: {e}"))
+fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), Error> {
+    p.put(bytes).wait().map_err(|e| zerr("publishing", e))
 }
 
 fn leader_loop(
@@ -173,7 +191,7 @@ fn leader_loop(
     estimate_pub: &Publisher<'_>,
     telemetry: &Courier,
     followers_done: &Mutex<std::collections::BTreeSet<u32>>,
-) -> Result<(), String> {
+) -> Result<(), Error> {
     let steps = s.steps();
     let dt = s.dt_s;
     let batch_len = s.network.telemetry_batch.max(1) as usize;
@@ -197,7 +215,7 @@ fn leader_loop(
     let mut pacer = (!lockstep).then(|| Pacer::new(start, dt));
     let mut batch: Vec<LeaderState> = Vec::with_capacity(batch_len);
     let mut first_k = 0u64;
-    let incarnation = barrier::unix_ns();
+    let incarnation = clock::unix_ns();
     for k in 0..=steps {
         let last = k == steps;
         if let Some(p) = pacer.as_mut() {
@@ -240,16 +258,14 @@ fn leader_loop(
         // repeat what the slowest may have missed until every hearing
         // follower reports its final step, for at most LINGER.
         let hearing = progress.reached.lock().unwrap_or_else(|e| e.into_inner()).len();
-        let began = Instant::now();
-        let mut said = Instant::now();
-        while began.elapsed() < LINGER {
+        let mut linger = gate::Wait::new(Instant::now(), gate::LINGER_REPEAT_EVERY, LINGER);
+        while let gate::WaitStep::Wait { repeat: again, .. } = linger.poll(Instant::now()) {
             if followers_done.lock().unwrap_or_else(|e| e.into_inner()).len() >= hearing {
                 break;
             }
-            if said.elapsed() >= Duration::from_millis(200) {
+            if again {
                 let slowest = gate::slowest_step(&progress.reached.lock().unwrap_or_else(|e| e.into_inner()));
                 repeat(estimate_pub, &recent, slowest)?;
-                said = Instant::now();
             }
             std::thread::sleep(Duration::from_millis(10));
         }
@@ -258,7 +274,7 @@ fn leader_loop(
 }
 
 /// Repeats the kept messages the slowest hearing follower may lack; how many.
-fn repeat(estimate_pub: &Publisher<'_>, recent: &Kept, slowest: u64) -> Result<u64, String> {
+fn repeat(estimate_pub: &Publisher<'_>, recent: &Kept, slowest: u64) -> Result<u64, Error> {
     let mut n = 0;
     for bytes in recent.leader_repeats(slowest) {
         put(estimate_pub, bytes.clone())?;
@@ -277,11 +293,9 @@ fn wait_window(
     estimate_pub: &Publisher<'_>,
     recent: &Kept,
     counters: &mut Counters,
-) -> Result<(), String> {
+) -> Result<(), Error> {
     let Some(need) = k.checked_sub(WINDOW) else { return Ok(()) };
-    let waited = Instant::now();
-    let mut said = Instant::now();
-    let mut warned = false;
+    let mut wait = gate::Wait::new(Instant::now(), gate::LEADER_REPEAT_EVERY, gate::LEADER_STALL);
     let mut reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
     // (Set under the lock the callbacks take: none can miss it.)
     progress.need.store(need, std::sync::atomic::Ordering::Release);
@@ -291,33 +305,65 @@ fn wait_window(
             progress.need.store(0, std::sync::atomic::Ordering::Release);
             return Ok(());
         }
-        let (g, _) =
-            progress.moved.wait_timeout(reached, Duration::from_millis(200)).unwrap_or_else(|e| e.into_inner());
+        let (g, _) = progress.moved.wait_timeout(reached, gate::LEADER_REPEAT_EVERY).unwrap_or_else(|e| e.into_inner());
         reached = g;
-        if waited.elapsed() > Duration::from_secs(60) {
-            return Err(format!("followers stopped before step {need} (no progress for 60 s)"));
+        let now = Instant::now();
+        let gate::WaitStep::Wait { repeat: again, warn } = wait.poll(now) else {
+            return Err(Error::Run(format!(
+                "followers stopped before step {need} (no progress for {} s)",
+                gate::LEADER_STALL.as_secs()
+            )));
+        };
+        let slowest = gate::slowest_step(&reached);
+        if warn {
+            crate::node::say(&format!(
+                "leader: waiting {:.0} s at step {k} for the followers that hear it (slowest at step {slowest}, \
+                 {WINDOW} steps behind allowed); repeating steps {} on",
+                wait.waited(now).as_secs_f64(),
+                gate::leader_from_step(slowest)
+            ));
         }
-        // Safety net: repeat what the slowest follower may have missed, on a
-        // clock of our own: a follower that keeps publishing without
+        // Safety net: repeat what the slowest follower may have missed, on
+        // the wait's own clock: a follower that keeps publishing without
         // advancing (a restart waiting for these very messages) wakes this
         // wait at every message.
-        if said.elapsed() >= Duration::from_millis(200) {
-            let slowest = gate::slowest_step(&reached);
-            if !warned && waited.elapsed() > gate::STALL_WARNING {
-                warned = true;
-                crate::node::say(&format!(
-                    "leader: waiting {:.0} s at step {k} for the followers that hear it (slowest at step {slowest}, \
-                     {WINDOW} steps behind allowed); repeating steps {} on",
-                    waited.elapsed().as_secs_f64(),
-                    gate::leader_from_step(slowest)
-                ));
-            }
+        if again {
             drop(reached);
             let n = repeat(estimate_pub, recent, slowest)?;
             counters.sent += n;
             counters.republished += n;
-            said = Instant::now();
             reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn header(sender: u32, step: u64) -> Header {
+        Header { version: FORMAT_VERSION, sender, step, time_s: 0.0 }
+    }
+
+    #[test]
+    fn a_follower_counts_only_on_its_own_key_and_never_beyond_the_leader() {
+        let mut r = vec![None, None];
+        assert!(note_reached(&mut r, 0, Some(1), &header(1, 5), 10));
+        assert!(!note_reached(&mut r, 0, Some(2), &header(1, 7), 10), "forged: on another follower's key");
+        assert!(!note_reached(&mut r, 0, None, &header(1, 7), 10), "a key that is no id");
+        assert!(!note_reached(&mut r, 0, Some(1), &header(1, 12), 10), "beyond the leader's newest + 1");
+        assert!(note_reached(&mut r, 0, Some(1), &header(1, 11), 10), "one past the leader's newest");
+        assert!(note_reached(&mut r, 0, Some(1), &header(1, 3), 10), "an old repeat");
+        assert_eq!(r, [Some(11), None], "the furthest step counts");
+        assert!(!note_reached(&mut r, 5, Some(1), &header(1, 3), 10), "a slot out of range");
+    }
+
+    #[test]
+    fn the_window_opens_when_every_hearing_follower_reached_the_step() {
+        assert!(!window_reached(&[Some(9), None], 5), "one not heard yet");
+        assert!(!window_reached(&[Some(9), Some(4)], 5));
+        assert!(window_reached(&[Some(9), Some(5)], 5));
+        assert!(!window_reached(&[Some(9), Some(5)], 0), "not waiting");
+        assert!(window_reached(&[], 5), "nobody hears the leader");
     }
 }

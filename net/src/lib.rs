@@ -8,14 +8,16 @@
 //! | layer | modules |
 //! | --- | --- |
 //! | names and wire | [`names`], [`codec`], [`counters`], [`error`] |
-//! | protocol rules (no IO) | [`inbox`], [`gate`], [`courier`], [`timing`], [`checkpoint`] |
+//! | protocol rules (no IO, no clock) | [`barrier`], [`inbox`], [`gate`], [`courier`], [`watch`] |
+//! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
-//! | shared node parts | [`barrier`], [`telemetry`] |
+//! | shared node parts | [`startup`], [`telemetry`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`] (with [`web`] and [`foxglove`]), [`router`] |
 
 pub mod agent;
 pub mod barrier;
 pub mod checkpoint;
+pub mod clock;
 pub mod codec;
 pub mod counters;
 pub mod courier;
@@ -30,8 +32,10 @@ pub mod names;
 pub mod node;
 pub mod router;
 pub mod session;
+pub mod startup;
 pub mod telemetry;
 pub mod timing;
+pub mod watch;
 pub mod web;
 
 pub use error::Error;

@@ -19,6 +19,8 @@ use tokio::sync::mpsc;
 use crate::error::Error;
 
 use crate::barrier;
+use crate::startup;
+use crate::watch::Watch;
 use crate::codec;
 use crate::counters::Counters;
 use crate::names::{self, Keys, MONITOR};
@@ -96,30 +98,7 @@ impl WebArgs {
     }
 }
 
-/// How a monitored run ended.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Ending {
-    /// Every node reported its final step.
-    Complete,
-    /// Ctrl-C (SIGINT).
-    Interrupted,
-    /// SIGTERM.
-    Terminated,
-    /// No telemetry for the idle timeout.
-    Idle,
-}
-
-impl Ending {
-    /// As the live page says it.
-    pub fn name(self) -> &'static str {
-        match self {
-            Ending::Complete => "complete",
-            Ending::Interrupted => "interrupted",
-            Ending::Terminated => "terminated",
-            Ending::Idle => "idle",
-        }
-    }
-}
+pub use crate::watch::Ending;
 
 #[derive(Default)]
 struct NodeStats {
@@ -153,6 +132,7 @@ impl NodeStats {
     /// Files a checked batch's bookkeeping.
     fn note(
         &mut self,
+        now: Instant,
         bytes: usize,
         first_k: u64,
         counters: Counters,
@@ -162,7 +142,7 @@ impl NodeStats {
     ) {
         self.messages += 1;
         self.bytes += bytes as u64;
-        self.heard = Some(Instant::now());
+        self.heard = Some(now);
         self.done |= done;
         let at = (delivery.incarnation, first_k);
         if self.newest.is_none_or(|n| at >= n) {
@@ -415,8 +395,8 @@ impl Recorder {
         self.foxglove.take()
     }
 
-    /// Files one telemetry message received on `telemetry/<key_id>`.
-    pub fn telemetry(&mut self, key_id: Option<u32>, bytes: &[u8]) -> std::io::Result<()> {
+    /// Files one telemetry message received on `telemetry/<key_id>` at `now`.
+    pub fn telemetry(&mut self, key_id: Option<u32>, bytes: &[u8], now: Instant) -> std::io::Result<()> {
         let Some(t) = codec::decode::<Telemetry>(bytes) else {
             self.malformed += 1;
             return Ok(());
@@ -434,7 +414,7 @@ impl Recorder {
                 };
                 self.malformed += u64::from(cut);
                 let n = self.nodes.entry(0).or_default();
-                n.note(bytes.len(), first_k, counters, done, loop_stats, delivery);
+                n.note(now, bytes.len(), first_k, counters, done, loop_stats, delivery);
                 let mut fresh = Vec::new();
                 self.leader_stream.file(first_k, states, delivery.available_from, delivery.incarnation, &mut fresh);
                 n.samples += fresh.len() as u64;
@@ -467,7 +447,7 @@ impl Recorder {
                 self.malformed += u64::from(cut);
                 let f = &mut self.followers[index];
                 let n = self.nodes.entry(id).or_default();
-                n.note(bytes.len(), first_k, counters, done, loop_stats, delivery);
+                n.note(now, bytes.len(), first_k, counters, done, loop_stats, delivery);
                 // A batch sent again repeats its events: a set keeps each once.
                 for e in events.into_iter().take(MAX_EVENTS_PER_BATCH) {
                     if let (true, Some(live)) = (n.timeline.insert(e), &self.foxglove) {
@@ -622,13 +602,12 @@ impl Recorder {
     /// newest row, the nodes' counters and what the network did; and the
     /// same frame for the history, without the nodes and events (a late
     /// viewer needs those only from the newest frame).
-    pub fn live_frame(&self, seq: u64, wall_s: f64, state: &str, viewers: usize) -> (String, String) {
+    pub fn live_frame(&self, now: Instant, seq: u64, wall_s: f64, state: &str, viewers: usize) -> (String, String) {
         let dt = self.scenario.dt_s;
         let steps = self.scenario.steps();
         let k = self.recorded_steps();
         let t = k.saturating_sub(1) as f64 * dt;
         let running = state == "running";
-        let now = Instant::now();
         let finite = |x: f64| if x.is_finite() { json!(x) } else { serde_json::Value::Null };
         // The leader as the least advanced follower saw it (the frame's t).
         let leader = self
@@ -883,7 +862,7 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
     };
     let foxglove = match args.web.foxglove {
         Some(addr) => {
-            let live = crate::foxglove::FoxgloveLive::start(addr, &scenario, &keys.run).await.map_err(Error::Input)?;
+            let live = crate::foxglove::FoxgloveLive::start(addr, &scenario, &keys.run).await?;
             crate::node::say(&format!("foxglove: ws://{}:{}", addr.ip(), live.port()));
             Some(live)
         }
@@ -943,41 +922,34 @@ async fn monitor(
         .map_err(|e| Error::Run(format!("installing the SIGINT handler: {e}")))?;
     let mut needs: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     needs.push(names::LEADER_NODE.to_string());
-    let barrier = barrier::wait_for_start(session, keys, MONITOR, &needs, scenario);
+    let barrier = startup::wait_for_start(session, keys, MONITOR, &needs, scenario);
     tokio::pin!(barrier);
-    let mut started = false;
-    let mut started_at: Option<Instant> = None;
-    let mut startup_s: Option<f64> = None;
-
-    let idle = Duration::from_secs_f64(args.idle_timeout);
+    let mut watch = Watch::new(began, Instant::now(), Duration::from_secs_f64(args.idle_timeout));
     let tty = std::io::stderr().is_terminal();
-    let mut last_heard = Instant::now();
     let mut status = tokio::time::interval(if tty { Duration::from_millis(250) } else { Duration::from_secs(2) });
     let live = !args.quiet;
     let mut frames = tokio::time::interval(crate::web::FRAME_PERIOD);
     frames.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut seq = 0u64;
-    let mut publish = |recorder: &Recorder, state: &str| {
+    let mut publish = |recorder: &Recorder, watch: &Watch, state: &str| {
         if let Some(w) = web {
             seq += 1;
-            let (frame, past) = recorder.live_frame(seq, began.elapsed().as_secs_f64(), state, w.viewers());
+            let now = Instant::now();
+            let (frame, past) = recorder.live_frame(now, seq, watch.wall_s(now), state, w.viewers());
             w.publish(frame, past);
         }
     };
+    let written = |e: std::io::Error| Error::Run(format!("writing the run folder: {e}"));
     let ending = loop {
         tokio::select! {
-            r = &mut barrier, if !started => {
+            r = &mut barrier, if !watch.started() => {
                 if let Err(e) = r {
                     // A start that failed (another scenario, nodes missing)
                     // leaves no folder behind: nothing was recorded.
                     recorder.discard();
                     return Err(e);
                 }
-                started = true;
-                last_heard = Instant::now();
-                started_at = Some(last_heard);
-                let startup = began.elapsed().as_secs_f64();
-                startup_s = Some(startup);
+                let startup = watch.on_start(Instant::now());
                 if live {
                     crate::node::say(&format!(
                         "started: all {} nodes ready {startup:.1} s after the monitor's start",
@@ -987,26 +959,26 @@ async fn monitor(
             }
             m = rx.recv() => {
                 let Some((id, bytes)) = m else { break Ending::Idle };
-                last_heard = Instant::now();
-                recorder.telemetry(id, &bytes).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
-                if recorder.complete() {
-                    break Ending::Complete;
+                let now = Instant::now();
+                recorder.telemetry(id, &bytes, now).map_err(written)?;
+                if let Some(end) = watch.on_telemetry(now, recorder.complete()) {
+                    break end;
                 }
             }
-            _ = ack_tick.tick(), if started => {
+            _ = ack_tick.tick(), if watch.started() => {
                 let _ = acks.put(codec::encode(&recorder.ack())).await;
             }
             _ = frames.tick(), if web.is_some() => {
-                publish(&recorder, if started { "running" } else { "waiting" });
+                publish(&recorder, &watch, if watch.started() { "running" } else { "waiting" });
             }
             _ = sigint.recv() => break Ending::Interrupted,
             _ = sigterm.recv() => break Ending::Terminated,
             _ = status.tick() => {
-                if last_heard.elapsed() > idle {
-                    break Ending::Idle;
+                if let Some(end) = watch.on_tick(Instant::now()) {
+                    break end;
                 }
-                recorder.flush().map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
-                if live && started {
+                recorder.flush().map_err(written)?;
+                if live && watch.started() {
                     let line = recorder.status_line();
                     let mut err = std::io::stderr().lock();
                     let _ = if tty { write!(err, "\r{line}\x1b[K") } else { writeln!(err, "{line}") };
@@ -1014,13 +986,13 @@ async fn monitor(
             }
         }
     };
-    let run_s = started_at.map(|t| t.elapsed().as_secs_f64());
-    publish(&recorder, ending.name());
+    let run_s = watch.run_s(Instant::now());
+    publish(&recorder, &watch, ending.name());
     if matches!(ending, Ending::Interrupted | Ending::Terminated) {
         // Keep what already arrived (stop listening first, so this ends).
         drop(_sub);
         while let Ok((id, bytes)) = rx.try_recv() {
-            recorder.telemetry(id, &bytes).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
+            recorder.telemetry(id, &bytes, Instant::now()).map_err(written)?;
         }
     }
     if ending == Ending::Complete {
@@ -1037,7 +1009,7 @@ async fn monitor(
     let recorded = recorder.recorded_steps();
     let unfinished = recorder.unfinished();
     let foxglove = recorder.take_foxglove();
-    recorder.set_wall(startup_s, run_s);
+    recorder.set_wall(watch.startup_s(), run_s);
     let (summary, dir) = recorder.finish(ending).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
     let result = match ending {
         Ending::Complete => {
@@ -1174,21 +1146,21 @@ mod tests {
                 events: Vec::new(),
             })
         };
-        r.telemetry(Some(0), &leader(0, steps + 1, true)).unwrap();
+        r.telemetry(Some(0), &leader(0, steps + 1, true), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
         // Forged: the expected first step, but 2 samples instead of the whole batch; then a NaN sample.
-        r.telemetry(Some(ids[0]), &follower(ids[0], 0, (0..2).map(sample).collect(), false)).unwrap();
+        r.telemetry(Some(ids[0]), &follower(ids[0], 0, (0..2).map(sample).collect(), false), Instant::now()).unwrap();
         let mut nan = sample(2);
         nan.torque_l = f64::NAN;
-        r.telemetry(Some(ids[0]), &follower(ids[0], 2, vec![nan], false)).unwrap();
+        r.telemetry(Some(ids[0]), &follower(ids[0], 2, vec![nan], false), Instant::now()).unwrap();
         // Forged: beyond the run's end, claiming done.
-        r.telemetry(Some(ids[0]), &follower(ids[0], steps, (steps..steps + 3).map(sample).collect(), true)).unwrap();
+        r.telemetry(Some(ids[0]), &follower(ids[0], steps, (steps..steps + 3).map(sample).collect(), true), Instant::now()).unwrap();
         assert_eq!(r.malformed, 2);
         assert_eq!(r.followers[0].next_k + r.followers[0].pending.len() as u64, 2);
         assert!(!r.nodes[&ids[0]].done, "a rejected batch must not set done");
         // The genuine batches, overlapping the forged one, still complete the run.
         for &id in &ids {
-            r.telemetry(Some(id), &follower(id, 0, (0..=steps).map(sample).collect(), true)).unwrap();
+            r.telemetry(Some(id), &follower(id, 0, (0..=steps).map(sample).collect(), true), Instant::now()).unwrap();
         }
         assert!(r.complete());
         assert_eq!(r.recorded_steps(), steps + 1);
@@ -1207,7 +1179,7 @@ mod tests {
             loop_stats: None,
             delivery: Delivery::default(),
         };
-        r.telemetry(Some(0), &codec::encode(&leader)).unwrap();
+        r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
         // The third follower stops after 4 of the steps + 1 samples.
         for &id in &ids {
@@ -1223,7 +1195,7 @@ mod tests {
                 delivery: Delivery::default(),
                 events: Vec::new(),
             };
-            r.telemetry(Some(id), &codec::encode(&batch)).unwrap();
+            r.telemetry(Some(id), &codec::encode(&batch), Instant::now()).unwrap();
         }
         let (summary, dir) = r.finish(Ending::Interrupted).expect("partial run written");
         assert!(!summary.complete);

@@ -13,13 +13,13 @@ use crate::names::Keys;
 use crate::session::{self, ZenohArgs};
 
 /// What a networked run refuses of a scenario that `formation sim` runs.
-pub fn networked(scenario: &Scenario) -> Result<(), String> {
+pub fn networked(scenario: &Scenario) -> Result<(), Error> {
     let d = scenario.network.delay_steps;
     if d > 0 && scenario.timing == formation_topology::Timing::Lockstep {
-        return Err(format!(
+        return Err(Error::Input(format!(
             "network.delay_steps = {d} applies to formation sim and real-time runs; a lock-step run uses each \
              step's own messages (set timing = \"realtime\", or network.delay_steps = 0)"
-        ));
+        )));
     }
     Ok(())
 }
@@ -62,13 +62,13 @@ impl NodeArgs {
     /// and the folder's policy must be the one this scenario's topology gives.
     pub fn load(&self, identity: &str) -> Result<(Scenario, Keys), Error> {
         let scenario = Scenario::load(&self.scenario, &self.overrides).map_err(|e| Error::Input(e.to_string()))?;
-        networked(&scenario).map_err(Error::Input)?;
+        networked(&scenario)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
         crate::names::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
         let zenoh = self.zenoh_as(identity);
         zenoh.to_config().map_err(|e| Error::Input(format!("zenoh options: {e}")))?;
         if let Some(dir) = &self.zenoh.tls {
-            crate::identity::identity_for(dir, identity, &scenario).map_err(Error::Input)?;
+            crate::identity::identity_for(dir, identity, &scenario).map_err(|e| Error::Input(e.0))?;
         }
         Ok((scenario, Keys::new(&run)))
     }

@@ -158,6 +158,15 @@ pub enum SessionError {
     Open(String),
 }
 
+impl From<SessionError> for crate::error::Error {
+    fn from(e: SessionError) -> Self {
+        match e {
+            SessionError::Config(m) => crate::error::Error::Input(m),
+            SessionError::Open(m) => crate::error::Error::Run(m),
+        }
+    }
+}
+
 fn config_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> SessionError {
     SessionError::Config(format!("{what}: {e}"))
 }
@@ -243,7 +252,7 @@ impl ZenohArgs {
                 .identity
                 .as_deref()
                 .ok_or_else(|| SessionError::Config(format!("--tls: this node has no name to look for")))?;
-            let id = crate::identity::identity(dir, name).map_err(|e| SessionError::Config(e))?;
+            let id = crate::identity::identity(dir, name).map_err(|e| SessionError::Config(e.0))?;
             for (key, value) in crate::identity::zenoh_tls(&id) {
                 set(&mut config, key, &value)?;
             }

@@ -97,6 +97,23 @@ pub struct Ack {
     pub next_k: Vec<(u32, u64)>,
 }
 
+impl Telemetry {
+    /// Whether this is follower `id`'s report, on its own key, of its final
+    /// step of a run of `steps` + 1 steps (a batch that ends there).
+    pub fn reports_final_step(&self, id: u32, steps: u64) -> bool {
+        matches!(self, Telemetry::Follower { id: sender, first_k, samples, done: true, .. }
+            if *sender == id && first_k.checked_add(samples.len() as u64) == Some(steps + 1))
+    }
+}
+
+impl Ack {
+    /// The first step the monitor lacks of `node`, if this acknowledgement
+    /// is of this scenario (`fingerprint`) and names the node.
+    pub fn next_k_of(&self, fingerprint: u64, node: u32) -> Option<u64> {
+        (self.fingerprint == fingerprint).then(|| self.next_k.iter().find(|(n, _)| *n == node).map(|&(_, k)| k))?
+    }
+}
+
 /// Lock-step end of run: the followers among `ids` that have reported (on
 /// their telemetry key) that they completed the final step. Nodes that feed
 /// them keep republishing their last messages until then (bounded), so a
@@ -117,12 +134,8 @@ pub async fn watch_done(
         let sub = session
             .declare_subscriber(keys.telemetry(id))
             .callback(move |s| {
-                if let Some(Telemetry::Follower { id: sender, first_k, samples, done: true, .. }) =
-                    decode::<Telemetry>(&s.payload().to_bytes())
-                {
-                    if sender == id && first_k.checked_add(samples.len() as u64) == Some(steps + 1) {
-                        d.lock().unwrap_or_else(|p| p.into_inner()).insert(id);
-                    }
+                if decode::<Telemetry>(&s.payload().to_bytes()).is_some_and(|t| t.reports_final_step(id, steps)) {
+                    d.lock().unwrap_or_else(|p| p.into_inner()).insert(id);
                 }
             })
             .await
@@ -144,12 +157,8 @@ pub async fn subscribe_acks(
     session
         .declare_subscriber(keys.ack())
         .callback(move |s| {
-            if let Some(ack) = decode::<Ack>(&s.payload().to_bytes()) {
-                if ack.fingerprint == fingerprint {
-                    if let Some(&(_, next_k)) = ack.next_k.iter().find(|(n, _)| *n == node) {
-                        courier.ack(next_k);
-                    }
-                }
+            if let Some(next_k) = decode::<Ack>(&s.payload().to_bytes()).and_then(|a| a.next_k_of(fingerprint, node)) {
+                courier.ack(next_k);
             }
         })
         .await
@@ -173,7 +182,8 @@ pub async fn start_delivery(
         .await
         .map_err(|e| Error::Run(format!("declaring the telemetry publisher: {e}")))?;
     let delivery = crate::courier::Delivery::start(crate::courier::CAPACITY_STEPS, move |bytes| {
-        publisher.put(bytes.to_vec()).wait().map_err(|e| format!("publishing: {e}"))
+        // A failed put is like a lost one: the courier sends it again.
+        let _ = publisher.put(bytes.to_vec()).wait();
     });
     let fingerprint = crate::barrier::fingerprint(scenario);
     let acks = subscribe_acks(session, keys, node, fingerprint, delivery.courier.clone()).await?;
@@ -192,5 +202,73 @@ pub async fn finish_delivery(delivery: crate::courier::Delivery, who: &str) {
             "{who}: the monitor did not acknowledge {unacknowledged} steps of telemetry within {} s",
             DRAIN.as_secs()
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codec::encode;
+
+    fn follower(id: u32, first_k: u64, n: u64, done: bool) -> Telemetry {
+        let sample = |k: u64| FollowerSample { k, ..FollowerSample::default() };
+        Telemetry::Follower {
+            id,
+            first_k,
+            samples: (0..n).map(|i| sample(first_k.wrapping_add(i))).collect(),
+            counters: Counters::default(),
+            done,
+            loop_stats: None,
+            delivery: Delivery::default(),
+            events: vec![NetEvent { k: first_k, what: EventKind::Silent(2) }],
+        }
+    }
+
+    #[test]
+    fn a_final_step_counts_only_from_its_own_follower_and_at_the_runs_end() {
+        let steps = 100;
+        let last = follower(3, 91, 10, true);
+        assert_eq!(decode::<Telemetry>(&encode(&last)), Some(last.clone()), "round trip");
+        assert!(last.reports_final_step(3, steps));
+        assert!(!last.reports_final_step(4, steps), "on another follower's key");
+        assert!(!follower(3, 91, 10, false).reports_final_step(3, steps), "not done");
+        assert!(!follower(3, 90, 10, true).reports_final_step(3, steps), "ends one step short");
+        assert!(!follower(3, u64::MAX - 3, 10, true).reports_final_step(3, steps), "overflowing steps");
+        let leader = Telemetry::Leader {
+            first_k: 91,
+            states: vec![],
+            counters: Counters::default(),
+            done: true,
+            loop_stats: None,
+            delivery: Delivery::default(),
+        };
+        assert!(!leader.reports_final_step(0, steps));
+    }
+
+    #[test]
+    fn an_acknowledgement_counts_only_for_its_scenario_and_node() {
+        let ack = Ack { fingerprint: 7, next_k: vec![(0, 40), (2, 35)] };
+        assert_eq!(decode::<Ack>(&encode(&ack)), Some(ack.clone()), "round trip");
+        assert_eq!(ack.next_k_of(7, 2), Some(35));
+        assert_eq!(ack.next_k_of(7, 0), Some(40));
+        assert_eq!(ack.next_k_of(7, 3), None, "a node it does not name");
+        assert_eq!(ack.next_k_of(8, 2), None, "another scenario's monitor");
+        assert_eq!(decode::<Ack>(b"garbage"), None);
+    }
+
+    #[test]
+    fn every_event_has_words() {
+        let all = [
+            EventKind::Heard(0),
+            EventKind::Silent(3),
+            EventKind::RouterLost,
+            EventKind::RouterBack,
+            EventKind::Isolated,
+            EventKind::Rejoined,
+        ];
+        let words: Vec<String> = all.iter().map(EventKind::describe).collect();
+        assert_eq!(words[0], "hears the leader");
+        assert_eq!(words[1], "follower 3 silent");
+        assert!(words.iter().all(|w| !w.is_empty()));
     }
 }

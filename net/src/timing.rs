@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 use crate::barrier::Start;
+use crate::clock;
 
 /// Control-loop timing of a real-time node (µs).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -139,7 +140,7 @@ impl Pacer {
     pub fn new(start: &Start, dt_s: f64) -> Self {
         let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
         let period = Duration::from_secs_f64(dt_s / scale);
-        Self { epoch: start.epoch_instant(), period, timer: LoopTimer::new(period.as_secs_f64()) }
+        Self { epoch: clock::epoch_instant(start), period, timer: LoopTimer::new(period.as_secs_f64()) }
     }
 
     /// Sleeps until step k is due and records the wake-up.

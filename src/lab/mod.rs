@@ -175,10 +175,10 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         ));
     }
     let privilege = if std::env::var_os(netns::UNSHARED_ENV).is_some() {
-        netns::prepare_unshared().map_err(Error::Run)?;
+        netns::prepare_unshared().map_err(|e| Error::Run(e.0))?;
         netns::Privilege::Root
     } else {
-        netns::privilege().map_err(Error::Input)?
+        netns::privilege().map_err(|e| Error::Input(e.0))?
     };
     match privilege {
         netns::Privilege::Root => {}
@@ -192,7 +192,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         netns::Privilege::Unshare => {
             // Not root: the same command inside a user and network namespace of its own.
             let status = netns::reexec()
-                .map_err(Error::Run)?
+                .map_err(|e| Error::Run(e.0))?
                 .status()
                 .map_err(|e| Error::Run(format!("running {}: {e}", netns::UNSHARE.join(" "))))?;
             return match status.code() {
@@ -323,8 +323,8 @@ impl Ctx<'_> {
 
     fn act(&self, children: &mut Children, action: &Action) -> Result<(), Error> {
         match action {
-            Action::Link { host, up } => self.lab.set_link(host, *up).map_err(Error::Run),
-            Action::Loss { host, percent } => self.lab.set_loss(host, *percent).map_err(Error::Run),
+            Action::Link { host, up } => self.lab.set_link(host, *up).map_err(Error::from),
+            Action::Loss { host, percent } => self.lab.set_loss(host, *percent).map_err(Error::from),
             Action::KillRouter => {
                 children.kill("router");
                 Ok(())
@@ -422,14 +422,14 @@ impl Ctx<'_> {
                 }
             }
             if let Some((epoch_ns, scale)) = clock {
-                let now_s = (formation_net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+                let now_s = (formation_net::clock::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
                 while next < events.len() && events[next].at_s <= now_s {
                     let e = &events[next];
                     if let Err(err) = self.act(children, &e.action) {
                         children.wind_down();
                         return Err(Error::Run(format!("performing '{}' at t = {} s: {err}", e.what, e.at_s)));
                     }
-                    let done_s = (formation_net::barrier::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+                    let done_s = (formation_net::clock::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
                     if !self.a.opts.quiet {
                         eprintln!("lab: t = {done_s:.3} s: {}", e.what);
                     }

@@ -26,6 +26,12 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Once, OnceLock};
 use std::time::Duration;
 
+/// What went wrong building, changing or removing the lab's network: the
+/// command and what it said.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct LabError(pub String);
+
 /// TCP's minimum retransmission timeout on the lab's subnet (Linux's
 /// default is 200 ms, for the Internet). On a LAN with a round trip of
 /// 0.1 ms, a lost segment is resent after 5 ms, then 10, 20, …: with 30 %
@@ -64,11 +70,13 @@ pub enum Privilege {
 }
 
 /// How this process can build a lab, or one line saying why it cannot.
-pub fn privilege() -> Result<Privilege, String> {
-    let why = |r: String| {
-        format!("formation lab needs root or unprivileged user namespaces (unshare --user --map-root-user --net): {r}")
+pub fn privilege() -> Result<Privilege, LabError> {
+    let why = |r: LabError| {
+        LabError(format!(
+            "formation lab needs root or unprivileged user namespaces (unshare --user --map-root-user --net): {r}"
+        ))
     };
-    let uid = euid().ok_or_else(|| why("cannot read the effective uid from /proc/self".into()))?;
+    let uid = euid().ok_or_else(|| why(LabError("cannot read the effective uid from /proc/self".into())))?;
     run(Command::new("ip").arg("-V")).map_err(why)?;
     if uid == 0 {
         return Ok(Privilege::Root);
@@ -91,8 +99,8 @@ fn euid() -> Option<u32> {
 /// A Command re-running this executable with the same arguments under
 /// [`UNSHARE`] and with [`UNSHARED_ENV`] set; the caller runs it and exits
 /// with its status (used when [`privilege`] is [`Privilege::Unshare`]).
-pub fn reexec() -> Result<Command, String> {
-    let exe = std::env::current_exe().map_err(|e| format!("cannot find this executable to re-run it: {e}"))?;
+pub fn reexec() -> Result<Command, LabError> {
+    let exe = std::env::current_exe().map_err(|e| LabError(format!("cannot find this executable to re-run it: {e}")))?;
     let mut cmd = Command::new(UNSHARE[0]);
     cmd.args(&UNSHARE[1..]).arg(exe).args(std::env::args_os().skip(1)).env(UNSHARED_ENV, "1");
     Ok(cmd)
@@ -103,21 +111,21 @@ pub fn reexec() -> Result<Command, String> {
 /// user cannot create it; /run is then empty for this process tree only).
 /// Refuses in the initial user namespace, where it would shadow the
 /// machine's own mounts. Idempotent.
-pub fn prepare_unshared() -> Result<(), String> {
-    static DONE: OnceLock<Result<(), String>> = OnceLock::new();
+pub fn prepare_unshared() -> Result<(), LabError> {
+    static DONE: OnceLock<Result<(), LabError>> = OnceLock::new();
     DONE.get_or_init(|| {
-        let map = fs::read_to_string("/proc/self/uid_map").map_err(|e| format!("/proc/self/uid_map: {e}"))?;
+        let map = fs::read_to_string("/proc/self/uid_map").map_err(|e| LabError(format!("/proc/self/uid_map: {e}")))?;
         if map.split_whitespace().eq(["0", "0", "4294967295"]) {
-            return Err(format!(
+            return Err(LabError(format!(
                 "prepare_unshared must run inside `{}`, not in the initial user namespace",
                 UNSHARE.join(" ")
-            ));
+            )));
         }
         if Path::new(NETNS_DIR).is_dir() {
             run(Command::new("mount").args(["-t", "tmpfs", "tmpfs", NETNS_DIR]))?;
         } else {
             run(Command::new("mount").args(["-t", "tmpfs", "tmpfs", "/run"]))?;
-            fs::create_dir(NETNS_DIR).map_err(|e| format!("mkdir {NETNS_DIR}: {e}"))?;
+            fs::create_dir(NETNS_DIR).map_err(|e| LabError(format!("mkdir {NETNS_DIR}: {e}")))?;
         }
         Ok(())
     })
@@ -143,7 +151,7 @@ pub struct Lab {
 impl Lab {
     /// Creates the switch namespace with a bridge and one namespace per host
     /// name (order = index for addresses); on failure removes what it made.
-    pub fn create(names: &[&str]) -> Result<Lab, String> {
+    pub fn create(names: &[&str]) -> Result<Lab, LabError> {
         validate(names)?;
         // A namespace of this pid before our first lab is a leftover of a dead
         // process that had the same pid; run once, before any lab of ours exists.
@@ -163,12 +171,12 @@ impl Lab {
             Ok(()) => Ok(lab),
             Err(e) => Err(match lab.teardown() {
                 Ok(()) => e,
-                Err(t) => format!("{e}; and then: {t}"),
+                Err(t) => LabError(format!("{e}; and then: {t}")),
             }),
         }
     }
 
-    fn build(&mut self) -> Result<(), String> {
+    fn build(&mut self) -> Result<(), LabError> {
         let sw = self.switch.clone();
         ip(&["netns", "add", &sw])?;
         self.live.push(sw.clone());
@@ -190,12 +198,12 @@ impl Lab {
         Ok(())
     }
 
-    fn host(&self, name: &str) -> Result<(usize, &Host), String> {
+    fn host(&self, name: &str) -> Result<(usize, &Host), LabError> {
         self.hosts
             .iter()
             .enumerate()
             .find(|(_, h)| h.name == name)
-            .ok_or_else(|| format!("no host {name:?} in this lab"))
+            .ok_or_else(|| LabError(format!("no host {name:?} in this lab")))
     }
 
     /// The host's address on 10.77.0.0/16.
@@ -221,7 +229,7 @@ impl Lab {
 
     /// Takes the host's link down or up (its veth end in the switch
     /// namespace), like unplugging its cable: its `eth0` loses carrier.
-    pub fn set_link(&self, name: &str, up: bool) -> Result<(), String> {
+    pub fn set_link(&self, name: &str, up: bool) -> Result<(), LabError> {
         let (i, _) = self.host(name)?;
         ip(&["-n", &self.switch, "link", "set", &format!("v{i}"), if up { "up" } else { "down" }]).map(drop)
     }
@@ -230,13 +238,13 @@ impl Lab {
     /// host's packets at random in both directions on its `eth0` (an
     /// nftables table `inet flab` in its namespace; ARP is not affected, its
     /// own loopback neither); None removes the rule. Replaces atomically.
-    pub fn set_loss(&self, name: &str, percent: Option<f64>) -> Result<(), String> {
+    pub fn set_loss(&self, name: &str, percent: Option<f64>) -> Result<(), LabError> {
         let (_, h) = self.host(name)?;
         // "table X; delete table X" removes it whether or not it exists.
         let mut script = String::from("table inet flab; delete table inet flab");
         if let Some(p) = percent {
             if !(0.0..=100.0).contains(&p) {
-                return Err(format!("packet loss for {name} must be 0..=100 %, not {p}"));
+                return Err(LabError(format!("packet loss for {name} must be 0..=100 %, not {p}")));
             }
             let cut = (p * 100.0).round() as u32; // numgen draws 0..=9999
             let verdict =
@@ -257,19 +265,19 @@ impl Lab {
     /// Kills every process still in the lab's namespaces (SIGKILL via `ip
     /// netns pids`), deletes every namespace (which removes the veths and
     /// the bridge). Idempotent; returns what it could not remove.
-    pub fn teardown(&mut self) -> Result<(), String> {
+    pub fn teardown(&mut self) -> Result<(), LabError> {
         let mut failed = Vec::new();
         self.live.retain(|ns| match remove(ns) {
             Ok(()) => false,
             Err(e) => {
-                failed.push(e);
+                failed.push(e.0);
                 true
             }
         });
         if failed.is_empty() {
             Ok(())
         } else {
-            Err(failed.join("; "))
+            Err(LabError(failed.join("; ")))
         }
     }
 }
@@ -299,9 +307,9 @@ pub fn host_addr(i: usize) -> Ipv4Addr {
 }
 
 /// Host names: [a-z0-9-], 1 to 20 characters, unique, not `sw` (the switch).
-fn validate(names: &[&str]) -> Result<(), String> {
+fn validate(names: &[&str]) -> Result<(), LabError> {
     if names.len() > MAX_HOSTS {
-        return Err(format!("a lab has at most {MAX_HOSTS} hosts, not {}", names.len()));
+        return Err(LabError(format!("a lab has at most {MAX_HOSTS} hosts, not {}", names.len())));
     }
     for (i, n) in names.iter().enumerate() {
         let why = if n.is_empty()
@@ -316,7 +324,7 @@ fn validate(names: &[&str]) -> Result<(), String> {
         } else {
             continue;
         };
-        return Err(format!("bad lab host name {n:?}: {why}"));
+        return Err(LabError(format!("bad lab host name {n:?}: {why}")));
     }
     Ok(())
 }
@@ -335,7 +343,7 @@ fn lab_namespaces() -> Vec<(u32, String)> {
 
 /// SIGKILLs the processes in `ns` (a few rounds, in case one forked) and
 /// deletes it; a namespace already gone counts as removed.
-fn remove(ns: &str) -> Result<(), String> {
+fn remove(ns: &str) -> Result<(), LabError> {
     let me = std::process::id().to_string();
     for _ in 0..5 {
         let listed = ip(&["netns", "pids", ns]).unwrap_or_default();
@@ -352,22 +360,22 @@ fn remove(ns: &str) -> Result<(), String> {
     }
 }
 
-fn ip(args: &[&str]) -> Result<String, String> {
+fn ip(args: &[&str]) -> Result<String, LabError> {
     run(Command::new("ip").args(args))
 }
 
 /// Runs `cmd` to completion; its stdout, or one line with the command line,
 /// its exit status and its stderr.
-fn run(cmd: &mut Command) -> Result<String, String> {
+fn run(cmd: &mut Command) -> Result<String, LabError> {
     let line: Vec<_> = std::iter::once(cmd.get_program()).chain(cmd.get_args()).map(|a| a.to_string_lossy()).collect();
     let line = line.join(" ");
-    let out = cmd.stdin(Stdio::null()).output().map_err(|e| format!("`{line}`: {e}"))?;
+    let out = cmd.stdin(Stdio::null()).output().map_err(|e| LabError(format!("`{line}`: {e}")))?;
     if out.status.success() {
         return Ok(String::from_utf8_lossy(&out.stdout).into_owned());
     }
     let err = String::from_utf8_lossy(&out.stderr);
     let err: Vec<&str> = err.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
-    Err(format!("`{line}` failed ({}): {}", out.status, err.join(" / ")))
+    Err(LabError(format!("`{line}` failed ({}): {}", out.status, err.join(" / "))))
 }
 
 #[cfg(test)]
@@ -382,7 +390,7 @@ mod tests {
         let why = why.or_else(|| match privilege() {
             Ok(Privilege::Root) => None,
             Ok(Privilege::Unshare) => {
-                Some(format!("not root; run the test binary under `{UNSHARED_ENV}=1 {}`", UNSHARE.join(" ")))
+                Some(LabError(format!("not root; run the test binary under `{UNSHARED_ENV}=1 {}`", UNSHARE.join(" "))))
             }
             Err(e) => Some(e),
         });
@@ -443,7 +451,7 @@ mod tests {
             ("sw", &["sw"]),
         ] {
             let e = validate(names).expect_err(bad);
-            assert!(e.contains(&format!("{bad:?}")), "{e}");
+            assert!(e.0.contains(&format!("{bad:?}")), "{e}");
         }
     }
 
@@ -546,6 +554,6 @@ mod tests {
     #[test]
     fn create_rejects_bad_names_without_leftovers() {
         let e = Lab::create(&["router", "Router"]).err().expect("rejected");
-        assert!(e.contains("\"Router\""), "{e}");
+        assert!(e.0.contains("\"Router\""), "{e}");
     }
 }

@@ -1,0 +1,250 @@
+//! The start barrier on zenoh: the subscribers that feed
+//! [`barrier::Join`] and [`barrier::Lead`] what a node hears, the puts
+//! they ask for, and the leader's repeated start. The rules are in
+//! [`crate::barrier`]; this module only translates.
+
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use formation_topology::Scenario;
+
+use crate::barrier::{fingerprint, key_digests, Join, JoinStep, Lead, LeadStep, Ready, ReadyForm, Start, TICK};
+use crate::clock;
+use crate::codec;
+use crate::error::{zerr, Error};
+use crate::names::{self, Keys};
+
+/// What the barrier's subscribers feed: a [`Join`] or a [`Lead`].
+trait Hears: Send + 'static {
+    fn hello(&mut self, from: &str);
+    fn ready(&mut self, from: &str, ready: Ready, now: Instant);
+    fn start(&mut self, start: Start, now: Instant);
+    fn abort(&mut self, reason: &str);
+}
+
+impl Hears for Join {
+    fn hello(&mut self, from: &str) {
+        self.on_hello(from);
+    }
+    fn ready(&mut self, from: &str, ready: Ready, now: Instant) {
+        self.on_ready(from, ready, now);
+    }
+    fn start(&mut self, start: Start, now: Instant) {
+        self.on_start(start, now);
+    }
+    fn abort(&mut self, reason: &str) {
+        self.on_abort(reason);
+    }
+}
+
+impl Hears for Lead {
+    fn hello(&mut self, from: &str) {
+        self.on_hello(from);
+    }
+    fn ready(&mut self, from: &str, ready: Ready, now: Instant) {
+        self.on_ready(from, ready, now);
+    }
+    fn start(&mut self, _: Start, _: Instant) {}
+    fn abort(&mut self, _: &str) {}
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Whose hellos and readies a node listens to: everybody's (one wildcard
+/// subscriber), or only the named nodes' (one subscriber each, so that the
+/// router forwards a node's barrier traffic only to those who need it: with
+/// N nodes, N·degree messages a tick instead of N²).
+#[derive(Clone, Copy)]
+enum Whom<'a> {
+    All,
+    Only(&'a [String]),
+}
+
+impl Whom<'_> {
+    fn keys(self, all: String, one: impl Fn(&str) -> String) -> Vec<String> {
+        match self {
+            Whom::All => vec![all],
+            Whom::Only(names) => names.iter().map(|n| one(n)).collect(),
+        }
+    }
+}
+
+/// A node needing more nodes than this listens to everybody's barrier traffic.
+const FEW: usize = 32;
+
+async fn listen<H: Hears>(
+    session: &zenoh::Session,
+    keys: &Keys,
+    machine: &Arc<Mutex<H>>,
+    from: Whom<'_>,
+) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, Error> {
+    let mut subs = Vec::new();
+    let declare = |key: String, on: Box<dyn Fn(&str, &[u8]) + Send + Sync>| {
+        session
+            .declare_subscriber(key)
+            .callback(move |s| on(names::last_chunk(s.key_expr().as_str()), &s.payload().to_bytes()))
+    };
+    for key in from.keys(keys.hello("*"), |n| keys.hello(n)) {
+        let m = machine.clone();
+        subs.push(
+            declare(key, Box::new(move |from, _| lock(&m).hello(from)))
+                .await
+                .map_err(|e| zerr("declaring the hello subscriber", e))?,
+        );
+    }
+    let m = machine.clone();
+    let on_start = move |_: &str, bytes: &[u8]| {
+        if let Some(start) = codec::decode::<Start>(bytes) {
+            lock(&m).start(start, Instant::now());
+        }
+    };
+    subs.push(
+        declare(keys.start(), Box::new(on_start)).await.map_err(|e| zerr("declaring the start subscriber", e))?,
+    );
+    let m = machine.clone();
+    let on_abort = move |_: &str, bytes: &[u8]| lock(&m).abort(&String::from_utf8_lossy(bytes));
+    subs.push(
+        declare(keys.abort(), Box::new(on_abort)).await.map_err(|e| zerr("declaring the abort subscriber", e))?,
+    );
+    for key in from.keys(keys.ready_all(), |n| keys.ready(n)) {
+        let m = machine.clone();
+        let on_ready = move |from: &str, bytes: &[u8]| {
+            if let Some(r) = codec::decode::<Ready>(bytes) {
+                lock(&m).ready(from, r, Instant::now());
+            }
+        };
+        subs.push(
+            declare(key, Box::new(on_ready)).await.map_err(|e| zerr("declaring the ready subscriber", e))?,
+        );
+    }
+    Ok(subs)
+}
+
+/// An agent or the monitor (`me`): says hello until it has heard every node
+/// in `needs`, then says ready until the leader's start, which it returns.
+/// Call after declaring the node's data subscribers.
+pub async fn wait_for_start(
+    session: &zenoh::Session,
+    keys: &Keys,
+    me: &str,
+    needs: &[String],
+    scenario: &Scenario,
+) -> Result<Start, Error> {
+    let machine = Arc::new(Mutex::new(Join::new(me, &keys.run, needs, scenario, Instant::now())));
+    let from = if needs.len() <= FEW { Whom::Only(needs) } else { Whom::All };
+    let _subs = listen(session, keys, &machine, from).await?;
+    let fingerprint = fingerprint(scenario);
+    let ready_full = codec::encode(&Ready { fingerprint, keys: key_digests(scenario) });
+    let ready_short = codec::encode(&Ready { fingerprint, keys: Vec::new() });
+    loop {
+        let step = lock(&machine).poll(Instant::now());
+        let ready = match step {
+            JoinStep::Started(start) => return Ok(start),
+            JoinStep::Failed(e) => return Err(e),
+            JoinStep::Wait { ready, warning } => {
+                if let Some(w) = warning {
+                    eprintln!("{w}");
+                }
+                ready
+            }
+        };
+        session.put(keys.hello(me), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
+        if let Some(form) = ready {
+            let bytes = if form == ReadyForm::Full { &ready_full } else { &ready_short };
+            session.put(keys.ready(me), bytes.clone()).await.map_err(|e| zerr("saying ready", e))?;
+        }
+        tokio::time::sleep(TICK).await;
+    }
+}
+
+/// The leader: says hello until it has heard the hellos in `needs_hello`
+/// and every node of `expect_ready` ready (with this scenario's
+/// fingerprint); then announces [`Start`] (epoch `lead` from now) and keeps
+/// announcing it every 100 ms until the returned task is aborted.
+pub async fn lead_start(
+    session: &zenoh::Session,
+    keys: &Keys,
+    needs_hello: &[String],
+    expect_ready: &[String],
+    scenario: &Scenario,
+    time_scale: f64,
+    lead: Duration,
+) -> Result<(Start, tokio::task::JoinHandle<()>), Error> {
+    let machine = Arc::new(Mutex::new(Lead::new(&keys.run, needs_hello, expect_ready, scenario, Instant::now())));
+    let subs = listen(session, keys, &machine, Whom::All).await?;
+    loop {
+        let step = lock(&machine).poll(Instant::now());
+        match step {
+            LeadStep::Go => break,
+            LeadStep::Failed(e) => return Err(e),
+            LeadStep::Refuse { reason, error } => {
+                // Tell every node waiting for the start, so none waits it out.
+                for _ in 0..5 {
+                    let _ = session.put(keys.abort(), reason.clone().into_bytes()).await;
+                    tokio::time::sleep(TICK).await;
+                }
+                return Err(error);
+            }
+            LeadStep::Wait { warnings } => warnings.iter().for_each(|w| eprintln!("{w}")),
+        }
+        session.put(keys.hello(names::LEADER_NODE), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
+        tokio::time::sleep(TICK).await;
+    }
+    drop(subs);
+    let start = lock(&machine).start(clock::unix_ns(), lead, time_scale);
+    let bytes = codec::encode(&start);
+    let session = session.clone();
+    let key = keys.start();
+    let task = tokio::spawn(async move {
+        loop {
+            if session.put(&key, bytes.clone()).await.is_err() {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    });
+    Ok((start, task))
+}
+
+/// How long a node listens for a twin before it joins a run.
+pub const TWIN_LISTEN: Duration = Duration::from_millis(300);
+
+/// Refuses to take part in a run where a process with this node's identity
+/// (`id`: 0 the leader, else a follower) already publishes estimates: a
+/// second formation started with the same run name, or a second process
+/// for one follower. Called before the node publishes anything; listens to
+/// its own estimate key for [`TWIN_LISTEN`]. (A forged message can still
+/// make a node refuse: traffic is not authenticated yet.)
+pub async fn refuse_twin(session: &zenoh::Session, keys: &Keys, id: u32, steps: u64) -> Result<(), Error> {
+    let heard = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let h = heard.clone();
+    let sub = session
+        .declare_subscriber(keys.estimate(id))
+        .callback(move |sample| {
+            // Only a well-formed estimate from this very id, of a step of
+            // the run, counts (garbage on the key is the inbox's business).
+            let bytes = sample.payload().to_bytes();
+            if formation_topology::wire::decode(&bytes).is_ok_and(|m| m.header.sender == id && m.header.step <= steps) {
+                h.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+        })
+        .await
+        .map_err(|e| zerr("listening for a twin", e))?;
+    tokio::time::sleep(TWIN_LISTEN).await;
+    drop(sub);
+    let n = heard.load(std::sync::atomic::Ordering::Relaxed);
+    if n == 0 {
+        return Ok(());
+    }
+    let who = if id == 0 { "the leader".to_string() } else { format!("follower {id}") };
+    Err(Error::Input(format!(
+        "run {}: {who} is already running on this network ({n} of its estimates in {} ms): another formation \
+         with the same run name, or a second process for {who}. Give this formation another name with --run \
+         NAME, or stop the other process",
+        keys.run,
+        TWIN_LISTEN.as_millis()
+    )))
+}
+
