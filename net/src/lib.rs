@@ -8,7 +8,7 @@
 //! | layer | modules |
 //! | --- | --- |
 //! | names and wire | [`names`], [`codec`], [`counters`], [`error`] |
-//! | protocol rules (no IO, no clock) | [`barrier`], [`inbox`], [`gate`], [`courier`], [`watch`] |
+//! | protocol rules (no IO, no clock) | [`barrier`], [`inbox`], [`gate`], [`courier`], [`watch`], [`timebase`] |
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`telemetry`] |
@@ -34,6 +34,7 @@ pub mod router;
 pub mod session;
 pub mod startup;
 pub mod telemetry;
+pub mod timebase;
 pub mod timing;
 pub mod watch;
 pub mod web;
