@@ -27,6 +27,7 @@ use crate::error::{zerr, Error};
 use crate::barrier::{self, Start};
 use crate::clock;
 use crate::startup;
+use crate::timesync;
 use crate::checkpoint;
 use crate::codec;
 use crate::counters::Counters;
@@ -214,6 +215,10 @@ pub async fn run_follower(
     let id = scenario.graph.id(index);
     // Nothing of this process goes out before it knows it has no twin.
     startup::refuse_twin(session, keys, id, scenario.steps()).await?;
+    // The run's timebase is the leader's: ask it from now on.
+    let timebase = clock::Timebase::estimated();
+    let quarter_step_ns = scenario.dt_s / start_scale_of(scenario.network.time_scale) * 1e9 / 4.0;
+    let sync = timesync::follow(session.clone(), keys, timebase.clone(), format!("follower {id}"), quarter_step_ns);
     let hears_leader = scenario.graph.hears_leader(index);
     let neighbour_ids: Vec<u32> = scenario.graph.neighbours(index).iter().map(|&j| scenario.graph.id(j)).collect();
     let lockstep = scenario.timing == Timing::Lockstep;
@@ -282,8 +287,10 @@ pub async fn run_follower(
     }
     let fingerprint = barrier::fingerprint(scenario);
     let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
+    timesync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
+    let epoch_ns = start.epoch_unix_ns as i64;
     // A run that began a while ago: this process is a restart (docs/model.md §14).
-    let late = clock::unix_ns().saturating_sub(start.epoch_unix_ns) > LATE.as_nanos() as u64;
+    let late = timebase.since_s(epoch_ns).is_some_and(|s| s > LATE.as_secs_f64());
     let first_step = if lockstep {
         if late {
             lockstep_rejoin_step(&shared, neighbour_ids.len()).await?
@@ -291,7 +298,7 @@ pub async fn run_follower(
             0
         }
     } else {
-        rejoin_step(&start, scenario)?
+        rejoin_step(&start, scenario, &timebase)?
     };
     if first_step > 0 {
         let found = checkpoint.as_deref().map(|p| checkpoint::read(p, fingerprint, start.epoch_unix_ns));
@@ -324,7 +331,8 @@ pub async fn run_follower(
         let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
         let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
         set_window(&mut inbox, scenario, slots, hears_leader, scale);
-        inbox.set_clock(clock::epoch_instant(&start), Duration::from_secs_f64(scenario.dt_s / scale));
+        let epoch = timebase.instant_at(epoch_ns).unwrap_or_else(Instant::now);
+        inbox.set_clock(epoch, Duration::from_secs_f64(scenario.dt_s / scale));
     }
     let loop_ctx = LoopCtx {
         id,
@@ -340,6 +348,7 @@ pub async fn run_follower(
         first_step,
         latest,
         start,
+        timebase: timebase.clone(),
         stall_timeout,
         incarnation: clock::unix_ns(),
         neighbours_done,
@@ -355,7 +364,8 @@ pub async fn run_follower(
     let watcher = (has_router && !lockstep).then(|| {
         let session = session.clone();
         let shared = shared.clone();
-        let (epoch, step) = (clock::epoch_instant(&start), Duration::from_secs_f64(scenario.dt_s / start_scale(&start)));
+        let epoch = timebase.instant_at(epoch_ns).unwrap_or_else(Instant::now);
+        let step = Duration::from_secs_f64(scenario.dt_s / start_scale(&start));
         tokio::spawn(async move {
             let mut had = true;
             loop {
@@ -383,6 +393,7 @@ pub async fn run_follower(
         w.stop();
     }
     drop(acks);
+    drop(sync);
     if let Some(w) = watcher {
         w.abort();
     }
@@ -438,6 +449,8 @@ struct LoopCtx {
     /// The robot's latest pose, for the checkpoint writer.
     latest: checkpoint::Latest,
     start: Start,
+    /// The run's timebase as this node knows it (real-time pacing).
+    timebase: clock::Timebase,
     stall_timeout: Duration,
     /// This process's start (ns since the Unix epoch), sent with telemetry.
     incarnation: u64,
@@ -457,9 +470,9 @@ fn put(p: &Publisher<'_>, bytes: &[u8]) -> Result<(), Error> {
 /// at. 0 for a run that has not begun (or began less than [`LATE`] ago);
 /// otherwise a restart, which resumes [`LATE`] ahead of the run's current
 /// step (time to set up before that step is due).
-fn rejoin_step(start: &Start, scenario: &Scenario) -> Result<u64, Error> {
-    let now = clock::unix_ns();
-    let elapsed_s = now.saturating_sub(start.epoch_unix_ns) as f64 * 1e-9 * start_scale(start);
+fn rejoin_step(start: &Start, scenario: &Scenario, timebase: &clock::Timebase) -> Result<u64, Error> {
+    let since = timebase.since_s(start.epoch_unix_ns as i64).unwrap_or(0.0).max(0.0);
+    let elapsed_s = since * start_scale(start);
     if elapsed_s < LATE.as_secs_f64() {
         return Ok(0);
     }
@@ -489,6 +502,18 @@ async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize) -> Result<u64,
         (0..neighbours).map(|slot| inbox.heard_max(slot)).collect()
     };
     Ok(gate::resume_step(&heard))
+}
+
+/// How long a node waits after the start for its first estimate of the
+/// leader's clock.
+const TIME_LIMIT: Duration = Duration::from_secs(5);
+
+fn start_scale_of(scale: f64) -> f64 {
+    if scale > 0.0 {
+        scale
+    } else {
+        1.0
+    }
 }
 
 /// A process that hears a start older than this is a restart.
@@ -541,7 +566,7 @@ fn control_loop(
         recent.push(0, first);
     }
 
-    let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s));
+    let mut pacer = (!c.lockstep).then(|| Pacer::new(&c.start, c.dt_s, c.timebase.clone()));
     let mut inputs: Vec<Message> = Vec::with_capacity(c.neighbours + 1);
     // Lock-step: each source's step-k message (None: removed by the fault
     // table), and the newest delivered one per source (docs/model.md §14).
@@ -695,6 +720,7 @@ fn control_loop(
                     events.sort_unstable();
                     std::mem::take(&mut events)
                 },
+                clock: c.timebase.report(),
             };
             telemetry.push(first_k, k + 1, codec::encode(&t));
             first_k = k + 1;

@@ -1,24 +1,165 @@
-//! The one place a node reads the wall clock: the run's epoch is a Unix
-//! time (the leader's [`Start`]), which each node turns into an instant of
-//! its own monotonic clock once, at the start.
+//! The one place a node reads a clock, and the run's timebase.
+//!
+//! The run's timebase is the leader's: its monotonic clock, set at its start
+//! to read its wall clock then (ns since the Unix epoch). The leader's
+//! [`Start`] names the epoch on it. Every other node keeps a
+//! [`timebase::Offset`] between its own monotonic clock and the leader's
+//! timebase, from four-timestamp exchanges ([`crate::timesync`]), and turns
+//! the run's times into instants of its own monotonic clock through it. No
+//! decision compares two hosts' wall clocks: a node whose wall clock is off,
+//! or stepped mid-run, runs the same.
 
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use crate::barrier::Start;
+use crate::timebase::{Estimate, Exchange, Offset};
 
 /// Nanoseconds since the Unix epoch on this host's wall clock (0 for a
-/// clock set before 1970).
+/// clock set before 1970). Only the leader's timebase starts from it.
 pub fn unix_ns() -> u64 {
     SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
 }
 
-/// The run's epoch as an instant of this process's monotonic clock.
-pub fn epoch_instant(start: &Start) -> Instant {
-    let now_i = Instant::now();
-    let now_ns = unix_ns();
-    if start.epoch_unix_ns >= now_ns {
-        now_i + Duration::from_nanos(start.epoch_unix_ns - now_ns)
-    } else {
-        now_i.checked_sub(Duration::from_nanos(now_ns - start.epoch_unix_ns)).unwrap_or(now_i)
+fn origin() -> Instant {
+    static ORIGIN: OnceLock<Instant> = OnceLock::new();
+    *ORIGIN.get_or_init(Instant::now)
+}
+
+/// This process's monotonic clock, in ns since its first reading.
+pub fn mono_ns() -> i64 {
+    Instant::now().saturating_duration_since(origin()).as_nanos() as i64
+}
+
+/// The instant at which [`mono_ns`] reads `ns` (a time before the first
+/// reading is the first reading).
+pub fn instant_of(ns: i64) -> Instant {
+    origin() + Duration::from_nanos(ns.max(0) as u64)
+}
+
+/// The run's timebase as this node knows it.
+#[derive(Clone, Debug)]
+pub enum Timebase {
+    /// The leader's own: its monotonic clock plus this (its wall clock at
+    /// its start, less the monotonic reading then).
+    Own(i64),
+    /// Another node's estimate of the leader's.
+    Estimated(Arc<Mutex<Offset>>),
+}
+
+impl Timebase {
+    /// The leader's timebase, started now.
+    pub fn leader() -> Self {
+        let mono = mono_ns();
+        Timebase::Own(unix_ns() as i64 - mono)
+    }
+
+    /// A node's estimate, with no exchange yet.
+    pub fn estimated() -> Self {
+        Timebase::Estimated(Arc::new(Mutex::new(Offset::new())))
+    }
+
+    fn offset(o: &Arc<Mutex<Offset>>) -> std::sync::MutexGuard<'_, Offset> {
+        o.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Files an exchange with the leader (ignored by the leader's own).
+    pub fn add(&self, x: Exchange) {
+        if let Timebase::Estimated(o) = self {
+            let _ = Self::offset(o).add(x);
+        }
+    }
+
+    /// The estimate now (the leader's own: exact). None before any exchange.
+    pub fn estimate(&self) -> Option<Estimate> {
+        match self {
+            Timebase::Own(_) => {
+                Some(Estimate { offset_ns: 0.0, uncertainty_ns: 0.0, drift_ppm: 0.0, periods: 0, steps: 0 })
+            }
+            Timebase::Estimated(o) => Self::offset(o).at(mono_ns()),
+        }
+    }
+
+    /// Exchanges filed so far.
+    pub fn exchanges(&self) -> u64 {
+        match self {
+            Timebase::Own(_) => 0,
+            Timebase::Estimated(o) => Self::offset(o).exchanges(),
+        }
+    }
+
+    /// The estimate as `network.json` reports it (None before any exchange).
+    pub fn report(&self) -> Option<crate::timebase::ClockReport> {
+        let e = self.estimate()?;
+        let (mono, wall) = (mono_ns(), unix_ns() as i64);
+        let offset_ns = self.at_mono(mono)? - wall;
+        Some(crate::timebase::ClockReport {
+            offset_ms: offset_ns as f64 * 1e-6,
+            uncertainty_us: e.uncertainty_ns * 1e-3,
+            drift_ppm: e.drift_ppm,
+            exchanges: self.exchanges(),
+            steps: e.steps,
+        })
+    }
+
+    /// The timebase at this node's monotonic `ns` (None: no estimate yet).
+    pub fn at_mono(&self, ns: i64) -> Option<i64> {
+        match self {
+            Timebase::Own(c) => Some(ns + c),
+            Timebase::Estimated(o) => Self::offset(o).to_reference(ns),
+        }
+    }
+
+    /// The timebase now (ns; None: no estimate yet).
+    pub fn now_ns(&self) -> Option<i64> {
+        self.at_mono(mono_ns())
+    }
+
+    /// The instant of this node's clock at which the timebase reads `tb_ns`
+    /// (None: no estimate yet).
+    pub fn instant_at(&self, tb_ns: i64) -> Option<Instant> {
+        let mono = match self {
+            Timebase::Own(c) => tb_ns - c,
+            Timebase::Estimated(o) => Self::offset(o).to_local(tb_ns)?,
+        };
+        Some(instant_of(mono))
+    }
+
+    /// How long ago the timebase read `tb_ns` (negative: still to come), in
+    /// seconds; None before any estimate.
+    pub fn since_s(&self, tb_ns: i64) -> Option<f64> {
+        self.now_ns().map(|now| (now - tb_ns) as f64 * 1e-9)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_leaders_timebase_is_its_wall_clock_at_start_then_its_monotonic_clock() {
+        let tb = Timebase::leader();
+        let (wall, now) = (unix_ns() as i64, tb.now_ns().expect("own"));
+        assert!((wall - now).abs() < 5_000_000, "wall {wall} vs timebase {now}");
+        let then = tb.instant_at(now + 1_000_000_000).expect("own");
+        let d = then.saturating_duration_since(Instant::now());
+        assert!(d > Duration::from_millis(990) && d <= Duration::from_secs(1), "{d:?}");
+        assert_eq!(tb.estimate().map(|e| e.offset_ns), Some(0.0));
+    }
+
+    #[test]
+    fn an_estimated_timebase_needs_an_exchange_and_then_follows_it() {
+        let tb = Timebase::estimated();
+        assert_eq!(tb.now_ns(), None);
+        assert_eq!(tb.instant_at(0), None);
+        // The leader's timebase reads 5 s more than this node's clock.
+        let t1 = mono_ns();
+        tb.add(Exchange { t1, t2: t1 + 5_000_000_000 + 50_000, t3: t1 + 5_000_000_000 + 60_000, t4: t1 + 110_000 });
+        let now = tb.now_ns().expect("an estimate");
+        let expected = mono_ns() + 5_000_000_000;
+        assert!((now - expected).abs() < 1_000_000, "{now} vs {expected}");
+        let at = tb.instant_at(mono_ns() + 5_000_000_000 + 200_000_000).expect("an estimate");
+        let d = at.saturating_duration_since(Instant::now());
+        assert!(d > Duration::from_millis(190) && d <= Duration::from_millis(201), "{d:?}");
+        assert_eq!(tb.exchanges(), 1);
     }
 }

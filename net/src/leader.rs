@@ -19,6 +19,7 @@ use zenoh::Wait;
 use crate::barrier::Start;
 use crate::clock;
 use crate::startup;
+use crate::timesync;
 use crate::codec;
 use crate::counters::Counters;
 use crate::courier::Courier;
@@ -104,6 +105,9 @@ pub async fn run_leader(
 ) -> Result<(), Error> {
     // A second formation with this run name: refuse before saying anything.
     startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps()).await?;
+    // The run's timebase is this leader's clock; the others ask it from now on.
+    let timebase = clock::Timebase::leader();
+    let time_server = timesync::serve(session, keys, timebase.clone()).await?;
     let hearing: Vec<u32> =
         (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
     let progress = Arc::new(Reached {
@@ -155,25 +159,31 @@ pub async fn run_leader(
     let mut ready: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     ready.push(MONITOR.to_string());
     let lead = if lockstep { Duration::ZERO } else { start_lead };
-    let (start, announcer) = startup::lead_start(session, keys, &hellos, &ready, scenario, time_scale, lead).await?;
+    let (start, announcer) =
+        startup::lead_start(session, keys, &timebase, &hellos, &ready, scenario, time_scale, lead).await?;
     if print_start {
         use std::io::Write;
         let mut out = std::io::stdout().lock();
-        let _ = writeln!(out, "start {} {}", start.epoch_unix_ns, start.time_scale).and_then(|()| out.flush());
+        // The epoch, and how far ahead of now it is on the leader's own
+        // clock (for a lab whose clock is not the leader's).
+        let ahead = start.epoch_unix_ns as i64 - timebase.now_ns().unwrap_or(0);
+        let _ = writeln!(out, "start {} {} {ahead}", start.epoch_unix_ns, start.time_scale).and_then(|()| out.flush());
     }
 
     let scenario = scenario.clone();
+    let timebase = timebase.clone();
     // Telemetry through a bounded store and its own thread (see agent.rs).
     let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, &scenario).await?;
     let courier = delivery.courier.clone();
     let outcome = tokio::task::spawn_blocking(move || {
-        leader_loop(&scenario, lockstep, &start, &progress, &estimate_pub, &courier, &followers_done)
+        leader_loop(&scenario, lockstep, &start, &timebase, &progress, &estimate_pub, &courier, &followers_done)
     })
     .await
     .map_err(|e| Error::Run(format!("leader: loop panicked: {e}")))?;
     telemetry::finish_delivery(delivery, "leader").await;
     drop(acks);
     announcer.abort();
+    drop(time_server);
     drop(subs);
     drop(done_subs);
     outcome.map_err(|e| Error::Run(format!("leader: {e}")))
@@ -183,10 +193,12 @@ fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), Error> {
     p.put(bytes).wait().map_err(|e| zerr("publishing", e))
 }
 
+#[allow(clippy::too_many_arguments)]
 fn leader_loop(
     s: &Scenario,
     lockstep: bool,
     start: &Start,
+    timebase: &clock::Timebase,
     progress: &Reached,
     estimate_pub: &Publisher<'_>,
     telemetry: &Courier,
@@ -212,7 +224,7 @@ fn leader_loop(
     counters.sent += 1;
     recent.push(0, first);
 
-    let mut pacer = (!lockstep).then(|| Pacer::new(start, dt));
+    let mut pacer = (!lockstep).then(|| Pacer::new(start, dt, timebase.clone()));
     let mut batch: Vec<LeaderState> = Vec::with_capacity(batch_len);
     let mut first_k = 0u64;
     let incarnation = clock::unix_ns();

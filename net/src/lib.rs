@@ -11,7 +11,7 @@
 //! | protocol rules (no IO, no clock) | [`barrier`], [`inbox`], [`gate`], [`courier`], [`watch`], [`timebase`] |
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
-//! | shared node parts | [`startup`], [`telemetry`] |
+//! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`] (with [`web`] and [`foxglove`]), [`router`] |
 
 pub mod agent;
@@ -35,6 +35,7 @@ pub mod session;
 pub mod startup;
 pub mod telemetry;
 pub mod timebase;
+pub mod timesync;
 pub mod timing;
 pub mod watch;
 pub mod web;

@@ -25,7 +25,7 @@ use crate::codec;
 use crate::counters::Counters;
 use crate::names::{self, Keys, MONITOR};
 use crate::node::NodeArgs;
-use crate::telemetry::{Ack, Delivery, EventKind, NetEvent, Telemetry};
+use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, NetEvent, Telemetry};
 use crate::timing::LoopStats;
 use formation_record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
 
@@ -112,6 +112,8 @@ struct NodeStats {
     counters: Counters,
     delivery: Delivery,
     loop_stats: Option<LoopStats>,
+    /// The newest estimate of the leader's clock (followers).
+    clock: Option<ClockReport>,
     done: bool,
     /// What the network did to this node, as it noticed it.
     timeline: std::collections::BTreeSet<NetEvent>,
@@ -434,7 +436,7 @@ impl Recorder {
                     self.leader.push_back(None);
                 }
             }
-            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats, delivery, events } => {
+            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats, delivery, events, clock } => {
                 let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
                     self.malformed += 1;
                     return Ok(());
@@ -448,6 +450,9 @@ impl Recorder {
                 let f = &mut self.followers[index];
                 let n = self.nodes.entry(id).or_default();
                 n.note(now, bytes.len(), first_k, counters, done, loop_stats, delivery);
+                if n.newest == Some((delivery.incarnation, first_k)) {
+                    n.clock = clock.filter(|c| c.offset_ms.is_finite() && c.uncertainty_us.is_finite()).or(n.clock);
+                }
                 // A batch sent again repeats its events: a set keeps each once.
                 for e in events.into_iter().take(MAX_EVENTS_PER_BATCH) {
                     if let (true, Some(live)) = (n.timeline.insert(e), &self.foxglove) {
@@ -663,6 +668,7 @@ impl Recorder {
                     "id": id, "name": name(id), "heard_s": heard_s, "done": n.done,
                     "sent": c.sent, "received": c.received, "late": c.late, "rejected": c.rejected.invalid(),
                     "silent": c.silent, "fault_lost": c.fault_lost, "silent_sources": silent,
+                    "clock": n.clock,
                 })
             })
             .collect();
@@ -772,6 +778,7 @@ impl Recorder {
                         "rejected": c.rejected,
                         "rejected_invalid": c.rejected.invalid(),
                         "loop": n.loop_stats,
+                        "clock": n.clock,
                     }),
                 )
             })
@@ -1144,6 +1151,7 @@ mod tests {
                 loop_stats: None,
                 delivery: Delivery::default(),
                 events: Vec::new(),
+                clock: None,
             })
         };
         r.telemetry(Some(0), &leader(0, steps + 1, true), Instant::now()).unwrap();
@@ -1194,6 +1202,7 @@ mod tests {
                 loop_stats: None,
                 delivery: Delivery::default(),
                 events: Vec::new(),
+                clock: None,
             };
             r.telemetry(Some(id), &codec::encode(&batch), Instant::now()).unwrap();
         }

@@ -9,6 +9,7 @@
 //! | `control/ready/<node>` | agents and monitor, until the start | `barrier::Ready` |
 //! | `control/start` | leader, every 100 ms during the run | `barrier::Start` |
 //! | `control/ack` | monitor, every 100 ms during the run | `telemetry::Ack` |
+//! | `control/time` | leader's queryable, asked by every agent every 250 ms | `timesync::TimeReply` |
 //!
 //! `<node>` is `0` for the leader, the follower id, or `monitor`.
 
@@ -93,6 +94,10 @@ impl Keys {
     }
     pub fn start(&self) -> String {
         key(&self.run, "control/start")
+    }
+    /// The leader's timebase, asked for by the others (a queryable).
+    pub fn time(&self) -> String {
+        key(&self.run, "control/time")
     }
     /// The leader refuses the run before its start (the reason, UTF-8).
     pub fn abort(&self) -> String {

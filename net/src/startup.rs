@@ -161,11 +161,14 @@ pub async fn wait_for_start(
 
 /// The leader: says hello until it has heard the hellos in `needs_hello`
 /// and every node of `expect_ready` ready (with this scenario's
-/// fingerprint); then announces [`Start`] (epoch `lead` from now) and keeps
-/// announcing it every 100 ms until the returned task is aborted.
+/// fingerprint); then announces [`Start`] (epoch `lead` from now on its
+/// `timebase`) and keeps announcing it every 100 ms until the returned task
+/// is aborted.
+#[allow(clippy::too_many_arguments)]
 pub async fn lead_start(
     session: &zenoh::Session,
     keys: &Keys,
+    timebase: &clock::Timebase,
     needs_hello: &[String],
     expect_ready: &[String],
     scenario: &Scenario,
@@ -193,7 +196,8 @@ pub async fn lead_start(
         tokio::time::sleep(TICK).await;
     }
     drop(subs);
-    let start = lock(&machine).start(clock::unix_ns(), lead, time_scale);
+    let now = timebase.now_ns().unwrap_or(0).max(0) as u64;
+    let start = lock(&machine).start(now, lead, time_scale);
     let bytes = codec::encode(&start);
     let session = session.clone();
     let key = keys.start();

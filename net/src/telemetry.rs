@@ -27,6 +27,8 @@ pub enum Telemetry {
         delivery: Delivery,
         /// What the network did to this node during the batch's steps.
         events: Vec<NetEvent>,
+        /// The node's estimate of the leader's clock when it sent the batch.
+        clock: Option<ClockReport>,
     },
     Leader {
         first_k: u64,
@@ -50,6 +52,8 @@ pub struct Delivery {
     pub incarnation: u64,
     pub courier: CourierStats,
 }
+
+pub use crate::timebase::ClockReport;
 
 /// One entry of a node's network timeline (`network.json`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -221,6 +225,7 @@ mod tests {
             loop_stats: None,
             delivery: Delivery::default(),
             events: vec![NetEvent { k: first_k, what: EventKind::Silent(2) }],
+            clock: Some(ClockReport { offset_ms: -50.0, uncertainty_us: 80.0, drift_ppm: 3.0, exchanges: 9, steps: 0 }),
         }
     }
 

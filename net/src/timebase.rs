@@ -46,7 +46,7 @@ pub const STEP_FLOOR: f64 = 1_000_000.0;
 
 /// Below this many periods the line has no slope: the drift is taken as
 /// unknown, up to [`DRIFT_MAX`], in the uncertainty.
-pub const MIN_SLOPE_PERIODS: usize = 8;
+pub const MIN_SLOPE_PERIODS: usize = 4;
 
 /// The largest drift between two hosts' clocks assumed before it is
 /// measured (crystals are specified to ±50–100 ppm each).
@@ -104,6 +104,24 @@ pub struct Estimate {
     /// Periods with a best exchange behind the line.
     pub periods: usize,
     /// Steps of the reference detected so far.
+    pub steps: u64,
+}
+
+/// A node's estimate of the leader's clock (`network.json`'s `clock`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ClockReport {
+    /// The leader's clock minus this node's wall clock, ms (a node whose
+    /// wall clock is 50 ms fast reads −50). Reported only: no decision
+    /// uses a wall clock.
+    pub offset_ms: f64,
+    /// How far the estimate may be off (half the best round trips, and the
+    /// drift's share), µs.
+    pub uncertainty_us: f64,
+    /// The leader's clock's rate against this node's, ppm.
+    pub drift_ppm: f64,
+    /// Exchanges with the leader so far.
+    pub exchanges: u64,
+    /// Steps of the leader's clock detected.
     pub steps: u64,
 }
 
@@ -224,11 +242,10 @@ impl Offset {
 
     /// The node's clock when the reference reads `reference_ns`.
     pub fn to_local(&self, reference_ns: i64) -> Option<i64> {
-        // offset(t) = a + b t, reference = t + a + b t: t = (reference − a) / (1 + b).
-        let e = self.at(reference_ns)?;
-        let first = reference_ns as f64 - e.offset_ns;
-        let e = self.at(first.round() as i64)?;
-        Some((reference_ns as f64 - e.offset_ns).round() as i64)
+        // reference = t + a + b (t − m), so t = (reference − a + b m) / (1 + b).
+        let (l, _) = self.line()?;
+        let t = (reference_ns as f64 - l.a + l.slope * l.mean_t) / (1.0 + l.slope);
+        Some(t.round() as i64)
     }
 }
 
@@ -362,6 +379,17 @@ mod tests {
         assert!((100_000.0..100_100.0).contains(&e.uncertainty_ns), "half the round trip, and any drift over 0.1 ms: {e:?}");
         assert_eq!(o.to_reference(5 * S), Some(r.time(5 * S)));
         assert_eq!(o.to_local(r.time(7 * S)), Some(7 * S));
+        // With a drift: the two conversions are each other's inverse.
+        let r = Reference { offset: 3 * S, ppm: 80.0, step: None };
+        let mut o = Offset::new();
+        for i in 0..100 {
+            o.add(r.exchange(i * S, 100 * US, 100 * US)).expect("accepted");
+        }
+        for t in [50 * S, 100 * S, 150 * S] {
+            let back = o.to_local(o.to_reference(t).expect("an estimate")).expect("an estimate");
+            assert!((back - t).abs() <= 1, "{t} -> {back}");
+            assert!((o.to_reference(t).expect("an estimate") - r.time(t)).abs() < 1_000, "at {t}");
+        }
     }
 
     /// Asymmetric delays shift the offset by half the asymmetry, which the

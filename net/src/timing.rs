@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 use crate::barrier::Start;
-use crate::clock;
+use crate::clock::Timebase;
 
 /// Control-loop timing of a real-time node (µs).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -128,29 +128,40 @@ pub fn percentiles(v: &mut [f64]) -> (f64, f64, f64) {
     (at(0.5), at(0.99), v[v.len() - 1])
 }
 
-/// Real-time pacing: step k is due at epoch + k Δt / time_scale.
+/// Real-time pacing: step k is due when the run's timebase reads
+/// epoch + k Δt / time_scale, on this node's monotonic clock through its
+/// estimate of the timebase (which follows the clocks' drift).
 pub struct Pacer {
-    epoch: Instant,
+    timebase: Timebase,
+    /// The epoch on the timebase (ns).
+    epoch_ns: i64,
     period: Duration,
+    /// The last step's due instant (used should the estimate be missing).
+    due: Instant,
     /// Wake-up timing, in bounded memory whatever the run's length.
     timer: LoopTimer,
 }
 
 impl Pacer {
-    pub fn new(start: &Start, dt_s: f64) -> Self {
+    pub fn new(start: &Start, dt_s: f64, timebase: Timebase) -> Self {
         let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
         let period = Duration::from_secs_f64(dt_s / scale);
-        Self { epoch: clock::epoch_instant(start), period, timer: LoopTimer::new(period.as_secs_f64()) }
+        let epoch_ns = start.epoch_unix_ns as i64;
+        let due = timebase.instant_at(epoch_ns).unwrap_or_else(Instant::now);
+        Self { timebase, epoch_ns, period, due, timer: LoopTimer::new(period.as_secs_f64()) }
     }
 
     /// Sleeps until step k is due and records the wake-up.
     pub fn wait(&mut self, k: u64) {
-        let due = self.epoch + self.period.mul_f64(k as f64);
+        let at = self.epoch_ns.saturating_add((self.period.as_nanos() as i64).saturating_mul(k as i64));
+        self.due = self.timebase.instant_at(at).unwrap_or(self.due);
         let now = Instant::now();
-        if due > now {
-            std::thread::sleep(due - now);
+        if self.due > now {
+            std::thread::sleep(self.due - now);
         }
-        self.timer.push(k, Instant::now().saturating_duration_since(self.epoch).as_secs_f64());
+        // Lateness against the step's own due instant.
+        let late = Instant::now().saturating_duration_since(self.due).as_secs_f64();
+        self.timer.push(k, k as f64 * self.period.as_secs_f64() + late);
     }
 
     pub fn stats(&self) -> LoopStats {

@@ -387,9 +387,14 @@ impl Ctx<'_> {
             std::thread::spawn(move || {
                 for line in BufReader::new(stdout).lines().map_while(Result::ok) {
                     let mut w = line.split_whitespace();
-                    if let (Some("start"), Some(e), Some(x)) = (w.next(), w.next(), w.next()) {
-                        if let (Ok(e), Ok(x)) = (e.parse(), x.parse()) {
-                            let _ = tx.send((e, x));
+                    // `start EPOCH SCALE AHEAD`: the epoch is on the leader's
+                    // clock, which need not be this host's (a lab node's clock
+                    // can be shifted); AHEAD (ns) is how far ahead of the
+                    // leader's now it is, which holds on any clock.
+                    if let (Some("start"), Some(_), Some(x), Some(ahead)) = (w.next(), w.next(), w.next(), w.next()) {
+                        if let (Ok(x), Ok(ahead)) = (x.parse(), ahead.parse::<i64>()) {
+                            let epoch = (formation_net::clock::unix_ns() as i64).saturating_add(ahead).max(0);
+                            let _ = tx.send((epoch as u64, x));
                         }
                     }
                 }

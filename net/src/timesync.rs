@@ -1,0 +1,153 @@
+//! The timebase on zenoh: the leader answers `control/time` with its
+//! timebase when a question arrived and when it answers; every other node
+//! asks every [`EVERY`] (faster at first) and files each answer as a
+//! four-timestamp exchange in its [`Timebase`]. The estimate itself is
+//! [`crate::timebase`]'s.
+
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+use zenoh::Wait;
+
+use crate::clock::{self, Timebase};
+use crate::codec;
+use crate::error::{zerr, Error};
+use crate::names::Keys;
+use crate::timebase::Exchange;
+
+/// The leader's answer: its timebase when the question arrived (`t2`) and
+/// when it answered (`t3`), ns.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TimeReply {
+    pub t2: i64,
+    pub t3: i64,
+}
+
+/// How often a node asks during the run.
+pub const EVERY: Duration = Duration::from_millis(250);
+/// The first questions come this quickly, this many of them.
+const FIRST_EVERY: Duration = Duration::from_millis(20);
+const FIRST: u32 = 10;
+/// A question unanswered this long is lost.
+const TIMEOUT: Duration = Duration::from_secs(1);
+
+/// The leader: answers every question with its timebase, until the
+/// returned queryable is dropped.
+pub async fn serve(
+    session: &zenoh::Session,
+    keys: &Keys,
+    timebase: Timebase,
+) -> Result<zenoh::query::Queryable<()>, Error> {
+    session
+        .declare_queryable(keys.time())
+        .callback(move |query| {
+            let t2 = timebase.now_ns().unwrap_or(0);
+            let reply = |t3| codec::encode(&TimeReply { t2, t3 });
+            let _ = query.reply(query.key_expr().clone(), reply(timebase.now_ns().unwrap_or(0))).wait();
+        })
+        .await
+        .map_err(|e| zerr("declaring the time queryable", e))
+}
+
+/// A node's questions to the leader's timebase; they stop when this is dropped.
+pub struct Following(tokio::task::JoinHandle<()>);
+
+impl Drop for Following {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// A node: asks the leader's timebase until the returned guard is dropped,
+/// filing every answer in `timebase`; `quarter_step_ns`: an uncertainty
+/// beyond this is reported once on stderr, naming `me`.
+pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: String, quarter_step_ns: f64) -> Following {
+    let key = keys.time();
+    Following(tokio::spawn(async move {
+        let mut asked = 0u32;
+        let mut warned = false;
+        loop {
+            if let Some(x) = ask(&session, &key).await {
+                timebase.add(x);
+            }
+            asked = asked.saturating_add(1);
+            // Judged once the drift is measured (before, its allowance dominates).
+            if !warned {
+                let measured = |e: &crate::timebase::Estimate| e.periods >= crate::timebase::MIN_SLOPE_PERIODS;
+                if let Some(e) = timebase.estimate().filter(|e| measured(e) && e.uncertainty_ns > quarter_step_ns) {
+                    warned = true;
+                    crate::node::say(&format!(
+                        "{me}: the leader's clock is known only to ±{:.3} ms (more than a quarter step, {:.3} ms): \
+                         steps may be early or late by that much",
+                        e.uncertainty_ns * 1e-6,
+                        quarter_step_ns * 1e-6
+                    ));
+                }
+            }
+            tokio::time::sleep(if asked < FIRST { FIRST_EVERY } else { EVERY }).await;
+        }
+    }))
+}
+
+/// One exchange: None if unanswered (within [`TIMEOUT`]) or garbled.
+async fn ask(session: &zenoh::Session, key: &str) -> Option<Exchange> {
+    let t1 = clock::mono_ns();
+    let replies = session.get(key).timeout(TIMEOUT).await.ok()?;
+    while let Ok(reply) = replies.recv_async().await {
+        let t4 = clock::mono_ns();
+        if let Ok(sample) = reply.result() {
+            if let Some(r) = codec::decode::<TimeReply>(&sample.payload().to_bytes()) {
+                return Some(Exchange { t1, t2: r.t2, t3: r.t3, t4 });
+            }
+        }
+    }
+    None
+}
+
+/// A node after the start: waits (up to `limit`) until its timebase has an
+/// estimate; otherwise the error names what it could not reach.
+pub async fn wait_for_estimate(timebase: &Timebase, keys: &Keys, me: &str, limit: Duration) -> Result<(), Error> {
+    let began = std::time::Instant::now();
+    while timebase.estimate().is_none() {
+        if began.elapsed() > limit {
+            return Err(Error::Input(format!(
+                "{me}: cannot estimate the leader's clock: no answer on {} within {} s (is the leader reachable \
+                 from this host, and of this build?)",
+                keys.time(),
+                limit.as_secs()
+            )));
+        }
+        tokio::time::sleep(FIRST_EVERY).await;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_node_that_hears_no_time_gives_up_naming_the_key() {
+        let rt = tokio::runtime::Builder::new_current_thread().enable_time().build().expect("runtime");
+        let keys = Keys { run: "r".into() };
+        let tb = Timebase::estimated();
+        match rt.block_on(wait_for_estimate(&tb, &keys, "follower 3", Duration::ZERO)) {
+            Err(Error::Input(m)) => assert!(
+                m.starts_with("follower 3: cannot estimate the leader's clock: no answer on formation/r/control/time"),
+                "{m}"
+            ),
+            other => panic!("{other:?}"),
+        }
+        // One exchange is enough to go on.
+        let t1 = clock::mono_ns();
+        tb.add(Exchange { t1, t2: 10, t3: 20, t4: t1 + 1_000 });
+        assert_eq!(rt.block_on(wait_for_estimate(&tb, &keys, "follower 3", Duration::ZERO)), Ok(()));
+    }
+
+    #[test]
+    fn a_reply_is_refused_unless_it_is_one() {
+        let r = TimeReply { t2: -5, t3: 7 };
+        assert_eq!(codec::decode::<TimeReply>(&codec::encode(&r)), Some(r));
+        assert_eq!(codec::decode::<TimeReply>(b"not a reply at all"), None);
+    }
+}
