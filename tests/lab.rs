@@ -620,3 +620,79 @@ fn lockstep_restart(victim: &str, tag: &str) {
     }
     eprintln!("lock-step restart: follower {victim} resumed at t = {resumed} s, the run completed");
 }
+
+/// Issue 23's clocks that disagree: one follower's wall clock off by −1 s,
+/// −50 ms, +5 ms, +50 ms and +1 s, and the leader's by +1 s (libfaketime,
+/// monotonic clocks untouched, as on hosts without a time service). Each
+/// real-time run is the unshifted one: every step recorded, each node's
+/// estimated offset to the leader's clock within 1 ms of the shift applied,
+/// every follower's estimator error from 5 s below 0.1 m (before the
+/// timebase: 8.0 m at −0.3 s, 9.6 m at +0.5 s). On a quiet machine also:
+/// the others' below 0.02 m, torque variation within 10 % and the silent
+/// and rejected counts as in the unshifted run.
+#[test]
+fn clocks_that_disagree_change_nothing() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    let lib = "/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1";
+    if !std::path::Path::new(lib).is_file() && std::env::var_os("FORMATION_LIBFAKETIME").is_none() {
+        assert!(
+            std::env::var("FORMATION_LAB_REQUIRED").as_deref() != Ok("1"),
+            "FORMATION_LAB_REQUIRED=1 but libfaketime is missing (apt-get install faketime)"
+        );
+        eprintln!("skipped: libfaketime is missing (apt-get install faketime)");
+        return;
+    }
+    const BASE10: [&str; 2] = ["timing=realtime", "duration=10"];
+    let reference = lab_on(&BASE10, "lab-clock-ref", &[], &[]);
+    let counts = |r: &Run, id: &str| {
+        let n = &r.network["nodes"][id];
+        (num(&n["silent"]), num(&n["rejected_invalid"]))
+    };
+    // (node, shift in s): the leader's shift moves every follower's offset.
+    let cases: [(&str, f64); 6] = [("3", -1.0), ("3", -0.05), ("3", 0.005), ("3", 0.05), ("3", 1.0), ("leader", 1.0)];
+    for (node, shift) in cases {
+        let tag = format!("{node} {shift:+} s");
+        let arg = format!("{node}={shift:+}");
+        let r = lab_on(&BASE10, "lab-clock", &[], &["--clock", &arg]);
+        assert_eq!(r.network["complete"], true, "{tag}: record not complete");
+        let mut wrong = Vec::new();
+        let mut measured = Vec::new();
+        for id in IDS {
+            let rows = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count();
+            assert_eq!(rows - 1, 10001, "{tag}: follower {id} has {} rows of 10001", rows - 1);
+            // The leader's clock minus this node's wall clock.
+            let leader_shift = if node == "leader" { shift } else { 0.0 };
+            let own_shift = if node == id { shift } else { 0.0 };
+            let expected_ms = (leader_shift - own_shift) * 1e3;
+            let clock = &r.network["nodes"][id]["clock"];
+            let got_ms = num(&clock["offset_ms"]);
+            measured.push(format!("{id}: {got_ms:.3} ms ± {:.0} µs", num(&clock["uncertainty_us"])));
+            assert!(
+                (got_ms - expected_ms).abs() < 1.0,
+                "{tag}: follower {id} estimates the leader's clock {got_ms:.3} ms from its own, not {expected_ms:.3} \
+                 ms ({clock})"
+            );
+            let (peak, at) = peak_from_5_s(&estimator_error(&r, id));
+            assert!(peak < 0.1, "{tag}: follower {id}'s estimator error reached {peak:.4} m at {at} s");
+            if peak >= 0.02 {
+                wrong.push(format!("follower {id}: estimator error {peak:.4} m at {at} s"));
+            }
+            let (a, b) = (num(&r.summary["followers"][id]["torque_tv"]), num(&reference.summary["followers"][id]["torque_tv"]));
+            if (a / b - 1.0).abs() > 0.1 {
+                wrong.push(format!("follower {id}: torque variation {a:.3} against {b:.3} unshifted"));
+            }
+            if counts(&r, id) != counts(&reference, id) {
+                wrong.push(format!(
+                    "follower {id}: (silent, rejected) {:?} against {:?} unshifted",
+                    counts(&r, id),
+                    counts(&reference, id)
+                ));
+            }
+        }
+        eprintln!("{tag}: estimated offsets {}", measured.join(", "));
+        common::judge_if_quiet(&tag, &wrong, r.host, &older_messages(&r));
+    }
+}

@@ -51,6 +51,66 @@ pub struct LabArgs {
     /// e.g. `3@8:2`. Repeatable.
     #[arg(long = "restart-agent", value_name = "ID@AT:FOR")]
     pub restart_agent: Vec<String>,
+    /// Shift one node's wall clock by SECONDS (e.g. `3=+0.05`,
+    /// `leader=-1`), as on a host without a time service: the node runs
+    /// under libfaketime (`apt-get install faketime`) with its monotonic
+    /// clock untouched. NODE: a follower id, `leader`, `monitor` or
+    /// `router`. Repeatable.
+    #[arg(long = "clock", value_name = "NODE=SECONDS")]
+    pub clock: Vec<String>,
+}
+
+/// Where libfaketime may be (Debian's and others'); `FORMATION_LIBFAKETIME` first.
+const LIBFAKETIME: [&str; 3] = [
+    "/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1",
+    "/usr/lib/aarch64-linux-gnu/faketime/libfaketime.so.1",
+    "/usr/lib/faketime/libfaketime.so.1",
+];
+
+/// `--clock` values: (lab host, shift in seconds), and libfaketime's path.
+fn clock_shifts(a: &LabArgs, s: &Scenario) -> Result<(Vec<(String, f64)>, Option<String>), Error> {
+    let mut shifts: Vec<(String, f64)> = Vec::new();
+    for text in &a.clock {
+        let bad = |why: &str| Error::Input(format!("--clock {text}: {why}"));
+        let (node, secs) = text.split_once('=').ok_or_else(|| bad("expected NODE=SECONDS, e.g. 3=+0.05"))?;
+        let node = node.trim();
+        let host = match node {
+            "leader" | "monitor" | "router" => node.to_string(),
+            id => match id.parse::<u32>() {
+                Ok(id) if s.index_of(id).is_some() => agent_host(id),
+                _ => return Err(bad("NODE is a follower id of the scenario, leader, monitor or router")),
+            },
+        };
+        if host == "router" && a.mode != LaunchMode::Client {
+            return Err(bad("there is no router in peer mode"));
+        }
+        let secs: f64 = secs.trim().parse().map_err(|_| bad("SECONDS is a number, e.g. +0.05 or -1"))?;
+        if !(secs.is_finite() && secs.abs() <= 86_400.0) {
+            return Err(bad("SECONDS must be within a day either way"));
+        }
+        if shifts.iter().any(|(h, _)| *h == host) {
+            return Err(bad("this node's clock is already shifted"));
+        }
+        shifts.push((host, secs));
+    }
+    if shifts.is_empty() {
+        return Ok((shifts, None));
+    }
+    let from_env = std::env::var("FORMATION_LIBFAKETIME").ok();
+    let lib = from_env
+        .iter()
+        .map(String::as_str)
+        .chain(LIBFAKETIME)
+        .find(|p| Path::new(p).is_file())
+        .map(str::to_string)
+        .ok_or_else(|| {
+            Error::Input(format!(
+                "--clock needs libfaketime (apt-get install faketime); looked for {}{}",
+                LIBFAKETIME.join(", "),
+                from_env.as_deref().map(|p| format!(" and {p}")).unwrap_or_default()
+            ))
+        })?;
+    Ok((shifts, Some(lib)))
 }
 
 /// What the lab does to the network at one moment.
@@ -165,6 +225,7 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
 pub fn run(a: &LabArgs) -> Result<(), Error> {
     let (scenario, run, out) = a.opts.resolve()?;
     let (events, notes) = plan(a, &scenario)?;
+    let (clocks, faketime) = clock_shifts(a, &scenario)?;
     // Inside the re-run under unshare, uid 0 is the mapped user: prepare
     // the namespace there whatever privilege() says.
     if a.opts.web.foxglove.is_some() {
@@ -234,12 +295,18 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         .build()
         .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
-    let ctx = Ctx { a, scenario: &scenario, run: &run, out: &out, exe: &exe, lab: &lab };
+    let ctx = Ctx { a, scenario: &scenario, run: &run, out: &out, exe: &exe, lab: &lab, clocks: &clocks, faketime };
     let result = runtime.block_on(ctx.drive(&mut children, events));
     drop(children);
     drop(lab);
     let (summary, performed) = result?;
-    let record = json!({ "mode": if a.mode == LaunchMode::Client { "client" } else { "peer" }, "events": performed, "notes": notes });
+    let shifted: serde_json::Map<String, serde_json::Value> = clocks.iter().map(|(h, s)| (h.clone(), json!(s))).collect();
+    let record = json!({
+        "mode": if a.mode == LaunchMode::Client { "client" } else { "peer" },
+        "events": performed,
+        "notes": notes,
+        "clock_shift_s": shifted,
+    });
     std::fs::write(out.join("lab.json"), serde_json::to_string_pretty(&record).unwrap_or_default() + "\n")
         .map_err(|e| Error::Run(format!("writing {}: {e}", out.join("lab.json").display())))?;
     if !a.opts.quiet {
@@ -265,6 +332,9 @@ struct Ctx<'a> {
     out: &'a Path,
     exe: &'a Path,
     lab: &'a netns::Lab,
+    /// `--clock`: (host, shift in s), and libfaketime's path.
+    clocks: &'a [(String, f64)],
+    faketime: Option<String>,
 }
 
 impl Ctx<'_> {
@@ -274,8 +344,17 @@ impl Ctx<'_> {
     }
 
     /// `formation node <node> …` in the host's namespace, with its endpoints.
-    fn node(&self, host: &str, node: &str) -> Command {
+    /// The host's process, its wall clock shifted if `--clock` says so.
+    fn command(&self, host: &str) -> Command {
         let mut c = self.lab.command(host, self.exe);
+        if let (Some((_, secs)), Some(lib)) = (self.clocks.iter().find(|(h, _)| h == host), &self.faketime) {
+            c.env("LD_PRELOAD", lib).env("FAKETIME", format!("{secs:+}")).env("FAKETIME_DONT_FAKE_MONOTONIC", "1");
+        }
+        c
+    }
+
+    fn node(&self, host: &str, node: &str) -> Command {
+        let mut c = self.command(host);
         launch::node_args(&mut c, node, &self.a.opts, self.run);
         if self.a.mode == LaunchMode::Client {
             c.args(["--mode", "client", "--connect", &self.ep("router")]);
@@ -314,7 +393,7 @@ impl Ctx<'_> {
     }
 
     fn router(&self) -> Command {
-        let mut c = self.lab.command("router", self.exe);
+        let mut c = self.command("router");
         c.args(["node", "router", "--listen", &self.ep("router")]);
         launch::tls_arg(&mut c, &self.a.opts);
         formation_net::session::router_runtime(&mut c, self.scenario.timing);
