@@ -70,7 +70,7 @@ fn client_mode_through_router_equals_sim() {
 
 fn msg(sender: u32, step: u64, v: f64) -> Vec<u8> {
     wire::encode(&EstimateMsg {
-        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
+        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
         state: LeaderState { v, ..Default::default() },
         fresh: true,
     })
@@ -116,7 +116,7 @@ async fn rogue_messages_are_rejected_and_counted() {
         for id in 0..=4u32 {
             let key = format!("formation/rogue/estimate/{id}");
             let mut bad_version = EstimateMsg {
-                header: Header { version: FORMAT_VERSION + 7, sender: id, step: k, time_s: 0.0 },
+                header: Header { version: FORMAT_VERSION + 7, sender: id, step: k, time_s: 0.0, sent_ns: 0 },
                 state: LeaderState::default(),
                 fresh: true,
             };

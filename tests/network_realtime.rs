@@ -39,7 +39,7 @@ fn realtime_run_ends_within_spec_bounds() {
     let _alone = one_at_a_time();
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("net");
-    let mut g = Group::launch(&out, &SETS, &["--time-scale", "2", "--base-port", "17700", "--run", "rt"]);
+    let mut g = Group::launch(&out, &SETS, &["--time-scale", "2", "--base-port", "17700", "--run", "rt", "--mcap"]);
 
     let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
     sim.args(["sim", SCENARIO, "-q", "--out"]).arg(tmp.path().join("sim"));
@@ -73,6 +73,41 @@ fn realtime_run_ends_within_spec_bounds() {
         assert!((form - form_ref).abs() < 0.1, "follower {id}: formation RMS {form} vs simulator {form_ref} {context}");
         assert!((est - est_ref).abs() < 0.1, "follower {id}: estimator error {est} vs simulator {est_ref} {context}");
     }
+    links_and_clocks_are_measured(&out, &network);
+}
+
+/// Issue 23's figures, in network.json and run.mcap: per follower its
+/// estimate of the leader's clock (one host: one wall clock, so an offset
+/// within 1 ms of 0), and per source the one-way latency and the age at
+/// use of its messages.
+fn links_and_clocks_are_measured(out: &std::path::Path, network: &serde_json::Value) {
+    // Sources per follower in scenarios/paper.toml (neighbours, and the leader for 1).
+    let sources = [("1", vec![0, 2, 3]), ("2", vec![1, 4]), ("3", vec![1, 4]), ("4", vec![2, 3])];
+    for (id, want) in &sources {
+        let n = &network["nodes"][id];
+        let (offset, uncertainty) = (n["clock"]["offset_ms"].as_f64(), n["clock"]["uncertainty_us"].as_f64());
+        assert!(offset.is_some_and(|o| o.abs() < 1.0), "follower {id}: clock {}", n["clock"]);
+        assert!(uncertainty.is_some_and(|u| u > 0.0 && u < 5_000.0), "follower {id}: clock {}", n["clock"]);
+        let links = n["links"].as_array().expect("links");
+        let mut got: Vec<u64> = links.iter().map(|l| l["source"].as_u64().expect("source")).collect();
+        got.sort_unstable();
+        assert_eq!(&got, want, "follower {id}: one entry per source");
+        for l in links {
+            let lat = |i: usize| l["latency_us"][i].as_u64().expect("latency");
+            assert!(l["messages"].as_u64() > Some(2_500), "follower {id}: {l}");
+            assert!(l["uses"].as_u64() > Some(2_500), "follower {id}: {l}");
+            assert!(lat(0) <= lat(1) && lat(1) <= lat(2), "follower {id}: {l}");
+            assert!(lat(0) < 50_000, "follower {id}: a median one-way latency of {} µs on one host: {l}", lat(0));
+            assert!(l["age_steps"][0].as_u64() <= Some(2), "follower {id}: {l}");
+        }
+    }
+    let bytes = std::fs::read(out.join("run.mcap")).expect("run.mcap");
+    let mut topics = std::collections::BTreeMap::<String, usize>::new();
+    for m in mcap::MessageStream::new(&bytes).expect("mcap") {
+        *topics.entry(m.expect("message").channel.topic.clone()).or_default() += 1;
+    }
+    assert_eq!(topics.get("/network/links"), Some(&9), "one message per link: {topics:?}");
+    assert_eq!(topics.get("/network/clocks"), Some(&4), "one message per follower: {topics:?}");
 }
 
 /// docs/model.md §14's communication delay: with `network.delay_steps = d` a step

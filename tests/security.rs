@@ -63,7 +63,7 @@ async fn open_as(dir: &Path, name: &str, port: u16) -> zenoh::Session {
 
 fn estimate(sender: u32, step: u64) -> Vec<u8> {
     wire::encode(&EstimateMsg {
-        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
+        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
         state: LeaderState { v: 1.0, ..Default::default() },
         fresh: true,
     })

@@ -244,6 +244,7 @@ pub async fn run_follower(
         let shared = shared.clone();
         let neighbour_ids = neighbour_ids.clone();
         let n = neighbour_ids.len();
+        let timebase = timebase.clone();
         let sub = session
             .declare_subscriber(keys.estimate(src))
             .callback(move |sample| {
@@ -251,8 +252,14 @@ pub async fn run_follower(
                 let bytes = sample.payload().to_bytes();
                 let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
                 match inbox::check(key_id, &bytes, hears_leader, &neighbour_ids) {
-                    Ok((Source::Neighbour(slot), msg)) => inbox.accept(slot, &msg),
-                    Ok((Source::Leader, msg)) => inbox.accept(n, &msg),
+                    Ok((source, msg)) => {
+                        let slot = if let Source::Neighbour(slot) = source { slot } else { n };
+                        if inbox.accept(slot, &msg) {
+                            if let Some(now) = timebase.now_ns() {
+                                inbox.note_latency(slot, msg.header.sent_ns, now);
+                            }
+                        }
+                    }
                     Err(r) => inbox.reject(r),
                 }
                 // Wake the control loop only when its step is complete: one
@@ -549,7 +556,13 @@ fn control_loop(
     telemetry: &Courier,
 ) -> Result<(), Error> {
     let msg = |k: u64, m: Message| EstimateMsg {
-        header: Header { version: FORMAT_VERSION, sender: c.id, step: k, time_s: k as f64 * c.dt_s },
+        header: Header {
+            version: FORMAT_VERSION,
+            sender: c.id,
+            step: k,
+            time_s: k as f64 * c.dt_s,
+            sent_ns: c.timebase.now_ns().unwrap_or(0),
+        },
         state: m.state,
         fresh: m.fresh,
     };
@@ -698,7 +711,10 @@ fn control_loop(
             recent.push(k + 1, bytes);
         }
         if batch.len() >= c.batch || last || diverged.is_some() {
-            let mut counters: Counters = shared.inbox.lock().unwrap_or_else(|p| p.into_inner()).counters;
+            let (mut counters, links): (Counters, _) = {
+                let inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
+                (inbox.counters, inbox.link_stats(&c.source_ids))
+            };
             counters.sent = sent;
             counters.republished = republished;
             let done = last || diverged.is_some();
@@ -721,6 +737,7 @@ fn control_loop(
                     std::mem::take(&mut events)
                 },
                 clock: c.timebase.report(),
+                links,
             };
             telemetry.push(first_k, k + 1, codec::encode(&t));
             first_k = k + 1;

@@ -2,6 +2,7 @@
 //! passes (docs/model.md §13), and the [`Inbox`] a control loop takes its inputs from
 //! (docs/model.md §14's fault table applied on arrival).
 
+use crate::latency::{LinkMeter, LinkStats};
 use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
@@ -62,6 +63,8 @@ pub struct Inbox {
     clock: Option<(std::time::Instant, Duration)>,
     /// Per source: the fault table's loss decisions for the link (docs/model.md §14).
     links: Vec<LinkLoss>,
+    /// Per source: latency and age at use (see [`crate::latency`]).
+    meters: Vec<LinkMeter>,
 }
 
 /// Lock-step: how far ahead of the receiver's step a neighbour's message can
@@ -85,6 +88,7 @@ impl Inbox {
             ahead: vec![if lockstep { LOCKSTEP_AHEAD } else { REALTIME_AHEAD }; sources],
             clock: None,
             links: vec![LinkLoss::none(); sources],
+            meters: vec![LinkMeter::default(); sources],
         }
     }
 
@@ -140,23 +144,24 @@ impl Inbox {
         base.saturating_add(self.ahead[slot])
     }
 
-    /// Files a checked message, or counts it as stale or from the future.
-    pub fn accept(&mut self, slot: usize, msg: &EstimateMsg) {
+    /// Files a checked message, or counts it as stale or from the future;
+    /// whether it was filed (and its latency worth measuring).
+    pub fn accept(&mut self, slot: usize, msg: &EstimateMsg) -> bool {
         let step = msg.header.step;
         let seen = &mut self.heard_max[slot];
         *seen = Some(seen.map_or(step, |m| m.max(step)));
         if step > self.limit(slot) {
             self.counters.rejected.add(Reject::Future);
-            return;
+            return false;
         }
         if self.links[slot].lost(step) {
             self.counters.fault_lost += 1;
-            return;
+            return false;
         }
         if self.newest[slot].is_some_and(|n| step <= n) {
             self.counters.late += 1;
             self.counters.rejected.add(Reject::Stale);
-            return;
+            return false;
         }
         self.counters.received += 1;
         let m = Message { state: msg.state, fresh: msg.fresh };
@@ -171,6 +176,18 @@ impl Inbox {
                 h.pop_front();
             }
         }
+        true
+    }
+
+    /// A filed message of `slot`, stamped `sent_ns`, arrived at `now_ns`
+    /// (both on the run's timebase).
+    pub fn note_latency(&mut self, slot: usize, sent_ns: i64, now_ns: i64) {
+        self.meters[slot].received(sent_ns, now_ns);
+    }
+
+    /// Per source (ids by slot), what its messages' latency and age were.
+    pub fn link_stats(&self, ids: &[u32]) -> Vec<LinkStats> {
+        self.meters.iter().zip(ids).map(|(m, &id)| m.stats(id)).collect()
     }
 
     pub fn reject(&mut self, r: Reject) {
@@ -225,6 +242,7 @@ impl Inbox {
         match h.front() {
             Some(&(s, state)) if s <= k && k - s <= max_age_steps => {
                 self.counters.older += u64::from(s < k);
+                self.meters[slot].age_steps.record(self.current.saturating_sub(s));
                 Some(state)
             }
             _ => {
@@ -245,7 +263,7 @@ mod tests {
 
     fn msg(sender: u32, step: u64) -> EstimateMsg {
         EstimateMsg {
-            header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3 },
+            header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
             state: formation_agent::LeaderState { v: step as f64, ..Default::default() },
             fresh: true,
         }

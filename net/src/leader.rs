@@ -209,7 +209,13 @@ fn leader_loop(
     let batch_len = s.network.telemetry_batch.max(1) as usize;
     let msg = |k: u64, state: LeaderState| {
         wire::encode(&EstimateMsg {
-            header: Header { version: FORMAT_VERSION, sender: wire::LEADER_ID, step: k, time_s: k as f64 * dt },
+            header: Header {
+                version: FORMAT_VERSION,
+                sender: wire::LEADER_ID,
+                step: k,
+                time_s: k as f64 * dt,
+                sent_ns: timebase.now_ns().unwrap_or(0),
+            },
             state,
             fresh: true,
         })
@@ -354,7 +360,7 @@ mod tests {
     use super::*;
 
     fn header(sender: u32, step: u64) -> Header {
-        Header { version: FORMAT_VERSION, sender, step, time_s: 0.0 }
+        Header { version: FORMAT_VERSION, sender, step, time_s: 0.0, sent_ns: 0 }
     }
 
     #[test]

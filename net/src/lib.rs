@@ -8,7 +8,7 @@
 //! | layer | modules |
 //! | --- | --- |
 //! | names and wire | [`names`], [`codec`], [`counters`], [`error`] |
-//! | protocol rules (no IO, no clock) | [`barrier`], [`inbox`], [`gate`], [`courier`], [`watch`], [`timebase`] |
+//! | protocol rules (no IO, no clock) | [`barrier`], [`latency`], [`inbox`], [`gate`], [`courier`], [`watch`], [`timebase`] |
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
@@ -26,6 +26,7 @@ pub mod foxglove;
 pub mod gate;
 pub mod identity;
 pub mod inbox;
+pub mod latency;
 pub mod leader;
 pub mod monitor;
 pub mod names;

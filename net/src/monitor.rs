@@ -25,7 +25,7 @@ use crate::codec;
 use crate::counters::Counters;
 use crate::names::{self, Keys, MONITOR};
 use crate::node::NodeArgs;
-use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, NetEvent, Telemetry};
+use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
 use crate::timing::LoopStats;
 use formation_record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
 
@@ -114,6 +114,8 @@ struct NodeStats {
     loop_stats: Option<LoopStats>,
     /// The newest estimate of the leader's clock (followers).
     clock: Option<ClockReport>,
+    /// The newest per-link latency and age (followers), at most one per source.
+    links: Vec<LinkStats>,
     done: bool,
     /// What the network did to this node, as it noticed it.
     timeline: std::collections::BTreeSet<NetEvent>,
@@ -436,7 +438,7 @@ impl Recorder {
                     self.leader.push_back(None);
                 }
             }
-            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats, delivery, events, clock } => {
+            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats, delivery, events, clock, links } => {
                 let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
                     self.malformed += 1;
                     return Ok(());
@@ -452,6 +454,11 @@ impl Recorder {
                 n.note(now, bytes.len(), first_k, counters, done, loop_stats, delivery);
                 if n.newest == Some((delivery.incarnation, first_k)) {
                     n.clock = clock.filter(|c| c.offset_ms.is_finite() && c.uncertainty_us.is_finite()).or(n.clock);
+                    // A forged batch cannot fill the monitor's memory: one entry per source.
+                    let sources = self.scenario.sources_of(index).len();
+                    if links.len() <= sources {
+                        n.links = links;
+                    }
                 }
                 // A batch sent again repeats its events: a set keeps each once.
                 for e in events.into_iter().take(MAX_EVENTS_PER_BATCH) {
@@ -669,6 +676,7 @@ impl Recorder {
                     "sent": c.sent, "received": c.received, "late": c.late, "rejected": c.rejected.invalid(),
                     "silent": c.silent, "fault_lost": c.fault_lost, "silent_sources": silent,
                     "clock": n.clock,
+                    "links": n.links,
                 })
             })
             .collect();
@@ -779,6 +787,7 @@ impl Recorder {
                         "rejected_invalid": c.rejected.invalid(),
                         "loop": n.loop_stats,
                         "clock": n.clock,
+                        "links": n.links,
                     }),
                 )
             })
@@ -1152,6 +1161,7 @@ mod tests {
                 delivery: Delivery::default(),
                 events: Vec::new(),
                 clock: None,
+                links: Vec::new(),
             })
         };
         r.telemetry(Some(0), &leader(0, steps + 1, true), Instant::now()).unwrap();
@@ -1203,6 +1213,7 @@ mod tests {
                 delivery: Delivery::default(),
                 events: Vec::new(),
                 clock: None,
+                links: Vec::new(),
             };
             r.telemetry(Some(id), &codec::encode(&batch), Instant::now()).unwrap();
         }

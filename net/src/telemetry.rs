@@ -29,6 +29,8 @@ pub enum Telemetry {
         events: Vec<NetEvent>,
         /// The node's estimate of the leader's clock when it sent the batch.
         clock: Option<ClockReport>,
+        /// Per source, its messages' latency and age so far.
+        links: Vec<LinkStats>,
     },
     Leader {
         first_k: u64,
@@ -53,6 +55,7 @@ pub struct Delivery {
     pub courier: CourierStats,
 }
 
+pub use crate::latency::LinkStats;
 pub use crate::timebase::ClockReport;
 
 /// One entry of a node's network timeline (`network.json`).
@@ -226,6 +229,7 @@ mod tests {
             delivery: Delivery::default(),
             events: vec![NetEvent { k: first_k, what: EventKind::Silent(2) }],
             clock: Some(ClockReport { offset_ms: -50.0, uncertainty_us: 80.0, drift_ppm: 3.0, exchanges: 9, steps: 0 }),
+            links: vec![LinkStats { source: 2, messages: 9, latency_us: [40, 90, 120], uses: 9, age_steps: [0, 1, 1] }],
         }
     }
 

@@ -144,6 +144,9 @@ pub struct Offset {
     disagreeing: usize,
     steps: u64,
     used: u64,
+    /// The line as of the last exchange filed (asked for far more often
+    /// than exchanges come: every published message is stamped).
+    cached: Option<(Line, usize)>,
 }
 
 impl Offset {
@@ -180,6 +183,7 @@ impl Offset {
                 }
             }
         }
+        self.cached = self.fit_line();
         Ok(())
     }
 
@@ -203,6 +207,10 @@ impl Offset {
     /// The line through the judged periods that agree, and through the
     /// newest period (not judged yet) if it agrees with them.
     fn line(&self) -> Option<(Line, usize)> {
+        self.cached
+    }
+
+    fn fit_line(&self) -> Option<(Line, usize)> {
         let judged = self.best.len().saturating_sub(1);
         let agreeing = || self.best.iter().take(judged).filter(|b| !b.outlier);
         let n = agreeing().count();
@@ -251,6 +259,7 @@ impl Offset {
 
 /// A straight line offset(t) = a + b (t − mean_t) through best exchanges,
 /// each weighted by the inverse square of its uncertainty.
+#[derive(Clone, Copy, Debug)]
 struct Line {
     mean_t: f64,
     a: f64,

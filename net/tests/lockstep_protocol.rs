@@ -104,7 +104,7 @@ impl Network {
 
 fn message(id: u32, step: u64) -> Vec<u8> {
     wire::encode(&EstimateMsg {
-        header: Header { version: FORMAT_VERSION, sender: id, step, time_s: step as f64 * 1e-3 },
+        header: Header { version: FORMAT_VERSION, sender: id, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
         state: LeaderState::default(),
         fresh: true,
     })

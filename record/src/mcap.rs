@@ -13,6 +13,8 @@
 //! | `/leader/state` | `formation.LeaderState`: `leader.csv`'s columns | CSV row |
 //! | `/follower_<id>/state` | `formation.FollowerState`: `follower_<id>.csv`'s columns | CSV row |
 //! | `/network/events` | `formation.NetworkEvent` (`network.json`'s timelines) | event |
+//! | `/network/links` | `formation.LinkStats`: a link's one-way latency and age at use (`network.json`) | receiver and source, at the run's end |
+//! | `/network/clocks` | `formation.ClockEstimate`: a node's estimate of the leader's clock (`network.json`) | node, at the run's end |
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -38,6 +40,15 @@ pub const POSE_IN_FRAME: &str = r#"{"title":"foxglove.PoseInFrame","type":"objec
 
 pub const EVENT: &str = r#"{"title":"formation.NetworkEvent","type":"object","properties":{
 "node":{"type":"string"},"t":{"type":"number"},"event":{"type":"string"}}}"#;
+
+pub const LINK: &str = r#"{"title":"formation.LinkStats","type":"object","properties":{
+"node":{"type":"string"},"source":{"type":"integer"},"messages":{"type":"integer"},
+"latency_us":{"type":"array","items":{"type":"integer"},"description":"p50, p99, max"},
+"uses":{"type":"integer"},"age_steps":{"type":"array","items":{"type":"integer"},"description":"p50, p99, max"}}}"#;
+
+pub const CLOCK: &str = r#"{"title":"formation.ClockEstimate","type":"object","properties":{
+"node":{"type":"string"},"offset_ms":{"type":"number"},"uncertainty_us":{"type":"number"},
+"drift_ppm":{"type":"number"},"exchanges":{"type":"integer"},"steps":{"type":"integer"}}}"#;
 
 /// A JSON schema of one object with a number per column.
 pub fn columns_schema(title: &str, columns: &[&str]) -> String {
@@ -115,6 +126,8 @@ pub fn write(dir: &Path, ids: &[u32]) -> std::io::Result<()> {
         .create(BufWriter::new(file))
         .map_err(err)?;
     let mut out = Out { w, sequence: BTreeMap::new() };
+    // The run's last time, for what network.json says of the whole run.
+    let mut t_end = 0.0f64;
 
     let names = self::names(crate::row::LEADER_HEADER);
     if let Some(cols) = read(&dir.join("leader.csv"), &names)? {
@@ -123,6 +136,7 @@ pub fn write(dir: &Path, ids: &[u32]) -> std::io::Result<()> {
         let state = out.channel("/leader/state", "formation.LeaderState", &schema)?;
         let c = |n: &str| column(&names, n).map(|i| &cols[i]);
         let (t, x, y, th) = (c("t")?, c("x")?, c("y")?, c("theta")?);
+        t_end = t.last().copied().unwrap_or(0.0);
         for r in 0..t.len() {
             let (ns, st) = stamp(t[r]);
             out.put(pose, ns, &pose_in_frame(&st, x[r], y[r], th[r]))?;
@@ -164,6 +178,41 @@ pub fn write(dir: &Path, ids: &[u32]) -> std::io::Result<()> {
             for (t, node, what) in events {
                 let (ns, _) = stamp(t);
                 out.put(ch, ns, &json!({"node": node, "t": t, "event": what}))?;
+            }
+        }
+        let nodes = network["nodes"].as_object();
+        let (ns, _) = stamp(t_end);
+        let links: Vec<Value> = nodes
+            .into_iter()
+            .flatten()
+            .flat_map(|(node, n)| {
+                n["links"].as_array().into_iter().flatten().map(move |l| {
+                    let mut l = l.clone();
+                    l["node"] = json!(node);
+                    l
+                })
+            })
+            .collect();
+        if !links.is_empty() {
+            let ch = out.channel("/network/links", "formation.LinkStats", LINK)?;
+            for l in &links {
+                out.put(ch, ns, l)?;
+            }
+        }
+        let clocks: Vec<Value> = nodes
+            .into_iter()
+            .flatten()
+            .filter(|(_, n)| n["clock"].is_object())
+            .map(|(node, n)| {
+                let mut c = n["clock"].clone();
+                c["node"] = json!(node);
+                c
+            })
+            .collect();
+        if !clocks.is_empty() {
+            let ch = out.channel("/network/clocks", "formation.ClockEstimate", CLOCK)?;
+            for c in &clocks {
+                out.put(ch, ns, c)?;
             }
         }
     }

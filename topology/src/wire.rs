@@ -10,7 +10,7 @@ use formation_agent::LeaderState;
 use serde::{Deserialize, Serialize};
 
 /// Bumped on any change of the encoding.
-pub const FORMAT_VERSION: u16 = 2;
+pub const FORMAT_VERSION: u16 = 3;
 
 /// Leader id on the wire.
 pub const LEADER_ID: u32 = 0;
@@ -24,6 +24,10 @@ pub struct Header {
     pub step: u64,
     /// t = k Δt, s.
     pub time_s: f64,
+    /// When the sender published it, on the run's timebase (the leader's
+    /// clock), ns; 0 where not known. For measuring one-way latency only:
+    /// control never reads it.
+    pub sent_ns: i64,
 }
 
 /// An estimate message: from the leader, its true state; from follower i,
@@ -88,7 +92,7 @@ mod tests {
 
     fn msg() -> EstimateMsg {
         EstimateMsg {
-            header: Header { version: FORMAT_VERSION, sender: 3, step: 42, time_s: 0.042 },
+            header: Header { version: FORMAT_VERSION, sender: 3, step: 42, time_s: 0.042, sent_ns: 0 },
             state: LeaderState { pose: Pose::new(1.0, 2.0, 0.5), pose_rate: Pose::new(0.1, 0.2, 0.3), v: 1.0, w: -0.5 },
             fresh: false,
         }
