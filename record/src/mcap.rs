@@ -180,39 +180,30 @@ pub fn write(dir: &Path, ids: &[u32]) -> std::io::Result<()> {
                 out.put(ch, ns, &json!({"node": node, "t": t, "event": what}))?;
             }
         }
-        let nodes = network["nodes"].as_object();
+        // What network.json says of each node for the whole run, stamped
+        // at its end, each object with its node's name.
         let (ns, _) = stamp(t_end);
+        let named = |node: &String, v: &Value| {
+            let mut v = v.clone();
+            v["node"] = json!(node);
+            v
+        };
+        let nodes: Vec<(&String, &Value)> = network["nodes"].as_object().into_iter().flatten().collect();
         let links: Vec<Value> = nodes
-            .into_iter()
-            .flatten()
-            .flat_map(|(node, n)| {
-                n["links"].as_array().into_iter().flatten().map(move |l| {
-                    let mut l = l.clone();
-                    l["node"] = json!(node);
-                    l
-                })
-            })
+            .iter()
+            .flat_map(|(node, n)| n["links"].as_array().into_iter().flatten().map(|l| named(node, l)))
             .collect();
-        if !links.is_empty() {
-            let ch = out.channel("/network/links", "formation.LinkStats", LINK)?;
-            for l in &links {
-                out.put(ch, ns, l)?;
-            }
-        }
-        let clocks: Vec<Value> = nodes
-            .into_iter()
-            .flatten()
-            .filter(|(_, n)| n["clock"].is_object())
-            .map(|(node, n)| {
-                let mut c = n["clock"].clone();
-                c["node"] = json!(node);
-                c
-            })
-            .collect();
-        if !clocks.is_empty() {
-            let ch = out.channel("/network/clocks", "formation.ClockEstimate", CLOCK)?;
-            for c in &clocks {
-                out.put(ch, ns, c)?;
+        let clocks: Vec<Value> =
+            nodes.iter().filter(|(_, n)| n["clock"].is_object()).map(|(node, n)| named(node, &n["clock"])).collect();
+        for (topic, title, schema, items) in [
+            ("/network/links", "formation.LinkStats", LINK, links),
+            ("/network/clocks", "formation.ClockEstimate", CLOCK, clocks),
+        ] {
+            if !items.is_empty() {
+                let ch = out.channel(topic, title, schema)?;
+                for v in &items {
+                    out.put(ch, ns, v)?;
+                }
             }
         }
     }
