@@ -326,11 +326,16 @@ fn start_router(
 
 /// Starts `c` (a `formation node router …` command) as the child "router"
 /// and waits up to 30 s for its "router listening" line.
-pub(crate) fn start_router_with(children: &mut Children, mut c: Command) -> Result<(), CliError> {
+pub(crate) fn start_router_with(children: &mut Children, c: Command) -> Result<(), CliError> {
+    start_router_named(children, "router", c)
+}
+
+/// [`start_router_with`] for a router known to `children` as `name`.
+pub(crate) fn start_router_named(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
     c.stdin(Stdio::null()).stdout(Stdio::piped());
-    let mut child = c.spawn().map_err(|e| CliError::Run(format!("starting the router: {e}")))?;
+    let mut child = c.spawn().map_err(|e| CliError::Run(format!("starting {name}: {e}")))?;
     let stdout = child.stdout.take();
-    children.push("router".into(), child);
+    children.push(name.into(), child);
     let (tx, rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
         let mut lines = stdout.map(|s| BufReader::new(s).lines());
@@ -343,8 +348,8 @@ pub(crate) fn start_router_with(children: &mut Children, mut c: Command) -> Resu
     });
     match rx.recv_timeout(Duration::from_secs(30)) {
         Ok(Some(line)) if line.starts_with("router listening") => Ok(()),
-        Ok(other) => Err(CliError::Run(format!("the router did not start: {}", other.unwrap_or_default()))),
-        Err(_) => Err(CliError::Run("the router did not start within 30 s".into())),
+        Ok(other) => Err(CliError::Run(format!("{name} did not start: {}", other.unwrap_or_default()))),
+        Err(_) => Err(CliError::Run(format!("{name} did not start within 30 s"))),
     }
 }
 

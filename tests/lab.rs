@@ -696,3 +696,87 @@ fn clocks_that_disagree_change_nothing() {
         common::judge_if_quiet(&tag, &wrong, r.host, &older_messages(&r));
     }
 }
+
+/// Issue 23's sites: a router per site (A: leader, monitor, 1, 2; B: 3, 4),
+/// the routers linked, every node a client of its own site's router, and
+/// the two sites cut apart for 3 s (`--cut A:B@5:3`). Every step is
+/// recorded; only the links between the sites (1–3, 2–4) go silent; and the
+/// run is what the simulator predicts for those links cut over the window
+/// the run reports (from the cut, performed, to the first step the sites
+/// hear each other again, in `network.json`): each follower's estimator
+/// error within 25 % (or 0.01 m) of the simulator's every 0.5 s (judged on
+/// a quiet machine). In the second after the sites hear each other again
+/// the allowance is 0.015 m: there the model is sensitive to which
+/// direction of a link comes back first, which no fault row can say (a
+/// link's row cuts both ways), and one message a step earlier or later
+/// moves the others' peak by about 0.006 m (docs/decisions.md). Measured
+/// here in 4 runs: the sites heard each other again 0.13-0.15 s after the
+/// join (TCP's retransmission back-off); where the simulated error exceeds
+/// 0.04 m the lab was within 0.4 % of it; elsewhere within 0.011 m, the
+/// largest at 8.5 s, 0.35 s after the rejoin.
+#[test]
+fn two_sites_cut_apart_behave_as_the_model_predicts() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    const BASE12: [&str; 2] = ["timing=realtime", "duration=12"];
+    let r = lab_on(&BASE12, "lab-sites", &[], &["--sites", "A=leader,monitor,1,2;B=3,4", "--cut", "A:B@5:3"]);
+    assert_eq!(r.network["complete"], true, "sites: record not complete");
+    for id in IDS {
+        let rows = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count();
+        assert_eq!(rows - 1, 12001, "sites: follower {id} has {} rows of 12001", rows - 1);
+    }
+    let lab: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(r.out.join("lab.json")).expect("lab.json")).expect("JSON");
+    let performed: Vec<f64> = lab["events"].as_array().expect("events").iter().map(|e| num(&e["performed_s"])).collect();
+    assert_eq!(performed.len(), 2, "the cut and the join: {}", lab["events"]);
+    // Who went silent for whom, and when the sites heard each other again.
+    let across = [("1", "follower 3"), ("3", "follower 1"), ("2", "follower 4"), ("4", "follower 2")];
+    let mut back = f64::NAN;
+    for id in IDS {
+        for e in r.network["nodes"][id]["timeline"].as_array().expect("timeline") {
+            let (t, what) = (num(&e["t"]), e["event"].as_str().unwrap_or(""));
+            if t < 1.0 {
+                continue;
+            }
+            let source = what.strip_suffix(" silent").or_else(|| what.strip_prefix("hears ")).unwrap_or("");
+            let crosses = across.iter().any(|(n, src)| *n == id && source == *src);
+            if what.ends_with("silent") {
+                assert!(crosses, "sites: follower {id} at {t} s: {what} (only the links between sites were cut)");
+            }
+            if crosses && what.starts_with("hears") && t > performed[0] {
+                back = if back.is_nan() { t } else { back.min(t) };
+            }
+        }
+    }
+    assert!(back >= performed[1] - 0.01, "sites: heard again at {back} s, before the join at {} s", performed[1]);
+    let window = |l: &str| format!("faults+={{link={l}, from={:.3}, to={:.3}}}", performed[0], back);
+    let (_dir, sim) = sim_on(&BASE12, &[&window("[1, 3]"), &window("[2, 4]")]);
+    let mut wrong = Vec::new();
+    let (mut worst_rel, mut worst_abs) = (0.0f64, 0.0f64);
+    for id in IDS {
+        let (lab_e, sim_e) = (estimator_error(&r, id), csv_column(&sim, id, "estimator_error"));
+        for ((t, a), (_, b)) in lab_e.iter().zip(&sim_e).step_by(500) {
+            let off = (a - b).abs();
+            if *b > 0.04 {
+                worst_rel = worst_rel.max(off / b);
+            } else {
+                worst_abs = worst_abs.max(off);
+            }
+            let floor = if (back..back + 1.0).contains(t) { 0.015 } else { 0.01 };
+            if off > (0.25 * b).max(floor) {
+                wrong.push(format!("follower {id} at {t} s: {a:.4} m in the lab, {b:.4} m simulated"));
+            }
+        }
+    }
+    eprintln!(
+        "sites: cut {:.3}-{:.3} s as performed, heard again at {back:.3} s; departure from the model: at most {:.1} % \
+         where the simulated error exceeds 0.04 m, {:.4} m elsewhere",
+        performed[0],
+        performed[1],
+        worst_rel * 100.0,
+        worst_abs
+    );
+    common::judge_if_quiet("two sites cut apart", &wrong, r.host, &older_messages(&r));
+}

@@ -58,6 +58,121 @@ pub struct LabArgs {
     /// `router`. Repeatable.
     #[arg(long = "clock", value_name = "NODE=SECONDS")]
     pub clock: Vec<String>,
+    /// Two sites, each a host with a router of its own (the routers linked,
+    /// every node a client of its site's router), e.g.
+    /// `A=leader,monitor,1,2;B=3,4`: every node in one site (client mode).
+    #[arg(long, value_name = "SITE=NODES;SITE=NODES")]
+    pub sites: Option<String>,
+    /// Cut the two sites apart at run time AT (s) for FOR s, e.g. `A:B@5:3`
+    /// (the link between their routers; needs --sites). Repeatable.
+    #[arg(long = "cut", value_name = "A:B@AT:FOR")]
+    pub cut: Vec<String>,
+}
+
+/// `--sites`: two sites, the nodes of each, and each site's router host
+/// (the first site's is `router`, the second's `router-<site>`).
+#[derive(Clone, Debug, Default, PartialEq)]
+struct Sites {
+    names: Vec<String>,
+    routers: Vec<String>,
+    /// Lab host → index of its site.
+    of: std::collections::BTreeMap<String, usize>,
+}
+
+impl Sites {
+    /// The router host a node's host is a client of.
+    fn router_of(&self, host: &str) -> &str {
+        self.of.get(host).map_or("router", |&i| self.routers[i].as_str())
+    }
+}
+
+fn parse_sites(a: &LabArgs, s: &Scenario) -> Result<Option<Sites>, Error> {
+    let Some(text) = &a.sites else {
+        if let Some(c) = a.cut.first() {
+            return Err(Error::Input(format!("--cut {c}: needs --sites")));
+        }
+        return Ok(None);
+    };
+    let bad = |why: String| Error::Input(format!("--sites {text}: {why}"));
+    if a.mode != LaunchMode::Client {
+        return Err(bad("sites need --mode client (a router per site)".into()));
+    }
+    if a.opts.tls.is_some() {
+        return Err(bad("sites are not available with --tls yet (one router identity)".into()));
+    }
+    if !a.kill_router.is_empty() {
+        return Err(bad("--kill-router is not available with sites yet".into()));
+    }
+    let mut sites = Sites::default();
+    for (i, part) in text.split(';').enumerate() {
+        let (name, nodes) =
+            part.split_once('=').ok_or_else(|| bad(format!("{part:?} is not SITE=NODES, e.g. A=leader,monitor,1,2")))?;
+        let name = name.trim();
+        if name.is_empty() || name.len() > 12 || !name.chars().all(|c| c.is_ascii_alphanumeric()) {
+            return Err(bad(format!("site name {name:?}: use 1 to 12 letters or digits")));
+        }
+        if sites.names.iter().any(|n| n.eq_ignore_ascii_case(name)) {
+            return Err(bad(format!("site {name} is named twice")));
+        }
+        sites.names.push(name.to_string());
+        sites.routers.push(if i == 0 { "router".into() } else { format!("router-{}", name.to_ascii_lowercase()) });
+        for node in nodes.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+            let host = match node {
+                "leader" | "monitor" => node.to_string(),
+                id => match id.parse::<u32>() {
+                    Ok(id) if s.index_of(id).is_some() => agent_host(id),
+                    _ => return Err(bad(format!("{node:?} is neither leader, monitor nor a follower id of the scenario"))),
+                },
+            };
+            if sites.of.insert(host, i).is_some() {
+                return Err(bad(format!("{node} is in two sites")));
+            }
+        }
+    }
+    if sites.names.len() != 2 {
+        return Err(bad(format!("two sites, not {}", sites.names.len())));
+    }
+    let mut missing: Vec<String> = ["leader", "monitor"].iter().map(|n| n.to_string()).collect();
+    missing.extend(s.graph.ids().iter().map(|&id| agent_host(id)));
+    missing.retain(|h| !sites.of.contains_key(h));
+    if !missing.is_empty() {
+        return Err(bad(format!("in no site: {}", missing.join(", "))));
+    }
+    Ok(Some(sites))
+}
+
+/// `--cut A:B@AT:FOR` → the lab's events (the second site's router drops
+/// everything from and to the first's).
+fn cut_events(a: &LabArgs, sites: &Sites, t_end: f64) -> Result<Vec<Event>, Error> {
+    let mut events = Vec::new();
+    for c in &a.cut {
+        let bad = |why: &str| Error::Input(format!("--cut {c}: {why}"));
+        let (pair, when) = c.split_once('@').ok_or_else(|| bad("expected A:B@AT:FOR, e.g. A:B@5:3"))?;
+        let (x, y) = pair.split_once(':').ok_or_else(|| bad("expected A:B@AT:FOR, e.g. A:B@5:3"))?;
+        let index = |n: &str| sites.names.iter().position(|s| s.eq_ignore_ascii_case(n.trim()));
+        match (index(x), index(y)) {
+            (Some(i), Some(j)) if i != j => {}
+            _ => return Err(bad(&format!("A and B are the two sites, {}", sites.names.join(" and ")))),
+        }
+        let (at, dur) = at_for("--cut", when)?;
+        if at + dur > t_end {
+            return Err(bad(&format!("the cut ends at {} s, past the run's end ({t_end} s)", at + dur)));
+        }
+        let (host, peer) = (sites.routers[1].clone(), sites.routers[0].clone());
+        let what = format!("sites {} and {}", sites.names[0], sites.names[1]);
+        events.push(Event {
+            at_s: at,
+            action: Action::Cut { host: host.clone(), peer: peer.clone(), cut: true },
+            what: format!("{what} cut apart"),
+        });
+        events.push(Event { at_s: at + dur, action: Action::Cut { host, peer, cut: false }, what: format!("{what} joined") });
+    }
+    let mut windows: Vec<(f64, f64)> = events.chunks(2).map(|p| (p[0].at_s, p[1].at_s)).collect();
+    windows.sort_by(|a, b| a.0.total_cmp(&b.0));
+    if windows.windows(2).any(|w| w[1].0 < w[0].1) {
+        return Err(Error::Input("--cut: the cuts overlap".into()));
+    }
+    Ok(events)
 }
 
 /// Where libfaketime may be (Debian's and others'); `FORMATION_LIBFAKETIME` first.
@@ -122,6 +237,8 @@ enum Action {
     StartRouter,
     KillAgent(u32),
     StartAgent(u32),
+    /// The routers of two sites cut apart (`cut`) or joined again.
+    Cut { host: String, peer: String, cut: bool },
 }
 
 #[derive(Clone, Debug)]
@@ -226,6 +343,12 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     let (scenario, run, out) = a.opts.resolve()?;
     let (events, notes) = plan(a, &scenario)?;
     let (clocks, faketime) = clock_shifts(a, &scenario)?;
+    let sites = parse_sites(a, &scenario)?;
+    let mut events = events;
+    if let Some(sites) = &sites {
+        events.extend(cut_events(a, sites, scenario.steps() as f64 * scenario.dt_s)?);
+        events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    }
     // Inside the re-run under unshare, uid 0 is the mapped user: prepare
     // the namespace there whatever privilege() says.
     if a.opts.web.foxglove.is_some() {
@@ -271,6 +394,9 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     if a.mode == LaunchMode::Client {
         hosts.push("router".into());
     }
+    if let Some(sites) = &sites {
+        hosts.extend(sites.routers[1..].iter().cloned());
+    }
     hosts.extend(["monitor".to_string(), "leader".to_string()]);
     hosts.extend(scenario.graph.ids().iter().map(|&id| agent_host(id)));
     let names: Vec<&str> = hosts.iter().map(String::as_str).collect();
@@ -295,7 +421,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         .build()
         .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
-    let ctx = Ctx { a, scenario: &scenario, run: &run, out: &out, exe: &exe, lab: &lab, clocks: &clocks, faketime };
+    let ctx = Ctx { a, scenario: &scenario, run: &run, out: &out, exe: &exe, lab: &lab, clocks: &clocks, faketime, sites: &sites };
     let result = runtime.block_on(ctx.drive(&mut children, events));
     drop(children);
     drop(lab);
@@ -306,6 +432,13 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         "events": performed,
         "notes": notes,
         "clock_shift_s": shifted,
+        "sites": sites.as_ref().map(|s| {
+            let mut by: Vec<(String, Vec<String>)> = s.names.iter().map(|n| (n.clone(), Vec::new())).collect();
+            for (host, &i) in &s.of {
+                by[i].1.push(host.clone());
+            }
+            by.into_iter().map(|(n, h)| (n, json!(h))).collect::<serde_json::Map<_, _>>()
+        }),
     });
     std::fs::write(out.join("lab.json"), serde_json::to_string_pretty(&record).unwrap_or_default() + "\n")
         .map_err(|e| Error::Run(format!("writing {}: {e}", out.join("lab.json").display())))?;
@@ -335,6 +468,8 @@ struct Ctx<'a> {
     /// `--clock`: (host, shift in s), and libfaketime's path.
     clocks: &'a [(String, f64)],
     faketime: Option<String>,
+    /// `--sites`, if given.
+    sites: &'a Option<Sites>,
 }
 
 impl Ctx<'_> {
@@ -357,7 +492,8 @@ impl Ctx<'_> {
         let mut c = self.command(host);
         launch::node_args(&mut c, node, &self.a.opts, self.run);
         if self.a.mode == LaunchMode::Client {
-            c.args(["--mode", "client", "--connect", &self.ep("router")]);
+            let router = self.sites.as_ref().map_or("router", |s| s.router_of(host));
+            c.args(["--mode", "client", "--connect", &self.ep(router)]);
             return c;
         }
         c.arg("--listen").arg(self.ep(host));
@@ -393,8 +529,17 @@ impl Ctx<'_> {
     }
 
     fn router(&self) -> Command {
-        let mut c = self.command("router");
-        c.args(["node", "router", "--listen", &self.ep("router")]);
+        self.router_on("router")
+    }
+
+    /// The router on lab host `host`; a site's router other than the
+    /// first's connects to the first's.
+    fn router_on(&self, host: &str) -> Command {
+        let mut c = self.command(host);
+        c.args(["node", "router", "--listen", &self.ep(host)]);
+        if host != "router" {
+            c.args(["--connect", &self.ep("router")]);
+        }
         launch::tls_arg(&mut c, &self.a.opts);
         formation_net::session::router_runtime(&mut c, self.scenario.timing);
         c
@@ -414,6 +559,7 @@ impl Ctx<'_> {
                 Ok(())
             }
             Action::StartAgent(id) => launch::spawn(children, &format!("agent {id}"), self.agent(*id)),
+            Action::Cut { host, peer, cut } => self.lab.set_cut(host, peer, *cut).map_err(Error::from),
         }
     }
 
@@ -430,6 +576,11 @@ impl Ctx<'_> {
             .map_err(|e| Error::Run(format!("installing the SIGINT handler: {e}")))?;
         if self.a.mode == LaunchMode::Client {
             launch::start_router_with(children, self.router())?;
+        }
+        if let Some(sites) = self.sites {
+            for r in &sites.routers[1..] {
+                launch::start_router_named(children, r, self.router_on(r))?;
+            }
         }
         let mut c = self.node("monitor", "monitor");
         c.arg("--out").arg(self.out).stdout(Stdio::null());

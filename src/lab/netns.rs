@@ -262,6 +262,27 @@ impl Lab {
         run(Command::new("ip").args(["netns", "exec", &h.ns, "nft", &script])).map(drop)
     }
 
+    /// Drops every packet between the host and `peer` (both directions, an
+    /// nftables table `inet flabcut` in the host's namespace), or lets them
+    /// through again: a partition between the two, the rest of the
+    /// host's traffic untouched.
+    pub fn set_cut(&self, name: &str, peer: &str, cut: bool) -> Result<(), LabError> {
+        let (_, h) = self.host(name)?;
+        let (_, p) = self.host(peer)?;
+        let mut script = String::from("table inet flabcut; delete table inet flabcut");
+        if cut {
+            script += &format!(
+                "; add table inet flabcut\
+                 ; add chain inet flabcut in {{ type filter hook input priority 0; }}\
+                 ; add chain inet flabcut out {{ type filter hook output priority 0; }}\
+                 ; add rule inet flabcut in ip saddr {0} drop\
+                 ; add rule inet flabcut out ip daddr {0} drop",
+                p.addr
+            );
+        }
+        run(Command::new("ip").args(["netns", "exec", &h.ns, "nft", &script])).map(drop)
+    }
+
     /// Kills every process still in the lab's namespaces (SIGKILL via `ip
     /// netns pids`), deletes every namespace (which removes the veths and
     /// the bridge). Idempotent; returns what it could not remove.
