@@ -25,11 +25,15 @@ pub const CA_KEY: &str = "ca.key";
 /// The access-control policy in a certificate folder.
 pub const POLICY: &str = "policy.json5";
 
-/// What one node may publish (`put` in) and receive (subscribe to, `put` out).
+/// What one node may publish (`put` in) and receive (subscribe to, `put`
+/// out), answer (a queryable: `query` out, `reply` in) and ask (`query`
+/// in, `reply` out).
 struct Role {
     name: String,
     publish: Vec<String>,
     receive: Vec<String>,
+    answer: Vec<String>,
+    ask: Vec<String>,
 }
 
 /// Any run's key: `formation/*/<rest>` (certificates are per scenario, not per run).
@@ -51,11 +55,16 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
             ],
             // Every estimate (lock-step pacing, and its own for twins) and telemetry (who finished).
             receive: vec![any_run("estimate/*"), any_run("telemetry/*"), control.clone()],
+            // The run's timebase (crate::timesync).
+            answer: vec![any_run("control/time")],
+            ask: vec![],
         },
         Role {
             name: MONITOR.into(),
             publish: vec![any_run("control/hello/monitor"), any_run("control/ready/monitor"), any_run("control/ack")],
             receive: vec![any_run("telemetry/*"), control.clone()],
+            answer: vec![],
+            ask: vec![],
         },
     ];
     for (index, &id) in scenario.graph.ids().iter().enumerate() {
@@ -74,6 +83,8 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
                 any_run(&format!("control/ready/{id}")),
             ],
             receive,
+            answer: vec![],
+            ask: vec![any_run("control/time")],
         });
     }
     roles
@@ -86,12 +97,14 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
 /// loads it: the router for its clients, each peer for its own links.
 pub fn policy(scenario: &Scenario) -> Value {
     let mut rules = vec![
-        json!({ "id": "router-forwards", "messages": ["put", "declare_subscriber"],
+        json!({ "id": "router-forwards",
+                "messages": ["put", "declare_subscriber", "query", "declare_queryable", "reply"],
                 "flows": ["ingress", "egress"], "permission": "allow", "key_exprs": ["formation/**"] }),
-        // Subscriber declarations travel to every node, so that publishers
-        // know where to send; what is sent is what the rules below allow.
-        json!({ "id": "declarations-out", "messages": ["declare_subscriber"], "flows": ["egress"],
-                "permission": "allow", "key_exprs": ["formation/**"] }),
+        // Subscriber and queryable declarations travel to every node, so that
+        // publishers and queriers know where to send; what is sent is what
+        // the rules below allow.
+        json!({ "id": "declarations-out", "messages": ["declare_subscriber", "declare_queryable"],
+                "flows": ["egress"], "permission": "allow", "key_exprs": ["formation/**"] }),
     ];
     let mut subjects = vec![json!({ "id": ROUTER, "cert_common_names": [ROUTER] })];
     let mut policies = vec![json!({ "rules": ["router-forwards"], "subjects": [ROUTER] })];
@@ -104,8 +117,25 @@ pub fn policy(scenario: &Scenario) -> Value {
                            "permission": "allow", "key_exprs": r.receive }));
         rules.push(json!({ "id": receive, "messages": ["put"], "flows": ["egress"],
                            "permission": "allow", "key_exprs": r.receive }));
+        let mut own = vec![publish, subscribe, receive, "declarations-out".to_string()];
+        if !r.answer.is_empty() {
+            let (a_in, a_out) = (format!("{}-answers", r.name), format!("{}-is-asked", r.name));
+            rules.push(json!({ "id": a_in, "messages": ["declare_queryable", "reply"], "flows": ["ingress"],
+                               "permission": "allow", "key_exprs": r.answer }));
+            rules.push(json!({ "id": a_out, "messages": ["query"], "flows": ["egress"],
+                               "permission": "allow", "key_exprs": r.answer }));
+            own.extend([a_in, a_out]);
+        }
+        if !r.ask.is_empty() {
+            let (q_in, q_out) = (format!("{}-asks", r.name), format!("{}-is-answered", r.name));
+            rules.push(json!({ "id": q_in, "messages": ["query"], "flows": ["ingress"],
+                               "permission": "allow", "key_exprs": r.ask }));
+            rules.push(json!({ "id": q_out, "messages": ["reply"], "flows": ["egress"],
+                               "permission": "allow", "key_exprs": r.ask }));
+            own.extend([q_in, q_out]);
+        }
         subjects.push(json!({ "id": r.name, "cert_common_names": [r.name] }));
-        policies.push(json!({ "rules": [publish, subscribe, receive, "declarations-out"], "subjects": [r.name] }));
+        policies.push(json!({ "rules": own, "subjects": [r.name] }));
     }
     json!({ "enabled": true, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies })
 }
