@@ -66,8 +66,8 @@ pub struct BenchNetArgs {
     /// Scale: also run generated rings of these many agents (n/5 chords) as
     /// clients of one router: lock-step steps/s, start-up, CPU per agent in
     /// real time at 100 Hz. Empty (`--agents ''`) skips it.
-    #[arg(long, value_delimiter = ',', default_value = "50,100")]
-    pub agents: Vec<u32>,
+    #[arg(long, value_parser = agent_list, default_value = "50,100", value_name = "N,N…")]
+    pub agents: AgentList,
     /// Scale: run seconds of the real-time run at 100 Hz.
     #[arg(long, default_value_t = 5.0)]
     pub scale_realtime_duration: f64,
@@ -129,6 +129,26 @@ struct Figures {
     plain: (f64, f64),
     /// Median time to open a client session to a listening peer, ms.
     open_ms: f64,
+    /// The offset exchange (crate::timesync): round trip p50/p99 (µs), and
+    /// CPU per exchange, both sides (µs).
+    time_rtt: (f64, f64),
+    time_cpu_us: f64,
+}
+
+/// `--agents`: ring sizes, possibly none.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct AgentList(pub Vec<u32>);
+
+fn agent_list(s: &str) -> Result<AgentList, String> {
+    s.split(',')
+        .map(str::trim)
+        .filter(|x| !x.is_empty())
+        .map(|x| match x.parse::<u32>() {
+            Ok(n) if n >= 2 => Ok(n),
+            _ => Err(format!("{x:?} is not a number of agents (2 or more)")),
+        })
+        .collect::<Result<Vec<u32>, String>>()
+        .map(AgentList)
 }
 
 pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
@@ -144,7 +164,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     Simulation::new(&sim_s).run(&mut NoRecord, |_| {}).map_err(|e| Error::Run(e.to_string()))?;
     let sim_rate = sim_s.steps() as f64 / t.elapsed().as_secs_f64();
 
-    for &n in &a.agents {
+    for &n in &a.agents.0 {
         crate::error::at_least_one("--agents", u64::from(n))?;
     }
     let mut tcp = measure(a, &scenario, None, a.base_port)?;
@@ -177,10 +197,15 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     row("one-hop estimate latency p50/p99 µs (best of 3)", &|f| format!("{:.1} / {:.1}", f.estimate.0, f.estimate.1));
     row("one-hop plain zenoh latency p50/p99 µs", &|f| format!("{:.1} / {:.1}", f.plain.0, f.plain.1));
     row("opening a client session (handshake) ms", &|f| format!("{:.2}", f.open_ms));
+    row("clock offset exchange round trip p50/p99 µs", &|f| format!("{:.1} / {:.1}", f.time_rtt.0, f.time_rtt.1));
+    // An agent asks 4 times a second: its share of a core, both sides counted.
+    row("clock offset exchange CPU, % of a core per agent", &|f| {
+        format!("{:.4}", f.time_cpu_us * 4.0 / 1e6 * 100.0)
+    });
     println!("in-process simulator, same scenario: {sim_rate:.0} steps/s");
-    if !a.agents.is_empty() {
+    if !a.agents.0.is_empty() {
         let mut rows: Vec<Scale> = Vec::new();
-        for (i, &n) in a.agents.iter().enumerate() {
+        for (i, &n) in a.agents.0.iter().enumerate() {
             let port = a.base_port + 100 + 40 * i as u16;
             rows.push(scale(a, n, 1, port)?);
             let g = group_size(a, n as usize);
@@ -303,6 +328,8 @@ fn measure(
         estimate: nan,
         plain: nan,
         open_ms: f64::NAN,
+        time_rtt: nan,
+        time_cpu_us: f64::NAN,
     })
 }
 
@@ -325,6 +352,17 @@ struct Scale {
     t_long: f64,
     cpu_per_agent_s: f64,
     silent: u64,
+}
+
+/// CPU seconds (user + system) of this process so far.
+fn process_cpu_s() -> f64 {
+    // SAFETY: getrusage writes into the struct it is given, nothing else.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } != 0 {
+        return f64::NAN;
+    }
+    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    s(u.ru_utime) + s(u.ru_stime)
 }
 
 /// CPU seconds (user + system) of this process's waited-for children so far.
@@ -394,9 +432,12 @@ fn latencies(a: &BenchNetArgs, figures: &mut [(&mut Figures, Option<&std::path::
             let kind = if tls.is_some() { "tls" } else { "tcp" };
             eprintln!("bench-net ({kind}): latency, round {} of {ROUNDS} …", round + 1);
             let port = a.base_port + 40 + 50 * i as u16 + 2 * round;
-            let (e, p, o) = runtime
+            let (e, p, o, (rtt, cpu)) = runtime
                 .block_on(latency(port, a.round_trips, *tls))
                 .map_err(|e| Error::Run(format!("latency benchmark ({kind}): {e}")))?;
+            if f.time_rtt.0.is_nan() || rtt.0 < f.time_rtt.0 {
+                (f.time_rtt, f.time_cpu_us) = (rtt, cpu);
+            }
             // NaN (no round yet) or a better round.
             if f.estimate.0.is_nan() || e.0 < f.estimate.0 {
                 f.estimate = e;
@@ -457,12 +498,15 @@ fn receive(inbox: &Mutex<Inbox>, key: &str, bytes: &[u8], neighbours: &[u32]) ->
     }
 }
 
-/// ((p50, p99) estimate one-hop, (p50, p99) plain one-hop) in µs, and the
-/// median time to open a client session to a listening peer in ms. The two
+/// ((p50, p99) estimate one-hop, (p50, p99) plain one-hop) in µs, the
+/// median time to open a client session to a listening peer in ms, and the
+/// offset exchange's ((p50, p99) round trip in µs, CPU per exchange in µs). The two
 /// sessions are agents 1 and 2 (with their identities under `tls`); the
 /// plain ping-pong uses the same keys in another run's namespace, so the
 /// access-control policy lets it through.
-async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<((f64, f64), (f64, f64), f64), Error> {
+type Latencies = ((f64, f64), (f64, f64), f64, ((f64, f64), f64));
+
+async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<Latencies, Error> {
     let ep = format!("tcp/127.0.0.1:{port}");
     let as_agent = |id: u32| ZenohArgs {
         tls: tls.map(std::path::Path::to_path_buf),
@@ -606,7 +650,46 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<(
     let (mut est, mut plain) = measured;
     let (e50, e99, _) = timing::percentiles(&mut est);
     let (p50, p99, _) = timing::percentiles(&mut plain);
+    // The offset exchange: session b answers as the leader, a asks as an
+    // agent, back to back; the CPU of this process (both sides) per exchange.
+    let keys = formation_net::names::Keys { run: "bench-net".into() };
+    // The leader's identity answers (only it may, under the TLS policy).
+    let leader = session::open(&ZenohArgs {
+        connect: vec![ep.clone()],
+        identity: Some(formation_net::names::LEADER.to_string()),
+        tls: tls.map(std::path::Path::to_path_buf),
+        ..Default::default()
+    })
+    .await?;
+    let _answers = formation_net::timesync::serve(&leader, &keys, formation_net::clock::Timebase::leader()).await?;
+    let time_key = keys.time();
+    let mut warm = 0;
+    for _ in 0..200 {
+        if formation_net::timesync::ask(&a, &time_key).await.is_some() {
+            warm += 1;
+            if warm == 20 {
+                break;
+            }
+        } else {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+    if warm < 20 {
+        return Err(Error::Run(format!("the leader's time answered {warm} of the first questions")));
+    }
+    let cpu0 = process_cpu_s();
+    let mut rtts = Vec::with_capacity(n);
+    for _ in 0..n {
+        let t = Instant::now();
+        if formation_net::timesync::ask(&a, &time_key).await.is_none() {
+            return Err(Error::Run("a time query went unanswered".into()));
+        }
+        rtts.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    let cpu_us = (process_cpu_s() - cpu0) * 1e6 / n.max(1) as f64;
+    let (r50, r99, _) = timing::percentiles(&mut rtts);
+    let _ = leader.close().await;
     let _ = a.close().await;
     let _ = b.close().await;
-    Ok(((e50, e99), (p50, p99), open_ms))
+    Ok(((e50, e99), (p50, p99), open_ms, ((r50, r99), cpu_us)))
 }

@@ -90,7 +90,7 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
 }
 
 /// One exchange: None if unanswered (within [`TIMEOUT`]) or garbled.
-async fn ask(session: &zenoh::Session, key: &str) -> Option<Exchange> {
+pub async fn ask(session: &zenoh::Session, key: &str) -> Option<Exchange> {
     let t1 = clock::mono_ns();
     let replies = session.get(key).timeout(TIMEOUT).await.ok()?;
     while let Ok(reply) = replies.recv_async().await {
