@@ -356,20 +356,18 @@ struct Scale {
 
 /// CPU seconds (user + system) of this process so far.
 fn process_cpu_s() -> f64 {
-    // SAFETY: getrusage writes into the struct it is given, nothing else.
-    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
-    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } != 0 {
-        return f64::NAN;
-    }
-    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
-    s(u.ru_utime) + s(u.ru_stime)
+    cpu_s(libc::RUSAGE_SELF)
 }
 
 /// CPU seconds (user + system) of this process's waited-for children so far.
 fn children_cpu_s() -> f64 {
+    cpu_s(libc::RUSAGE_CHILDREN)
+}
+
+fn cpu_s(who: libc::c_int) -> f64 {
     // SAFETY: getrusage writes into the struct it is given, nothing else.
     let mut u: libc::rusage = unsafe { std::mem::zeroed() };
-    if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut u) } != 0 {
+    if unsafe { libc::getrusage(who, &mut u) } != 0 {
         return f64::NAN;
     }
     let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
