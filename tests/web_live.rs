@@ -140,7 +140,9 @@ const v = window.formationView;
 if (!v) return null;
 const out = {frames: v.frames, state: v.state, ended: v.ended, connection: v.connection,
              shown: v.shown, robotsDrawn: v.robotsDrawn, viewers: v.lastFrame ? v.lastFrame.viewers : null,
-             status: (document.getElementById('status') || {}).textContent || '', pixels: []};
+             status: (document.getElementById('status') || {}).textContent || '', pixels: [],
+             // Per follower row: the clock and latency cells' text.
+             timing: [...document.querySelectorAll('#rows tr')].map((tr) => [...tr.children].slice(10, 12).map((td) => td.textContent))};
 const c = v.planeCanvas;
 if (c && v.drawn) {
   const ctx = c.getContext('2d');
@@ -254,6 +256,15 @@ fn two_browsers_watch_a_lockstep_run_that_still_equals_the_simulator() {
     let status_line = end["status"].as_str().unwrap_or_default().to_lowercase();
     assert!(status_line.contains("complete"), "the status line does not report the end: {status_line:?}");
     assert_eq!(end["robotsDrawn"], 4, "robots drawn at the end: {end}");
+    // Each follower's row shows how well it knows the leader's clock and its
+    // slowest link's latency (the leader's row has neither).
+    let timing: Vec<Vec<String>> = serde_json::from_value(end["timing"].clone()).expect("timing cells");
+    assert_eq!(timing.len(), 5, "the leader's and four followers' rows: {timing:?}");
+    for cells in &timing[1..] {
+        let clock = cells[0].strip_prefix('±').and_then(|x| x.parse::<u64>().ok());
+        assert!(clock.is_some_and(|us| us > 0), "clock cell {:?}: ± the uncertainty in µs", cells[0]);
+        assert!(cells[1].parse::<u64>().is_ok(), "latency cell {:?}: the slowest link's median in µs", cells[1]);
+    }
     assert!(pixels_checked >= 4, "robots checked on the canvas: {pixels_checked}");
     assert!(most_viewers >= 2, "the frames never counted both browsers (most: {most_viewers})");
     assert_eq!(viewers_after_close, Some(1), "after one browser closed, the monitor still counts its viewer");
