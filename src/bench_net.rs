@@ -68,6 +68,17 @@ pub struct BenchNetArgs {
     /// real time at 100 Hz. Empty (`--agents ''`) skips it.
     #[arg(long, value_parser = agent_list, default_value = "50,100", value_name = "N,N…")]
     pub agents: AgentList,
+    /// Also measure one-hop latency (estimate, plain zenoh, the clock offset
+    /// exchange) between two network namespaces on a bridge, as between two
+    /// hosts of a LAN (needs root, `ip`).
+    #[arg(long)]
+    pub namespaces: bool,
+    /// (Internal, for --namespaces: the echo side, listening here.)
+    #[arg(long, hide = true, value_name = "ENDPOINT")]
+    pub echo: Option<String>,
+    /// (Internal, for --namespaces: the pinging side, connecting here.)
+    #[arg(long, hide = true, value_name = "ENDPOINT")]
+    pub ping: Option<String>,
     /// Scale: run seconds of the real-time run at 100 Hz.
     #[arg(long, default_value_t = 5.0)]
     pub scale_realtime_duration: f64,
@@ -151,8 +162,16 @@ fn agent_list(s: &str) -> Result<AgentList, String> {
         .map(AgentList)
 }
 
+/// An estimate message as agents send it (for latency measurements).
+pub fn estimate_payload() -> Vec<u8> {
+    estimate(1, 0)
+}
+
 pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     crate::error::at_least_one("--round-trips", a.round_trips as u64)?;
+    if a.echo.is_some() || a.ping.is_some() {
+        return crate::bench_netns::run_side(a.echo.as_deref(), a.ping.as_deref(), a.round_trips);
+    }
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     if let Some(dir) = &a.tls {
         formation_net::identity::check_all(dir, &scenario).map_err(|e| Error::Input(e.0))?;
@@ -203,6 +222,14 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         format!("{:.4}", f.time_cpu_us * 4.0 / 1e6 * 100.0)
     });
     println!("in-process simulator, same scenario: {sim_rate:.0} steps/s");
+    if a.namespaces {
+        eprintln!("bench-net: latency between two network namespaces …");
+        let ((e50, e99), (p50, p99), (t50, t99)) = crate::bench_netns::measure(a.round_trips)?;
+        println!("between two network namespaces on a bridge (plain TCP, peers)");
+        println!("  {:<50}{:>18}", "one-hop estimate latency p50/p99 µs", format!("{e50:.1} / {e99:.1}"));
+        println!("  {:<50}{:>18}", "one-hop plain zenoh latency p50/p99 µs", format!("{p50:.1} / {p99:.1}"));
+        println!("  {:<50}{:>18}", "clock offset exchange round trip p50/p99 µs", format!("{t50:.1} / {t99:.1}"));
+    }
     if !a.agents.0.is_empty() {
         let mut rows: Vec<Scale> = Vec::new();
         for (i, &n) in a.agents.0.iter().enumerate() {
