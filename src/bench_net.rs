@@ -28,12 +28,12 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use formation_agent::LeaderState;
-use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_topology::wire;
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
 use crate::args::ScenarioArgs;
+use crate::bench_netns::estimate;
 use crate::error::Error;
 use crate::launch::{LaunchArgs, LaunchMode, RunOptions};
 use formation_net::inbox::{self, Inbox, Source};
@@ -160,11 +160,6 @@ fn agent_list(s: &str) -> Result<AgentList, String> {
         })
         .collect::<Result<Vec<u32>, String>>()
         .map(AgentList)
-}
-
-/// An estimate message as agents send it (for latency measurements).
-pub fn estimate_payload() -> Vec<u8> {
-    estimate(1, 0)
 }
 
 pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
@@ -502,13 +497,6 @@ impl Flag {
     }
 }
 
-fn estimate(sender: u32, step: u64) -> Vec<u8> {
-    wire::encode(&EstimateMsg {
-        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
-        state: LeaderState { v: 1.0, w: 0.5, ..Default::default() },
-        fresh: true,
-    })
-}
 
 /// Receive path of an agent: decode + checks + inbox.
 fn receive(inbox: &Mutex<Inbox>, key: &str, bytes: &[u8], neighbours: &[u32]) -> bool {

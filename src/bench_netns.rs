@@ -15,7 +15,8 @@ use formation_net::clock::Timebase;
 use formation_net::names::Keys;
 use formation_net::session::{self, ZenohArgs};
 use formation_net::{timesync, timing};
-use formation_topology::wire;
+use formation_agent::LeaderState;
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use zenoh::Wait;
 
 use crate::error::Error;
@@ -26,6 +27,15 @@ const PING_EST: &str = "bench/ping/estimate";
 const PONG_EST: &str = "bench/pong/estimate";
 const PING_PLAIN: &str = "bench/ping/plain";
 const PONG_PLAIN: &str = "bench/pong/plain";
+
+/// An estimate message as agents send it, from `sender` for `step`.
+pub fn estimate(sender: u32, step: u64) -> Vec<u8> {
+    wire::encode(&EstimateMsg {
+        header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
+        state: LeaderState { v: 1.0, w: 0.5, ..Default::default() },
+        fresh: true,
+    })
+}
 
 /// (estimate p50, p99), (plain p50, p99), (offset exchange p50, p99), µs.
 pub type Figures = ((f64, f64), (f64, f64), (f64, f64));
@@ -102,7 +112,7 @@ pub async fn ping(connect: &str, n: usize) -> Result<(), Error> {
         }
         out
     };
-    let payload = crate::bench_net::estimate_payload();
+    let payload = estimate(1, 0);
     // Until both paths answer (subscriptions travel first), then measured.
     let began = Instant::now();
     while round_trips(&est, payload.clone(), 0, 1).is_empty() || round_trips(&plain, vec![0; payload.len()], 1, 1).is_empty()
