@@ -59,13 +59,6 @@ impl From<formation_net::session::SessionError> for Error {
     }
 }
 
-impl From<crate::lab::netns::LabError> for Error {
-    /// The lab's network could not be built or changed: the run failed.
-    fn from(e: crate::lab::netns::LabError) -> Self {
-        Error::Run(e.0)
-    }
-}
-
 impl From<std::io::Error> for Error {
     fn from(e: std::io::Error) -> Self {
         use std::io::ErrorKind;

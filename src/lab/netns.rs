@@ -32,6 +32,14 @@ use std::time::Duration;
 #[error("{0}")]
 pub struct LabError(pub String);
 
+impl From<LabError> for crate::error::Error {
+    /// The lab's network could not be built or changed: the run failed.
+    fn from(e: LabError) -> Self {
+        crate::error::Error::Run(e.0)
+    }
+}
+
+
 /// TCP's minimum retransmission timeout on the lab's subnet (Linux's
 /// default is 200 ms, for the Internet). On a LAN with a round trip of
 /// 0.1 ms, a lost segment is resent after 5 ms, then 10, 20, …: with 30 %
