@@ -213,9 +213,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     row("opening a client session (handshake) ms", &|f| format!("{:.2}", f.open_ms));
     row("clock offset exchange round trip p50/p99 µs", &|f| format!("{:.1} / {:.1}", f.time_rtt.0, f.time_rtt.1));
     // An agent asks 4 times a second: its share of a core, both sides counted.
-    row("clock offset exchange CPU, % of a core per agent", &|f| {
-        format!("{:.4}", f.time_cpu_us * 4.0 / 1e6 * 100.0)
-    });
+    row("clock offset exchange CPU, % of a core per agent", &|f| format!("{:.4}", f.time_cpu_us * 4.0 / 1e6 * 100.0));
     println!("in-process simulator, same scenario: {sim_rate:.0} steps/s");
     if a.namespaces {
         eprintln!("bench-net: latency between two network namespaces …");
@@ -497,7 +495,6 @@ impl Flag {
     }
 }
 
-
 /// Receive path of an agent: decode + checks + inbox.
 fn receive(inbox: &Mutex<Inbox>, key: &str, bytes: &[u8], neighbours: &[u32]) -> bool {
     let key_id = names::last_chunk(key).parse::<u32>().ok();
@@ -589,7 +586,8 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<L
     let plain_flag = Arc::new(Flag::default());
     let est_flag = Arc::new(Flag::default());
     let pf = plain_flag.clone();
-    let _a_plain = a.declare_subscriber(pong).callback(move |_| pf.hit()).await.map_err(|e| Error::Run(e.to_string()))?;
+    let _a_plain =
+        a.declare_subscriber(pong).callback(move |_| pf.hit()).await.map_err(|e| Error::Run(e.to_string()))?;
     let a_inbox = Arc::new(Mutex::new(Inbox::new(1, false)));
     let (ai, ef) = (a_inbox.clone(), est_flag.clone());
     let _a_est = a

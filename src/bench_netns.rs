@@ -11,11 +11,11 @@ use std::process::Stdio;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use formation_agent::LeaderState;
 use formation_net::clock::Timebase;
 use formation_net::names::Keys;
 use formation_net::session::{self, ZenohArgs};
 use formation_net::{timesync, timing};
-use formation_agent::LeaderState;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use zenoh::Wait;
 
@@ -115,7 +115,8 @@ pub async fn ping(connect: &str, n: usize) -> Result<(), Error> {
     let payload = estimate(1, 0);
     // Until both paths answer (subscriptions travel first), then measured.
     let began = Instant::now();
-    while round_trips(&est, payload.clone(), 0, 1).is_empty() || round_trips(&plain, vec![0; payload.len()], 1, 1).is_empty()
+    while round_trips(&est, payload.clone(), 0, 1).is_empty()
+        || round_trips(&plain, vec![0; payload.len()], 1, 1).is_empty()
     {
         if began.elapsed() > Duration::from_secs(20) {
             return Err(Error::Run("the echo did not answer within 20 s".into()));

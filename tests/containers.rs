@@ -73,7 +73,14 @@ impl Pod {
         let network = format!("formation-test-{}", std::process::id());
         let mut pod = Pod { dir, network, subnet: format!("10.89.{octet}"), image: String::new(), names: Vec::new() };
         pod.image = format!("localhost/formation-test:{}", std::process::id());
-        pod.ok(&["network", "create", "--disable-dns", "--subnet", &format!("{}.0/24", pod.subnet), &pod.network.clone()]);
+        pod.ok(&[
+            "network",
+            "create",
+            "--disable-dns",
+            "--subnet",
+            &format!("{}.0/24", pod.subnet),
+            &pod.network.clone(),
+        ]);
         pod
     }
 
@@ -92,7 +99,12 @@ impl Pod {
     /// Runs podman; panics with its output unless it succeeded.
     fn ok(&self, args: &[&str]) -> String {
         let o = self.run(args);
-        assert!(o.status.success(), "podman {args:?}: {}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        assert!(
+            o.status.success(),
+            "podman {args:?}: {}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        );
         String::from_utf8_lossy(&o.stdout).into_owned()
     }
 
@@ -118,8 +130,9 @@ impl Pod {
     /// `formation node NODE ARGS…` in a detached container `name` at `.host`.
     fn start(&mut self, name: &str, host: u8, mounts: &[(&Path, &str)], env: &[(&str, &str)], node: &[String]) {
         let full = format!("{}-{name}", self.network);
-        let mut args: Vec<String> =
-            ["run", "-d", "--name", &full, "--network", &self.network, "--ip", &self.ip(host)].map(String::from).to_vec();
+        let mut args: Vec<String> = ["run", "-d", "--name", &full, "--network", &self.network, "--ip", &self.ip(host)]
+            .map(String::from)
+            .to_vec();
         for (from, to) in mounts {
             args.extend(["-v".into(), format!("{}:{to}", from.display())]);
         }
@@ -168,9 +181,8 @@ impl Pod {
         std::fs::create_dir_all(out).expect("out");
         let router = format!("tcp/{}:7447", self.ip(2));
         let node = |kind: &str| {
-            let mut a: Vec<String> = ["node", kind, "--scenario", "/scenarios/paper.toml", "--run", run]
-                .map(String::from)
-                .to_vec();
+            let mut a: Vec<String> =
+                ["node", kind, "--scenario", "/scenarios/paper.toml", "--run", run].map(String::from).to_vec();
             for s in sets {
                 a.extend(["--set".into(), s.to_string()]);
             }
@@ -274,9 +286,17 @@ fn seven_containers_run_the_formation() {
         .map(|f| (f[0].parse::<f64>().unwrap_or(f64::NAN), f[fe].parse::<f64>().unwrap_or(f64::NAN)))
         .find(|(t, e)| *t >= to_s && *e < 0.2)
         .map(|(t, _)| t - to_s);
-    assert!(settled.is_some_and(|s| s <= 5.0), "follower 3 back below 0.2 m {settled:?} s after its gap ended at {to_s} s");
+    assert!(
+        settled.is_some_and(|s| s <= 5.0),
+        "follower 3 back below 0.2 m {settled:?} s after its gap ended at {to_s} s"
+    );
     for id in ["1", "2", "4"] {
-        assert_eq!(n["nodes"][id]["gaps"].as_array().map(Vec::len), Some(0), "follower {id} lost steps: {}", n["nodes"][id]);
+        assert_eq!(
+            n["nodes"][id]["gaps"].as_array().map(Vec::len),
+            Some(0),
+            "follower {id} lost steps: {}",
+            n["nodes"][id]
+        );
     }
     eprintln!("containers: restart gap {gaps:?}; follower 3 below 0.2 m {settled:?} s after it");
 }

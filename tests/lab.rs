@@ -680,7 +680,8 @@ fn clocks_that_disagree_change_nothing() {
             if peak >= 0.02 {
                 wrong.push(format!("follower {id}: estimator error {peak:.4} m at {at} s"));
             }
-            let (a, b) = (num(&r.summary["followers"][id]["torque_tv"]), num(&reference.summary["followers"][id]["torque_tv"]));
+            let (a, b) =
+                (num(&r.summary["followers"][id]["torque_tv"]), num(&reference.summary["followers"][id]["torque_tv"]));
             if (a / b - 1.0).abs() > 0.1 {
                 wrong.push(format!("follower {id}: torque variation {a:.3} against {b:.3} unshifted"));
             }
@@ -729,7 +730,8 @@ fn two_sites_cut_apart_behave_as_the_model_predicts() {
     }
     let lab: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(r.out.join("lab.json")).expect("lab.json")).expect("JSON");
-    let performed: Vec<f64> = lab["events"].as_array().expect("events").iter().map(|e| num(&e["performed_s"])).collect();
+    let performed: Vec<f64> =
+        lab["events"].as_array().expect("events").iter().map(|e| num(&e["performed_s"])).collect();
     assert_eq!(performed.len(), 2, "the cut and the join: {}", lab["events"]);
     // Who went silent for whom, and when the sites heard each other again.
     let across = [("1", "follower 3"), ("3", "follower 1"), ("2", "follower 4"), ("4", "follower 2")];

@@ -306,8 +306,11 @@ impl Join {
                     h.ignored
                 )));
             }
-            let what =
-                if waiting.is_empty() { "the leader's start".to_string() } else { format!("nodes {}", waiting.join(", ")) };
+            let what = if waiting.is_empty() {
+                "the leader's start".to_string()
+            } else {
+                format!("nodes {}", waiting.join(", "))
+            };
             return JoinStep::Failed(Error::Run(format!(
                 "node {me}: no word from {what} within {} s (run {run})",
                 START_TIMEOUT.as_secs()
@@ -523,7 +526,8 @@ mod tests {
             })
             .collect();
         assert_eq!(forms.len(), 41);
-        let full: Vec<usize> = forms.iter().enumerate().filter(|(_, f)| **f == ReadyForm::Full).map(|(i, _)| i).collect();
+        let full: Vec<usize> =
+            forms.iter().enumerate().filter(|(_, f)| **f == ReadyForm::Full).map(|(i, _)| i).collect();
         assert_eq!(full, [0, 20, 40]);
         j.on_start(start(&s), t0 + TICK * 43);
         assert_eq!(j.poll(t0 + TICK * 43), JoinStep::Started(start(&s)));
@@ -558,8 +562,7 @@ mod tests {
         j.on_hello("0");
         j.on_start(start(&other), t0 + Duration::from_secs(1));
         let steps = ticks(&mut |t| j.poll(t), t0, Duration::from_secs(1), Duration::from_secs(11) - TICK);
-        let warnings: Vec<_> =
-            steps.iter().filter(|x| matches!(x, JoinStep::Wait { warning: Some(_), .. })).collect();
+        let warnings: Vec<_> = steps.iter().filter(|x| matches!(x, JoinStep::Wait { warning: Some(_), .. })).collect();
         assert_eq!(warnings.len(), 1, "warned once, at once: {:?}", &steps[..2]);
         assert!(matches!(steps[0], JoinStep::Wait { warning: Some(_), .. }));
         assert!(steps.iter().all(|x| matches!(x, JoinStep::Wait { .. })), "still waiting before 10 s");
@@ -649,7 +652,10 @@ mod tests {
         match l.poll(t0 + TICK + MISMATCH_GRACE) {
             LeadStep::Refuse { reason, error: Error::Input(m) } => {
                 assert_eq!(reason, "node 1 runs another scenario, differing in dt");
-                assert_eq!(m, "leader: node 1 runs another scenario, differing in dt in run r (another file or --set values)");
+                assert_eq!(
+                    m,
+                    "leader: node 1 runs another scenario, differing in dt in run r (another file or --set values)"
+                );
             }
             other => panic!("{other:?}"),
         }
@@ -663,7 +669,9 @@ mod tests {
         l.on_ready("1", ready(&s), t0);
         assert!(matches!(l.poll(t0 + START_TIMEOUT), LeadStep::Wait { .. }));
         match l.poll(t0 + START_TIMEOUT + TICK) {
-            LeadStep::Failed(Error::Run(m)) => assert_eq!(m, "leader: nodes 2, monitor of run r not ready within 120 s"),
+            LeadStep::Failed(Error::Run(m)) => {
+                assert_eq!(m, "leader: nodes 2, monitor of run r not ready within 120 s")
+            }
             other => panic!("{other:?}"),
         }
     }

@@ -44,7 +44,8 @@ pub fn default_dir() -> PathBuf {
 /// Reads a checkpoint; None if there is none, it cannot be read, or it
 /// belongs to another scenario or run.
 pub fn read(path: &Path, fingerprint: u64, epoch_unix_ns: u64) -> Result<Checkpoint, Error> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::Input(format!("no checkpoint at {} ({e})", path.display())))?;
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| Error::Input(format!("no checkpoint at {} ({e})", path.display())))?;
     let c: Checkpoint =
         serde_json::from_str(&text).map_err(|e| Error::Input(format!("{}: not a checkpoint ({e})", path.display())))?;
     if c.fingerprint != fingerprint || c.epoch_unix_ns != epoch_unix_ns {

@@ -156,18 +156,22 @@ pub fn identity(dir: &Path, name: &str) -> Result<Identity, IdentityError> {
     use x509_parser::prelude::*;
     let (ca, cert, key) = (dir.join(CA_CERT), dir.join(format!("{name}.pem")), dir.join(format!("{name}.key")));
     let read = |p: &Path| -> Result<Vec<u8>, IdentityError> {
-        std::fs::read(p).map_err(|e| IdentityError(format!("--tls {}: cannot read {}: {e}", dir.display(), p.display())))
+        std::fs::read(p)
+            .map_err(|e| IdentityError(format!("--tls {}: cannot read {}: {e}", dir.display(), p.display())))
     };
     let pem_of = |p: &Path, bytes: &[u8]| -> Result<Pem, IdentityError> {
-        let (_, pem) = parse_x509_pem(bytes).map_err(|e| IdentityError(format!("{}: not a PEM certificate: {e}", p.display())))?;
+        let (_, pem) =
+            parse_x509_pem(bytes).map_err(|e| IdentityError(format!("{}: not a PEM certificate: {e}", p.display())))?;
         Ok(pem)
     };
     let ca_bytes = read(&ca)?;
     let ca_pem = pem_of(&ca, &ca_bytes)?;
-    let ca_x509 = ca_pem.parse_x509().map_err(|e| IdentityError(format!("{}: not a certificate: {e}", ca.display())))?;
+    let ca_x509 =
+        ca_pem.parse_x509().map_err(|e| IdentityError(format!("{}: not a certificate: {e}", ca.display())))?;
     let cert_bytes = read(&cert)?;
     let cert_pem = pem_of(&cert, &cert_bytes)?;
-    let x509 = cert_pem.parse_x509().map_err(|e| IdentityError(format!("{}: not a certificate: {e}", cert.display())))?;
+    let x509 =
+        cert_pem.parse_x509().map_err(|e| IdentityError(format!("{}: not a certificate: {e}", cert.display())))?;
     let cn = x509.subject().iter_common_name().next().and_then(|c| c.as_str().ok()).unwrap_or("").to_string();
     if cn != name {
         return Err(IdentityError(format!("{} is the certificate of {cn:?}, not of {name}", cert.display())));
@@ -178,18 +182,26 @@ pub fn identity(dir: &Path, name: &str) -> Result<Identity, IdentityError> {
     let now = ASN1Time::now();
     let validity = x509.validity();
     if now < validity.not_before {
-        return Err(IdentityError(format!("{} is not valid yet: valid from {} (now {})", cert.display(), validity.not_before, now)));
+        return Err(IdentityError(format!(
+            "{} is not valid yet: valid from {} (now {})",
+            cert.display(),
+            validity.not_before,
+            now
+        )));
     }
     if now > validity.not_after {
         return Err(IdentityError(format!("{} expired on {} (now {})", cert.display(), validity.not_after, now)));
     }
-    let key_text = String::from_utf8(read(&key)?).map_err(|_| IdentityError(format!("{}: not a PEM private key", key.display())))?;
-    let pair = rcgen::KeyPair::from_pem(&key_text).map_err(|e| IdentityError(format!("{}: not a private key: {e}", key.display())))?;
+    let key_text = String::from_utf8(read(&key)?)
+        .map_err(|_| IdentityError(format!("{}: not a PEM private key", key.display())))?;
+    let pair = rcgen::KeyPair::from_pem(&key_text)
+        .map_err(|e| IdentityError(format!("{}: not a private key: {e}", key.display())))?;
     if rcgen::PublicKeyData::der_bytes(&pair) != &x509.public_key().subject_public_key.data[..] {
         return Err(IdentityError(format!("{} is not the key of {}", key.display(), cert.display())));
     }
     let policy_path = dir.join(POLICY);
-    let text = String::from_utf8(read(&policy_path)?).map_err(|_| IdentityError(format!("{}: not UTF-8", policy_path.display())))?;
+    let text = String::from_utf8(read(&policy_path)?)
+        .map_err(|_| IdentityError(format!("{}: not UTF-8", policy_path.display())))?;
     let policy: Value = json5::from_str(&text).map_err(|e| IdentityError(format!("{}: {e}", policy_path.display())))?;
     Ok(Identity { ca, cert, key, policy })
 }

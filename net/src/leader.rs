@@ -18,8 +18,6 @@ use zenoh::Wait;
 
 use crate::barrier::Start;
 use crate::clock;
-use crate::startup;
-use crate::timesync;
 use crate::codec;
 use crate::counters::Counters;
 use crate::courier::Courier;
@@ -27,7 +25,9 @@ use crate::error::{zerr, Error};
 use crate::gate::{self, Kept, WINDOW};
 use crate::names::{self, Keys, MONITOR};
 use crate::node::{estimate_congestion, NodeArgs};
+use crate::startup;
 use crate::telemetry::{self, Telemetry};
+use crate::timesync;
 use crate::timing::Pacer;
 
 /// `leader` arguments.

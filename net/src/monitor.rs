@@ -19,14 +19,14 @@ use tokio::sync::mpsc;
 use crate::error::Error;
 
 use crate::barrier;
-use crate::startup;
-use crate::watch::Watch;
 use crate::codec;
 use crate::counters::Counters;
 use crate::names::{self, Keys, MONITOR};
 use crate::node::NodeArgs;
+use crate::startup;
 use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
 use crate::timing::LoopStats;
+use crate::watch::Watch;
 use formation_record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
 
 /// `monitor` arguments.
@@ -438,7 +438,18 @@ impl Recorder {
                     self.leader.push_back(None);
                 }
             }
-            Telemetry::Follower { id, first_k, samples, counters, done, loop_stats, delivery, events, clock, links } => {
+            Telemetry::Follower {
+                id,
+                first_k,
+                samples,
+                counters,
+                done,
+                loop_stats,
+                delivery,
+                events,
+                clock,
+                links,
+            } => {
                 let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
                     self.malformed += 1;
                     return Ok(());
@@ -1172,7 +1183,12 @@ mod tests {
         nan.torque_l = f64::NAN;
         r.telemetry(Some(ids[0]), &follower(ids[0], 2, vec![nan], false), Instant::now()).unwrap();
         // Forged: beyond the run's end, claiming done.
-        r.telemetry(Some(ids[0]), &follower(ids[0], steps, (steps..steps + 3).map(sample).collect(), true), Instant::now()).unwrap();
+        r.telemetry(
+            Some(ids[0]),
+            &follower(ids[0], steps, (steps..steps + 3).map(sample).collect(), true),
+            Instant::now(),
+        )
+        .unwrap();
         assert_eq!(r.malformed, 2);
         assert_eq!(r.followers[0].next_k + r.followers[0].pending.len() as u64, 2);
         assert!(!r.nodes[&ids[0]].done, "a rejected batch must not set done");

@@ -100,14 +100,10 @@ async fn listen<H: Hears>(
             lock(&m).start(start, Instant::now());
         }
     };
-    subs.push(
-        declare(keys.start(), Box::new(on_start)).await.map_err(|e| zerr("declaring the start subscriber", e))?,
-    );
+    subs.push(declare(keys.start(), Box::new(on_start)).await.map_err(|e| zerr("declaring the start subscriber", e))?);
     let m = machine.clone();
     let on_abort = move |_: &str, bytes: &[u8]| lock(&m).abort(&String::from_utf8_lossy(bytes));
-    subs.push(
-        declare(keys.abort(), Box::new(on_abort)).await.map_err(|e| zerr("declaring the abort subscriber", e))?,
-    );
+    subs.push(declare(keys.abort(), Box::new(on_abort)).await.map_err(|e| zerr("declaring the abort subscriber", e))?);
     for key in from.keys(keys.ready_all(), |n| keys.ready(n)) {
         let m = machine.clone();
         let on_ready = move |from: &str, bytes: &[u8]| {
@@ -115,9 +111,7 @@ async fn listen<H: Hears>(
                 lock(&m).ready(from, r, Instant::now());
             }
         };
-        subs.push(
-            declare(key, Box::new(on_ready)).await.map_err(|e| zerr("declaring the ready subscriber", e))?,
-        );
+        subs.push(declare(key, Box::new(on_ready)).await.map_err(|e| zerr("declaring the ready subscriber", e))?);
     }
     Ok(subs)
 }
@@ -251,4 +245,3 @@ pub async fn refuse_twin(session: &zenoh::Session, keys: &Keys, id: u32, steps: 
         TWIN_LISTEN.as_millis()
     )))
 }
-

@@ -385,7 +385,10 @@ mod tests {
         o.add(r.exchange(5 * S, 100 * US, 100 * US)).expect("accepted");
         let e = o.at(5 * S).expect("an estimate");
         assert!(error(&o, &r, 5 * S).abs() < 1.0, "symmetric delays: exact, got {e:?}");
-        assert!((100_000.0..100_100.0).contains(&e.uncertainty_ns), "half the round trip, and any drift over 0.1 ms: {e:?}");
+        assert!(
+            (100_000.0..100_100.0).contains(&e.uncertainty_ns),
+            "half the round trip, and any drift over 0.1 ms: {e:?}"
+        );
         assert_eq!(o.to_reference(5 * S), Some(r.time(5 * S)));
         assert_eq!(o.to_local(r.time(7 * S)), Some(7 * S));
         // With a drift: the two conversions are each other's inverse.
@@ -421,13 +424,19 @@ mod tests {
         let e = o.at(t).expect("an estimate");
         let err = error(&o, &r, t);
         let median = single[single.len() / 2];
-        eprintln!("asymmetric delays: error {err:.0} ns, uncertainty {:.0} ns; one exchange's median error {median:.0} ns", e.uncertainty_ns);
+        eprintln!(
+            "asymmetric delays: error {err:.0} ns, uncertainty {:.0} ns; one exchange's median error {median:.0} ns",
+            e.uncertainty_ns
+        );
         assert!(err.abs() <= e.uncertainty_ns, "error {err} ns beyond the uncertainty {} ns", e.uncertainty_ns);
         assert!(e.uncertainty_ns < 1.0 * MS as f64, "the best exchanges were kept: {e:?}");
         // The 200 µs asymmetry shows as −100 µs, which no two-way exchange
         // can see; what remains is the filter's, a fraction of one exchange's.
         let filtered = err + 100.0 * US as f64;
-        assert!(filtered.abs() < median / 4.0, "error {err} ns (−100 µs of asymmetry) against one exchange's median {median} ns");
+        assert!(
+            filtered.abs() < median / 4.0,
+            "error {err} ns (−100 µs of asymmetry) against one exchange's median {median} ns"
+        );
     }
 
     /// Two crystals 100 ppm apart: 0.36 s an hour. The line follows: the
@@ -458,7 +467,10 @@ mod tests {
         eprintln!("100 ppm over an hour: worst error {first:.0} ns in the first quarter hour, {last:.0} ns in the last; drift {:.2} ppm", e.drift_ppm);
         assert!((e.drift_ppm - 100.0).abs() < 5.0, "drift {} ppm", e.drift_ppm);
         assert!(first.max(last) < 250.0 * US as f64, "worst error {first:.0} / {last:.0} ns");
-        assert!(last <= 1.5 * first, "the error grew: {first:.0} ns in the first quarter hour, {last:.0} ns in the last");
+        assert!(
+            last <= 1.5 * first,
+            "the error grew: {first:.0} ns in the first quarter hour, {last:.0} ns in the last"
+        );
         let drifted = (r.time(3_600 * S) - 3_600 * S - 1 * S) as f64;
         assert!(drifted > 0.35e9, "the reference drifted {drifted} ns: the test means something");
     }
@@ -481,7 +493,10 @@ mod tests {
         kept.iter().for_each(|x| shuffled.add(*x).expect("accepted"));
         let t = 61 * S;
         let (a, b) = (error(&in_order, &r, t), error(&shuffled, &r, t));
-        assert!(a.abs() < 100.0 * US as f64 && b.abs() < 100.0 * US as f64, "in order {a} ns, lost and shuffled {b} ns");
+        assert!(
+            a.abs() < 100.0 * US as f64 && b.abs() < 100.0 * US as f64,
+            "in order {a} ns, lost and shuffled {b} ns"
+        );
         assert_eq!(shuffled.exchanges(), 200);
     }
 

@@ -105,8 +105,9 @@ fn parse_sites(a: &LabArgs, s: &Scenario) -> Result<Option<Sites>, Error> {
     }
     let mut sites = Sites::default();
     for (i, part) in text.split(';').enumerate() {
-        let (name, nodes) =
-            part.split_once('=').ok_or_else(|| bad(format!("{part:?} is not SITE=NODES, e.g. A=leader,monitor,1,2")))?;
+        let (name, nodes) = part
+            .split_once('=')
+            .ok_or_else(|| bad(format!("{part:?} is not SITE=NODES, e.g. A=leader,monitor,1,2")))?;
         let name = name.trim();
         if name.is_empty() || name.len() > 12 || !name.chars().all(|c| c.is_ascii_alphanumeric()) {
             return Err(bad(format!("site name {name:?}: use 1 to 12 letters or digits")));
@@ -121,7 +122,11 @@ fn parse_sites(a: &LabArgs, s: &Scenario) -> Result<Option<Sites>, Error> {
                 "leader" | "monitor" => node.to_string(),
                 id => match id.parse::<u32>() {
                     Ok(id) if s.index_of(id).is_some() => agent_host(id),
-                    _ => return Err(bad(format!("{node:?} is neither leader, monitor nor a follower id of the scenario"))),
+                    _ => {
+                        return Err(bad(format!(
+                            "{node:?} is neither leader, monitor nor a follower id of the scenario"
+                        )))
+                    }
                 },
             };
             if sites.of.insert(host, i).is_some() {
@@ -165,7 +170,11 @@ fn cut_events(a: &LabArgs, sites: &Sites, t_end: f64) -> Result<Vec<Event>, Erro
             action: Action::Cut { host: host.clone(), peer: peer.clone(), cut: true },
             what: format!("{what} cut apart"),
         });
-        events.push(Event { at_s: at + dur, action: Action::Cut { host, peer, cut: false }, what: format!("{what} joined") });
+        events.push(Event {
+            at_s: at + dur,
+            action: Action::Cut { host, peer, cut: false },
+            what: format!("{what} joined"),
+        });
     }
     let mut windows: Vec<(f64, f64)> = events.chunks(2).map(|p| (p[0].at_s, p[1].at_s)).collect();
     windows.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -231,14 +240,24 @@ fn clock_shifts(a: &LabArgs, s: &Scenario) -> Result<(Vec<(String, f64)>, Option
 /// What the lab does to the network at one moment.
 #[derive(Clone, Debug, PartialEq)]
 enum Action {
-    Link { host: String, up: bool },
-    Loss { host: String, percent: Option<f64> },
+    Link {
+        host: String,
+        up: bool,
+    },
+    Loss {
+        host: String,
+        percent: Option<f64>,
+    },
     KillRouter,
     StartRouter,
     KillAgent(u32),
     StartAgent(u32),
     /// The routers of two sites cut apart (`cut`) or joined again.
-    Cut { host: String, peer: String, cut: bool },
+    Cut {
+        host: String,
+        peer: String,
+        cut: bool,
+    },
 }
 
 #[derive(Clone, Debug)]
@@ -421,12 +440,23 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         .build()
         .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
-    let ctx = Ctx { a, scenario: &scenario, run: &run, out: &out, exe: &exe, lab: &lab, clocks: &clocks, faketime, sites: &sites };
+    let ctx = Ctx {
+        a,
+        scenario: &scenario,
+        run: &run,
+        out: &out,
+        exe: &exe,
+        lab: &lab,
+        clocks: &clocks,
+        faketime,
+        sites: &sites,
+    };
     let result = runtime.block_on(ctx.drive(&mut children, events));
     drop(children);
     drop(lab);
     let (summary, performed) = result?;
-    let shifted: serde_json::Map<String, serde_json::Value> = clocks.iter().map(|(h, s)| (h.clone(), json!(s))).collect();
+    let shifted: serde_json::Map<String, serde_json::Value> =
+        clocks.iter().map(|(h, s)| (h.clone(), json!(s))).collect();
     let record = json!({
         "mode": if a.mode == LaunchMode::Client { "client" } else { "peer" },
         "events": performed,

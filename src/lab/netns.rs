@@ -39,7 +39,6 @@ impl From<LabError> for crate::error::Error {
     }
 }
 
-
 /// TCP's minimum retransmission timeout on the lab's subnet (Linux's
 /// default is 200 ms, for the Internet). On a LAN with a round trip of
 /// 0.1 ms, a lost segment is resent after 5 ms, then 10, 20, …: with 30 %
@@ -108,7 +107,8 @@ fn euid() -> Option<u32> {
 /// [`UNSHARE`] and with [`UNSHARED_ENV`] set; the caller runs it and exits
 /// with its status (used when [`privilege`] is [`Privilege::Unshare`]).
 pub fn reexec() -> Result<Command, LabError> {
-    let exe = std::env::current_exe().map_err(|e| LabError(format!("cannot find this executable to re-run it: {e}")))?;
+    let exe =
+        std::env::current_exe().map_err(|e| LabError(format!("cannot find this executable to re-run it: {e}")))?;
     let mut cmd = Command::new(UNSHARE[0]);
     cmd.args(&UNSHARE[1..]).arg(exe).args(std::env::args_os().skip(1)).env(UNSHARED_ENV, "1");
     Ok(cmd)
