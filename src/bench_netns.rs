@@ -8,7 +8,6 @@
 
 use std::io::{BufRead, BufReader};
 use std::process::Stdio;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use formation_agent::LeaderState;
@@ -96,9 +95,7 @@ pub async fn ping(connect: &str, n: usize) -> Result<(), Error> {
         .map_err(zerr("declaring"))?;
     let est = s.declare_publisher(PING_EST).express(true).await.map_err(zerr("declaring"))?;
     let plain = s.declare_publisher(PING_PLAIN).express(true).await.map_err(zerr("declaring"))?;
-    let rx = Arc::new(std::sync::Mutex::new(rx));
     let round_trips = |publisher: &zenoh::pubsub::Publisher<'_>, payload: Vec<u8>, want: u8, n: usize| {
-        let rx = rx.lock().unwrap_or_else(|p| p.into_inner());
         let mut out = Vec::with_capacity(n);
         let began = Instant::now();
         while out.len() < n {

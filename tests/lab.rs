@@ -105,13 +105,18 @@ fn sim_on(base: &[&str], sets: &[&str]) -> (tempfile::TempDir, std::path::PathBu
 
 const IDS: [&str; 4] = ["1", "2", "3", "4"];
 
-/// Every step of every follower recorded, nothing lost.
+/// Every step of every follower recorded, nothing lost (20 s runs).
 fn every_step_recorded(tag: &str, r: &Run) {
+    steps_recorded(tag, r, 20001);
+}
+
+/// The record complete, and `steps` rows in every follower's CSV.
+fn steps_recorded(tag: &str, r: &Run, steps: usize) {
     let n = &r.network;
     assert_eq!(n["complete"], true, "{tag}: record not complete: ending {}, lost {}", n["ending"], n["lost_steps"]);
     for id in IDS {
         let rows = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count() - 1;
-        assert_eq!(rows, 20001, "{tag}: follower {id} has {rows} rows of 20001");
+        assert_eq!(rows, steps, "{tag}: follower {id} has {rows} rows of {steps}");
     }
 }
 
@@ -657,12 +662,10 @@ fn clocks_that_disagree_change_nothing() {
         let tag = format!("{node} {shift:+} s");
         let arg = format!("{node}={shift:+}");
         let r = lab_on(&BASE10, "lab-clock", &[], &["--clock", &arg]);
-        assert_eq!(r.network["complete"], true, "{tag}: record not complete");
+        steps_recorded(&tag, &r, 10001);
         let mut wrong = Vec::new();
         let mut measured = Vec::new();
         for id in IDS {
-            let rows = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count();
-            assert_eq!(rows - 1, 10001, "{tag}: follower {id} has {} rows of 10001", rows - 1);
             // The leader's clock minus this node's wall clock.
             let leader_shift = if node == "leader" { shift } else { 0.0 };
             let own_shift = if node == id { shift } else { 0.0 };
@@ -723,11 +726,7 @@ fn two_sites_cut_apart_behave_as_the_model_predicts() {
     }
     const BASE12: [&str; 2] = ["timing=realtime", "duration=12"];
     let r = lab_on(&BASE12, "lab-sites", &[], &["--sites", "A=leader,monitor,1,2;B=3,4", "--cut", "A:B@5:3"]);
-    assert_eq!(r.network["complete"], true, "sites: record not complete");
-    for id in IDS {
-        let rows = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count();
-        assert_eq!(rows - 1, 12001, "sites: follower {id} has {} rows of 12001", rows - 1);
-    }
+    steps_recorded("sites", &r, 12001);
     let lab: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(r.out.join("lab.json")).expect("lab.json")).expect("JSON");
     let performed: Vec<f64> =

@@ -217,7 +217,7 @@ pub async fn run_follower(
     startup::refuse_twin(session, keys, id, scenario.steps()).await?;
     // The run's timebase is the leader's: ask it from now on.
     let timebase = clock::Timebase::estimated();
-    let quarter_step_ns = scenario.dt_s / start_scale_of(scenario.network.time_scale) * 1e9 / 4.0;
+    let quarter_step_ns = scenario.dt_s / barrier::positive_scale(scenario.network.time_scale) * 1e9 / 4.0;
     let sync = timesync::follow(session.clone(), keys, timebase.clone(), format!("follower {id}"), quarter_step_ns);
     let hears_leader = scenario.graph.hears_leader(index);
     let neighbour_ids: Vec<u32> = scenario.graph.neighbours(index).iter().map(|&j| scenario.graph.id(j)).collect();
@@ -250,14 +250,14 @@ pub async fn run_follower(
             .callback(move |sample| {
                 let key_id = names::last_chunk(sample.key_expr().as_str()).parse::<u32>().ok();
                 let bytes = sample.payload().to_bytes();
+                // The receipt, on the run's timebase (read before the inbox is locked).
+                let now = timebase.now_ns();
                 let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
                 match inbox::check(key_id, &bytes, hears_leader, &neighbour_ids) {
                     Ok((source, msg)) => {
                         let slot = if let Source::Neighbour(slot) = source { slot } else { n };
-                        if inbox.accept(slot, &msg) {
-                            if let Some(now) = timebase.now_ns() {
-                                inbox.note_latency(slot, msg.header.sent_ns, now);
-                            }
+                        if let (true, Some(now)) = (inbox.accept(slot, &msg), now) {
+                            inbox.note_latency(slot, msg.header.sent_ns, now);
                         }
                     }
                     Err(r) => inbox.reject(r),
@@ -336,7 +336,7 @@ pub async fn run_follower(
     if !lockstep {
         // The shared clock bounds how far ahead a genuine message can be.
         let mut inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
-        let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
+        let scale = start.scale();
         set_window(&mut inbox, scenario, slots, hears_leader, scale);
         let epoch = timebase.instant_at(epoch_ns).unwrap_or_else(Instant::now);
         inbox.set_clock(epoch, Duration::from_secs_f64(scenario.dt_s / scale));
@@ -372,7 +372,7 @@ pub async fn run_follower(
         let session = session.clone();
         let shared = shared.clone();
         let epoch = timebase.instant_at(epoch_ns).unwrap_or_else(Instant::now);
-        let step = Duration::from_secs_f64(scenario.dt_s / start_scale(&start));
+        let step = Duration::from_secs_f64(scenario.dt_s / start.scale());
         tokio::spawn(async move {
             let mut had = true;
             loop {
@@ -430,7 +430,7 @@ fn set_window(inbox: &mut Inbox, scenario: &Scenario, slots: usize, hears_leader
             inbox.set_ahead(slots - 1, ahead + gate::WINDOW);
         }
     } else {
-        let period = scenario.dt_s / if time_scale > 0.0 { time_scale } else { 1.0 };
+        let period = scenario.dt_s / barrier::positive_scale(time_scale);
         let slack = ((0.1 / period).ceil() as u64).max(inbox::REALTIME_AHEAD);
         for slot in 0..slots {
             inbox.set_ahead(slot, slack);
@@ -479,7 +479,7 @@ fn put(p: &Publisher<'_>, bytes: &[u8]) -> Result<(), Error> {
 /// step (time to set up before that step is due).
 fn rejoin_step(start: &Start, scenario: &Scenario, timebase: &clock::Timebase) -> Result<u64, Error> {
     let since = timebase.since_s(start.epoch_unix_ns as i64).unwrap_or(0.0).max(0.0);
-    let elapsed_s = since * start_scale(start);
+    let elapsed_s = since * start.scale();
     if elapsed_s < LATE.as_secs_f64() {
         return Ok(0);
     }
@@ -515,24 +515,8 @@ async fn lockstep_rejoin_step(shared: &Shared, neighbours: usize) -> Result<u64,
 /// leader's clock.
 const TIME_LIMIT: Duration = Duration::from_secs(5);
 
-fn start_scale_of(scale: f64) -> f64 {
-    if scale > 0.0 {
-        scale
-    } else {
-        1.0
-    }
-}
-
 /// A process that hears a start older than this is a restart.
 const LATE: Duration = Duration::from_millis(200);
-
-fn start_scale(start: &Start) -> f64 {
-    if start.time_scale > 0.0 {
-        start.time_scale
-    } else {
-        1.0
-    }
-}
 
 /// Per inbox slot, whether the source is heard now (real time).
 struct HeardNow(Vec<bool>);

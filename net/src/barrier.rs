@@ -45,6 +45,22 @@ pub struct Start {
     pub time_scale: f64,
 }
 
+impl Start {
+    /// The time scale, 1 where the announced one is not positive.
+    pub fn scale(&self) -> f64 {
+        positive_scale(self.time_scale)
+    }
+}
+
+/// A time scale as used: `scale` if positive, else 1.
+pub fn positive_scale(scale: f64) -> f64 {
+    if scale > 0.0 {
+        scale
+    } else {
+        1.0
+    }
+}
+
 /// A fingerprint of the scenario as loaded (file plus overrides), so that
 /// nodes started with different scenarios refuse to run together.
 pub fn fingerprint(s: &Scenario) -> u64 {

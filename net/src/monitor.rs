@@ -466,7 +466,8 @@ impl Recorder {
                 if n.newest == Some((delivery.incarnation, first_k)) {
                     n.clock = clock.filter(|c| c.offset_ms.is_finite() && c.uncertainty_us.is_finite()).or(n.clock);
                     // A forged batch cannot fill the monitor's memory: one entry per source.
-                    let sources = self.scenario.sources_of(index).len();
+                    let g = &self.scenario.graph;
+                    let sources = g.neighbours(index).len() + usize::from(g.hears_leader(index));
                     if links.len() <= sources {
                         n.links = links;
                     }

@@ -144,8 +144,7 @@ pub struct Pacer {
 
 impl Pacer {
     pub fn new(start: &Start, dt_s: f64, timebase: Timebase) -> Self {
-        let scale = if start.time_scale > 0.0 { start.time_scale } else { 1.0 };
-        let period = Duration::from_secs_f64(dt_s / scale);
+        let period = Duration::from_secs_f64(dt_s / start.scale());
         let epoch_ns = start.epoch_unix_ns as i64;
         let due = timebase.instant_at(epoch_ns).unwrap_or_else(Instant::now);
         Self { timebase, epoch_ns, period, due, timer: LoopTimer::new(period.as_secs_f64()) }

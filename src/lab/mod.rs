@@ -118,17 +118,9 @@ fn parse_sites(a: &LabArgs, s: &Scenario) -> Result<Option<Sites>, Error> {
         sites.names.push(name.to_string());
         sites.routers.push(if i == 0 { "router".into() } else { format!("router-{}", name.to_ascii_lowercase()) });
         for node in nodes.split(',').map(str::trim).filter(|n| !n.is_empty()) {
-            let host = match node {
-                "leader" | "monitor" => node.to_string(),
-                id => match id.parse::<u32>() {
-                    Ok(id) if s.index_of(id).is_some() => agent_host(id),
-                    _ => {
-                        return Err(bad(format!(
-                            "{node:?} is neither leader, monitor nor a follower id of the scenario"
-                        )))
-                    }
-                },
-            };
+            let host = node_host(s, node)
+                .filter(|h| h != "router")
+                .ok_or_else(|| bad(format!("{node:?} is neither leader, monitor nor a follower id of the scenario")))?;
             if sites.of.insert(host, i).is_some() {
                 return Err(bad(format!("{node} is in two sites")));
             }
@@ -198,13 +190,8 @@ fn clock_shifts(a: &LabArgs, s: &Scenario) -> Result<(Vec<(String, f64)>, Option
         let bad = |why: &str| Error::Input(format!("--clock {text}: {why}"));
         let (node, secs) = text.split_once('=').ok_or_else(|| bad("expected NODE=SECONDS, e.g. 3=+0.05"))?;
         let node = node.trim();
-        let host = match node {
-            "leader" | "monitor" | "router" => node.to_string(),
-            id => match id.parse::<u32>() {
-                Ok(id) if s.index_of(id).is_some() => agent_host(id),
-                _ => return Err(bad("NODE is a follower id of the scenario, leader, monitor or router")),
-            },
-        };
+        let host = node_host(s, node)
+            .ok_or_else(|| bad("NODE is a follower id of the scenario, leader, monitor or router"))?;
         if host == "router" && a.mode != LaunchMode::Client {
             return Err(bad("there is no router in peer mode"));
         }
@@ -270,6 +257,15 @@ struct Event {
 
 fn agent_host(id: u32) -> String {
     format!("agent-{id}")
+}
+
+/// The lab host of a node named on the command line: `leader`, `monitor`,
+/// `router`, or a follower id of the scenario.
+fn node_host(s: &Scenario, node: &str) -> Option<String> {
+    match node {
+        "leader" | "monitor" | "router" => Some(node.to_string()),
+        id => id.parse::<u32>().ok().filter(|&id| s.index_of(id).is_some()).map(agent_host),
+    }
 }
 
 /// "AT:FOR" → (at, for), both finite, at ≥ 0, for > 0.
