@@ -210,6 +210,43 @@ fn node_phrase(n: &str) -> String {
     }
 }
 
+/// What a node hears at the barrier, fed to its machine ([`Join`] or
+/// [`Lead`]) as it arrives, with the time.
+pub trait Hears {
+    fn on_hello(&mut self, from: &str);
+    fn on_ready(&mut self, from: &str, ready: Ready, now: Instant);
+    /// The leader's start (the leader itself ignores starts).
+    fn on_start(&mut self, start: Start, now: Instant);
+    /// The leader's refusal of the run (the leader itself ignores it).
+    fn on_abort(&mut self, reason: &str);
+}
+
+impl Hears for Join {
+    fn on_hello(&mut self, from: &str) {
+        self.heard.on_hello(from);
+    }
+    fn on_ready(&mut self, from: &str, ready: Ready, now: Instant) {
+        self.heard.on_ready(from, ready, now);
+    }
+    fn on_start(&mut self, start: Start, now: Instant) {
+        self.heard.on_start(start, now);
+    }
+    fn on_abort(&mut self, reason: &str) {
+        self.heard.on_abort(reason);
+    }
+}
+
+impl Hears for Lead {
+    fn on_hello(&mut self, from: &str) {
+        self.heard.on_hello(from);
+    }
+    fn on_ready(&mut self, from: &str, ready: Ready, now: Instant) {
+        self.heard.on_ready(from, ready, now);
+    }
+    fn on_start(&mut self, _: Start, _: Instant) {}
+    fn on_abort(&mut self, _: &str) {}
+}
+
 /// What a node waiting for the start does at a tick.
 #[derive(Debug, PartialEq)]
 pub enum JoinStep {
@@ -256,22 +293,6 @@ impl Join {
             readies: 0,
             warned: false,
         }
-    }
-
-    pub fn on_hello(&mut self, from: &str) {
-        self.heard.on_hello(from);
-    }
-
-    pub fn on_ready(&mut self, from: &str, ready: Ready, now: Instant) {
-        self.heard.on_ready(from, ready, now);
-    }
-
-    pub fn on_start(&mut self, start: Start, now: Instant) {
-        self.heard.on_start(start, now);
-    }
-
-    pub fn on_abort(&mut self, reason: &str) {
-        self.heard.on_abort(reason);
     }
 
     /// Start and Ready messages ignored (another scenario, or an unexpected sender).
@@ -388,14 +409,6 @@ impl Lead {
             began: now,
             warned: BTreeSet::new(),
         }
-    }
-
-    pub fn on_hello(&mut self, from: &str) {
-        self.heard.on_hello(from);
-    }
-
-    pub fn on_ready(&mut self, from: &str, ready: Ready, now: Instant) {
-        self.heard.on_ready(from, ready, now);
     }
 
     /// Start and Ready messages ignored (another scenario, or an unexpected sender).

@@ -8,45 +8,11 @@ use std::time::{Duration, Instant};
 
 use formation_topology::Scenario;
 
-use crate::barrier::{fingerprint, key_digests, Join, JoinStep, Lead, LeadStep, Ready, ReadyForm, Start, TICK};
+use crate::barrier::{fingerprint, key_digests, Hears, Join, JoinStep, Lead, LeadStep, Ready, ReadyForm, Start, TICK};
 use crate::clock;
 use crate::codec;
 use crate::error::{zerr, Error};
 use crate::names::{self, Keys};
-
-/// What the barrier's subscribers feed: a [`Join`] or a [`Lead`].
-trait Hears: Send + 'static {
-    fn hello(&mut self, from: &str);
-    fn ready(&mut self, from: &str, ready: Ready, now: Instant);
-    fn start(&mut self, start: Start, now: Instant);
-    fn abort(&mut self, reason: &str);
-}
-
-impl Hears for Join {
-    fn hello(&mut self, from: &str) {
-        self.on_hello(from);
-    }
-    fn ready(&mut self, from: &str, ready: Ready, now: Instant) {
-        self.on_ready(from, ready, now);
-    }
-    fn start(&mut self, start: Start, now: Instant) {
-        self.on_start(start, now);
-    }
-    fn abort(&mut self, reason: &str) {
-        self.on_abort(reason);
-    }
-}
-
-impl Hears for Lead {
-    fn hello(&mut self, from: &str) {
-        self.on_hello(from);
-    }
-    fn ready(&mut self, from: &str, ready: Ready, now: Instant) {
-        self.on_ready(from, ready, now);
-    }
-    fn start(&mut self, _: Start, _: Instant) {}
-    fn abort(&mut self, _: &str) {}
-}
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
@@ -74,7 +40,7 @@ impl Whom<'_> {
 /// A node needing more nodes than this listens to everybody's barrier traffic.
 const FEW: usize = 32;
 
-async fn listen<H: Hears>(
+async fn listen<H: Hears + Send + 'static>(
     session: &zenoh::Session,
     keys: &Keys,
     machine: &Arc<Mutex<H>>,
@@ -89,7 +55,7 @@ async fn listen<H: Hears>(
     for key in from.keys(keys.hello("*"), |n| keys.hello(n)) {
         let m = machine.clone();
         subs.push(
-            declare(key, Box::new(move |from, _| lock(&m).hello(from)))
+            declare(key, Box::new(move |from, _| lock(&m).on_hello(from)))
                 .await
                 .map_err(|e| zerr("declaring the hello subscriber", e))?,
         );
@@ -97,18 +63,18 @@ async fn listen<H: Hears>(
     let m = machine.clone();
     let on_start = move |_: &str, bytes: &[u8]| {
         if let Some(start) = codec::decode::<Start>(bytes) {
-            lock(&m).start(start, Instant::now());
+            lock(&m).on_start(start, Instant::now());
         }
     };
     subs.push(declare(keys.start(), Box::new(on_start)).await.map_err(|e| zerr("declaring the start subscriber", e))?);
     let m = machine.clone();
-    let on_abort = move |_: &str, bytes: &[u8]| lock(&m).abort(&String::from_utf8_lossy(bytes));
+    let on_abort = move |_: &str, bytes: &[u8]| lock(&m).on_abort(&String::from_utf8_lossy(bytes));
     subs.push(declare(keys.abort(), Box::new(on_abort)).await.map_err(|e| zerr("declaring the abort subscriber", e))?);
     for key in from.keys(keys.ready_all(), |n| keys.ready(n)) {
         let m = machine.clone();
         let on_ready = move |from: &str, bytes: &[u8]| {
             if let Some(r) = codec::decode::<Ready>(bytes) {
-                lock(&m).ready(from, r, Instant::now());
+                lock(&m).on_ready(from, r, Instant::now());
             }
         };
         subs.push(declare(key, Box::new(on_ready)).await.map_err(|e| zerr("declaring the ready subscriber", e))?);
