@@ -70,14 +70,27 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
     let Some(dir) = a.out.as_deref() else {
         return Err(Error::Input("--out DIR is required (or --policy to print the policy)".into()));
     };
-    if a.days == 0 {
-        return Err(Error::Input("--days must be at least 1".into()));
+    if a.days == 0 || a.days > MAX_DAYS {
+        return Err(Error::Input(format!("--days {}: must be from 1 to {MAX_DAYS} (100 years)", a.days)));
     }
     let not_before = match &a.not_before {
         None => time::OffsetDateTime::now_utc() - time::Duration::minutes(5),
-        Some(d) => parse_date(d).ok_or_else(|| Error::Input(format!("--not-before {d:?}: expected YYYY-MM-DD")))?,
+        Some(d) => parse_date(d).ok_or_else(|| {
+            Error::Input(format!(
+                "--not-before {d:?}: expected a date YYYY-MM-DD from {FIRST_YEAR}-01-01 to {LAST_YEAR}-12-31"
+            ))
+        })?,
     };
-    let not_after = not_before + time::Duration::days(i64::from(a.days));
+    let not_after = not_before
+        .checked_add(time::Duration::days(i64::from(a.days)))
+        .filter(|t| t.year() <= LAST_YEAR)
+        .ok_or_else(|| {
+            Error::Input(format!(
+                "--not-before {} with --days {}: the certificates would end after {LAST_YEAR}-12-31, the last date a certificate can hold",
+                day(not_before),
+                a.days
+            ))
+        })?;
     let names = node_names(&scenario);
     for n in &a.nodes {
         if !names.contains(n) {
@@ -130,22 +143,41 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
     Ok(())
 }
 
-/// A `--san` value: an IP address, or a DNS name.
+/// Longest validity `--days` accepts.
+const MAX_DAYS: u32 = 36_500;
+/// The years a `--not-before` date and a certificate's end may fall in
+/// (X.509 dates end at 9999-12-31).
+const FIRST_YEAR: i32 = 1970;
+const LAST_YEAR: i32 = 9999;
+
+/// A `--san` value: an IP address, or a DNS name (labels of letters, digits
+/// and '-', at most 63 characters each and 253 in all).
 fn san(s: &str) -> Result<rcgen::SanType, Error> {
-    match s.parse::<IpAddr>() {
-        Ok(ip) => Ok(rcgen::SanType::IpAddress(ip)),
-        Err(_) => s
-            .to_string()
-            .try_into()
-            .map(rcgen::SanType::DnsName)
-            .map_err(|e| Error::Input(format!("--san {s}: not an address or DNS name: {e}"))),
+    if let Ok(ip) = s.parse::<IpAddr>() {
+        return Ok(rcgen::SanType::IpAddress(ip));
     }
+    let label_ok = |l: &str| {
+        !l.is_empty()
+            && l.len() <= 63
+            && !l.starts_with('-')
+            && !l.ends_with('-')
+            && l.chars().all(|c| c.is_ascii_alphanumeric() || c == '-')
+    };
+    if s.is_empty() || s.len() > 253 || !s.split('.').all(label_ok) {
+        return Err(Error::Input(format!(
+            "--san {s:?}: not an IP address or a DNS name (letters, digits, '-' and '.', e.g. robot-3.lab or 192.168.1.20)"
+        )));
+    }
+    s.to_string()
+        .try_into()
+        .map(rcgen::SanType::DnsName)
+        .map_err(|e| Error::Input(format!("--san {s}: not an address or DNS name: {e}")))
 }
 
 fn parse_date(s: &str) -> Option<time::OffsetDateTime> {
     let mut it = s.split('-');
     let (y, m, d) = (it.next()?.parse().ok()?, it.next()?.parse::<u8>().ok()?, it.next()?.parse().ok()?);
-    if it.next().is_some() {
+    if it.next().is_some() || !(FIRST_YEAR..=LAST_YEAR).contains(&y) {
         return None;
     }
     let date = time::Date::from_calendar_date(y, time::Month::try_from(m).ok()?, d).ok()?;

@@ -85,10 +85,13 @@ impl RunOptions {
             }
         }
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
-        if let Some(dir) = &self.tls {
+        match &self.tls {
             // Every node's files, checked before any process starts.
-            formation_net::identity::check_all(dir, &scenario).map_err(|e| CliError::Input(e.0))?;
+            Some(dir) => formation_net::identity::check_all(dir, &scenario).map_err(|e| CliError::Input(e.0))?,
+            None if !self.quiet => eprintln!("{}", formation_net::node::UNAUTHENTICATED),
+            None => {}
         }
+        crate::cli::warn_if_large(&scenario, 1, true, self.mcap, &out);
         Ok((scenario, run, out))
     }
 }
@@ -298,6 +301,8 @@ pub(crate) fn node_args(c: &mut Command, node: &str, opts: &RunOptions, run: &st
 
 /// `--tls DIR` (absolute) when the run has it.
 pub(crate) fn tls_arg(c: &mut Command, opts: &RunOptions) {
+    // The run said once whether its traffic is authenticated.
+    c.env(formation_net::node::LAUNCHED_ENV, "1");
     if let Some(dir) = &opts.tls {
         c.arg("--tls").arg(std::path::absolute(dir).unwrap_or_else(|_| dir.clone()));
     }

@@ -50,6 +50,12 @@ pub fn run(node: Node) -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
         .with_writer(std::io::stderr)
         .try_init();
+    formation_net::node::warn_if_unauthenticated(match &node {
+        Node::Agent(a) => &a.node.zenoh,
+        Node::Leader(a) => &a.node.zenoh,
+        Node::Monitor(a) => &a.node.zenoh,
+        Node::Router(z) => z,
+    });
     let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
         Ok(r) => r,
         Err(e) => {

@@ -12,6 +12,21 @@ use crate::error::Error;
 use crate::names::Keys;
 use crate::session::{self, ZenohArgs};
 
+/// Said once at the start of a run without `--tls`.
+pub const UNAUTHENTICATED: &str = "warning: no --tls: this run's traffic is unauthenticated and unencrypted; \
+any process that reaches its ports can read it, forge estimates or abort the run (make certificates with \
+`formation certs` and pass --tls DIR)";
+/// Set by `formation launch` and the lab on the nodes they start: the run
+/// has said [`UNAUTHENTICATED`] once already.
+pub const LAUNCHED_ENV: &str = "FORMATION_LAUNCHED";
+
+/// [`UNAUTHENTICATED`] on stderr for a node started by hand without `--tls`.
+pub fn warn_if_unauthenticated(zenoh: &ZenohArgs) {
+    if zenoh.tls.is_none() && std::env::var_os(LAUNCHED_ENV).is_none() {
+        eprintln!("{UNAUTHENTICATED}");
+    }
+}
+
 /// What a networked run refuses of a scenario that `formation sim` runs.
 pub fn networked(scenario: &Scenario) -> Result<(), Error> {
     let d = scenario.network.delay_steps;

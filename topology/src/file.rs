@@ -74,6 +74,7 @@ pub struct LinkFaultFile {
     /// Every link of this follower.
     pub node: Option<u32>,
     /// One link, by node ids (0 = the leader).
+    #[serde(default, deserialize_with = "exact::option")]
     pub link: Option<[u32; 2]>,
     /// Start, s of run time (inclusive).
     pub from: f64,

@@ -80,6 +80,25 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
     if n == 0 {
         return Err(bad("--followers must be at least 1".into()));
     }
+    if n as usize > crate::scenario::MAX_FOLLOWERS {
+        return Err(bad(format!(
+            "--followers {n}: a scenario may have at most {} followers",
+            crate::scenario::MAX_FOLLOWERS
+        )));
+    }
+    let edges = match spec.graph {
+        GraphKind::Complete => u64::from(n) * u64::from(n - 1) / 2,
+        _ => u64::from(n) * 2 + u64::from(spec.chords),
+    };
+    if edges > crate::scenario::MAX_EDGES as u64 {
+        return Err(bad(format!(
+            "{} followers in a {} graph{} make about {edges} edges; a scenario may have at most {}",
+            n,
+            spec.graph.name(),
+            if spec.chords > 0 { format!(" with {} chords", spec.chords) } else { String::new() },
+            crate::scenario::MAX_EDGES
+        )));
+    }
     if spec.leader_links == 0 || spec.leader_links > n {
         return Err(bad(format!("--leader-links must be between 1 and the {n} followers, not {}", spec.leader_links)));
     }

@@ -57,6 +57,28 @@ pub struct NetworkSettings {
 
 /// Largest `network.delay_steps` accepted.
 pub const MAX_DELAY_STEPS: u64 = 1000;
+/// Most followers in one scenario (a networked run is one process each; the
+/// simulator's memory grows with the edges).
+pub const MAX_FOLLOWERS: usize = 10_000;
+/// Most steps in one run (T/Δt): 1e8 is 27.8 hours at Δt = 1 ms.
+pub const MAX_STEPS: f64 = 1e8;
+/// Most edges in one scenario (a complete graph of 1,414 followers).
+pub const MAX_EDGES: usize = 1_000_000;
+/// Most rows of the fault table.
+pub const MAX_FAULT_ROWS: usize = 10_000;
+/// Largest scenario file read, bytes (a generated scenario of
+/// [`MAX_FOLLOWERS`] followers is about 1.5 MB).
+pub const MAX_FILE_BYTES: u64 = 16 << 20;
+
+/// A number for a message: plain when it reads well, else in exponent form
+/// (1e308 is not written with 309 digits).
+pub fn num(x: f64) -> String {
+    if x != 0.0 && x.is_finite() && !(1e-4..1e6).contains(&x.abs()) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
 
 /// What a link fault covers (docs/model.md §14).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -140,8 +162,7 @@ impl Scenario {
     /// Reads, overrides (`KEY=VALUE`, dotted keys) and validates a scenario file.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self, ScenarioError> {
         let label = path.display().to_string();
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| ScenarioError::Io { file: label.clone(), message: format!("cannot read: {e}") })?;
+        let text = read_scenario_file(path).map_err(|message| ScenarioError::Io { file: label.clone(), message })?;
         let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("scenario");
         Self::from_toml(&text, &label, stem, overrides)
     }
@@ -232,15 +253,174 @@ impl Scenario {
     }
 }
 
-/// A deserialization message; a length mismatch, which does not say what it
-/// is about, is prefixed with the field (`followers[2].offset: expected 2
-/// numbers, got 3`).
-fn syntax_message(text: &str, e: &toml::de::Error) -> String {
-    let message = e.message().trim();
-    match e.span().filter(|_| exact::is_length_error(message)).and_then(|s| field_at(text, s.start)) {
-        Some(field) => format!("{field}: {message}"),
-        None => message.to_string(),
+/// Reads a scenario file: a regular file (not a FIFO, a device or a
+/// folder, which could block or never end) of at most [`MAX_FILE_BYTES`].
+fn read_scenario_file(path: &Path) -> Result<String, String> {
+    use std::io::Read;
+    let meta = std::fs::metadata(path).map_err(|e| format!("cannot read: {e}"))?;
+    if meta.is_dir() {
+        return Err("is a folder, not a scenario file".into());
     }
+    if !meta.is_file() {
+        return Err("is not a regular file (a FIFO, a socket or a device): a scenario must be a file".into());
+    }
+    if meta.len() > MAX_FILE_BYTES {
+        return Err(format!("is {} bytes; a scenario file may have at most {MAX_FILE_BYTES}", meta.len()));
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_FILE_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(|e| format!("cannot read: {e}"))?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(format!("is more than {MAX_FILE_BYTES} bytes, the most a scenario file may have"));
+    }
+    String::from_utf8(bytes)
+        .map_err(|e| format!("is not UTF-8 text (byte {}): a scenario is a TOML file", e.utf8_error().valid_up_to()))
+}
+
+/// A deserialization message in plain words, prefixed with the key it is
+/// about where the source says (`followers[2].offset: expected 2 numbers,
+/// got 3`; `dt: expected a number, found the string "x"`).
+fn syntax_message(text: &str, e: &toml::de::Error) -> String {
+    let message = plain_message(e.message().trim());
+    let field = e.span().and_then(|s| field_at(text, s.start));
+    let key = duplicate_key(&message)
+        .map(str::to_string)
+        .or_else(|| (message == "duplicate key").then(|| key_at(text, e.span()?.start)).flatten());
+    let message = match key {
+        Some(key) => match first_line_of(text, &key, e.span().map(|s| s.start)) {
+            Some(line) if message == "duplicate key" => {
+                format!("duplicate key `{key}`: first given on line {line} (a key may be given once)")
+            }
+            Some(line) => format!("{message} (first given on line {line}; a key may be given once)"),
+            None => format!("{message} (a key may be given once)"),
+        },
+        None => message,
+    };
+    match field {
+        Some(field) if !message.starts_with(&format!("{field}:")) => format!("{field}: {message}"),
+        None if message.starts_with("unknown key") => match e.span().and_then(|s| table_before(text, s.start)) {
+            Some(table) => format!("[{table}]: {message}"),
+            None => message,
+        },
+        _ => message,
+    }
+}
+
+/// The `[table]` or `[[array]]` header last opened before byte `at`.
+fn table_before(text: &str, at: usize) -> Option<String> {
+    text.get(..at)?
+        .lines()
+        .rev()
+        .map(|l| l.split('#').next().unwrap_or("").trim())
+        .find(|l| l.starts_with('['))
+        .map(|l| l.trim_matches(['[', ']']).trim().to_string())
+}
+
+/// The key written at byte `at` of the source (bare or quoted).
+fn key_at(text: &str, at: usize) -> Option<String> {
+    let rest = text.get(at..)?;
+    let key: String = rest
+        .trim_start_matches(['[', ' '])
+        .chars()
+        .take_while(|c| c.is_ascii_alphanumeric() || "_-\"".contains(*c))
+        .filter(|&c| c != '"')
+        .collect();
+    (!key.is_empty()).then_some(key)
+}
+
+/// The key of a `duplicate key` message.
+fn duplicate_key(message: &str) -> Option<&str> {
+    message.strip_prefix("duplicate key `")?.split('`').next()
+}
+
+/// The first line, before byte `before`, where `key` is assigned or opens a table.
+fn first_line_of(text: &str, key: &str, before: Option<usize>) -> Option<usize> {
+    let end = before.unwrap_or(text.len()).min(text.len());
+    let mut offset = 0;
+    for (n, line) in text.lines().enumerate() {
+        if offset >= end {
+            break;
+        }
+        offset += line.len() + 1;
+        let t = line.split('#').next().unwrap_or("").trim();
+        let head = t.trim_start_matches('[').trim_end_matches(']').trim();
+        let assigned = t.split_once('=').map(|(k, _)| k.trim().trim_matches('"'));
+        if assigned == Some(key) || (t.starts_with('[') && head == key) {
+            return Some(n + 1);
+        }
+    }
+    None
+}
+
+/// serde's and toml's words (`invalid type: string "x", expected f64`,
+/// `expected struct RobotFile`, `wanted string or table`) in plain ones.
+pub(crate) fn plain_message(message: &str) -> String {
+    fn expected(what: &str) -> String {
+        let what = what.trim();
+        match what {
+            "f64" | "f32" => "a number".into(),
+            "u64" | "usize" => "a whole number ≥ 0".into(),
+            "u32" => "a whole number from 0 to 4294967295".into(),
+            "a boolean" | "bool" => "true or false".into(),
+            "a sequence" => "an array [ ... ]".into(),
+            "a string" => "a string in quotes".into(),
+            _ if what.starts_with("struct LinkFaultFile") => {
+                "a fault row, a table such as { node = 2, from = 10.0, to = 13.0 }".into()
+            }
+            _ if what.starts_with("struct ") => "a table ([name] or { key = value, ... })".into(),
+            _ if what.starts_with("enum ") => "a name in quotes".into(),
+            _ => what.to_string(),
+        }
+    }
+    fn found(what: &str) -> String {
+        let what = what.trim();
+        match what {
+            "unit variant" | "unit value" => "nothing (an empty value)".into(),
+            "sequence" => "an array".into(),
+            "map" => "a table".into(),
+            _ => what
+                .strip_prefix("integer ")
+                .map(|v| format!("the whole number {}", v.trim_matches('`')))
+                .or_else(|| what.strip_prefix("floating point ").map(|v| format!("the number {}", v.trim_matches('`'))))
+                .or_else(|| what.strip_prefix("boolean ").map(|v| v.trim_matches('`').to_string()))
+                .or_else(|| what.strip_prefix("string ").map(|v| format!("the string {v}")))
+                .unwrap_or_else(|| what.to_string()),
+        }
+    }
+    let m = message.trim();
+    for prefix in ["invalid type: ", "invalid value: "] {
+        if let Some(rest) = m.strip_prefix(prefix) {
+            if let Some((what, exp)) = rest.rsplit_once(", expected ") {
+                return format!("expected {}, found {}", expected(exp), found(what));
+            }
+        }
+    }
+    if m == "wanted string or table" {
+        return "expected a name in quotes (for example \"bio\")".into();
+    }
+    if let Some(rest) = m.strip_prefix("unknown field `") {
+        if let Some((key, others)) = rest.split_once("`, expected ") {
+            return format!("unknown key `{key}` (the keys here are {})", others.replace("one of ", ""));
+        }
+        if let Some((key, _)) = rest.split_once("`, there are no fields") {
+            return format!("unknown key `{key}` (this table has no keys)");
+        }
+    }
+    if let Some(rest) = m.strip_prefix("missing field `") {
+        return format!("missing key `{}`", rest.trim_end_matches('`'));
+    }
+    if let Some(rest) = m.strip_prefix("unknown variant `") {
+        if let Some((v, others)) = rest.split_once("`, expected ") {
+            return format!("`{v}` is not one of: {}", others.replace("one of ", "").replace('`', ""));
+        }
+    }
+    if let Some(rest) = m.strip_prefix("expected ") {
+        if !exact::is_length_error(m) && !rest.contains(',') {
+            return format!("expected {}", expected(rest));
+        }
+    }
+    m.to_string()
 }
 
 /// The dotted keys `--set` gave a value, each with its assignment, in order.
@@ -263,7 +443,7 @@ fn apply_overrides(text: &str, label: &str, overrides: &[String]) -> Result<(Sce
         if key.is_empty() {
             return Err(err("empty key".into()));
         }
-        let value = parse_value(value);
+        let value = parse_value(value).map_err(err)?;
         let mut next = table.clone();
         match key.strip_suffix('+') {
             Some(array) => append_path(&mut next, array.trim(), value).map_err(err)?,
@@ -285,7 +465,8 @@ fn apply_overrides(text: &str, label: &str, overrides: &[String]) -> Result<(Sce
 }
 
 fn override_message(key: &str, message: &str) -> String {
-    if message.starts_with("unknown field") {
+    let message = plain_message(message);
+    if message.starts_with("unknown key") {
         format!("unknown key `{key}` ({message})")
     } else {
         format!("`{key}`: {message}")
@@ -293,12 +474,20 @@ fn override_message(key: &str, message: &str) -> String {
 }
 
 /// A TOML value if VALUE parses as one (number, bool, array, inline table,
-/// quoted string), else VALUE as a bare string (`filter=kf`).
-fn parse_value(value: &str) -> toml::Value {
-    toml::from_str::<toml::Table>(&format!("v = {value}"))
-        .ok()
-        .and_then(|mut t| t.remove("v"))
-        .unwrap_or_else(|| toml::Value::String(value.to_string()))
+/// quoted string); a bare word (`filter=kf`, `leader.trajectory=figure-eight`)
+/// is a string; anything else is an error with TOML's reason (a missing
+/// bracket is not taken for a string).
+fn parse_value(value: &str) -> Result<toml::Value, String> {
+    match toml::from_str::<toml::Table>(&format!("v = {value}")) {
+        Ok(mut t) => t.remove("v").ok_or_else(|| format!("`{value}` is not a value")),
+        Err(_) if !value.is_empty() && value.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) => {
+            Ok(toml::Value::String(value.to_string()))
+        }
+        Err(e) => Err(format!(
+            "`{value}` is not a TOML value ({}); write a number, true/false, [array], {{table}} or a quoted \"string\"",
+            e.message().trim()
+        )),
+    }
 }
 
 /// The length of the array at dotted `key` (0 if there is none).
@@ -438,26 +627,31 @@ fn validate(
     }
     c.positive("dt", &[file.dt])?;
     c.positive("duration", &[file.duration])?;
-    if file.duration / file.dt > 1e10 {
+    let (dt, duration) = (num(file.dt), num(file.duration));
+    if file.dt > file.duration {
         return Err(c.fail_with(
-            "duration",
-            &["dt"],
-            format!("{} s at Δt = {} s is more than 1e10 steps", file.duration, file.dt),
+            "dt",
+            &["duration"],
+            format!("a step of {dt} s is longer than the whole run (duration = {duration} s)"),
         ));
     }
     let ratio = file.duration / file.dt;
+    if ratio > MAX_STEPS {
+        return Err(c.fail_with(
+            "duration",
+            &["dt"],
+            format!(
+                "{duration} s at Δt = {dt} s is {} steps; a run may have at most {} (split it, or raise dt)",
+                num(ratio.round()),
+                num(MAX_STEPS)
+            ),
+        ));
+    }
     if (ratio - ratio.round()).abs() > 1e-6 * ratio.max(1.0) {
         return Err(c.fail_with(
             "duration",
             &["dt"],
-            format!("{} s is not a whole number of steps of {} s (T/Δt = {ratio})", file.duration, file.dt),
-        ));
-    }
-    if file.duration / file.dt < 0.5 {
-        return Err(c.fail_with(
-            "duration",
-            &["dt"],
-            format!("{} s is shorter than one step of {} s", file.duration, file.dt),
+            format!("{duration} s is not a whole number of steps of {dt} s (T/Δt = {ratio})"),
         ));
     }
     let estimate_init = match file.estimate_init.as_str() {
@@ -494,6 +688,21 @@ fn validate(
     // Followers.
     if file.followers.is_empty() {
         return Err(c.fail("followers", "at least one follower is needed"));
+    }
+    if file.followers.len() > MAX_FOLLOWERS {
+        return Err(c.fail(
+            "followers",
+            format!("{} followers; a scenario may have at most {MAX_FOLLOWERS}", file.followers.len()),
+        ));
+    }
+    if file.edges.len() > MAX_EDGES {
+        return Err(c.fail("edges", format!("{} edges; a scenario may have at most {MAX_EDGES}", file.edges.len())));
+    }
+    if file.faults.len() > MAX_FAULT_ROWS {
+        return Err(c.fail(
+            "faults",
+            format!("{} fault rows; the fault table may have at most {MAX_FAULT_ROWS}", file.faults.len()),
+        ));
     }
     let mut order: Vec<usize> = (0..file.followers.len()).collect();
     order.sort_by_key(|&i| file.followers[i].id);
@@ -547,6 +756,13 @@ fn validate(
             return Err(c.fail(&field, format!("duplicate edge {a}–{b} (edges are undirected)")));
         }
         edges.push((ia, ib));
+    }
+    if !followers.iter().any(|f| f.hears_leader) {
+        let message = "no follower hears the leader: give at least one follower `leader_link = true` (Lemma 1 needs the leader to reach every follower)";
+        return Err(match c.assignment_of("followers") {
+            Some(assignment) => ScenarioError::Override { assignment: assignment.to_string(), message: message.into() },
+            None => c.fail("followers", message),
+        });
     }
     let graph = Graph::new(ids, &edges, followers.iter().map(|f| f.hears_leader).collect());
     let unreachable = graph.unreachable();
@@ -618,10 +834,20 @@ fn validate(
         other => return Err(c.fail("network.rejoin", format!("`{other}` is not one of: consensus, adopt"))),
     };
     c.positive("network.rejoin_after", &[n.rejoin_after])?;
+    if n.rejoin_after > file.duration {
+        return Err(c.fail_with(
+            "network.rejoin_after",
+            &["duration"],
+            format!(
+                "{} s is longer than the run (duration = {duration} s): no rejoining would ever end; at most {duration}",
+                num(n.rejoin_after)
+            ),
+        ));
+    }
     let rejoin_after_steps = (n.rejoin_after / file.dt).round() as u64;
     if rejoin_after_steps == 0 {
         return Err(
-            c.fail("network.rejoin_after", format!("{} s is less than half a step of {} s", n.rejoin_after, file.dt))
+            c.fail("network.rejoin_after", format!("{} s is less than half a step of {dt} s", num(n.rejoin_after)))
         );
     }
     c.positive("network.time_scale", &[n.time_scale])?;
@@ -755,6 +981,18 @@ fn validate_faults(
             return Err(c.fail(
                 &field("to"),
                 format!("the window [{}, {}) s is empty: `to` must be after `from`", f.from, f.to),
+            ));
+        }
+        let (from_k, to_k) = LinkFault { target, from_s: f.from, to_s: f.to, loss: f.loss }.steps(file.dt);
+        if from_k >= to_k {
+            return Err(c.fail(
+                &field("to"),
+                format!(
+                    "the window [{}, {}) s covers no step of Δt = {} s (both ends round to step {from_k}): widen it",
+                    f.from,
+                    f.to,
+                    num(file.dt)
+                ),
             ));
         }
         if f.to > file.duration {
