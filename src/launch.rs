@@ -291,12 +291,18 @@ fn node_command(exe: &Path, node: &str, a: &LaunchArgs, run: &str) -> Command {
 
 /// `node <node> --scenario … --run … --set …` of a run, stdin closed.
 pub(crate) fn node_args(c: &mut Command, node: &str, opts: &RunOptions, run: &str) {
-    c.args(["node", node]).arg("--scenario").arg(&opts.scenario.scenario).arg("--run").arg(run);
+    c.args(["node", node]).arg("--run").arg(run);
+    scenario_args(c, opts);
+    tls_arg(c, opts);
+    c.stdin(Stdio::null());
+}
+
+/// `--scenario FILE --set …` of a run.
+pub(crate) fn scenario_args(c: &mut Command, opts: &RunOptions) {
+    c.arg("--scenario").arg(&opts.scenario.scenario);
     for o in &opts.scenario.overrides {
         c.arg("--set").arg(o);
     }
-    tls_arg(c, opts);
-    c.stdin(Stdio::null());
 }
 
 /// `--tls DIR` (absolute) when the run has it.
@@ -324,6 +330,7 @@ fn start_router(
 ) -> Result<(), CliError> {
     let mut c = Command::new(exe);
     c.args(["node", "router", "--listen"]).arg(ep(port));
+    scenario_args(&mut c, opts);
     tls_arg(&mut c, opts);
     session::router_runtime(&mut c, timing);
     start_router_with(children, c)

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use clap::Args;
 use formation_net::monitor::Ending;
-use formation_net::session::{self, ZenohArgs};
+use formation_net::session;
 use formation_net::{agent, leader, monitor, router};
 
 use crate::error::Error;
@@ -33,7 +33,7 @@ pub enum Node {
     /// The monitor (as the `monitor` binary).
     Monitor(monitor::MonitorArgs),
     /// A zenoh router for client mode (as the `router` binary).
-    Router(ZenohArgs),
+    Router(router::RouterArgs),
 }
 
 /// Runs a node to its end and says how it ended: errors as one line on
@@ -54,7 +54,7 @@ pub fn run(node: Node) -> ExitCode {
         Node::Agent(a) => &a.node.zenoh,
         Node::Leader(a) => &a.node.zenoh,
         Node::Monitor(a) => &a.node.zenoh,
-        Node::Router(z) => z,
+        Node::Router(r) => &r.zenoh,
     });
     let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
         Ok(r) => r,

@@ -200,7 +200,7 @@ fn cases() -> Vec<Case> {
         sim(
             "rejoin_after beyond the run",
             edit("[network]", "[network]\nrejoin_after = 1e9"),
-            &["network.rejoin_after", "1e9 s", "longer than the run"],
+            &["network.rejoin_after", "1e9 s", "1e12 steps", "never rejoin"],
         ),
         sim(
             "rejoin unknown",
@@ -320,7 +320,7 @@ fn cases() -> Vec<Case> {
         sim_paper(
             "--set rejoin_after beyond the run",
             &["--set", "network.rejoin_after=1e9"],
-            &["network.rejoin_after", "longer than the run"],
+            &["network.rejoin_after", "never rejoin"],
         ),
         // Command lines.
         sim_paper("--threads 1000", &["--threads", "1000"], &["--threads 1000", "at most 256"]),

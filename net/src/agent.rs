@@ -161,7 +161,7 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
     if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
         return Err(Error::Input("--stall-timeout must be positive".into()));
     }
-    let session = args.node.open(&crate::names::agent_name(first)).await?;
+    let session = args.node.open(&crate::names::agent_name(first), &scenario).await?;
     let stall = Duration::from_secs_f64(args.stall_timeout);
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
     let mut followers: futures_util::stream::FuturesUnordered<_> = ids

@@ -88,7 +88,7 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     if !(args.start_lead.is_finite() && args.start_lead >= 0.0) {
         return Err(Error::Input("--start-lead must be ≥ 0".into()));
     }
-    let session = args.node.open(crate::names::LEADER).await?;
+    let session = args.node.open(crate::names::LEADER, &scenario).await?;
     let lead = Duration::from_secs_f64(args.start_lead);
     let result = run_leader(&session, &scenario, &keys, time_scale, lead, args.print_start).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;

@@ -28,6 +28,7 @@ pub mod identity;
 pub mod inbox;
 pub mod latency;
 pub mod leader;
+pub mod limits;
 pub mod monitor;
 pub mod names;
 pub mod node;

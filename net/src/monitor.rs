@@ -182,8 +182,12 @@ pub struct Gap {
     pub why: &'static str,
 }
 
-/// Batches that arrive ahead of the recorded end are held, up to this many per node.
-const MAX_AHEAD: usize = 8192;
+/// Batches that arrive ahead of the recorded end are held, up to about
+/// this many bytes per node (at most 8192 batches, at least 16).
+const MAX_AHEAD_BYTES: usize = 16 << 20;
+/// Telemetry received and not yet filed, bytes: beyond this a message is
+/// dropped and counted (its sender sends it again: it is not acknowledged).
+const MAX_QUEUED_BYTES: usize = 64 << 20;
 
 /// One node's telemetry put back in step order: batches may arrive late,
 /// twice (sent again), out of order, or never (steps the sender says it
@@ -208,11 +212,23 @@ struct Stream<T> {
     restarts: Vec<u64>,
     /// The sender's process (see `Delivery::incarnation`).
     incarnation: Option<u64>,
+    /// Most batches held ahead.
+    max_ahead: usize,
 }
 
 impl<T> Default for Stream<T> {
     fn default() -> Self {
+        Self::for_batches_of(1)
+    }
+}
+
+impl<T> Stream<T> {
+    /// A stream whose batches hold at most `batch` items: it holds at most
+    /// [`MAX_AHEAD_BYTES`] of them ahead.
+    fn for_batches_of(batch: usize) -> Self {
+        let per_batch = batch.max(1) * std::mem::size_of::<T>().max(1);
         Self {
+            max_ahead: (MAX_AHEAD_BYTES / per_batch).clamp(16, 8192),
             end: 0,
             ahead: BTreeMap::new(),
             gaps: Vec::new(),
@@ -224,9 +240,7 @@ impl<T> Default for Stream<T> {
             incarnation: None,
         }
     }
-}
 
-impl<T> Stream<T> {
     /// Files a checked batch (items for steps first_k, first_k + 1, …) from
     /// a sender that can deliver nothing below `available_from`; appends to
     /// `out` every item now in order, with its step.
@@ -241,7 +255,7 @@ impl<T> Stream<T> {
             self.duplicates += 1;
         } else if first_k > self.end {
             self.reordered += 1;
-            if self.ahead.len() >= MAX_AHEAD {
+            if self.ahead.len() >= self.max_ahead {
                 self.overflow += 1;
                 if let Some(last) = self.ahead.keys().next_back().copied().filter(|&l| l > first_k) {
                     self.ahead.remove(&last);
@@ -303,7 +317,16 @@ impl<T> Stream<T> {
 /// Checks a batch against a run of `steps` + 1 steps before anything is
 /// filed: None if it reaches beyond the run's end; otherwise the items up
 /// to the first that fails `ok(k, item)`, and whether it was cut there.
-fn check_batch<T>(mut items: Vec<T>, first_k: u64, steps: u64, ok: impl Fn(u64, &T) -> bool) -> Option<(Vec<T>, bool)> {
+fn check_batch<T>(
+    mut items: Vec<T>,
+    first_k: u64,
+    steps: u64,
+    max_len: usize,
+    ok: impl Fn(u64, &T) -> bool,
+) -> Option<(Vec<T>, bool)> {
+    if items.len() > max_len {
+        return None;
+    }
     match first_k.checked_add(items.len() as u64) {
         Some(last) if last <= steps + 1 => {}
         _ => return None,
@@ -342,6 +365,8 @@ pub struct Recorder {
     leader_base: u64,
     nodes: BTreeMap<u32, NodeStats>,
     malformed: u64,
+    /// Telemetry messages dropped on arrival (the queue was full).
+    pub queue_dropped: u64,
     /// Wall clock: the monitor's start to the leader's start, and the start
     /// to the end of the record (network.json's `wall`).
     startup_s: Option<f64>,
@@ -360,7 +385,7 @@ impl Recorder {
             .map(|f| FollowerTrack {
                 id: f.id,
                 offset: f.offset,
-                stream: Stream::default(),
+                stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
                 pending: VecDeque::new(),
                 next_k: 0,
                 unpaired: 0,
@@ -378,11 +403,12 @@ impl Recorder {
             scenario: scenario.clone(),
             writer,
             followers,
-            leader_stream: Stream::default(),
+            leader_stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
             leader: VecDeque::new(),
             leader_base: 0,
             nodes,
             malformed: 0,
+            queue_dropped: 0,
             startup_s: None,
             run_s: None,
             foxglove: None,
@@ -406,13 +432,15 @@ impl Recorder {
             return Ok(());
         };
         let steps = self.scenario.steps();
+        // A sender's batches hold at most this many steps: a longer one is forged.
+        let batch = self.scenario.network.telemetry_batch.max(1) as usize;
         match t {
             Telemetry::Leader { first_k, states, counters, done, loop_stats, delivery } => {
                 if key_id != Some(0) {
                     self.malformed += 1;
                     return Ok(());
                 }
-                let Some((states, cut)) = check_batch(states, first_k, steps, |_, s| s.is_finite()) else {
+                let Some((states, cut)) = check_batch(states, first_k, steps, batch, |_, s| s.is_finite()) else {
                     self.malformed += 1;
                     return Ok(());
                 };
@@ -455,7 +483,7 @@ impl Recorder {
                     return Ok(());
                 };
                 let ok = |k: u64, s: &FollowerSample| s.k == k && s.is_finite();
-                let Some((samples, cut)) = check_batch(samples, first_k, steps, ok) else {
+                let Some((samples, cut)) = check_batch(samples, first_k, steps, batch, ok) else {
                     self.malformed += 1;
                     return Ok(());
                 };
@@ -826,6 +854,8 @@ impl Recorder {
             "recorded_steps": self.recorded_steps(),
             "lost_steps": lost,
             "malformed_telemetry": self.malformed,
+            // Telemetry dropped on arrival: more than MAX_QUEUED_BYTES waited to be filed.
+            "telemetry_dropped_queue_full": self.queue_dropped,
             // Start-up (every node ready, from the monitor's start) and the
             // run itself, wall clock.
             "wall": {
@@ -901,7 +931,7 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
     if let Some(live) = foxglove {
         recorder.set_foxglove(live);
     }
-    let session = match args.node.open(crate::names::MONITOR).await {
+    let session = match args.node.open(crate::names::MONITOR, &scenario).await {
         Ok(s) => s,
         Err(e) => {
             // Nothing was recorded: leave no empty `<out>.partial` behind.
@@ -914,6 +944,34 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
     result
 }
 
+/// Bytes of telemetry received and not yet filed, and what was dropped.
+#[derive(Default)]
+struct Queued {
+    bytes: std::sync::atomic::AtomicUsize,
+    dropped: std::sync::atomic::AtomicU64,
+}
+
+impl Queued {
+    /// Whether a message of `len` bytes fits under [`MAX_QUEUED_BYTES`] (then it is counted in).
+    fn admit(&self, len: usize) -> bool {
+        use std::sync::atomic::Ordering::Relaxed;
+        let fits =
+            self.bytes.fetch_update(Relaxed, Relaxed, |b| (b + len <= MAX_QUEUED_BYTES).then_some(b + len)).is_ok();
+        if !fits {
+            self.dropped.fetch_add(1, Relaxed);
+        }
+        fits
+    }
+
+    fn release(&self, len: usize) {
+        self.bytes.fetch_sub(len, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    fn dropped(&self) -> u64 {
+        self.dropped.load(std::sync::atomic::Ordering::Relaxed)
+    }
+}
+
 async fn monitor(
     session: &zenoh::Session,
     scenario: &Scenario,
@@ -923,10 +981,18 @@ async fn monitor(
     began: Instant,
     web: Option<&crate::web::Live>,
 ) -> Result<Ending, Error> {
+    // Bounded in bytes: a sender that floods the monitor loses its own
+    // messages (counted), never the monitor's memory.
     let (tx, mut rx) = mpsc::unbounded_channel::<(Option<u32>, Vec<u8>)>();
+    let queue = std::sync::Arc::new(Queued::default());
+    let q = std::sync::Arc::clone(&queue);
     let _sub = session
         .declare_subscriber(keys.telemetry_all())
         .callback(move |s| {
+            let len = s.payload().len();
+            if !q.admit(len) {
+                return;
+            }
             let id = names::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
             let _ = tx.send((id, s.payload().to_bytes().into_owned()));
         })
@@ -987,6 +1053,8 @@ async fn monitor(
             }
             m = rx.recv() => {
                 let Some((id, bytes)) = m else { break Ending::Idle };
+                queue.release(bytes.len());
+                recorder.queue_dropped = queue.dropped();
                 let now = Instant::now();
                 recorder.telemetry(id, &bytes, now).map_err(written)?;
                 if let Some(end) = watch.on_telemetry(now, recorder.complete()) {
@@ -1079,11 +1147,13 @@ mod tests {
     fn batches_are_checked_before_anything_is_recorded() {
         let ok = |_: u64, x: &f64| x.is_finite();
         // Beyond the run's end: refused whole.
-        assert_eq!(check_batch(vec![1.0; 3], 9, 10, ok), None);
-        assert_eq!(check_batch(vec![1.0; 1], u64::MAX, 10, ok), None);
+        assert_eq!(check_batch(vec![1.0; 3], 9, 10, 50, ok), None);
+        assert_eq!(check_batch(vec![1.0; 1], u64::MAX, 10, 50, ok), None);
         // Cut at the first non-finite item.
-        assert_eq!(check_batch(vec![1.0, f64::NAN, 3.0], 4, 10, ok), Some((vec![1.0], true)));
-        assert_eq!(check_batch(vec![1.0, 2.0], 9, 10, ok), Some((vec![1.0, 2.0], false)));
+        assert_eq!(check_batch(vec![1.0, f64::NAN, 3.0], 4, 10, 50, ok), Some((vec![1.0], true)));
+        assert_eq!(check_batch(vec![1.0, 2.0], 9, 10, 50, ok), Some((vec![1.0, 2.0], false)));
+        // Longer than the run's batches: forged.
+        assert_eq!(check_batch(vec![1.0; 51], 0, 1000, 50, ok), None);
     }
 
     /// Files batches into a stream; the steps that came out, in order.

@@ -92,10 +92,11 @@ impl NodeArgs {
         ZenohArgs { identity: Some(identity.to_string()), ..self.zenoh.clone() }
     }
 
-    /// Opens the session; says once after a few seconds what it is waiting
+    /// Opens the session, with the limits of the scenario's traffic
+    /// ([`crate::limits`]); says once after a few seconds what it is waiting
     /// for, and gives up after `--open-timeout` naming the endpoints.
-    pub async fn open(&self, identity: &str) -> Result<zenoh::Session, Error> {
-        let zenoh = self.zenoh_as(identity);
+    pub async fn open(&self, identity: &str, scenario: &Scenario) -> Result<zenoh::Session, Error> {
+        let zenoh = ZenohArgs { traffic: Some(crate::limits::Traffic::of(scenario)), ..self.zenoh_as(identity) };
         let opening = session::open(&zenoh);
         tokio::pin!(opening);
         if !(self.open_timeout.is_finite() && self.open_timeout > 0.0) {

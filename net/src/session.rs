@@ -89,6 +89,10 @@ pub struct ZenohArgs {
     /// `agent-<id>`): set by the node, not on the command line.
     #[cfg_attr(feature = "clap", arg(skip))]
     pub identity: Option<String>,
+    /// What the run's traffic is (set by the node from its scenario): the
+    /// limits of [`crate::limits`]. None: [`crate::limits::Traffic::unknown`].
+    #[cfg_attr(feature = "clap", arg(skip))]
+    pub traffic: Option<crate::limits::Traffic>,
 }
 
 /// Link lease, ms: a link silent this long is declared dead (overridable
@@ -106,7 +110,15 @@ pub const LEASE_MS: u64 = 1000;
 pub const RUNTIME: &str = "(rx: (handover: app), acc: (handover: app), tx: (handover: app), net: (handover: app), \
                            app: (worker_threads: 1))";
 
-/// A router's command gets [`RUNTIME`] too when the run is real time (unless
+/// A router's zenoh threads in real time: as [`RUNTIME`] but with two
+/// workers, so that one client that floods it cannot hold the only thread
+/// that forwards (measured: a flood of 100,000 puts/s with `Block` took a
+/// one-worker router down; with two the formation was unharmed).
+pub const ROUTER_RUNTIME: &str =
+    "(rx: (handover: app), acc: (handover: app), tx: (handover: app), net: (handover: app), \
+                                  app: (worker_threads: 2))";
+
+/// A router's command gets [`ROUTER_RUNTIME`] when the run is real time (unless
 /// `ZENOH_RUNTIME` is set). Not in lock-step: there estimates are
 /// non-droppable, and a forwarding task that waits for room in a full
 /// transmit queue would hold the one thread that empties it (50 agents in
@@ -119,7 +131,7 @@ pub fn router_runtime(c: &mut std::process::Command, timing: formation_topology:
         return;
     }
     if timing == formation_topology::Timing::Realtime {
-        c.env("ZENOH_RUNTIME", RUNTIME);
+        c.env("ZENOH_RUNTIME", ROUTER_RUNTIME);
     } else {
         // This process may have set it for itself (bench-net).
         c.env_remove("ZENOH_RUNTIME");
@@ -246,6 +258,16 @@ impl ZenohArgs {
 
         if !self.connect.is_empty() {
             set(&mut config, "connect/endpoints", &Value::from(self.connect.clone()))?;
+        }
+
+        // Limits on what this node receives (crate::limits), where the file set none.
+        let traffic = self.traffic.clone().unwrap_or_else(crate::limits::Traffic::unknown);
+        for (key, value) in traffic.sections() {
+            match get(&config, key)? {
+                Value::Null => set(&mut config, key, &value)?,
+                Value::Array(a) if a.is_empty() => set(&mut config, key, &value)?,
+                _ => {}
+            }
         }
         if let Some(dir) = &self.tls {
             let name = self

@@ -11,9 +11,9 @@ use formation::node::{self, Node};
 #[command(about = "Zenoh router for formation nodes (loopback by default, no multicast)")]
 struct Cli {
     #[command(flatten)]
-    zenoh: formation_net::session::ZenohArgs,
+    router: formation_net::router::RouterArgs,
 }
 
 fn main() -> std::process::ExitCode {
-    node::run(Node::Router(Cli::parse().zenoh))
+    node::run(Node::Router(Cli::parse().router))
 }

@@ -566,6 +566,7 @@ impl Ctx<'_> {
         if host != "router" {
             c.args(["--connect", &self.ep("router")]);
         }
+        launch::scenario_args(&mut c, &self.a.opts);
         launch::tls_arg(&mut c, &self.a.opts);
         formation_net::session::router_runtime(&mut c, self.scenario.timing);
         c

@@ -834,13 +834,15 @@ fn validate(
         other => return Err(c.fail("network.rejoin", format!("`{other}` is not one of: consensus, adopt"))),
     };
     c.positive("network.rejoin_after", &[n.rejoin_after])?;
-    if n.rejoin_after > file.duration {
+    if n.rejoin_after / file.dt > MAX_STEPS {
         return Err(c.fail_with(
             "network.rejoin_after",
-            &["duration"],
+            &["dt"],
             format!(
-                "{} s is longer than the run (duration = {duration} s): no rejoining would ever end; at most {duration}",
-                num(n.rejoin_after)
+                "{} s is {} steps of {dt} s, longer than any run may be ({} steps): a rejoining follower would never rejoin",
+                num(n.rejoin_after),
+                num((n.rejoin_after / file.dt).round()),
+                num(MAX_STEPS)
             ),
         ));
     }

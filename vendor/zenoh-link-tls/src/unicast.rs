@@ -621,7 +621,12 @@ async fn accept_task(
                             tracing::error!("{}-{}: {}", file!(), line!(), e)
                         }
                     }
-                    Err(e) => {
+                    // formation patch (upstream eclipse-zenoh/zenoh#2685): only an
+                    // error of the listener itself (out of file descriptors) throttles
+                    // the loop. A failed or timed-out handshake is one peer's
+                    // problem: sleeping on it let 20 failed handshakes a second keep
+                    // certified nodes from joining.
+                    Err(tls_listener::Error::ListenerError(e)) => {
                         tracing::warn!("{}. Hint: increase the system open file limit.", e);
                         // Throttle the accept loop upon an error
                         // NOTE: This might be due to various factors. However, the most common case is that
@@ -630,6 +635,9 @@ async fn accept_task(
                         //       tool. In case of systemd-based systems, this can be changed by using the
                         //       "sysctl" command line tool.
                         tokio::time::sleep(Duration::from_micros(*TLS_ACCEPT_THROTTLE_TIME)).await;
+                    }
+                    Err(e) => {
+                        tracing::debug!("TLS handshake failed: {}", e);
                     }
                 }
             }
