@@ -17,7 +17,9 @@ use std::path::{Path, PathBuf};
 
 use crate::error::Error;
 
-use formation_net::identity::{policy, CA_CERT, CA_KEY, POLICY};
+use formation_net::identity::{
+    policy, policy_digest_name, CA_CERT, CA_DIR, CA_KEY, CRL, POLICY, POLICY_CERT, POLICY_SUBJECT,
+};
 use formation_net::names::node_names;
 
 /// `formation certs`.
@@ -25,8 +27,10 @@ use formation_net::names::node_names;
 pub struct CertsArgs {
     #[command(flatten)]
     pub scenario: crate::args::ScenarioArgs,
-    /// Folder for the authority, the nodes' keys and certificates and the
-    /// policy. An authority already there is used, never replaced.
+    /// Folder to write: `ca/` (the authority: keep its key off the nodes'
+    /// hosts) and one folder per node (`router/`, `leader/`, `monitor/`,
+    /// `agent-<id>/`) to copy to the host that runs it. An existing folder
+    /// is refused unless --force, --node or --revoke says what to change.
     #[arg(long, value_name = "DIR", required_unless_present = "policy")]
     pub out: Option<PathBuf>,
     /// Another address (IP or DNS name) that every node's certificate is
@@ -34,16 +38,26 @@ pub struct CertsArgs {
     /// peer (repeatable). Loopback and the lab's addresses are always in.
     #[arg(long = "san", value_name = "ADDRESS")]
     pub san: Vec<String>,
-    /// How long the certificates are valid, in days.
+    /// How long the certificates are valid, in days (at most 36500).
     #[arg(long, default_value_t = 365, value_name = "DAYS")]
     pub days: u32,
     /// First day of validity, YYYY-MM-DD [default: now]. With --days, makes
     /// expired or not-yet-valid certificates (for testing that they are refused).
     #[arg(long, value_name = "DATE")]
     pub not_before: Option<String>,
-    /// Only (re)issue these nodes' certificates (repeatable) [default: every node].
+    /// Only (re)issue these nodes' certificates, with the folder's authority
+    /// (repeatable); a node's previous certificate is revoked.
     #[arg(long = "node", value_name = "NAME")]
     pub nodes: Vec<String>,
+    /// Revoke this node's certificate (repeatable): every node refuses it
+    /// from the next start on. Copy the nodes' folders (their
+    /// `revoked.crl`) to their hosts again.
+    #[arg(long = "revoke", value_name = "NAME")]
+    pub revoke: Vec<String>,
+    /// Replace an existing folder: a new authority and new keys for every
+    /// node (certificates of the old authority are trusted by nobody).
+    #[arg(long)]
+    pub force: bool,
     /// Print the access-control policy derived from the topology and write nothing.
     #[arg(long)]
     pub policy: bool,
@@ -57,6 +71,13 @@ fn lab_addresses(index: usize) -> Vec<IpAddr> {
         v.push(IpAddr::V4(crate::lab::netns::host_addr(index - 1)));
     }
     v
+}
+
+/// A revoked certificate, as `ca/revoked.txt` keeps it: `serial-hex name unix-seconds`.
+struct Revoked {
+    serial: Vec<u8>,
+    name: String,
+    at: time::OffsetDateTime,
 }
 
 /// `formation certs`.
@@ -92,55 +113,237 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
             ))
         })?;
     let names = node_names(&scenario);
-    for n in &a.nodes {
+    for n in a.nodes.iter().chain(&a.revoke) {
         if !names.contains(n) {
-            return Err(Error::Input(format!("--node {n}: the scenario's nodes are {}", names.join(", "))));
+            let flag = if a.nodes.contains(n) { "--node" } else { "--revoke" };
+            return Err(Error::Input(format!("{flag} {n}: the scenario's nodes are {}", names.join(", "))));
         }
     }
     let mut extra = Vec::new();
     for s in &a.san {
         extra.push(san(s)?);
     }
-    std::fs::create_dir_all(dir).map_err(|e| Error::Run(format!("creating {}: {e}", dir.display())))?;
-
-    let (issuer, made) = authority(dir, not_before)?;
-    println!("{} authority {}", if made { "made the" } else { "using the existing" }, dir.join(CA_CERT).display());
-    for (index, name) in names.iter().enumerate() {
-        if !a.nodes.is_empty() && !a.nodes.contains(name) {
-            continue;
-        }
-        let mut sans: Vec<rcgen::SanType> = vec![
-            rcgen::SanType::IpAddress("127.0.0.1".parse().expect("an address")),
-            rcgen::SanType::IpAddress("::1".parse().expect("an address")),
-            san("localhost").expect("a name"),
-        ];
-        sans.extend(lab_addresses(index).into_iter().map(rcgen::SanType::IpAddress));
-        sans.extend(extra.iter().cloned());
-        let mut p = rcgen::CertificateParams::default();
-        p.distinguished_name.push(rcgen::DnType::CommonName, name.as_str());
-        p.subject_alt_names = sans;
-        p.not_before = not_before;
-        p.not_after = not_after;
-        p.use_authority_key_identifier_extension = true;
-        p.key_usages = vec![rcgen::KeyUsagePurpose::DigitalSignature];
-        // A peer both listens and dials: it needs both.
-        p.extended_key_usages =
-            vec![rcgen::ExtendedKeyUsagePurpose::ServerAuth, rcgen::ExtendedKeyUsagePurpose::ClientAuth];
-        let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making {name}'s key: {e}")))?;
-        let cert = p.signed_by(&key, &issuer).map_err(|e| Error::Run(format!("signing {name}'s certificate: {e}")))?;
-        write_private(&dir.join(format!("{name}.key")), &key.serialize_pem())?;
-        write(&dir.join(format!("{name}.pem")), &cert.pem())?;
-        println!("  {name}: {name}.pem, {name}.key (valid {} to {})", day(not_before), day(not_after));
+    let changing = !a.nodes.is_empty() || !a.revoke.is_empty();
+    if a.force && changing {
+        return Err(Error::Input(
+            "--force makes everything new: leave out --node and --revoke (or --force to change a few nodes)".into(),
+        ));
     }
-    let text = format!(
-        "// zenoh access control for scenario {:?}, made by `formation certs` from its topology.\n\
-         // Every node loads it with --tls; edit the scenario and run `formation certs` again instead.\n{}\n",
+    let exists = no_symlink(dir)?;
+    if exists && !changing && !a.force && std::fs::read_dir(dir).map_or(false, |mut d| d.next().is_some()) {
+        return Err(Error::Input(format!(
+            "{} exists: --force replaces it (a new authority and new keys for every node), --node NAME reissues \
+             one node, --revoke NAME revokes one",
+            dir.display()
+        )));
+    }
+    if a.force {
+        // Only what this command writes: never anything else in DIR.
+        for sub in std::iter::once(CA_DIR.to_string()).chain(names.iter().cloned()) {
+            let p = dir.join(&sub);
+            if no_symlink(&p)? {
+                std::fs::remove_dir_all(&p).map_err(|e| Error::Run(format!("removing {}: {e}", p.display())))?;
+            }
+        }
+    }
+    make_dir(dir)?;
+    let ca_dir = dir.join(CA_DIR);
+    if changing && !ca_dir.join(CA_KEY).exists() {
+        return Err(Error::Input(format!(
+            "{}: no authority there ({}/{CA_KEY}): --node and --revoke change a folder `formation certs` made",
+            dir.display(),
+            CA_DIR
+        )));
+    }
+    make_dir(&ca_dir)?;
+    let (issuer, made) = authority(&ca_dir, not_before)?;
+    println!(
+        "{} authority {} (keep {}/{CA_KEY} off the nodes' hosts)",
+        if made { "made the" } else { "using the existing" },
+        ca_dir.join(CA_CERT).display(),
+        CA_DIR
+    );
+    let ca_pem = read(&ca_dir.join(CA_CERT))?;
+
+    // Revocations: the listed nodes, and the previous certificate of every
+    // node issued again.
+    let mut revoked = read_revoked(&ca_dir)?;
+    let now = time::OffsetDateTime::now_utc();
+    for name in a.revoke.iter().chain(&a.nodes) {
+        let cert = dir.join(name).join(format!("{name}.pem"));
+        if let Some(serial) = serial_of(&cert)? {
+            if !revoked.iter().any(|r| r.serial == serial) {
+                revoked.push(Revoked { serial, name: name.clone(), at: now });
+                println!("  revoked {name}'s certificate");
+            }
+        }
+    }
+    write_revoked(&ca_dir, &revoked)?;
+    let crl = revocation_list(&issuer, &revoked, now)?;
+    write(&ca_dir.join(CRL), &crl)?;
+
+    let policy_text = format!(
+        "// zenoh access control for scenario {:?}, made by `formation certs` from its topology and\n\
+         // signed by the authority ({POLICY_CERT}): nodes refuse it once edited. Edit the scenario and run\n\
+         // `formation certs` again instead.\n{}\n",
         scenario.name,
         serde_json::to_string_pretty(&policy).unwrap_or_default()
     );
-    write(&dir.join(POLICY), &text)?;
-    println!("  {POLICY}: who may publish and receive what");
+    let policy_cert = sign_policy(&issuer, policy_text.as_bytes(), not_after)?;
+    let reissue = |name: &String| a.nodes.is_empty() || a.nodes.contains(name);
+    for (index, name) in names.iter().enumerate() {
+        let node = dir.join(name);
+        make_dir(&node)?;
+        if reissue(name) && !(changing && a.nodes.is_empty()) {
+            let mut sans: Vec<rcgen::SanType> = vec![
+                rcgen::SanType::IpAddress("127.0.0.1".parse().expect("an address")),
+                rcgen::SanType::IpAddress("::1".parse().expect("an address")),
+                san("localhost").expect("a name"),
+            ];
+            sans.extend(lab_addresses(index).into_iter().map(rcgen::SanType::IpAddress));
+            sans.extend(extra.iter().cloned());
+            let mut p = rcgen::CertificateParams::default();
+            p.distinguished_name.push(rcgen::DnType::CommonName, name.as_str());
+            p.subject_alt_names = sans;
+            p.not_before = not_before;
+            p.not_after = not_after;
+            p.use_authority_key_identifier_extension = true;
+            p.key_usages = vec![rcgen::KeyUsagePurpose::DigitalSignature];
+            // A peer both listens and dials: it needs both.
+            p.extended_key_usages =
+                vec![rcgen::ExtendedKeyUsagePurpose::ServerAuth, rcgen::ExtendedKeyUsagePurpose::ClientAuth];
+            let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making {name}'s key: {e}")))?;
+            let cert =
+                p.signed_by(&key, &issuer).map_err(|e| Error::Run(format!("signing {name}'s certificate: {e}")))?;
+            write_private(&node.join(format!("{name}.key")), &key.serialize_pem())?;
+            write(&node.join(format!("{name}.pem")), &cert.pem())?;
+            println!("  {name}/: {name}.pem, {name}.key (valid {} to {})", day(not_before), day(not_after));
+        }
+        write(&node.join(CA_CERT), &ca_pem)?;
+        write(&node.join(POLICY), &policy_text)?;
+        write(&node.join(POLICY_CERT), &policy_cert)?;
+        write(&node.join(CRL), &crl)?;
+    }
+    println!(
+        "  every node's folder: {CA_CERT}, {POLICY} (who may publish and receive what) signed in {POLICY_CERT}, \
+         {CRL} ({} revoked)",
+        revoked.len()
+    );
     Ok(())
+}
+
+/// The authority's signature of a policy: a certificate for [`POLICY_SUBJECT`]
+/// that names the policy's SHA-256, PEM.
+fn sign_policy(
+    issuer: &rcgen::Issuer<'static, rcgen::KeyPair>,
+    policy: &[u8],
+    not_after: time::OffsetDateTime,
+) -> Result<String, Error> {
+    let mut p = rcgen::CertificateParams::default();
+    p.distinguished_name.push(rcgen::DnType::CommonName, POLICY_SUBJECT);
+    let digest = policy_digest_name(policy);
+    p.subject_alt_names = vec![san(&digest)?];
+    p.not_before = time::OffsetDateTime::now_utc() - time::Duration::minutes(5);
+    p.not_after = not_after.max(p.not_before + time::Duration::days(1));
+    p.use_authority_key_identifier_extension = true;
+    let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making the policy's key: {e}")))?;
+    let cert = p.signed_by(&key, issuer).map_err(|e| Error::Run(format!("signing the policy: {e}")))?;
+    Ok(cert.pem())
+}
+
+/// The serial of the certificate at `path`, if there is one.
+fn serial_of(path: &Path) -> Result<Option<Vec<u8>>, Error> {
+    use x509_parser::prelude::*;
+    let Ok(bytes) = std::fs::read(path) else { return Ok(None) };
+    let (_, pem) =
+        parse_x509_pem(&bytes).map_err(|e| Error::Input(format!("{}: not a certificate: {e}", path.display())))?;
+    let x509 = pem.parse_x509().map_err(|e| Error::Input(format!("{}: not a certificate: {e}", path.display())))?;
+    Ok(Some(x509.raw_serial().to_vec()))
+}
+
+const REVOKED_LIST: &str = "revoked.txt";
+
+fn read_revoked(ca_dir: &Path) -> Result<Vec<Revoked>, Error> {
+    let path = ca_dir.join(REVOKED_LIST);
+    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(Vec::new()) };
+    text.lines()
+        .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
+        .map(|l| {
+            let bad = || Error::Input(format!("{}: cannot read the line {l:?}", path.display()));
+            let mut f = l.split_whitespace();
+            let (serial, name, at) = (f.next().ok_or_else(bad)?, f.next().ok_or_else(bad)?, f.next().ok_or_else(bad)?);
+            let serial = (0..serial.len() / 2)
+                .map(|i| u8::from_str_radix(serial.get(2 * i..2 * i + 2).unwrap_or("zz"), 16))
+                .collect::<Result<Vec<u8>, _>>()
+                .map_err(|_| bad())?;
+            let at = at
+                .parse::<i64>()
+                .ok()
+                .and_then(|t| time::OffsetDateTime::from_unix_timestamp(t).ok())
+                .ok_or_else(bad)?;
+            Ok(Revoked { serial, name: name.to_string(), at })
+        })
+        .collect()
+}
+
+fn write_revoked(ca_dir: &Path, revoked: &[Revoked]) -> Result<(), Error> {
+    let mut text = String::from("# Certificates this authority revoked: serial (hex), node, when (unix seconds).\n");
+    for r in revoked {
+        let hex: String = r.serial.iter().map(|b| format!("{b:02x}")).collect();
+        text.push_str(&format!("{hex} {} {}\n", r.name, r.at.unix_timestamp()));
+    }
+    write(&ca_dir.join(REVOKED_LIST), &text)
+}
+
+/// The authority's revocation list of `revoked`, PEM.
+fn revocation_list(
+    issuer: &rcgen::Issuer<'static, rcgen::KeyPair>,
+    revoked: &[Revoked],
+    now: time::OffsetDateTime,
+) -> Result<String, Error> {
+    let params = rcgen::CertificateRevocationListParams {
+        this_update: now - time::Duration::minutes(5),
+        next_update: now + time::Duration::days(MAX_DAYS.into()),
+        crl_number: rcgen::SerialNumber::from(now.unix_timestamp().max(1) as u64),
+        issuing_distribution_point: None,
+        revoked_certs: revoked
+            .iter()
+            .map(|r| rcgen::RevokedCertParams {
+                serial_number: rcgen::SerialNumber::from_slice(&r.serial),
+                revocation_time: r.at,
+                reason_code: None,
+                invalidity_date: None,
+            })
+            .collect(),
+        key_identifier_method: rcgen::KeyIdMethod::Sha256,
+    };
+    let crl = params.signed_by(issuer).map_err(|e| Error::Run(format!("signing the revocation list: {e}")))?;
+    crl.pem().map_err(|e| Error::Run(format!("writing the revocation list: {e}")))
+}
+
+/// Whether `path` exists (as a real folder); a symbolic link there is refused.
+fn no_symlink(path: &Path) -> Result<bool, Error> {
+    match std::fs::symlink_metadata(path) {
+        Err(_) => Ok(false),
+        Ok(m) if m.file_type().is_symlink() => Err(Error::Input(format!(
+            "{} is a symbolic link: certificate folders are written only where they are (never through a link)",
+            path.display()
+        ))),
+        Ok(m) if m.is_dir() => Ok(true),
+        Ok(_) => Err(Error::Input(format!("{} is a file, not a folder", path.display()))),
+    }
+}
+
+/// Creates a folder (0700) unless it is there; never through a symbolic link.
+fn make_dir(path: &Path) -> Result<(), Error> {
+    use std::os::unix::fs::DirBuilderExt;
+    if no_symlink(path)? {
+        return Ok(());
+    }
+    std::fs::DirBuilder::new()
+        .mode(0o700)
+        .create(path)
+        .map_err(|e| Error::Run(format!("creating {}: {e}", path.display())))
 }
 
 /// Longest validity `--days` accepts.
@@ -240,19 +443,32 @@ fn read(path: &Path) -> Result<String, Error> {
 }
 
 fn write(path: &Path, text: &str) -> Result<(), Error> {
-    std::fs::write(path, text).map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))
+    write_mode(path, text, 0o644)
 }
 
 /// Writes a private key readable by its owner only (created 0600, not
 /// chmod-ed after the fact).
 fn write_private(path: &Path, text: &str) -> Result<(), Error> {
+    write_mode(path, text, 0o600)
+}
+
+/// Replaces the file at `path`: what was there (a file, or a symbolic link,
+/// which is removed, never followed) goes first, and the new file is
+/// created, never opened through a link (O_EXCL, O_NOFOLLOW).
+fn write_mode(path: &Path, text: &str, mode: u32) -> Result<(), Error> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
-    let _ = std::fs::remove_file(path);
+    if let Ok(m) = std::fs::symlink_metadata(path) {
+        if m.is_dir() {
+            return Err(Error::Input(format!("{} is a folder, not a file this command writes", path.display())));
+        }
+        std::fs::remove_file(path).map_err(|e| Error::Run(format!("replacing {}: {e}", path.display())))?;
+    }
     let mut f = std::fs::OpenOptions::new()
         .write(true)
         .create_new(true)
-        .mode(0o600)
+        .custom_flags(libc::O_NOFOLLOW)
+        .mode(mode)
         .open(path)
         .map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))?;
     f.write_all(text.as_bytes()).map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))

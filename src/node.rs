@@ -50,12 +50,17 @@ pub fn run(node: Node) -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
         .with_writer(std::io::stderr)
         .try_init();
-    formation_net::node::warn_if_unauthenticated(match &node {
-        Node::Agent(a) => &a.node.zenoh,
-        Node::Leader(a) => &a.node.zenoh,
-        Node::Monitor(a) => &a.node.zenoh,
-        Node::Router(r) => &r.zenoh,
-    });
+    let (zenoh, name) = match &node {
+        Node::Agent(a) => (&a.node.zenoh, formation_net::names::agent_name(a.id.first().copied().unwrap_or(0))),
+        Node::Leader(a) => (&a.node.zenoh, formation_net::names::LEADER.to_string()),
+        Node::Monitor(a) => (&a.node.zenoh, formation_net::names::MONITOR.to_string()),
+        Node::Router(r) => (&r.zenoh, formation_net::names::ROUTER.to_string()),
+    };
+    formation_net::node::warn_if_unauthenticated(zenoh);
+    // The authority's revocation list, for the TLS link (before any thread starts).
+    if let Some(dir) = &zenoh.tls {
+        formation_net::identity::export_crl(dir, &name);
+    }
     let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
         Ok(r) => r,
         Err(e) => {

@@ -93,7 +93,7 @@ async fn settle(n: &AtomicU64, want: u64, limit: Duration) -> u64 {
 }
 
 #[test]
-fn certs_makes_an_authority_and_one_private_identity_per_node_and_never_replaces_the_authority() {
+fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links() {
     use std::os::unix::fs::PermissionsExt;
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
@@ -103,22 +103,58 @@ fn certs_makes_an_authority_and_one_private_identity_per_node_and_never_replaces
         let id = formation_net::identity::identity(&dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
         let mode = std::fs::metadata(&id.key).expect("key").permissions().mode() & 0o777;
         assert_eq!(mode, 0o600, "{n}'s key is {mode:o}, not readable by its owner only");
+        // A node's folder alone (as copied to its host) is enough, and holds no authority key.
+        let own = dir.join(n);
+        formation_net::identity::identity(&own, n).unwrap_or_else(|e| panic!("{n}'s folder alone: {e}"));
+        let files: Vec<String> = std::fs::read_dir(&own)
+            .expect("node folder")
+            .map(|e| e.expect("entry").file_name().into_string().unwrap())
+            .collect();
+        assert!(!files.iter().any(|f| f == "ca.key"), "{n}'s folder holds the authority's key: {files:?}");
     }
-    let ca_mode = std::fs::metadata(dir.join("ca.key")).expect("ca.key").permissions().mode() & 0o777;
+    let ca_mode = std::fs::metadata(dir.join("ca/ca.key")).expect("ca/ca.key").permissions().mode() & 0o777;
     assert_eq!(ca_mode, 0o600, "the authority's key is {ca_mode:o}");
-    // Again: the same authority, new node certificates that it signed.
-    let ca = std::fs::read(dir.join("ca.pem")).expect("ca.pem");
-    let o = certs(&dir, &[]);
-    let said = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success() && said.contains("using the existing authority"), "second run said: {said}");
-    assert_eq!(std::fs::read(dir.join("ca.pem")).expect("ca.pem"), ca, "the authority was replaced");
-    formation_net::identity::identity(&dir, "agent-3").expect("re-issued agent-3 under the same authority");
-    // Half an authority is refused, not replaced.
-    std::fs::remove_file(dir.join("ca.key")).expect("rm ca.key");
+    // Again: refused, nothing replaced.
+    let before = std::fs::read(dir.join("agent-3/agent-3.key")).expect("key");
     let o = certs(&dir, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "half an authority: {err}");
-    assert!(err.contains("not replacing an authority"), "{err}");
+    assert_eq!(o.status.code(), Some(2), "a second run without --force: {err}");
+    assert!(err.contains("exists") && err.contains("--force"), "{err}");
+    assert_eq!(std::fs::read(dir.join("agent-3/agent-3.key")).expect("key"), before, "a key was replaced");
+    // --node reissues one node with the same authority and revokes its old certificate.
+    let old3 = tmp.path().join("old-agent-3");
+    copy_dir(&dir.join("agent-3"), &old3);
+    let ca = std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem");
+    let o = certs(&dir, &["--node", "agent-3"]);
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success() && said.contains("using the existing authority"), "--node said: {said}");
+    assert_eq!(std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem"), ca, "the authority was replaced");
+    formation_net::identity::identity(&dir, "agent-3").expect("re-issued agent-3 under the same authority");
+    // The old certificate with the new folder's revocation list: revoked.
+    std::fs::copy(dir.join("agent-3/revoked.crl"), old3.join("revoked.crl")).expect("copy crl");
+    std::fs::copy(dir.join("agent-3/policy.json5"), old3.join("policy.json5")).expect("copy policy");
+    std::fs::copy(dir.join("agent-3/policy.pem"), old3.join("policy.pem")).expect("copy policy.pem");
+    let e = formation_net::identity::identity(&old3, "agent-3").expect_err("the superseded certificate");
+    assert!(e.0.contains("revoked"), "{e}");
+    // --force: a new authority, which the old certificates do not verify against.
+    let o = certs(&dir, &["--force"]);
+    assert!(o.status.success(), "--force: {}", String::from_utf8_lossy(&o.stderr));
+    assert_ne!(std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem"), ca, "--force kept the old authority");
+    // Links are never followed: a planted link to an unrelated file.
+    let victim = tmp.path().join("victim.txt");
+    std::fs::write(&victim, "unrelated").expect("victim");
+    std::fs::remove_file(dir.join("agent-1/policy.json5")).expect("rm");
+    std::os::unix::fs::symlink(&victim, dir.join("agent-1/policy.json5")).expect("symlink");
+    let o = certs(&dir, &["--node", "agent-1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(std::fs::read_to_string(&victim).expect("victim"), "unrelated", "a file was written through a link");
+    let linked = tmp.path().join("linked");
+    std::os::unix::fs::symlink(tmp.path().join("elsewhere"), &linked).expect("symlink");
+    let o = certs(&linked, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "--out through a link: {err}");
+    assert!(err.contains("symbolic link"), "{err}");
+    assert!(!tmp.path().join("elsewhere").exists(), "a folder was made through a link");
     // The policy, for review.
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))
         .args(["certs", SCENARIO, "--policy"])
@@ -254,7 +290,14 @@ async fn rogue(args: &ZenohArgs) -> (bool, u64) {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
     let port = 17680;
-    let (tmp, dir, _router) = tls_router(port);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("certs");
+    common::certs(&dir);
+    let revoked2 = tmp.path().join("revoked-agent-2");
+    copy_dir(&dir.join("agent-2"), &revoked2);
+    let o = certs(&dir, &["--node", "agent-2"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let _router = router(port, &dir);
     let other = tmp.path().join("other");
     common::certs(&other);
     // The receiver (the leader may receive every estimate) and a positive
@@ -270,7 +313,7 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
     assert_eq!(control, 100, "the genuine agent 2's 100 estimates: {control} reached the leader");
     heard.store(0, Ordering::Relaxed);
 
-    let ca = dir.join("ca.pem").display().to_string();
+    let ca = dir.join("ca/ca.pem").display().to_string();
     let no_cert = ZenohArgs {
         connect: vec![format!("tls/127.0.0.1:{port}")],
         config: Some(rogue_config(
@@ -293,6 +336,7 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
     let raw_tls = |name: &str, certs: &Path| {
         let (cert, key) =
             (certs.join("agent-2.pem").display().to_string(), certs.join("agent-2.key").display().to_string());
+        // `certs` is agent 2's own folder.
         ZenohArgs {
             connect: vec![format!("tls/127.0.0.1:{port}")],
             config: Some(rogue_config(
@@ -307,19 +351,23 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
         }
     };
     // Control: the same raw configuration with the valid certificate connects.
-    let (opened, sent) = rogue(&raw_tls("valid", &dir)).await;
+    let (opened, sent) = rogue(&raw_tls("valid", &dir.join("agent-2"))).await;
     let got = settle(&heard, 1000, Duration::from_secs(5)).await;
     assert!(
         opened && got == 1000,
         "the raw TLS configuration with agent 2's valid certificate: opened {opened}, {sent} sent, {got} arrived"
     );
     heard.store(0, Ordering::Relaxed);
-    let expired_cert = raw_tls("expired", &expired);
+    let expired_cert = raw_tls("expired", &expired.join("agent-2"));
+    // Agent 2's previous certificate, revoked when it was issued a new one
+    // (before the router started), given to zenoh directly.
+    let revoked_cert = raw_tls("revoked", &revoked2);
     for (what, args) in [
         ("no certificate", no_cert),
         ("a certificate from another authority", foreign_ca),
         ("plain TCP", plain_tcp),
         ("an expired certificate of the authority", expired_cert),
+        ("a revoked certificate of the authority", revoked_cert),
     ] {
         let (opened, sent) = rogue(&args).await;
         let got = settle(&heard, 1, Duration::from_millis(500)).await;
@@ -378,15 +426,24 @@ async fn a_valid_agent_cannot_speak_for_another_node() {
 /// validity (same authority).
 fn reissued(tmp: &Path, dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
     let copy = tmp.join(name);
-    std::fs::create_dir_all(&copy).expect("mkdir");
-    for e in std::fs::read_dir(dir).expect("read_dir").flatten() {
-        std::fs::copy(e.path(), copy.join(e.file_name())).expect("copy");
-    }
+    copy_dir(dir, &copy);
     let mut args = vec!["--node", "agent-2"];
     args.extend_from_slice(extra);
     let o = certs(&copy, &args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     copy
+}
+
+/// A copy of a folder and its folders.
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("mkdir");
+    for e in std::fs::read_dir(from).expect("read_dir").flatten() {
+        if e.file_type().expect("type").is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).expect("copy");
+        }
+    }
 }
 
 /// `formation node agent --id 2 --tls DIR` against a port nobody listens
@@ -409,23 +466,37 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
     let expired = reissued(tmp.path(), &dir, "expired", &["--not-before", "2020-01-01", "--days", "30"]);
     let future = reissued(tmp.path(), &dir, "future", &["--not-before", "2099-01-01"]);
     let wrong_node = reissued(tmp.path(), &dir, "wrong-node", &[]);
-    std::fs::copy(dir.join("agent-1.pem"), wrong_node.join("agent-2.pem")).expect("copy");
+    std::fs::copy(dir.join("agent-1/agent-1.pem"), wrong_node.join("agent-2/agent-2.pem")).expect("copy");
     let wrong_key = reissued(tmp.path(), &dir, "wrong-key", &[]);
-    std::fs::copy(dir.join("agent-1.key"), wrong_key.join("agent-2.key")).expect("copy");
+    std::fs::copy(dir.join("agent-1/agent-1.key"), wrong_key.join("agent-2/agent-2.key")).expect("copy");
     let foreign = tmp.path().join("foreign");
     common::certs(&foreign);
     let mixed = reissued(tmp.path(), &dir, "mixed", &[]);
-    std::fs::copy(foreign.join("agent-2.pem"), mixed.join("agent-2.pem")).expect("copy");
-    std::fs::copy(foreign.join("agent-2.key"), mixed.join("agent-2.key")).expect("copy");
+    std::fs::copy(foreign.join("agent-2/agent-2.pem"), mixed.join("agent-2/agent-2.pem")).expect("copy");
+    std::fs::copy(foreign.join("agent-2/agent-2.key"), mixed.join("agent-2/agent-2.key")).expect("copy");
     let no_key = reissued(tmp.path(), &dir, "no-key", &[]);
-    std::fs::remove_file(no_key.join("agent-2.key")).expect("rm");
+    std::fs::remove_file(no_key.join("agent-2/agent-2.key")).expect("rm");
     let garbage = reissued(tmp.path(), &dir, "garbage", &[]);
-    std::fs::write(garbage.join("agent-2.pem"), "not a certificate").expect("write");
+    std::fs::write(garbage.join("agent-2/agent-2.pem"), "not a certificate").expect("write");
     let no_policy = reissued(tmp.path(), &dir, "no-policy", &[]);
-    std::fs::remove_file(no_policy.join("policy.json5")).expect("rm");
+    std::fs::remove_file(no_policy.join("agent-2/policy.json5")).expect("rm");
     let other_topology = reissued(tmp.path(), &dir, "other-topology", &[]);
-    std::fs::write(other_topology.join("policy.json5"), "{ enabled: true, default_permission: \"allow\" }").expect("w");
-    let cases: [(&str, &Path, &str); 10] = [
+    std::fs::write(other_topology.join("agent-2/policy.json5"), "{ enabled: true, default_permission: \"allow\" }")
+        .expect("w");
+    // The attack of the issue: the policy switched off in a node's copy.
+    let disabled = reissued(tmp.path(), &dir, "disabled", &[]);
+    let text = std::fs::read_to_string(disabled.join("agent-2/policy.json5")).expect("policy");
+    std::fs::write(disabled.join("agent-2/policy.json5"), text.replacen("\"enabled\": true", "\"enabled\": false", 1))
+        .expect("w");
+    let unsigned = reissued(tmp.path(), &dir, "unsigned", &[]);
+    std::fs::remove_file(unsigned.join("agent-2/policy.pem")).expect("rm");
+    let forged_signature = reissued(tmp.path(), &dir, "forged-signature", &[]);
+    std::fs::copy(foreign.join("agent-2/policy.pem"), forged_signature.join("agent-2/policy.pem")).expect("copy");
+    let revoked = tmp.path().join("revoked");
+    copy_dir(&dir, &revoked);
+    let o = certs(&revoked, &["--revoke", "agent-2"]);
+    assert!(o.status.success(), "--revoke: {}", String::from_utf8_lossy(&o.stderr));
+    let cases: [(&str, &Path, &str); 14] = [
         ("expired", &expired, "expired on"),
         ("not yet valid", &future, "not valid yet"),
         ("another node's certificate", &wrong_node, "is the certificate of \"agent-1\""),
@@ -434,7 +505,11 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
         ("no key", &no_key, "cannot read"),
         ("garbage", &garbage, "not a PEM certificate"),
         ("no policy", &no_policy, "policy.json5"),
-        ("a policy for another topology", &other_topology, "another topology"),
+        ("a policy for another topology", &other_topology, "not the file the authority signed"),
+        ("a policy switched off", &disabled, "agent-2/policy.json5 is refused"),
+        ("a policy without its signature", &unsigned, "policy.pem"),
+        ("a policy signed by another authority", &forged_signature, "not the authority's signature"),
+        ("a revoked certificate", &revoked, "was revoked on"),
         ("no folder", &tmp.path().join("absent"), "cannot read"),
     ];
     for (what, d, says) in cases {

@@ -240,7 +240,12 @@ impl<'a> TlsServerConfig<'a> {
                 || Err(zerror!("Missing root certificates while mTLS is enabled.")),
                 Ok,
             )?;
-            let client_auth = WebPkiClientVerifier::builder(root_cert_store.into()).build()?;
+            // PATCHED (formation): certificates the authority revoked are refused.
+            let client_auth = WebPkiClientVerifier::builder(root_cert_store.into())
+                .with_crls(formation_crls()?)
+                .only_check_end_entity_revocation()
+                .allow_unknown_revocation_status()
+                .build()?;
             ServerConfig::builder_with_protocol_versions(&[&TLS13])
                 .with_client_cert_verifier(client_auth)
                 .with_single_cert(certs, keys.remove(0))
@@ -346,16 +351,23 @@ impl<'a> TlsClientConfig<'a> {
             None => TLS_CLOSE_LINK_ON_EXPIRATION_DEFAULT,
         };
 
-        // Allows mixed user-generated CA and webPKI CA
-        tracing::debug!("Loading default Web PKI certificates.");
-        let mut root_cert_store = RootCertStore {
-            roots: webpki_roots::TLS_SERVER_ROOTS.to_vec(),
+        // PATCHED (formation): a given authority is the only trust root
+        // (upstream mixes it with the Web PKI's, so that a server with a
+        // public certificate for the name dialled would be trusted too).
+        let custom_root = load_trust_anchors(config)?;
+        let has_custom_root = custom_root.is_some();
+        let root_cert_store = match custom_root {
+            Some(custom_root_cert) => {
+                tracing::debug!("Loading user-generated certificates only.");
+                custom_root_cert
+            }
+            None => {
+                tracing::debug!("Loading default Web PKI certificates.");
+                RootCertStore {
+                    roots: webpki_roots::TLS_SERVER_ROOTS.to_vec(),
+                }
+            }
         };
-
-        if let Some(custom_root_cert) = load_trust_anchors(config)? {
-            tracing::debug!("Loading user-generated certificates.");
-            root_cert_store.extend(custom_root_cert.roots);
-        }
 
         // Install ring based rustls CryptoProvider.
         rustls::crypto::ring::default_provider()
@@ -404,7 +416,18 @@ impl<'a> TlsClientConfig<'a> {
 
             let builder = ClientConfig::builder_with_protocol_versions(&[&TLS13]);
 
-            if tls_server_name_verification {
+            if tls_server_name_verification && has_custom_root {
+                // PATCHED (formation): certificates the authority revoked are refused.
+                let verifier = rustls::client::WebPkiServerVerifier::builder(Arc::new(root_cert_store))
+                    .with_crls(formation_crls()?)
+                    .only_check_end_entity_revocation()
+                    .allow_unknown_revocation_status()
+                    .build()
+                    .map_err(|e| zerror!("TLS server verifier: {e}"))?;
+                builder
+                    .with_webpki_verifier(verifier)
+                    .with_client_auth_cert(certs, keys.remove(0))
+            } else if tls_server_name_verification {
                 builder
                     .with_root_certificates(root_cert_store)
                     .with_client_auth_cert(certs, keys.remove(0))
@@ -552,6 +575,21 @@ async fn load_tls_certificate(
             .map_err(|e| zerror!("Invalid TLS certificate file: {}", e))?);
     }
     Err(zerror!("Missing tls certificates.").into())
+}
+
+/// PATCHED (formation): the certificate revocation lists in the PEM file
+/// named by `ZENOH_TLS_CRL` (none if it is unset). A node sets it before it
+/// opens its session; there is no zenoh configuration key for it.
+fn formation_crls() -> ZResult<Vec<rustls::pki_types::CertificateRevocationListDer<'static>>> {
+    let Some(path) = std::env::var_os("ZENOH_TLS_CRL") else {
+        return Ok(Vec::new());
+    };
+    let bytes = std::fs::read(&path)
+        .map_err(|e| zerror!("ZENOH_TLS_CRL {}: {e}", std::path::Path::new(&path).display()))?;
+    let crls = rustls_pemfile::crls(&mut Cursor::new(bytes))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| zerror!("ZENOH_TLS_CRL {}: {e}", std::path::Path::new(&path).display()))?;
+    Ok(crls)
 }
 
 fn load_trust_anchors(config: &Config<'_>) -> ZResult<Option<RootCertStore>> {
