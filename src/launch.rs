@@ -303,6 +303,11 @@ pub(crate) fn scenario_args(c: &mut Command, opts: &RunOptions) {
     for o in &opts.scenario.overrides {
         c.arg("--set").arg(o);
     }
+    // Every node (and the router) knows the run's rate: the limits on what
+    // it receives are set from it (formation_net::limits).
+    if let Some(x) = opts.time_scale {
+        c.arg("--set").arg(format!("network.time_scale={x:?}"));
+    }
 }
 
 /// `--tls DIR` (absolute) when the run has it.
