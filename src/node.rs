@@ -36,6 +36,28 @@ pub enum Node {
     Router(router::RouterArgs),
 }
 
+/// Hands zenoh's access-control denials to [`formation_net::denials::note`].
+struct Denials;
+
+impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for Denials {
+    fn on_event(&self, event: &tracing::Event<'_>, _: tracing_subscriber::layer::Context<'_, S>) {
+        if event.metadata().line().is_some_and(|l| formation_net::denials::ALLOWED_LINES.contains(&l)) {
+            return;
+        }
+        struct Message(String);
+        impl tracing::field::Visit for Message {
+            fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+                if field.name() == "message" {
+                    self.0 = format!("{value:?}");
+                }
+            }
+        }
+        let mut m = Message(String::new());
+        event.record(&mut m);
+        formation_net::denials::note(&m.0);
+    }
+}
+
 /// Runs a node to its end and says how it ended: errors as one line on
 /// stderr, and the exit status.
 pub fn run(node: Node) -> ExitCode {
@@ -46,10 +68,20 @@ pub fn run(node: Node) -> ExitCode {
     if !matches!(node, Node::Router(_)) {
         session::default_runtime();
     }
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
-        .with_writer(std::io::stderr)
-        .try_init();
+    {
+        use tracing_subscriber::layer::SubscriberExt;
+        use tracing_subscriber::util::SubscriberInitExt;
+        use tracing_subscriber::Layer;
+        let log = tracing_subscriber::fmt::layer()
+            .with_writer(std::io::stderr)
+            .with_filter(tracing_subscriber::EnvFilter::from_default_env());
+        // zenoh's access-control decisions, for the denials it counts.
+        let acl = Denials.with_filter(
+            tracing_subscriber::filter::Targets::new()
+                .with_target(formation_net::denials::ACL_TARGET, tracing::Level::TRACE),
+        );
+        let _ = tracing_subscriber::registry().with(log).with(acl).try_init();
+    }
     let (zenoh, name) = match &node {
         Node::Agent(a) => (&a.node.zenoh, formation_net::names::agent_name(a.id.first().copied().unwrap_or(0))),
         Node::Leader(a) => (&a.node.zenoh, formation_net::names::LEADER.to_string()),

@@ -170,7 +170,8 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
             "formation/*/estimate/3",
             "formation/*/telemetry/3",
             "formation/*/control/hello/3",
-            "formation/*/control/ready/3"
+            "formation/*/control/ready/3",
+            "formation/*/control/denied/agent-3"
         ])
     );
 }
@@ -210,6 +211,26 @@ fn tls_same_as_sim(mode: &str, port: u16, run: &str, forge: bool) {
                 "follower {id} saw forged messages: {node}"
             );
         }
+        // The router's access control refused them, and says so: per subject, action and key.
+        let denied = n["access_denied"].as_array().cloned().unwrap_or_default();
+        let count = |key: &str| -> u64 {
+            denied
+                .iter()
+                .filter(|d| d["by"] == "router" && d["subject"] == "agent-2" && d["action"] == "Put (ingress)")
+                .filter(|d| d["key"] == format!("formation/{run}/{key}"))
+                .map(|d| d["count"].as_u64().unwrap_or(0))
+                .sum()
+        };
+        let (as3, as_leader) = (count("estimate/3"), count("estimate/0"));
+        // The run may end before the forger does: what the router refused until then.
+        assert!(
+            (1..=10_000).contains(&as3) && (1..=10_000).contains(&as_leader),
+            "network.json counts {as3} refused puts of agent 2 on estimate/3 and {as_leader} on estimate/0 \
+             (10,000 each sent, some after the run's end): {denied:?}"
+        );
+        eprintln!(
+            "the router refused, during the run, {as3} of agent 2's puts on estimate/3 and {as_leader} on estimate/0"
+        );
     }
     for f in ["summary.json", "follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv", "leader.csv"] {
         let a = std::fs::read(net.join(f)).expect("net file");

@@ -162,6 +162,7 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
         return Err(Error::Input("--stall-timeout must be positive".into()));
     }
     let session = args.node.open(&crate::names::agent_name(first), &scenario).await?;
+    tokio::spawn(crate::denials::report(session.clone(), crate::names::agent_name(first), Some(keys.run.clone())));
     let stall = Duration::from_secs_f64(args.stall_timeout);
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
     let mut followers: futures_util::stream::FuturesUnordered<_> = ids

@@ -92,6 +92,7 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
                 any_run("control/hello/0"),
                 any_run("control/start"),
                 any_run("control/abort"),
+                any_run("control/denied/leader"),
             ],
             // Every estimate (lock-step pacing, and its own for twins) and telemetry (who finished).
             receive: vec![any_run("estimate/*"), any_run("telemetry/*"), control.clone()],
@@ -101,7 +102,12 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
         },
         Role {
             name: MONITOR.into(),
-            publish: vec![any_run("control/hello/monitor"), any_run("control/ready/monitor"), any_run("control/ack")],
+            publish: vec![
+                any_run("control/hello/monitor"),
+                any_run("control/ready/monitor"),
+                any_run("control/ack"),
+                any_run("control/denied/monitor"),
+            ],
             receive: vec![any_run("telemetry/*"), control.clone()],
             answer: vec![],
             ask: vec![],
@@ -121,6 +127,7 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
                 any_run(&format!("telemetry/{id}")),
                 any_run(&format!("control/hello/{id}")),
                 any_run(&format!("control/ready/{id}")),
+                any_run(&format!("control/denied/{}", agent_name(id))),
             ],
             receive,
             answer: vec![],

@@ -65,7 +65,32 @@ pub struct Inbox {
     links: Vec<LinkLoss>,
     /// Per source: latency and age at use (see [`crate::latency`]).
     meters: Vec<LinkMeter>,
+    /// Real time, per source: evidence of a second sender on its key.
+    twins: Vec<Twin>,
 }
+
+/// What a receiver has seen of a second sender on one source's key (real
+/// time). A sender's messages arrive in step order (one zenoh publisher, one
+/// reliable link): a message older than the newest held, for a step not held
+/// or held with other contents, came from another process with the same
+/// identity. After [`TWIN_EVIDENCE`] of them the source is flagged, and
+/// from then on its messages that run more than [`TWIN_PACE`] steps ahead
+/// of the shared clock are dropped: the receiver keeps the stream that keeps
+/// the run's pace, not the one that runs ahead of it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Twin {
+    /// Messages that showed a second sender, or were dropped as its.
+    pub messages: u64,
+    /// The receiver's step when the source was flagged.
+    pub since: Option<u64>,
+}
+
+/// Messages that show a second sender before a source is flagged as twinned.
+pub const TWIN_EVIDENCE: u64 = 3;
+/// How far ahead of the shared clock's step a genuine sender's message can
+/// be: it publishes step k + 1's message during step k, and the clocks agree
+/// to well under a step.
+pub const TWIN_PACE: u64 = 2;
 
 /// Lock-step: how far ahead of the receiver's step a neighbour's message can
 /// be (it needs the receiver's step-k message before it publishes k + 1).
@@ -89,7 +114,13 @@ impl Inbox {
             clock: None,
             links: vec![LinkLoss::none(); sources],
             meters: vec![LinkMeter::default(); sources],
+            twins: vec![Twin::default(); sources],
         }
+    }
+
+    /// Per source, what was seen of a second sender on its key.
+    pub fn twins(&self) -> &[Twin] {
+        &self.twins
     }
 
     /// The fault table's loss decisions per source (docs/model.md §14): a message the
@@ -134,14 +165,51 @@ impl Inbox {
         self.current = self.current.max(k);
     }
 
-    /// The furthest step of `slot` a genuine sender can have sent by now.
-    fn limit(&self, slot: usize) -> u64 {
+    /// The step the run is at: the receiver's, or the shared clock's if later.
+    fn pace(&self) -> u64 {
         let mut base = self.current;
         if let Some((epoch, period)) = self.clock {
             let since = std::time::Instant::now().saturating_duration_since(epoch);
             base = base.max((since.as_secs_f64() / period.as_secs_f64()) as u64);
         }
-        base.saturating_add(self.ahead[slot])
+        base
+    }
+
+    /// The furthest step of `slot` a genuine sender can have sent by now.
+    fn limit(&self, slot: usize) -> u64 {
+        self.pace().saturating_add(self.ahead[slot])
+    }
+
+    /// Real time: whether `step` of `slot` shows (or, once flagged, comes
+    /// from) a second sender on the source's key; see [`Twin`].
+    fn twinned(&mut self, slot: usize, step: u64, m: &Message) -> bool {
+        let pace = self.pace();
+        if self.twins[slot].since.is_some() {
+            if step > pace + TWIN_PACE {
+                self.twins[slot].messages += 1;
+                return true;
+            }
+            return false;
+        }
+        let Some(newest) = self.newest[slot] else { return false };
+        if step > newest {
+            return false;
+        }
+        let held = self.history[slot].iter().find(|(s, _)| *s == step).map(|(_, h)| h);
+        if held.is_some_and(|h| same(h, m)) {
+            return false; // the same message twice: not a second sender
+        }
+        let t = &mut self.twins[slot];
+        t.messages += 1;
+        if t.messages >= TWIN_EVIDENCE {
+            t.since = Some(self.current);
+            // Forget what ran ahead of the pace: the genuine stream carries on.
+            let h = &mut self.history[slot];
+            h.retain(|(s, _)| *s <= pace + TWIN_PACE);
+            self.newest[slot] = h.back().map(|(s, _)| *s);
+            return self.newest[slot].is_some_and(|n| step <= n);
+        }
+        false
     }
 
     /// Files a checked message, or counts it as stale or from the future;
@@ -158,13 +226,17 @@ impl Inbox {
             self.counters.fault_lost += 1;
             return false;
         }
+        let m = Message { state: msg.state, fresh: msg.fresh };
+        if !self.lockstep && self.twinned(slot, step, &m) {
+            self.counters.rejected.add(Reject::Stale);
+            return false;
+        }
         if self.newest[slot].is_some_and(|n| step <= n) {
             self.counters.late += 1;
             self.counters.rejected.add(Reject::Stale);
             return false;
         }
         self.counters.received += 1;
-        let m = Message { state: msg.state, fresh: msg.fresh };
         if self.lockstep {
             // A republication of a pending step keeps the first copy.
             self.pending[slot].entry(step).or_insert(m);
@@ -187,7 +259,12 @@ impl Inbox {
 
     /// Per source (ids by slot), what its messages' latency and age were.
     pub fn link_stats(&self, ids: &[u32]) -> Vec<LinkStats> {
-        self.meters.iter().zip(ids).map(|(m, &id)| m.stats(id)).collect()
+        self.meters
+            .iter()
+            .zip(&self.twins)
+            .zip(ids)
+            .map(|((m, t), &id)| LinkStats { twin_messages: t.messages, twin_since: t.since, ..m.stats(id) })
+            .collect()
     }
 
     pub fn reject(&mut self, r: Reject) {
@@ -255,6 +332,15 @@ impl Inbox {
 
 /// Real time: messages kept per source (newer than the receiver's step).
 const HISTORY: usize = 1024;
+
+/// Two messages with the same contents, bit for bit.
+fn same(a: &Message, b: &Message) -> bool {
+    let bits = |m: &Message| {
+        let s = &m.state;
+        [s.pose.x, s.pose.y, s.pose.theta, s.pose_rate.x, s.pose_rate.y, s.pose_rate.theta, s.v, s.w].map(f64::to_bits)
+    };
+    a.fresh == b.fresh && bits(a) == bits(b)
+}
 
 #[cfg(test)]
 mod tests {

@@ -105,6 +105,13 @@ pub struct LinkStats {
     pub uses: u64,
     /// Age at use, steps: p50, p99, max.
     pub age_steps: [u64; 3],
+    /// Real time: messages on the source's key that came from a second
+    /// sender (see `inbox::Twin`).
+    #[serde(default)]
+    pub twin_messages: u64,
+    /// The receiver's step when it flagged the source as twinned.
+    #[serde(default)]
+    pub twin_since: Option<u64>,
 }
 
 impl LinkMeter {
@@ -124,6 +131,8 @@ impl LinkMeter {
             latency_us: self.latency_us.summary(),
             uses: self.age_steps.count(),
             age_steps: self.age_steps.summary(),
+            twin_messages: 0,
+            twin_since: None,
         }
     }
 }

@@ -89,6 +89,7 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
         return Err(Error::Input("--start-lead must be ≥ 0".into()));
     }
     let session = args.node.open(crate::names::LEADER, &scenario).await?;
+    tokio::spawn(crate::denials::report(session.clone(), crate::names::LEADER.to_string(), Some(keys.run.clone())));
     let lead = Duration::from_secs_f64(args.start_lead);
     let result = run_leader(&session, &scenario, &keys, time_scale, lead, args.print_start).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;

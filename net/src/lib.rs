@@ -21,6 +21,7 @@ pub mod clock;
 pub mod codec;
 pub mod counters;
 pub mod courier;
+pub mod denials;
 pub mod error;
 pub mod foxglove;
 pub mod gate;

@@ -367,6 +367,8 @@ pub struct Recorder {
     malformed: u64,
     /// Telemetry messages dropped on arrival (the queue was full).
     pub queue_dropped: u64,
+    /// What every node's access control refused (crate::denials).
+    pub denied: crate::denials::Table,
     /// Wall clock: the monitor's start to the leader's start, and the start
     /// to the end of the record (network.json's `wall`).
     startup_s: Option<f64>,
@@ -409,6 +411,7 @@ impl Recorder {
             nodes,
             malformed: 0,
             queue_dropped: 0,
+            denied: Default::default(),
             startup_s: None,
             run_s: None,
             foxglove: None,
@@ -737,6 +740,7 @@ impl Recorder {
             "state": state, "viewers": viewers,
             "leader": leader, "followers": followers, "nodes": nodes,
             "events": events, "recent_events": recent, "message": message,
+            "alerts": self.alerts(),
         });
         let full = frame.to_string();
         if let Some(f) = frame.as_object_mut() {
@@ -744,6 +748,46 @@ impl Recorder {
             f.insert("recent_events".into(), json!([]));
         }
         (full, frame.to_string())
+    }
+
+    /// Followers flagged as twinned by a neighbour: who, seen by whom, since
+    /// when (run time, s), and how many messages showed it.
+    pub fn twins(&self) -> Vec<serde_json::Value> {
+        let mut by: BTreeMap<u32, (Vec<u32>, u64, u64)> = BTreeMap::new();
+        for (&receiver, n) in &self.nodes {
+            for l in n.links.iter().filter(|l| l.twin_since.is_some()) {
+                let e = by.entry(l.source).or_insert((Vec::new(), u64::MAX, 0));
+                e.0.push(receiver);
+                e.1 = e.1.min(l.twin_since.unwrap_or(u64::MAX));
+                e.2 += l.twin_messages;
+            }
+        }
+        by.into_iter()
+            .map(|(source, (seen_by, since, messages))| {
+                json!({ "follower": source, "seen_by": seen_by, "since_t": since as f64 * self.scenario.dt_s,
+                        "messages": messages })
+            })
+            .collect()
+    }
+
+    /// One line per thing the live page must say at once: twinned
+    /// followers and access-control denials.
+    fn alerts(&self) -> Vec<String> {
+        let mut out: Vec<String> = self
+            .twins()
+            .iter()
+            .map(|t| {
+                format!(
+                    "follower {}: a second sender on its key since t = {:.2} s (seen by {}; {} messages)",
+                    t["follower"],
+                    t["since_t"].as_f64().unwrap_or(0.0),
+                    t["seen_by"],
+                    t["messages"]
+                )
+            })
+            .collect();
+        out.extend(self.denied.summary());
+        out
     }
 
     /// `network.json`: per-node message counts and loop timing.
@@ -856,6 +900,11 @@ impl Recorder {
             "malformed_telemetry": self.malformed,
             // Telemetry dropped on arrival: more than MAX_QUEUED_BYTES waited to be filed.
             "telemetry_dropped_queue_full": self.queue_dropped,
+            // Followers whose key carried a second sender (another process
+            // with the same identity), as their neighbours saw it.
+            "twins": self.twins(),
+            // Messages zenoh's access control refused, by the node that refused them.
+            "access_denied": self.denied.rows(),
             // Start-up (every node ready, from the monitor's start) and the
             // run itself, wall clock.
             "wall": {
@@ -998,6 +1047,17 @@ async fn monitor(
         })
         .await
         .map_err(|e| Error::Run(format!("declaring the telemetry subscriber: {e}")))?;
+    // What each node's access control refused.
+    let (dtx, mut denied_rx) = mpsc::channel::<(String, Vec<u8>)>(64);
+    let _denied_sub = session
+        .declare_subscriber(keys.denied_all())
+        .callback(move |s| {
+            let node = names::last_chunk(s.key_expr().as_str()).to_string();
+            let _ = dtx.try_send((node, s.payload().to_bytes().into_owned()));
+        })
+        .await
+        .map_err(|e| Error::Run(format!("declaring the access-control report subscriber: {e}")))?;
+    tokio::spawn(crate::denials::report(session.clone(), MONITOR.to_string(), Some(keys.run.clone())));
     // Acknowledgements: what the monitor holds, so senders forget it and
     // send again what it lacks (droppable: the next one says the same).
     let acks = session
@@ -1061,6 +1121,9 @@ async fn monitor(
                     break end;
                 }
             }
+            Some((node, bytes)) = denied_rx.recv() => {
+                recorder.denied.file(&node, &bytes);
+            }
             _ = ack_tick.tick(), if watch.started() => {
                 let _ = acks.put(codec::encode(&recorder.ack())).await;
             }
@@ -1098,6 +1161,10 @@ async fn monitor(
             let _ = acks.put(codec::encode(&recorder.ack())).await;
             tokio::time::sleep(ACK_PERIOD / 2).await;
         }
+    }
+    // Access-control reports that came in meanwhile.
+    while let Ok((node, bytes)) = denied_rx.try_recv() {
+        recorder.denied.file(&node, &bytes);
     }
     if live && tty {
         eprintln!();

@@ -99,6 +99,10 @@ impl Keys {
     pub fn time(&self) -> String {
         key(&self.run, "control/time")
     }
+    /// What a node's access control refused (crate::denials), every node's.
+    pub fn denied_all(&self) -> String {
+        key(&self.run, "control/denied/*")
+    }
     /// The leader refuses the run before its start (the reason, UTF-8).
     pub fn abort(&self) -> String {
         key(&self.run, "control/abort")

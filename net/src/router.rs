@@ -39,6 +39,8 @@ pub async fn run(router: &RouterArgs) -> Result<(), Error> {
     let listen = serde_json::from_str::<Vec<String>>(&listen).map_or(listen, |v| v.join(", "));
     let session = session::open(&args).await?;
     println!("router listening on {listen} (zid {})", session.zid());
+    // What its access control refuses, to each run's monitor.
+    tokio::spawn(crate::denials::report(session.clone(), ROUTER.to_string(), None));
     let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
         .map_err(|e| Error::Run(format!("installing the SIGTERM handler: {e}")))?;
     tokio::select! {

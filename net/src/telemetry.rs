@@ -229,7 +229,15 @@ mod tests {
             delivery: Delivery::default(),
             events: vec![NetEvent { k: first_k, what: EventKind::Silent(2) }],
             clock: Some(ClockReport { offset_ms: -50.0, uncertainty_us: 80.0, drift_ppm: 3.0, exchanges: 9, steps: 0 }),
-            links: vec![LinkStats { source: 2, messages: 9, latency_us: [40, 90, 120], uses: 9, age_steps: [0, 1, 1] }],
+            links: vec![LinkStats {
+                source: 2,
+                messages: 9,
+                latency_us: [40, 90, 120],
+                uses: 9,
+                age_steps: [0, 1, 1],
+                twin_messages: 0,
+                twin_since: None,
+            }],
         }
     }
 

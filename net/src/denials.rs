@@ -1,0 +1,295 @@
+//! What zenoh's access control refused, counted per node, subject, action
+//! and key, and reported to the monitor (`network.json`'s `access_denied`,
+//! and the live page).
+//!
+//! Zenoh has no API for its denials; it logs each at `trace` level (target
+//! [`ACL_TARGET`]): "`<zid>` on `<subject>` is unauthorized to `<action>` on
+//! `<key>`" the first time per link and key, then "Using cached result:
+//! `<zid>` is unauthorized to …". A node's log layer hands those lines to
+//! [`note`]; [`report`] publishes the tally on
+//! `formation/<run>/control/denied/<node>` every 250 ms while it changes.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::sync::Mutex;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+/// The tracing target of zenoh's access control.
+pub const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+
+/// Lines (zenoh 1.10.2) of the access control's "is authorized" events: the
+/// log layer skips them without formatting them.
+pub const ALLOWED_LINES: [u32; 4] = [78, 387, 417, 986];
+
+/// One kind of refused message and how often.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Denial {
+    /// Who sent it (its certificate's name) or, on egress, whom it was for.
+    pub subject: String,
+    /// zenoh's words: "Put (ingress)", "Declare Subscriber (egress)", …
+    pub action: String,
+    pub key: String,
+    pub count: u64,
+}
+
+/// What one node reports.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Report {
+    /// The reporting node (`router`, `leader`, `monitor`, `agent-<id>`).
+    pub node: String,
+    pub rows: Vec<Denial>,
+}
+
+/// The denials one process has seen.
+#[derive(Debug, Default)]
+pub struct Tally {
+    /// zenoh id → subject name, learnt from the first (uncached) denial.
+    names: HashMap<String, String>,
+    counts: BTreeMap<(String, String, String), u64>,
+    /// Bumped by every denial (so a reporter knows when to speak).
+    pub version: u64,
+}
+
+/// A subject as zenoh names it (`Interface(lo)+CertCommonName(agent-2)+…`):
+/// its certificate's name, if it has one.
+fn common_name(subject: &str) -> String {
+    subject.split_once("CertCommonName(").and_then(|(_, r)| r.split(')').next()).unwrap_or(subject).to_string()
+}
+
+impl Tally {
+    /// Counts `line` if it is a denial; whether it was. `caching`: the key
+    /// whose permissions zenoh is caching on this thread just now ("ACL
+    /// (ingress): caching permissions for `key` ...", see [`note`]): it then
+    /// decides, and logs, every kind of message for that key, about no
+    /// message; those are not counted (they only teach the subject's name).
+    pub fn note(&mut self, line: &str, caching: Option<&str>) -> bool {
+        let Some((who, rest)) = line.split_once(" is unauthorized to ") else { return false };
+        let Some((action, key)) = rest.rsplit_once(" on ") else { return false };
+        let key = key.trim();
+        let key = key.strip_prefix("Some(").and_then(|k| k.strip_suffix(')')).unwrap_or(key).trim_matches('"');
+        let who = who.trim();
+        let subject = match who.strip_prefix("Using cached result: ") {
+            Some(zid) => self.names.get(zid).cloned().unwrap_or_else(|| zid.to_string()),
+            None => match who.split_once(" on ") {
+                Some((zid, name)) => {
+                    let name = common_name(name);
+                    self.names.insert(zid.to_string(), name.clone());
+                    if caching == Some(key) {
+                        return false;
+                    }
+                    name
+                }
+                None => who.to_string(),
+            },
+        };
+        *self.counts.entry((subject, action.trim().to_string(), key.to_string())).or_insert(0) += 1;
+        self.version += 1;
+        true
+    }
+
+    /// The runs the refused keys belong to (`formation/<run>/…`).
+    pub fn runs(&self) -> BTreeSet<String> {
+        self.counts.keys().filter_map(|(_, _, k)| run_of(k)).map(str::to_string).collect()
+    }
+
+    /// The rows of one run's keys, most frequent first.
+    pub fn rows(&self, run: &str) -> Vec<Denial> {
+        let mut rows: Vec<Denial> = self
+            .counts
+            .iter()
+            .filter(|((_, _, k), _)| run_of(k) == Some(run))
+            .map(|((subject, action, key), &count)| Denial {
+                subject: subject.clone(),
+                action: action.clone(),
+                key: key.clone(),
+                count,
+            })
+            .collect();
+        rows.sort_by(|a, b| b.count.cmp(&a.count).then_with(|| a.key.cmp(&b.key)));
+        rows
+    }
+}
+
+/// `formation/<run>/…` → run.
+fn run_of(key: &str) -> Option<&str> {
+    let mut parts = key.split('/');
+    (parts.next() == Some("formation")).then(|| parts.next()).flatten().filter(|r| !r.contains('*'))
+}
+
+static TALLY: Mutex<Option<Tally>> = Mutex::new(None);
+
+thread_local! {
+    /// The key zenoh began caching permissions for on this thread, and when.
+    static CACHING: std::cell::RefCell<Option<(String, std::time::Instant)>> = const { std::cell::RefCell::new(None) };
+}
+
+/// How long after "caching permissions for `key`" the same thread's
+/// decisions on that key are the cache's (it computes them in one go).
+const CACHING_BURST: Duration = Duration::from_millis(1);
+
+/// Counts a log line of zenoh's access control (see the module docs).
+pub fn note(line: &str) {
+    if let Some(rest) = line.split_once("caching permissions for `").map(|(_, r)| r) {
+        let key = rest.split('`').next().unwrap_or("").to_string();
+        CACHING.with(|c| *c.borrow_mut() = Some((key, std::time::Instant::now())));
+        return;
+    }
+    let caching =
+        CACHING.with(|c| c.borrow().as_ref().filter(|(_, at)| at.elapsed() < CACHING_BURST).map(|(k, _)| k.clone()));
+    let mut t = TALLY.lock().unwrap_or_else(|p| p.into_inner());
+    t.get_or_insert_with(Tally::default).note(line, caching.as_deref());
+}
+
+fn with_tally<R>(f: impl FnOnce(&Tally) -> R) -> R {
+    let mut t = TALLY.lock().unwrap_or_else(|p| p.into_inner());
+    f(t.get_or_insert_with(Tally::default))
+}
+
+/// How often a node says what its access control refused, while it changes.
+pub const REPORT_PERIOD: Duration = Duration::from_millis(250);
+
+/// Publishes this process's denials for every run they concern (only
+/// `run`, if given), every [`REPORT_PERIOD`] while they change, as `node`. Runs until
+/// the session closes.
+pub async fn report(session: zenoh::Session, node: String, run: Option<String>) {
+    let mut said = 0u64;
+    let mut tick = tokio::time::interval(REPORT_PERIOD);
+    loop {
+        tick.tick().await;
+        if session.is_closed() {
+            return;
+        }
+        let (version, reports) = with_tally(|t| {
+            let runs: Vec<String> = match &run {
+                Some(r) => vec![r.clone()],
+                None => t.runs().into_iter().collect(),
+            };
+            (t.version, runs.into_iter().map(|r| (r.clone(), t.rows(&r))).collect::<Vec<_>>())
+        });
+        if version == said {
+            continue;
+        }
+        said = version;
+        for (r, rows) in reports.into_iter().filter(|(_, rows)| !rows.is_empty()) {
+            let body = serde_json::to_vec(&Report { node: node.clone(), rows }).unwrap_or_default();
+            let _ = session
+                .put(format!("formation/{r}/control/denied/{node}"), body)
+                .congestion_control(zenoh::qos::CongestionControl::Drop)
+                .await;
+        }
+    }
+}
+
+/// The monitor's view: the latest report of every node.
+#[derive(Debug, Default)]
+pub struct Table {
+    by_node: BTreeMap<String, Vec<Denial>>,
+}
+
+/// A report's largest size, bytes (a node's rows are few: one per subject,
+/// action and key).
+pub const MAX_REPORT_BYTES: usize = 64 * 1024;
+
+impl Table {
+    /// Files a report (JSON, from `formation/<run>/control/denied/<node>`);
+    /// whether it was one.
+    pub fn file(&mut self, key_node: &str, bytes: &[u8]) -> bool {
+        if bytes.len() > MAX_REPORT_BYTES {
+            return false;
+        }
+        match serde_json::from_slice::<Report>(bytes) {
+            Ok(r) if r.node == key_node && r.rows.len() <= 1000 => {
+                self.by_node.insert(r.node, r.rows);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Every row, with the node that refused it.
+    pub fn rows(&self) -> Vec<serde_json::Value> {
+        self.by_node
+            .iter()
+            .flat_map(|(node, rows)| {
+                rows.iter().map(move |d| {
+                    serde_json::json!({ "by": node, "subject": d.subject, "action": d.action, "key": d.key,
+                                        "count": d.count })
+                })
+            })
+            .collect()
+    }
+
+    /// Lines for the live page: per node that refused anything, the total
+    /// and the most frequent.
+    pub fn summary(&self) -> Vec<String> {
+        self.by_node
+            .iter()
+            .filter(|(_, rows)| !rows.is_empty())
+            .map(|(node, rows)| {
+                let total: u64 = rows.iter().map(|d| d.count).sum();
+                let top = &rows[0];
+                format!(
+                    "access control at {node} refused {total} messages (most: {} {} on {}, {})",
+                    top.subject, top.action, top.key, top.count
+                )
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn denials_are_counted_by_subject_action_and_key() {
+        let mut t = Tally::default();
+        let caching = Some("formation/r/control/abort");
+        assert!(!t.note("Using cached result: 1a2b is authorized to Put (ingress) on formation/r/estimate/2", None));
+        // Caching a link's permissions decides every kind of message: not counted.
+        let line =
+            "5c on Interface(lo)+CertCommonName(router)+Transport(Tls)+5c is unauthorized to Delete (ingress) on \
+                    formation/r/control/abort";
+        assert!(!t.note(line, caching));
+        let line = "1a2b on Interface(lo)+CertCommonName(agent-2)+Transport(Tls) is unauthorized to Put (ingress) on \
+                    formation/r/estimate/3";
+        assert!(t.note(line, caching));
+        assert!(t.note("Using cached result: 1a2b is unauthorized to Put (ingress) on formation/r/estimate/3", None));
+        let line = "Using cached result: 9f is unauthorized to Declare Subscriber (ingress) on formation/q/estimate/1";
+        assert!(t.note(line, None));
+        let line =
+            "Using cached result: 1a2b is unauthorized to Undeclare Subscriber (ingress) on Some(formation/r/telemetry/1)";
+        assert!(t.note(line, None));
+        assert_eq!(t.runs().into_iter().collect::<Vec<_>>(), ["q", "r"]);
+        let rows = t.rows("r");
+        assert_eq!(rows.len(), 2, "{rows:?}");
+        assert_eq!(
+            rows[0],
+            Denial {
+                subject: "agent-2".into(),
+                action: "Put (ingress)".into(),
+                key: "formation/r/estimate/3".into(),
+                count: 2
+            }
+        );
+        assert_eq!(rows[1].key, "formation/r/telemetry/1");
+        // A zid never named (its first denial was before we listened): the zid.
+        assert_eq!(t.rows("q")[0].subject, "9f");
+    }
+
+    #[test]
+    fn the_monitor_files_only_well_formed_reports_under_their_own_name() {
+        let mut table = Table::default();
+        let r = Report {
+            node: "router".into(),
+            rows: vec![Denial { subject: "agent-2".into(), action: "Put (ingress)".into(), key: "k".into(), count: 5 }],
+        };
+        let bytes = serde_json::to_vec(&r).unwrap();
+        assert!(!table.file("leader", &bytes), "a report under another node's key");
+        assert!(!table.file("router", b"garbage"));
+        assert!(table.file("router", &bytes));
+        assert_eq!(table.rows()[0]["count"], 5);
+        assert!(table.summary()[0].contains("refused 5 messages"), "{:?}", table.summary());
+    }
+}
