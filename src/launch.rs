@@ -85,14 +85,21 @@ impl RunOptions {
             }
         }
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
-        match &self.tls {
+        if let Some(dir) = &self.tls {
             // Every node's files, checked before any process starts.
-            Some(dir) => formation_net::identity::check_all(dir, &scenario).map_err(|e| CliError::Input(e.0))?,
-            None if !self.quiet => eprintln!("{}", formation_net::node::UNAUTHENTICATED),
-            None => {}
+            formation_net::identity::check_all(dir, &scenario).map_err(|e| CliError::Input(e.0))?;
         }
-        crate::cli::warn_if_large(&scenario, 1, true, self.mcap, &out);
         Ok((scenario, run, out))
+    }
+
+    /// What a run says before it starts, once its input is known to be good:
+    /// that its traffic is unauthenticated (without --tls), and the size of
+    /// a run that would write more than a few GB.
+    pub fn warnings(&self, scenario: &Scenario, out: &Path) {
+        if self.tls.is_none() && !self.quiet {
+            eprintln!("{}", formation_net::node::UNAUTHENTICATED);
+        }
+        crate::runsize::warn_if_large(scenario, 1, true, self.mcap, out);
     }
 }
 
@@ -266,6 +273,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
         ));
     }
     let (scenario, run, out) = a.opts.resolve()?;
+    a.opts.warnings(&scenario, &out);
     let exe = std::env::current_exe().map_err(|e| CliError::Run(format!("locating this executable: {e}")))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)

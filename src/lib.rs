@@ -17,4 +17,5 @@ pub mod node;
 pub mod paper;
 pub mod progress;
 pub mod report;
+pub mod runsize;
 pub mod study;

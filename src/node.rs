@@ -88,7 +88,6 @@ pub fn run(node: Node) -> ExitCode {
         Node::Monitor(a) => (&a.node.zenoh, formation_net::names::MONITOR.to_string()),
         Node::Router(r) => (&r.zenoh, formation_net::names::ROUTER.to_string()),
     };
-    formation_net::node::warn_if_unauthenticated(zenoh);
     // The authority's revocation list, for the TLS link (before any thread starts).
     if let Some(dir) = &zenoh.tls {
         formation_net::identity::export_crl(dir, &name);

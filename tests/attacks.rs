@@ -14,8 +14,9 @@ use std::time::{Duration, Instant};
 use common::Group;
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 
-/// Real-time runs share two cores: one at a time in this file.
-static REALTIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+/// Every test here loads the machine (floods, storms, real-time runs) and the
+/// real-time one is judged on its timing: one at a time.
+static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }
@@ -181,7 +182,7 @@ async fn attack(kind: Attack, certs: &Path, port: u16, run: &str, done: &Done, s
 /// in network.json within 1 s.
 #[test]
 fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
-    let _one = REALTIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().expect("tempdir");
     let certs = tmp.path().join("certs");
     common::certs(&certs);
@@ -270,6 +271,7 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
 /// simulator byte for byte and the monitor stay below 100 MB.
 #[test]
 fn telemetry_sent_straight_to_the_monitor_cannot_fill_its_memory() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().expect("tempdir");
     let certs = tmp.path().join("certs");
     common::certs(&certs);
@@ -327,6 +329,7 @@ fn telemetry_sent_straight_to_the_monitor_cannot_fill_its_memory() {
 /// a second kept certified nodes out).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_storm_of_failed_handshakes_does_not_delay_a_certified_join() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().expect("tempdir");
     let certs = tmp.path().join("certs");
     common::certs(&certs);

@@ -97,6 +97,8 @@ impl NodeArgs {
     /// for, and gives up after `--open-timeout` naming the endpoints.
     pub async fn open(&self, identity: &str, scenario: &Scenario) -> Result<zenoh::Session, Error> {
         let zenoh = ZenohArgs { traffic: Some(crate::limits::Traffic::of(scenario)), ..self.zenoh_as(identity) };
+        // Said once its input is known to be good (bad input stays one line).
+        warn_if_unauthenticated(&zenoh);
         let opening = session::open(&zenoh);
         tokio::pin!(opening);
         if !(self.open_timeout.is_finite() && self.open_timeout > 0.0) {

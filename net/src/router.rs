@@ -37,6 +37,7 @@ pub async fn run(router: &RouterArgs) -> Result<(), Error> {
     }
     let listen = args.to_config()?.get_json("listen/endpoints").unwrap_or_default();
     let listen = serde_json::from_str::<Vec<String>>(&listen).map_or(listen, |v| v.join(", "));
+    crate::node::warn_if_unauthenticated(&args);
     let session = session::open(&args).await?;
     println!("router listening on {listen} (zid {})", session.zid());
     // What its access control refuses, to each run's monitor.

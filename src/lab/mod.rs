@@ -380,7 +380,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         netns::privilege().map_err(|e| Error::Input(e.0))?
     };
     match privilege {
-        netns::Privilege::Root => {}
+        netns::Privilege::Root => a.opts.warnings(&scenario, &out),
         netns::Privilege::Unshare if a.opts.web.web.is_some() => {
             return Err(Error::Input(
                 "--web needs root here: without it the lab runs in a network namespace of its own, \
