@@ -218,7 +218,10 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
     let machine = common::Host::now().since(&host);
 
     let sent = flooded.sent.load(Ordering::Relaxed);
-    assert!(sent > 100_000, "the flood sent only {sent} estimates: not an attack");
+    // The attacker's own link pushes back on Block (how much varies, 64,500–
+    // 254,400 here): at least 40,000 is more than three times what the
+    // genuine agent 2 publishes in the run (12,001).
+    assert!(sent > 40_000, "the flood sent only {sent} estimates: not an attack");
     let copies = twinned.sent.load(Ordering::Relaxed);
     assert!(copies > 1_000, "the twin sent only {copies} estimates: not an attack");
     for (what, rss) in [("flooded", flood_rss), ("twinned", twin_rss)] {
