@@ -310,6 +310,9 @@ fn cases() -> Vec<Case> {
         sim_paper("--set with an empty key", &["--set", "=3"], &["--set =3", "empty key"]),
         sim_paper("--set unknown key", &["--set", "robot.weight=3"], &["--set robot.weight=3", "unknown key"]),
         sim_paper("--set wrong type", &["--set", "dt=true"], &["--set dt=true", "a number"]),
+        sim_paper("--set a table for a name", &["--set", "filter={}"], &["`filter`", "a name in quotes"]),
+        sim_paper("--set an array for a name", &["--set", "kinematic=[1]"], &["`kinematic`", "a name in quotes"]),
+        sim_paper("--set a number as a fault row", &["--set", "faults+=3"], &["`faults`:", "fault row"]),
         sim_paper("--set 1e9 steps", &["--set", "duration=1e6"], &["--set duration=1e6", "1e9 steps"]),
         sim_paper(
             "--set a bad fault row",

@@ -389,6 +389,10 @@ pub(crate) fn plain_message(message: &str) -> String {
         }
     }
     let m = message.trim();
+    // An enum (kinematic, filter, …) given a table or an array.
+    if m.starts_with("wanted exactly 1 element") || m.ends_with("expected string only") {
+        return "expected a name in quotes (for example \"bio\" or \"asif\"), found a table or an array".into();
+    }
     for prefix in ["invalid type: ", "invalid value: "] {
         if let Some(rest) = m.strip_prefix(prefix) {
             if let Some((what, exp)) = rest.rsplit_once(", expected ") {
@@ -466,6 +470,7 @@ fn apply_overrides(text: &str, label: &str, overrides: &[String]) -> Result<(Sce
 
 fn override_message(key: &str, message: &str) -> String {
     let message = plain_message(message);
+    let key = key.trim_end_matches('+').trim();
     if message.starts_with("unknown key") {
         format!("unknown key `{key}` ({message})")
     } else {
