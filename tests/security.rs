@@ -517,7 +517,12 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
     copy_dir(&dir, &revoked);
     let o = certs(&revoked, &["--revoke", "agent-2"]);
     assert!(o.status.success(), "--revoke: {}", String::from_utf8_lossy(&o.stderr));
-    let cases: [(&str, &Path, &str); 14] = [
+    // A folder in the layout of the previous `formation certs` (flat, ca.key beside the nodes' files).
+    let old_layout = tmp.path().join("old-layout");
+    copy_dir(&dir.join("agent-2"), &old_layout);
+    std::fs::copy(dir.join("ca/ca.key"), old_layout.join("ca.key")).expect("copy");
+    std::fs::remove_file(old_layout.join("policy.pem")).expect("rm");
+    let cases: [(&str, &Path, &str); 15] = [
         ("expired", &expired, "expired on"),
         ("not yet valid", &future, "not valid yet"),
         ("another node's certificate", &wrong_node, "is the certificate of \"agent-1\""),
@@ -531,6 +536,7 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
         ("a policy without its signature", &unsigned, "policy.pem"),
         ("a policy signed by another authority", &forged_signature, "not the authority's signature"),
         ("a revoked certificate", &revoked, "was revoked on"),
+        ("the previous layout", &old_layout, "older `formation certs`"),
         ("no folder", &tmp.path().join("absent"), "cannot read"),
     ];
     for (what, d, says) in cases {

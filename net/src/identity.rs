@@ -206,6 +206,14 @@ pub fn identity(dir: &Path, name: &str) -> Result<Identity, IdentityError> {
     let top = dir;
     let dir = &node_dir(top, name);
     let (ca, cert, key) = (dir.join(CA_CERT), dir.join(format!("{name}.pem")), dir.join(format!("{name}.key")));
+    if top.join(CA_KEY).exists() && !dir.join(POLICY_CERT).exists() {
+        return Err(IdentityError(format!(
+            "--tls {}: made by an older `formation certs` (the authority's key beside the nodes' files, no signed \
+             policy): make it again with `formation certs SCENARIO --out {} --force`",
+            top.display(),
+            top.display()
+        )));
+    }
     if !ca.exists() && top.join(CA_DIR).join(CA_CERT).exists() && !dir.join(format!("{name}.pem")).exists() {
         return Err(IdentityError(format!(
             "--tls {}: no folder {name}/ for node {name} (run `formation certs` with the scenario of this run)",
