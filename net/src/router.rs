@@ -33,7 +33,7 @@ pub async fn run(router: &RouterArgs) -> Result<(), Error> {
     if let Some(path) = &router.scenario {
         let scenario =
             formation_topology::Scenario::load(path, &router.overrides).map_err(|e| Error::Input(e.to_string()))?;
-        args.traffic = Some(crate::limits::Traffic::of(&scenario));
+        args.traffic = Some(crate::limits::Traffic { router: true, ..crate::limits::Traffic::of(&scenario) });
     }
     let listen = args.to_config()?.get_json("listen/endpoints").unwrap_or_default();
     let listen = serde_json::from_str::<Vec<String>>(&listen).map_or(listen, |v| v.join(", "));
