@@ -190,11 +190,12 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
         serde_json::to_string_pretty(&policy).unwrap_or_default()
     );
     let policy_cert = sign_policy(&issuer, policy_text.as_bytes(), not_after)?;
-    let reissue = |name: &String| a.nodes.is_empty() || a.nodes.contains(name);
+    // A fresh or forced folder: every node; --node: those; --revoke alone: none.
+    let reissue = |name: &String| if changing { a.nodes.contains(name) } else { true };
     for (index, name) in names.iter().enumerate() {
         let node = dir.join(name);
         make_dir(&node)?;
-        if reissue(name) && !(changing && a.nodes.is_empty()) {
+        if reissue(name) {
             let mut sans: Vec<rcgen::SanType> = vec![
                 rcgen::SanType::IpAddress("127.0.0.1".parse().expect("an address")),
                 rcgen::SanType::IpAddress("::1".parse().expect("an address")),
