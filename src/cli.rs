@@ -53,6 +53,10 @@ pub enum Command {
     /// Write a scenario of any size: N followers on formation slots, a graph
     /// of the given kind checked against Lemma 1, λ_min(H) in its header.
     Generate(GenerateArgs),
+    /// Re-compute a networked run in one process from what each follower
+    /// heard (its run folder's hearing.bin), byte for byte; with --explain,
+    /// where and why the run departed from its model.
+    Replay(crate::replay::ReplayArgs),
     /// A single node of a networked run (used by `launch`).
     #[command(hide = true)]
     Node(crate::node::NodeCommand),
@@ -186,6 +190,7 @@ pub fn main() -> ExitCode {
         }
         Command::Certs(a) => crate::certs::run(&a),
         Command::Generate(a) => generate(&a),
+        Command::Replay(a) => crate::replay::run(&a),
         Command::Node(a) => return crate::node::run(a.node),
     };
     match result {

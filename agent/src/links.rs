@@ -164,8 +164,13 @@ impl Hearing {
 
     /// What `slot` says at step k, if it is heard.
     pub fn heard(&self, slot: usize, k: u64) -> Option<&Message> {
+        self.heard_at(slot, k).map(|(_, m)| m)
+    }
+
+    /// [`Hearing::heard`] with the heard message's step.
+    pub fn heard_at(&self, slot: usize, k: u64) -> Option<(u64, &Message)> {
         match &self.last[slot] {
-            Some((s, msg)) if *s <= k && k - s <= self.timeout_steps => Some(msg),
+            Some((s, msg)) if *s <= k && k - s <= self.timeout_steps => Some((*s, msg)),
             _ => None,
         }
     }

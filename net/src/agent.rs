@@ -31,6 +31,7 @@ use crate::codec;
 use crate::counters::Counters;
 use crate::courier::Courier;
 use crate::gate::{self, Kept};
+use crate::hearing::EarLog;
 use crate::inbox::{self, Inbox, Source};
 use crate::names::{self, Keys};
 use crate::node::{estimate_congestion, NodeArgs};
@@ -38,7 +39,8 @@ use crate::startup;
 use crate::telemetry::{self, EventKind, NetEvent, Telemetry};
 use crate::timesync;
 use crate::timing::Pacer;
-use formation_record::FollowerSample;
+use formation_record::hearing::Resume;
+use formation_record::{FollowerSample, Heard};
 use formation_sim::SimFollower;
 
 /// The seam between the network node and the robot: one follower's step.
@@ -308,6 +310,7 @@ pub async fn run_follower(
     } else {
         rejoin_step(&start, scenario, &timebase)?
     };
+    let mut resumed = None;
     if first_step > 0 {
         let found = checkpoint.as_deref().map(|p| checkpoint::read(p, fingerprint, start.epoch_unix_ns));
         let pose = match found {
@@ -331,6 +334,7 @@ pub async fn run_follower(
             None => scenario.followers[index].pose,
         };
         body.resume(first_step, pose);
+        resumed = Some(Resume { k: first_step, pose: [pose.x, pose.y, pose.theta] });
     }
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
     let writer = checkpoint.map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone()));
@@ -354,6 +358,7 @@ pub async fn run_follower(
         delay_steps: scenario.network.delay_steps,
         rejoin_after_steps: scenario.control.rejoin.after_steps,
         first_step,
+        resumed,
         latest,
         start,
         timebase: timebase.clone(),
@@ -454,6 +459,8 @@ struct LoopCtx {
     rejoin_after_steps: u64,
     /// The first step this process computes (> 0: a restart).
     first_step: u64,
+    /// A restart: where it resumed (the hearing record's).
+    resumed: Option<Resume>,
     /// The robot's latest pose, for the checkpoint writer.
     latest: checkpoint::Latest,
     start: Start,
@@ -574,6 +581,9 @@ fn control_loop(
     let mut heard = HeardNow(vec![false; c.neighbours + usize::from(c.has_leader)]);
     let mut events: Vec<NetEvent> = Vec::new();
     let mut batch: Vec<FollowerSample> = Vec::with_capacity(c.batch);
+    // The hearing record of the batch's steps.
+    let slots = c.neighbours + usize::from(c.has_leader);
+    let mut ear = EarLog::new(c.source_ids.clone(), RESCUE_BATCHES * c.batch);
     let mut first_k = c.first_step;
     for k in c.first_step..=c.steps {
         let last = k == c.steps;
@@ -620,6 +630,10 @@ fn control_loop(
                             missing().0,
                             c.stall_timeout.as_secs_f64()
                         ));
+                        // A sender that keeps us waiting may be gone, with its last telemetry.
+                        for s in inbox.missing(k) {
+                            ear.rescue(s);
+                        }
                     }
                     if repeat {
                         // Safety net for messages lost on the way: say again
@@ -641,6 +655,16 @@ fn control_loop(
                         hearing.deliver(slot, k, *m);
                     }
                 }
+                for slot in 0..slots {
+                    let used = hearing.heard_at(slot, k);
+                    let h = match used {
+                        Some((s, _)) => Heard::used(k, s),
+                        None if taken[slot].is_none() => Heard::Removed,
+                        None => Heard::Silent,
+                    };
+                    ear.note(slot, h, used);
+                }
+                ear.end_step();
                 inputs.clear();
                 inputs.extend((0..c.neighbours).filter_map(|slot| hearing.heard(slot, k)).copied());
                 if c.has_leader {
@@ -653,18 +677,24 @@ fn control_loop(
                 // source silent too long is left out.
                 inputs.clear();
                 let sent_k = k.saturating_sub(c.delay_steps);
-                for slot in 0..c.neighbours {
+                let mut leader = None;
+                for slot in 0..slots {
                     let s = inbox.latest(slot, sent_k, c.silence_steps);
                     heard.note(slot, k, s.is_some(), &c.source_ids, &mut events);
-                    inputs.extend(s);
+                    let h = match s {
+                        Some((stamp, _)) => Heard::used(k, stamp),
+                        None if inbox.removed(slot, sent_k) => Heard::Removed,
+                        None => Heard::Silent,
+                    };
+                    ear.note(slot, h, s.as_ref().map(|(stamp, m)| (*stamp, m)));
+                    match s {
+                        Some((_, m)) if slot < c.neighbours => inputs.push(m),
+                        Some((_, m)) => leader = Some(m.state),
+                        None => {}
+                    }
                 }
-                if c.has_leader {
-                    let s = inbox.latest(c.neighbours, sent_k, c.silence_steps);
-                    heard.note(c.neighbours, k, s.is_some(), &c.source_ids, &mut events);
-                    s.map(|m| m.state)
-                } else {
-                    None
-                }
+                ear.end_step();
+                leader
             }
         };
         let was_silent = body.silent_steps();
@@ -703,6 +733,7 @@ fn control_loop(
             counters.sent = sent;
             counters.republished = republished;
             let done = last || diverged.is_some();
+            let (heard, rescued) = ear.take();
             let t = Telemetry::Follower {
                 id: c.id,
                 first_k,
@@ -723,6 +754,10 @@ fn control_loop(
                 },
                 clock: c.timebase.report(),
                 links,
+                heard,
+                rescued,
+                resumed: c.resumed,
+                diverged: diverged.map(str::to_string),
             };
             telemetry.push(first_k, k + 1, codec::encode(&t));
             first_k = k + 1;
@@ -750,6 +785,11 @@ fn control_loop(
     }
     Ok(())
 }
+
+/// How many telemetry batches' worth of each source's last messages a
+/// follower keeps for a rescue ([`EarLog`]): more than a killed sender can
+/// have left unacknowledged (one batch being filled, one or two in flight).
+const RESCUE_BATCHES: usize = 4;
 
 /// Lock-step: how long a follower keeps republishing its final message after its last step.
 const LINGER: Duration = Duration::from_secs(1);

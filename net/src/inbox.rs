@@ -271,6 +271,11 @@ impl Inbox {
         self.counters.rejected.add(r);
     }
 
+    /// Whether the fault table removes `slot`'s message of step k.
+    pub fn removed(&mut self, slot: usize, k: u64) -> bool {
+        self.links[slot].lost(k)
+    }
+
     /// Lock-step: whether every source's step-k message is here (or removed
     /// by the fault table, so not to be waited for).
     pub fn has_all(&mut self, k: u64) -> bool {
@@ -310,7 +315,7 @@ impl Inbox {
     /// k (a node running behind the shared schedule never uses values from
     /// its future), if it is at most `max_age_steps` older than k; else the
     /// source counts as silent.
-    pub fn latest(&mut self, slot: usize, k: u64, max_age_steps: u64) -> Option<Message> {
+    pub fn latest(&mut self, slot: usize, k: u64, max_age_steps: u64) -> Option<(u64, Message)> {
         let h = &mut self.history[slot];
         // Keep the newest entry ≤ k and everything after it.
         while h.len() > 1 && h[1].0 <= k {
@@ -320,7 +325,7 @@ impl Inbox {
             Some(&(s, state)) if s <= k && k - s <= max_age_steps => {
                 self.counters.older += u64::from(s < k);
                 self.meters[slot].age_steps.record(self.current.saturating_sub(s));
-                Some(state)
+                Some((s, state))
             }
             _ => {
                 self.counters.silent += 1;
@@ -393,9 +398,9 @@ mod tests {
         assert_eq!(inbox.counters.late, 1);
         inbox.accept(0, &msg(1, 6));
         // At step 5 the message stamped 6 is in the future: use 3.
-        assert_eq!(inbox.latest(0, 5, 10).map(|m| m.state.v), Some(3.0));
+        assert_eq!(inbox.latest(0, 5, 10).map(|(_, m)| m.state.v), Some(3.0));
         assert_eq!(inbox.counters.older, 1, "step 5 used step 3's message");
-        assert_eq!(inbox.latest(0, 6, 10).map(|m| m.state.v), Some(6.0));
+        assert_eq!(inbox.latest(0, 6, 10).map(|(_, m)| m.state.v), Some(6.0));
         assert_eq!(inbox.counters.older, 1);
         assert_eq!(inbox.latest(0, 17, 10), None);
         assert_eq!(inbox.counters.silent, 2);
@@ -435,10 +440,10 @@ mod tests {
         inbox.accept(0, &msg(1, 6));
         inbox.accept(0, &msg(1, 1));
         assert_eq!(inbox.counters.rejected.future, 2);
-        assert_eq!(inbox.latest(0, 1, 10).map(|m| m.state.v), Some(1.0));
+        assert_eq!(inbox.latest(0, 1, 10).map(|(_, m)| m.state.v), Some(1.0));
         inbox.set_step(10);
         inbox.accept(0, &msg(1, 9));
-        assert_eq!(inbox.latest(0, 10, 10).map(|m| m.state.v), Some(9.0));
+        assert_eq!(inbox.latest(0, 10, 10).map(|(_, m)| m.state.v), Some(9.0));
     }
 
     #[test]
@@ -448,7 +453,7 @@ mod tests {
         inbox.accept(0, &msg(1, 8));
         // Held message newer than k: not used (and not "0 steps old").
         assert_eq!(inbox.latest(0, 5, 10), None);
-        assert_eq!(inbox.latest(0, 8, 10).map(|m| m.state.v), Some(8.0));
+        assert_eq!(inbox.latest(0, 8, 10).map(|(_, m)| m.state.v), Some(8.0));
     }
 
     /// The slowest neighbour by its newest message, heard or not accepted;

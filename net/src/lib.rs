@@ -8,11 +8,12 @@
 //! | layer | modules |
 //! | --- | --- |
 //! | names and wire | [`names`], [`codec`], [`counters`], [`error`] |
-//! | protocol rules (no IO, no clock) | [`barrier`], [`latency`], [`inbox`], [`gate`], [`courier`], [`watch`], [`timebase`] |
+//! | protocol rules (no IO, no clock) | [`barrier`], [`latency`], [`inbox`], [`gate`], [`hearing`], [`courier`], [`watch`], [`timebase`] |
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`] (with [`web`] and [`foxglove`]), [`router`] |
+//! | a run again | [`replay`] (on the monitor's recorder) |
 
 pub mod agent;
 pub mod barrier;
@@ -25,6 +26,7 @@ pub mod denials;
 pub mod error;
 pub mod foxglove;
 pub mod gate;
+pub mod hearing;
 pub mod identity;
 pub mod inbox;
 pub mod latency;
@@ -33,6 +35,7 @@ pub mod limits;
 pub mod monitor;
 pub mod names;
 pub mod node;
+pub mod replay;
 pub mod router;
 pub mod session;
 pub mod startup;

@@ -27,7 +27,10 @@ use crate::startup;
 use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
 use crate::timing::LoopStats;
 use crate::watch::Watch;
-use formation_record::{FollowerSample, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary};
+use formation_record::hearing::{Density, End, FollowerHearing, HearingRecord, Rescued, Resume, ScenarioSource};
+use formation_record::{
+    FollowerSample, Heard, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary, HEARING_FILE,
+};
 
 /// `monitor` arguments.
 #[derive(Debug, Clone)]
@@ -128,6 +131,10 @@ const SILENT_NODE_S: f64 = 2.0;
 
 /// Network events the live page lists.
 const RECENT_EVENTS: usize = 50;
+
+/// Rescued messages taken from one batch, and held in all.
+const MAX_RESCUED_PER_BATCH: usize = 4096;
+const MAX_RESCUED: usize = 1 << 20;
 
 /// Events taken from one batch (a forged batch cannot fill the monitor's memory).
 const MAX_EVENTS_PER_BATCH: usize = 256;
@@ -341,7 +348,10 @@ fn check_batch<T>(
 struct FollowerTrack {
     id: u32,
     offset: [f64; 2],
-    stream: Stream<FollowerSample>,
+    /// Samples with what the follower heard at their step.
+    stream: Stream<(FollowerSample, Box<[Heard]>)>,
+    /// The hearing record of the steps recorded.
+    hearing: FollowerHearing,
     /// Samples in step order, waiting for the leader's state of their step.
     pending: VecDeque<FollowerSample>,
     /// Every step below this is a row or lost.
@@ -375,6 +385,13 @@ pub struct Recorder {
     run_s: Option<f64>,
     /// `--foxglove`: the rows and events as they are recorded.
     foxglove: Option<crate::foxglove::FoxgloveLive>,
+    /// The leader's recorded steps, as spans [from, to).
+    leader_spans: Vec<(u64, u64)>,
+    /// Messages rescued by their receivers, by (sender, stamp).
+    rescued: BTreeMap<(u32, u64), Rescued>,
+    /// The scenario as the run loaded it: with it, `hearing.bin` is written.
+    source: Option<ScenarioSource>,
+    density: Density,
 }
 
 impl Recorder {
@@ -384,10 +401,12 @@ impl Recorder {
         let followers = scenario
             .followers
             .iter()
-            .map(|f| FollowerTrack {
+            .enumerate()
+            .map(|(index, f)| FollowerTrack {
                 id: f.id,
                 offset: f.offset,
                 stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
+                hearing: FollowerHearing::new(f.id, scenario.sources_of(index)),
                 pending: VecDeque::new(),
                 next_k: 0,
                 unpaired: 0,
@@ -415,7 +434,59 @@ impl Recorder {
             startup_s: None,
             run_s: None,
             foxglove: None,
+            leader_spans: Vec::new(),
+            rescued: BTreeMap::new(),
+            source: None,
+            density: Density { every: opts.every.max(1), csv: opts.csv, mcap: opts.mcap },
         })
+    }
+
+    /// The scenario as loaded (file text and overrides): the run folder
+    /// gets the hearing record (`hearing.bin`), which `formation replay` reads.
+    pub fn set_source(&mut self, source: ScenarioSource) {
+        self.source = Some(source);
+    }
+
+    /// A replay (`crate::replay`): the leader's state of step k, `None` if
+    /// the run did not record it. Call in step order.
+    pub fn replayed_leader(&mut self, k: u64, state: Option<&LeaderState>) -> std::io::Result<()> {
+        if let Some(s) = state {
+            match self.leader_spans.last_mut() {
+                Some(span) if span.1 == k => span.1 = k + 1,
+                _ => self.leader_spans.push((k, k + 1)),
+            }
+            if self.writer.wants(k, k == self.scenario.steps()) {
+                self.writer.leader_row(k as f64 * self.scenario.dt_s, s)?;
+            }
+        }
+        while self.leader_base + (self.leader.len() as u64) < k {
+            self.leader.push_back(None);
+        }
+        self.leader.push_back(state.copied());
+        self.leader_stream.end = k + 1;
+        Ok(())
+    }
+
+    /// A replay: follower `index`'s sample of step k and what it heard.
+    pub fn replayed_follower(&mut self, index: usize, k: u64, sample: FollowerSample, heard: &[Heard]) {
+        let f = &mut self.followers[index];
+        f.stream.end = k + 1;
+        f.hearing.push(k, heard);
+        f.pending.push_back(sample);
+    }
+
+    /// A replay: follower `index`'s restarts and end, as the run recorded them.
+    pub fn replayed_hearing(&mut self, index: usize, resumes: &[Resume], end: End) {
+        let h = &mut self.followers[index].hearing;
+        for r in resumes {
+            h.resumed(*r);
+        }
+        h.end = end;
+    }
+
+    /// A replay: rows for every sample whose leader state is known.
+    pub fn settle(&mut self) -> std::io::Result<()> {
+        self.process()
     }
 
     /// Sends every row and network event from now on to `live` as well.
@@ -454,6 +525,10 @@ impl Recorder {
                 self.leader_stream.file(first_k, states, delivery.available_from, delivery.incarnation, &mut fresh);
                 n.samples += fresh.len() as u64;
                 for (k, s) in fresh {
+                    match self.leader_spans.last_mut() {
+                        Some(span) if span.1 == k => span.1 = k + 1,
+                        _ => self.leader_spans.push((k, k + 1)),
+                    }
                     if self.writer.wants(k, k == steps) {
                         self.writer.leader_row(k as f64 * self.scenario.dt_s, &s)?;
                     }
@@ -480,18 +555,29 @@ impl Recorder {
                 events,
                 clock,
                 links,
+                heard,
+                rescued,
+                resumed,
+                diverged,
             } => {
                 let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
                     self.malformed += 1;
                     return Ok(());
                 };
-                let ok = |k: u64, s: &FollowerSample| s.k == k && s.is_finite();
+                // The hearing record covers the batch's steps, one entry per source.
+                let slots = self.followers[index].hearing.sources.len();
+                if heard.steps as usize != samples.len() || heard.slots.len() != slots || !heard.is_consistent() {
+                    self.malformed += 1;
+                    return Ok(());
+                }
+                let samples: Vec<_> =
+                    samples.into_iter().zip(heard.expand()).map(|(s, h)| (s, h.into_boxed_slice())).collect();
+                let ok = |k: u64, (s, _): &(FollowerSample, Box<[Heard]>)| s.k == k && s.is_finite();
                 let Some((samples, cut)) = check_batch(samples, first_k, steps, batch, ok) else {
                     self.malformed += 1;
                     return Ok(());
                 };
                 self.malformed += u64::from(cut);
-                let f = &mut self.followers[index];
                 let n = self.nodes.entry(id).or_default();
                 n.note(now, bytes.len(), first_k, counters, done, loop_stats, delivery);
                 if n.newest == Some((delivery.incarnation, first_k)) {
@@ -509,10 +595,31 @@ impl Recorder {
                         live.event(&id.to_string(), e.k, &e.what.describe());
                     }
                 }
+                // Messages its sources sent (a forged batch cannot fill the monitor's memory).
+                let sources = &self.followers[index].hearing.sources;
+                for r in rescued.into_iter().take(MAX_RESCUED_PER_BATCH) {
+                    let ok = sources.contains(&r.source) && r.stamp <= steps && r.state.is_finite();
+                    if ok && self.rescued.len() < MAX_RESCUED {
+                        self.rescued.entry((r.source, r.stamp)).or_insert(r);
+                    }
+                }
+                let f = &mut self.followers[index];
+                if let Some(r) = resumed.filter(|r| r.pose.iter().all(|x| x.is_finite()) && r.k <= steps) {
+                    f.hearing.resumed(r);
+                }
+                let last_k = first_k + samples.len().saturating_sub(1) as u64;
                 let mut fresh = Vec::new();
                 f.stream.file(first_k, samples, delivery.available_from, delivery.incarnation, &mut fresh);
                 n.samples += fresh.len() as u64;
-                f.pending.extend(fresh.into_iter().map(|(_, s)| s));
+                if let Some(quantity) = diverged {
+                    f.hearing.end = End::Diverged { k: last_k, quantity: quantity.chars().take(100).collect() };
+                } else if done {
+                    f.hearing.end = End::Completed;
+                }
+                for (k, (sample, heard)) in fresh {
+                    f.hearing.push(k, &heard);
+                    f.pending.push_back(sample);
+                }
             }
         }
         self.process()
@@ -925,8 +1032,25 @@ impl Recorder {
         self.run_s = run_s;
     }
 
+    /// The hearing record of what has been received (with the scenario set
+    /// by [`Recorder::set_source`]).
+    pub fn hearing_record(&self) -> Option<HearingRecord> {
+        Some(HearingRecord {
+            format: formation_record::hearing::HEARING_FORMAT,
+            scenario: self.source.clone()?,
+            fingerprint: barrier::fingerprint(&self.scenario),
+            density: self.density,
+            leader: self.leader_spans.clone(),
+            followers: self.followers.iter().map(|f| f.hearing.clone()).collect(),
+            rescued: self.rescued.values().copied().collect(),
+        })
+    }
+
     pub fn finish(self, ending: Ending) -> std::io::Result<(Summary, PathBuf)> {
         self.writer.write_file("network.json", &self.network_json(ending))?;
+        if let Some(record) = self.hearing_record() {
+            self.writer.write_bytes(HEARING_FILE, &record.encode())?;
+        }
         let metrics = self.followers.iter().map(|f| (f.id, f.metrics.finish())).collect();
         let outages = self.followers.iter().map(|f| (f.id, f.metrics.outages())).collect();
         let summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
@@ -979,6 +1103,15 @@ pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
         Recorder::new(&scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
     if let Some(live) = foxglove {
         recorder.set_foxglove(live);
+    }
+    // The hearing record carries the scenario as loaded (`formation replay`
+    // checks it against the run's fingerprint).
+    if let Ok(text) = std::fs::read_to_string(&args.node.scenario) {
+        recorder.set_source(ScenarioSource {
+            label: args.node.scenario.display().to_string(),
+            text,
+            overrides: args.node.overrides.clone(),
+        });
     }
     let session = match args.node.open(crate::names::MONITOR, &scenario).await {
         Ok(s) => s,
@@ -1209,6 +1342,7 @@ async fn monitor(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use formation_record::HeardRuns;
 
     #[test]
     fn batches_are_checked_before_anything_is_recorded() {
@@ -1299,10 +1433,15 @@ mod tests {
                 delivery: Delivery::default(),
             })
         };
+        let slots = |id: u32| scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
         let follower = |id: u32, first_k: u64, samples: Vec<FollowerSample>, done: bool| {
             codec::encode(&Telemetry::Follower {
                 id,
                 first_k,
+                heard: HeardRuns::uniform(slots(id), samples.len() as u32, Heard::Age(0)),
+                rescued: Vec::new(),
+                resumed: None,
+                diverged: None,
                 samples,
                 counters: Counters::default(),
                 done,
@@ -1357,9 +1496,14 @@ mod tests {
         for &id in &ids {
             let n = if id == ids[2] { 4 } else { steps + 1 };
             let samples = (0..n).map(sample).collect();
+            let slots = scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
             let batch = Telemetry::Follower {
                 id,
                 first_k: 0,
+                heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
+                rescued: Vec::new(),
+                resumed: None,
+                diverged: None,
                 samples,
                 counters: Counters::default(),
                 done: false,

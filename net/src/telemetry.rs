@@ -10,6 +10,7 @@ use crate::courier::CourierStats;
 use crate::error::Error;
 use crate::names::Keys;
 use crate::timing::LoopStats;
+use formation_record::hearing::{HeardRuns, Rescued, Resume};
 use formation_record::FollowerSample;
 
 /// Telemetry for the monitor: every step of a node, in batches. Never feeds control.
@@ -31,6 +32,14 @@ pub enum Telemetry {
         clock: Option<ClockReport>,
         /// Per source, its messages' latency and age so far.
         links: Vec<LinkStats>,
+        /// What the follower heard at each of the batch's steps (the hearing record).
+        heard: HeardRuns,
+        /// The last messages used of sources that fell silent (see [`crate::hearing`]).
+        rescued: Vec<Rescued>,
+        /// A restarted process: the step it resumed from and its robot's pose then.
+        resumed: Option<Resume>,
+        /// The run diverged at the batch's last step: which quantity.
+        diverged: Option<String>,
     },
     Leader {
         first_k: u64,
@@ -223,6 +232,10 @@ mod tests {
             id,
             first_k,
             samples: (0..n).map(|i| sample(first_k.wrapping_add(i))).collect(),
+            heard: HeardRuns::uniform(1, n as u32, formation_record::Heard::Age(1)),
+            rescued: Vec::new(),
+            resumed: None,
+            diverged: None,
             counters: Counters::default(),
             done,
             loop_stats: None,

@@ -142,6 +142,12 @@ impl RunWriter {
         fs::write(&path, contents).map_err(at_path(&path, "cannot write"))
     }
 
+    /// Writes an extra binary file into the run folder.
+    pub fn write_bytes(&self, name: &str, contents: &[u8]) -> std::io::Result<()> {
+        let path = self.dir.join(name);
+        fs::write(&path, contents).map_err(at_path(&path, "cannot write"))
+    }
+
     /// Flushes the CSVs and writes what has been recorded so far, without
     /// finishing (for a partial run that stops with an error).
     pub fn flush(&mut self) -> std::io::Result<()> {

@@ -6,10 +6,12 @@
 //! same rows, the same numbers.
 //!
 //! Modules, each using only those listed before it: [`row`], [`columns`],
-//! [`outage`], [`metrics`], [`summary`], [`mcap`], [`folder`].
+//! [`outage`], [`metrics`], [`summary`], [`mcap`], [`folder`]; [`hearing`] stands
+//! alone.
 
 pub mod columns;
 pub mod folder;
+pub mod hearing;
 pub mod mcap;
 pub mod metrics;
 pub mod outage;
@@ -18,6 +20,7 @@ pub mod summary;
 
 pub use columns::{read_columns, RecordError};
 pub use folder::{at_path, refuse_foreign_folder, RecordOptions, RunWriter};
+pub use hearing::{FollowerHearing, Heard, HeardRuns, HearingRecord, HEARING_FILE};
 pub use metrics::{last10_from_k, FollowerMetrics, MetricsAccumulator};
 pub use outage::{FaultSummary, OutageMetrics};
 pub use row::{FollowerSample, Row, FOLLOWER_HEADER, LEADER_HEADER};

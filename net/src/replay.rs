@@ -1,0 +1,472 @@
+//! `formation replay`: a networked run re-computed in one process from its
+//! scenario and its hearing record (`hearing.bin`).
+//!
+//! A follower's step is a pure function of its state and of the messages it
+//! used; a message is its sender's output of the step before its stamp (the
+//! leader's: its state at the stamp). So every follower is stepped again in
+//! step order, each taking the messages its record names, and the rows and
+//! metrics go through the monitor's own [`Recorder`]: a faithful record
+//! gives the run's CSVs and `summary.json` byte for byte.
+//!
+//! The hearing can be replaced, wholly or for one link or one window of
+//! steps, by the model's ([`Hearing`]): every message used exactly
+//! `network.delay_steps` after it was sent, the fault table applied, as
+//! `formation sim` assumes. That is what `--explain` compares with.
+
+use std::path::{Path, PathBuf};
+
+use formation_agent::{LeaderState, LinkLoss, Message};
+use formation_plant::Pose;
+use formation_record::hearing::{End, FollowerHearing, HearingRecord, Resume};
+use formation_record::{FollowerSample, Heard, RecordOptions, HEARING_FILE};
+use formation_sim::SimFollower;
+use formation_topology::Scenario;
+
+use crate::error::Error;
+use crate::monitor::Recorder;
+
+/// A run folder's scenario and hearing record, checked against each other.
+pub struct Loaded {
+    pub dir: PathBuf,
+    pub scenario: Scenario,
+    pub record: HearingRecord,
+}
+
+/// Reads a run folder's hearing record and the scenario it carries.
+pub fn load(dir: &Path) -> Result<Loaded, Error> {
+    if !dir.is_dir() {
+        return Err(Error::Input(format!("{}: no such run folder", dir.display())));
+    }
+    if !dir.join(HEARING_FILE).is_file() {
+        let why = if dir.join("network.json").is_file() {
+            "a networked run recorded before hearing records existed"
+        } else {
+            "not a networked run (formation sim needs no replay: it is deterministic)"
+        };
+        return Err(Error::Input(format!("{}: no {HEARING_FILE}: {why}", dir.display())));
+    }
+    let record = HearingRecord::read(dir).map_err(|e| Error::Input(e.to_string()))?;
+    let s = &record.scenario;
+    let scenario = Scenario::from_toml(&s.text, &s.label, "run", &s.overrides)
+        .map_err(|e| Error::Input(format!("{}: the scenario it carries: {e}", dir.display())))?;
+    if crate::barrier::fingerprint(&scenario) != record.fingerprint {
+        return Err(Error::Input(format!(
+            "{}: the scenario it carries does not give the run's fingerprint (a record of another build?)",
+            dir.display()
+        )));
+    }
+    if record.followers.len() != scenario.followers.len()
+        || record.followers.iter().enumerate().any(|(i, f)| f.id != scenario.followers[i].id)
+        || record.followers.iter().enumerate().any(|(i, f)| f.sources != scenario.sources_of(i))
+    {
+        return Err(Error::Input(format!("{}: the record's followers are not the scenario's", dir.display())));
+    }
+    Ok(Loaded { dir: dir.to_path_buf(), scenario, record })
+}
+
+/// Which hearing a replay uses: the record's, except where the model's
+/// replaces it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Hearing {
+    /// The run as recorded.
+    Recorded,
+    /// The model everywhere.
+    Model,
+    /// The model on one link: follower `index`'s source `slot`.
+    Link { index: usize, slot: usize },
+    /// The model on every link during steps [from_k, to_k).
+    Window { from_k: u64, to_k: u64 },
+}
+
+impl Hearing {
+    fn model_at(self, index: usize, slot: usize, k: u64) -> bool {
+        match self {
+            Hearing::Recorded => false,
+            Hearing::Model => true,
+            Hearing::Link { index: i, slot: s } => i == index && s == slot,
+            Hearing::Window { from_k, to_k } => from_k <= k && k < to_k,
+        }
+    }
+}
+
+/// The model's hearing of one follower (what the simulator's reception
+/// does): the message of step k − d, delivered unless the fault table
+/// removes it; otherwise the newest delivered one within the silence
+/// timeout.
+pub struct ModelEar {
+    links: Vec<LinkLoss>,
+    /// Per slot: no fault ever touches it (always the message of k − d).
+    clear: bool,
+    newest: Vec<Option<u64>>,
+    delay: u64,
+    timeout: u64,
+}
+
+impl ModelEar {
+    pub fn new(scenario: &Scenario, index: usize) -> Self {
+        let id = scenario.graph.id(index);
+        let links: Vec<LinkLoss> = scenario.sources_of(index).iter().map(|&src| scenario.link_loss(src, id)).collect();
+        let clear = links.iter().all(LinkLoss::is_empty);
+        Self {
+            newest: vec![None; links.len()],
+            links,
+            clear,
+            delay: scenario.network.delay_steps,
+            timeout: scenario.silence_steps(),
+        }
+    }
+
+    /// What each slot hears at step k (call in step order, every step).
+    pub fn hear(&mut self, k: u64, out: &mut [Heard]) {
+        let sent = k.saturating_sub(self.delay);
+        for (slot, h) in out.iter_mut().enumerate() {
+            if self.clear {
+                *h = Heard::used(k, sent);
+                continue;
+            }
+            let lost = self.links[slot].lost(sent);
+            if !lost && self.newest[slot].is_none_or(|s| s <= sent) {
+                self.newest[slot] = Some(sent);
+            }
+            *h = match self.newest[slot] {
+                Some(s) if s <= sent && sent - s <= self.timeout => Heard::used(k, s),
+                _ if lost => Heard::Removed,
+                _ => Heard::Silent,
+            };
+        }
+    }
+}
+
+/// A follower's recorded hearing, expanded for lookup in step order.
+struct Recorded {
+    /// (first_k, slots, per step × slot).
+    segments: Vec<(u64, Vec<Heard>)>,
+    slots: usize,
+    cursor: usize,
+}
+
+impl Recorded {
+    fn new(f: &FollowerHearing) -> Self {
+        let slots = f.sources.len();
+        let segments =
+            f.segments.iter().map(|s| (s.first_k, s.heard.expand().into_iter().flatten().collect())).collect();
+        Self { segments, slots, cursor: 0 }
+    }
+
+    /// What was heard at step k, if k is recorded (ask in step order).
+    fn at(&mut self, k: u64) -> Option<&[Heard]> {
+        let n = self.slots.max(1);
+        while let Some((first, v)) = self.segments.get(self.cursor) {
+            let end = first + (v.len() / n) as u64;
+            if k < end || self.slots == 0 {
+                break;
+            }
+            self.cursor += 1;
+        }
+        let (first, v) = self.segments.get(self.cursor)?;
+        if k < *first {
+            return None;
+        }
+        let i = ((k - first) as usize) * self.slots;
+        v.get(i..i + self.slots)
+    }
+}
+
+/// Where a replay receives what it computes.
+pub trait Sink {
+    /// The leader's state at step k; `recorded`: the run recorded it.
+    fn leader(&mut self, k: u64, state: &LeaderState, recorded: bool) -> Result<(), Error>;
+    /// Follower `index`'s sample of step k (a step the run recorded).
+    fn follower(&mut self, index: usize, k: u64, sample: &FollowerSample, heard: &[Heard]) -> Result<(), Error>;
+    /// Every follower has done step k.
+    fn step_done(&mut self, _k: u64) -> Result<(), Error> {
+        Ok(())
+    }
+}
+
+/// What a replay could not re-compute: the rows it lacks name it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Problem {
+    pub follower: u32,
+    pub k: u64,
+    pub what: String,
+}
+
+/// Per follower, what the replay is doing.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Track {
+    Running,
+    /// Stopped: its state past here is unknown (a gap, or a message it cannot rebuild).
+    Stopped,
+}
+
+/// Re-computes the run with `hearing`, in step order, into `sink`.
+/// Returns what could not be re-computed.
+pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result<Vec<Problem>, Error> {
+    let s = &loaded.scenario;
+    let rec = &loaded.record;
+    let n = s.followers.len();
+    let steps = s.steps();
+    let dt = s.dt_s;
+    // A message is used at most the silence timeout after its step k − d.
+    let ring = (s.silence_steps() + s.network.delay_steps + 2) as usize;
+    let mut followers: Vec<SimFollower> = (0..n).map(|i| SimFollower::new(s, i)).collect();
+    let mut sent: Vec<Vec<Option<(u64, Message)>>> = vec![vec![None; ring]; n];
+    for (i, f) in followers.iter().enumerate() {
+        sent[i][0] = Some((0, f.brain.tagged_message()));
+    }
+    let mut leader_sent: Vec<Option<(u64, LeaderState)>> = vec![None; ring];
+    let mut recorded: Vec<Recorded> = rec.followers.iter().map(Recorded::new).collect();
+    let mut ears: Vec<ModelEar> = (0..n).map(|i| ModelEar::new(s, i)).collect();
+    let mut track = vec![Track::Running; n];
+    let mut problems = Vec::new();
+    let sources: Vec<Vec<Option<usize>>> =
+        (0..n).map(|i| s.sources_of(i).iter().map(|&id| s.index_of(id)).collect()).collect();
+    let rescued: std::collections::HashMap<(u32, u64), Message> =
+        rec.rescued.iter().map(|r| ((r.source, r.stamp), Message { state: r.state, fresh: r.fresh })).collect();
+    let mut leader = s.leader();
+    let mut heard: Vec<Heard> = Vec::new();
+    let mut model: Vec<Heard> = Vec::new();
+    let mut inputs: Vec<Message> = Vec::new();
+    for k in 0..=steps {
+        let t = k as f64 * dt;
+        let state = leader.state(t);
+        leader_sent[(k as usize) % ring] = Some((k, state));
+        sink.leader(k, &state, rec.leader_has(k))?;
+        let last = k == steps;
+        for i in 0..n {
+            let f = &mut followers[i];
+            let id = rec.followers[i].id;
+            if let Some(r) = rec.followers[i].resumes.iter().find(|r| r.k == k) {
+                // A new process: everything as new (its noise stream too), then resumed.
+                *f = SimFollower::new(s, i);
+                f.resume(k, Pose::new(r.pose[0], r.pose[1], r.pose[2]));
+                track[i] = Track::Running;
+            }
+            let slots = sources[i].len();
+            model.clear();
+            model.resize(slots, Heard::Silent);
+            ears[i].hear(k, &mut model);
+            let Some(rec_heard) = recorded[i].at(k) else {
+                // A gap that ends in a restart is the restart's: nothing is lost to the replay.
+                let next = recorded[i].next_start(k);
+                let restarted = next.is_some_and(|n| rec.followers[i].resumes.iter().any(|r| r.k == n));
+                if let (Track::Running, Some(n), false) = (track[i], next, restarted) {
+                    problems.push(Problem {
+                        follower: id,
+                        k,
+                        what: format!(
+                            "steps {k}–{} are not in the record (telemetry lost for good) and no restart follows: \
+                             not replayed from here",
+                            n - 1
+                        ),
+                    });
+                }
+                track[i] = Track::Stopped;
+                continue;
+            };
+            if track[i] == Track::Stopped {
+                continue;
+            }
+            heard.clear();
+            heard.extend(
+                rec_heard
+                    .iter()
+                    .enumerate()
+                    .map(|(slot, &h)| if hearing.model_at(i, slot, k) { model[slot] } else { h }),
+            );
+            // The messages the step uses, neighbours in ascending id, then the leader.
+            inputs.clear();
+            let mut leader_in = None;
+            let mut missing = None;
+            for (slot, h) in heard.iter().enumerate() {
+                let Some(stamp) = h.stamp(k) else { continue };
+                match sources[i][slot] {
+                    Some(j) => match sent[j][(stamp as usize) % ring] {
+                        Some((st, m)) if st == stamp => inputs.push(m),
+                        // A sender killed before its last telemetry got out:
+                        // its receivers rescued what they used.
+                        _ => match rescued.get(&(rec.followers[j].id, stamp)) {
+                            Some(m) => inputs.push(*m),
+                            None => missing = Some((rec.followers[j].id, stamp)),
+                        },
+                    },
+                    None => match leader_sent[(stamp as usize) % ring] {
+                        Some((st, l)) if st == stamp => leader_in = Some(l),
+                        _ => missing = Some((0, stamp)),
+                    },
+                }
+            }
+            if let Some((src, stamp)) = missing {
+                let who = if src == 0 { "the leader".to_string() } else { format!("follower {src}") };
+                problems.push(Problem {
+                    follower: id,
+                    k,
+                    what: format!(
+                        "used {who}'s message of step {stamp}, which the record cannot rebuild (its sender's steps \
+                         before it are not all recorded); not replayed from here"
+                    ),
+                });
+                track[i] = Track::Stopped;
+                continue;
+            }
+            let (sample, next) = f.step(t, dt, leader_in.as_ref(), &inputs, last);
+            sent[i][((k + 1) as usize) % ring] = Some((k + 1, next));
+            sink.follower(i, k, &sample, &heard)?;
+        }
+        sink.step_done(k)?;
+        leader.advance(&state, dt);
+    }
+    Ok(problems)
+}
+
+impl Recorded {
+    /// The first recorded step after k, if any.
+    fn next_start(&self, k: u64) -> Option<u64> {
+        self.segments.iter().map(|(first, _)| *first).find(|&f| f > k)
+    }
+}
+
+/// A replay into a run folder through the monitor's [`Recorder`].
+struct Folder {
+    recorder: Recorder,
+}
+
+impl Sink for Folder {
+    fn leader(&mut self, k: u64, state: &LeaderState, recorded: bool) -> Result<(), Error> {
+        self.recorder.replayed_leader(k, recorded.then_some(state)).map_err(Error::from)
+    }
+    fn follower(&mut self, index: usize, k: u64, sample: &FollowerSample, heard: &[Heard]) -> Result<(), Error> {
+        self.recorder.replayed_follower(index, k, *sample, heard);
+        Ok(())
+    }
+    fn step_done(&mut self, _k: u64) -> Result<(), Error> {
+        self.recorder.settle().map_err(Error::from)
+    }
+}
+
+/// Re-computes the run into the folder `out` (CSVs, `summary.json`, and a
+/// copy of the hearing record); returns what could not be re-computed.
+pub fn replay_to_folder(loaded: &Loaded, out: &Path) -> Result<Vec<Problem>, Error> {
+    let d = loaded.record.density;
+    let opts = RecordOptions { dir: out.to_path_buf(), every: d.every, csv: d.csv, mcap: false };
+    let mut recorder = Recorder::new(&loaded.scenario, &opts)?;
+    recorder.set_source(loaded.record.scenario.clone());
+    for (i, f) in loaded.record.followers.iter().enumerate() {
+        recorder.replayed_hearing(i, &f.resumes, f.end.clone());
+    }
+    let mut sink = Folder { recorder };
+    let problems = replay(loaded, Hearing::Recorded, &mut sink)?;
+    sink.recorder.finish(crate::watch::Ending::Complete)?;
+    Ok(problems)
+}
+
+/// The first place two run folders differ.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Difference {
+    pub file: String,
+    /// The follower (`None`: the leader or summary.json).
+    pub follower: Option<u32>,
+    /// 1-based line of the file.
+    pub line: usize,
+    pub step: Option<u64>,
+    pub column: Option<String>,
+    pub run: String,
+    pub replay: String,
+}
+
+impl std::fmt::Display for Difference {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let who = match self.follower {
+            Some(id) => format!("follower {id}, "),
+            None => String::new(),
+        };
+        let at = match (self.step, &self.column) {
+            (Some(k), Some(c)) => format!("step {k}, column {c}"),
+            (Some(k), None) => format!("step {k}"),
+            _ => format!("line {}", self.line),
+        };
+        write!(f, "{}: {who}{at}: the run has {:?}, the replay {:?}", self.file, self.run, self.replay)
+    }
+}
+
+/// Compares the replay's CSVs and `summary.json` with the run's; the first
+/// difference of each file that differs.
+pub fn compare(run: &Path, replay: &Path, scenario: &Scenario) -> Vec<Difference> {
+    let mut files: Vec<(String, Option<u32>)> =
+        scenario.followers.iter().map(|f| (format!("follower_{}.csv", f.id), Some(f.id))).collect();
+    files.push(("leader.csv".into(), None));
+    files.push(("summary.json".into(), None));
+    let mut out = Vec::new();
+    for (name, follower) in files {
+        let a = std::fs::read_to_string(run.join(&name)).ok();
+        let b = std::fs::read_to_string(replay.join(&name)).ok();
+        if a == b {
+            continue;
+        }
+        let (a, b) = (a.unwrap_or_default(), b.unwrap_or_default());
+        let (la, lb): (Vec<&str>, Vec<&str>) = (a.lines().collect(), b.lines().collect());
+        let line = (0..la.len().max(lb.len())).find(|&i| la.get(i) != lb.get(i)).unwrap_or(0);
+        let (x, y) = (la.get(line).copied().unwrap_or("(no line)"), lb.get(line).copied().unwrap_or("(no line)"));
+        let mut d = Difference {
+            file: name.clone(),
+            follower,
+            line: line + 1,
+            step: None,
+            column: None,
+            run: x.to_string(),
+            replay: y.to_string(),
+        };
+        if name.ends_with(".csv") && line > 0 {
+            let header: Vec<&str> = la.first().copied().unwrap_or_default().split(',').collect();
+            let (fa, fb): (Vec<&str>, Vec<&str>) = (x.split(',').collect(), y.split(',').collect());
+            let t = fa.first().or(fb.first()).and_then(|t| t.parse::<f64>().ok());
+            d.step = t.map(|t| (t / scenario.dt_s).round() as u64);
+            if let Some(c) = (0..fa.len().max(fb.len())).find(|&c| fa.get(c) != fb.get(c)) {
+                d.column = header.get(c).map(|h| h.to_string());
+                d.run = fa.get(c).unwrap_or(&"(none)").to_string();
+                d.replay = fb.get(c).unwrap_or(&"(none)").to_string();
+            }
+        }
+        out.push(d);
+    }
+    out
+}
+
+/// A replay's metrics only (no folder): per follower, the metrics of the
+/// steps the run recorded, against the leader's state.
+pub struct Metrics {
+    offsets: Vec<[f64; 2]>,
+    dt: f64,
+    leader: Option<LeaderState>,
+    pub acc: Vec<formation_record::MetricsAccumulator>,
+}
+
+impl Metrics {
+    pub fn new(s: &Scenario) -> Self {
+        Self {
+            offsets: s.followers.iter().map(|f| f.offset).collect(),
+            dt: s.dt_s,
+            leader: None,
+            acc: s.followers.iter().map(|_| formation_record::MetricsAccumulator::for_scenario(s)).collect(),
+        }
+    }
+}
+
+impl Sink for Metrics {
+    fn leader(&mut self, _k: u64, state: &LeaderState, _recorded: bool) -> Result<(), Error> {
+        self.leader = Some(*state);
+        Ok(())
+    }
+    fn follower(&mut self, index: usize, k: u64, sample: &FollowerSample, _heard: &[Heard]) -> Result<(), Error> {
+        if let Some(l) = &self.leader {
+            self.acc[index].push_sample(k, sample, l, self.offsets[index], self.dt);
+        }
+        Ok(())
+    }
+}
+
+/// The followers' restarts and ends, as recorded (for a report).
+pub fn restarts(loaded: &Loaded) -> Vec<(u32, Vec<Resume>, End)> {
+    loaded.record.followers.iter().map(|f| (f.id, f.resumes.clone(), f.end.clone())).collect()
+}

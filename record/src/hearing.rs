@@ -1,0 +1,404 @@
+//! The hearing record: for every networked follower, step and source, which
+//! step's message the follower used (or that the source was silent, or that
+//! the fault table removed it), what ended the run for it and where a
+//! restarted process resumed. A follower's step is a pure function of its
+//! state and of the messages it used, so a run is determined by its scenario
+//! and this record (`formation replay`).
+//!
+//! Run-length encoded per source: a real-time run changes its hearing a few
+//! times a second, a lock-step run never. The run folder holds it as
+//! `hearing.bin` (bincode 2, standard configuration: varints).
+
+use formation_agent::LeaderState;
+use serde::{Deserialize, Serialize};
+
+/// What one follower heard of one source at one step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Heard {
+    /// The message stamped k − age was used at step k.
+    Age(u32),
+    /// Nothing within the silence timeout.
+    Silent,
+    /// Nothing used, and the fault table removed the message the step would
+    /// have used.
+    Removed,
+}
+
+const SILENT: u32 = u32::MAX;
+const REMOVED: u32 = u32::MAX - 1;
+
+impl Heard {
+    /// The message of stamp `stamp` used at step `k`.
+    pub fn used(k: u64, stamp: u64) -> Self {
+        Heard::Age(u32::try_from(k.saturating_sub(stamp)).unwrap_or(REMOVED - 1).min(REMOVED - 1))
+    }
+
+    pub fn code(self) -> u32 {
+        match self {
+            Heard::Age(a) => a.min(REMOVED - 1),
+            Heard::Silent => SILENT,
+            Heard::Removed => REMOVED,
+        }
+    }
+
+    pub fn from_code(c: u32) -> Self {
+        match c {
+            SILENT => Heard::Silent,
+            REMOVED => Heard::Removed,
+            a => Heard::Age(a),
+        }
+    }
+
+    /// The stamp of the message used at step `k`, if one was.
+    pub fn stamp(self, k: u64) -> Option<u64> {
+        match self {
+            Heard::Age(a) => k.checked_sub(u64::from(a)),
+            _ => None,
+        }
+    }
+
+    /// A short word for tables: "age 1", "silent", "removed".
+    pub fn describe(self) -> String {
+        match self {
+            Heard::Age(a) => format!("age {a}"),
+            Heard::Silent => "silent".into(),
+            Heard::Removed => "removed".into(),
+        }
+    }
+}
+
+/// One follower's hearing over consecutive steps: per source slot (the
+/// neighbours in ascending id, then the leader if heard), runs of
+/// (code, steps).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HeardRuns {
+    /// Steps covered.
+    pub steps: u32,
+    pub slots: Vec<Vec<(u32, u32)>>,
+}
+
+impl HeardRuns {
+    /// Empty, for `slots` sources, with room for `runs` runs per source.
+    pub fn with_slots(slots: usize, runs: usize) -> Self {
+        Self { steps: 0, slots: (0..slots).map(|_| Vec::with_capacity(runs)).collect() }
+    }
+
+    /// `steps` steps at which every one of `slots` sources was heard the same.
+    pub fn uniform(slots: usize, steps: u32, heard: Heard) -> Self {
+        let runs = if steps == 0 { vec![] } else { vec![(heard.code(), steps)] };
+        Self { steps, slots: vec![runs; slots] }
+    }
+
+    /// Appends what one slot heard at the step being recorded (then
+    /// [`HeardRuns::end_step`]).
+    pub fn push_one(&mut self, slot: usize, heard: Heard) {
+        let c = heard.code();
+        let runs = &mut self.slots[slot];
+        match runs.last_mut() {
+            Some((code, n)) if *code == c && *n < u32::MAX => *n += 1,
+            _ => runs.push((c, 1)),
+        }
+    }
+
+    /// Closes a step recorded slot by slot with [`HeardRuns::push_one`].
+    pub fn end_step(&mut self) {
+        self.steps += 1;
+    }
+
+    /// Appends one step: what each slot heard, in slot order (as many as
+    /// there are slots).
+    pub fn push(&mut self, heard: impl IntoIterator<Item = Heard>) {
+        for (runs, h) in self.slots.iter_mut().zip(heard) {
+            let c = h.code();
+            match runs.last_mut() {
+                Some((code, n)) if *code == c && *n < u32::MAX => *n += 1,
+                _ => runs.push((c, 1)),
+            }
+        }
+        self.steps += 1;
+    }
+
+    /// Whether every slot covers exactly `steps` steps (a batch as sent).
+    pub fn is_consistent(&self) -> bool {
+        self.slots.iter().all(|r| r.iter().map(|&(_, n)| u64::from(n)).sum::<u64>() == u64::from(self.steps))
+    }
+
+    /// Per step, what each slot heard (steps × slots).
+    pub fn expand(&self) -> Vec<Vec<Heard>> {
+        let mut out = vec![Vec::with_capacity(self.slots.len()); self.steps as usize];
+        for runs in &self.slots {
+            let mut i = 0usize;
+            for &(c, n) in runs {
+                for _ in 0..n {
+                    if let Some(step) = out.get_mut(i) {
+                        step.push(Heard::from_code(c));
+                    }
+                    i += 1;
+                }
+            }
+        }
+        out
+    }
+
+    /// Runs held, over every slot.
+    pub fn runs(&self) -> usize {
+        self.slots.iter().map(Vec::len).sum()
+    }
+}
+
+/// A span of consecutive recorded steps of one follower, from `first_k`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Segment {
+    pub first_k: u64,
+    pub heard: HeardRuns,
+}
+
+impl Segment {
+    pub fn end(&self) -> u64 {
+        self.first_k + u64::from(self.heard.steps)
+    }
+}
+
+/// A restarted process of a follower: from step `k` on, with its robot
+/// stopped at `pose` (x, y, θ) and a fresh brain (docs/model.md §14).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Resume {
+    pub k: u64,
+    pub pose: [f64; 3],
+}
+
+/// What ended the run for a follower, as far as the monitor heard.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub enum End {
+    /// It computed the final step.
+    Completed,
+    /// A state stopped being finite at step `k`.
+    Diverged { k: u64, quantity: String },
+    /// Its last process never said (killed, cut off, or the run was interrupted).
+    #[default]
+    Unknown,
+}
+
+/// One follower's part of the record.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FollowerHearing {
+    pub id: u32,
+    /// The sources by slot: neighbours in ascending id, then 0 (the leader) if heard.
+    pub sources: Vec<u32>,
+    /// The recorded steps, in order, not overlapping.
+    pub segments: Vec<Segment>,
+    pub resumes: Vec<Resume>,
+    pub end: End,
+}
+
+impl FollowerHearing {
+    pub fn new(id: u32, sources: Vec<u32>) -> Self {
+        Self { id, sources, ..Default::default() }
+    }
+
+    /// Appends step `k` (after the last one recorded).
+    pub fn push(&mut self, k: u64, heard: &[Heard]) {
+        let slots = self.sources.len();
+        match self.segments.last_mut() {
+            Some(s) if s.end() == k && s.heard.steps < u32::MAX => s.heard.push(heard.iter().copied()),
+            _ => {
+                let mut heard_runs = HeardRuns::with_slots(slots, 1);
+                heard_runs.push(heard.iter().copied());
+                self.segments.push(Segment { first_k: k, heard: heard_runs });
+            }
+        }
+    }
+
+    /// Notes a restart (once per step).
+    pub fn resumed(&mut self, r: Resume) {
+        if !self.resumes.iter().any(|x| x.k == r.k) {
+            self.resumes.push(r);
+            self.resumes.sort_by_key(|x| x.k);
+        }
+    }
+
+    /// Steps recorded.
+    pub fn steps(&self) -> u64 {
+        self.segments.iter().map(|s| u64::from(s.heard.steps)).sum()
+    }
+
+    /// Every recorded step with what each slot heard, in step order.
+    pub fn steps_heard(&self) -> impl Iterator<Item = (u64, Vec<Heard>)> + '_ {
+        self.segments
+            .iter()
+            .flat_map(|s| s.heard.expand().into_iter().enumerate().map(|(i, h)| (s.first_k + i as u64, h)))
+    }
+}
+
+/// A message a follower used whose sender's own record may not cover it:
+/// when a source falls silent, its receivers send the messages of it they
+/// used last, so that a sender killed before its last telemetry got out
+/// can still be replayed up to where its neighbours heard it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Rescued {
+    /// The sender's id (0: the leader).
+    pub source: u32,
+    pub stamp: u64,
+    pub state: LeaderState,
+    pub fresh: bool,
+}
+
+/// The scenario a run loaded, as text, so that a replay loads the same.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ScenarioSource {
+    /// Where it was read from (for messages).
+    pub label: String,
+    pub text: String,
+    /// The `--set` overrides, in order.
+    pub overrides: Vec<String>,
+}
+
+/// The CSVs' settings (`--every`, `--no-csv`, `--mcap`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Density {
+    pub every: u64,
+    pub csv: bool,
+    pub mcap: bool,
+}
+
+/// A networked run's hearing record (`hearing.bin`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HearingRecord {
+    pub format: u32,
+    pub scenario: ScenarioSource,
+    /// The scenario's fingerprint as the nodes agreed on it.
+    pub fingerprint: u64,
+    pub density: Density,
+    /// The leader's recorded steps, as spans [from, to).
+    pub leader: Vec<(u64, u64)>,
+    pub followers: Vec<FollowerHearing>,
+    /// Messages rescued by their receivers, by (sender, stamp).
+    pub rescued: Vec<Rescued>,
+}
+
+/// The record's format: a reader refuses another.
+pub const HEARING_FORMAT: u32 = 1;
+
+/// The record's file name in the run folder.
+pub const HEARING_FILE: &str = "hearing.bin";
+
+/// Why a hearing record cannot be read.
+#[derive(Debug, thiserror::Error)]
+pub enum HearingError {
+    #[error("{0}: cannot read: {1}")]
+    Io(String, std::io::Error),
+    #[error("{0}: not a hearing record (it does not decode)")]
+    Malformed(String),
+    #[error("{path}: hearing record format {found}, this build reads format {HEARING_FORMAT}")]
+    Format { path: String, found: u32 },
+}
+
+fn config() -> bincode::config::Configuration {
+    bincode::config::standard()
+}
+
+impl HearingRecord {
+    pub fn encode(&self) -> Vec<u8> {
+        bincode::serde::encode_to_vec(self, config()).unwrap_or_default()
+    }
+
+    pub fn decode(bytes: &[u8], label: &str) -> Result<Self, HearingError> {
+        let r: Self = match bincode::serde::decode_from_slice::<Self, _>(bytes, config()) {
+            Ok((r, used)) if used == bytes.len() => r,
+            _ => {
+                // The format number comes first: name a record of another format as such.
+                return match bincode::serde::decode_from_slice::<u32, _>(bytes, config()) {
+                    Ok((found, _)) if found != HEARING_FORMAT && found < 1000 => {
+                        Err(HearingError::Format { path: label.into(), found })
+                    }
+                    _ => Err(HearingError::Malformed(label.into())),
+                };
+            }
+        };
+        if r.format != HEARING_FORMAT {
+            return Err(HearingError::Format { path: label.into(), found: r.format });
+        }
+        Ok(r)
+    }
+
+    /// Reads `hearing.bin` of a run folder.
+    pub fn read(dir: &std::path::Path) -> Result<Self, HearingError> {
+        let path = dir.join(HEARING_FILE);
+        let label = path.display().to_string();
+        let bytes = std::fs::read(&path).map_err(|e| HearingError::Io(label.clone(), e))?;
+        Self::decode(&bytes, &label)
+    }
+
+    /// Whether the leader's step `k` was recorded.
+    pub fn leader_has(&self, k: u64) -> bool {
+        self.leader.iter().any(|&(a, b)| a <= k && k < b)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn runs_compress_a_steady_hearing_and_expand_back() {
+        let mut r = HeardRuns::with_slots(2, 4);
+        let steps: Vec<[Heard; 2]> = (0..1000u64)
+            .map(|k| {
+                let a = if k % 250 == 0 { Heard::Age(2) } else { Heard::Age(1) };
+                let b = if (400..450).contains(&k) { Heard::Removed } else { Heard::Age(1) };
+                [a, b]
+            })
+            .collect();
+        for s in &steps {
+            r.push(s.iter().copied());
+        }
+        assert!(r.is_consistent());
+        assert_eq!(r.runs(), 8 + 3, "{:?}", r.slots);
+        let back = r.expand();
+        assert_eq!(back.len(), 1000);
+        assert!(back.iter().zip(&steps).all(|(a, b)| a.as_slice() == b.as_slice()));
+    }
+
+    #[test]
+    fn codes_round_trip_and_name_the_stamp() {
+        for h in [Heard::Age(0), Heard::Age(7), Heard::Silent, Heard::Removed] {
+            assert_eq!(Heard::from_code(h.code()), h);
+        }
+        assert_eq!(Heard::used(10, 9), Heard::Age(1));
+        assert_eq!(Heard::Age(1).stamp(10), Some(9));
+        assert_eq!(Heard::Age(11).stamp(10), None);
+        assert_eq!(Heard::Silent.stamp(10), None);
+    }
+
+    #[test]
+    fn a_follower_record_splits_at_gaps_and_a_record_round_trips() {
+        let mut f = FollowerHearing::new(3, vec![2, 4]);
+        for k in (0..10).chain(20..25) {
+            f.push(k, &[Heard::Age(0), Heard::Silent]);
+        }
+        assert_eq!(f.segments.len(), 2);
+        assert_eq!((f.segments[1].first_k, f.segments[1].end()), (20, 25));
+        assert_eq!(f.steps(), 15);
+        let ks: Vec<u64> = f.steps_heard().map(|(k, _)| k).collect();
+        assert_eq!(ks, (0..10).chain(20..25).collect::<Vec<_>>());
+        f.resumed(Resume { k: 20, pose: [1.0, 2.0, 0.5] });
+        f.resumed(Resume { k: 20, pose: [1.0, 2.0, 0.5] });
+        assert_eq!(f.resumes.len(), 1);
+        let rec = HearingRecord {
+            format: HEARING_FORMAT,
+            scenario: ScenarioSource { label: "s.toml".into(), text: "x".into(), overrides: vec![] },
+            fingerprint: 7,
+            density: Density { every: 1, csv: true, mcap: false },
+            leader: vec![(0, 25)],
+            followers: vec![f],
+            rescued: vec![Rescued { source: 2, stamp: 9, state: LeaderState::default(), fresh: true }],
+        };
+        let bytes = rec.encode();
+        assert_eq!(HearingRecord::decode(&bytes, "h").expect("decodes"), rec);
+        assert!(matches!(HearingRecord::decode(&bytes[..bytes.len() - 1], "h"), Err(HearingError::Malformed(_))));
+        let mut other = rec.clone();
+        other.format = 9;
+        assert!(matches!(HearingRecord::decode(&other.encode(), "h"), Err(HearingError::Format { found: 9, .. })));
+        assert!(rec.leader_has(24) && !rec.leader_has(25));
+    }
+}

@@ -1,0 +1,100 @@
+//! `formation replay RUN_DIR`: a networked run re-computed in one process
+//! from its scenario and what each follower heard (`hearing.bin`), checked
+//! byte for byte against the run's CSVs and `summary.json`; with
+//! `--explain`, the run beside its model.
+
+use std::path::PathBuf;
+
+use clap::Args;
+use formation_net::replay::{self, Loaded};
+
+use crate::error::Error as CliError;
+
+#[derive(Args, Debug)]
+pub struct ReplayArgs {
+    /// A networked run's folder (written by `launch`, `lab` or a `monitor`).
+    #[arg(value_name = "RUN_DIR")]
+    pub run: PathBuf,
+    /// Keep the replay's folder here (default: a temporary folder, removed
+    /// once compared).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// The run beside its model (every message used `network.delay_steps`
+    /// after it was sent, the fault table applied): where it first departed,
+    /// and which links and which periods explain the difference in each
+    /// follower's metrics.
+    #[arg(long)]
+    pub explain: bool,
+    /// With --explain: the metric to attribute (a summary.json metric of a
+    /// follower: torque_tv, formation_rms_last10, vc_peak, …).
+    #[arg(long, default_value = "torque_tv", value_name = "METRIC")]
+    pub metric: String,
+    /// With --explain: the length of the time windows ranked (s).
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    pub window: f64,
+    /// With --explain: how many links and windows to list.
+    #[arg(long, default_value_t = 10, value_name = "N")]
+    pub top: usize,
+}
+
+pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
+    let loaded = replay::load(&a.run)?;
+    if a.explain {
+        return crate::explain::run(a, &loaded);
+    }
+    let (ok, text) = check(&loaded, a.out.as_deref())?;
+    print!("{text}");
+    if ok {
+        Ok(())
+    } else {
+        Err(CliError::Run(format!(
+            "the replay of {} differs from the run: a bug in the hearing record or in the step's purity",
+            a.run.display()
+        )))
+    }
+}
+
+/// Replays a run and compares: whether it is byte-identical, and the report.
+pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(bool, String), CliError> {
+    let tmp;
+    let dir = match out {
+        Some(d) => d.to_path_buf(),
+        None => {
+            tmp = tempfile::tempdir().map_err(|e| CliError::Run(format!("a temporary folder: {e}")))?;
+            tmp.path().join("replay")
+        }
+    };
+    let began = std::time::Instant::now();
+    let problems = replay::replay_to_folder(loaded, &dir)?;
+    let secs = began.elapsed().as_secs_f64();
+    let diffs = replay::compare(&loaded.dir, &dir, &loaded.scenario);
+    let s = &loaded.scenario;
+    let rows: u64 = loaded.record.followers.iter().map(|f| f.steps()).sum();
+    let mut text = format!(
+        "replayed {} ({} followers, {rows} follower-steps of {}) in {secs:.2} s\n",
+        loaded.dir.display(),
+        s.followers.len(),
+        (s.steps() + 1) * s.followers.len() as u64
+    );
+    for f in &loaded.record.followers {
+        for r in &f.resumes {
+            text +=
+                &format!("  follower {}: a new process from step {} (t = {:.3} s)\n", f.id, r.k, r.k as f64 * s.dt_s);
+        }
+    }
+    for p in &problems {
+        text += &format!("  follower {}, step {}: {}\n", p.follower, p.k, p.what);
+    }
+    if diffs.is_empty() {
+        text += "the CSVs and summary.json are byte-identical to the run's\n";
+    } else {
+        text += "first differences:\n";
+        for d in &diffs {
+            text += &format!("  {d}\n");
+        }
+    }
+    if let Some(o) = out {
+        text += &format!("replay written to {}\n", o.display());
+    }
+    Ok((diffs.is_empty(), text))
+}
