@@ -13,7 +13,7 @@
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`] (with [`web`] and [`foxglove`]), [`router`] |
-//! | a run again | [`replay`] (on the monitor's recorder) |
+//! | a run again | [`replay`] (on the monitor's recorder), [`explain`] |
 
 pub mod agent;
 pub mod barrier;
@@ -24,6 +24,7 @@ pub mod counters;
 pub mod courier;
 pub mod denials;
 pub mod error;
+pub mod explain;
 pub mod foxglove;
 pub mod gate;
 pub mod hearing;
