@@ -67,6 +67,37 @@ pub struct LabArgs {
     /// (the link between their routers; needs --sites). Repeatable.
     #[arg(long = "cut", value_name = "A:B@AT:FOR")]
     pub cut: Vec<String>,
+    /// A bad cable between followers A and B for the whole run, which the
+    /// scenario does not know of: PERCENT of the packets between their
+    /// hosts dropped at random (peer mode, where they talk directly). Over
+    /// TCP nothing is lost but their messages arrive late: what
+    /// `formation replay --explain` should find. E.g. `2:4=30`. Repeatable.
+    #[arg(long = "slow-link", value_name = "A:B=PERCENT")]
+    pub slow_link: Vec<String>,
+}
+
+/// `--slow-link A:B=PERCENT`: the two followers' hosts and the loss.
+fn parse_slow_links(a: &LabArgs, s: &Scenario) -> Result<Vec<(String, String, f64)>, Error> {
+    let mut out = Vec::new();
+    for text in &a.slow_link {
+        let bad = |why: &str| Error::Input(format!("--slow-link {text}: {why}"));
+        if a.mode != LaunchMode::Peer {
+            return Err(bad("needs --mode peer (in client mode every packet goes through the router)"));
+        }
+        let (pair, percent) = text.split_once('=').ok_or_else(|| bad("expected A:B=PERCENT, e.g. 2:4=30"))?;
+        let (x, y) = pair.split_once(':').ok_or_else(|| bad("expected A:B=PERCENT, e.g. 2:4=30"))?;
+        let id = |t: &str| t.trim().parse::<u32>().ok().filter(|&i| s.index_of(i).is_some());
+        let (Some(x), Some(y)) = (id(x), id(y)) else {
+            let ids: Vec<String> = s.graph.ids().iter().map(u32::to_string).collect();
+            return Err(bad(&format!("A and B must be follower ids (ids: {})", ids.join(", "))));
+        };
+        let p: f64 = percent.trim().parse().map_err(|_| bad("PERCENT must be a number"))?;
+        if !(p > 0.0 && p < 100.0) {
+            return Err(bad("PERCENT must be more than 0 and less than 100"));
+        }
+        out.push((agent_host(x), agent_host(y), p));
+    }
+    Ok(out)
 }
 
 /// `--sites`: two sites, the nodes of each, and each site's router host
@@ -359,6 +390,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     let (events, notes) = plan(a, &scenario)?;
     let (clocks, faketime) = clock_shifts(a, &scenario)?;
     let sites = parse_sites(a, &scenario)?;
+    let slow = parse_slow_links(a, &scenario)?;
     let mut events = events;
     if let Some(sites) = &sites {
         events.extend(cut_events(a, sites, scenario.steps() as f64 * scenario.dt_s)?);
@@ -416,6 +448,9 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     hosts.extend(scenario.graph.ids().iter().map(|&id| agent_host(id)));
     let names: Vec<&str> = hosts.iter().map(String::as_str).collect();
     let lab = netns::Lab::create(&names).map_err(|e| Error::Run(format!("building the lab network: {e}")))?;
+    for (x, y, p) in &slow {
+        lab.set_slow(x, y, *p).map_err(|e| Error::Run(format!("--slow-link: {e}")))?;
+    }
     if !a.opts.quiet {
         eprintln!(
             "lab: {} hosts on a bridge, 10.77.0.0/16 ({} mode, run {run}); {} planned fault events",
@@ -458,6 +493,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         "events": performed,
         "notes": notes,
         "clock_shift_s": shifted,
+        "slow_links": slow.iter().map(|(x, y, p)| json!({"between": [x, y], "loss_percent": p})).collect::<Vec<_>>(),
         "sites": sites.as_ref().map(|s| {
             let mut by: Vec<(String, Vec<String>)> = s.names.iter().map(|n| (n.clone(), Vec::new())).collect();
             for (host, &i) in &s.of {

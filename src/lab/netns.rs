@@ -291,6 +291,29 @@ impl Lab {
         run(Command::new("ip").args(["netns", "exec", &h.ns, "nft", &script])).map(drop)
     }
 
+    /// Drops `percent` of the packets between the host and `peer` at random
+    /// (both directions; an nftables table `inet flabslow` in the host's
+    /// namespace): a bad cable between the two. Over TCP nothing is lost,
+    /// but what the drops hold up arrives late.
+    pub fn set_slow(&self, name: &str, peer: &str, percent: f64) -> Result<(), LabError> {
+        let (_, h) = self.host(name)?;
+        let (_, p) = self.host(peer)?;
+        if !(0.0..=100.0).contains(&percent) {
+            return Err(LabError(format!("packet loss between {name} and {peer} must be 0..=100 %, not {percent}")));
+        }
+        let cut = (percent * 100.0).round() as u32; // numgen draws 0..=9999
+        let script = format!(
+            "table inet flabslow; delete table inet flabslow\
+             ; add table inet flabslow\
+             ; add chain inet flabslow in {{ type filter hook input priority 0; }}\
+             ; add chain inet flabslow out {{ type filter hook output priority 0; }}\
+             ; add rule inet flabslow in ip saddr {0} numgen random mod 10000 < {cut} drop\
+             ; add rule inet flabslow out ip daddr {0} numgen random mod 10000 < {cut} drop",
+            p.addr
+        );
+        run(Command::new("ip").args(["netns", "exec", &h.ns, "nft", &script])).map(drop)
+    }
+
     /// Kills every process still in the lab's namespaces (SIGKILL via `ip
     /// netns pids`), deletes every namespace (which removes the veths and
     /// the bridge). Idempotent; returns what it could not remove.
