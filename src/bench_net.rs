@@ -82,6 +82,11 @@ pub struct BenchNetArgs {
     /// Scale: run seconds of the real-time run at 100 Hz.
     #[arg(long, default_value_t = 5.0)]
     pub scale_realtime_duration: f64,
+    /// Only measure what the hearing record costs (`formation replay`'s
+    /// input): the real-time run at 1 kHz with and without it, three times
+    /// each, period error side by side, its size against the CSVs'.
+    #[arg(long)]
+    pub hearing: bool,
     /// Every lock-step and scale figure is measured twice: one process per
     /// agent (as on separate machines), and `launch --group N` (N followers
     /// per agent process on one session). 0: every follower in one process.
@@ -168,6 +173,11 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         return crate::bench_netns::run_side(a.echo.as_deref(), a.ping.as_deref(), a.round_trips);
     }
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
+    if a.hearing {
+        return crate::bench_hearing::run(a.realtime_duration, a.base_port, &|sets, port, out, run| {
+            launch_args(a, sets, port, out, run)
+        });
+    }
     if let Some(dir) = &a.tls {
         formation_net::identity::check_all(dir, &scenario).map_err(|e| Error::Input(e.0))?;
     }

@@ -5,22 +5,23 @@ use formation_net::explain::{self, Explanation};
 use formation_net::replay::Loaded;
 
 use crate::error::Error as CliError;
-use crate::replay::ReplayArgs;
 
-pub fn run(a: &ReplayArgs, loaded: &Loaded) -> Result<(), CliError> {
-    if !(a.window.is_finite() && a.window > 0.0) {
-        return Err(CliError::Input(format!("--window must be a positive number of seconds, not {}", a.window)));
+/// Explains `loaded`'s `metric` over windows of `window` seconds and prints
+/// the `top` links and windows.
+pub fn run(loaded: &Loaded, metric: &str, window: f64, top: usize) -> Result<(), CliError> {
+    if !(window.is_finite() && window > 0.0) {
+        return Err(CliError::Input(format!("--window must be a positive number of seconds, not {window}")));
     }
-    let window_steps = ((a.window / loaded.scenario.dt_s).round() as u64).max(1);
+    let window_steps = ((window / loaded.scenario.dt_s).round() as u64).max(1);
     let bar: std::sync::Mutex<Option<crate::progress::Progress>> = Default::default();
-    let e = explain::explain(loaded, &a.metric, window_steps, &|done, total| {
+    let e = explain::explain(loaded, metric, window_steps, &|done, total| {
         let mut b = bar.lock().unwrap_or_else(|p| p.into_inner());
         b.get_or_insert_with(|| crate::progress::Progress::new(total as u64, "replays", false)).set(done as u64);
     })?;
     if let Some(b) = bar.lock().unwrap_or_else(|p| p.into_inner()).as_ref() {
         b.finish();
     }
-    print!("{}", table(loaded, &e, a.top));
+    print!("{}", table(loaded, &e, top));
     Ok(())
 }
 

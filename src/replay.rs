@@ -40,7 +40,7 @@ pub struct ReplayArgs {
 pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
     let loaded = replay::load(&a.run)?;
     if a.explain {
-        return crate::explain::run(a, &loaded);
+        return crate::explain::run(&loaded, &a.metric, a.window, a.top);
     }
     let (ok, text) = check(&loaded, a.out.as_deref())?;
     print!("{text}");

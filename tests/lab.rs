@@ -120,6 +120,20 @@ fn steps_recorded(tag: &str, r: &Run, steps: usize) {
     }
 }
 
+/// `formation replay` re-computes the run from its hearing record into its
+/// CSVs and summary.json, byte for byte (issue 25).
+fn replays_byte_for_byte(tag: &str, r: &Run) {
+    let o = Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(&r.out).output().expect("formation replay");
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success() && text.contains("byte-identical"),
+        "{tag}: the replay differs from the run ({}):\n{text}{}",
+        o.status,
+        String::from_utf8_lossy(&o.stderr)
+    );
+    eprintln!("{tag}: {}", text.lines().next().unwrap_or_default());
+}
+
 fn num(v: &serde_json::Value) -> f64 {
     v.as_f64().unwrap_or(f64::NAN)
 }
@@ -256,6 +270,7 @@ fn follower_3_cut_off(tag: &str, mode: &str, rejoin: &str) -> Option<CutOff> {
     let sets = ["faults+={node=3, from=8, to=11}", rejoin];
     let r = lab(tag, &sets, &["--mode", mode]);
     every_step_recorded(tag, &r);
+    replays_byte_for_byte(tag, &r);
     let (_dir, sim_dir) = sim_on(&BASE, &sets);
     let s = common::json(&sim_dir, "summary.json");
     let mut others = Vec::new();
@@ -535,6 +550,9 @@ fn an_agent_killed_and_restarted_goes_unnoticed_by_the_others() {
 /// The lab run of the restart tests, with its own checks.
 fn restarted(tag: &str) -> Run {
     let r = lab(tag, &[], &["--restart-agent", "3@8:2"]);
+    // Its killed process's last telemetry is lost; its neighbours rescued
+    // the messages of it they used, so every row is replayed.
+    replays_byte_for_byte(tag, &r);
     let lab_json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(r.out.join("lab.json")).expect("lab.json")).expect("lab.json");
     let back = num(&lab_json["events"][1]["performed_s"]);
@@ -623,6 +641,7 @@ fn lockstep_restart(victim: &str, tag: &str) {
             "follower {id}: row {first:?} differs from the simulator's before the restart at {resumed} s"
         );
     }
+    replays_byte_for_byte(tag, &r);
     eprintln!("lock-step restart: follower {victim} resumed at t = {resumed} s, the run completed");
 }
 
@@ -780,4 +799,54 @@ fn two_sites_cut_apart_behave_as_the_model_predicts() {
         worst_abs
     );
     common::judge_if_quiet("two sites cut apart", &wrong, r.host, &older_messages(&r));
+}
+
+/// Issue 25: a bad cable between followers 2 and 4 that the scenario does
+/// not know of (30 % of their packets dropped; peer mode, so TCP delivers
+/// their messages late). `formation replay --explain` ranks one direction
+/// of that link first and the two together explain at least 80 % of the
+/// extra torque variation. Measured in two runs: 4 → 2 first with 90.4 %
+/// and 90.9 %, 2 → 4 second with 8.4 % and 12.3 % (9.3 % and 11.9 % of all
+/// link-steps heard late or not at all).
+#[test]
+fn a_slow_link_is_the_one_explain_ranks_first() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    let tag = "lab-slow-link";
+    let r = lab_on(
+        &["timing=realtime", "network.delay_steps=1", "duration=10"],
+        tag,
+        &[],
+        &["--mode", "peer", "--slow-link", "2:4=30"],
+    );
+    replays_byte_for_byte(tag, &r);
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["replay", "--explain", "--top", "20"])
+        .arg(&r.out)
+        .output()
+        .expect("formation replay --explain");
+    let text = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(o.status.success(), "{tag}: --explain failed: {}", String::from_utf8_lossy(&o.stderr));
+    // The link table: "rank  link  steps differing  explained  share".
+    let rows: Vec<(String, f64)> = text
+        .split("links, by what")
+        .nth(1)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            let rank = f.first()?.parse::<usize>().ok()?;
+            let arrow = f.iter().position(|w| *w == "→")?;
+            let share = f.get(f.len().checked_sub(2)?)?.parse::<f64>().ok()?;
+            (rank > 0).then(|| (format!("{} → {}", f[arrow - 1], f[arrow + 1]), share / 100.0))
+        })
+        .collect();
+    let pair = ["2 → 4", "4 → 2"];
+    let first = rows.first().map(|r| r.0.clone()).unwrap_or_default();
+    let together: f64 = rows.iter().filter(|(l, _)| pair.contains(&l.as_str())).map(|(_, s)| s).sum();
+    assert!(pair.contains(&first.as_str()), "{tag}: the first link is {first:?}, not the slow one:\n{text}");
+    assert!(together >= 0.8, "{tag}: the slow link explains {:.1} % (80 % wanted):\n{text}", 100.0 * together);
+    eprintln!("{tag}: {first} first; the 2–4 link explains {:.1} %", 100.0 * together);
 }

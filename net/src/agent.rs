@@ -359,6 +359,7 @@ pub async fn run_follower(
         rejoin_after_steps: scenario.control.rejoin.after_steps,
         first_step,
         resumed,
+        hearing_record: scenario.network.hearing_record,
         latest,
         start,
         timebase: timebase.clone(),
@@ -461,6 +462,8 @@ struct LoopCtx {
     first_step: u64,
     /// A restart: where it resumed (the hearing record's).
     resumed: Option<Resume>,
+    /// `network.hearing_record`.
+    hearing_record: bool,
     /// The robot's latest pose, for the checkpoint writer.
     latest: checkpoint::Latest,
     start: Start,
@@ -583,7 +586,8 @@ fn control_loop(
     let mut batch: Vec<FollowerSample> = Vec::with_capacity(c.batch);
     // The hearing record of the batch's steps.
     let slots = c.neighbours + usize::from(c.has_leader);
-    let mut ear = EarLog::new(c.source_ids.clone(), RESCUE_BATCHES * c.batch);
+    let mut ear =
+        if c.hearing_record { EarLog::new(c.source_ids.clone(), RESCUE_BATCHES * c.batch) } else { EarLog::off() };
     let mut first_k = c.first_step;
     for k in c.first_step..=c.steps {
         let last = k == c.steps;
@@ -630,12 +634,14 @@ fn control_loop(
                             missing().0,
                             c.stall_timeout.as_secs_f64()
                         ));
-                        // A sender that keeps us waiting may be gone, with its last telemetry.
+                    }
+                    if repeat {
+                        // A sender that keeps us waiting may be gone, with its
+                        // last telemetry: its messages we used go to the
+                        // monitor (once: the rescue empties what was kept).
                         for s in inbox.missing(k) {
                             ear.rescue(s);
                         }
-                    }
-                    if repeat {
                         // Safety net for messages lost on the way: say again
                         // what the neighbours still need.
                         let slowest = inbox.slowest_heard(c.neighbours);

@@ -24,6 +24,8 @@ pub struct EarLog {
     was_heard: Vec<bool>,
     source_ids: Vec<u32>,
     rescued: Vec<Rescued>,
+    /// `network.hearing_record = false`: nothing is recorded.
+    on: bool,
 }
 
 /// Runs per source a batch has room for before it grows (a real-time run
@@ -43,13 +45,23 @@ impl EarLog {
             was_heard: vec![false; slots],
             source_ids,
             rescued: Vec::new(),
+            on: true,
         }
+    }
+
+    /// Records nothing (`network.hearing_record = false`): every batch's
+    /// record is empty.
+    pub fn off() -> Self {
+        Self { on: false, ..Self::new(Vec::new(), 1) }
     }
 
     /// What `slot` gave the step being recorded: `used` is the message of
     /// step `stamp` when it was heard. Call for every slot, in slot order,
     /// then [`EarLog::end_step`].
     pub fn note(&mut self, slot: usize, heard: Heard, used: Option<(u64, &Message)>) {
+        if !self.on {
+            return;
+        }
         self.runs.push_one(slot, heard);
         let now = used.is_some();
         if let Some((stamp, m)) = used {
@@ -68,12 +80,18 @@ impl EarLog {
     }
 
     pub fn end_step(&mut self) {
+        if !self.on {
+            return;
+        }
         self.runs.end_step();
     }
 
     /// Sends the last messages used of `slot` with the next batch (a
     /// source that keeps a lock-step follower waiting).
     pub fn rescue(&mut self, slot: usize) {
+        if !self.on {
+            return;
+        }
         let source = self.source_ids[slot];
         self.rescued.extend(self.recent[slot].drain(..).map(|(stamp, m)| Rescued {
             source,
@@ -125,6 +143,16 @@ mod tests {
         assert_eq!(rescued[3].state.v, 10.0);
         let (next, again) = e.take();
         assert_eq!((next.steps, again.len()), (0, 0));
+    }
+
+    #[test]
+    fn switched_off_it_records_nothing() {
+        let mut e = EarLog::off();
+        e.note(0, Heard::Age(1), None);
+        e.end_step();
+        e.rescue(0);
+        let (runs, rescued) = e.take();
+        assert_eq!((runs.steps, runs.slots.len(), rescued.len()), (0, 0, 0));
     }
 
     #[test]

@@ -564,14 +564,17 @@ impl Recorder {
                     self.malformed += 1;
                     return Ok(());
                 };
-                // The hearing record covers the batch's steps, one entry per source.
+                // The hearing record covers the batch's steps, one entry per source
+                // (none with `network.hearing_record = false`).
                 let slots = self.followers[index].hearing.sources.len();
-                if heard.steps as usize != samples.len() || heard.slots.len() != slots || !heard.is_consistent() {
+                let recording = self.scenario.network.hearing_record;
+                let (want_steps, want_slots) = if recording { (samples.len(), slots) } else { (0, 0) };
+                if heard.steps as usize != want_steps || heard.slots.len() != want_slots || !heard.is_consistent() {
                     self.malformed += 1;
                     return Ok(());
                 }
-                let samples: Vec<_> =
-                    samples.into_iter().zip(heard.expand()).map(|(s, h)| (s, h.into_boxed_slice())).collect();
+                let mut per_step = heard.expand().into_iter().map(Vec::into_boxed_slice);
+                let samples: Vec<_> = samples.into_iter().map(|s| (s, per_step.next().unwrap_or_default())).collect();
                 let ok = |k: u64, (s, _): &(FollowerSample, Box<[Heard]>)| s.k == k && s.is_finite();
                 let Some((samples, cut)) = check_batch(samples, first_k, steps, batch, ok) else {
                     self.malformed += 1;
@@ -617,7 +620,9 @@ impl Recorder {
                     f.hearing.end = End::Completed;
                 }
                 for (k, (sample, heard)) in fresh {
-                    f.hearing.push(k, &heard);
+                    if recording {
+                        f.hearing.push(k, &heard);
+                    }
                     f.pending.push_back(sample);
                 }
             }
@@ -1035,6 +1040,9 @@ impl Recorder {
     /// The hearing record of what has been received (with the scenario set
     /// by [`Recorder::set_source`]).
     pub fn hearing_record(&self) -> Option<HearingRecord> {
+        if !self.scenario.network.hearing_record {
+            return None;
+        }
         Some(HearingRecord {
             format: formation_record::hearing::HEARING_FORMAT,
             scenario: self.source.clone()?,

@@ -38,8 +38,11 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
         return Err(Error::Input(format!("{}: no such run folder", dir.display())));
     }
     if !dir.join(HEARING_FILE).is_file() {
-        let why = if dir.join("network.json").is_file() {
-            "a networked run recorded before hearing records existed"
+        let off = std::fs::read_to_string(dir.join("network.json")).ok();
+        let why = if off.as_deref().is_some_and(|t| t.contains("\"hearing_record\": false")) {
+            "the run was recorded with network.hearing_record = false"
+        } else if off.is_some() {
+            "a networked run recorded before hearing records existed, or with network.hearing_record = false"
         } else {
             "not a networked run (formation sim needs no replay: it is deterministic)"
         };
@@ -348,6 +351,12 @@ impl Sink for Folder {
 /// Re-computes the run into the folder `out` (CSVs, `summary.json`, and a
 /// copy of the hearing record); returns what could not be re-computed.
 pub fn replay_to_folder(loaded: &Loaded, out: &Path) -> Result<Vec<Problem>, Error> {
+    replay_to_folder_with(loaded, Hearing::Recorded, out)
+}
+
+/// [`replay_to_folder`] with another hearing (the model's: the folder
+/// `formation sim` writes for the scenario).
+pub fn replay_to_folder_with(loaded: &Loaded, hearing: Hearing, out: &Path) -> Result<Vec<Problem>, Error> {
     let d = loaded.record.density;
     let opts = RecordOptions { dir: out.to_path_buf(), every: d.every, csv: d.csv, mcap: false };
     let mut recorder = Recorder::new(&loaded.scenario, &opts)?;
@@ -356,7 +365,7 @@ pub fn replay_to_folder(loaded: &Loaded, out: &Path) -> Result<Vec<Problem>, Err
         recorder.replayed_hearing(i, &f.resumes, f.end.clone());
     }
     let mut sink = Folder { recorder };
-    let problems = replay(loaded, Hearing::Recorded, &mut sink)?;
+    let problems = replay(loaded, hearing, &mut sink)?;
     sink.recorder.finish(crate::watch::Ending::Complete)?;
     Ok(problems)
 }

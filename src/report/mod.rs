@@ -16,6 +16,7 @@
 //! N/A with the reason, never PASS.
 
 pub mod case;
+mod explain;
 pub mod faults;
 mod network;
 pub mod plots;
@@ -122,6 +123,7 @@ pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBu
     md += &link_faults.markdown;
     let networked: Vec<&Case> = cases.iter().filter(|c| c.networked).collect();
     md += &network::write(out, &networked)?;
+    md += &explain::write(out, &networked)?;
     let path = out.join("report.md");
     fs::write(&path, md).map_err(at_path(&path, "cannot write"))?;
     Ok((path, Written { claims: tables.claims, faults: link_faults.terminal }))

@@ -235,6 +235,10 @@ pub struct NetworkFile {
     /// the message rate low).
     #[serde(default = "d::telemetry_batch")]
     pub telemetry_batch: u32,
+    /// Followers record which step's message they used of each source at
+    /// each step (`hearing.bin`, for `formation replay`).
+    #[serde(default = "d::hearing_record")]
+    pub hearing_record: bool,
     /// After isolation: `consensus` (the paper's law) or `adopt` (docs/model.md §14).
     #[serde(default = "d::rejoin")]
     pub rejoin: String,
@@ -373,6 +377,7 @@ default_impl!(NetworkFile {
     silence_timeout: d::silence_timeout(),
     time_scale: d::time_scale(),
     telemetry_batch: d::telemetry_batch(),
+    hearing_record: d::hearing_record(),
     rejoin: d::rejoin(),
     rejoin_after: d::rejoin_after(),
     delay_steps: 0
@@ -491,6 +496,9 @@ mod d {
     }
     pub fn telemetry_batch() -> u32 {
         50
+    }
+    pub fn hearing_record() -> bool {
+        true
     }
     pub fn rejoin() -> String {
         "consensus".into()

@@ -51,6 +51,8 @@ pub struct NetworkSettings {
     pub silence_timeout_s: f64,
     pub time_scale: f64,
     pub telemetry_batch: u32,
+    /// Followers record their hearing for `formation replay`.
+    pub hearing_record: bool,
     /// At step k a follower uses its sources' messages of step k − d.
     pub delay_steps: u64,
 }
@@ -908,6 +910,7 @@ fn validate(
             silence_timeout_s: n.silence_timeout,
             time_scale: n.time_scale,
             telemetry_batch: n.telemetry_batch,
+            hearing_record: n.hearing_record,
             delay_steps: n.delay_steps,
         },
         faults,
