@@ -57,6 +57,10 @@ pub enum Command {
     /// heard (its run folder's hearing.bin), byte for byte; with --explain,
     /// where and why the run departed from its model.
     Replay(crate::replay::ReplayArgs),
+    /// Play a finished networked run again on the live page (--web) or to
+    /// Foxglove (--foxglove): --replay RUN_DIR, at --speed, with pause and
+    /// seek on the page.
+    Monitor(crate::replay::PlaybackArgs),
     /// A single node of a networked run (used by `launch`).
     #[command(hide = true)]
     Node(crate::node::NodeCommand),
@@ -191,6 +195,7 @@ pub fn main() -> ExitCode {
         Command::Certs(a) => crate::certs::run(&a),
         Command::Generate(a) => generate(&a),
         Command::Replay(a) => crate::replay::run(&a),
+        Command::Monitor(a) => crate::replay::playback(&a),
         Command::Node(a) => return crate::node::run(a.node),
     };
     match result {

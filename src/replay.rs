@@ -98,3 +98,88 @@ pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(bool, St
     }
     Ok((diffs.is_empty(), text))
 }
+
+/// `formation monitor --replay RUN_DIR`: a finished run played again.
+#[derive(Args, Debug)]
+pub struct PlaybackArgs {
+    /// The networked run folder to play (its hearing.bin).
+    #[arg(long = "replay", value_name = "RUN_DIR", required = true)]
+    pub run: PathBuf,
+    #[command(flatten)]
+    pub web: formation_net::monitor::WebArgs,
+    /// Run seconds per wall-clock second (the page can change it).
+    #[arg(long, default_value_t = 1.0, value_name = "X")]
+    pub speed: f64,
+    /// After the end, keep the page and its controls this long (a seek or
+    /// play starts again), then exit.
+    #[arg(long, default_value_t = 600.0, value_name = "SECONDS")]
+    pub linger: f64,
+}
+
+/// Plays a finished run on the live page and to Foxglove.
+pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
+    use formation_net::playback::{self, Control, Outputs};
+    let loaded = replay::load(&a.run)?;
+    if a.web.web.is_none() && a.web.foxglove.is_none() {
+        return Err(CliError::Input(
+            "formation monitor --replay: give --web, --foxglove or both (where to play it)".into(),
+        ));
+    }
+    if !(a.speed.is_finite() && a.speed > 0.0 && a.speed <= playback::MAX_SPEED) {
+        return Err(CliError::Input(format!(
+            "--speed must be above 0 and at most {}, not {}",
+            playback::MAX_SPEED,
+            a.speed
+        )));
+    }
+    if !(a.linger.is_finite() && a.linger >= 0.0) {
+        return Err(CliError::Input(format!("--linger must be 0 or more seconds, not {}", a.linger)));
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
+    let run = a.run.file_name().map_or("run".to_string(), |n| n.to_string_lossy().into_owned());
+    let s = loaded.scenario.clone();
+    runtime.block_on(async move {
+        let (tx, rx) = std::sync::mpsc::channel::<Control>();
+        let live = match a.web.web {
+            Some(addr) => {
+                let mut scene: serde_json::Value =
+                    serde_json::from_str(&formation_net::monitor::Recorder::scene_json(&s, &run)).unwrap_or_default();
+                scene["playback"] =
+                    serde_json::json!({"duration": s.steps() as f64 * s.dt_s, "speed": a.speed, "from": a.run.display().to_string()});
+                let live = formation_net::web::Live::new(scene.to_string());
+                let at = formation_net::web::serve(formation_net::web::Bind::Tcp(addr), live.clone()).await?;
+                live.set_control(Box::new(move |body| Control::parse(body).is_some_and(|c| tx.send(c).is_ok())));
+                eprintln!("live page: {at} (playing {} at {}×)", a.run.display(), a.speed);
+                Some(live)
+            }
+            None => None,
+        };
+        let foxglove = match a.web.foxglove {
+            Some(addr) => {
+                let f = formation_net::foxglove::FoxgloveLive::start(addr, &s, &run).await?;
+                eprintln!("foxglove: ws://{}:{}", addr.ip(), f.port());
+                Some(f)
+            }
+            None => None,
+        };
+        let (speed, linger) = (a.speed, std::time::Duration::from_secs_f64(a.linger));
+        let task = tokio::task::spawn_blocking(move || {
+            let out = Outputs { live };
+            playback::play(&loaded, speed, &out, foxglove, &rx, linger)
+        });
+        tokio::select! {
+            r = task => {
+                let fox = r.map_err(|e| CliError::Run(format!("the playback stopped: {e}")))??;
+                if let Some(f) = fox {
+                    f.stop().await;
+                }
+                Ok(())
+            }
+            _ = tokio::signal::ctrl_c() => Ok(()),
+        }
+    })
+}

@@ -54,6 +54,85 @@ fn a_real_time_run_replays_byte_for_byte() {
         );
     }
     eprintln!("real time: hearing.bin {record} B, {:.3} % of the CSVs", 100.0 * share);
+    plays_on_the_live_page(&out);
+}
+
+/// One HTTP/1.1 request on 127.0.0.1:`port`; the whole response (or what
+/// came within `limit`).
+fn http(port: u16, request: &str, limit: Duration) -> String {
+    use std::io::{Read, Write};
+    let Ok(mut s) = std::net::TcpStream::connect(("127.0.0.1", port)) else { return String::new() };
+    let _ = s.set_read_timeout(Some(Duration::from_millis(100)));
+    let _ = s.write_all(request.as_bytes());
+    let (mut out, mut buf, t) = (Vec::new(), [0u8; 8192], std::time::Instant::now());
+    while t.elapsed() < limit {
+        match s.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => out.extend_from_slice(&buf[..n]),
+            Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {}
+            Err(_) => break,
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+fn post(port: u16, body: &str) -> String {
+    let r = http(
+        port,
+        &format!(
+            "POST /api/control HTTP/1.1\r\nHost: x\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+            body.len()
+        ),
+        Duration::from_secs(2),
+    );
+    r.lines().next().unwrap_or_default().to_string()
+}
+
+/// The live page's frames for `ms` milliseconds: (t, paused, epoch).
+fn frames(port: u16, ms: u64) -> Vec<(f64, bool, u64)> {
+    let text = http(port, "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n", Duration::from_millis(ms));
+    text.lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l.strip_prefix("data:")?.trim()).ok())
+        .filter_map(|v| Some((v["t"].as_f64()?, v["playback"]["paused"].as_bool()?, v["playback"]["epoch"].as_u64()?)))
+        .collect()
+}
+
+/// `formation monitor --replay RUN_DIR --web`: the run plays on the live
+/// page at the speed asked; it pauses, seeks back (a new epoch, from the
+/// time asked) and forward, and refuses a control it does not know.
+fn plays_on_the_live_page(run: &Path) {
+    let port = 18540;
+    let run_s = run.display().to_string();
+    let addr = format!("127.0.0.1:{port}");
+    let _g = Group::spawn(&["monitor", "--replay", &run_s, "--web", &addr, "--speed", "0.5", "--linger", "30"]);
+    let t = std::time::Instant::now();
+    let mut scene = String::new();
+    while t.elapsed() < Duration::from_secs(10) && !scene.contains("playback") {
+        scene = http(port, "GET /api/scene HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", Duration::from_secs(1));
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(scene.contains("\"duration\":4.0"), "the scene does not offer a 4 s playback: {scene}");
+    let playing = frames(port, 700);
+    let ts: Vec<f64> = playing.iter().map(|f| f.0).collect();
+    assert!(ts.len() >= 5 && ts.last() > ts.first(), "the playback does not advance: {playing:?}");
+    assert!(playing.iter().all(|f| !f.1), "paused without being asked: {playing:?}");
+    // At 0.5×, 0.7 s of wall time is 0.35 s of run time (generous bounds: a busy machine).
+    let rate = (ts[ts.len() - 1] - ts[0]) / 0.7;
+    assert!(rate > 0.1 && rate < 0.8, "played at {rate:.2}× instead of 0.5× ({playing:?})");
+    assert!(post(port, r#"{"pause": true}"#).contains("204"), "pause refused");
+    std::thread::sleep(Duration::from_millis(200));
+    let paused = frames(port, 500);
+    assert!(!paused.is_empty() && paused.iter().all(|f| f.1), "not paused: {paused:?}");
+    assert!(paused.windows(2).all(|w| w[0].0 == w[1].0), "paused, yet t moves: {paused:?}");
+    assert!(post(port, r#"{"seek": 0.25}"#).contains("204"), "seek refused");
+    std::thread::sleep(Duration::from_millis(500));
+    let back = frames(port, 400);
+    assert!(back.iter().any(|f| (f.0 - 0.25).abs() < 0.01 && f.2 >= 1), "no seek back to 0.25 s: {back:?}");
+    assert!(post(port, r#"{"seek": 3.5}"#).contains("204"), "seek refused");
+    std::thread::sleep(Duration::from_millis(500));
+    let ahead = frames(port, 400);
+    assert!(ahead.iter().any(|f| (f.0 - 3.5).abs() < 0.01), "no seek forward to 3.5 s: {ahead:?}");
+    assert!(post(port, "junk").contains("400"), "a control it does not know was taken");
 }
 
 /// The record's codes for follower `id`'s slot, step by step, with the

@@ -13,7 +13,7 @@
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`] (with [`web`] and [`foxglove`]), [`router`] |
-//! | a run again | [`replay`] (on the monitor's recorder), [`explain`] |
+//! | a run again | [`replay`] (on the monitor's recorder), [`explain`], [`playback`] |
 
 pub mod agent;
 pub mod barrier;
@@ -36,6 +36,7 @@ pub mod limits;
 pub mod monitor;
 pub mod names;
 pub mod node;
+pub mod playback;
 pub mod replay;
 pub mod router;
 pub mod session;

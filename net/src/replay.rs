@@ -185,6 +185,10 @@ pub trait Sink {
     fn step_done(&mut self, _k: u64) -> Result<(), Error> {
         Ok(())
     }
+    /// Stop the replay here (a playback that seeks backwards starts again).
+    fn stop(&self) -> bool {
+        false
+    }
 }
 
 /// What a replay could not re-compute: the rows it lacks name it.
@@ -318,6 +322,9 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
             sink.follower(i, k, &sample, &heard)?;
         }
         sink.step_done(k)?;
+        if sink.stop() {
+            break;
+        }
         leader.advance(&state, dt);
     }
     Ok(problems)

@@ -77,18 +77,34 @@ impl History {
     }
 }
 
+/// What a playback does with a control request's body (`POST /api/control`):
+/// whether it took it.
+pub type ControlFn = Box<dyn Fn(&str) -> bool + Send + Sync>;
+
 /// What the server shares with the monitor.
 pub struct Live {
     scene: String,
     latest: watch::Sender<Arc<str>>,
     history: Mutex<History>,
+    /// A playback's controls (pause, speed, seek); none for a live run.
+    control: Mutex<Option<ControlFn>>,
 }
 
 impl Live {
     /// `scene`: the JSON of `GET /api/scene`.
     pub fn new(scene: String) -> Arc<Self> {
         let (latest, _) = watch::channel(Arc::from("{}"));
-        Arc::new(Self { scene, latest, history: Mutex::new(History::default()) })
+        Arc::new(Self { scene, latest, history: Mutex::new(History::default()), control: Mutex::new(None) })
+    }
+
+    /// A playback: `POST /api/control` bodies go to `f`.
+    pub fn set_control(&self, f: ControlFn) {
+        *self.control.lock().unwrap_or_else(|p| p.into_inner()) = Some(f);
+    }
+
+    /// Forgets the frames kept for late viewers (a playback that starts again).
+    pub fn reset_history(&self) {
+        *self.history.lock().unwrap_or_else(|p| p.into_inner()) = History::default();
     }
 
     /// Publishes a frame (JSON) to every viewer, and its lighter copy
@@ -121,6 +137,7 @@ pub async fn serve(bind: Bind, live: Arc<Live>) -> Result<String, Error> {
         .route("/api/scene", get(scene))
         .route("/api/history", get(history))
         .route("/api/events", get(events))
+        .route("/api/control", axum::routing::post(control))
         .with_state(live);
     match bind {
         Bind::Tcp(addr) => {
@@ -214,5 +231,18 @@ mod tests {
         assert!(*kept.last().unwrap() >= 9 * HISTORY as u64, "{kept:?}");
         let json: serde_json::Value = serde_json::from_str(&h.json()).expect("valid JSON");
         assert_eq!(json["frames"].as_array().map(Vec::len), Some(kept.len()));
+    }
+}
+
+/// `POST /api/control`: a playback's pause, play, speed or seek.
+async fn control(State(live): State<Arc<Live>>, body: String) -> axum::http::StatusCode {
+    use axum::http::StatusCode;
+    if body.len() > 1024 {
+        return StatusCode::PAYLOAD_TOO_LARGE;
+    }
+    match &*live.control.lock().unwrap_or_else(|p| p.into_inner()) {
+        None => StatusCode::NOT_FOUND,
+        Some(f) if f(&body) => StatusCode::NO_CONTENT,
+        Some(_) => StatusCode::BAD_REQUEST,
     }
 }
