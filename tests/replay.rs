@@ -38,7 +38,7 @@ fn a_real_time_run_replays_byte_for_byte() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("rt");
     let sets = ["timing=realtime", "network.delay_steps=1", "duration=4"];
-    let mut g = Group::launch(&out, &sets, &["--base-port", "18500", "--run", "replay-rt"]);
+    let mut g = Group::launch(&out, &sets, &["--base-port", "18500", "--run", "replay-rt", "--mcap"]);
     assert!(g.wait(Duration::from_secs(90)).success(), "formation launch failed");
     let (ok, text) = replay_cli(&[], &out);
     assert!(ok && text.contains("byte-identical"), "the replay differs from the real-time run:\n{text}");
@@ -54,6 +54,18 @@ fn a_real_time_run_replays_byte_for_byte() {
         );
     }
     eprintln!("real time: hearing.bin {record} B, {:.3} % of the CSVs", 100.0 * share);
+    // run.mcap's /hearing: one message per run of the record.
+    let rec = HearingRecord::read(&out).expect("hearing.bin");
+    let runs: usize = rec.followers.iter().flat_map(|f| &f.segments).map(|s| s.heard.runs()).sum();
+    let bytes = std::fs::read(out.join("run.mcap")).expect("run.mcap");
+    let heard: Vec<serde_json::Value> = mcap::MessageStream::new(&bytes)
+        .expect("an MCAP file")
+        .filter_map(|m| m.ok())
+        .filter(|m| m.channel.topic == "/hearing")
+        .filter_map(|m| serde_json::from_slice(&m.data).ok())
+        .collect();
+    assert_eq!(heard.len(), runs, "run.mcap's /hearing has {} messages, hearing.bin {runs} runs", heard.len());
+    assert!(heard.iter().all(|v| v["heard"].is_string() && v["follower"].is_u64()), "{:?}", heard.first());
     plays_on_the_live_page(&out);
 }
 

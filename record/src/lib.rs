@@ -6,8 +6,7 @@
 //! same rows, the same numbers.
 //!
 //! Modules, each using only those listed before it: [`row`], [`columns`],
-//! [`outage`], [`metrics`], [`summary`], [`mcap`], [`folder`]; [`hearing`] stands
-//! alone.
+//! [`outage`], [`metrics`], [`summary`], [`hearing`], [`mcap`], [`folder`].
 
 pub mod columns;
 pub mod folder;

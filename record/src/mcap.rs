@@ -15,6 +15,7 @@
 //! | `/network/events` | `formation.NetworkEvent` (`network.json`'s timelines) | event |
 //! | `/network/links` | `formation.LinkStats`: a link's one-way latency and age at use (`network.json`) | receiver and source, at the run's end |
 //! | `/network/clocks` | `formation.ClockEstimate`: a node's estimate of the leader's clock (`network.json`) | node, at the run's end |
+//! | `/hearing` | `formation.Heard`: which step's message a follower used of a source (`hearing.bin`) | change of a link's hearing |
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -207,6 +208,55 @@ pub fn write(dir: &Path, ids: &[u32]) -> std::io::Result<()> {
             }
         }
     }
+    hearing(dir, &mut out)?;
     out.w.finish().map_err(err)?;
+    Ok(())
+}
+
+pub const HEARD: &str = r#"{"title":"formation.Heard","type":"object","properties":{
+"follower":{"type":"integer"},"source":{"type":"integer","description":"0: the leader"},
+"t":{"type":"number"},"k":{"type":"integer"},"heard":{"type":"string","description":"age N, silent or removed"},
+"age":{"type":["integer","null"],"description":"steps between the message used and the step"}}}"#;
+
+/// `/hearing`: from the run folder's hearing record, one message each time
+/// what a follower heard of a source changed (`formation replay`'s input).
+fn hearing<W: Write + std::io::Seek>(dir: &Path, out: &mut Out<W>) -> std::io::Result<()> {
+    let Ok(record) = crate::hearing::HearingRecord::read(dir) else { return Ok(()) };
+    let dt = std::fs::read_to_string(dir.join("summary.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<Value>(&t).ok())
+        .and_then(|v| v["dt"].as_f64())
+        .unwrap_or(f64::NAN);
+    if !dt.is_finite() {
+        return Ok(());
+    }
+    let mut changes: Vec<(u64, Value)> = Vec::new();
+    for f in &record.followers {
+        for seg in &f.segments {
+            for (slot, runs) in seg.heard.slots.iter().enumerate() {
+                let mut k = seg.first_k;
+                for &(code, n) in runs {
+                    let h = crate::hearing::Heard::from_code(code);
+                    let age = match h {
+                        crate::hearing::Heard::Age(a) => json!(a),
+                        _ => Value::Null,
+                    };
+                    let t = k as f64 * dt;
+                    let v = json!({"follower": f.id, "source": f.sources.get(slot), "t": t, "k": k, "heard": h.describe(), "age": age});
+                    changes.push((k, v));
+                    k += u64::from(n);
+                }
+            }
+        }
+    }
+    if changes.is_empty() {
+        return Ok(());
+    }
+    changes.sort_by_key(|c| c.0);
+    let ch = out.channel("/hearing", "formation.Heard", HEARD)?;
+    for (k, v) in changes {
+        let (ns, _) = stamp(k as f64 * dt);
+        out.put(ch, ns, &v)?;
+    }
     Ok(())
 }
