@@ -119,7 +119,6 @@ pub struct PlaybackArgs {
 /// Plays a finished run on the live page and to Foxglove.
 pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
     use formation_net::playback::{self, Control, Outputs};
-    let loaded = replay::load(&a.run)?;
     if a.web.web.is_none() && a.web.foxglove.is_none() {
         return Err(CliError::Input(
             "formation monitor --replay: give --web, --foxglove or both (where to play it)".into(),
@@ -135,6 +134,7 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
     if !(a.linger.is_finite() && a.linger >= 0.0) {
         return Err(CliError::Input(format!("--linger must be 0 or more seconds, not {}", a.linger)));
     }
+    let loaded = replay::load(&a.run)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

@@ -450,6 +450,66 @@ fn cases() -> Vec<Case> {
             &["delay_steps", "lock-step"],
         ),
         case("bench with 0 threads", None, &["bench", "--threads", "0"], 2, &["--threads", "0"]),
+        // formation replay and playback (issue 25).
+        case("replay of no folder", None, &["replay", "{dir}/missing"], 2, &["missing", "no such run folder"]),
+        case("replay of a simulator's run", None, &["replay", "{dir}/simrun"], 2, &["no hearing.bin", "formation sim"]),
+        case(
+            "replay of a garbage record",
+            None,
+            &["replay", "{dir}/garbage"],
+            2,
+            &["hearing.bin", "not a hearing record"],
+        ),
+        case(
+            "replay of another format's record",
+            None,
+            &["replay", "{dir}/format9"],
+            2,
+            &["hearing record format 9", "format 1"],
+        ),
+        case(
+            "replay --explain of a garbage record",
+            None,
+            &["replay", "{dir}/garbage", "--explain"],
+            2,
+            &["not a hearing record"],
+        ),
+        case("playback without a page", None, &["monitor", "--replay", "{dir}/garbage"], 2, &["--web, --foxglove"]),
+        case(
+            "playback at speed 0",
+            None,
+            &["monitor", "--replay", "{dir}/garbage", "--web", "--speed", "0"],
+            2,
+            &["--speed", "not 0"],
+        ),
+        case(
+            "playback of no folder",
+            None,
+            &["monitor", "--replay", "{dir}/missing", "--web"],
+            2,
+            &["no such run folder"],
+        ),
+        case(
+            "a slow link in client mode",
+            None,
+            &["lab", "{paper}", "--slow-link", "2:4=30", "--out", "{dir}/out"],
+            2,
+            &["--slow-link 2:4=30", "--mode peer"],
+        ),
+        case(
+            "a slow link to no follower",
+            None,
+            &["lab", "{paper}", "--mode", "peer", "--slow-link", "2:9=30", "--out", "{dir}/out"],
+            2,
+            &["--slow-link 2:9=30", "follower ids"],
+        ),
+        case(
+            "a slow link of 300 %",
+            None,
+            &["lab", "{paper}", "--mode", "peer", "--slow-link", "2:4=300", "--out", "{dir}/out"],
+            2,
+            &["--slow-link 2:4=300", "less than 100"],
+        ),
         case("an unknown command", None, &["fly"], 2, &["fly"]),
         // A run that would write many gigabytes says so before it starts
         // (then stops here: its folder is not a run folder).
@@ -477,6 +537,15 @@ fn check(c: &Case) -> Result<(), String> {
     huge.set_len(17 << 20).unwrap();
     if let Some(text) = &c.file {
         std::fs::write(d.join("s.toml"), text).unwrap();
+    }
+    // Run folders for `formation replay`: a simulator's, a garbage record, another format's.
+    for (folder, file, bytes) in [
+        ("simrun", "summary.json", b"{}".to_vec()),
+        ("garbage", "hearing.bin", vec![1, 2, 3]),
+        ("format9", "hearing.bin", vec![9, 1, 2]),
+    ] {
+        std::fs::create_dir(d.join(folder)).unwrap();
+        std::fs::write(d.join(folder).join(file), bytes).unwrap();
     }
     let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
     let args: Vec<String> = c
