@@ -114,6 +114,7 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
             tls: None,
             mcap: false,
             web: Default::default(),
+            rt_priority: None,
         },
         mode: LaunchMode::Peer,
         base_port: Some(port),

@@ -70,6 +70,31 @@ pub struct RunOptions {
     pub mcap: bool,
     #[command(flatten)]
     pub web: formation_net::monitor::WebArgs,
+    /// Real time: run every node under the OS's real-time scheduling
+    /// (SCHED_FIFO) at this priority, 1–99, so that other work on the
+    /// machine cannot hold a step or a message up (needs root or
+    /// CAP_SYS_NICE). On a 2-core machine with 52 processes it took the
+    /// 50-agent ring from 2–50 late link-steps in 10 s to 0–4.
+    #[arg(long, value_name = "N")]
+    pub rt_priority: Option<u8>,
+}
+
+/// Puts this process (and every process it starts from now on) under
+/// SCHED_FIFO at `priority`.
+fn real_time_scheduling(priority: u8) -> Result<(), CliError> {
+    if !(1..=99).contains(&priority) {
+        return Err(CliError::Input(format!("--rt-priority must be 1 to 99, not {priority}")));
+    }
+    let param = libc::sched_param { sched_priority: i32::from(priority) };
+    // SAFETY: a plain system call on this process with a valid parameter.
+    if unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) } != 0 {
+        let e = std::io::Error::last_os_error();
+        return Err(CliError::Input(format!(
+            "--rt-priority {priority}: the OS refused real-time scheduling ({e}); run as root, with CAP_SYS_NICE, or \
+             with a real-time priority limit (ulimit -r)"
+        )));
+    }
+    Ok(())
 }
 
 impl RunOptions {
@@ -85,6 +110,15 @@ impl RunOptions {
             }
         }
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
+        if let Some(p) = self.rt_priority {
+            if scenario.timing != formation_topology::Timing::Realtime {
+                return Err(CliError::Input(format!(
+                    "--rt-priority {p}: a lock-step run waits for its inputs and has no period to meet (set timing = \
+                     \"realtime\")"
+                )));
+            }
+            real_time_scheduling(p)?;
+        }
         if let Some(dir) = &self.tls {
             // Every node's files, checked before any process starts.
             formation_net::identity::check_all(dir, &scenario).map_err(|e| CliError::Input(e.0))?;

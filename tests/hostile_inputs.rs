@@ -450,6 +450,20 @@ fn cases() -> Vec<Case> {
             &["delay_steps", "lock-step"],
         ),
         case("bench with 0 threads", None, &["bench", "--threads", "0"], 2, &["--threads", "0"]),
+        case(
+            "real-time priority for a lock-step run",
+            None,
+            &["launch", "{paper}", "--rt-priority", "10", "--out", "{dir}/out"],
+            2,
+            &["--rt-priority 10", "lock-step"],
+        ),
+        case(
+            "real-time priority 0",
+            None,
+            &["launch", "{paper}", "--set", "timing=realtime", "--rt-priority", "0", "--out", "{dir}/out"],
+            2,
+            &["--rt-priority must be 1 to 99", "not 0"],
+        ),
         // formation replay and playback (issue 25).
         case("replay of no folder", None, &["replay", "{dir}/missing"], 2, &["missing", "no such run folder"]),
         case("replay of a simulator's run", None, &["replay", "{dir}/simrun"], 2, &["no hearing.bin", "formation sim"]),

@@ -12,8 +12,8 @@ use common::Group;
 const AGENTS: usize = 100;
 
 /// How far the formation's median torque variation may sit from the
-/// simulator's in the 50-agent real-time run (see the test).
-const TORQUE_TV_MEDIAN: f64 = 0.25;
+/// simulator's in the 50-agent real-time run (see the test; issue 25's 3 %).
+const TORQUE_TV_MEDIAN: f64 = 0.03;
 
 #[test]
 fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
@@ -88,12 +88,22 @@ fn hundred_agents_in_lockstep(launch_args: &[&str], duration: f64) {
 /// Torque variation is judged for the formation, not per follower: this
 /// ring is far from converged after 10 s and its torques chatter, so one
 /// follower's torque variation measures how sensitive the chatter is to
-/// the timing of single messages, not the network. Per follower it sat
-/// about 10 % below the simulator's (a coin toss against 10 %: follower 11
-/// 2.21 against 2.49); the formation's median ratio is what must hold.
-/// Measured here on a quiet machine: median 0.90, followers 0.85–1.06,
-/// while the formation metrics agreed to 0.1 %; with a build running beside
-/// it the median was 1.74, and the formation metrics still within 1.6 %.
+/// the timing of single messages. On 2026-11-24 it sat about 10 % below the
+/// simulator's (median 0.90, follower 11 2.21 against 2.49): the run used
+/// many messages a step older than the model assumes, and a lagging
+/// estimate makes this ring's torques smoother (`formation sim` with the
+/// whole ring at network.delay_steps = 2: median −20 %; see
+/// docs/why-did-my-run-differ.md). Since the run's timebase and the
+/// router-only rate limits, the run hears what the model assumes: on
+/// 2026-11-25 every message one step old, summary.json the simulator's byte
+/// for byte (median ratio 1.000); with two CPU-bound processes beside it,
+/// one link-step of 121,121 late (+0.03 %); but in more runs 2, 50, 2 and
+/// 2 late link-steps (scheduling stalls of 10–27 ms: 52 processes on 2
+/// cores) moved the median to 0.996, 0.927, 0.992 and 0.987, so sensitive
+/// is this ring. Under real-time scheduling (`launch --rt-priority 10`):
+/// 0, 0 and 4 late, medians 1.000, 1.000 and 1.005. As root (CI) the
+/// median must be within 3 % with it; otherwise within 25 %. A failure
+/// prints `formation replay --explain`'s ranking of the links.
 #[test]
 fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -109,6 +119,13 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let net = dir.path().join("net");
     let net_s = net.display().to_string();
     let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", "18200", "--run", "rt50"];
+    // As root (CI): every node under real-time scheduling, as a real-time
+    // deployment runs; the 3 % below is judged with it.
+    // SAFETY: geteuid has no preconditions.
+    let root = unsafe { libc::geteuid() } == 0;
+    if root {
+        args.extend(["--rt-priority", "10"]);
+    }
     for s in sets {
         args.extend(["--set", s]);
     }
@@ -135,14 +152,32 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let mut ratios: Vec<f64> = want["followers"].as_object().expect("followers").keys().map(|id| ratio(id)).collect();
     ratios.sort_by(f64::total_cmp);
     let median = ratios.get(ratios.len() / 2).copied().unwrap_or(f64::NAN);
-    if !((median - 1.0).abs() <= TORQUE_TV_MEDIAN) {
+    // Without real-time scheduling a few messages a run come a step late on
+    // a busy 2-core machine (see above): 25 %, as before.
+    let allowed = if root { TORQUE_TV_MEDIAN } else { 0.25 };
+    if !((median - 1.0).abs() <= allowed) {
         bad.push(format!(
-            "the formation's median torque variation is {median:.3} of the simulator's (allowed 1 ± {TORQUE_TV_MEDIAN}; \
+            "the formation's median torque variation is {median:.3} of the simulator's (allowed 1 ± {allowed}; \
              followers {:.3}–{:.3})",
             ratios.first().unwrap_or(&f64::NAN),
             ratios.last().unwrap_or(&f64::NAN)
         ));
     }
-    common::judge_if_quiet("50 agents in real time, against the simulator", &bad, host, "at 100 Hz");
+    let explained = if bad.is_empty() {
+        String::new()
+    } else {
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["replay", "--explain", "--top", "5"])
+            .arg(&net)
+            .output()
+            .expect("formation replay --explain");
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    common::judge_if_quiet(
+        "50 agents in real time, against the simulator",
+        &bad,
+        host,
+        &format!("at 100 Hz\n{explained}"),
+    );
     eprintln!("50 agents in real time: median torque variation ratio {median:.3} (real time over the simulator)");
 }
