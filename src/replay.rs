@@ -65,10 +65,12 @@ pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(bool, St
         }
     };
     let began = std::time::Instant::now();
-    let problems = replay::replay_to_folder(loaded, &dir)?;
+    let s = &loaded.scenario;
+    let mut bar = crate::progress::Progress::new(s.steps() + 1, "replay", false);
+    let problems = replay::replay_to_folder_with(loaded, replay::Hearing::Recorded, &dir, &mut |k| bar.set(k))?;
+    bar.finish();
     let secs = began.elapsed().as_secs_f64();
     let diffs = replay::compare(&loaded.dir, &dir, &loaded.scenario);
-    let s = &loaded.scenario;
     let rows: u64 = loaded.record.followers.iter().map(|f| f.steps()).sum();
     let mut text = format!(
         "replayed {} ({} followers, {rows} follower-steps of {}) in {secs:.2} s\n",
@@ -105,8 +107,16 @@ pub struct PlaybackArgs {
     /// The networked run folder to play (its hearing.bin).
     #[arg(long = "replay", value_name = "RUN_DIR", required = true)]
     pub run: PathBuf,
-    #[command(flatten)]
-    pub web: formation_net::monitor::WebArgs,
+    /// Play it on a live page at this address (open http://ADDR/): pause,
+    /// speed and seek on the page. `--web` alone: 127.0.0.1:8765; port 0:
+    /// any free port (the line `live page: http://…` says which).
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8765")]
+    pub web: Option<std::net::SocketAddr>,
+    /// Play it to Foxglove (Foxglove WebSocket protocol) at this address:
+    /// the channels of run.mcap as they are replayed. `--foxglove` alone:
+    /// 127.0.0.1:8766; port 0: any free port.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8766")]
+    pub foxglove: Option<std::net::SocketAddr>,
     /// Run seconds per wall-clock second (the page can change it).
     #[arg(long, default_value_t = 1.0, value_name = "X")]
     pub speed: f64,
@@ -119,7 +129,7 @@ pub struct PlaybackArgs {
 /// Plays a finished run on the live page and to Foxglove.
 pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
     use formation_net::playback::{self, Control, Outputs};
-    if a.web.web.is_none() && a.web.foxglove.is_none() {
+    if a.web.is_none() && a.foxglove.is_none() {
         return Err(CliError::Input(
             "formation monitor --replay: give --web, --foxglove or both (where to play it)".into(),
         ));
@@ -144,7 +154,7 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
     let s = loaded.scenario.clone();
     runtime.block_on(async move {
         let (tx, rx) = std::sync::mpsc::channel::<Control>();
-        let live = match a.web.web {
+        let live = match a.web {
             Some(addr) => {
                 let mut scene: serde_json::Value =
                     serde_json::from_str(&formation_net::monitor::Recorder::scene_json(&s, &run)).unwrap_or_default();
@@ -158,7 +168,7 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
             }
             None => None,
         };
-        let foxglove = match a.web.foxglove {
+        let foxglove = match a.foxglove {
             Some(addr) => {
                 let f = formation_net::foxglove::FoxgloveLive::start(addr, &s, &run).await?;
                 eprintln!("foxglove: ws://{}:{}", addr.ip(), f.port());

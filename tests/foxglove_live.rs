@@ -184,6 +184,62 @@ async fn foxglove_sees_the_channels_of_a_lockstep_run_as_recorded_and_the_run_st
     // A viewer did not disturb the run: byte for byte the simulator's.
     common::assert_equals_the_simulator(&out, &tmp.path().join("sim"), &sets, "the lock-step run watched in Foxglove");
     g.assert_group_empty();
+    plays_again_to_foxglove(&out).await;
+}
+
+/// `formation monitor --replay RUN_DIR --foxglove` (issue 25): the finished
+/// run played again at 10× from its hearing record; what Foxglove receives
+/// of follower 1 is its recorded rows, step by step, to the final step.
+async fn plays_again_to_foxglove(out: &Path) {
+    let addr = "127.0.0.1:18310";
+    let run = out.display().to_string();
+    let mut g = Group::spawn(&["monitor", "--replay", &run, "--foxglove", addr, "--speed", "10", "--linger", "0"]);
+    let t0 = Instant::now();
+    let mut ws = loop {
+        let mut req = format!("ws://{addr}").into_client_request().expect("request");
+        req.headers_mut().insert("sec-websocket-protocol", "foxglove.sdk.v1".parse().expect("header"));
+        match tokio_tungstenite::connect_async(req).await {
+            Ok((ws, _)) => break ws,
+            Err(e) => {
+                assert!(t0.elapsed() < common::LIMIT, "no Foxglove playback at {addr}: {e}");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }
+    };
+    let channel = loop {
+        let m = tokio::time::timeout(Duration::from_secs(20), ws.next()).await.expect("advertise").expect("open");
+        if let Ok(Message::Text(text)) = m {
+            let v: Value = serde_json::from_str(text.as_str()).expect("JSON");
+            let found = v["channels"].as_array().into_iter().flatten().find(|c| c["topic"] == "/follower_1/state");
+            if let Some(c) = found {
+                break c["id"].clone();
+            }
+        }
+    };
+    ws.send(Message::text(json!({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channel}]}).to_string()))
+        .await
+        .expect("subscribe");
+    let mut got = Vec::new();
+    loop {
+        match tokio::time::timeout(Duration::from_secs(30), ws.next()).await {
+            Ok(Some(Ok(Message::Binary(b)))) => got.extend(message_frame(&b)),
+            Ok(Some(Ok(Message::Close(_)))) | Ok(None) | Ok(Some(Err(_))) => break,
+            Ok(Some(Ok(_))) => {}
+            Err(_) => panic!("nothing from the Foxglove playback for 30 s"),
+        }
+    }
+    assert!(g.wait(Duration::from_secs(60)).success(), "formation monitor --replay --foxglove failed");
+    let (names, f1) = csv(out, "follower_1.csv");
+    // 20 s at 10×: 2 s of wall time, at up to 50 messages per run second.
+    assert!(got.len() >= 200, "only {} messages of /follower_1/state in the playback", got.len());
+    for (_, ns, v) in &got {
+        let k = (*ns / 1_000_000) as usize;
+        for (c, name) in names.iter().enumerate() {
+            assert_eq!(v[name].as_f64(), Some(f1[k][c]), "played /follower_1/state at step {k}: {name}: {v}");
+        }
+    }
+    assert_eq!(got.last().map(|m| m.1), Some(20_000_000_000), "the final step was not played");
+    eprintln!("foxglove playback: {} messages of /follower_1/state, every one the recorded row", got.len());
 }
 
 #[test]

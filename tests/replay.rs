@@ -253,7 +253,7 @@ fn the_models_hearing_replays_into_the_simulators_folder() {
     let dir = tempfile::tempdir().expect("tempdir");
     let loaded = Loaded { dir: dir.path().join("none"), scenario, record };
     let model = dir.path().join("model");
-    let problems = replay::replay_to_folder_with(&loaded, Hearing::Model, &model).expect("replay");
+    let problems = replay::replay_to_folder_with(&loaded, Hearing::Model, &model, &mut |_| {}).expect("replay");
     assert!(problems.is_empty(), "{problems:?}");
     let opts = formation_record::RecordOptions { dir: dir.path().join("sim"), every: 1, csv: true, mcap: false };
     formation_sim::run_to_folder(&loaded.scenario, &opts, 1, |_| {}).expect("sim");

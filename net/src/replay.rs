@@ -338,11 +338,12 @@ impl Recorded {
 }
 
 /// A replay into a run folder through the monitor's [`Recorder`].
-struct Folder {
+struct Folder<'p> {
     recorder: Recorder,
+    progress: &'p mut dyn FnMut(u64),
 }
 
-impl Sink for Folder {
+impl Sink for Folder<'_> {
     fn leader(&mut self, k: u64, state: &LeaderState, recorded: bool) -> Result<(), Error> {
         self.recorder.replayed_leader(k, recorded.then_some(state)).map_err(Error::from)
     }
@@ -350,7 +351,10 @@ impl Sink for Folder {
         self.recorder.replayed_follower(index, k, *sample, heard);
         Ok(())
     }
-    fn step_done(&mut self, _k: u64) -> Result<(), Error> {
+    fn step_done(&mut self, k: u64) -> Result<(), Error> {
+        if k % 1000 == 0 {
+            (self.progress)(k);
+        }
         self.recorder.settle().map_err(Error::from)
     }
 }
@@ -358,12 +362,18 @@ impl Sink for Folder {
 /// Re-computes the run into the folder `out` (CSVs, `summary.json`, and a
 /// copy of the hearing record); returns what could not be re-computed.
 pub fn replay_to_folder(loaded: &Loaded, out: &Path) -> Result<Vec<Problem>, Error> {
-    replay_to_folder_with(loaded, Hearing::Recorded, out)
+    replay_to_folder_with(loaded, Hearing::Recorded, out, &mut |_| {})
 }
 
 /// [`replay_to_folder`] with another hearing (the model's: the folder
 /// `formation sim` writes for the scenario).
-pub fn replay_to_folder_with(loaded: &Loaded, hearing: Hearing, out: &Path) -> Result<Vec<Problem>, Error> {
+/// `progress(k)` every 1000 steps.
+pub fn replay_to_folder_with(
+    loaded: &Loaded,
+    hearing: Hearing,
+    out: &Path,
+    progress: &mut dyn FnMut(u64),
+) -> Result<Vec<Problem>, Error> {
     let d = loaded.record.density;
     let opts = RecordOptions { dir: out.to_path_buf(), every: d.every, csv: d.csv, mcap: false };
     let mut recorder = Recorder::new(&loaded.scenario, &opts)?;
@@ -371,7 +381,7 @@ pub fn replay_to_folder_with(loaded: &Loaded, hearing: Hearing, out: &Path) -> R
     for (i, f) in loaded.record.followers.iter().enumerate() {
         recorder.replayed_hearing(i, &f.resumes, f.end.clone());
     }
-    let mut sink = Folder { recorder };
+    let mut sink = Folder { recorder, progress };
     let problems = replay(loaded, hearing, &mut sink)?;
     sink.recorder.finish(crate::watch::Ending::Complete)?;
     Ok(problems)
