@@ -35,6 +35,25 @@ fn message_frame(bytes: &[u8]) -> Option<(u32, u64, Value)> {
     Some((sub, ns, serde_json::from_slice(&bytes[13..]).ok()?))
 }
 
+type Socket = tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+/// Connects as Foxglove does, retrying until `g`'s server listens.
+async fn connect(addr: &str, g: &mut Group) -> Socket {
+    let t0 = Instant::now();
+    loop {
+        let mut req = format!("ws://{addr}").into_client_request().expect("request");
+        req.headers_mut().insert("sec-websocket-protocol", "foxglove.sdk.v1".parse().expect("header"));
+        match tokio_tungstenite::connect_async(req).await {
+            Ok((ws, _)) => return ws,
+            Err(e) => {
+                assert!(t0.elapsed() < common::LIMIT, "no Foxglove server at {addr} within {:?}: {e}", common::LIMIT);
+                assert!(g.0.try_wait().expect("try_wait").is_none(), "it ended before its Foxglove server was reached");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn foxglove_sees_the_channels_of_a_lockstep_run_as_recorded_and_the_run_still_equals_the_simulator() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -48,23 +67,7 @@ async fn foxglove_sees_the_channels_of_a_lockstep_run_as_recorded_and_the_run_st
         &["--base-port", "18305", "--run", "fox-ls", "--foxglove", &addr, "--web-linger", "2"],
     );
 
-    // Connect as Foxglove does, retrying until the monitor listens.
-    let t0 = Instant::now();
-    let mut ws = loop {
-        let mut req = format!("ws://{addr}").into_client_request().expect("request");
-        req.headers_mut().insert("sec-websocket-protocol", "foxglove.sdk.v1".parse().expect("header"));
-        match tokio_tungstenite::connect_async(req).await {
-            Ok((ws, _)) => break ws,
-            Err(e) => {
-                assert!(t0.elapsed() < common::LIMIT, "no Foxglove server at {addr} within {:?}: {e}", common::LIMIT);
-                assert!(
-                    g.0.try_wait().expect("try_wait").is_none(),
-                    "launch ended before its Foxglove server was reached"
-                );
-                tokio::time::sleep(Duration::from_millis(100)).await;
-            }
-        }
-    };
+    let mut ws = connect(&addr, &mut g).await;
 
     // serverInfo, then the channels.
     let mut channels: BTreeMap<String, Value> = BTreeMap::new();
@@ -194,18 +197,7 @@ async fn plays_again_to_foxglove(out: &Path) {
     let addr = "127.0.0.1:18310";
     let run = out.display().to_string();
     let mut g = Group::spawn(&["monitor", "--replay", &run, "--foxglove", addr, "--speed", "10", "--linger", "0"]);
-    let t0 = Instant::now();
-    let mut ws = loop {
-        let mut req = format!("ws://{addr}").into_client_request().expect("request");
-        req.headers_mut().insert("sec-websocket-protocol", "foxglove.sdk.v1".parse().expect("header"));
-        match tokio_tungstenite::connect_async(req).await {
-            Ok((ws, _)) => break ws,
-            Err(e) => {
-                assert!(t0.elapsed() < common::LIMIT, "no Foxglove playback at {addr}: {e}");
-                tokio::time::sleep(Duration::from_millis(50)).await;
-            }
-        }
-    };
+    let mut ws = connect(addr, &mut g).await;
     let channel = loop {
         let m = tokio::time::timeout(Duration::from_secs(20), ws.next()).await.expect("advertise").expect("open");
         if let Ok(Message::Text(text)) = m {
