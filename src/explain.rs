@@ -61,12 +61,14 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
         None => t += "the run heard exactly what the model assumes: no departure\n",
     }
     let steps: u64 = e.hearing.iter().map(|h| h.steps).sum();
-    let (diff, older, newer, silent) =
-        e.hearing.iter().fold((0, 0, 0, 0), |a, h| (a.0 + h.differing, a.1 + h.older, a.2 + h.newer, a.3 + h.silent));
+    let (diff, older, newer, silent, extra) = e
+        .hearing
+        .iter()
+        .fold((0, 0, 0, 0, 0), |a, h| (a.0 + h.differing, a.1 + h.older, a.2 + h.newer, a.3 + h.silent, a.4 + h.extra));
     if steps > 0 {
         t += &format!(
             "hearing: {diff} of {steps} link-steps differ from the model ({}): {older} used an older message, {newer} a \
-             newer one, {silent} heard nothing where the model heard\n",
+             newer one, {silent} heard nothing where the model heard, {extra} heard where the model did not\n",
             pct(diff as f64 / steps as f64)
         );
     }

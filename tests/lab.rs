@@ -653,7 +653,8 @@ fn lockstep_restart(victim: &str, tag: &str) {
 /// every follower's estimator error from 5 s below 0.1 m (before the
 /// timebase: 8.0 m at −0.3 s, 9.6 m at +0.5 s). On a quiet machine also:
 /// the others' below 0.02 m, torque variation within 10 % and the silent
-/// and rejected counts as in the unshifted run.
+/// and rejected counts no higher than in the unshifted run (silent: 50
+/// source-steps of slack).
 #[test]
 fn clocks_that_disagree_change_nothing() {
     let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
@@ -707,11 +708,18 @@ fn clocks_that_disagree_change_nothing() {
             if (a / b - 1.0).abs() > 0.1 {
                 wrong.push(format!("follower {id}: torque variation {a:.3} against {b:.3} unshifted"));
             }
-            if counts(&r, id) != counts(&reference, id) {
+            // No more silence or rejections than unshifted (a shifted clock
+            // used to silence most steps). Equality was asked until an
+            // unshifted reference with 22-27 silent start-up steps per
+            // follower failed a clean run whose shifted runs had none; 50
+            // steps (0.05 s) of slack either way for such one-off hiccups.
+            let ((s, rj), (s0, rj0)) = (counts(&r, id), counts(&reference, id));
+            if s > s0 + CLOCK_SILENT_SLACK || rj > rj0 {
                 wrong.push(format!(
-                    "follower {id}: (silent, rejected) {:?} against {:?} unshifted",
-                    counts(&r, id),
-                    counts(&reference, id)
+                    "follower {id}: (silent, rejected) {:?} against {:?} unshifted ({CLOCK_SILENT_SLACK} more silent \
+                     allowed)",
+                    (s, rj),
+                    (s0, rj0)
                 ));
             }
         }
@@ -719,6 +727,9 @@ fn clocks_that_disagree_change_nothing() {
         common::judge_if_quiet(&tag, &wrong, r.host, &older_messages(&r));
     }
 }
+
+/// Silent source-steps a shifted-clock run may have beyond the unshifted run's.
+const CLOCK_SILENT_SLACK: f64 = 50.0;
 
 /// Issue 23's sites: a router per site (A: leader, monitor, 1, 2; B: 3, 4),
 /// the routers linked, every node a client of its own site's router, and

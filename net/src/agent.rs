@@ -739,6 +739,13 @@ fn control_loop(
             counters.sent = sent;
             counters.republished = republished;
             let done = last || diverged.is_some();
+            if done {
+                // A source that dies near the end never falls silent here:
+                // what this follower used of each goes out with its last batch.
+                for slot in 0..slots {
+                    ear.rescue(slot);
+                }
+            }
             let (heard, rescued) = ear.take();
             let t = Telemetry::Follower {
                 id: c.id,

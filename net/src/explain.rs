@@ -42,10 +42,14 @@ pub struct LinkHearing {
     pub steps: u64,
     /// Steps at which the run used another message than the model.
     pub differing: u64,
-    /// Of those: the run's message older than the model's, newer, or silent where the model heard.
+    /// Of those: the run's message older than the model's, newer, silent
+    /// (or removed) where the model heard, heard where the model did not,
+    /// or silent where the model counts the message removed (or the reverse).
     pub older: u64,
     pub newer: u64,
     pub silent: u64,
+    pub extra: u64,
+    pub other: u64,
 }
 
 /// What a link or a window explains of the departure.
@@ -122,8 +126,10 @@ pub fn links(loaded: &Loaded) -> Vec<Link> {
 pub fn compare_hearing(loaded: &Loaded) -> (Vec<LinkHearing>, Option<Departure>) {
     let s = &loaded.scenario;
     let all = links(loaded);
-    let mut out: Vec<LinkHearing> =
-        all.iter().map(|&link| LinkHearing { link, steps: 0, differing: 0, older: 0, newer: 0, silent: 0 }).collect();
+    let mut out: Vec<LinkHearing> = all
+        .iter()
+        .map(|&link| LinkHearing { link, steps: 0, differing: 0, older: 0, newer: 0, silent: 0, extra: 0, other: 0 })
+        .collect();
     let mut first: Option<Departure> = None;
     let mut base = 0;
     for (index, f) in loaded.record.followers.iter().enumerate() {
@@ -131,7 +137,10 @@ pub fn compare_hearing(loaded: &Loaded) -> (Vec<LinkHearing>, Option<Departure>)
         let mut ear = ModelEar::new(s, index);
         let mut model = vec![Heard::Silent; slots];
         let mut next_k = 0;
-        for (k, heard) in f.steps_heard() {
+        let mut cursor = formation_record::hearing::Cursor::new(f);
+        let recorded: Vec<u64> = f.segments.iter().flat_map(|s| s.first_k..s.end()).collect();
+        for k in recorded {
+            let Some(heard) = cursor.at(k) else { continue };
             // The model hears every step, recorded or not.
             while next_k <= k {
                 ear.hear(next_k, &mut model);
@@ -149,7 +158,8 @@ pub fn compare_hearing(loaded: &Loaded) -> (Vec<LinkHearing>, Option<Departure>)
                     (Some(a), Some(b)) if a < b => l.older += 1,
                     (Some(_), Some(_)) => l.newer += 1,
                     (None, Some(_)) => l.silent += 1,
-                    _ => l.newer += 1,
+                    (Some(_), None) => l.extra += 1,
+                    (None, None) => l.other += 1,
                 }
                 if first.as_ref().is_none_or(|d| k < d.k) {
                     first = Some(Departure { link: all[base + slot], k, run, model: m });

@@ -573,6 +573,8 @@ impl Recorder {
                     self.malformed += 1;
                     return Ok(());
                 }
+                // The batch's last step as sent (a diverged one is cut below).
+                let last_k = first_k + samples.len().saturating_sub(1) as u64;
                 let mut per_step = heard.expand().into_iter().map(Vec::into_boxed_slice);
                 let samples: Vec<_> = samples.into_iter().map(|s| (s, per_step.next().unwrap_or_default())).collect();
                 let ok = |k: u64, (s, _): &(FollowerSample, Box<[Heard]>)| s.k == k && s.is_finite();
@@ -610,7 +612,6 @@ impl Recorder {
                 if let Some(r) = resumed.filter(|r| r.pose.iter().all(|x| x.is_finite()) && r.k <= steps) {
                     f.hearing.resumed(r);
                 }
-                let last_k = first_k + samples.len().saturating_sub(1) as u64;
                 let mut fresh = Vec::new();
                 f.stream.file(first_k, samples, delivery.available_from, delivery.incarnation, &mut fresh);
                 n.samples += fresh.len() as u64;

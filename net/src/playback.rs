@@ -195,7 +195,8 @@ pub fn play(
     controls: &mpsc::Receiver<Control>,
     linger: Duration,
 ) -> Result<Option<crate::foxglove::FoxgloveLive>, Error> {
-    let tmp = tempfile_dir()?;
+    let tmp = TempDir::new()?;
+    let tmp = &tmp.0;
     let mut clock = Clock { speed, paused: false, at: Instant::now(), k0: 0, seq: 0, epoch: 0, last_frame: None };
     let mut from = 0;
     let began = Instant::now();
@@ -253,15 +254,27 @@ pub fn play(
             None => break,
         }
     }
-    let _ = std::fs::remove_dir_all(&tmp);
     Ok(foxglove)
 }
 
-/// A folder for the recorders' (empty) run folders.
-fn tempfile_dir() -> Result<std::path::PathBuf, Error> {
-    let dir = std::env::temp_dir().join(format!("formation-playback-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).map_err(|e| Error::Run(format!("{}: {e}", dir.display())))?;
-    Ok(dir)
+/// A folder of its own for the recorders' (empty) run folders, removed on
+/// every path.
+struct TempDir(std::path::PathBuf);
+
+impl TempDir {
+    fn new() -> Result<Self, Error> {
+        static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("formation-playback-{}-{n}", std::process::id()));
+        std::fs::create_dir_all(&dir).map_err(|e| Error::Run(format!("{}: {e}", dir.display())))?;
+        Ok(Self(dir))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 #[cfg(test)]

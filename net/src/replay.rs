@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 
 use formation_agent::{LeaderState, LinkLoss, Message};
 use formation_plant::Pose;
-use formation_record::hearing::{End, FollowerHearing, HearingRecord, Resume};
+use formation_record::hearing::{Cursor, End, FollowerHearing, HearingRecord, Resume};
 use formation_record::{FollowerSample, Heard, RecordOptions, HEARING_FILE};
 use formation_sim::SimFollower;
 use formation_topology::Scenario;
@@ -63,6 +63,27 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
         || record.followers.iter().enumerate().any(|(i, f)| f.sources != scenario.sources_of(i))
     {
         return Err(Error::Input(format!("{}: the record's followers are not the scenario's", dir.display())));
+    }
+    // Every segment inside the run, one run list per source, each covering its steps.
+    let steps = scenario.steps();
+    for f in &record.followers {
+        let mut end = 0;
+        for seg in &f.segments {
+            let ok = seg.heard.slots.len() == f.sources.len()
+                && seg.heard.is_consistent()
+                && seg.first_k >= end
+                && seg.end() <= steps + 1;
+            if !ok {
+                return Err(Error::Input(format!(
+                    "{}: follower {}'s record from step {} is malformed (not one run list per source covering its \
+                     steps, or beyond the run)",
+                    dir.display(),
+                    f.id,
+                    seg.first_k
+                )));
+            }
+            end = seg.end();
+        }
     }
     Ok(Loaded { dir: dir.to_path_buf(), scenario, record })
 }
@@ -140,41 +161,6 @@ impl ModelEar {
     }
 }
 
-/// A follower's recorded hearing, expanded for lookup in step order.
-struct Recorded {
-    /// (first_k, slots, per step × slot).
-    segments: Vec<(u64, Vec<Heard>)>,
-    slots: usize,
-    cursor: usize,
-}
-
-impl Recorded {
-    fn new(f: &FollowerHearing) -> Self {
-        let slots = f.sources.len();
-        let segments =
-            f.segments.iter().map(|s| (s.first_k, s.heard.expand().into_iter().flatten().collect())).collect();
-        Self { segments, slots, cursor: 0 }
-    }
-
-    /// What was heard at step k, if k is recorded (ask in step order).
-    fn at(&mut self, k: u64) -> Option<&[Heard]> {
-        let n = self.slots.max(1);
-        while let Some((first, v)) = self.segments.get(self.cursor) {
-            let end = first + (v.len() / n) as u64;
-            if k < end || self.slots == 0 {
-                break;
-            }
-            self.cursor += 1;
-        }
-        let (first, v) = self.segments.get(self.cursor)?;
-        if k < *first {
-            return None;
-        }
-        let i = ((k - first) as usize) * self.slots;
-        v.get(i..i + self.slots)
-    }
-}
-
 /// Where a replay receives what it computes.
 pub trait Sink {
     /// The leader's state at step k; `recorded`: the run recorded it.
@@ -223,7 +209,7 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
         sent[i][0] = Some((0, f.brain.tagged_message()));
     }
     let mut leader_sent: Vec<Option<(u64, LeaderState)>> = vec![None; ring];
-    let mut recorded: Vec<Recorded> = rec.followers.iter().map(Recorded::new).collect();
+    let mut recorded: Vec<Cursor> = rec.followers.iter().map(Cursor::new).collect();
     let mut ears: Vec<ModelEar> = (0..n).map(|i| ModelEar::new(s, i)).collect();
     let mut track = vec![Track::Running; n];
     let mut problems = Vec::new();
@@ -256,7 +242,7 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
             ears[i].hear(k, &mut model);
             let Some(rec_heard) = recorded[i].at(k) else {
                 // A gap that ends in a restart is the restart's: nothing is lost to the replay.
-                let next = recorded[i].next_start(k);
+                let next = next_start(&rec.followers[i], k);
                 let restarted = next.is_some_and(|n| rec.followers[i].resumes.iter().any(|r| r.k == n));
                 if let (Track::Running, Some(n), false) = (track[i], next, restarted) {
                     problems.push(Problem {
@@ -330,11 +316,9 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
     Ok(problems)
 }
 
-impl Recorded {
-    /// The first recorded step after k, if any.
-    fn next_start(&self, k: u64) -> Option<u64> {
-        self.segments.iter().map(|(first, _)| *first).find(|&f| f > k)
-    }
+/// The first recorded step of `f` after k, if any.
+fn next_start(f: &FollowerHearing, k: u64) -> Option<u64> {
+    f.segments.iter().map(|s| s.first_k).find(|&first| first > k)
 }
 
 /// A replay into a run folder through the monitor's [`Recorder`].
@@ -480,8 +464,9 @@ impl Metrics {
 }
 
 impl Sink for Metrics {
-    fn leader(&mut self, _k: u64, state: &LeaderState, _recorded: bool) -> Result<(), Error> {
-        self.leader = Some(*state);
+    fn leader(&mut self, _k: u64, state: &LeaderState, recorded: bool) -> Result<(), Error> {
+        // As the monitor: a sample whose leader state was not recorded has no row.
+        self.leader = recorded.then_some(*state);
         Ok(())
     }
     fn follower(&mut self, index: usize, k: u64, sample: &FollowerSample, _heard: &[Heard]) -> Result<(), Error> {

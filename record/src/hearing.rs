@@ -243,6 +243,57 @@ pub struct Rescued {
     pub fresh: bool,
 }
 
+/// A follower's hearing read step by step (ascending steps), straight from
+/// the runs: no per-step copy of the record.
+pub struct Cursor<'a> {
+    f: &'a FollowerHearing,
+    seg: usize,
+    /// Per slot: the run index and the steps of it already passed.
+    run: Vec<(usize, u64)>,
+    now: Vec<Heard>,
+    /// The step `now` describes, in segment `seg`.
+    at: Option<u64>,
+}
+
+impl<'a> Cursor<'a> {
+    pub fn new(f: &'a FollowerHearing) -> Self {
+        let n = f.sources.len();
+        Self { f, seg: 0, run: vec![(0, 0); n], now: vec![Heard::Silent; n], at: None }
+    }
+
+    /// What was heard at step k, if it is recorded (ask in ascending k).
+    pub fn at(&mut self, k: u64) -> Option<&[Heard]> {
+        while self.f.segments.get(self.seg).is_some_and(|s| s.end() <= k) {
+            self.seg += 1;
+            self.at = None;
+        }
+        let seg = self.f.segments.get(self.seg)?;
+        if k < seg.first_k {
+            return None;
+        }
+        let from = match self.at {
+            Some(a) if a <= k => a,
+            _ => {
+                self.run.iter_mut().for_each(|r| *r = (0, 0));
+                seg.first_k
+            }
+        };
+        let skip = k - from;
+        for (slot, runs) in seg.heard.slots.iter().enumerate() {
+            let (mut r, mut used) = self.run[slot];
+            used += skip;
+            while runs.get(r).is_some_and(|&(_, n)| used >= u64::from(n)) {
+                used -= u64::from(runs[r].1);
+                r += 1;
+            }
+            self.run[slot] = (r, used);
+            self.now[slot] = Heard::from_code(runs.get(r)?.0);
+        }
+        self.at = Some(k);
+        Some(&self.now)
+    }
+}
+
 /// The scenario a run loaded, as text, so that a replay loads the same.
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ScenarioSource {
@@ -360,6 +411,30 @@ mod tests {
     }
 
     #[test]
+    fn the_cursor_reads_runs_step_by_step_as_expanded() {
+        let mut f = FollowerHearing::new(1, vec![2, 0]);
+        let heard = |k: u64| {
+            let a = if k % 7 == 0 { Heard::Age(2) } else { Heard::Age(1) };
+            let b = if (30..45).contains(&k) { Heard::Silent } else { Heard::Age(1) };
+            [a, b]
+        };
+        for k in (0..60).chain(80..100) {
+            f.push(k, &heard(k));
+        }
+        let mut c = Cursor::new(&f);
+        // Every step, then every third step of a fresh cursor: the same answers.
+        for k in 0..110 {
+            let want = ((0..60).contains(&k) || (80..100).contains(&k)).then(|| heard(k).to_vec());
+            assert_eq!(c.at(k).map(<[Heard]>::to_vec), want, "step {k}");
+        }
+        let mut c = Cursor::new(&f);
+        for k in (0..110).step_by(3) {
+            let want = ((0..60).contains(&k) || (80..100).contains(&k)).then(|| heard(k).to_vec());
+            assert_eq!(c.at(k).map(<[Heard]>::to_vec), want, "step {k}, read every third step");
+        }
+    }
+
+    #[test]
     fn codes_round_trip_and_name_the_stamp() {
         for h in [Heard::Age(0), Heard::Age(7), Heard::Silent, Heard::Removed] {
             assert_eq!(Heard::from_code(h.code()), h);
@@ -381,6 +456,10 @@ mod tests {
         assert_eq!(f.steps(), 15);
         let ks: Vec<u64> = f.steps_heard().map(|(k, _)| k).collect();
         assert_eq!(ks, (0..10).chain(20..25).collect::<Vec<_>>());
+        // The cursor reads the same without expanding, and nothing in the gap.
+        let mut c = Cursor::new(&f);
+        let read: Vec<u64> = (0..30).filter(|&k| c.at(k).is_some()).collect();
+        assert_eq!(read, ks);
         f.resumed(Resume { k: 20, pose: [1.0, 2.0, 0.5] });
         f.resumed(Resume { k: 20, pose: [1.0, 2.0, 0.5] });
         assert_eq!(f.resumes.len(), 1);
