@@ -12,18 +12,21 @@ use crate::launch::LaunchArgs;
 /// Runs of each kind; the medians are printed.
 const RUNS: usize = 3;
 
-/// The worst node's period error p50/p99/max (µs) of a real-time run folder.
-fn period(dir: &std::path::Path) -> Result<(f64, f64, f64), Error> {
-    let net: serde_json::Value = std::fs::read_to_string(dir.join("network.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str(&t).ok())
-        .ok_or_else(|| Error::Run(format!("reading {}", dir.join("network.json").display())))?;
+/// The worst node's |period − Δt| p50, p99 and max (µs) of a real-time run's network.json.
+pub(crate) fn worst_period(net: &serde_json::Value) -> (f64, f64, f64) {
     let mut p = (0.0f64, 0.0f64, 0.0f64);
     for v in net["nodes"].as_object().into_iter().flat_map(|n| n.values()) {
         let f = |k: &str| v["loop"][k].as_f64().unwrap_or(0.0);
         p = (p.0.max(f("period_error_p50_us")), p.1.max(f("period_error_p99_us")), p.2.max(f("period_error_max_us")));
     }
-    Ok(p)
+    p
+}
+
+pub(crate) fn network_json(dir: &std::path::Path, what: &str) -> Result<serde_json::Value, Error> {
+    std::fs::read_to_string(dir.join("network.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .ok_or_else(|| Error::Run(format!("reading {what}'s network.json")))
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -66,7 +69,7 @@ pub fn run(
             let mut l = launch(&sets, port + 10 * (2 * r as u16 + u16::from(record)), out.clone(), "bench-hearing");
             l.opts.time_scale = Some(1.0);
             crate::launch::run(&l)?;
-            let p = period(&out)?;
+            let p = worst_period(&network_json(&out, "the real-time run")?);
             if record {
                 on.push(p);
                 let loaded = formation_net::replay::load(&out)?;

@@ -33,6 +33,7 @@ use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
 use crate::args::ScenarioArgs;
+use crate::bench_hearing::{network_json, worst_period};
 use crate::bench_netns::estimate;
 use crate::error::Error;
 use crate::launch::{LaunchArgs, LaunchMode, RunOptions};
@@ -332,19 +333,9 @@ fn measure(
     l.opts.time_scale = Some(1.0);
     crate::launch::run(&l)?;
     let net = network_json(&tmp.join("rt"), "the real-time run")?;
-    let mut period = (0.0f64, 0.0f64, 0.0f64);
-    let mut silent = 0;
-    if let Some(nodes) = net["nodes"].as_object() {
-        for v in nodes.values() {
-            let f = |k: &str| v["loop"][k].as_f64().unwrap_or(0.0);
-            period = (
-                period.0.max(f("period_error_p50_us")),
-                period.1.max(f("period_error_p99_us")),
-                period.2.max(f("period_error_max_us")),
-            );
-            silent += v["silent"].as_u64().unwrap_or(0);
-        }
-    }
+    let period = worst_period(&net);
+    let silent =
+        net["nodes"].as_object().into_iter().flat_map(|n| n.values()).filter_map(|v| v["silent"].as_u64()).sum();
 
     let _ = std::fs::remove_dir_all(&tmp);
     let nan = (f64::NAN, f64::NAN);
@@ -365,13 +356,6 @@ fn measure(
 }
 
 /// The run folder `dir`'s network.json (`what`: the run, for the error).
-fn network_json(dir: &std::path::Path, what: &str) -> Result<serde_json::Value, Error> {
-    std::fs::read_to_string(dir.join("network.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str(&t).ok())
-        .ok_or_else(|| Error::Run(format!("reading {what}'s network.json")))
-}
-
 /// One row of the scale table.
 struct Scale {
     agents: u32,

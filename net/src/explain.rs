@@ -138,8 +138,7 @@ pub fn compare_hearing(loaded: &Loaded) -> (Vec<LinkHearing>, Option<Departure>)
         let mut model = vec![Heard::Silent; slots];
         let mut next_k = 0;
         let mut cursor = formation_record::hearing::Cursor::new(f);
-        let recorded: Vec<u64> = f.segments.iter().flat_map(|s| s.first_k..s.end()).collect();
-        for k in recorded {
+        for k in f.segments.iter().flat_map(|s| s.first_k..s.end()) {
             let Some(heard) = cursor.at(k) else { continue };
             // The model hears every step, recorded or not.
             while next_k <= k {

@@ -450,6 +450,14 @@ impl Recorder {
     /// A replay (`crate::replay`): the leader's state of step k, `None` if
     /// the run did not record it. Call in step order.
     pub fn replayed_leader(&mut self, k: u64, state: Option<&LeaderState>) -> std::io::Result<()> {
+        self.file_leader(k, state)?;
+        self.leader_stream.end = k + 1;
+        Ok(())
+    }
+
+    /// The leader's state of step k, in step order (`None`: not recorded):
+    /// its row, Foxglove, and the state the followers' rows of k pair with.
+    fn file_leader(&mut self, k: u64, state: Option<&LeaderState>) -> std::io::Result<()> {
         if let Some(s) = state {
             match self.leader_spans.last_mut() {
                 Some(span) if span.1 == k => span.1 = k + 1,
@@ -458,12 +466,14 @@ impl Recorder {
             if self.writer.wants(k, k == self.scenario.steps()) {
                 self.writer.leader_row(k as f64 * self.scenario.dt_s, s)?;
             }
+            if let Some(live) = &self.foxglove {
+                live.leader(k, s);
+            }
         }
         while self.leader_base + (self.leader.len() as u64) < k {
             self.leader.push_back(None);
         }
         self.leader.push_back(state.copied());
-        self.leader_stream.end = k + 1;
         Ok(())
     }
 
@@ -525,20 +535,7 @@ impl Recorder {
                 self.leader_stream.file(first_k, states, delivery.available_from, delivery.incarnation, &mut fresh);
                 n.samples += fresh.len() as u64;
                 for (k, s) in fresh {
-                    match self.leader_spans.last_mut() {
-                        Some(span) if span.1 == k => span.1 = k + 1,
-                        _ => self.leader_spans.push((k, k + 1)),
-                    }
-                    if self.writer.wants(k, k == steps) {
-                        self.writer.leader_row(k as f64 * self.scenario.dt_s, &s)?;
-                    }
-                    if let Some(live) = &self.foxglove {
-                        live.leader(k, &s);
-                    }
-                    while self.leader_base + (self.leader.len() as u64) < k {
-                        self.leader.push_back(None);
-                    }
-                    self.leader.push_back(Some(s));
+                    self.file_leader(k, Some(&s))?;
                 }
                 while self.leader_base + (self.leader.len() as u64) < self.leader_stream.end {
                     self.leader.push_back(None);

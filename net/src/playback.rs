@@ -136,14 +136,13 @@ impl Player<'_> {
 
 impl Sink for Player<'_> {
     fn leader(&mut self, k: u64, state: &LeaderState, recorded: bool) -> Result<(), Error> {
-        self.recorder.replayed_leader(k, recorded.then_some(state)).map_err(Error::from)
+        self.recorder.leader(k, state, recorded)
     }
     fn follower(&mut self, index: usize, k: u64, sample: &FollowerSample, heard: &[Heard]) -> Result<(), Error> {
-        self.recorder.replayed_follower(index, k, *sample, heard);
-        Ok(())
+        self.recorder.follower(index, k, sample, heard)
     }
     fn step_done(&mut self, k: u64) -> Result<(), Error> {
-        self.recorder.settle()?;
+        self.recorder.step_done(k)?;
         if k < self.target {
             return Ok(());
         }

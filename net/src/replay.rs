@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 
 use formation_agent::{LeaderState, LinkLoss, Message};
 use formation_plant::Pose;
-use formation_record::hearing::{Cursor, End, FollowerHearing, HearingRecord, Resume};
+use formation_record::hearing::{Cursor, FollowerHearing, HearingRecord};
 use formation_record::{FollowerSample, Heard, RecordOptions, HEARING_FILE};
 use formation_sim::SimFollower;
 use formation_topology::Scenario;
@@ -321,7 +321,22 @@ fn next_start(f: &FollowerHearing, k: u64) -> Option<u64> {
     f.segments.iter().map(|s| s.first_k).find(|&first| first > k)
 }
 
-/// A replay into a run folder through the monitor's [`Recorder`].
+/// The monitor's recorder takes a replay as it takes telemetry: rows and
+/// metrics of the steps the run recorded.
+impl Sink for Recorder {
+    fn leader(&mut self, k: u64, state: &LeaderState, recorded: bool) -> Result<(), Error> {
+        self.replayed_leader(k, recorded.then_some(state)).map_err(Error::from)
+    }
+    fn follower(&mut self, index: usize, k: u64, sample: &FollowerSample, heard: &[Heard]) -> Result<(), Error> {
+        self.replayed_follower(index, k, *sample, heard);
+        Ok(())
+    }
+    fn step_done(&mut self, _k: u64) -> Result<(), Error> {
+        self.settle().map_err(Error::from)
+    }
+}
+
+/// A replay into a run folder, with a progress call every 1000 steps.
 struct Folder<'p> {
     recorder: Recorder,
     progress: &'p mut dyn FnMut(u64),
@@ -329,17 +344,16 @@ struct Folder<'p> {
 
 impl Sink for Folder<'_> {
     fn leader(&mut self, k: u64, state: &LeaderState, recorded: bool) -> Result<(), Error> {
-        self.recorder.replayed_leader(k, recorded.then_some(state)).map_err(Error::from)
+        self.recorder.leader(k, state, recorded)
     }
     fn follower(&mut self, index: usize, k: u64, sample: &FollowerSample, heard: &[Heard]) -> Result<(), Error> {
-        self.recorder.replayed_follower(index, k, *sample, heard);
-        Ok(())
+        self.recorder.follower(index, k, sample, heard)
     }
     fn step_done(&mut self, k: u64) -> Result<(), Error> {
         if k % 1000 == 0 {
             (self.progress)(k);
         }
-        self.recorder.settle().map_err(Error::from)
+        self.recorder.step_done(k)
     }
 }
 
@@ -475,9 +489,4 @@ impl Sink for Metrics {
         }
         Ok(())
     }
-}
-
-/// The followers' restarts and ends, as recorded (for a report).
-pub fn restarts(loaded: &Loaded) -> Vec<(u32, Vec<Resume>, End)> {
-    loaded.record.followers.iter().map(|f| (f.id, f.resumes.clone(), f.end.clone())).collect()
 }

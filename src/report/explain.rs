@@ -130,11 +130,7 @@ pub fn write(out: &Path, cases: &[&Case]) -> Result<String, CliError> {
     if let Some(spec) = figure(&pairs) {
         plots::write_figure(out, &spec)?;
         let f = &spec.figure;
-        let _ = write!(
-            md,
-            "### {0}\n\n![{0}]({1}.png)\n\n{2}\n\nFiles: [{1}.svg]({1}.svg), [{1}.png]({1}.png), data [{1}.csv]({1}.csv).\n\n",
-            f.title, f.file, f.caption
-        );
+        md += &plots::figure_markdown(f);
     }
     Ok(md)
 }

@@ -2,7 +2,6 @@
 //! a networked run, which of its sources it heard over time, and which of
 //! its telemetry came late or was lost (from `network.json`'s timeline).
 
-use std::fmt::Write as _;
 use std::path::Path;
 
 use plotters::style::RGBColor;
@@ -181,11 +180,7 @@ pub fn write(out: &Path, cases: &[&Case]) -> Result<String, CliError> {
     plots::write_figure(out, &spec)?;
     let f = &spec.figure;
     let mut md = String::from("## Network (networked runs)\n\n");
-    let _ = write!(
-        md,
-        "### {0}\n\n![{0}]({1}.png)\n\n{2}\n\nFiles: [{1}.svg]({1}.svg), [{1}.png]({1}.png), data [{1}.csv]({1}.csv).\n\n",
-        f.title, f.file, f.caption
-    );
+    md += &plots::figure_markdown(f);
     Ok(md)
 }
 

@@ -492,6 +492,14 @@ fn nearest(ts: &[f64], t: f64) -> Option<usize> {
     (0..ts.len()).min_by(|&a, &b| (ts[a] - t).abs().total_cmp(&(ts[b] - t).abs()))
 }
 
+/// A written figure's section of report.md: title, image, caption, files.
+pub(super) fn figure_markdown(f: &Figure) -> String {
+    format!(
+        "### {0}\n\n![{0}]({1}.png)\n\n{2}\n\nFiles: [{1}.svg]({1}.svg), [{1}.png]({1}.png), data [{1}.csv]({1}.csv).\n\n",
+        f.title, f.file, f.caption
+    )
+}
+
 pub(super) fn follower_colour(i: usize) -> RGBColor {
     FOLLOWER_COLOURS[i % FOLLOWER_COLOURS.len()]
 }
