@@ -8,6 +8,12 @@
 //! control derived from the topology, so that a node may publish only its
 //! own estimate and telemetry and receive only what its role needs.
 //!
+//! Nothing in DIR changes before everything has been checked ([`plan`]: no
+//! symbolic link, no file where a folder goes, folders this user can read
+//! and write), and the new `ca/` and node folders are written beside the
+//! old ones (in `DIR/.certs-new-<pid>`) and replace them, one rename per
+//! folder, only once all are complete; the old ones are removed last.
+//!
 //! With `--tls DIR`, a node checks its files at start ([`identity`]), and
 //! its session runs mutual TLS with the authority as the only trust root,
 //! TLS-only links, and the policy ([`zenoh_tls`]).
@@ -129,58 +135,39 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
             "--force makes everything new: leave out --node and --revoke (or --force to change a few nodes)".into(),
         ));
     }
-    let exists = no_symlink(dir)?;
-    if exists && !changing && !a.force && std::fs::read_dir(dir).map_or(false, |mut d| d.next().is_some()) {
-        return Err(Error::Input(format!(
-            "{} exists: --force replaces it (a new authority and new keys for every node), --node NAME reissues \
-             one node, --revoke NAME revokes one",
-            dir.display()
-        )));
-    }
-    if a.force {
-        // Only what this command writes: never anything else in DIR.
-        for sub in std::iter::once(CA_DIR.to_string()).chain(names.iter().cloned()) {
-            let p = dir.join(&sub);
-            if no_symlink(&p)? {
-                std::fs::remove_dir_all(&p).map_err(|e| Error::Run(format!("removing {}: {e}", p.display())))?;
-            }
-        }
-    }
-    make_dir(dir)?;
-    let ca_dir = dir.join(CA_DIR);
-    if changing && !ca_dir.join(CA_KEY).exists() {
-        return Err(Error::Input(format!(
-            "{}: no authority there ({}/{CA_KEY}): --node and --revoke change a folder `formation certs` made",
-            dir.display(),
-            CA_DIR
-        )));
-    }
-    make_dir(&ca_dir)?;
-    let (issuer, made) = authority(&ca_dir, not_before)?;
-    println!(
+    // Everything is checked before anything is written, and the new folders
+    // are written beside the old ones, which they replace only once all of
+    // them are complete.
+    let plan = plan(dir, &names, a.force, changing)?;
+    let stage = Staging::new(dir, !plan.out_exists)?;
+    let ca_old = dir.join(CA_DIR);
+    let ca_new = stage.path.join(CA_DIR);
+    make_dir(&ca_new)?;
+    let (issuer, ca_pem) = if changing { existing_authority(&ca_old)? } else { new_authority(&ca_new, not_before)? };
+    let mut said = vec![format!(
         "{} authority {} (keep {}/{CA_KEY} off the nodes' hosts)",
-        if made { "made the" } else { "using the existing" },
-        ca_dir.join(CA_CERT).display(),
+        if changing { "using the existing" } else { "made the" },
+        ca_old.join(CA_CERT).display(),
         CA_DIR
-    );
-    let ca_pem = read(&ca_dir.join(CA_CERT))?;
+    )];
 
     // Revocations: the listed nodes, and the previous certificate of every
-    // node issued again.
-    let mut revoked = read_revoked(&ca_dir)?;
+    // node issued again. A new authority starts with none.
+    let mut revoked = if changing { read_revoked(&ca_old)? } else { Vec::new() };
     let now = time::OffsetDateTime::now_utc();
     for name in a.revoke.iter().chain(&a.nodes) {
         let cert = dir.join(name).join(format!("{name}.pem"));
         if let Some(serial) = serial_of(&cert)? {
             if !revoked.iter().any(|r| r.serial == serial) {
                 revoked.push(Revoked { serial, name: name.clone(), at: now });
-                println!("  revoked {name}'s certificate");
+                said.push(format!("  revoked {name}'s certificate"));
             }
         }
     }
-    write_revoked(&ca_dir, &revoked)?;
+    write_revoked(&ca_new, &revoked)?;
     let crl = revocation_list(&issuer, &revoked, now)?;
-    write(&ca_dir.join(CRL), &crl)?;
+    write(&ca_new.join(CRL), &crl)?;
+    carry(&ca_old, &ca_new)?;
 
     let policy_text = format!(
         "// zenoh access control for scenario {:?}, made by `formation certs` from its topology and\n\
@@ -193,7 +180,7 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
     // A fresh or forced folder: every node; --node: those; --revoke alone: none.
     let reissue = |name: &String| if changing { a.nodes.contains(name) } else { true };
     for (index, name) in names.iter().enumerate() {
-        let node = dir.join(name);
+        let node = stage.path.join(name);
         make_dir(&node)?;
         if reissue(name) {
             let mut sans: Vec<rcgen::SanType> = vec![
@@ -218,18 +205,274 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
                 p.signed_by(&key, &issuer).map_err(|e| Error::Run(format!("signing {name}'s certificate: {e}")))?;
             write_private(&node.join(format!("{name}.key")), &key.serialize_pem())?;
             write(&node.join(format!("{name}.pem")), &cert.pem())?;
-            println!("  {name}/: {name}.pem, {name}.key (valid {} to {})", day(not_before), day(not_after));
+            said.push(format!("  {name}/: {name}.pem, {name}.key (valid {} to {})", day(not_before), day(not_after)));
         }
         write(&node.join(CA_CERT), &ca_pem)?;
         write(&node.join(POLICY), &policy_text)?;
         write(&node.join(POLICY_CERT), &policy_cert)?;
         write(&node.join(CRL), &crl)?;
+        carry(&dir.join(name), &node)?;
+    }
+    swap(dir, &stage.path, &plan.folders)?;
+    stage.keep_out();
+    for line in said {
+        println!("{line}");
     }
     println!(
         "  every node's folder: {CA_CERT}, {POLICY} (who may publish and receive what) signed in {POLICY_CERT}, \
          {CRL} ({} revoked)",
         revoked.len()
     );
+    Ok(())
+}
+
+/// What `certs` will replace: checked before anything is written.
+struct Plan {
+    /// Whether DIR is there already.
+    out_exists: bool,
+    /// The folders it writes, `ca` first, then every node's.
+    folders: Vec<String>,
+}
+
+/// Checks every path `certs` will write or remove, and refuses in one line
+/// before anything is changed: a symbolic link anywhere in DIR's folders
+/// that certs writes (DIR itself, `ca/`, a node's folder, or any entry in
+/// them), a file where a folder must be, a folder inside one (certs
+/// replaces them whole), a folder it cannot read and write, or (for
+/// --node and --revoke) no authority to use.
+fn plan(dir: &Path, names: &[String], force: bool, changing: bool) -> Result<Plan, Error> {
+    let out_exists = no_symlink(dir)?;
+    if out_exists && !changing && !force && std::fs::read_dir(dir).map_or(false, |mut d| d.next().is_some()) {
+        return Err(Error::Input(format!(
+            "{} exists: --force replaces it (a new authority and new keys for every node), --node NAME reissues \
+             one node, --revoke NAME revokes one",
+            dir.display()
+        )));
+    }
+    if out_exists {
+        usable(dir)?;
+    } else {
+        let parent = match dir.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p,
+            _ => Path::new("."),
+        };
+        if !parent.is_dir() {
+            return Err(Error::Input(format!(
+                "{}: the folder it would go in, {}, is not there",
+                dir.display(),
+                parent.display()
+            )));
+        }
+        usable(parent)?;
+    }
+    let folders: Vec<String> = std::iter::once(CA_DIR.to_string()).chain(names.iter().cloned()).collect();
+    for sub in &folders {
+        let folder = dir.join(sub);
+        if !no_symlink(&folder)? {
+            continue;
+        }
+        usable(&folder)?;
+        let entries =
+            std::fs::read_dir(&folder).map_err(|e| Error::Input(format!("reading {}: {e}", folder.display())))?;
+        for entry in entries {
+            let path = entry.map_err(|e| Error::Input(format!("reading {}: {e}", folder.display())))?.path();
+            let m = std::fs::symlink_metadata(&path)
+                .map_err(|e| Error::Input(format!("reading {}: {e}", path.display())))?;
+            if m.file_type().is_symlink() {
+                return Err(link_refused(&path));
+            }
+            if !m.is_file() {
+                return Err(Error::Input(format!(
+                    "{} is {} inside {sub}/, which certs replaces whole: nothing was changed (move it out of {sub}/, \
+                     then run again)",
+                    path.display(),
+                    if m.is_dir() { "a folder" } else { "not a plain file" }
+                )));
+            }
+        }
+    }
+    if changing {
+        let ca = dir.join(CA_DIR);
+        let (cert, key) = (ca.join(CA_CERT), ca.join(CA_KEY));
+        match (cert.is_file(), key.is_file()) {
+            (true, true) => {}
+            (false, false) => {
+                return Err(Error::Input(format!(
+                    "{}: no authority there ({}/{CA_KEY}): --node and --revoke change a folder `formation certs` made",
+                    dir.display(),
+                    CA_DIR
+                )))
+            }
+            (true, false) => {
+                return Err(Error::Input(format!(
+                    "{} is there without its key {}: not replacing an authority (move the folder away to make a \
+                     new one)",
+                    cert.display(),
+                    key.display()
+                )))
+            }
+            (false, true) => {
+                return Err(Error::Input(format!(
+                    "{} is there without its certificate {}: not replacing an authority (move the folder away to \
+                     make a new one)",
+                    key.display(),
+                    cert.display()
+                )))
+            }
+        }
+    }
+    Ok(Plan { out_exists, folders })
+}
+
+/// Refuses a folder this user cannot read, enter and write.
+fn usable(folder: &Path) -> Result<(), Error> {
+    use std::os::unix::ffi::OsStrExt;
+    let Ok(c) = std::ffi::CString::new(folder.as_os_str().as_bytes()) else {
+        return Err(Error::Input(format!("{}: a path with a NUL byte", folder.display())));
+    };
+    // SAFETY: `c` is a NUL-terminated string that lives across the call.
+    if unsafe { libc::access(c.as_ptr(), libc::R_OK | libc::W_OK | libc::X_OK) } != 0 {
+        let e = std::io::Error::last_os_error();
+        return Err(Error::Input(format!(
+            "{}: this user cannot read and write it ({e}): nothing was changed",
+            folder.display()
+        )));
+    }
+    Ok(())
+}
+
+/// The one line for a symbolic link where certs would write or remove.
+fn link_refused(path: &Path) -> Error {
+    let to = std::fs::read_link(path).map(|t| format!(" (to {})", t.display())).unwrap_or_default();
+    Error::Input(format!(
+        "{}{to} is a symbolic link: certs never writes or removes anything through a link, and changed nothing \
+         (move the link away, then run again)",
+        path.display()
+    ))
+}
+
+/// The folder inside DIR that the new authority and node folders are
+/// written in before they replace the old ones. Removed on every path
+/// (with DIR, if this run made it and nothing was put in it).
+struct Staging {
+    path: PathBuf,
+    made_out: Option<PathBuf>,
+}
+
+impl Staging {
+    fn new(dir: &Path, make_out: bool) -> Result<Staging, Error> {
+        use std::os::unix::fs::DirBuilderExt;
+        if make_out {
+            make_dir(dir)?;
+        }
+        let path = dir.join(format!(".certs-new-{}", std::process::id()));
+        if let Err(e) = std::fs::DirBuilder::new().mode(0o700).create(&path) {
+            if make_out {
+                let _ = std::fs::remove_dir(dir);
+            }
+            return Err(Error::Run(format!("creating {}: {e} (nothing was changed)", path.display())));
+        }
+        Ok(Staging { path, made_out: make_out.then(|| dir.to_path_buf()) })
+    }
+
+    /// The new folders are in DIR: keep it.
+    fn keep_out(mut self) {
+        self.made_out = None;
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.path);
+        if let Some(dir) = &self.made_out {
+            let _ = std::fs::remove_dir(dir);
+        }
+    }
+}
+
+/// Copies into `new` every plain file of `old` that `new` does not have
+/// (an untouched node's key and certificate, the authority's key with
+/// --node or --revoke, anything else someone put there), and gives `new`
+/// the permissions `old` had. Nothing if `old` is not there.
+fn carry(old: &Path, new: &Path) -> Result<(), Error> {
+    use std::io::Read;
+    use std::os::unix::fs::{OpenOptionsExt, PermissionsExt};
+    let entries = match std::fs::read_dir(old) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(Error::Input(format!("reading {}: {e}", old.display()))),
+    };
+    for entry in entries {
+        let from = entry.map_err(|e| Error::Input(format!("reading {}: {e}", old.display())))?.path();
+        let Some(file) = from.file_name() else { continue };
+        let to = new.join(file);
+        if std::fs::symlink_metadata(&to).is_ok() {
+            continue;
+        }
+        let m =
+            std::fs::symlink_metadata(&from).map_err(|e| Error::Input(format!("reading {}: {e}", from.display())))?;
+        if m.file_type().is_symlink() {
+            return Err(link_refused(&from));
+        }
+        let mut bytes = Vec::new();
+        std::fs::OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(&from)
+            .and_then(|mut f| f.read_to_end(&mut bytes))
+            .map_err(|e| Error::Input(format!("reading {}: {e}", from.display())))?;
+        write_mode(&to, &bytes, m.permissions().mode() & 0o777)?;
+    }
+    let m = std::fs::metadata(old).map_err(|e| Error::Input(format!("reading {}: {e}", old.display())))?;
+    std::fs::set_permissions(new, std::fs::Permissions::from_mode(m.permissions().mode() & 0o777))
+        .map_err(|e| Error::Run(format!("setting the permissions of {}: {e}", new.display())))
+}
+
+/// Puts the new `folders` (complete, in `stage`) in DIR: each old one is
+/// moved aside first (into DIR/.certs-old-<pid>), and the old ones are
+/// removed only once every new one is in place. If a move fails, the moves
+/// done are undone.
+fn swap(dir: &Path, stage: &Path, folders: &[String]) -> Result<(), Error> {
+    use std::os::unix::fs::DirBuilderExt;
+    let aside = dir.join(format!(".certs-old-{}", std::process::id()));
+    std::fs::DirBuilder::new()
+        .mode(0o700)
+        .create(&aside)
+        .map_err(|e| Error::Run(format!("creating {}: {e} (nothing was changed)", aside.display())))?;
+    let mut moved: Vec<(PathBuf, PathBuf)> = Vec::new();
+    let mut failed = None;
+    'folders: for sub in folders {
+        let current = dir.join(sub);
+        let mut moves = Vec::new();
+        if std::fs::symlink_metadata(&current).is_ok() {
+            moves.push((current.clone(), aside.join(sub)));
+        }
+        moves.push((stage.join(sub), current));
+        for (from, to) in moves {
+            if let Err(e) = std::fs::rename(&from, &to) {
+                failed = Some(format!("moving {} to {}: {e}", from.display(), to.display()));
+                break 'folders;
+            }
+            moved.push((from, to));
+        }
+    }
+    if let Some(why) = failed {
+        let undone = moved.iter().rev().all(|(from, to)| std::fs::rename(to, from).is_ok());
+        if undone {
+            let _ = std::fs::remove_dir(&aside);
+            return Err(Error::Run(format!("{why}: every folder was put back as it was")));
+        }
+        return Err(Error::Run(format!(
+            "{why}, and putting the folders back failed: the old ones are in {}",
+            aside.display()
+        )));
+    }
+    if let Err(e) = std::fs::remove_dir_all(&aside) {
+        eprintln!(
+            "warning: the new folders are in place, but removing the old ones in {} failed: {e}",
+            aside.display()
+        );
+    }
     Ok(())
 }
 
@@ -326,12 +569,12 @@ fn revocation_list(
 fn no_symlink(path: &Path) -> Result<bool, Error> {
     match std::fs::symlink_metadata(path) {
         Err(_) => Ok(false),
-        Ok(m) if m.file_type().is_symlink() => Err(Error::Input(format!(
-            "{} is a symbolic link: certificate folders are written only where they are (never through a link)",
+        Ok(m) if m.file_type().is_symlink() => Err(link_refused(path)),
+        Ok(m) if m.is_dir() => Ok(true),
+        Ok(_) => Err(Error::Input(format!(
+            "{} is a file, not a folder: nothing was changed (move it away, then run again)",
             path.display()
         ))),
-        Ok(m) if m.is_dir() => Ok(true),
-        Ok(_) => Err(Error::Input(format!("{} is a file, not a folder", path.display()))),
     }
 }
 
@@ -392,51 +635,40 @@ fn day(t: time::OffsetDateTime) -> String {
     format!("{:04}-{:02}-{:02}", t.year(), u8::from(t.month()), t.day())
 }
 
-/// The folder's authority, made if there is none (`true`), used if there is
-/// one with its key, refused if only half of it is there.
-fn authority(
-    dir: &Path,
+/// The folder's authority (in `ca_dir`, both files there: [`plan`] checked),
+/// and its certificate, PEM.
+fn existing_authority(ca_dir: &Path) -> Result<(rcgen::Issuer<'static, rcgen::KeyPair>, String), Error> {
+    let (cert_path, key_path) = (ca_dir.join(CA_CERT), ca_dir.join(CA_KEY));
+    let key = read(&key_path)?;
+    let key = rcgen::KeyPair::from_pem(&key)
+        .map_err(|e| Error::Input(format!("{}: not a private key: {e}", key_path.display())))?;
+    let pem = read(&cert_path)?;
+    let issuer = rcgen::Issuer::from_ca_cert_pem(&pem, key)
+        .map_err(|e| Error::Input(format!("{}: not a certificate: {e}", cert_path.display())))?;
+    Ok((issuer, pem))
+}
+
+/// A new authority, written in `ca_dir`, and its certificate, PEM.
+fn new_authority(
+    ca_dir: &Path,
     not_before: time::OffsetDateTime,
-) -> Result<(rcgen::Issuer<'static, rcgen::KeyPair>, bool), Error> {
-    let (cert_path, key_path) = (dir.join(CA_CERT), dir.join(CA_KEY));
-    match (cert_path.exists(), key_path.exists()) {
-        (true, true) => {
-            let key = read(&key_path)?;
-            let key = rcgen::KeyPair::from_pem(&key)
-                .map_err(|e| Error::Input(format!("{}: not a private key: {e}", key_path.display())))?;
-            let pem = read(&cert_path)?;
-            let issuer = rcgen::Issuer::from_ca_cert_pem(&pem, key)
-                .map_err(|e| Error::Input(format!("{}: not a certificate: {e}", cert_path.display())))?;
-            Ok((issuer, false))
-        }
-        (false, false) => {
-            let mut p = rcgen::CertificateParams::default();
-            p.distinguished_name.push(rcgen::DnType::CommonName, "formation certificate authority");
-            p.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
-            p.key_usages = vec![
-                rcgen::KeyUsagePurpose::KeyCertSign,
-                rcgen::KeyUsagePurpose::CrlSign,
-                rcgen::KeyUsagePurpose::DigitalSignature,
-            ];
-            p.not_before = not_before.min(time::OffsetDateTime::now_utc() - time::Duration::minutes(5));
-            p.not_after = time::OffsetDateTime::now_utc() + time::Duration::days(10 * 365);
-            let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making the authority's key: {e}")))?;
-            let cert = p.self_signed(&key).map_err(|e| Error::Run(format!("signing the authority: {e}")))?;
-            write_private(&key_path, &key.serialize_pem())?;
-            write(&cert_path, &cert.pem())?;
-            Ok((rcgen::Issuer::new(p, key), true))
-        }
-        (true, false) => Err(Error::Input(format!(
-            "{} is there without its key {}: not replacing an authority (move the folder away to make a new one)",
-            cert_path.display(),
-            key_path.display()
-        ))),
-        (false, true) => Err(Error::Input(format!(
-            "{} is there without its certificate {}: not replacing an authority (move the folder away to make a new one)",
-            key_path.display(),
-            cert_path.display()
-        ))),
-    }
+) -> Result<(rcgen::Issuer<'static, rcgen::KeyPair>, String), Error> {
+    let mut p = rcgen::CertificateParams::default();
+    p.distinguished_name.push(rcgen::DnType::CommonName, "formation certificate authority");
+    p.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+    p.key_usages = vec![
+        rcgen::KeyUsagePurpose::KeyCertSign,
+        rcgen::KeyUsagePurpose::CrlSign,
+        rcgen::KeyUsagePurpose::DigitalSignature,
+    ];
+    p.not_before = not_before.min(time::OffsetDateTime::now_utc() - time::Duration::minutes(5));
+    p.not_after = time::OffsetDateTime::now_utc() + time::Duration::days(10 * 365);
+    let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making the authority's key: {e}")))?;
+    let cert = p.self_signed(&key).map_err(|e| Error::Run(format!("signing the authority: {e}")))?;
+    write_private(&ca_dir.join(CA_KEY), &key.serialize_pem())?;
+    let pem = cert.pem();
+    write(&ca_dir.join(CA_CERT), &pem)?;
+    Ok((rcgen::Issuer::new(p, key), pem))
 }
 
 fn read(path: &Path) -> Result<String, Error> {
@@ -444,19 +676,19 @@ fn read(path: &Path) -> Result<String, Error> {
 }
 
 fn write(path: &Path, text: &str) -> Result<(), Error> {
-    write_mode(path, text, 0o644)
+    write_mode(path, text.as_bytes(), 0o644)
 }
 
 /// Writes a private key readable by its owner only (created 0600, not
 /// chmod-ed after the fact).
 fn write_private(path: &Path, text: &str) -> Result<(), Error> {
-    write_mode(path, text, 0o600)
+    write_mode(path, text.as_bytes(), 0o600)
 }
 
 /// Replaces the file at `path`: what was there (a file, or a symbolic link,
 /// which is removed, never followed) goes first, and the new file is
 /// created, never opened through a link (O_EXCL, O_NOFOLLOW).
-fn write_mode(path: &Path, text: &str, mode: u32) -> Result<(), Error> {
+fn write_mode(path: &Path, bytes: &[u8], mode: u32) -> Result<(), Error> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
     if let Ok(m) = std::fs::symlink_metadata(path) {
@@ -472,5 +704,5 @@ fn write_mode(path: &Path, text: &str, mode: u32) -> Result<(), Error> {
         .mode(mode)
         .open(path)
         .map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))?;
-    f.write_all(text.as_bytes()).map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))
+    f.write_all(bytes).map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))
 }

@@ -140,13 +140,16 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     let o = certs(&dir, &["--force"]);
     assert!(o.status.success(), "--force: {}", String::from_utf8_lossy(&o.stderr));
     assert_ne!(std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem"), ca, "--force kept the old authority");
-    // Links are never followed: a planted link to an unrelated file.
+    // Links are never followed: a planted link to an unrelated file is
+    // refused before anything is written (tests/certs_safety.rs checks every byte).
     let victim = tmp.path().join("victim.txt");
     std::fs::write(&victim, "unrelated").expect("victim");
     std::fs::remove_file(dir.join("agent-1/policy.json5")).expect("rm");
     std::os::unix::fs::symlink(&victim, dir.join("agent-1/policy.json5")).expect("symlink");
     let o = certs(&dir, &["--node", "agent-1"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "--node with a planted link: {err}");
+    assert!(err.contains("symbolic link") && err.contains("policy.json5"), "{err}");
     assert_eq!(std::fs::read_to_string(&victim).expect("victim"), "unrelated", "a file was written through a link");
     let linked = tmp.path().join("linked");
     std::os::unix::fs::symlink(tmp.path().join("elsewhere"), &linked).expect("symlink");
