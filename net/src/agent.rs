@@ -259,6 +259,10 @@ pub async fn run_follower(
                 match inbox::check(key_id, &bytes, hears_leader, &neighbour_ids) {
                     Ok((source, msg)) => {
                         let slot = if let Source::Neighbour(slot) = source { slot } else { n };
+                        if slot == n {
+                            // The leader's own stamp: a floor for its clock (clockguard).
+                            timebase.leader_sent(msg.header.sent_ns);
+                        }
                         if let (true, Some(now)) = (inbox.accept(slot, &msg), now) {
                             inbox.note_latency(slot, msg.header.sent_ns, now);
                         }

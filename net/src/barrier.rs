@@ -43,6 +43,9 @@ pub struct Start {
     pub fingerprint: u64,
     pub epoch_unix_ns: u64,
     pub time_scale: f64,
+    /// The leader's timebase when this announcement left it (ns): a floor
+    /// for every node's estimate of the leader's clock (`clockguard`).
+    pub sent_ns: i64,
 }
 
 impl Start {
@@ -463,7 +466,12 @@ impl Lead {
     /// The start to announce, `lead` after `now_unix_ns` (the wall clock
     /// when the machine said [`LeadStep::Go`]).
     pub fn start(&self, now_unix_ns: u64, lead: Duration, time_scale: f64) -> Start {
-        Start { fingerprint: self.heard.fingerprint, epoch_unix_ns: now_unix_ns + lead.as_nanos() as u64, time_scale }
+        Start {
+            fingerprint: self.heard.fingerprint,
+            epoch_unix_ns: now_unix_ns + lead.as_nanos() as u64,
+            time_scale,
+            sent_ns: now_unix_ns as i64,
+        }
     }
 }
 
@@ -485,7 +493,7 @@ mod tests {
     }
 
     fn start(s: &Scenario) -> Start {
-        Start { fingerprint: fingerprint(s), epoch_unix_ns: 1, time_scale: 1.0 }
+        Start { fingerprint: fingerprint(s), epoch_unix_ns: 1, time_scale: 1.0, sent_ns: 0 }
     }
 
     /// Polls every tick from `from` to `to` (virtual time), returning every step.
@@ -658,7 +666,10 @@ mod tests {
         assert_eq!(l.poll(t0 + TICK * 2), LeadStep::Go);
         assert_eq!(l.ignored(), 1);
         let go = l.start(1_000, Duration::from_millis(300), 2.0);
-        assert_eq!(go, Start { fingerprint: fingerprint(&s), epoch_unix_ns: 300_001_000, time_scale: 2.0 });
+        assert_eq!(
+            go,
+            Start { fingerprint: fingerprint(&s), epoch_unix_ns: 300_001_000, time_scale: 2.0, sent_ns: 1_000 }
+        );
     }
 
     #[test]

@@ -69,6 +69,29 @@ impl Timebase {
         }
     }
 
+    /// Files the answers of one question, as [`Offset::add_answers`] judges
+    /// them (ignored by the leader's own).
+    pub fn add_answers(&self, answers: &[Exchange]) {
+        if let Timebase::Estimated(o) = self {
+            Self::offset(o).add_answers(answers);
+        }
+    }
+
+    /// A message the leader stamped `sent_ns` on its timebase arrived now.
+    pub fn leader_sent(&self, sent_ns: i64) {
+        if let Timebase::Estimated(o) = self {
+            Self::offset(o).leader_sent(sent_ns, mono_ns());
+        }
+    }
+
+    /// Whether a second clock has answered on `control/time`.
+    pub fn second_clock(&self) -> bool {
+        match self {
+            Timebase::Own(_) => false,
+            Timebase::Estimated(o) => Self::offset(o).guard().second_clock(),
+        }
+    }
+
     /// The estimate now (the leader's own: exact). None before any exchange.
     pub fn estimate(&self) -> Option<Estimate> {
         match self {
@@ -98,6 +121,10 @@ impl Timebase {
             drift_ppm: e.drift_ppm,
             exchanges: self.exchanges(),
             steps: e.steps,
+            guard: match self {
+                Timebase::Own(_) => Default::default(),
+                Timebase::Estimated(o) => Self::offset(o).guard().report(),
+            },
         })
     }
 

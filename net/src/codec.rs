@@ -1,6 +1,7 @@
 //! The encoding of control and telemetry payloads (bincode 2, standard
-//! configuration); estimate messages have their own format (docs/model.md §13,
-//! `formation_topology::wire`).
+//! configuration; decoded with the allocation bound of
+//! `formation_topology::wire::decode_bounded`); estimate messages have their
+//! own format (docs/model.md §13, `formation_topology::wire`).
 
 use serde::{Deserialize, Serialize};
 
@@ -13,10 +14,8 @@ pub fn encode<T: Serialize>(v: &T) -> Vec<u8> {
     bincode::serde::encode_to_vec(v, bincode_config()).unwrap_or_default()
 }
 
-/// Decodes a control or telemetry payload (None if malformed).
+/// Decodes a control or telemetry payload (None if malformed, has bytes
+/// over, or declares more than its length could hold).
 pub fn decode<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Option<T> {
-    match bincode::serde::decode_from_slice::<T, _>(bytes, bincode_config()) {
-        Ok((v, used)) if used == bytes.len() => Some(v),
-        _ => None,
-    }
+    formation_topology::wire::decode_bounded(bytes)
 }

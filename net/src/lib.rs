@@ -8,7 +8,7 @@
 //! | layer | modules |
 //! | --- | --- |
 //! | names and wire | [`names`], [`codec`], [`counters`], [`error`] |
-//! | protocol rules (no IO, no clock) | [`barrier`], [`latency`], [`inbox`], [`gate`], [`hearing`], [`courier`], [`watch`], [`timebase`] |
+//! | protocol rules (no IO, no clock) | [`barrier`], [`latency`], [`inbox`], [`gate`], [`hearing`], [`courier`], [`watch`], [`timebase`], [`clockguard`] |
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
@@ -19,6 +19,7 @@ pub mod agent;
 pub mod barrier;
 pub mod checkpoint;
 pub mod clock;
+pub mod clockguard;
 pub mod codec;
 pub mod counters;
 pub mod courier;

@@ -989,6 +989,8 @@ impl Recorder {
         let lost = self.lost_steps();
         let v = json!({
             "scenario": self.scenario.name,
+            // The scenario as the nodes loaded it (hearing.bin carries the same).
+            "fingerprint": format!("{:016x}", barrier::fingerprint(&self.scenario)),
             "timing": formation_record::name(&self.scenario.timing),
             // Every step of every node recorded, none lost.
             "complete": ending == Ending::Complete && lost == 0,

@@ -37,7 +37,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
     if !dir.is_dir() {
         return Err(Error::Input(format!("{}: no such run folder", dir.display())));
     }
-    if !dir.join(HEARING_FILE).is_file() {
+    if std::fs::symlink_metadata(dir.join(HEARING_FILE)).is_err() {
         let off = std::fs::read_to_string(dir.join("network.json")).ok();
         let why = if off.as_deref().is_some_and(|t| t.contains("\"hearing_record\": false")) {
             "the run was recorded with network.hearing_record = false"
@@ -57,6 +57,28 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
             "{}: the scenario it carries does not give the run's fingerprint (a record of another build?)",
             dir.display()
         )));
+    }
+    // The record must be this folder's: network.json names the run's scenario.
+    if let Some(net) = std::fs::read_to_string(dir.join("network.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+    {
+        let theirs = format!("{:016x}", record.fingerprint);
+        let named = net["fingerprint"].as_str().map(|f| f == theirs).unwrap_or(true)
+            && net["scenario"].as_str().map(|n| n == scenario.name).unwrap_or(true)
+            && net["steps"].as_u64().map(|n| n == scenario.steps()).unwrap_or(true);
+        if !named {
+            return Err(Error::Input(format!(
+                "{}: {HEARING_FILE} is another run's: it carries scenario '{}' ({} steps, fingerprint {theirs}), \
+                 network.json names '{}' ({} steps, fingerprint {})",
+                dir.display(),
+                scenario.name,
+                scenario.steps(),
+                net["scenario"].as_str().unwrap_or("?"),
+                net["steps"].as_u64().map(|n| n.to_string()).unwrap_or("?".into()),
+                net["fingerprint"].as_str().unwrap_or("not recorded"),
+            )));
+        }
     }
     if record.followers.len() != scenario.followers.len()
         || record.followers.iter().enumerate().any(|(i, f)| f.id != scenario.followers[i].id)

@@ -158,12 +158,15 @@ pub async fn lead_start(
     drop(subs);
     let now = timebase.now_ns().unwrap_or(0).max(0) as u64;
     let start = lock(&machine).start(now, lead, time_scale);
-    let bytes = codec::encode(&start);
     let session = session.clone();
     let key = keys.start();
+    let timebase = timebase.clone();
     let task = tokio::spawn(async move {
         loop {
-            if session.put(&key, bytes.clone()).await.is_err() {
+            // Each announcement stamped when it leaves: a floor for every
+            // node's estimate of the leader's clock.
+            let sent_ns = timebase.now_ns().unwrap_or(0);
+            if session.put(&key, codec::encode(&Start { sent_ns, ..start })).await.is_err() {
                 return;
             }
             tokio::time::sleep(Duration::from_millis(100)).await;

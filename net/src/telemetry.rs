@@ -241,7 +241,14 @@ mod tests {
             loop_stats: None,
             delivery: Delivery::default(),
             events: vec![NetEvent { k: first_k, what: EventKind::Silent(2) }],
-            clock: Some(ClockReport { offset_ms: -50.0, uncertainty_us: 80.0, drift_ppm: 3.0, exchanges: 9, steps: 0 }),
+            clock: Some(ClockReport {
+                offset_ms: -50.0,
+                uncertainty_us: 80.0,
+                drift_ppm: 3.0,
+                exchanges: 9,
+                steps: 0,
+                ..Default::default()
+            }),
             links: vec![LinkStats {
                 source: 2,
                 messages: 9,

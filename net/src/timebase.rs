@@ -123,6 +123,9 @@ pub struct ClockReport {
     pub exchanges: u64,
     /// Steps of the leader's clock detected.
     pub steps: u64,
+    /// Answers from a second clock, and answers refused ([`crate::clockguard`]).
+    #[serde(default)]
+    pub guard: crate::clockguard::GuardReport,
 }
 
 /// The best exchange of one period.
@@ -147,6 +150,8 @@ pub struct Offset {
     /// The line as of the last exchange filed (asked for far more often
     /// than exchanges come: every published message is stamped).
     cached: Option<(Line, usize)>,
+    /// Which answers are the leader's.
+    guard: crate::clockguard::ClockGuard,
 }
 
 impl Offset {
@@ -218,6 +223,26 @@ impl Offset {
             (Some(line), Some(newest)) if !line.agrees(&newest.exchange) => Some((line, n)),
             _ => Line::fit(agreeing().chain(self.best.back())).map(|l| (l, n + 1)),
         }
+    }
+
+    /// Files the answer of one question that [`crate::clockguard`] takes
+    /// for the leader's (several answers: several clocks answered); whether
+    /// one was filed.
+    pub fn add_answers(&mut self, answers: &[Exchange]) -> bool {
+        let mut guard = std::mem::take(&mut self.guard);
+        let filed = guard.judge(answers, |t| self.at(t).map(|e| (e.offset_ns, e.uncertainty_ns)));
+        self.guard = guard;
+        filed.is_some_and(|x| self.add(x).is_ok())
+    }
+
+    /// A message the leader stamped `sent_ns` arrived at `local_ns`.
+    pub fn leader_sent(&mut self, sent_ns: i64, local_ns: i64) {
+        self.guard.leader_sent(sent_ns, local_ns);
+    }
+
+    /// What the guard saw.
+    pub fn guard(&self) -> &crate::clockguard::ClockGuard {
+        &self.guard
     }
 
     /// Exchanges used so far.

@@ -63,14 +63,34 @@ impl Drop for Following {
 /// beyond this is reported once on stderr, naming `me`.
 pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: String, quarter_step_ns: f64) -> Following {
     let key = keys.time();
+    let start_key = keys.start();
     Following(tokio::spawn(async move {
+        // The leader's start announcements (every 100 ms through the run)
+        // carry its timebase when sent: a floor no answer may fall below.
+        let stamps = timebase.clone();
+        let _floor = session
+            .declare_subscriber(start_key)
+            .callback(move |s| {
+                if let Some(start) = codec::decode::<crate::barrier::Start>(&s.payload().to_bytes()) {
+                    stamps.leader_sent(start.sent_ns);
+                }
+            })
+            .await;
         let mut asked = 0u32;
         let mut warned = false;
+        let mut named = false;
         loop {
-            if let Some(x) = ask(&session, &key).await {
-                timebase.add(x);
-            }
+            let answers = ask_all(&session, &key).await;
+            timebase.add_answers(&answers);
             asked = asked.saturating_add(1);
+            if !named && timebase.second_clock() {
+                named = true;
+                let worst = timebase.report().map_or(0.0, |r| r.guard.worst_disagreement_ms);
+                crate::node::say(&format!(
+                    "{me}: a second clock answers on {key}, {worst:.1} ms from the leader's: its answers are \
+                     refused (another process imitating the leader? with --tls only the leader may answer)"
+                ));
+            }
             // Judged once the drift is measured (before, its allowance dominates).
             if !warned {
                 let measured = |e: &crate::timebase::Estimate| e.periods >= crate::timebase::MIN_SLOPE_PERIODS;
@@ -91,17 +111,35 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
 
 /// One exchange: None if unanswered (within [`TIMEOUT`]) or garbled.
 pub async fn ask(session: &zenoh::Session, key: &str) -> Option<Exchange> {
+    ask_all(session, key).await.into_iter().next()
+}
+
+/// Answers to one question beyond this many are not read (a flood of
+/// responders cannot hold a node's memory).
+const MAX_ANSWERS: usize = 8;
+
+/// One question and every answer to it (zenoh's consolidation off: a
+/// second responder's answer is not merged into the leader's), in the
+/// order they came, within [`TIMEOUT`]; garbled ones left out.
+pub async fn ask_all(session: &zenoh::Session, key: &str) -> Vec<Exchange> {
     let t1 = clock::mono_ns();
-    let replies = session.get(key).timeout(TIMEOUT).await.ok()?;
+    let mut answers = Vec::new();
+    let Ok(replies) = session.get(key).consolidation(zenoh::query::ConsolidationMode::None).timeout(TIMEOUT).await
+    else {
+        return answers;
+    };
     while let Ok(reply) = replies.recv_async().await {
         let t4 = clock::mono_ns();
         if let Ok(sample) = reply.result() {
             if let Some(r) = codec::decode::<TimeReply>(&sample.payload().to_bytes()) {
-                return Some(Exchange { t1, t2: r.t2, t3: r.t3, t4 });
+                answers.push(Exchange { t1, t2: r.t2, t3: r.t3, t4 });
+                if answers.len() >= MAX_ANSWERS {
+                    break;
+                }
             }
         }
     }
-    None
+    answers
 }
 
 /// A node after the start: waits (up to `limit`) until its timebase has an

@@ -317,8 +317,9 @@ pub struct HearingRecord {
     pub rescued: Vec<Rescued>,
 }
 
-/// The record's format: a reader refuses another.
-pub const HEARING_FORMAT: u32 = 1;
+/// The record's format: a reader refuses another. Format 2 added the
+/// trailing CRC-32.
+pub const HEARING_FORMAT: u32 = 2;
 
 /// The record's file name in the run folder.
 pub const HEARING_FILE: &str = "hearing.bin";
@@ -330,6 +331,12 @@ pub enum HearingError {
     Io(String, std::io::Error),
     #[error("{0}: not a hearing record (it does not decode)")]
     Malformed(String),
+    #[error("{0}: damaged: its checksum does not match its contents (changed since the monitor wrote it)")]
+    Damaged(String),
+    #[error("{0}: not a regular file")]
+    NotAFile(String),
+    #[error("{path}: {bytes} bytes, more than a hearing record can be ({max} bytes)")]
+    TooLarge { path: String, bytes: u64, max: usize },
     #[error("{path}: hearing record format {found}, this build reads format {HEARING_FORMAT}")]
     Format { path: String, found: u32 },
 }
@@ -339,16 +346,24 @@ fn config() -> bincode::config::Configuration {
 }
 
 impl HearingRecord {
+    /// The record in bincode, then the CRC-32 of those bytes (4 bytes, little-endian).
     pub fn encode(&self) -> Vec<u8> {
-        bincode::serde::encode_to_vec(self, config()).unwrap_or_default()
+        let mut bytes = bincode::serde::encode_to_vec(self, config()).unwrap_or_default();
+        let crc = crc32fast::hash(&bytes);
+        bytes.extend_from_slice(&crc.to_le_bytes());
+        bytes
     }
 
+    /// Decodes a record (allocating at most what `decode_bounded` allows),
+    /// refusing one whose checksum does not match.
     pub fn decode(bytes: &[u8], label: &str) -> Result<Self, HearingError> {
-        let r: Self = match bincode::serde::decode_from_slice::<Self, _>(bytes, config()) {
-            Ok((r, used)) if used == bytes.len() => r,
-            _ => {
+        let body = bytes.len().checked_sub(4).map(|n| bytes.split_at(n));
+        let r: Self = match body.and_then(|(b, _)| formation_topology::wire::decode_bounded::<Self>(b)) {
+            Some(r) => r,
+            None => {
                 // The format number comes first: name a record of another format as such.
-                return match bincode::serde::decode_from_slice::<u32, _>(bytes, config()) {
+                let limited = config().with_limit::<64>();
+                return match bincode::serde::decode_from_slice::<u32, _>(bytes, limited) {
                     Ok((found, _)) if found != HEARING_FORMAT && found < 1000 => {
                         Err(HearingError::Format { path: label.into(), found })
                     }
@@ -356,6 +371,11 @@ impl HearingRecord {
                 };
             }
         };
+        if let Some((b, crc)) = body {
+            if crc32fast::hash(b).to_le_bytes() != crc {
+                return Err(HearingError::Damaged(label.into()));
+            }
+        }
         if r.format != HEARING_FORMAT {
             return Err(HearingError::Format { path: label.into(), found: r.format });
         }
@@ -366,7 +386,7 @@ impl HearingRecord {
     pub fn read(dir: &std::path::Path) -> Result<Self, HearingError> {
         let path = dir.join(HEARING_FILE);
         let label = path.display().to_string();
-        let bytes = std::fs::read(&path).map_err(|e| HearingError::Io(label.clone(), e))?;
+        let bytes = read_regular(&path, formation_topology::wire::MAX_INPUT)?;
         Self::decode(&bytes, &label)
     }
 
@@ -374,6 +394,29 @@ impl HearingRecord {
     pub fn leader_has(&self, k: u64) -> bool {
         self.leader.iter().any(|&(a, b)| a <= k && k < b)
     }
+}
+
+/// A regular file's bytes (a link to one is followed), at most `max` of
+/// them: a FIFO, a device or a directory is refused without reading, and so
+/// is a file longer than `max`.
+pub fn read_regular(path: &std::path::Path, max: usize) -> Result<Vec<u8>, HearingError> {
+    use std::io::Read;
+    let label = path.display().to_string();
+    let meta = std::fs::metadata(path).map_err(|e| HearingError::Io(label.clone(), e))?;
+    if !meta.is_file() {
+        return Err(HearingError::NotAFile(label));
+    }
+    let too_large = |bytes| HearingError::TooLarge { path: label.clone(), bytes, max };
+    if meta.len() > max as u64 {
+        return Err(too_large(meta.len()));
+    }
+    let file = std::fs::File::open(path).map_err(|e| HearingError::Io(label.clone(), e))?;
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    file.take(max as u64 + 1).read_to_end(&mut bytes).map_err(|e| HearingError::Io(label.clone(), e))?;
+    if bytes.len() > max {
+        return Err(too_large(bytes.len() as u64));
+    }
+    Ok(bytes)
 }
 
 #[cfg(test)]
@@ -467,5 +510,17 @@ mod tests {
         other.format = 9;
         assert!(matches!(HearingRecord::decode(&other.encode(), "h"), Err(HearingError::Format { found: 9, .. })));
         assert!(rec.leader_has(24) && !rec.leader_has(25));
+        // Any flipped bit is named as damage, not replayed.
+        for bit in [40, 8 * bytes.len() / 2, 8 * bytes.len() - 1] {
+            let mut flipped = bytes.clone();
+            flipped[bit / 8] ^= 1 << (bit % 8);
+            let r = HearingRecord::decode(&flipped, "h");
+            assert!(matches!(r, Err(HearingError::Damaged(_)) | Err(HearingError::Malformed(_))), "bit {bit}: {r:?}");
+        }
+        // A first length field of 2^62 is refused, not allocated.
+        let mut huge = vec![HEARING_FORMAT as u8, 0xff];
+        huge.extend_from_slice(&(1u64 << 62).to_le_bytes());
+        huge.extend_from_slice(&[0; 8]);
+        assert!(matches!(HearingRecord::decode(&huge, "h"), Err(HearingError::Malformed(_))));
     }
 }
