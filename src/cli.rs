@@ -26,40 +26,54 @@ pub struct Cli {
     pub command: Command,
 }
 
+// Every command takes negative numbers as values (`--speed -1`), so that
+// the option's own check refuses them in plain words rather than clap
+// taking them for flags.
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Run a scenario in one process, deterministically, and write a run folder.
+    #[command(allow_negative_numbers = true)]
     Sim(SimArgs),
     /// Measure follower-steps per second of the simulator.
+    #[command(allow_negative_numbers = true)]
     Bench(BenchArgs),
     /// Run every case the paper compares and write its figures, tables and claims.
+    #[command(allow_negative_numbers = true)]
     Paper(crate::paper::PaperArgs),
     /// The paper's figures and tables for any run folders, side by side.
+    #[command(allow_negative_numbers = true)]
     Report(crate::report::ReportArgs),
     /// Run the formation as separate processes over zenoh on this machine
     /// (leader, one agent per follower, monitor) and print the summary.
+    #[command(allow_negative_numbers = true)]
     Launch(crate::launch::LaunchArgs),
     /// Run the formation as on several machines: every node in a network
     /// namespace of its own on a virtual bridge, the fault table performed
     /// by the network (links down, packet loss), router and agent restarts.
     /// Needs root or unprivileged user namespaces.
+    #[command(allow_negative_numbers = true)]
     Lab(crate::lab::LabArgs),
     /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
+    #[command(allow_negative_numbers = true)]
     BenchNet(crate::bench_net::BenchNetArgs),
     /// Make a certificate authority, a certificate and key per node and the
     /// access-control policy of a scenario, for `--tls DIR` (mutual TLS on
     /// every link, each node allowed to speak only for itself).
+    #[command(allow_negative_numbers = true)]
     Certs(crate::certs::CertsArgs),
     /// Write a scenario of any size: N followers on formation slots, a graph
     /// of the given kind checked against Lemma 1, λ_min(H) in its header.
+    #[command(allow_negative_numbers = true)]
     Generate(GenerateArgs),
     /// Re-compute a networked run in one process from what each follower
     /// heard (its run folder's hearing.bin), byte for byte; with --explain,
     /// where and why the run departed from its model.
+    #[command(allow_negative_numbers = true)]
     Replay(crate::replay::ReplayArgs),
     /// Play a finished networked run again on the live page (--web) or to
     /// Foxglove (--foxglove): --replay RUN_DIR, at --speed, with pause and
     /// seek on the page.
+    #[command(allow_negative_numbers = true)]
     Monitor(crate::replay::PlaybackArgs),
     /// A single node of a networked run (used by `launch`).
     #[command(hide = true)]
@@ -106,6 +120,7 @@ fn generate(a: &GenerateArgs) -> Result<(), CliError> {
         seed: a.seed,
         ..Spec::new(a.followers, graph)
     };
+    crate::args::check_out_path("--out", &a.out, crate::args::MAX_NAME_BYTES)?;
     let text = generate::toml(&spec).map_err(|e| {
         let hint = match (&e, graph) {
             (formation_topology::ScenarioError::GraphNotConnected { .. }, GraphKind::RandomGeometric) => {
@@ -213,6 +228,7 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
     check_threads(a.threads)?;
     let scenario = a.scenario.load()?;
     let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
+    crate::args::check_out_path("--out", &dir, crate::args::MAX_OUT_NAME_BYTES)?;
     crate::runsize::warn_if_large(&scenario, a.every, !a.no_csv, a.mcap, &dir);
     let threads = match a.threads {
         0 if scenario.followers.len() >= PARALLEL_FROM => std::thread::available_parallelism().map_or(1, |n| n.get()),

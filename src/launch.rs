@@ -110,6 +110,7 @@ impl RunOptions {
             }
         }
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
+        crate::args::check_out_path("--out", &out, crate::args::MAX_OUT_NAME_BYTES)?;
         if let Some(p) = self.rt_priority {
             if scenario.timing != formation_topology::Timing::Realtime {
                 return Err(CliError::Input(format!(

@@ -208,6 +208,7 @@ pub fn run_seed(scenario: &Scenario, seed: u64, record: Option<&RecordOptions>) 
 pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     at_least_one("--seeds", a.seeds)?;
     at_least_one("--every", a.every)?;
+    crate::args::check_out_path("--out", &a.out, crate::args::MAX_OUT_NAME_BYTES)?;
     let started = Instant::now();
     let base = Scenario::load(&a.scenario, &a.overrides).map_err(|e| CliError::Input(e.to_string()))?;
     let plan = if a.no_study { None } else { Some(study::plan(&base)) };

@@ -126,6 +126,18 @@ pub struct PlaybackArgs {
     pub linger: f64,
 }
 
+/// The longest `--linger`: a day.
+const MAX_LINGER_S: f64 = 86_400.0;
+
+/// A number as a user would write it: 1e-300, not 300 zeros.
+fn number(x: f64) -> String {
+    if x != 0.0 && x.is_finite() && !(1e-4..1e15).contains(&x.abs()) {
+        format!("{x:e}")
+    } else {
+        x.to_string()
+    }
+}
+
 /// Plays a finished run on the live page and to Foxglove.
 pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
     use formation_net::playback::{self, Control, Outputs};
@@ -134,15 +146,21 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
             "formation monitor --replay: give --web, --foxglove or both (where to play it)".into(),
         ));
     }
-    if !(a.speed.is_finite() && a.speed > 0.0 && a.speed <= playback::MAX_SPEED) {
+    let (speed, linger) = (number(a.speed), number(a.linger));
+    if !(playback::MIN_SPEED..=playback::MAX_SPEED).contains(&a.speed) {
+        let what = if a.speed > 0.0 {
+            format!("--speed {speed} is out of range")
+        } else {
+            format!("--speed must be positive, not {speed}")
+        };
         return Err(CliError::Input(format!(
-            "--speed must be above 0 and at most {}, not {}",
-            playback::MAX_SPEED,
-            a.speed
+            "{what} ({} to {} run seconds per second)",
+            playback::MIN_SPEED,
+            playback::MAX_SPEED
         )));
     }
-    if !(a.linger.is_finite() && a.linger >= 0.0) {
-        return Err(CliError::Input(format!("--linger must be 0 or more seconds, not {}", a.linger)));
+    if !(0.0..=MAX_LINGER_S).contains(&a.linger) {
+        return Err(CliError::Input(format!("--linger must be 0 to {MAX_LINGER_S} seconds (a day), not {linger}")));
     }
     let loaded = replay::load(&a.run)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()

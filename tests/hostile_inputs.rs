@@ -524,6 +524,130 @@ fn cases() -> Vec<Case> {
             2,
             &["--slow-link 2:4=300", "less than 100"],
         ),
+        case(
+            "a slow link to itself",
+            None,
+            &["lab", "{paper}", "--mode", "peer", "--slow-link", "2:2=10", "--out", "{dir}/out"],
+            2,
+            &["--slow-link 2:2=10", "follower 2 to itself"],
+        ),
+        case(
+            "a slow link between followers that are not neighbours",
+            None,
+            &["lab", "{paper}", "--mode", "peer", "--slow-link", "2:3=10", "--out", "{dir}/out"],
+            2,
+            &["--slow-link 2:3=10", "2 and 3 are not neighbours", "neighbours of 2: 1, 4"],
+        ),
+        // Small ones (issue 30, item 6): numbers out of range, negative
+        // numbers taken for flags, names too long, damaged run folders.
+        case(
+            "playback at speed 1e-300",
+            None,
+            &["monitor", "--replay", "{dir}/garbage", "--web", "--speed", "1e-300"],
+            2,
+            &["--speed 1e-300 is out of range", "0.01 to 1000"],
+        ),
+        case(
+            "playback at speed 1e-12",
+            None,
+            &["monitor", "--replay", "{dir}/garbage", "--web", "--speed", "1e-12"],
+            2,
+            &["--speed 1e-12 is out of range"],
+        ),
+        case(
+            "playback at speed -1",
+            None,
+            &["monitor", "--replay", "{dir}/garbage", "--web", "--speed", "-1"],
+            2,
+            &["--speed must be positive, not -1"],
+        ),
+        case(
+            "playback lingering 1e300 s",
+            None,
+            &["monitor", "--replay", "{dir}/garbage", "--web", "--linger", "1e300"],
+            2,
+            &["--linger must be 0 to 86400 seconds", "1e300"],
+        ),
+        case(
+            "generate a radius of -1",
+            None,
+            &["generate", "--followers", "9", "--graph", "random-geometric", "--radius", "-1", "--out", "{dir}/g.toml"],
+            2,
+            &["--radius must be a positive number", "not -1"],
+        ),
+        sim_paper(
+            "--set a table over a key set before",
+            &["--set", "robot.mass=1", "--set", "robot={inertia=2}"],
+            &["--set robot={inertia=2}", "conflicts with --set robot.mass=1", "robot.mass would be dropped"],
+        ),
+        sim(
+            "a name of 120,000 characters",
+            edit("name = \"paper\"", &format!("name = \"{}\"", "n".repeat(120_000))),
+            &["name", "120000 characters long, at most 100"],
+        ),
+        case(
+            "an --out of 120,000 characters",
+            None,
+            &["sim", "{paper}", "-q", "--out", &format!("{{dir}}/{}", "o".repeat(120_000))],
+            2,
+            &["--out", "120000 bytes long, at most 200"],
+        ),
+        case(
+            "launch with a --run of 101 characters",
+            None,
+            &["launch", "{paper}", "--run", &"r".repeat(101), "--out", "{dir}/out"],
+            2,
+            &["run name", "101 characters long, at most 100"],
+        ),
+        case(
+            "report of an empty summary.json",
+            None,
+            &["report", "{dir}/simrun", "--out", "{dir}/out"],
+            2,
+            &["simrun/summary.json:1:2: missing field"],
+        ),
+        case(
+            "report of a summary.json with a word for dt",
+            None,
+            &["report", "{dir}/run-dt", "--out", "{dir}/out"],
+            2,
+            &["run-dt/summary.json:", "`dt`: invalid type: string \"x\""],
+        ),
+        case(
+            "report of a summary.json cut short",
+            None,
+            &["report", "{dir}/run-cut", "--out", "{dir}/out"],
+            2,
+            &["run-cut/summary.json:", "cut short"],
+        ),
+        case(
+            "report of a CSV with a short row",
+            None,
+            &["report", "{dir}/run-row", "--out", "{dir}/out"],
+            2,
+            &["run-row/follower_2.csv: line 4: 2 fields, where the header has 22"],
+        ),
+        case(
+            "report of a CSV with NaN",
+            None,
+            &["report", "{dir}/run-nan", "--out", "{dir}/out"],
+            2,
+            &["run-nan/follower_2.csv: line 5: `x` is NaN, not a finite number"],
+        ),
+        case(
+            "report of a folder without a follower's CSV",
+            None,
+            &["report", "{dir}/run-gone", "--out", "{dir}/out"],
+            2,
+            &["run-gone: follower_3.csv is missing", "damaged run folder"],
+        ),
+        case(
+            "report into the folder it reads",
+            None,
+            &["report", "{dir}/run", "--out", "{dir}/run"],
+            2,
+            &["is the run folder", "choose another --out"],
+        ),
         case("an unknown command", None, &["fly"], 2, &["fly"]),
         // A run that would write many gigabytes says so before it starts
         // (then stops here: its folder is not a run folder).
@@ -535,6 +659,60 @@ fn cases() -> Vec<Case> {
             &["warning: this run will write about 17.9 GB", "notarun"],
         ),
     ]
+}
+
+/// A short run of the paper scenario, made once for every case that reads one.
+fn short_run() -> &'static Path {
+    static RUN: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    RUN.get_or_init(|| {
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("hostile_inputs_run");
+        let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+        let status = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .arg("sim")
+            .arg(&paper)
+            .args(["--set", "duration=0.1", "-q", "--out"])
+            .arg(&dir)
+            .status()
+            .unwrap();
+        assert!(status.success(), "the short run failed");
+        dir
+    })
+}
+
+/// Replaces line `n` (from 1) of the file at `path` by `f` of it.
+fn edit_line(path: &Path, n: usize, f: impl Fn(&str) -> String) {
+    let text = std::fs::read_to_string(path).unwrap();
+    let lines: Vec<String> =
+        text.lines().enumerate().map(|(k, l)| if k + 1 == n { f(l) } else { l.to_string() }).collect();
+    std::fs::write(path, lines.join("\n") + "\n").unwrap();
+}
+
+/// Copies of [`short_run`] in `d`: `run` as it is, and damaged ones.
+fn damaged_runs(d: &Path) {
+    let copy = |name: &str| {
+        let to = d.join(name);
+        std::fs::create_dir(&to).unwrap();
+        for e in std::fs::read_dir(short_run()).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+        to
+    };
+    copy("run");
+    // summary.json: a word for a number, and the file cut short.
+    let path = copy("run-dt").join("summary.json");
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert!(text.contains("\"dt\": 0.001"), "summary.json has no dt: {text}");
+    std::fs::write(&path, text.replacen("\"dt\": 0.001", "\"dt\": \"x\"", 1)).unwrap();
+    std::fs::write(copy("run-cut").join("summary.json"), &text[..text.len() / 2]).unwrap();
+    // follower_2.csv: line 4 of two fields; NaN for x on line 5.
+    edit_line(&copy("run-row").join("follower_2.csv"), 4, |_| "0.003,1".into());
+    edit_line(&copy("run-nan").join("follower_2.csv"), 5, |l| {
+        let mut fields: Vec<&str> = l.split(',').collect();
+        fields[1] = "NaN";
+        fields.join(",")
+    });
+    std::fs::remove_file(copy("run-gone").join("follower_3.csv")).unwrap();
 }
 
 /// Runs one case in its own folder; `Err` says how it failed.
@@ -560,6 +738,9 @@ fn check(c: &Case) -> Result<(), String> {
     ] {
         std::fs::create_dir(d.join(folder)).unwrap();
         std::fs::write(d.join(folder).join(file), bytes).unwrap();
+    }
+    if c.args.iter().any(|a| a.contains("{dir}/run")) {
+        damaged_runs(d);
     }
     let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
     let args: Vec<String> = c

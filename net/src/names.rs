@@ -53,6 +53,11 @@ pub fn validate_run_name(run: &str) -> Result<(), BadRunName> {
     if run.is_empty() {
         return Err(BadRunName("run name is empty (allowed: letters, digits, '_' and '-')".into()));
     }
+    let (chars, most) = (run.chars().count(), formation_topology::scenario::MAX_NAME_CHARS);
+    if chars > most {
+        let start: String = run.chars().take(20).collect();
+        return Err(BadRunName(format!("run name `{start}…` is {chars} characters long, at most {most}")));
+    }
     if let Some(c) = run.chars().find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '-')) {
         return Err(BadRunName(format!(
             "run name {run:?} contains {c:?}: only letters, digits, '_' and '-' are allowed"

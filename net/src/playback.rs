@@ -42,7 +42,7 @@ impl Control {
         if v["play"] == true {
             return Some(Control::Play);
         }
-        if let Some(s) = v["speed"].as_f64().filter(|s| s.is_finite() && *s > 0.0 && *s <= MAX_SPEED) {
+        if let Some(s) = v["speed"].as_f64().filter(|s| (MIN_SPEED..=MAX_SPEED).contains(s)) {
             return Some(Control::Speed(s));
         }
         v["seek"].as_f64().filter(|t| t.is_finite() && *t >= 0.0).map(Control::Seek)
@@ -51,6 +51,8 @@ impl Control {
 
 /// The fastest playback asked for (run seconds per second).
 pub const MAX_SPEED: f64 = 1000.0;
+/// The slowest (a 30 s run then lasts 50 min; slower never ends in practice).
+pub const MIN_SPEED: f64 = 0.01;
 
 /// Where a playback's frames go (the live page); Foxglove gets the
 /// recorder's rows through [`play`]'s `foxglove`.
@@ -286,7 +288,15 @@ mod tests {
         assert_eq!(Control::parse(r#"{"play": true}"#), Some(Control::Play));
         assert_eq!(Control::parse(r#"{"speed": 4}"#), Some(Control::Speed(4.0)));
         assert_eq!(Control::parse(r#"{"seek": 8.5}"#), Some(Control::Seek(8.5)));
-        for bad in [r#"{"speed": 0}"#, r#"{"speed": -1}"#, r#"{"speed": 1e9}"#, r#"{"seek": -2}"#, "nonsense", "{}"] {
+        for bad in [
+            r#"{"speed": 0}"#,
+            r#"{"speed": -1}"#,
+            r#"{"speed": 1e9}"#,
+            r#"{"speed": 1e-12}"#,
+            r#"{"seek": -2}"#,
+            "nonsense",
+            "{}",
+        ] {
             assert_eq!(Control::parse(bad), None, "{bad}");
         }
     }

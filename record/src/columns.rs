@@ -15,8 +15,17 @@ pub enum RecordError {
     Io { path: PathBuf, source: std::io::Error },
 }
 
-/// Reads the named columns of a CSV file with a header row.
+/// Reads the named columns of a CSV file with a header row. Every field of
+/// the file must be a number: an error names the file, the line and the
+/// column of the first that is not.
 pub fn read_columns(path: &Path, names: &[&str]) -> Result<Vec<Vec<f64>>, RecordError> {
+    read_columns_checked(path, names, false)
+}
+
+/// [`read_columns`], and with `finite` every field must be a finite number:
+/// a complete run writes nothing else (a diverged run's last rows may hold
+/// inf or NaN).
+pub fn read_columns_checked(path: &Path, names: &[&str], finite: bool) -> Result<Vec<Vec<f64>>, RecordError> {
     let bad = |what: String| RecordError::Malformed { path: path.to_path_buf(), what };
     let mut reader = csv::ReaderBuilder::new().has_headers(true).from_path(path).map_err(|e| match e.into_kind() {
         csv::ErrorKind::Io(source) => RecordError::Io { path: path.to_path_buf(), source },
@@ -27,15 +36,33 @@ pub fn read_columns(path: &Path, names: &[&str]) -> Result<Vec<Vec<f64>>, Record
         .iter()
         .map(|n| headers.iter().position(|h| h.trim() == *n).ok_or_else(|| bad(format!("no column `{n}`"))))
         .collect::<Result<_, _>>()?;
+    // Field index → the named column it fills.
+    let mut slot = vec![None; headers.len()];
+    for (k, &i) in idx.iter().enumerate() {
+        slot[i] = Some(k);
+    }
     let mut cols = vec![Vec::new(); names.len()];
-    for (line, rec) in reader.records().enumerate() {
-        let rec = rec.map_err(|e| bad(e.to_string()))?;
-        for ((col, &i), name) in cols.iter_mut().zip(&idx).zip(names) {
-            let v: f64 = rec
-                .get(i)
-                .and_then(|s| s.trim().parse().ok())
-                .ok_or_else(|| bad(format!("line {}: `{name}` is not a number", line + 2)))?;
-            col.push(v);
+    for (n, rec) in reader.records().enumerate() {
+        let rec = rec.map_err(|e| match e.kind() {
+            csv::ErrorKind::UnequalLengths { pos: Some(pos), expected_len, len } => {
+                bad(format!("line {}: {len} fields, where the header has {expected_len}", pos.line()))
+            }
+            _ => bad(e.to_string()),
+        })?;
+        let line = rec.position().map_or(n as u64 + 2, |p| p.line());
+        for (i, field) in rec.iter().enumerate() {
+            let name = headers.get(i).unwrap_or("?").trim();
+            let v: f64 = field.trim().parse().map_err(|_| {
+                let shown: String = field.chars().take(20).collect();
+                let more = if shown.len() < field.len() { "…" } else { "" };
+                bad(format!("line {line}: `{name}` is not a number: {shown:?}{more}"))
+            })?;
+            if finite && !v.is_finite() {
+                return Err(bad(format!("line {line}: `{name}` is {v}, not a finite number")));
+            }
+            if let Some(k) = slot[i] {
+                cols[k].push(v);
+            }
         }
     }
     Ok(cols)

@@ -91,11 +91,29 @@ fn parse_slow_links(a: &LabArgs, s: &Scenario) -> Result<Vec<(String, String, f6
             let ids: Vec<String> = s.graph.ids().iter().map(u32::to_string).collect();
             return Err(bad(&format!("A and B must be follower ids (ids: {})", ids.join(", "))));
         };
+        if x == y {
+            return Err(bad(&format!("follower {x} to itself is not a link (A and B must be two followers)")));
+        }
+        let (ix, iy) = (s.graph.index_of(x), s.graph.index_of(y));
+        if let (Some(ix), Some(iy)) = (ix, iy) {
+            if !s.graph.neighbours(ix).contains(&iy) {
+                let of_x: Vec<String> = s.graph.neighbours(ix).iter().map(|&j| s.graph.id(j).to_string()).collect();
+                return Err(bad(&format!(
+                    "followers {x} and {y} are not neighbours in the scenario's graph, so they exchange nothing \
+                     (the neighbours of {x}: {})",
+                    if of_x.is_empty() { "none".to_string() } else { of_x.join(", ") }
+                )));
+            }
+        }
+        let (hx, hy) = (agent_host(x), agent_host(y));
+        if out.iter().any(|(a, b, _)| (a == &hx && b == &hy) || (a == &hy && b == &hx)) {
+            return Err(bad(&format!("a second --slow-link between followers {x} and {y}")));
+        }
         let p: f64 = percent.trim().parse().map_err(|_| bad("PERCENT must be a number"))?;
         if !(p > 0.0 && p < 100.0) {
             return Err(bad("PERCENT must be more than 0 and less than 100"));
         }
-        out.push((agent_host(x), agent_host(y), p));
+        out.push((hx, hy, p));
     }
     Ok(out)
 }

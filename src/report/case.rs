@@ -8,7 +8,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use formation_agent::{kinematic, KinematicKind};
-use formation_record::{at_path, read_columns, Summary};
+use formation_record::{at_path, read_columns_checked, Summary};
 use formation_topology::Scenario;
 use serde::{Deserialize, Serialize};
 
@@ -154,17 +154,27 @@ impl Case {
         let text = fs::read_to_string(&summary_path).map_err(|e| {
             CliError::Input(format!("{}: not a run folder (cannot read summary.json: {e})", dir.display()))
         })?;
-        let mut summary: Summary = serde_json::from_str(&text)
-            .map_err(|e| CliError::Input(format!("{}: invalid summary.json: {e}", summary_path.display())))?;
+        let mut summary: Summary = serde_json::from_str(&text).map_err(|e| json_error(&summary_path, &text, &e))?;
         summary.mark_unreached();
         let ids: Vec<u32> = summary.followers.keys().copied().collect();
-        let has_csv =
-            dir.join("leader.csv").is_file() && ids.iter().all(|id| dir.join(format!("follower_{id}.csv")).is_file());
+        let has_csv = has_csv(dir, &ids)?;
+        // A damaged CSV is refused here, before the report writes anything:
+        // a field that is not a number, or, in a complete run, not finite.
+        let finite = summary.complete;
+        if has_csv {
+            read_columns_checked(&dir.join("leader.csv"), &[], finite)?;
+        }
         let seeds_path = dir.join(SEEDS_FILE);
         let seeds = if seeds_path.is_file() {
+            // (Without seeds.json the follower CSVs are read just below.)
+            if has_csv {
+                for id in &ids {
+                    read_columns_checked(&dir.join(format!("follower_{id}.csv")), &[], finite)?;
+                }
+            }
             let text = fs::read_to_string(&seeds_path).map_err(at_path(&seeds_path, "cannot read"))?;
-            let mut seeds: Vec<SeedRecord> = serde_json::from_str(&text)
-                .map_err(|e| CliError::Input(format!("{}: invalid: {e}", seeds_path.display())))?;
+            let mut seeds: Vec<SeedRecord> =
+                serde_json::from_str(&text).map_err(|e| json_error(&seeds_path, &text, &e))?;
             for r in &mut seeds {
                 r.summary.mark_unreached();
             }
@@ -173,8 +183,11 @@ impl Case {
             }
             seeds
         } else {
-            let (e4, e6) =
-                if has_csv { estimator_checkpoints_from_csv(dir, &ids, summary.dt)? } else { Default::default() };
+            let (e4, e6) = if has_csv {
+                estimator_checkpoints_from_csv(dir, &ids, summary.dt, finite)?
+            } else {
+                Default::default()
+            };
             vec![SeedRecord { seed: summary.seed, summary, estimator_error_4s: e4, estimator_error_6s: e6 }]
         };
         let role = Role::of(&seeds[0].summary);
@@ -182,15 +195,103 @@ impl Case {
     }
 }
 
+/// Whether a run folder holds its CSVs: `leader.csv` and one per follower,
+/// or none of them (a run with `--no-csv`). Some of them is a damaged folder.
+fn has_csv(dir: &Path, ids: &[u32]) -> Result<bool, CliError> {
+    let files: Vec<String> =
+        std::iter::once("leader.csv".to_string()).chain(ids.iter().map(|id| format!("follower_{id}.csv"))).collect();
+    let (present, missing): (Vec<&String>, Vec<&String>) = files.iter().partition(|f| dir.join(f).is_file());
+    match (present.first(), missing.first()) {
+        (_, None) => Ok(true),
+        (None, Some(_)) => Ok(false),
+        (Some(there), Some(gone)) => {
+            let more = match missing.len() {
+                1 => " is".to_string(),
+                n => format!(" and {} more are", n - 1),
+            };
+            Err(CliError::Input(format!(
+                "{}: {gone}{more} missing, though {there} is there (a run writes every CSV, or none with \
+                 --no-csv): a damaged run folder",
+                dir.display()
+            )))
+        }
+    }
+}
+
+/// A JSON file's error in one line: the file, the line and column, the key
+/// the value at fault belongs to, and what is wrong with it.
+pub fn json_error(path: &Path, text: &str, e: &serde_json::Error) -> CliError {
+    let words = e.to_string();
+    let words = words.split(" at line ").next().unwrap_or(&words).to_string();
+    let at = if e.line() == 0 { String::new() } else { format!(":{}:{}", e.line(), e.column()) };
+    let key = match e.classify() {
+        serde_json::error::Category::Data => key_at(text, e.line(), e.column()).map(|k| format!("`{k}`: ")),
+        _ => None,
+    };
+    let hint = match e.classify() {
+        serde_json::error::Category::Eof => " (the file is cut short)",
+        serde_json::error::Category::Syntax => " (not valid JSON)",
+        _ => "",
+    };
+    CliError::Input(format!("{}{at}: {}{words}{hint}", path.display(), key.unwrap_or_default()))
+}
+
+/// The dotted key (`followers.2.rms`) of the value that starts before
+/// `line`:`column` (1-based) of a JSON text: the last key named in each
+/// object still open there.
+fn key_at(text: &str, line: usize, column: usize) -> Option<String> {
+    let start: usize = text.split_inclusive('\n').take(line.saturating_sub(1)).map(str::len).sum();
+    let end = text.len().min(start + column);
+    let bytes = &text.as_bytes()[..end];
+    // One entry per open object ({) or array ([): the object's last key.
+    let mut open: Vec<Option<String>> = Vec::new();
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'{' | b'[' => open.push(None),
+            b'}' | b']' => {
+                open.pop();
+            }
+            b'"' => {
+                let from = i + 1;
+                i += 1;
+                while i < bytes.len() && bytes[i] != b'"' {
+                    i += if bytes[i] == b'\\' { 2 } else { 1 };
+                }
+                let word = String::from_utf8_lossy(&bytes[from..i.min(bytes.len())]).into_owned();
+                let mut j = i + 1;
+                while j < bytes.len() && bytes[j].is_ascii_whitespace() {
+                    j += 1;
+                }
+                if bytes.get(j) == Some(&b':') {
+                    if let Some(top) = open.last_mut() {
+                        *top = Some(word);
+                    }
+                }
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    let keys: Vec<String> = open.into_iter().flatten().collect();
+    (!keys.is_empty()).then(|| keys.join("."))
+}
+
 /// A value per follower id.
 type ErrorById = BTreeMap<u32, f64>;
 
 /// The estimator position error at t = 4 s and 6 s from a folder's CSVs:
 /// the sample within half a step of the time, if there is one.
-fn estimator_checkpoints_from_csv(dir: &Path, ids: &[u32], dt_s: f64) -> Result<(ErrorById, ErrorById), CliError> {
+fn estimator_checkpoints_from_csv(
+    dir: &Path,
+    ids: &[u32],
+    dt_s: f64,
+    finite: bool,
+) -> Result<(ErrorById, ErrorById), CliError> {
     let mut at = [BTreeMap::new(), BTreeMap::new()];
     for &id in ids {
-        let table = read_columns(&dir.join(format!("follower_{id}.csv")), &["t", "estimator_error"])?;
+        let path = dir.join(format!("follower_{id}.csv"));
+        let table = read_columns_checked(&path, &["t", "estimator_error"], finite)?;
         for (slot, &time) in at.iter_mut().zip(&ESTIMATOR_CHECK_TIMES_S) {
             let hit = table[0].iter().position(|&t| (t - time).abs() <= 0.5 * dt_s + 1e-9);
             if let Some(i) = hit {

@@ -146,6 +146,18 @@ pub struct ReportArgs {
 
 /// Runs `formation report`.
 pub fn run(a: &ReportArgs) -> Result<(), CliError> {
+    crate::args::check_out_path("--out", &a.out, crate::args::MAX_OUT_NAME_BYTES)?;
+    // The report's files go into --out: never into one of the folders it reads.
+    if let Ok(out) = a.out.canonicalize() {
+        if let Some(dir) = a.runs.iter().find(|d| d.canonicalize().is_ok_and(|d| d == out)) {
+            return Err(CliError::Input(format!(
+                "--out {} is the run folder {}: the report would write its files among what it reads (choose \
+                 another --out)",
+                a.out.display(),
+                dir.display()
+            )));
+        }
+    }
     let mut cases = Vec::with_capacity(a.runs.len());
     let mut used = BTreeMap::<String, usize>::new();
     for dir in &a.runs {

@@ -36,8 +36,7 @@ struct NodeRecord {
 fn read_records(case: &Case) -> Result<Vec<NodeRecord>, CliError> {
     let path = case.dir.join("network.json");
     let text = std::fs::read_to_string(&path).map_err(at_path(&path, "cannot read"))?;
-    let json: Value = serde_json::from_str(&text)
-        .map_err(|e| CliError::Input(format!("{}: not a network.json ({e})", path.display())))?;
+    let json: Value = serde_json::from_str(&text).map_err(|e| super::case::json_error(&path, &text, &e))?;
     let dt = case.summary().dt;
     let mut out = Vec::new();
     for id in case.follower_ids() {

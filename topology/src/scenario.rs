@@ -450,6 +450,17 @@ fn apply_overrides(text: &str, label: &str, overrides: &[String]) -> Result<(Sce
             return Err(err("empty key".into()));
         }
         let value = parse_value(value).map_err(err)?;
+        // A table replaces the whole table at `key`: a value an earlier
+        // --set gave inside it would be dropped without a word.
+        if value.is_table() && !key.ends_with('+') {
+            let inside = |given: &str| given.strip_prefix(key).is_some_and(|rest| rest.starts_with(['.', '[']));
+            if let Some((given, earlier)) = overridden.iter().find(|(given, _): &&(String, String)| inside(given)) {
+                return Err(err(format!(
+                    "conflicts with --set {earlier}: a table replaces all of `{key}`, so {given} would be dropped \
+                     (give every key in the one table, or each as {key}.KEY=VALUE)"
+                )));
+            }
+        }
         let mut next = table.clone();
         match key.strip_suffix('+') {
             Some(array) => append_path(&mut next, array.trim(), value).map_err(err)?,
@@ -620,6 +631,10 @@ impl Check<'_> {
     }
 }
 
+/// The longest run name (a scenario's `name`, `--run`): it names the run's
+/// folder and every key of its traffic.
+pub const MAX_NAME_CHARS: usize = 100;
+
 fn validate(
     file: ScenarioFile,
     label: &str,
@@ -629,6 +644,13 @@ fn validate(
 ) -> Result<Scenario, ScenarioError> {
     let c = Check { label, source, overridden };
     let name = file.name.clone().unwrap_or_else(|| default_name.to_string());
+    if name.chars().count() > MAX_NAME_CHARS {
+        let start: String = name.chars().take(20).collect();
+        return Err(c.fail(
+            "name",
+            format!("`{start}…` is {} characters long, at most {MAX_NAME_CHARS}", name.chars().count()),
+        ));
+    }
     if name.is_empty() || !name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_') {
         return Err(c.fail("name", format!("`{name}` must be non-empty and use only letters, digits, '-' and '_'")));
     }
@@ -1256,6 +1278,19 @@ mod tests {
             // A --set elsewhere does not take the blame for the file.
             assert_eq!(message(&text, &["duration=1"]), want, "with --set duration=1");
         }
+    }
+
+    #[test]
+    fn a_set_table_over_an_earlier_set_key_is_refused() {
+        let text = format!("{ARRAYS}[robot]\nmass = 10.0\ninertia = 5.0\n");
+        assert_eq!(
+            message(&text, &["robot.mass=1", "robot={inertia=2}"]),
+            "--set robot={inertia=2}: conflicts with --set robot.mass=1: a table replaces all of `robot`, so \
+             robot.mass would be dropped (give every key in the one table, or each as robot.KEY=VALUE)"
+        );
+        // The other order sets a key inside the table: nothing is dropped.
+        let m = message(&text, &["robot={inertia=2, mass=3}", "robot.mass=-1"]);
+        assert_eq!(m, "--set robot.mass=-1: robot.mass: must be positive, got -1");
     }
 
     #[test]
