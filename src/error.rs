@@ -12,7 +12,15 @@ pub enum Error {
     /// The run failed: a node stopped answering, a file could not be written.
     #[error("{0}")]
     Run(String),
+    /// The run was recorded to its end, but degraded (exit status 3).
+    #[error("{0}")]
+    Degraded(String),
 }
+
+/// The exit status of a run recorded to its end whose health is degraded:
+/// the formation did far worse than its model, or a clock stepped
+/// (network.json's `health` says which).
+pub const DEGRADED: u8 = 3;
 
 /// The name the command modules use.
 pub use self::Error as CliError;
@@ -22,6 +30,7 @@ impl Error {
         match self {
             Error::Input(_) => ExitCode::from(2),
             Error::Run(_) => ExitCode::from(1),
+            Error::Degraded(_) => ExitCode::from(DEGRADED),
         }
     }
 }

@@ -319,11 +319,47 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
     let result = runtime.block_on(launch(a, &scenario, &run, &out, &exe, &mut children));
     drop(children);
     let summary = result?;
+    let health = read_health(&out);
     if !a.opts.quiet {
         print!("{}", summary.table());
+        if let Some((line, _)) = &health {
+            println!("{line}");
+        }
         println!("wrote {}", out.display());
     }
-    Ok(())
+    degraded_error(health, &out)
+}
+
+/// network.json's health: its line for the terminal, and whether degraded.
+pub(crate) fn read_health(out: &Path) -> Option<(String, bool)> {
+    let text = std::fs::read_to_string(out.join("network.json")).ok()?;
+    let v: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let h = &v["health"];
+    let verdict = h["verdict"].as_str()?;
+    let reasons: Vec<String> = h["degraded"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .chain(h["disturbed"].as_array().into_iter().flatten())
+        .filter_map(|r| r.as_str().map(str::to_string))
+        .collect();
+    let line = match (verdict, reasons.is_empty()) {
+        (_, true) => format!("health: {verdict}"),
+        _ => format!("health: {verdict}: {}", reasons.join("; ")),
+    };
+    Some((line, verdict == "degraded"))
+}
+
+/// A degraded run's error (exit status 3), naming why; Ok otherwise.
+pub(crate) fn degraded_error(health: Option<(String, bool)>, out: &Path) -> Result<(), CliError> {
+    match health {
+        Some((line, true)) => Err(CliError::Degraded(format!(
+            "the run was recorded to its end but is degraded ({}; {}/network.json has the evidence)",
+            line.trim_start_matches("health: degraded: "),
+            out.display()
+        ))),
+        _ => Ok(()),
+    }
 }
 
 fn node_command(exe: &Path, node: &str, a: &LaunchArgs, run: &str) -> Command {
@@ -529,7 +565,8 @@ async fn launch(
 pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summary, CliError>> {
     while let Some((name, status)) = children.poll() {
         if name == "monitor" {
-            if !status.success() {
+            let degraded = status.code() == Some(i32::from(crate::error::DEGRADED));
+            if !status.success() && !degraded {
                 children.kill_all();
                 return Some(Err(CliError::Run(format!("the monitor failed ({status})"))));
             }

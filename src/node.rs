@@ -118,12 +118,14 @@ pub fn run(node: Node) -> ExitCode {
     }
 }
 
-/// A monitor's exit status: 0 for a run recorded to its end, 130 after
+/// A monitor's exit status: 0 for a run recorded to its end, 3 for one
+/// recorded to its end but degraded (network.json's `health`), 130 after
 /// SIGINT and 143 after SIGTERM (the shell's convention).
-fn monitor_status(ending: Ending) -> ExitCode {
+fn monitor_status((ending, verdict): (Ending, Option<formation_net::health::Verdict>)) -> ExitCode {
     match ending {
         Ending::Interrupted => ExitCode::from(130),
         Ending::Terminated => ExitCode::from(143),
+        _ if verdict == Some(formation_net::health::Verdict::Degraded) => ExitCode::from(crate::error::DEGRADED),
         _ => ExitCode::SUCCESS,
     }
 }

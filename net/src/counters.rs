@@ -61,4 +61,37 @@ pub struct Counters {
     /// time. The simulator's model has none.
     #[serde(default)]
     pub older: u64,
+    /// (The leader) questions on `control/time` answered, and the most in
+    /// any one second: each node asks about 4 a second.
+    #[serde(default)]
+    pub time_queries: u64,
+    #[serde(default)]
+    pub time_queries_peak_per_s: u64,
+}
+
+/// The questions a leader answers on `control/time`: how many, and the
+/// most in one second of its clock. Shared by the queryable's callback and
+/// the leader's loop.
+#[derive(Debug, Default)]
+pub struct QueryCount(std::sync::Mutex<(u64, i64, u64, u64)>);
+
+impl QueryCount {
+    /// One question, at `now_ns` on the leader's clock.
+    pub fn note(&self, now_ns: i64) {
+        let mut g = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        let (total, second, in_second, peak) = &mut *g;
+        *total += 1;
+        let s = now_ns.div_euclid(1_000_000_000);
+        if s != *second {
+            (*second, *in_second) = (s, 0);
+        }
+        *in_second += 1;
+        *peak = (*peak).max(*in_second);
+    }
+
+    /// (questions, most in one second).
+    pub fn read(&self) -> (u64, u64) {
+        let g = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        (g.0, g.3)
+    }
 }

@@ -108,7 +108,8 @@ pub async fn run_leader(
     startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps()).await?;
     // The run's timebase is this leader's clock; the others ask it from now on.
     let timebase = clock::Timebase::leader();
-    let time_server = timesync::serve(session, keys, timebase.clone()).await?;
+    let queries = Arc::new(crate::counters::QueryCount::default());
+    let time_server = timesync::serve_counted(session, keys, timebase.clone(), queries.clone()).await?;
     let hearing: Vec<u32> =
         (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
     let progress = Arc::new(Reached {
@@ -177,7 +178,17 @@ pub async fn run_leader(
     let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, &scenario).await?;
     let courier = delivery.courier.clone();
     let outcome = tokio::task::spawn_blocking(move || {
-        leader_loop(&scenario, lockstep, &start, &timebase, &progress, &estimate_pub, &courier, &followers_done)
+        leader_loop(
+            &scenario,
+            lockstep,
+            &start,
+            &timebase,
+            &progress,
+            &estimate_pub,
+            &courier,
+            &followers_done,
+            &queries,
+        )
     })
     .await
     .map_err(|e| Error::Run(format!("leader: loop panicked: {e}")))?;
@@ -204,6 +215,7 @@ fn leader_loop(
     estimate_pub: &Publisher<'_>,
     telemetry: &Courier,
     followers_done: &Mutex<std::collections::BTreeSet<u32>>,
+    queries: &crate::counters::QueryCount,
 ) -> Result<(), Error> {
     let steps = s.steps();
     let dt = s.dt_s;
@@ -256,6 +268,7 @@ fn leader_loop(
             }
         }
         if batch.len() >= batch_len || last {
+            (counters.time_queries, counters.time_queries_peak_per_s) = queries.read();
             let t = Telemetry::Leader {
                 first_k,
                 states: std::mem::take(&mut batch),

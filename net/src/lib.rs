@@ -8,7 +8,7 @@
 //! | layer | modules |
 //! | --- | --- |
 //! | names and wire | [`names`], [`codec`], [`counters`], [`error`] |
-//! | protocol rules (no IO, no clock) | [`barrier`], [`latency`], [`inbox`], [`gate`], [`hearing`], [`courier`], [`watch`], [`timebase`], [`clockguard`] |
+//! | protocol rules (no IO, no clock) | [`barrier`], [`latency`], [`inbox`], [`gate`], [`hearing`], [`courier`], [`watch`], [`timebase`], [`clockguard`], [`health`] |
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
@@ -28,6 +28,7 @@ pub mod error;
 pub mod explain;
 pub mod foxglove;
 pub mod gate;
+pub mod health;
 pub mod hearing;
 pub mod identity;
 pub mod inbox;

@@ -9,6 +9,7 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use formation_agent::LeaderState;
@@ -375,6 +376,13 @@ pub struct Recorder {
     leader_base: u64,
     nodes: BTreeMap<u32, NodeStats>,
     malformed: u64,
+    /// Of those, by the key they came on (`telemetry/<id>`; None: not a number).
+    malformed_by_key: BTreeMap<Option<u32>, u64>,
+    /// Puts from other processes on the run's control keys.
+    pub control: crate::health::ControlWatch,
+    /// The model's formation error per follower (or why it was not run):
+    /// with it, `finish` writes network.json's `health`.
+    model: Option<Result<BTreeMap<u32, Option<f64>>, String>>,
     /// Telemetry messages dropped on arrival (the queue was full).
     pub queue_dropped: u64,
     /// What every node's access control refused (crate::denials).
@@ -429,6 +437,9 @@ impl Recorder {
             leader_base: 0,
             nodes,
             malformed: 0,
+            malformed_by_key: BTreeMap::new(),
+            control: Default::default(),
+            model: None,
             queue_dropped: 0,
             denied: Default::default(),
             startup_s: None,
@@ -509,10 +520,85 @@ impl Recorder {
         self.foxglove.take()
     }
 
+    /// Counts `n` refused telemetry messages (or steps of one) on `telemetry/<key_id>`.
+    fn refuse(&mut self, key_id: Option<u32>, n: u64) {
+        if n == 0 {
+            return;
+        }
+        self.malformed += n;
+        // Ids the scenario does not know are counted together (a forger's keys cannot fill memory).
+        let key = key_id.filter(|&id| id == 0 || self.scenario.index_of(id).is_some());
+        *self.malformed_by_key.entry(key).or_default() += n;
+    }
+
+    /// The model's formation error per follower, or why there is none: with
+    /// it, `finish` judges the run's health (network.json's `health`).
+    pub fn set_model(&mut self, model: Result<BTreeMap<u32, Option<f64>>, String>) {
+        self.model = Some(model);
+    }
+
+    /// The run's health (None without [`Recorder::set_model`]).
+    pub fn health(&self, summary: &Summary) -> Option<crate::health::Health> {
+        let model = self.model.as_ref()?;
+        let dt = self.scenario.dt_s;
+        let mut e = crate::health::Evidence { steps: self.scenario.steps(), dt_s: dt, ..Default::default() };
+        let mut invalid = 0;
+        for (&id, n) in &self.nodes {
+            invalid += n.counters.rejected.invalid();
+            if id == 0 {
+                continue;
+            }
+            let mut open = None;
+            for ev in &n.timeline {
+                match ev.what {
+                    crate::telemetry::EventKind::Isolated => {
+                        open.get_or_insert(ev.k);
+                    }
+                    crate::telemetry::EventKind::Rejoined => {
+                        if let Some(from) = open.take() {
+                            e.isolations.push((id, from, Some(ev.k)));
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            if let Some(from) = open {
+                e.isolations.push((id, from, None));
+            }
+            if let Some(c) = n.clock {
+                let second = c.guard.second_clock_since_ns.map(|_| c.guard.worst_disagreement_ms);
+                if c.steps > 0 || second.is_some() {
+                    e.clocks.push((format!("follower {id}"), c.steps, second));
+                }
+            }
+        }
+        match model {
+            Ok(m) => {
+                e.errors = summary
+                    .followers
+                    .iter()
+                    .map(|(&id, f)| (id, f.formation_rms_last10, m.get(&id).copied().flatten()))
+                    .collect()
+            }
+            Err(why) => e.model_skipped = Some(why.clone()),
+        }
+        e.refused = vec![
+            ("telemetry messages refused (malformed or on another's key)".into(), self.malformed),
+            ("estimate messages refused by followers (malformed, forged or not a neighbour's)".into(), invalid),
+            ("puts refused on control keys".into(), self.control.refused()),
+            ("telemetry messages dropped by the monitor (queue full)".into(), self.queue_dropped),
+            ("followers with a second sender on their key".into(), self.twins().len() as u64),
+            ("messages refused by access control".into(), self.denied.rows().len() as u64),
+        ];
+        let leader = self.nodes.get(&0).map(|n| n.counters).unwrap_or_default();
+        e.time_queries = (leader.time_queries, leader.time_queries_peak_per_s, self.scenario.followers.len() as u64);
+        Some(crate::health::judge(&e))
+    }
+
     /// Files one telemetry message received on `telemetry/<key_id>` at `now`.
     pub fn telemetry(&mut self, key_id: Option<u32>, bytes: &[u8], now: Instant) -> std::io::Result<()> {
         let Some(t) = codec::decode::<Telemetry>(bytes) else {
-            self.malformed += 1;
+            self.refuse(key_id, 1);
             return Ok(());
         };
         let steps = self.scenario.steps();
@@ -521,14 +607,14 @@ impl Recorder {
         match t {
             Telemetry::Leader { first_k, states, counters, done, loop_stats, delivery } => {
                 if key_id != Some(0) {
-                    self.malformed += 1;
+                    self.refuse(key_id, 1);
                     return Ok(());
                 }
                 let Some((states, cut)) = check_batch(states, first_k, steps, batch, |_, s| s.is_finite()) else {
-                    self.malformed += 1;
+                    self.refuse(key_id, 1);
                     return Ok(());
                 };
-                self.malformed += u64::from(cut);
+                self.refuse(key_id, u64::from(cut));
                 let n = self.nodes.entry(0).or_default();
                 n.note(now, bytes.len(), first_k, counters, done, loop_stats, delivery);
                 let mut fresh = Vec::new();
@@ -558,7 +644,7 @@ impl Recorder {
                 diverged,
             } => {
                 let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
-                    self.malformed += 1;
+                    self.refuse(key_id, 1);
                     return Ok(());
                 };
                 // The hearing record covers the batch's steps, one entry per source
@@ -567,7 +653,7 @@ impl Recorder {
                 let recording = self.scenario.network.hearing_record;
                 let (want_steps, want_slots) = if recording { (samples.len(), slots) } else { (0, 0) };
                 if heard.steps as usize != want_steps || heard.slots.len() != want_slots || !heard.is_consistent() {
-                    self.malformed += 1;
+                    self.refuse(key_id, 1);
                     return Ok(());
                 }
                 // The batch's last step as sent (a diverged one is cut below).
@@ -576,10 +662,10 @@ impl Recorder {
                 let samples: Vec<_> = samples.into_iter().map(|s| (s, per_step.next().unwrap_or_default())).collect();
                 let ok = |k: u64, (s, _): &(FollowerSample, Box<[Heard]>)| s.k == k && s.is_finite();
                 let Some((samples, cut)) = check_batch(samples, first_k, steps, batch, ok) else {
-                    self.malformed += 1;
+                    self.refuse(key_id, 1);
                     return Ok(());
                 };
-                self.malformed += u64::from(cut);
+                self.refuse(key_id, u64::from(cut));
                 let n = self.nodes.entry(id).or_default();
                 n.note(now, bytes.len(), first_k, counters, done, loop_stats, delivery);
                 if n.newest == Some((delivery.incarnation, first_k)) {
@@ -902,6 +988,10 @@ impl Recorder {
 
     /// `network.json`: per-node message counts and loop timing.
     pub fn network_json(&self, ending: Ending) -> String {
+        self.network_json_with(ending, None)
+    }
+
+    fn network_json_with(&self, ending: Ending, health: Option<&crate::health::Health>) -> String {
         let nodes: serde_json::Map<String, serde_json::Value> = self
             .nodes
             .iter()
@@ -979,6 +1069,9 @@ impl Recorder {
                         "fault_lost": c.fault_lost,
                         "rejected": c.rejected,
                         "rejected_invalid": c.rejected.invalid(),
+                        // (The leader) questions on control/time, and the most in one second.
+                        "time_queries": (id == 0).then_some(c.time_queries),
+                        "time_queries_peak_per_s": (id == 0).then_some(c.time_queries_peak_per_s),
                         "loop": n.loop_stats,
                         "clock": n.clock,
                         "links": n.links,
@@ -1010,6 +1103,17 @@ impl Recorder {
             "recorded_steps": self.recorded_steps(),
             "lost_steps": lost,
             "malformed_telemetry": self.malformed,
+            "malformed_telemetry_by_key": self.malformed_by_key.iter().map(|(k, n)| {
+                let key = k.map_or("telemetry/(not a node of the run)".to_string(), |id| format!("telemetry/{id}"));
+                (key, json!(n))
+            }).collect::<serde_json::Map<_, _>>(),
+            // Puts from other processes on the run's control keys: per key, how
+            // many and how many were refused (foreign fingerprint, garbage).
+            "control_puts": self.control.keys.iter().map(|(k, (n, bad))| {
+                (k.clone(), json!({"puts": n, "refused": bad}))
+            }).collect::<serde_json::Map<_, _>>(),
+            // How healthy the run was (crate::health): written by the monitor node.
+            "health": health,
             // Telemetry dropped on arrival: more than MAX_QUEUED_BYTES waited to be filed.
             "telemetry_dropped_queue_full": self.queue_dropped,
             // Followers whose key carried a second sender (another process
@@ -1055,15 +1159,45 @@ impl Recorder {
     }
 
     pub fn finish(self, ending: Ending) -> std::io::Result<(Summary, PathBuf)> {
-        self.writer.write_file("network.json", &self.network_json(ending))?;
-        if let Some(record) = self.hearing_record() {
-            self.writer.write_bytes(HEARING_FILE, &record.encode())?;
-        }
+        self.finish_judged(ending).map(|(s, d, _)| (s, d))
+    }
+
+    /// [`Recorder::finish`], with the run's health when a model was set.
+    pub fn finish_judged(self, ending: Ending) -> std::io::Result<(Summary, PathBuf, Option<crate::health::Health>)> {
         let metrics = self.followers.iter().map(|f| (f.id, f.metrics.finish())).collect();
         let outages = self.followers.iter().map(|f| (f.id, f.metrics.outages())).collect();
         let summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
+        let health = self.health(&summary);
+        self.writer.write_file("network.json", &self.network_json_with(ending, health.as_ref()))?;
+        if let Some(record) = self.hearing_record() {
+            self.writer.write_bytes(HEARING_FILE, &record.encode())?;
+        }
         let dir = self.writer.finish(&summary)?;
-        Ok((summary, dir))
+        Ok((summary, dir, health))
+    }
+}
+
+/// The model runs at the end of a run only up to this many follower-steps
+/// (the paper's 4 followers for 30 s are 120,004: 0.3 s).
+const MODEL_MAX_FOLLOWER_STEPS: u64 = 3_000_000;
+
+/// Each follower's formation error over the last 10 s in the model of the
+/// run (the simulator on the same scenario: delay, loss and fault table),
+/// or why the model was not run.
+pub fn model_errors(scenario: &Scenario) -> Result<BTreeMap<u32, Option<f64>>, String> {
+    let n = scenario.followers.len() as u64 * (scenario.steps() + 1);
+    if n > MODEL_MAX_FOLLOWER_STEPS {
+        return Err(format!(
+            "not run at the end of the run: {n} follower-steps (above {MODEL_MAX_FOLLOWER_STEPS}); \
+             formation replay RUN_DIR --explain compares the run with its model"
+        ));
+    }
+    let mut sim = formation_sim::Simulation::new(scenario);
+    match sim.run(&mut formation_sim::NoRecord, |_| {}) {
+        Ok(metrics) => {
+            Ok(scenario.followers.iter().zip(metrics).map(|(f, m)| (f.id, m.formation_rms_last10)).collect())
+        }
+        Err(e) => Err(format!("the model did not finish: {e}")),
     }
 }
 
@@ -1071,8 +1205,8 @@ impl Recorder {
 const ACK_PERIOD: Duration = Duration::from_millis(100);
 
 /// Runs the monitor to the end of the run (or Ctrl-C / SIGTERM / idle timeout).
-/// Returns how the run ended (`Idle` is an error).
-pub async fn run(args: &MonitorArgs) -> Result<Ending, Error> {
+/// Returns how the run ended (`Idle` is an error) and its health's verdict.
+pub async fn run(args: &MonitorArgs) -> Result<(Ending, Option<crate::health::Verdict>), Error> {
     let began = Instant::now();
     let (scenario, keys) = args.node.load(crate::names::MONITOR)?;
     if !args.idle_timeout.is_finite() || args.idle_timeout <= 0.0 {
@@ -1170,7 +1304,7 @@ async fn monitor(
     args: &MonitorArgs,
     began: Instant,
     web: Option<&crate::web::Live>,
-) -> Result<Ending, Error> {
+) -> Result<(Ending, Option<crate::health::Verdict>), Error> {
     // Bounded in bytes: a sender that floods the monitor loses its own
     // messages (counted), never the monitor's memory.
     let (tx, mut rx) = mpsc::unbounded_channel::<(Option<u32>, Vec<u8>)>();
@@ -1199,6 +1333,22 @@ async fn monitor(
         .await
         .map_err(|e| Error::Run(format!("declaring the access-control report subscriber: {e}")))?;
     tokio::spawn(crate::denials::report(session.clone(), MONITOR.to_string(), Some(keys.run.clone())));
+    // Every put on the run's control keys from another process, counted per key.
+    let control = Arc::new(std::sync::Mutex::new(crate::health::ControlWatch::default()));
+    let _control_sub = {
+        let (control, prefix, fingerprint) =
+            (control.clone(), names::key(&keys.run, ""), barrier::fingerprint(scenario));
+        session
+            .declare_subscriber(names::key(&keys.run, "control/**"))
+            .allowed_origin(zenoh::sample::Locality::Remote)
+            .callback(move |s| {
+                let rel = s.key_expr().as_str().strip_prefix(prefix.as_str()).unwrap_or("").to_string();
+                let bytes = s.payload().to_bytes();
+                control.lock().unwrap_or_else(|p| p.into_inner()).note(&rel, &bytes, fingerprint);
+            })
+            .await
+            .map_err(|e| Error::Run(format!("declaring the control-key watch: {e}")))?
+    };
     // Acknowledgements: what the monitor holds, so senders forget it and
     // send again what it lacks (droppable: the next one says the same).
     let acks = session
@@ -1314,20 +1464,27 @@ async fn monitor(
     let unfinished = recorder.unfinished();
     let foxglove = recorder.take_foxglove();
     recorder.set_wall(watch.startup_s(), run_s);
-    let (summary, dir) = recorder.finish(ending).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
+    recorder.control = control.lock().unwrap_or_else(|p| p.into_inner()).clone();
+    recorder.set_model(model_errors(scenario));
+    let (summary, dir, health) =
+        recorder.finish_judged(ending).map_err(|e| Error::Run(format!("writing the run folder: {e}")))?;
+    let verdict = health.as_ref().map(|h| h.verdict);
     let result = match ending {
         Ending::Complete => {
             if !args.quiet {
                 print!("{}", summary.table());
+                if let Some(h) = &health {
+                    println!("{}", h.line());
+                }
                 println!("wrote {}", dir.display());
             }
-            Ok(Ending::Complete)
+            Ok((Ending::Complete, verdict))
         }
         Ending::Interrupted | Ending::Terminated => {
             let short = summary.shortfall_text().map(|s| format!(" (incomplete: {s})")).unwrap_or_default();
             let how = if ending == Ending::Terminated { "terminated" } else { "interrupted" };
             eprintln!("{how}: wrote the {recorded} steps received to {}{short}", dir.display());
-            Ok(ending)
+            Ok((ending, verdict))
         }
         Ending::Idle => Err(Error::Run(format!(
             "no telemetry for {} s; still running: {}; wrote the {recorded} steps received to {}",

@@ -32,21 +32,32 @@ const FIRST: u32 = 10;
 const TIMEOUT: Duration = Duration::from_secs(1);
 
 /// The leader: answers every question with its timebase, until the
-/// returned queryable is dropped.
-pub async fn serve(
+/// returned queryable is dropped; `count` counts the questions.
+pub async fn serve_counted(
     session: &zenoh::Session,
     keys: &Keys,
     timebase: Timebase,
+    count: std::sync::Arc<crate::counters::QueryCount>,
 ) -> Result<zenoh::query::Queryable<()>, Error> {
     session
         .declare_queryable(keys.time())
         .callback(move |query| {
             let t2 = timebase.now_ns().unwrap_or(0);
+            count.note(t2);
             let reply = |t3| codec::encode(&TimeReply { t2, t3 });
             let _ = query.reply(query.key_expr().clone(), reply(timebase.now_ns().unwrap_or(0))).wait();
         })
         .await
         .map_err(|e| zerr("declaring the time queryable", e))
+}
+
+/// [`serve_counted`] without looking at the count.
+pub async fn serve(
+    session: &zenoh::Session,
+    keys: &Keys,
+    timebase: Timebase,
+) -> Result<zenoh::query::Queryable<()>, Error> {
+    serve_counted(session, keys, timebase, Default::default()).await
 }
 
 /// A node's questions to the leader's timebase; they stop when this is dropped.

@@ -522,11 +522,15 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     });
     std::fs::write(out.join("lab.json"), serde_json::to_string_pretty(&record).unwrap_or_default() + "\n")
         .map_err(|e| Error::Run(format!("writing {}: {e}", out.join("lab.json").display())))?;
+    let health = launch::read_health(&out);
     if !a.opts.quiet {
         print!("{}", summary.table());
+        if let Some((line, _)) = &health {
+            println!("{line}");
+        }
         println!("wrote {}", out.display());
     }
-    Ok(())
+    launch::degraded_error(health, &out)
 }
 
 /// A file removed when dropped.

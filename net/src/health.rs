@@ -1,0 +1,275 @@
+//! A run's verdict beyond "every step recorded": how healthy it was.
+//!
+//! - **degraded** (exit status 3): the formation did far worse than its
+//!   model (the simulator on the same scenario, delay and fault table), or
+//!   a node's estimate of the leader's clock stepped. The numbers it
+//!   reports are not the method's.
+//! - **disturbed**: the run held (its error within its model's band), but
+//!   something happened that a reader must know of: followers isolated from
+//!   every source, a second clock on `control/time`, refused messages and
+//!   floods counted, telemetry dropped.
+//! - **healthy**: none of that.
+//!
+//! Also here: the monitor's count of what arrives on the run's control keys
+//! ([`ControlWatch`]). Plain data: no IO, no clock.
+
+use std::collections::BTreeMap;
+
+use serde::Serialize;
+
+/// A follower's formation error (RMS over the last 10 s) beyond this many
+/// times its model's, plus [`ERROR_MARGIN_M`], is far beyond the model.
+pub const ERROR_FACTOR: f64 = 2.0;
+pub const ERROR_MARGIN_M: f64 = 0.25;
+
+/// A node asks the leader's clock about 4 times a second (50 a second for
+/// its first 10 questions): more than this many in one second at the
+/// leader is a flood.
+pub const TIME_QUERIES_PER_NODE_S: u64 = 60;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Verdict {
+    Healthy,
+    Disturbed,
+    Degraded,
+}
+
+/// One follower's time cut off from every source.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Isolation {
+    pub follower: u32,
+    /// Seconds isolated in all, and when the first isolation began (run time).
+    pub seconds: f64,
+    pub first_t: f64,
+    pub times: u32,
+}
+
+/// A follower's formation error against its model's.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct AgainstModel {
+    pub follower: u32,
+    pub run_m: Option<f64>,
+    pub model_m: Option<f64>,
+}
+
+/// `network.json`'s `health`.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Health {
+    pub verdict: Verdict,
+    /// What made the run degraded, one line each.
+    pub degraded: Vec<String>,
+    /// What disturbed it, one line each.
+    pub disturbed: Vec<String>,
+    pub isolated: Vec<Isolation>,
+    /// Per follower, or None with `model_skipped` saying why.
+    pub model: Option<Vec<AgainstModel>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_skipped: Option<String>,
+}
+
+impl Health {
+    /// One line for the terminal: the verdict and its first reasons.
+    pub fn line(&self) -> String {
+        let reasons: Vec<&String> = self.degraded.iter().chain(&self.disturbed).take(4).collect();
+        let more = self.degraded.len() + self.disturbed.len() - reasons.len();
+        let mut s = match self.verdict {
+            Verdict::Healthy => "health: healthy (the run as its model predicts, nothing refused)".to_string(),
+            Verdict::Disturbed => "health: disturbed (the formation held): ".to_string(),
+            Verdict::Degraded => "health: DEGRADED: ".to_string(),
+        };
+        s.push_str(&reasons.iter().map(|r| r.as_str()).collect::<Vec<_>>().join("; "));
+        if more > 0 {
+            s.push_str(&format!("; {more} more in network.json"));
+        }
+        s
+    }
+}
+
+/// What the monitor gathered, as the verdict needs it.
+#[derive(Clone, Debug, Default)]
+pub struct Evidence {
+    /// (follower, isolated at step, rejoined at step or None: to the end).
+    pub isolations: Vec<(u32, u64, Option<u64>)>,
+    pub steps: u64,
+    pub dt_s: f64,
+    /// (node name, clock steps, second clock's worst disagreement ms if one answered).
+    pub clocks: Vec<(String, u64, Option<f64>)>,
+    /// Per follower: (run's formation error, model's), m.
+    pub errors: Vec<(u32, Option<f64>, Option<f64>)>,
+    pub model_skipped: Option<String>,
+    /// Counted and refused: (what, how many).
+    pub refused: Vec<(String, u64)>,
+    /// (time questions at the leader, most in one second, nodes asking).
+    pub time_queries: (u64, u64, u64),
+}
+
+/// The verdict from the evidence.
+pub fn judge(e: &Evidence) -> Health {
+    let mut degraded = Vec::new();
+    let mut disturbed = Vec::new();
+    for &(id, run, model) in &e.errors {
+        if let (Some(r), Some(m)) = (run, model) {
+            if r > ERROR_FACTOR * m + ERROR_MARGIN_M {
+                degraded.push(format!(
+                    "follower {id}'s formation error over the last 10 s is {r:.3} m, its model's {m:.3} m"
+                ));
+            }
+        }
+    }
+    for (node, steps, second) in &e.clocks {
+        if *steps > 0 {
+            degraded.push(format!("{node}'s estimate of the leader's clock stepped {steps} time(s)"));
+        }
+        if let Some(ms) = second {
+            disturbed.push(format!(
+                "{node}: a second clock answered on control/time ({ms:.1} ms from the leader's), refused"
+            ));
+        }
+    }
+    let mut by: BTreeMap<u32, Isolation> = BTreeMap::new();
+    for &(id, from, to) in &e.isolations {
+        let end = to.unwrap_or(e.steps).max(from);
+        let i =
+            by.entry(id).or_insert(Isolation { follower: id, seconds: 0.0, first_t: from as f64 * e.dt_s, times: 0 });
+        i.seconds += (end - from) as f64 * e.dt_s;
+        i.first_t = i.first_t.min(from as f64 * e.dt_s);
+        i.times += 1;
+    }
+    let isolated: Vec<Isolation> = by.into_values().collect();
+    for i in &isolated {
+        disturbed.push(format!(
+            "follower {} isolated from every source for {:.2} s (from t = {:.2} s{})",
+            i.follower,
+            i.seconds,
+            i.first_t,
+            if i.times > 1 { format!(", {} times", i.times) } else { String::new() }
+        ));
+    }
+    for (what, n) in &e.refused {
+        if *n > 0 {
+            disturbed.push(format!("{n} {what}"));
+        }
+    }
+    let (queries, peak, askers) = e.time_queries;
+    if peak > TIME_QUERIES_PER_NODE_S * askers.max(1) {
+        disturbed.push(format!(
+            "a flood of questions on control/time: {peak} in one second ({queries} in all; {askers} nodes ask about 4 a second)"
+        ));
+    }
+    let verdict = if !degraded.is_empty() {
+        Verdict::Degraded
+    } else if !disturbed.is_empty() {
+        Verdict::Disturbed
+    } else {
+        Verdict::Healthy
+    };
+    let model = e.model_skipped.is_none().then(|| {
+        e.errors.iter().map(|&(follower, run_m, model_m)| AgainstModel { follower, run_m, model_m }).collect()
+    });
+    Health { verdict, degraded, disturbed, isolated, model, model_skipped: e.model_skipped.clone() }
+}
+
+/// Distinct keys counted one by one; the rest are counted together.
+const MAX_KEYS: usize = 64;
+
+/// Puts on the run's control keys (`control/**`) that reached the monitor
+/// from other processes: per key, how many, and how many were refused (did
+/// not decode as what the key carries, or carried another run's fingerprint).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct ControlWatch {
+    pub keys: BTreeMap<String, (u64, u64)>,
+}
+
+impl ControlWatch {
+    /// A put on `rel` (the key below `formation/<run>/`), judged with the
+    /// run's `fingerprint`.
+    pub fn note(&mut self, rel: &str, bytes: &[u8], fingerprint: u64) {
+        let ok = valid_control(rel, bytes, fingerprint);
+        let key = if self.keys.contains_key(rel) || self.keys.len() < MAX_KEYS { rel } else { "(other keys)" };
+        let e = self.keys.entry(key.chars().take(200).collect()).or_default();
+        e.0 += 1;
+        e.1 += u64::from(!ok);
+    }
+
+    /// Refused puts, in all.
+    pub fn refused(&self) -> u64 {
+        self.keys.values().map(|v| v.1).sum()
+    }
+}
+
+/// Whether a put on control key `rel` is what that key carries.
+fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
+    use crate::codec::decode;
+    let mut parts = rel.split('/');
+    let (Some("control"), Some(kind)) = (parts.next(), parts.next()) else { return false };
+    let rest: Vec<&str> = parts.collect();
+    match (kind, rest.as_slice()) {
+        ("hello", [_]) => bytes.is_empty(),
+        ("ready", [_]) => decode::<crate::barrier::Ready>(bytes).is_some_and(|r| r.fingerprint == fingerprint),
+        ("start", []) => decode::<crate::barrier::Start>(bytes).is_some_and(|s| s.fingerprint == fingerprint),
+        ("abort", []) => bytes.len() <= 4096 && std::str::from_utf8(bytes).is_ok(),
+        ("denied", [_]) => bytes.len() <= crate::denials::MAX_REPORT_BYTES,
+        // The monitor's own acknowledgements never reach it: another is foreign.
+        _ => false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_wrecked_formation_is_degraded_and_a_held_attack_disturbed() {
+        let mut e = Evidence { steps: 30_000, dt_s: 1e-3, ..Default::default() };
+        e.errors = vec![(1, Some(0.11), Some(0.10)), (2, Some(11.5), Some(0.12))];
+        let h = judge(&e);
+        assert_eq!(h.verdict, Verdict::Degraded, "{h:?}");
+        assert!(h.degraded[0].contains("follower 2") && h.degraded[0].contains("11.500 m"), "{:?}", h.degraded);
+        e.errors[1].1 = Some(0.125);
+        e.clocks = vec![("follower 3".into(), 0, Some(500.0))];
+        e.isolations = vec![(4, 10_000, Some(12_500)), (4, 20_000, None)];
+        e.refused = vec![("malformed telemetry messages".into(), 1), ("invalid estimates".into(), 0)];
+        let h = judge(&e);
+        assert_eq!(h.verdict, Verdict::Disturbed, "{h:?}");
+        assert_eq!(h.isolated[0].times, 2);
+        assert!((h.isolated[0].seconds - 12.5).abs() < 1e-9, "{:?}", h.isolated);
+        assert_eq!(h.disturbed.len(), 3, "{:?}", h.disturbed);
+        e.clocks[0].1 = 1;
+        assert_eq!(judge(&e).verdict, Verdict::Degraded);
+        assert_eq!(judge(&Evidence::default()).verdict, Verdict::Healthy);
+    }
+
+    #[test]
+    fn a_flood_of_time_questions_is_named() {
+        let e = Evidence { time_queries: (30_000, 5_600, 5), ..Default::default() };
+        let h = judge(&e);
+        assert_eq!(h.verdict, Verdict::Disturbed);
+        assert!(h.disturbed[0].contains("5600 in one second"), "{:?}", h.disturbed);
+        let calm = Evidence { time_queries: (600, 60, 5), ..Default::default() };
+        assert_eq!(judge(&calm).verdict, Verdict::Healthy);
+    }
+
+    #[test]
+    fn control_puts_are_counted_per_key_and_foreign_ones_refused() {
+        let mut w = ControlWatch::default();
+        let start = crate::codec::encode(&crate::barrier::Start {
+            fingerprint: 7,
+            epoch_unix_ns: 1,
+            time_scale: 1.0,
+            sent_ns: 1,
+        });
+        w.note("control/start", &start, 7);
+        w.note("control/start", &start, 8);
+        w.note("control/hello/3", b"", 7);
+        w.note("control/ready/3", &[0xff; 13], 7);
+        w.note("control/ack", b"anything", 7);
+        for i in 0..200 {
+            w.note(&format!("control/hello/x{i}"), b"", 7);
+        }
+        assert_eq!(w.keys["control/start"], (2, 1));
+        assert_eq!(w.keys["control/ready/3"], (1, 1));
+        assert_eq!(w.refused(), 3);
+        assert!(w.keys.len() <= MAX_KEYS + 1, "{} keys", w.keys.len());
+    }
+}
