@@ -479,7 +479,7 @@ fn cases() -> Vec<Case> {
             None,
             &["replay", "{dir}/format9"],
             2,
-            &["hearing record format 9", "format 1"],
+            &["hearing record format 9", "this build reads format 2"],
         ),
         case(
             "replay --explain of a garbage record",

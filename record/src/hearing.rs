@@ -364,6 +364,10 @@ impl HearingRecord {
                 // The format number comes first: name a record of another format as such.
                 let limited = config().with_limit::<64>();
                 return match bincode::serde::decode_from_slice::<u32, _>(bytes, limited) {
+                    // Format 1 had no checksum: a format-1 record decodes whole.
+                    Ok((1, _)) if formation_topology::wire::decode_bounded::<Self>(bytes).is_none() => {
+                        Err(HearingError::Malformed(label.into()))
+                    }
                     Ok((found, _)) if found != HEARING_FORMAT && found < 1000 => {
                         Err(HearingError::Format { path: label.into(), found })
                     }
