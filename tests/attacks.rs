@@ -208,7 +208,10 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
         stop.store(true, Ordering::Relaxed);
         attacker.join().expect("attacker");
         let peak = rss.join().expect("rss");
-        assert!(status.success(), "the run ({kind:?}) ended {status}");
+        let health = std::fs::read_to_string(out.join("network.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok().map(|v| v["health"].to_string()));
+        assert!(status.success(), "the run ({kind:?}) ended {status}; health: {health:?}");
         (out, Arc::try_unwrap(done).unwrap_or_default(), peak)
     };
     let host = common::Host::now();

@@ -587,6 +587,7 @@ fn control_loop(
     // Real time: who is heard, for the timeline.
     let mut heard = HeardNow(vec![false; c.neighbours + usize::from(c.has_leader)]);
     let mut events: Vec<NetEvent> = Vec::new();
+    let mut second_clock_named = false;
     let mut batch: Vec<FollowerSample> = Vec::with_capacity(c.batch);
     // The hearing record of the batch's steps.
     let slots = c.neighbours + usize::from(c.has_leader);
@@ -736,6 +737,11 @@ fn control_loop(
             recent.push(k + 1, bytes);
         }
         if batch.len() >= c.batch || last || diverged.is_some() {
+            // A second clock on control/time, once, at the step it was noticed.
+            if !second_clock_named && c.timebase.second_clock() {
+                second_clock_named = true;
+                events.push(NetEvent { k, what: EventKind::SecondClock });
+            }
             let (mut counters, links): (Counters, _) = {
                 let inbox = shared.inbox.lock().unwrap_or_else(|p| p.into_inner());
                 (inbox.counters, inbox.link_stats(&c.source_ids))

@@ -84,6 +84,14 @@ impl Timebase {
         }
     }
 
+    /// What the clock guard saw so far.
+    pub fn guard_report(&self) -> crate::clockguard::GuardReport {
+        match self {
+            Timebase::Own(_) => Default::default(),
+            Timebase::Estimated(o) => Self::offset(o).guard().report(),
+        }
+    }
+
     /// Whether a second clock has answered on `control/time`.
     pub fn second_clock(&self) -> bool {
         match self {

@@ -102,6 +102,8 @@ pub struct Evidence {
     pub refused: Vec<(String, u64)>,
     /// (time questions at the leader, most in one second, nodes asking).
     pub time_queries: (u64, u64, u64),
+    /// (node, the steps its restarted processes resumed from).
+    pub restarts: Vec<(String, Vec<u64>)>,
 }
 
 /// The verdict from the evidence.
@@ -124,6 +126,15 @@ pub fn judge(e: &Evidence) -> Health {
         if let Some(ms) = second {
             disturbed.push(format!(
                 "{node}: a second clock answered on control/time ({ms:.1} ms from the leader's), refused"
+            ));
+        }
+    }
+    for (node, at) in &e.restarts {
+        if let Some(first) = at.first() {
+            disturbed.push(format!(
+                "{node}'s process restarted {} time(s) (first resuming at t = {:.2} s)",
+                at.len(),
+                *first as f64 * e.dt_s
             ));
         }
     }

@@ -590,6 +590,15 @@ impl Recorder {
             ("followers with a second sender on their key".into(), self.twins().len() as u64),
             ("messages refused by access control".into(), self.denied.rows().len() as u64),
         ];
+        e.restarts = self
+            .followers
+            .iter()
+            .filter(|f| !f.stream.restarts.is_empty())
+            .map(|f| (format!("follower {}", f.id), f.stream.restarts.clone()))
+            .collect();
+        if !self.leader_stream.restarts.is_empty() {
+            e.restarts.push(("the leader".into(), self.leader_stream.restarts.clone()));
+        }
         let leader = self.nodes.get(&0).map(|n| n.counters).unwrap_or_default();
         e.time_queries = (leader.time_queries, leader.time_queries_peak_per_s, self.scenario.followers.len() as u64);
         Some(crate::health::judge(&e))

@@ -89,6 +89,8 @@ pub enum EventKind {
     Isolated,
     /// A source heard again after isolation (docs/model.md §14's rejoin).
     Rejoined,
+    /// A second clock answered on `control/time` (its answers are refused).
+    SecondClock,
 }
 
 impl EventKind {
@@ -101,6 +103,7 @@ impl EventKind {
             EventKind::RouterBack => "router back".into(),
             EventKind::Isolated => "isolated: no source heard, dead-reckoning".into(),
             EventKind::Rejoined => "rejoined".into(),
+            EventKind::SecondClock => "a second clock answers on control/time: refused".into(),
         }
     }
 }

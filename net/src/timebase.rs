@@ -52,32 +52,7 @@ pub const MIN_SLOPE_PERIODS: usize = 4;
 /// measured (crystals are specified to ±50–100 ppm each).
 pub const DRIFT_MAX: f64 = 200e-6;
 
-/// One four-timestamp exchange (ns): `t1`, `t4` on the node's clock, `t2`,
-/// `t3` on the reference's.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Exchange {
-    pub t1: i64,
-    pub t2: i64,
-    pub t3: i64,
-    pub t4: i64,
-}
-
-impl Exchange {
-    /// The reference minus the node's clock (ns), at the midpoint.
-    pub fn offset(&self) -> f64 {
-        ((self.t2 as f64 - self.t1 as f64) + (self.t3 as f64 - self.t4 as f64)) / 2.0
-    }
-
-    /// The round trip (ns), without the reference's time to answer.
-    pub fn round_trip(&self) -> i64 {
-        (self.t4 - self.t1) - (self.t3 - self.t2)
-    }
-
-    /// The node's clock at the exchange's midpoint.
-    fn local_mid(&self) -> f64 {
-        (self.t1 as f64 + self.t4 as f64) / 2.0
-    }
-}
+pub use crate::clockguard::Exchange;
 
 /// Why an exchange was not used.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -230,9 +205,24 @@ impl Offset {
     /// one was filed.
     pub fn add_answers(&mut self, answers: &[Exchange]) -> bool {
         let mut guard = std::mem::take(&mut self.guard);
-        let filed = guard.judge(answers, |t| self.at(t).map(|e| (e.offset_ns, e.uncertainty_ns)));
-        self.guard = guard;
-        filed.is_some_and(|x| self.add(x).is_ok())
+        // An answer agrees with the estimate held within its step rule's margin.
+        let held = |t| self.at(t).map(|e| (e.offset_ns, STEP_FLOOR.max(STEP_MARGIN * e.uncertainty_ns)));
+        let judged = guard.judge(answers, held);
+        match judged {
+            crate::clockguard::Judged::File(x) => {
+                self.guard = guard;
+                self.add(x).is_ok()
+            }
+            crate::clockguard::Judged::Refile(x) => {
+                // The line followed the other clock: start it afresh.
+                *self = Offset { guard, ..Offset::new() };
+                self.add(x).is_ok()
+            }
+            crate::clockguard::Judged::Hold => {
+                self.guard = guard;
+                false
+            }
+        }
     }
 
     /// A message the leader stamped `sent_ns` arrived at `local_ns`.

@@ -96,7 +96,7 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
             asked = asked.saturating_add(1);
             if !named && timebase.second_clock() {
                 named = true;
-                let worst = timebase.report().map_or(0.0, |r| r.guard.worst_disagreement_ms);
+                let worst = timebase.guard_report().worst_disagreement_ms;
                 crate::node::say(&format!(
                     "{me}: a second clock answers on {key}, {worst:.1} ms from the leader's: its answers are \
                      refused (another process imitating the leader? with --tls only the leader may answer)"

@@ -232,3 +232,21 @@ pub fn judge_if_quiet(tag: &str, wrong: &[String], host: (f64, f64), context: &s
         QUIET.0, QUIET.1
     );
 }
+
+/// A run the model does not know everything of (a process killed, a
+/// partition, a slow cable): it may end degraded. Its exit status must be
+/// what its network.json's health says (3 for degraded, else 0), and a
+/// degraded verdict must name only followers in `may_degrade` ("follower 3").
+/// Returns the verdict.
+pub fn exit_matches_health(code: i32, dir: &Path, may_degrade: &[u32], what: &str) -> String {
+    let n = json(dir, "network.json");
+    let h = &n["health"];
+    let verdict = h["verdict"].as_str().unwrap_or_else(|| panic!("{what}: no health in network.json")).to_string();
+    let want = if verdict == "degraded" { 3 } else { 0 };
+    assert_eq!(code, want, "{what}: exit status {code} for a {verdict} run: {h}");
+    for reason in h["degraded"].as_array().into_iter().flatten().filter_map(|r| r.as_str()) {
+        let named = may_degrade.iter().any(|id| reason.contains(&format!("follower {id}")));
+        assert!(named, "{what}: degraded for a reason the test's fault does not explain: {reason}");
+    }
+    verdict
+}
