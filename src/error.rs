@@ -18,8 +18,8 @@ pub enum Error {
 }
 
 /// The exit status of a run recorded to its end whose health is degraded:
-/// the formation did far worse than its model, or a clock stepped
-/// (network.json's `health` says which).
+/// the formation did far worse than its model (network.json's `health`
+/// says which follower, and what else happened).
 pub const DEGRADED: u8 = 3;
 
 /// The name the command modules use.

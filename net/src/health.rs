@@ -1,13 +1,13 @@
 //! A run's verdict beyond "every step recorded": how healthy it was.
 //!
 //! - **degraded** (exit status 3): the formation did far worse than its
-//!   model (the simulator on the same scenario, delay and fault table), or
-//!   a node's estimate of the leader's clock stepped. The numbers it
-//!   reports are not the method's.
+//!   model (the simulator on the same scenario, delay and fault table). The
+//!   numbers it reports are not the method's.
 //! - **disturbed**: the run held (its error within its model's band), but
 //!   something happened that a reader must know of: followers isolated from
-//!   every source, a second clock on `control/time`, refused messages and
-//!   floods counted, telemetry dropped.
+//!   every source, a second clock on `control/time`, a clock estimate that
+//!   stepped, a process restarted, refused messages and floods counted,
+//!   telemetry dropped.
 //! - **healthy**: none of that.
 //!
 //! Also here: the monitor's count of what arrives on the run's control keys
@@ -121,7 +121,7 @@ pub fn judge(e: &Evidence) -> Health {
     }
     for (node, steps, second) in &e.clocks {
         if *steps > 0 {
-            degraded.push(format!("{node}'s estimate of the leader's clock stepped {steps} time(s)"));
+            disturbed.push(format!("{node}'s estimate of the leader's clock stepped {steps} time(s)"));
         }
         if let Some(ms) = second {
             disturbed.push(format!(
@@ -247,7 +247,9 @@ mod tests {
         assert!((h.isolated[0].seconds - 12.5).abs() < 1e-9, "{:?}", h.isolated);
         assert_eq!(h.disturbed.len(), 3, "{:?}", h.disturbed);
         e.clocks[0].1 = 1;
-        assert_eq!(judge(&e).verdict, Verdict::Degraded);
+        let h = judge(&e);
+        assert_eq!(h.verdict, Verdict::Disturbed, "a clock step the formation survived: {h:?}");
+        assert!(h.disturbed.iter().any(|d| d.contains("stepped 1 time")), "{:?}", h.disturbed);
         assert_eq!(judge(&Evidence::default()).verdict, Verdict::Healthy);
     }
 
