@@ -488,6 +488,42 @@ fn cases() -> Vec<Case> {
             2,
             &["not a hearing record"],
         ),
+        case(
+            "replay of a record declaring 2^62 bytes",
+            None,
+            &["replay", "{dir}/h-huge"],
+            2,
+            &["h-huge/hearing.bin", "not a hearing record"],
+        ),
+        case(
+            "playback of a record declaring 2^62 bytes",
+            None,
+            &["monitor", "--replay", "{dir}/h-huge", "--web", "127.0.0.1:0"],
+            2,
+            &["not a hearing record"],
+        ),
+        case("replay of a FIFO", None, &["replay", "{dir}/h-fifo"], 2, &["h-fifo/hearing.bin", "not a regular file"]),
+        case(
+            "replay of a link to /dev/zero",
+            None,
+            &["replay", "{dir}/h-zero"],
+            2,
+            &["h-zero/hearing.bin", "not a regular file"],
+        ),
+        case(
+            "replay of a record with a flipped bit",
+            None,
+            &["replay", "{dir}/h-flipped"],
+            2,
+            &["h-flipped/hearing.bin", "damaged", "checksum"],
+        ),
+        case(
+            "replay of another run's record",
+            None,
+            &["replay", "{dir}/h-foreign"],
+            2,
+            &["hearing.bin is another run's", "fingerprint 0000000000000bad"],
+        ),
         case("playback without a page", None, &["monitor", "--replay", "{dir}/garbage"], 2, &["--web, --foxglove"]),
         case(
             "playback at speed 0",
@@ -742,6 +778,9 @@ fn check(c: &Case) -> Result<(), String> {
     if c.args.iter().any(|a| a.contains("{dir}/run")) {
         damaged_runs(d);
     }
+    if c.args.iter().any(|a| a.contains("{dir}/h-")) {
+        hearing_folders(d);
+    }
     let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
     let args: Vec<String> = c
         .args
@@ -795,6 +834,48 @@ fn check(c: &Case) -> Result<(), String> {
         return Err("a folder that is not a run folder was touched".into());
     }
     Ok(())
+}
+
+/// Run folders whose hearing.bin is hostile: a first length field of 2^62,
+/// a FIFO, a link to /dev/zero, a genuine record with one bit flipped, and
+/// a genuine record beside another run's network.json.
+fn hearing_folders(d: &Path) {
+    use formation_record::hearing::{Density, HearingRecord, ScenarioSource, HEARING_FORMAT};
+    let dir = |name: &str| {
+        let p = d.join(name);
+        std::fs::create_dir_all(&p).unwrap();
+        p
+    };
+    let mut huge = vec![HEARING_FORMAT as u8, 253];
+    huge.extend_from_slice(&(1u64 << 62).to_le_bytes());
+    huge.extend_from_slice(&[0; 12]);
+    std::fs::write(dir("h-huge").join("hearing.bin"), huge).unwrap();
+    let fifo = dir("h-fifo").join("hearing.bin");
+    let made = Command::new("mkfifo").arg(&fifo).status().expect("mkfifo");
+    assert!(made.success(), "mkfifo {}", fifo.display());
+    std::os::unix::fs::symlink("/dev/zero", dir("h-zero").join("hearing.bin")).unwrap();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+    let scenario = formation_topology::Scenario::load(&path, &[]).expect("paper.toml");
+    let record = HearingRecord {
+        format: HEARING_FORMAT,
+        scenario: ScenarioSource { label: path.display().to_string(), text: paper(), overrides: vec![] },
+        fingerprint: formation_net::barrier::fingerprint(&scenario),
+        density: Density { every: 1, csv: true, mcap: false },
+        leader: vec![],
+        followers: vec![],
+        rescued: vec![],
+    };
+    let mut bytes = record.encode();
+    std::fs::write(dir("h-foreign").join("hearing.bin"), &bytes).unwrap();
+    let foreign = format!(
+        "{{\"scenario\": \"{}\", \"steps\": {}, \"fingerprint\": \"0000000000000bad\"}}",
+        scenario.name,
+        scenario.steps()
+    );
+    std::fs::write(d.join("h-foreign").join("network.json"), foreign).unwrap();
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x10;
+    std::fs::write(dir("h-flipped").join("hearing.bin"), &bytes).unwrap();
 }
 
 #[test]
