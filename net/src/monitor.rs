@@ -992,6 +992,16 @@ impl Recorder {
             })
             .collect();
         out.extend(self.denied.summary());
+        // A second clock on control/time, as each follower saw it.
+        for (id, n) in &self.nodes {
+            if let Some(g) = n.clock.map(|c| c.guard).filter(|g| g.second_clock_since_ns.is_some()) {
+                out.push(format!(
+                    "follower {id}: a second clock answers on control/time, {:.1} ms from the leader's; \
+                     {} answers refused",
+                    g.worst_disagreement_ms, g.refused_answers
+                ));
+            }
+        }
         out
     }
 
