@@ -1,0 +1,8 @@
+#![no_main]
+//! The leader's `Start` (`control/start`).
+
+use libfuzzer_sys::fuzz_target;
+
+fuzz_target!(|data: &[u8]| {
+    formation_fuzz::check(data, |d| formation_net::codec::decode::<formation_net::barrier::Start>(d));
+});
