@@ -41,11 +41,18 @@ pub fn default_dir() -> PathBuf {
     std::env::temp_dir().join("formation-checkpoints")
 }
 
+/// A checkpoint is a few hundred bytes of JSON: a file larger than this is not one.
+const MAX_BYTES: usize = 64 * 1024;
+
 /// Reads a checkpoint; None if there is none, it cannot be read, or it
 /// belongs to another scenario or run.
 pub fn read(path: &Path, fingerprint: u64, epoch_unix_ns: u64) -> Result<Checkpoint, Error> {
-    let text = std::fs::read_to_string(path)
+    // A regular file of a checkpoint's size: the folder is under the shared
+    // temporary folder, where another user could plant a FIFO or a link to
+    // a device.
+    let bytes = formation_record::hearing::read_regular(path, MAX_BYTES)
         .map_err(|e| Error::Input(format!("no checkpoint at {} ({e})", path.display())))?;
+    let text = String::from_utf8(bytes).map_err(|_| Error::Input(format!("{}: not a checkpoint", path.display())))?;
     let c: Checkpoint =
         serde_json::from_str(&text).map_err(|e| Error::Input(format!("{}: not a checkpoint ({e})", path.display())))?;
     if c.fingerprint != fingerprint || c.epoch_unix_ns != epoch_unix_ns {
