@@ -62,6 +62,14 @@ fn lab_on(base: &[&str], tag: &str, sets: &[&str], extra: &[&str]) -> Run {
     for s in base.iter().chain(sets) {
         args.extend(["--set", s]);
     }
+    // `--may-degrade I` is the test's, not the lab's: follower I's fault may
+    // leave the run degraded.
+    let may_degrade = extra.iter().position(|a| *a == "--may-degrade").and_then(|i| extra.get(i + 1)?.parse().ok());
+    let extra: Vec<&str> = match extra.iter().position(|a| *a == "--may-degrade") {
+        Some(i) => extra[..i].iter().chain(extra.iter().skip(i + 2)).copied().collect(),
+        None => extra.to_vec(),
+    };
+    let extra = extra.as_slice();
     args.extend_from_slice(extra);
     let before = common::Host::now();
     let mut g = Group::spawn(&args);
@@ -80,7 +88,10 @@ fn lab_on(base: &[&str], tag: &str, sets: &[&str], extra: &[&str]) -> Run {
     // a cut between sites, a slow cable) may leave the run degraded against
     // its model: then its exit status must say so (3), and only then.
     let unmodelled = ["--kill-router", "--restart-agent", "--cut", "--slow-link"];
-    if extra.iter().any(|a| unmodelled.contains(a)) && status.code().is_some() {
+    if let Some(i) = may_degrade.filter(|_| status.code().is_some()) {
+        let verdict = common::exit_matches_health(status.code().unwrap_or(-1), &out, &[i], tag);
+        eprintln!("{tag}: {verdict} ({status})");
+    } else if extra.iter().any(|a| unmodelled.contains(a)) && status.code().is_some() {
         let code = status.code().unwrap_or(-1);
         let verdict = common::exit_matches_health(code, &out, &[1, 2, 3, 4], tag);
         eprintln!("{tag}: {verdict} ({status})");
@@ -508,7 +519,10 @@ fn thirty_percent_loss_on_follower_2_for_10_s_loses_no_record() {
     if !lab_available() {
         return;
     }
-    let r = lab("lab-loss", &["faults+={node=2, from=5, to=15, loss=0.3}"], &[]);
+    // Physical loss on TCP delays rather than drops: follower 2 may be cut
+    // off for seconds (TCP backs off), which the model's loss is not; the
+    // run may then end degraded, naming follower 2 (lab_on checks it).
+    let r = lab("lab-loss", &["faults+={node=2, from=5, to=15, loss=0.3}"], &["--may-degrade", "2"]);
     every_step_recorded("30 % loss", &r);
     let resent = r.network["nodes"]["2"]["telemetry_resent"].as_u64().unwrap_or(0);
     eprintln!("30 % loss: follower 2 resent {resent} telemetry batches");
