@@ -5,13 +5,9 @@
 
 use serde::{Deserialize, Serialize};
 
-fn bincode_config() -> bincode::config::Configuration {
-    bincode::config::standard()
-}
-
 /// Encodes a control or telemetry payload.
 pub fn encode<T: Serialize>(v: &T) -> Vec<u8> {
-    bincode::serde::encode_to_vec(v, bincode_config()).unwrap_or_default()
+    formation_topology::wire::encode_value(v)
 }
 
 /// Decodes a control or telemetry payload (None if malformed, has bytes

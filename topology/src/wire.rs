@@ -120,6 +120,12 @@ pub fn decode_bounded<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Option<T>
     }
 }
 
+/// Encodes any value as [`decode_bounded`] decodes it (bincode 2, standard
+/// configuration; encoding into a Vec cannot fail for the project's types).
+pub fn encode_value<T: Serialize>(v: &T) -> Vec<u8> {
+    bincode::serde::encode_to_vec(v, config()).unwrap_or_default()
+}
+
 pub fn encode(msg: &EstimateMsg) -> Vec<u8> {
     // Encoding a plain struct of numbers into a Vec cannot fail.
     bincode::serde::encode_to_vec(msg, config()).unwrap_or_default()
