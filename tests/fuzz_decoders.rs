@@ -33,7 +33,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use formation_net::barrier::{Ready, Start};
-use formation_net::telemetry::{Ack, Delivery, Telemetry};
+use formation_net::telemetry::{Ack, Telemetry};
 use formation_net::timesync::TimeReply;
 use formation_record::hearing::{HearingError, HearingRecord};
 
@@ -737,22 +737,10 @@ fn the_issues_attack_inputs_are_refused() {
     // Telemetry: follower 1's batch with no samples whose `diverged` string
     // declares 2^62 bytes (the issue's was 46 bytes; the encoding of
     // `Counters` has grown since).
-    let t = Telemetry::Follower {
-        id: 1,
-        first_k: 0,
-        samples: vec![],
-        counters: Default::default(),
-        done: false,
-        loop_stats: None,
-        delivery: Delivery::default(),
-        events: vec![],
-        clock: None,
-        links: vec![],
-        heard: Default::default(),
-        rescued: vec![],
-        resumed: None,
-        diverged: Some(String::new()),
-    };
+    let mut t = common::empty_follower_batch(1);
+    if let Telemetry::Follower { diverged, .. } = &mut t {
+        *diverged = Some(String::new());
+    }
     let mut bytes = formation_net::codec::encode(&t);
     assert_eq!(bytes[bytes.len() - 2..], [1, 0], "Some(\"\") ends the encoding");
     bytes.pop();
@@ -809,21 +797,12 @@ fn the_issues_attack_inputs_are_refused() {
 fn empties(kind: &str, n: usize) -> Vec<u8> {
     use formation_net::codec::encode;
     use formation_record::hearing::{Density, HeardRuns, ScenarioSource, HEARING_FORMAT};
-    let follower = |slots: usize| Telemetry::Follower {
-        id: 1,
-        first_k: 0,
-        samples: vec![],
-        counters: Default::default(),
-        done: false,
-        loop_stats: None,
-        delivery: Delivery::default(),
-        events: vec![],
-        clock: None,
-        links: vec![],
-        heard: HeardRuns { steps: 0, slots: vec![vec![]; slots] },
-        rescued: vec![],
-        resumed: None,
-        diverged: None,
+    let follower = |slots: usize| {
+        let mut t = common::empty_follower_batch(1);
+        if let Telemetry::Follower { heard, .. } = &mut t {
+            *heard = HeardRuns { steps: 0, slots: vec![vec![]; slots] };
+        }
+        t
     };
     match kind {
         "telemetry" => encode(&follower(n)),

@@ -50,22 +50,10 @@ fn varint_u64(v: u64) -> Vec<u8> {
 /// 0) replaced by the varint of 2^62.
 fn telemetry_declaring_2_pow_62() -> Vec<u8> {
     use formation_net::telemetry::Telemetry;
-    let batch = Telemetry::Follower {
-        id: 1,
-        first_k: 0,
-        samples: vec![],
-        counters: Default::default(),
-        done: false,
-        loop_stats: None,
-        delivery: Default::default(),
-        events: vec![],
-        clock: None,
-        links: vec![],
-        heard: Default::default(),
-        rescued: vec![],
-        resumed: None,
-        diverged: Some(String::new()),
-    };
+    let mut batch = common::empty_follower_batch(1);
+    if let Telemetry::Follower { diverged, .. } = &mut batch {
+        *diverged = Some(String::new());
+    }
     let mut bytes = formation_net::codec::encode(&batch);
     assert_eq!(bytes.pop(), Some(0), "the batch ends with the empty string's length");
     bytes.extend(varint_u64(1 << 62));

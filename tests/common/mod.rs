@@ -250,3 +250,25 @@ pub fn exit_matches_health(code: i32, dir: &Path, may_degrade: &[u32], what: &st
     }
     verdict
 }
+
+/// Follower `id`'s telemetry batch with nothing in it (no samples, no
+/// events, an empty hearing record): the base the attack and fuzz tests
+/// craft their messages from.
+pub fn empty_follower_batch(id: u32) -> formation_net::telemetry::Telemetry {
+    formation_net::telemetry::Telemetry::Follower {
+        id,
+        first_k: 0,
+        samples: vec![],
+        counters: Default::default(),
+        done: false,
+        loop_stats: None,
+        delivery: Default::default(),
+        events: vec![],
+        clock: None,
+        links: vec![],
+        heard: Default::default(),
+        rescued: vec![],
+        resumed: None,
+        diverged: None,
+    }
+}
