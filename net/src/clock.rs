@@ -30,6 +30,12 @@ pub fn mono_ns() -> i64 {
     Instant::now().saturating_duration_since(origin()).as_nanos() as i64
 }
 
+/// This process's monotonic clock as the protocol's machines take it
+/// ([`formation_protocol::Now`]): the time since its first reading.
+pub fn mono() -> std::time::Duration {
+    Instant::now().saturating_duration_since(origin())
+}
+
 /// The instant at which [`mono_ns`] reads `ns` (a time before the first
 /// reading is the first reading).
 pub fn instant_of(ns: i64) -> Instant {

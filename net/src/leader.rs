@@ -8,7 +8,7 @@
 //! keys), so its messages never pile up without bound.
 
 use std::sync::{Arc, Condvar, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use formation_agent::LeaderState;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
@@ -290,8 +290,8 @@ fn leader_loop(
         // repeat what the slowest may have missed until every hearing
         // follower reports its final step, for at most LINGER.
         let hearing = progress.reached.lock().unwrap_or_else(|e| e.into_inner()).len();
-        let mut linger = gate::Wait::new(Instant::now(), gate::LINGER_REPEAT_EVERY, LINGER);
-        while let gate::WaitStep::Wait { repeat: again, .. } = linger.poll(Instant::now()) {
+        let mut linger = gate::Wait::new(crate::clock::mono(), gate::LINGER_REPEAT_EVERY, LINGER);
+        while let gate::WaitStep::Wait { repeat: again, .. } = linger.poll(crate::clock::mono()) {
             if followers_done.lock().unwrap_or_else(|e| e.into_inner()).len() >= hearing {
                 break;
             }
@@ -327,7 +327,7 @@ fn wait_window(
     counters: &mut Counters,
 ) -> Result<(), Error> {
     let Some(need) = k.checked_sub(WINDOW) else { return Ok(()) };
-    let mut wait = gate::Wait::new(Instant::now(), gate::LEADER_REPEAT_EVERY, gate::LEADER_STALL);
+    let mut wait = gate::Wait::new(crate::clock::mono(), gate::LEADER_REPEAT_EVERY, gate::LEADER_STALL);
     let mut reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
     // (Set under the lock the callbacks take: none can miss it.)
     progress.need.store(need, std::sync::atomic::Ordering::Release);
@@ -339,7 +339,7 @@ fn wait_window(
         }
         let (g, _) = progress.moved.wait_timeout(reached, gate::LEADER_REPEAT_EVERY).unwrap_or_else(|e| e.into_inner());
         reached = g;
-        let now = Instant::now();
+        let now = crate::clock::mono();
         let gate::WaitStep::Wait { repeat: again, warn } = wait.poll(now) else {
             return Err(Error::Run(format!(
                 "followers stopped before step {need} (no progress for {} s)",

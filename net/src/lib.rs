@@ -16,27 +16,17 @@
 //! | a run again | [`replay`] (on the monitor's recorder), [`explain`], [`playback`] |
 
 pub mod agent;
-pub mod barrier;
 pub mod checkpoint;
 pub mod clock;
-pub mod clockguard;
-pub mod codec;
-pub mod counters;
 pub mod courier;
 pub mod denials;
-pub mod error;
 pub mod explain;
 pub mod foxglove;
-pub mod gate;
 pub mod health;
-pub mod hearing;
 pub mod identity;
-pub mod inbox;
-pub mod latency;
 pub mod leader;
 pub mod limits;
 pub mod monitor;
-pub mod names;
 pub mod node;
 pub mod playback;
 pub mod replay;
@@ -44,10 +34,13 @@ pub mod router;
 pub mod session;
 pub mod startup;
 pub mod telemetry;
-pub mod timebase;
 pub mod timesync;
 pub mod timing;
 pub mod watch;
 pub mod web;
 
 pub use error::Error;
+
+// The protocol's rules live in formation-protocol; the nodes here reach them
+// by their old paths.
+pub use formation_protocol::{barrier, clockguard, codec, counters, error, gate, hearing, inbox, latency, names, timebase};

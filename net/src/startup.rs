@@ -4,7 +4,7 @@
 //! [`crate::barrier`]; this module only translates.
 
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use formation_topology::Scenario;
 
@@ -63,7 +63,7 @@ async fn listen<H: Hears + Send + 'static>(
     let m = machine.clone();
     let on_start = move |_: &str, bytes: &[u8]| {
         if let Some(start) = codec::decode::<Start>(bytes) {
-            lock(&m).on_start(start, Instant::now());
+            lock(&m).on_start(start, crate::clock::mono());
         }
     };
     subs.push(declare(keys.start(), Box::new(on_start)).await.map_err(|e| zerr("declaring the start subscriber", e))?);
@@ -74,7 +74,7 @@ async fn listen<H: Hears + Send + 'static>(
         let m = machine.clone();
         let on_ready = move |from: &str, bytes: &[u8]| {
             if let Some(r) = codec::decode::<Ready>(bytes) {
-                lock(&m).on_ready(from, r, Instant::now());
+                lock(&m).on_ready(from, r, crate::clock::mono());
             }
         };
         subs.push(declare(key, Box::new(on_ready)).await.map_err(|e| zerr("declaring the ready subscriber", e))?);
@@ -92,14 +92,14 @@ pub async fn wait_for_start(
     needs: &[String],
     scenario: &Scenario,
 ) -> Result<Start, Error> {
-    let machine = Arc::new(Mutex::new(Join::new(me, &keys.run, needs, scenario, Instant::now())));
+    let machine = Arc::new(Mutex::new(Join::new(me, &keys.run, needs, scenario, crate::clock::mono())));
     let from = if needs.len() <= FEW { Whom::Only(needs) } else { Whom::All };
     let _subs = listen(session, keys, &machine, from).await?;
     let fingerprint = fingerprint(scenario);
     let ready_full = codec::encode(&Ready { fingerprint, keys: key_digests(scenario) });
     let ready_short = codec::encode(&Ready { fingerprint, keys: Vec::new() });
     loop {
-        let step = lock(&machine).poll(Instant::now());
+        let step = lock(&machine).poll(crate::clock::mono());
         let ready = match step {
             JoinStep::Started(start) => return Ok(start),
             JoinStep::Failed(e) => return Err(e),
@@ -135,10 +135,10 @@ pub async fn lead_start(
     time_scale: f64,
     lead: Duration,
 ) -> Result<(Start, tokio::task::JoinHandle<()>), Error> {
-    let machine = Arc::new(Mutex::new(Lead::new(&keys.run, needs_hello, expect_ready, scenario, Instant::now())));
+    let machine = Arc::new(Mutex::new(Lead::new(&keys.run, needs_hello, expect_ready, scenario, crate::clock::mono())));
     let subs = listen(session, keys, &machine, Whom::All).await?;
     loop {
-        let step = lock(&machine).poll(Instant::now());
+        let step = lock(&machine).poll(crate::clock::mono());
         match step {
             LeadStep::Go => break,
             LeadStep::Failed(e) => return Err(e),

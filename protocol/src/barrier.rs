@@ -19,7 +19,9 @@
 //! [`crate::startup`] puts them on zenoh.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use crate::Now;
 
 use formation_topology::Scenario;
 use serde::{Deserialize, Serialize};
@@ -143,9 +145,9 @@ struct Heard {
     /// This node's key digests, and per node ready with another
     /// fingerprint, the keys that differ and when it was first heard so.
     mine: Vec<(String, u64)>,
-    differ: BTreeMap<String, (Vec<String>, Instant)>,
+    differ: BTreeMap<String, (Vec<String>, Now)>,
     /// When a start with another fingerprint was first heard.
-    foreign_start: Option<Instant>,
+    foreign_start: Option<Now>,
     /// The leader's reason for refusing the run, if it did.
     abort: Option<String>,
 }
@@ -166,7 +168,7 @@ impl Heard {
         }
     }
 
-    fn on_start(&mut self, start: Start, now: Instant) {
+    fn on_start(&mut self, start: Start, now: Now) {
         if start.fingerprint == self.fingerprint {
             self.start.get_or_insert(start);
         } else {
@@ -175,7 +177,7 @@ impl Heard {
         }
     }
 
-    fn on_ready(&mut self, name: &str, r: Ready, now: Instant) {
+    fn on_ready(&mut self, name: &str, r: Ready, now: Now) {
         if !self.expected.contains(name) {
             self.ignored += 1;
         } else if r.fingerprint == self.fingerprint {
@@ -217,9 +219,9 @@ fn node_phrase(n: &str) -> String {
 /// [`Lead`]) as it arrives, with the time.
 pub trait Hears {
     fn on_hello(&mut self, from: &str);
-    fn on_ready(&mut self, from: &str, ready: Ready, now: Instant);
+    fn on_ready(&mut self, from: &str, ready: Ready, now: Now);
     /// The leader's start (the leader itself ignores starts).
-    fn on_start(&mut self, start: Start, now: Instant);
+    fn on_start(&mut self, start: Start, now: Now);
     /// The leader's refusal of the run (the leader itself ignores it).
     fn on_abort(&mut self, reason: &str);
 }
@@ -228,10 +230,10 @@ impl Hears for Join {
     fn on_hello(&mut self, from: &str) {
         self.heard.on_hello(from);
     }
-    fn on_ready(&mut self, from: &str, ready: Ready, now: Instant) {
+    fn on_ready(&mut self, from: &str, ready: Ready, now: Now) {
         self.heard.on_ready(from, ready, now);
     }
-    fn on_start(&mut self, start: Start, now: Instant) {
+    fn on_start(&mut self, start: Start, now: Now) {
         self.heard.on_start(start, now);
     }
     fn on_abort(&mut self, reason: &str) {
@@ -243,10 +245,10 @@ impl Hears for Lead {
     fn on_hello(&mut self, from: &str) {
         self.heard.on_hello(from);
     }
-    fn on_ready(&mut self, from: &str, ready: Ready, now: Instant) {
+    fn on_ready(&mut self, from: &str, ready: Ready, now: Now) {
         self.heard.on_ready(from, ready, now);
     }
-    fn on_start(&mut self, _: Start, _: Instant) {}
+    fn on_start(&mut self, _: Start, _: Now) {}
     fn on_abort(&mut self, _: &str) {}
 }
 
@@ -278,7 +280,7 @@ pub struct Join {
     run: String,
     needs: Vec<String>,
     heard: Heard,
-    began: Instant,
+    began: Now,
     readies: u64,
     warned: bool,
 }
@@ -286,7 +288,7 @@ pub struct Join {
 impl Join {
     /// `needs`: the nodes `me` receives from (they count when they say
     /// ready with another scenario); `now`: when it began waiting.
-    pub fn new(me: &str, run: &str, needs: &[String], scenario: &Scenario, now: Instant) -> Self {
+    pub fn new(me: &str, run: &str, needs: &[String], scenario: &Scenario, now: Now) -> Self {
         Self {
             me: me.to_string(),
             run: run.to_string(),
@@ -304,7 +306,7 @@ impl Join {
     }
 
     /// What to do at `now` (called every [`TICK`]).
-    pub fn poll(&mut self, now: Instant) -> JoinStep {
+    pub fn poll(&mut self, now: Now) -> JoinStep {
         let (me, run, h) = (&self.me, &self.run, &self.heard);
         if let Some(start) = h.start {
             return JoinStep::Started(start);
@@ -315,7 +317,7 @@ impl Join {
         let mismatched = h
             .differ
             .iter()
-            .find(|(n, (_, since))| !h.ready.contains(*n) && now.saturating_duration_since(*since) >= MISMATCH_GRACE);
+            .find(|(n, (_, since))| !h.ready.contains(*n) && now.saturating_sub(*since) >= MISMATCH_GRACE);
         if let Some((n, (differ, _))) = mismatched {
             return JoinStep::Failed(Error::Input(format!(
                 "node {me}: {} of run {run} runs another scenario, {} (another file or --set values)",
@@ -327,7 +329,7 @@ impl Join {
                 }
             )));
         }
-        let foreign_for = h.foreign_start.map(|t| now.saturating_duration_since(t));
+        let foreign_for = h.foreign_start.map(|t| now.saturating_sub(t));
         if foreign_for.is_some_and(|d| d >= MISMATCH_GRACE * 2) {
             // Heard for 10 s: the leader of this run has another scenario.
             return JoinStep::Failed(Error::Input(format!(
@@ -337,7 +339,7 @@ impl Join {
             )));
         }
         let waiting = h.missing(&h.hello, &self.needs);
-        if now.saturating_duration_since(self.began) > START_TIMEOUT {
+        if now.saturating_sub(self.began) > START_TIMEOUT {
             if waiting.is_empty() && foreign_for.is_some() {
                 return JoinStep::Failed(Error::Input(format!(
                     "node {me}: no start for this scenario within {} s; ignored {} start announcements of run \
@@ -398,12 +400,12 @@ pub struct Lead {
     needs_hello: Vec<String>,
     expect_ready: Vec<String>,
     heard: Heard,
-    began: Instant,
+    began: Now,
     warned: BTreeSet<String>,
 }
 
 impl Lead {
-    pub fn new(run: &str, needs_hello: &[String], expect_ready: &[String], scenario: &Scenario, now: Instant) -> Self {
+    pub fn new(run: &str, needs_hello: &[String], expect_ready: &[String], scenario: &Scenario, now: Now) -> Self {
         Self {
             run: run.to_string(),
             needs_hello: needs_hello.to_vec(),
@@ -420,7 +422,7 @@ impl Lead {
     }
 
     /// What to do at `now` (called every [`TICK`]).
-    pub fn poll(&mut self, now: Instant) -> LeadStep {
+    pub fn poll(&mut self, now: Now) -> LeadStep {
         let (run, h) = (&self.run, &self.heard);
         let hello_missing = h.missing(&h.hello, &self.needs_hello);
         let ready_missing = h.missing(&h.ready, &self.expect_ready);
@@ -438,7 +440,7 @@ impl Lead {
         // Nodes heard only with another fingerprint (possibly forged): still missing.
         for n in h.ready_foreign.iter().filter(|n| !h.ready.contains(*n)) {
             let (keys, since) = h.differ.get(n).cloned().unwrap_or((Vec::new(), now));
-            if now.saturating_duration_since(since) >= MISMATCH_GRACE {
+            if now.saturating_sub(since) >= MISMATCH_GRACE {
                 let reason = format!("node {n} runs another scenario, {}", differs(&keys));
                 let error = Error::Input(format!("leader: {reason} in run {run} (another file or --set values)"));
                 return LeadStep::Refuse { reason, error };
@@ -452,7 +454,7 @@ impl Lead {
                 ));
             }
         }
-        if now.saturating_duration_since(self.began) > START_TIMEOUT {
+        if now.saturating_sub(self.began) > START_TIMEOUT {
             let waiting: BTreeSet<String> = hello_missing.into_iter().chain(ready_missing).collect();
             return LeadStep::Failed(Error::Run(format!(
                 "leader: nodes {} of run {run} not ready within {} s",
@@ -497,7 +499,7 @@ mod tests {
     }
 
     /// Polls every tick from `from` to `to` (virtual time), returning every step.
-    fn ticks<S>(poll: &mut impl FnMut(Instant) -> S, t0: Instant, from: Duration, to: Duration) -> Vec<S> {
+    fn ticks<S>(poll: &mut impl FnMut(Now) -> S, t0: Now, from: Duration, to: Duration) -> Vec<S> {
         let mut out = Vec::new();
         let mut t = from;
         while t <= to {
@@ -509,7 +511,7 @@ mod tests {
 
     #[test]
     fn foreign_start_and_ready_are_ignored_and_counted() {
-        let t = Instant::now();
+        let t = Now::ZERO;
         let s = paper(&[]);
         let other = paper(&["dt=0.002"]);
         let mut h = Heard::new(&s, &names(&["1", "monitor"]));
@@ -540,13 +542,13 @@ mod tests {
         assert_eq!(differing_keys(&da, &da), Vec::<String>::new());
         assert_eq!(differing_keys(&da, &db), ["dt", "robot.mass"]);
         let mut h = Heard::new(&a, &names(&["3"]));
-        h.on_ready("3", ready(&b), Instant::now());
+        h.on_ready("3", ready(&b), Now::ZERO);
         assert_eq!(h.differ["3"].0, ["dt", "robot.mass"]);
     }
 
     #[test]
     fn an_agent_says_hello_then_ready_until_the_start() {
-        let (s, t0) = (paper(&[]), Instant::now());
+        let (s, t0) = (paper(&[]), Now::ZERO);
         let mut j = Join::new("2", "r", &names(&["1", "3", "0"]), &s, t0);
         assert_eq!(j.poll(t0), JoinStep::Wait { ready: None, warning: None }, "hello only, nobody heard");
         j.on_hello("1");
@@ -572,7 +574,7 @@ mod tests {
 
     #[test]
     fn an_agent_gives_up_after_the_timeout_naming_who_it_never_heard() {
-        let (s, t0) = (paper(&[]), Instant::now());
+        let (s, t0) = (paper(&[]), Now::ZERO);
         let mut j = Join::new("2", "r", &names(&["1", "3", "0"]), &s, t0);
         j.on_hello("1");
         assert!(matches!(j.poll(t0 + START_TIMEOUT), JoinStep::Wait { .. }), "not before the timeout");
@@ -593,7 +595,7 @@ mod tests {
 
     #[test]
     fn a_foreign_start_warns_once_and_ends_the_wait_after_ten_seconds() {
-        let (s, t0) = (paper(&[]), Instant::now());
+        let (s, t0) = (paper(&[]), Now::ZERO);
         let other = paper(&["robot.mass=12"]);
         let mut j = Join::new("4", "r", &names(&["0"]), &s, t0);
         j.on_hello("0");
@@ -617,7 +619,7 @@ mod tests {
 
     #[test]
     fn a_neighbour_with_another_scenario_ends_the_wait_naming_the_keys() {
-        let (s, t0) = (paper(&[]), Instant::now());
+        let (s, t0) = (paper(&[]), Now::ZERO);
         let other = paper(&["robot.mass=12"]);
         let mut j = Join::new("1", "r", &names(&["2", "0"]), &s, t0);
         j.on_ready("2", ready(&other), t0);
@@ -637,7 +639,7 @@ mod tests {
 
     #[test]
     fn the_leaders_refusal_ends_every_wait_with_its_reason() {
-        let (s, t0) = (paper(&[]), Instant::now());
+        let (s, t0) = (paper(&[]), Now::ZERO);
         let mut j = Join::new("3", "r", &names(&["0"]), &s, t0);
         j.on_abort("");
         assert!(matches!(j.poll(t0), JoinStep::Wait { .. }), "an empty abort is no reason");
@@ -653,7 +655,7 @@ mod tests {
 
     #[test]
     fn the_leader_goes_once_every_node_is_heard_and_ready() {
-        let (s, t0) = (paper(&[]), Instant::now());
+        let (s, t0) = (paper(&[]), Now::ZERO);
         let mut l = Lead::new("r", &names(&["1", "2"]), &names(&["1", "2", "monitor"]), &s, t0);
         assert_eq!(l.poll(t0), LeadStep::Wait { warnings: vec![] });
         l.on_hello("1");
@@ -674,7 +676,7 @@ mod tests {
 
     #[test]
     fn the_leader_warns_once_then_refuses_a_node_with_another_scenario() {
-        let (s, t0) = (paper(&[]), Instant::now());
+        let (s, t0) = (paper(&[]), Now::ZERO);
         let other = paper(&["dt=0.002"]);
         let mut l = Lead::new("r", &names(&["1"]), &names(&["1"]), &s, t0);
         l.on_hello("1");
@@ -703,7 +705,7 @@ mod tests {
 
     #[test]
     fn the_leader_gives_up_naming_the_nodes_not_ready() {
-        let (s, t0) = (paper(&[]), Instant::now());
+        let (s, t0) = (paper(&[]), Now::ZERO);
         let mut l = Lead::new("r", &names(&["1", "2"]), &names(&["1", "2", "monitor"]), &s, t0);
         l.on_hello("1");
         l.on_ready("1", ready(&s), t0);

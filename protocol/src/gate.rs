@@ -6,7 +6,9 @@
 //! what to send.
 
 use std::collections::VecDeque;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use crate::Now;
 
 use crate::inbox::LOCKSTEP_AHEAD;
 
@@ -151,8 +153,8 @@ pub enum WaitStep {
 /// repeats would otherwise never repeat anything.
 #[derive(Clone, Debug)]
 pub struct Wait {
-    began: Instant,
-    said: Instant,
+    began: Now,
+    said: Now,
     every: Duration,
     limit: Duration,
     warned: bool,
@@ -160,23 +162,28 @@ pub struct Wait {
 
 impl Wait {
     /// A wait begun at `now` that repeats `every` and is over after `limit`.
-    pub fn new(now: Instant, every: Duration, limit: Duration) -> Self {
+    pub fn new(now: Now, every: Duration, limit: Duration) -> Self {
         Self { began: now, said: now, every, limit, warned: false }
     }
 
     /// How long it has waited at `now`.
-    pub fn waited(&self, now: Instant) -> Duration {
-        now.saturating_duration_since(self.began)
+    pub fn waited(&self, now: Now) -> Duration {
+        now.saturating_sub(self.began)
+    }
+
+    /// When the wait next has something to do: its next repeat, or its end.
+    pub fn next_wake(&self) -> Now {
+        (self.said + self.every).min(self.began + self.limit + Duration::from_nanos(1))
     }
 
     /// What to do at `now`.
-    pub fn poll(&mut self, now: Instant) -> WaitStep {
+    pub fn poll(&mut self, now: Now) -> WaitStep {
         if self.waited(now) > self.limit {
             return WaitStep::Over;
         }
         let warn = !self.warned && self.waited(now) > STALL_WARNING;
         self.warned |= warn;
-        let repeat = now.saturating_duration_since(self.said) >= self.every;
+        let repeat = now.saturating_sub(self.said) >= self.every;
         if repeat {
             self.said = now;
         }
@@ -259,7 +266,7 @@ mod tests {
     /// is over after its limit (virtual time).
     #[test]
     fn a_wait_repeats_on_its_clock_warns_once_and_ends_at_its_limit() {
-        let t0 = Instant::now();
+        let t0 = Now::ZERO;
         let ms = |m: u64| t0 + Duration::from_millis(m);
         let mut w = Wait::new(t0, FOLLOWER_REPEAT_EVERY, Duration::from_secs(8));
         assert_eq!(w.poll(ms(0)), WaitStep::Wait { repeat: false, warn: false });

@@ -6,6 +6,8 @@ use crate::latency::{LinkMeter, LinkStats};
 use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
+use crate::Now;
+
 use formation_agent::{LinkLoss, Message};
 use formation_topology::wire::{self, EstimateMsg, Reject};
 
@@ -60,7 +62,10 @@ pub struct Inbox {
     /// Per source: how many steps ahead of the receiver's a message may be.
     ahead: Vec<u64>,
     /// Real time: the shared clock (epoch, period), once the start is known.
-    clock: Option<(std::time::Instant, Duration)>,
+    clock: Option<(Now, Duration)>,
+    /// The time on that clock at which the messages now handed in arrived
+    /// ([`Inbox::set_time`]).
+    now: Option<Now>,
     /// Per source: the fault table's loss decisions for the link (docs/model.md §14).
     links: Vec<LinkLoss>,
     /// Per source: latency and age at use (see [`crate::latency`]).
@@ -112,6 +117,7 @@ impl Inbox {
             current: 0,
             ahead: vec![if lockstep { LOCKSTEP_AHEAD } else { REALTIME_AHEAD }; sources],
             clock: None,
+            now: None,
             links: vec![LinkLoss::none(); sources],
             meters: vec![LinkMeter::default(); sources],
             twins: vec![Twin::default(); sources],
@@ -141,10 +147,17 @@ impl Inbox {
 
     /// Real time: the shared schedule (step k due at `epoch` + k `period`),
     /// so that the receiver's step is at least the clock's.
-    pub fn set_clock(&mut self, epoch: std::time::Instant, period: Duration) {
+    pub fn set_clock(&mut self, epoch: Now, period: Duration) {
         if !period.is_zero() {
             self.clock = Some((epoch, period));
         }
+    }
+
+    /// The time, on the clock of [`Inbox::set_clock`], at which the messages
+    /// handed in next arrived (None: not known, and the receiver's step
+    /// alone bounds how far ahead they may be). The inbox reads no clock.
+    pub fn set_time(&mut self, now: Option<Now>) {
+        self.now = now;
     }
 
     /// The furthest step heard from `slot` in a checked message, accepted or
@@ -168,8 +181,8 @@ impl Inbox {
     /// The step the run is at: the receiver's, or the shared clock's if later.
     fn pace(&self) -> u64 {
         let mut base = self.current;
-        if let Some((epoch, period)) = self.clock {
-            let since = std::time::Instant::now().saturating_duration_since(epoch);
+        if let (Some((epoch, period)), Some(now)) = (self.clock, self.now) {
+            let since = now.saturating_sub(epoch);
             base = base.max((since.as_secs_f64() / period.as_secs_f64()) as u64);
         }
         base

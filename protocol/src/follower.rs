@@ -1,0 +1,815 @@
+//! One follower of the formation as one machine (quinn-proto's `Connection`
+//! is the model): it owns the inbox, the lock-step gate, the real-time
+//! pacing on the run's timebase, the freshness and silence rules, the
+//! hearing record, the publish rule and what goes to telemetry. It is fed
+//! the messages that arrive ([`Follower::handle_estimate`]), what the node
+//! noticed ([`Follower::handle_event`], [`Follower::handle_done`]) and the
+//! time ([`Follower::handle_timeout`]); it answers what to publish
+//! ([`Follower::poll_transmit`]), what to send to the monitor
+//! ([`Follower::poll_telemetry`]), what to say on stderr
+//! ([`Follower::poll_say`]) and when to be woken ([`Follower::poll_timeout`]).
+//!
+//! The follower's step itself is the simulator's ([`SimFollower::step`],
+//! behind the [`Body`] seam), so a lock-step run gives the simulator's
+//! numbers bit for bit; only who delivers the neighbours' messages differs.
+//!
+//! Time ([`Now`]) is the run's timebase (the leader's clock) as the node
+//! estimates it, as a duration since the Unix epoch: steps are due at
+//! `epoch + k Δt / time_scale` on it, and messages are stamped with it.
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use formation_agent::{Hearing, LeaderState, Message};
+use formation_plant::Pose;
+use formation_record::hearing::{HeardRuns, Rescued, Resume};
+use formation_record::{FollowerSample, Heard};
+use formation_sim::SimFollower;
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_topology::{FaultTarget, Scenario, Timing};
+
+use crate::barrier::{self, Start};
+use crate::counters::Counters;
+use crate::gate::{self, Kept};
+use crate::hearing::EarLog;
+use crate::inbox::{self, Inbox, Source};
+use crate::telemetry::{ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
+use crate::timing::{LoopStats, LoopTimer};
+use crate::Now;
+
+/// The seam between the protocol and the robot: one follower's step.
+///
+/// [`SimFollower`] (brain + simulated robot + noise) is the implementation
+/// the simulator uses too. A real robot's driver implements this with the
+/// same brain ([`formation_agent::Follower::step`]) fed by its own pose and
+/// wheel-speed measurement, and applies the torques to the motors.
+pub trait Body: Send {
+    /// Step k at t = k Δt with the leader's state (if heard) and the
+    /// neighbours' messages for k in ascending id; returns the step's
+    /// telemetry sample and this follower's message for k + 1.
+    fn step(
+        &mut self,
+        t_s: f64,
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: &[Message],
+        last: bool,
+    ) -> (FollowerSample, Message);
+    /// The message for step 0.
+    fn initial_message(&self) -> Message;
+    /// The first quantity that is not finite, if any.
+    fn check_finite(&self) -> Result<(), &'static str>;
+    /// Consecutive steps without any source (docs/model.md §14's isolation).
+    fn silent_steps(&self) -> u64;
+    /// A restarted agent: go on from step `k`, the robot stopped at `pose`,
+    /// with a fresh brain that adopts its estimate (docs/model.md §14).
+    fn resume(&mut self, k: u64, pose: Pose);
+    /// Waiting for a first source to adopt an estimate from.
+    fn adopting(&self) -> bool;
+}
+
+impl Body for SimFollower {
+    fn step(
+        &mut self,
+        t_s: f64,
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: &[Message],
+        last: bool,
+    ) -> (FollowerSample, Message) {
+        SimFollower::step(self, t_s, dt_s, leader, neighbours, last)
+    }
+    fn initial_message(&self) -> Message {
+        self.brain.tagged_message()
+    }
+    fn check_finite(&self) -> Result<(), &'static str> {
+        SimFollower::check_finite(self)
+    }
+    fn silent_steps(&self) -> u64 {
+        self.brain.silent_steps()
+    }
+    fn resume(&mut self, k: u64, pose: Pose) {
+        SimFollower::resume(self, k, pose);
+    }
+    fn adopting(&self) -> bool {
+        self.brain.adopting()
+    }
+}
+
+/// How a follower runs, beyond its scenario.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// Lock-step: give up when a step's inputs stop arriving for this long.
+    pub stall_timeout: Duration,
+    /// The network performs the fault table's `node` rows (the lab): they
+    /// are not applied again here.
+    pub physical_node_faults: bool,
+}
+
+/// How many telemetry batches' worth of each source's last messages a
+/// follower keeps for a rescue ([`EarLog`]): more than a killed sender can
+/// have left unacknowledged (one batch being filled, one or two in flight).
+pub const RESCUE_BATCHES: usize = 4;
+
+/// Lock-step: how long a follower keeps republishing its final message
+/// after its last step, waiting for its neighbours to report theirs.
+pub const LINGER: Duration = Duration::from_secs(1);
+
+/// Lock-step linger: how often the node looks whether its neighbours have
+/// reported their final step.
+pub const LINGER_LOOK_EVERY: Duration = Duration::from_millis(10);
+
+/// A process that hears a start older than this is a restart.
+pub const LATE: Duration = Duration::from_millis(200);
+
+/// What arrived on an estimate key, once checked.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Arrival {
+    /// The leader's own stamp (ns on its clock), when the message is the
+    /// leader's: a floor for the node's estimate of that clock.
+    pub leader_sent_ns: Option<i64>,
+    /// The step the loop waits for is now complete: wake it.
+    pub wake: bool,
+}
+
+/// A telemetry batch as the machine knows it; the node adds how its
+/// delivery goes and its estimate of the leader's clock
+/// ([`Batch::into_telemetry`]).
+#[derive(Clone, Debug)]
+pub struct Batch {
+    pub first_k: u64,
+    /// One past the batch's last step.
+    pub end_k: u64,
+    id: u32,
+    samples: Vec<FollowerSample>,
+    counters: Counters,
+    done: bool,
+    loop_stats: Option<LoopStats>,
+    events: Vec<NetEvent>,
+    links: Vec<LinkStats>,
+    heard: HeardRuns,
+    rescued: Vec<Rescued>,
+    resumed: Option<Resume>,
+    diverged: Option<String>,
+}
+
+impl Batch {
+    /// The message for the monitor.
+    pub fn into_telemetry(self, delivery: Delivery, clock: Option<ClockReport>) -> Telemetry {
+        Telemetry::Follower {
+            id: self.id,
+            first_k: self.first_k,
+            samples: self.samples,
+            counters: self.counters,
+            done: self.done,
+            loop_stats: self.loop_stats,
+            delivery,
+            events: self.events,
+            clock,
+            links: self.links,
+            heard: self.heard,
+            rescued: self.rescued,
+            resumed: self.resumed,
+            diverged: self.diverged,
+        }
+    }
+}
+
+/// Where the machine is.
+#[derive(Clone, Debug)]
+enum Phase {
+    /// Before the start: messages are kept, nothing steps.
+    Waiting,
+    /// Computing step k when it is due (real time) or its inputs are in
+    /// (lock-step).
+    Stepping(u64),
+    /// Lock-step, after the last step: repeating the last messages until
+    /// every neighbour reports its final step, for at most [`LINGER`].
+    Lingering(gate::Wait),
+    /// The end: Ok, or why the run failed.
+    Done(Result<(), String>),
+}
+
+/// The rules of the run that the machine keeps.
+#[derive(Clone, Debug)]
+struct Rules {
+    id: u32,
+    steps: u64,
+    dt_s: f64,
+    batch: usize,
+    lockstep: bool,
+    /// Neighbours' ids, ascending: inbox slots 0..n; the leader (if heard) is slot n.
+    neighbours: Vec<u32>,
+    hears_leader: bool,
+    silence_steps: u64,
+    /// Real time: step k uses the newest messages stamped at or before k − d.
+    delay_steps: u64,
+    /// `network.rejoin_after` in steps (docs/model.md §14).
+    rejoin_after_steps: u64,
+    stall_timeout: Duration,
+    /// The sources' ids (0: the leader), by inbox slot.
+    source_ids: Vec<u32>,
+    /// "follower 2", …, "the leader", by inbox slot.
+    source_names: Vec<String>,
+    /// The fault table's longest window (steps, plus one per hop), for the
+    /// lock-step look-ahead.
+    faulted_ahead: Option<u64>,
+}
+
+/// One follower: see the module documentation.
+pub struct Follower {
+    rules: Rules,
+    body: Box<dyn Body>,
+    inbox: Inbox,
+    phase: Phase,
+    /// Real time: the run's epoch and step period on the timebase.
+    epoch: Now,
+    period: Duration,
+    timer: Option<LoopTimer>,
+    /// Lock-step: the wait for the current step's inputs, once it waits.
+    wait: Option<gate::Wait>,
+    /// The messages published, oldest first, the last [`gate::FOLLOWER_KEPT`]
+    /// of them (republished while waiting).
+    recent: Kept,
+    hearing: Hearing,
+    /// Real time, per slot: whether the source is heard now (for the timeline).
+    heard_now: Vec<bool>,
+    ear: EarLog,
+    events: Vec<NetEvent>,
+    second_clock_named: bool,
+    /// Lock-step: the neighbours that reported their final step.
+    done_neighbours: Vec<u32>,
+    samples: Vec<FollowerSample>,
+    first_k: u64,
+    resumed: Option<Resume>,
+    sent: u64,
+    republished: u64,
+    /// The robot's pose every 10 steps, for the node's checkpoint.
+    checkpoint: Option<(u64, Pose)>,
+    /// The time of the last call that passed one.
+    last_now: Now,
+    inputs: Vec<Message>,
+    taken: Vec<Option<Message>>,
+    transmit: VecDeque<Vec<u8>>,
+    telemetry: VecDeque<Batch>,
+    say: VecDeque<String>,
+}
+
+impl Follower {
+    /// The follower at `index` of `scenario`, stepping `body`. It accepts
+    /// messages from now on (a leader may run ahead before this node hears
+    /// the start) and steps once [`Follower::start`] is called.
+    pub fn new(scenario: &Scenario, index: usize, body: Box<dyn Body>, opts: &Options) -> Self {
+        let id = scenario.graph.id(index);
+        let hears_leader = scenario.graph.hears_leader(index);
+        let neighbours: Vec<u32> = scenario.graph.neighbours(index).iter().map(|&j| scenario.graph.id(j)).collect();
+        let lockstep = scenario.timing == Timing::Lockstep;
+        let mut source_ids = neighbours.clone();
+        if hears_leader {
+            source_ids.push(wire::LEADER_ID);
+        }
+        let slots = source_ids.len();
+        // docs/model.md §14: the fault table applies at the receiver, per incoming link.
+        let mut table = scenario.clone();
+        if opts.physical_node_faults {
+            table.faults.retain(|f| !matches!(f.target, FaultTarget::Node(_)));
+        }
+        let mut inbox = Inbox::new(slots, lockstep);
+        inbox.set_links(scenario.sources_of(index).iter().map(|&src| table.link_loss(src, id)).collect());
+        let faulted_ahead = scenario
+            .faults
+            .iter()
+            .map(|f| {
+                let (a, b) = f.steps(scenario.dt_s);
+                b - a + scenario.followers.len() as u64
+            })
+            .max();
+        let rules = Rules {
+            id,
+            steps: scenario.steps(),
+            dt_s: scenario.dt_s,
+            batch: scenario.network.telemetry_batch.max(1) as usize,
+            lockstep,
+            hears_leader,
+            silence_steps: scenario.silence_steps(),
+            delay_steps: scenario.network.delay_steps,
+            rejoin_after_steps: scenario.control.rejoin.after_steps,
+            stall_timeout: opts.stall_timeout,
+            source_names: source_ids
+                .iter()
+                .map(|&s| if s == wire::LEADER_ID { "the leader".to_string() } else { format!("follower {s}") })
+                .collect(),
+            source_ids,
+            neighbours,
+            faulted_ahead,
+        };
+        let ear = if scenario.network.hearing_record {
+            EarLog::new(rules.source_ids.clone(), RESCUE_BATCHES * rules.batch)
+        } else {
+            EarLog::off()
+        };
+        let mut f = Self {
+            hearing: Hearing::new(slots, rules.silence_steps),
+            heard_now: vec![false; slots],
+            samples: Vec::with_capacity(rules.batch),
+            inputs: Vec::with_capacity(slots),
+            taken: Vec::with_capacity(slots),
+            body,
+            inbox,
+            phase: Phase::Waiting,
+            epoch: Now::ZERO,
+            period: Duration::ZERO,
+            timer: None,
+            wait: None,
+            recent: Kept::new(gate::FOLLOWER_KEPT),
+            ear,
+            events: Vec::new(),
+            second_clock_named: false,
+            done_neighbours: Vec::new(),
+            first_k: 0,
+            resumed: None,
+            sent: 0,
+            republished: 0,
+            checkpoint: None,
+            last_now: Now::ZERO,
+            transmit: VecDeque::new(),
+            telemetry: VecDeque::new(),
+            say: VecDeque::new(),
+            rules,
+        };
+        f.set_window(scenario.network.time_scale);
+        f
+    }
+
+    /// This follower's id.
+    pub fn id(&self) -> u32 {
+        self.rules.id
+    }
+
+    /// The sources' ids by inbox slot (neighbours ascending, then 0 for the leader).
+    pub fn source_ids(&self) -> &[u32] {
+        &self.rules.source_ids
+    }
+
+    /// How far ahead of this node's step a genuine message can be (further:
+    /// `Reject::Future`). Lock-step: neighbours [`inbox::LOCKSTEP_AHEAD`]
+    /// steps, the leader its window more. A fault lets a node run ahead of
+    /// a receiver that does not wait for it (an isolated follower runs
+    /// freely through its window), by at most the longest window plus one
+    /// step per hop of the graph. Real time: 0.1 s of wall time (at least
+    /// [`inbox::REALTIME_AHEAD`] steps) beyond the shared clock's step.
+    fn set_window(&mut self, time_scale: f64) {
+        let slots = self.rules.source_ids.len();
+        if self.rules.lockstep {
+            let ahead = self.rules.faulted_ahead.map_or(inbox::LOCKSTEP_AHEAD, |w| w + inbox::LOCKSTEP_AHEAD);
+            for slot in 0..slots {
+                self.inbox.set_ahead(slot, ahead);
+            }
+            if self.rules.hears_leader {
+                self.inbox.set_ahead(slots - 1, ahead + gate::WINDOW);
+            }
+        } else {
+            let period = self.rules.dt_s / barrier::positive_scale(time_scale);
+            let slack = ((0.1 / period).ceil() as u64).max(inbox::REALTIME_AHEAD);
+            for slot in 0..slots {
+                self.inbox.set_ahead(slot, slack);
+            }
+        }
+    }
+
+    /// A message on the estimate key of `key_id` (None: the key's last part
+    /// is not an id), received at `now` (None: the timebase not yet known).
+    pub fn handle_estimate(&mut self, key_id: Option<u32>, bytes: &[u8], now: Option<Now>) -> Arrival {
+        let n = self.rules.neighbours.len();
+        let mut arrival = Arrival::default();
+        self.inbox.set_time(now);
+        match inbox::check(key_id, bytes, self.rules.hears_leader, &self.rules.neighbours) {
+            Ok((source, msg)) => {
+                let slot = if let Source::Neighbour(slot) = source { slot } else { n };
+                if slot == n {
+                    arrival.leader_sent_ns = Some(msg.header.sent_ns);
+                }
+                if let (true, Some(now)) = (self.inbox.accept(slot, &msg), now) {
+                    self.inbox.note_latency(slot, msg.header.sent_ns, now.as_nanos() as i64);
+                }
+            }
+            Err(r) => self.inbox.reject(r),
+        }
+        // Wake the loop only when its step is complete: one wake-up per
+        // step instead of one per message.
+        arrival.wake = self.inbox.completes_wait();
+        arrival
+    }
+
+    /// Something the node noticed outside the messages (the router lost or
+    /// back, a second clock on `control/time`), at the current step.
+    pub fn handle_event(&mut self, what: EventKind) {
+        if what == EventKind::SecondClock {
+            if self.second_clock_named {
+                return;
+            }
+            self.second_clock_named = true;
+        }
+        let k = match self.phase {
+            Phase::Stepping(k) => k,
+            _ => self.rules.steps,
+        };
+        self.events.push(NetEvent { k, what });
+    }
+
+    /// Lock-step: neighbour `id` reported its final step.
+    pub fn handle_done(&mut self, id: u32) {
+        if !self.done_neighbours.contains(&id) {
+            self.done_neighbours.push(id);
+        }
+    }
+
+    /// Lock-step: where a restarted process resumes. Its neighbours, waiting
+    /// for its message of the step they are at, repeat their last
+    /// [`gate::REPEATED`] messages every 100 ms; a process that hears them
+    /// well past step 0 is a restart and resumes one step before the least
+    /// advanced of them (it adopts from their messages of that step and
+    /// publishes the message they wait for). 0 for a run only starting.
+    pub fn lockstep_resume_step(&self) -> u64 {
+        let heard: Vec<Option<u64>> = (0..self.rules.neighbours.len()).map(|s| self.inbox.heard_max(s)).collect();
+        gate::resume_step(&heard)
+    }
+
+    /// The run begins: `start` as the leader announced it, at `now`; from
+    /// step 0, or a restart's `resume` step with its robot stopped at the pose.
+    pub fn start(&mut self, start: &Start, resume: Option<(u64, Pose)>, now: Now) {
+        self.last_now = now;
+        if !self.rules.lockstep {
+            // The shared clock bounds how far ahead a genuine message can be.
+            let scale = start.scale();
+            self.set_window(scale);
+            self.epoch = Duration::from_nanos(start.epoch_unix_ns);
+            self.period = Duration::from_secs_f64(self.rules.dt_s / scale);
+            self.inbox.set_clock(self.epoch, self.period);
+            self.timer = Some(LoopTimer::new(self.period.as_secs_f64()));
+        }
+        let first_step = resume.map_or(0, |(k, _)| k);
+        if let Some((k, pose)) = resume.filter(|&(k, _)| k > 0) {
+            self.body.resume(k, pose);
+            self.resumed = Some(Resume { k, pose: [pose.x, pose.y, pose.theta] });
+        } else {
+            // A restart publishes nothing until it has adopted an estimate.
+            let first = self.body.initial_message();
+            self.publish(0, first, now);
+        }
+        self.first_k = first_step;
+        self.phase = Phase::Stepping(first_step);
+    }
+
+    /// Does what is due at `now`: at most one step, or a wait's repeat,
+    /// warning or end.
+    pub fn handle_timeout(&mut self, now: Now) {
+        self.last_now = now;
+        match self.phase {
+            Phase::Waiting | Phase::Done(_) => {}
+            Phase::Stepping(k) => self.step_if_ready(k, now),
+            Phase::Lingering(_) => self.linger(now),
+        }
+    }
+
+    /// When the machine next wants [`Follower::handle_timeout`]: None
+    /// before the start and after the end; `Now::ZERO` (at once) when a
+    /// lock-step step's inputs are in.
+    pub fn poll_timeout(&mut self) -> Option<Now> {
+        match &self.phase {
+            Phase::Waiting | Phase::Done(_) => None,
+            Phase::Stepping(k) if !self.rules.lockstep => Some(self.due(*k)),
+            Phase::Stepping(k) => {
+                let k = *k;
+                if self.inbox.has_all(k) {
+                    Some(Now::ZERO)
+                } else {
+                    Some(self.wait.as_ref().map_or(Now::ZERO, gate::Wait::next_wake))
+                }
+            }
+            Phase::Lingering(w) => Some(w.next_wake().min(self.last_now + LINGER_LOOK_EVERY)),
+        }
+    }
+
+    /// The next estimate message to publish (encoded, stamped).
+    pub fn poll_transmit(&mut self) -> Option<Vec<u8>> {
+        self.transmit.pop_front()
+    }
+
+    /// The next telemetry batch for the monitor.
+    pub fn poll_telemetry(&mut self) -> Option<Batch> {
+        self.telemetry.pop_front()
+    }
+
+    /// The next line for the operator (stderr).
+    pub fn poll_say(&mut self) -> Option<String> {
+        self.say.pop_front()
+    }
+
+    /// The end of the run: None while it runs; Err says why it failed.
+    pub fn outcome(&self) -> Option<&Result<(), String>> {
+        match &self.phase {
+            Phase::Done(r) => Some(r),
+            _ => None,
+        }
+    }
+
+    /// The robot's latest pose (every 10 steps), for a checkpoint.
+    pub fn checkpoint(&self) -> Option<(u64, Pose)> {
+        self.checkpoint
+    }
+
+    /// The step this machine computes next (or waits for).
+    pub fn step(&self) -> Option<u64> {
+        match self.phase {
+            Phase::Stepping(k) => Some(k),
+            _ => None,
+        }
+    }
+
+    /// Real time: when step k is due on the timebase.
+    fn due(&self, k: u64) -> Now {
+        self.epoch + Duration::from_nanos((self.period.as_nanos() as u64).saturating_mul(k))
+    }
+
+    fn step_if_ready(&mut self, k: u64, now: Now) {
+        let leader = if self.rules.lockstep {
+            self.inbox.set_step(k);
+            if !self.inbox.has_all(k) {
+                self.wait_for_inputs(k, now);
+                return;
+            }
+            self.wait = None;
+            self.lockstep_inputs(k)
+        } else {
+            let due = self.due(k);
+            if now < due {
+                return;
+            }
+            self.inbox.set_step(k);
+            // Lateness against the step's own due time.
+            if let Some(t) = self.timer.as_mut() {
+                t.push(k, k as f64 * self.period.as_secs_f64() + (now - due).as_secs_f64());
+            }
+            self.realtime_inputs(k)
+        };
+        self.compute(k, leader, now);
+    }
+
+    /// Lock-step: the step's inputs are not all in; repeat, warn or give up.
+    fn wait_for_inputs(&mut self, k: u64, now: Now) {
+        let stall = self.rules.stall_timeout;
+        let wait = self.wait.get_or_insert_with(|| gate::Wait::new(now, gate::FOLLOWER_REPEAT_EVERY, stall));
+        let waited = wait.waited(now);
+        let gate::WaitStep::Wait { repeat, warn } = wait.poll(now) else {
+            let (names, n) = self.missing(k);
+            self.finish(Err(format!(
+                "{names} stopped answering: no input for step {k} from {} for {:.0} s (stall timeout; a process \
+                 that is down, or a link that does not carry its messages)",
+                if n == 1 { "it" } else { "them" },
+                stall.as_secs_f64()
+            )));
+            return;
+        };
+        if warn {
+            let (names, _) = self.missing(k);
+            let line = format!(
+                "follower {}: waiting {:.0} s for step {k} from {} (stall timeout {:.0} s); repeating its last \
+                 messages meanwhile",
+                self.rules.id,
+                waited.as_secs_f64(),
+                names,
+                stall.as_secs_f64()
+            );
+            self.say.push_back(line);
+        }
+        if repeat {
+            // A sender that keeps us waiting may be gone, with its last
+            // telemetry: its messages we used go to the monitor (once: the
+            // rescue empties what was kept).
+            for s in self.inbox.missing(k) {
+                self.ear.rescue(s);
+            }
+            // Safety net for messages lost on the way: say again what the
+            // neighbours still need.
+            self.repeat_for_the_slowest();
+        }
+    }
+
+    fn missing(&mut self, k: u64) -> (String, usize) {
+        let names: Vec<&str> = self.inbox.missing(k).iter().map(|&s| self.rules.source_names[s].as_str()).collect();
+        (names.join(" and "), names.len())
+    }
+
+    fn repeat_for_the_slowest(&mut self) {
+        let slowest = self.inbox.slowest_heard(self.rules.neighbours.len());
+        for bytes in self.recent.follower_repeats(slowest) {
+            self.transmit.push_back(bytes.clone());
+            self.sent += 1;
+            self.republished += 1;
+        }
+    }
+
+    /// Lock-step: step k's messages (slots 0..n the neighbours, n the
+    /// leader) into the hearing; the neighbours' into `inputs`; the leader's state.
+    fn lockstep_inputs(&mut self, k: u64) -> Option<LeaderState> {
+        let n = self.rules.neighbours.len();
+        self.inbox.take(k, &mut self.taken);
+        for (slot, m) in self.taken.iter().enumerate() {
+            if let Some(m) = m {
+                self.hearing.deliver(slot, k, *m);
+            }
+        }
+        for slot in 0..self.rules.source_ids.len() {
+            let used = self.hearing.heard_at(slot, k);
+            let h = match used {
+                Some((s, _)) => Heard::used(k, s),
+                None if self.taken[slot].is_none() => Heard::Removed,
+                None => Heard::Silent,
+            };
+            self.ear.note(slot, h, used);
+        }
+        self.ear.end_step();
+        self.inputs.clear();
+        self.inputs.extend((0..n).filter_map(|slot| self.hearing.heard(slot, k)).copied());
+        if self.rules.hears_leader {
+            self.hearing.heard(n, k).map(|m| m.state)
+        } else {
+            None
+        }
+    }
+
+    /// Real time: the newest messages as of step k − d (network.delay_steps);
+    /// a source silent too long is left out.
+    fn realtime_inputs(&mut self, k: u64) -> Option<LeaderState> {
+        let n = self.rules.neighbours.len();
+        self.inputs.clear();
+        let sent_k = k.saturating_sub(self.rules.delay_steps);
+        let mut leader = None;
+        for slot in 0..self.rules.source_ids.len() {
+            let s = self.inbox.latest(slot, sent_k, self.rules.silence_steps);
+            if self.heard_now[slot] != s.is_some() {
+                self.heard_now[slot] = s.is_some();
+                let src = self.rules.source_ids[slot];
+                let what = if s.is_some() { EventKind::Heard(src) } else { EventKind::Silent(src) };
+                self.events.push(NetEvent { k, what });
+            }
+            let h = match s {
+                Some((stamp, _)) => Heard::used(k, stamp),
+                None if self.inbox.removed(slot, sent_k) => Heard::Removed,
+                None => Heard::Silent,
+            };
+            self.ear.note(slot, h, s.as_ref().map(|(stamp, m)| (*stamp, m)));
+            match s {
+                Some((_, m)) if slot < n => self.inputs.push(m),
+                Some((_, m)) => leader = Some(m.state),
+                None => {}
+            }
+        }
+        self.ear.end_step();
+        leader
+    }
+
+    /// Step k with its inputs: the body's step, isolation events, the
+    /// publish rule, the telemetry batch, and what comes next.
+    fn compute(&mut self, k: u64, leader: Option<LeaderState>, now: Now) {
+        let last = k == self.rules.steps;
+        let t = k as f64 * self.rules.dt_s;
+        let was_silent = self.body.silent_steps();
+        let (sample, next) = self.body.step(t, self.rules.dt_s, leader.as_ref(), &self.inputs, last);
+        let rejoin = self.rules.rejoin_after_steps;
+        match self.body.silent_steps() {
+            s if s == rejoin => self.events.push(NetEvent { k, what: EventKind::Isolated }),
+            0 if was_silent >= rejoin => self.events.push(NetEvent { k, what: EventKind::Rejoined }),
+            _ => {}
+        }
+        self.samples.push(sample);
+        let diverged = self.body.check_finite().err();
+        if k % 10 == 0 {
+            self.checkpoint = Some((k, sample.pose));
+        }
+        if !last && diverged.is_none() && self.publishes() {
+            self.publish(k + 1, next, now);
+        }
+        if self.samples.len() >= self.rules.batch || last || diverged.is_some() {
+            self.close_batch(k, last || diverged.is_some(), diverged);
+        }
+        if let Some(q) = diverged {
+            self.finish(Err(format!("{q} is not finite at step {k} (t = {t} s); the run diverged")));
+        } else if !last {
+            self.phase = Phase::Stepping(k + 1);
+        } else if self.rules.lockstep {
+            // A neighbour may still wait for our final message (lost?): say
+            // it again until every neighbour reports its final step.
+            self.phase = Phase::Lingering(gate::Wait::new(now, gate::LINGER_REPEAT_EVERY, LINGER));
+        } else {
+            self.finish(Ok(()));
+        }
+    }
+
+    /// The publish rule. A restart publishes nothing until it has adopted
+    /// an estimate. Real time: an isolated follower keeps its dead-reckoned
+    /// estimate to itself until it hears a source again. In the model its
+    /// links are down both ways; a real link comes back one way first, and
+    /// when its neighbours heard it one step before it heard them, their
+    /// estimates were pulled twice as far (lab, follower 3 cut off 8–11 s:
+    /// 0.033 m against the simulator's 0.018; see docs/decisions.md).
+    fn publishes(&self) -> bool {
+        let silent = self.body.silent_steps();
+        let isolated = !self.rules.lockstep && silent > 0 && silent >= self.rules.rejoin_after_steps;
+        !self.body.adopting() && !isolated
+    }
+
+    /// Publishes this follower's message for step k, stamped `now`.
+    fn publish(&mut self, k: u64, m: Message, now: Now) {
+        let msg = EstimateMsg {
+            header: Header {
+                version: FORMAT_VERSION,
+                sender: self.rules.id,
+                step: k,
+                time_s: k as f64 * self.rules.dt_s,
+                sent_ns: now.as_nanos() as i64,
+            },
+            state: m.state,
+            fresh: m.fresh,
+        };
+        let bytes = wire::encode(&msg);
+        self.transmit.push_back(bytes.clone());
+        self.sent += 1;
+        self.recent.push(k, bytes);
+    }
+
+    /// The telemetry batch that ends at step k.
+    fn close_batch(&mut self, k: u64, done: bool, diverged: Option<&'static str>) {
+        let mut counters = self.inbox.counters;
+        counters.sent = self.sent;
+        counters.republished = self.republished;
+        if done {
+            // A source that dies near the end never falls silent here: what
+            // this follower used of each goes out with its last batch.
+            for slot in 0..self.rules.source_ids.len() {
+                self.ear.rescue(slot);
+            }
+        }
+        let (heard, rescued) = self.ear.take();
+        self.events.sort_unstable();
+        self.telemetry.push_back(Batch {
+            first_k: self.first_k,
+            end_k: k + 1,
+            id: self.rules.id,
+            samples: std::mem::take(&mut self.samples),
+            counters,
+            done,
+            loop_stats: if done { self.timer.as_ref().map(LoopTimer::stats) } else { None },
+            events: std::mem::take(&mut self.events),
+            links: self.inbox.link_stats(&self.rules.source_ids),
+            heard,
+            rescued,
+            resumed: self.resumed,
+            diverged: diverged.map(str::to_string),
+        });
+        self.first_k = k + 1;
+    }
+
+    /// Lock-step, after the last step: repeat until every neighbour is done.
+    fn linger(&mut self, now: Now) {
+        let Phase::Lingering(wait) = &mut self.phase else { return };
+        let step = wait.poll(now);
+        let all_done = self.rules.neighbours.iter().all(|id| self.done_neighbours.contains(id));
+        match step {
+            gate::WaitStep::Wait { .. } if all_done => self.finish(Ok(())),
+            gate::WaitStep::Wait { repeat: true, .. } => {
+                let slowest = self.inbox.slowest_heard(self.rules.neighbours.len());
+                for bytes in self.recent.follower_repeats(slowest) {
+                    self.transmit.push_back(bytes.clone());
+                }
+            }
+            gate::WaitStep::Wait { .. } => {}
+            gate::WaitStep::Over => self.finish(Ok(())),
+        }
+    }
+
+    fn finish(&mut self, r: Result<(), String>) {
+        self.phase = Phase::Done(r);
+    }
+}
+
+/// Real time: the step a process that hears the start `start` at
+/// `since_s` seconds (on the timebase) after its epoch should begin at. 0
+/// for a run that has not begun (or began less than [`LATE`] ago);
+/// otherwise a restart, which resumes [`LATE`] ahead of the run's current
+/// step (time to set up before that step is due). Err: the run is over.
+pub fn rejoin_step(start: &Start, since_s: f64, scenario: &Scenario) -> Result<u64, String> {
+    let elapsed_s = since_s.max(0.0) * start.scale();
+    if elapsed_s < LATE.as_secs_f64() {
+        return Ok(0);
+    }
+    let k = ((elapsed_s + LATE.as_secs_f64()) / scenario.dt_s).ceil() as u64;
+    if k >= scenario.steps() {
+        return Err(format!(
+            "run {} began {elapsed_s:.1} s ago and is over (T = {} s): nothing to rejoin",
+            scenario.name, scenario.duration_s
+        ));
+    }
+    Ok(k)
+}

@@ -1,0 +1,42 @@
+//! The formation's network protocol as plain state machines, in the style
+//! of quinn-proto: each is fed what arrived and the time, and answers what
+//! to send, what to record and when it next wants to be woken. The zenoh
+//! nodes (`formation-net`) own the sockets, the threads and the clocks, and
+//! only translate.
+//!
+//! This crate must never import zenoh, tokio or any other runtime, and no
+//! source file of it reads a clock: time is always an argument ([`Now`]).
+//! So every rule here runs in a test on virtual time, in microseconds.
+//!
+//! | part | modules |
+//! | --- | --- |
+//! | names and encodings | [`names`], [`codec`], [`counters`], [`error`] |
+//! | start-up | [`barrier`] (the start barrier), [`clockguard`] and [`timebase`] (the leader's clock as others estimate it) |
+//! | receiving | [`inbox`] (checks, the fault table, freshness), [`latency`], [`hearing`] (what was heard, for the record) |
+//! | lock-step | [`gate`] (look-ahead, repeats, stalls) |
+//! | telemetry | [`telemetry`] (the messages), [`courier`] (what is kept until acknowledged), [`timing`] (loop timing figures) |
+//! | one follower | [`follower`]: all of the above for one agent, as one machine |
+
+pub mod barrier;
+pub mod clockguard;
+pub mod codec;
+pub mod counters;
+pub mod courier;
+pub mod error;
+pub mod follower;
+pub mod gate;
+pub mod hearing;
+pub mod inbox;
+pub mod latency;
+pub mod names;
+pub mod telemetry;
+pub mod timebase;
+pub mod timing;
+
+pub use error::Error;
+
+/// A reading of the caller's clock: the time since an origin it chooses
+/// (its monotonic clock's first reading, the run's epoch on the leader's
+/// timebase, or a test's zero). Only differences and order matter to the
+/// machines here, so a test's virtual time is as good as a clock's.
+pub type Now = std::time::Duration;
