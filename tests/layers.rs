@@ -8,13 +8,14 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 8] = [
+const LAYERS: [&str; 9] = [
     "formation-plant",
     "formation-leader",
     "formation-agent",
     "formation-topology",
     "formation-record",
     "formation-sim",
+    "formation-protocol",
     "formation-net",
     "formation",
 ];
@@ -391,4 +392,34 @@ fn only_the_binary_crate_knows_exit_statuses() {
         }
     }
     assert!(wrong.is_empty(), "below the binary crate:\n{}", wrong.join("\n"));
+}
+
+/// formation-protocol holds the rules that tests drive on virtual time: its
+/// manifest names no runtime and no network, and no source of it reads a
+/// clock or sleeps (time is an argument).
+#[test]
+fn the_protocol_crate_has_no_runtime_no_network_and_reads_no_clock() {
+    let dir = root().join("protocol");
+    let manifest = std::fs::read_to_string(dir.join("Cargo.toml")).expect("protocol/Cargo.toml");
+    let deps = manifest.split("[dev-dependencies]").next().unwrap_or("");
+    for banned in ["zenoh", "tokio", "axum", "futures", "async"] {
+        assert!(
+            !deps.lines().any(|l| l.trim_start().starts_with(banned)),
+            "protocol/Cargo.toml depends on {banned}"
+        );
+    }
+    let mut readings = Vec::new();
+    for entry in std::fs::read_dir(dir.join("src")).expect("protocol/src") {
+        let path = entry.expect("entry").path();
+        let text = std::fs::read_to_string(&path).expect("source");
+        for (n, line) in text.lines().enumerate() {
+            if ["Instant::now", "SystemTime::now", "thread::sleep", "Instant::elapsed", ".elapsed()"]
+                .iter()
+                .any(|c| line.contains(c))
+            {
+                readings.push(format!("{}:{}: {}", path.display(), n + 1, line.trim()));
+            }
+        }
+    }
+    assert!(readings.is_empty(), "the protocol reads a clock:\n{}", readings.join("\n"));
 }

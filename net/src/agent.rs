@@ -119,7 +119,6 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
     result
 }
 
-
 /// How a follower process runs, beyond its scenario.
 pub struct FollowerOptions {
     /// What the machine needs to know (stall timeout, physical faults).
@@ -189,8 +188,7 @@ pub async fn run_follower(
     let resume = rejoin(&shared, &start, scenario, index, &timebase, opts.checkpoint.as_deref()).await?;
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
     let fingerprint = barrier::fingerprint(scenario);
-    let writer =
-        opts.checkpoint.map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone()));
+    let writer = opts.checkpoint.map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone()));
     shared.lock().start(&start, resume, now(&timebase));
     let watcher = watch_router(session, &shared, lockstep).await;
     // Telemetry leaves the loop through a bounded store and a thread of its

@@ -43,4 +43,6 @@ pub use error::Error;
 
 // The protocol's rules live in formation-protocol; the nodes here reach them
 // by their old paths.
-pub use formation_protocol::{barrier, clockguard, codec, counters, error, gate, hearing, inbox, latency, names, timebase};
+pub use formation_protocol::{
+    barrier, clockguard, codec, counters, error, gate, hearing, inbox, latency, names, timebase,
+};

@@ -98,4 +98,3 @@ pub async fn finish_delivery(delivery: crate::courier::Delivery, who: &str) {
         );
     }
 }
-

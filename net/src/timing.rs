@@ -47,4 +47,3 @@ impl Pacer {
         self.timer.stats()
     }
 }
-

@@ -260,5 +260,4 @@ mod tests {
         assert_eq!(c.due(at(t0, 4510)).len(), window, "after the acknowledgement, the next window at once");
         assert_eq!(c.next_resend(), Some(at(t0, 4510) + RESEND), "and the resend timeout is back to RESEND");
     }
-
 }

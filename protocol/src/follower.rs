@@ -514,6 +514,12 @@ impl Follower {
         }
     }
 
+    /// What the inbox counted so far (sent and republished are counted in
+    /// the telemetry batches).
+    pub fn counters(&self) -> Counters {
+        self.inbox.counters
+    }
+
     /// The robot's latest pose (every 10 steps), for a checkpoint.
     pub fn checkpoint(&self) -> Option<(u64, Pose)> {
         self.checkpoint

@@ -1,0 +1,602 @@
+//! The agents' own follower machine ([`Follower`]) on virtual time: four of
+//! them in the paper's ring, a leader that keeps the lock-step window, and
+//! a network of queues that can lose packets, close a node's links, delay
+//! them or forge one. No sockets, no threads, no clock: a tick is a few
+//! milliseconds of virtual time, and every tick each machine is handed what
+//! arrived and the time, and its answers go back on the network. What the
+//! namespace lab found the hard way, replayed in milliseconds:
+//!
+//! - lock-step with nothing lost equals the simulator bit for bit;
+//! - a message lost with a closed link is sent again and the run completes;
+//! - the fault table lets a follower run ahead of a neighbour whose
+//!   messages it removes, and 30 % physical loss on top does not stall;
+//! - the look-ahead window is the documented one, to the step;
+//! - real time: a delay, a silent source, a message from the future, a
+//!   restart's rejoin step, and a step of the leader's clock.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+
+use formation_agent::LeaderState;
+use formation_leader::Leader;
+use formation_protocol::barrier::Start;
+use formation_protocol::follower::{self, Follower, Options};
+use formation_protocol::gate::WINDOW;
+use formation_protocol::telemetry::{Delivery, EventKind, NetEvent, Telemetry};
+use formation_protocol::Now;
+use formation_record::FollowerSample;
+use formation_sim::{Observer, SimFollower, Simulation};
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_topology::Scenario;
+
+fn paper(sets: &[&str]) -> Scenario {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+    let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    Scenario::load(&path, &sets).expect("the paper scenario")
+}
+
+/// A deterministic packet-loss draw (xorshift), so a failure replays.
+struct Draws(u64);
+
+impl Draws {
+    fn next(&mut self) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// What the network does to the packets of one node's links.
+#[derive(Clone, Default)]
+struct Faults {
+    /// Physical loss on every link of `node` while the virtual time is in range.
+    loss: Option<(u32, f64, std::ops::Range<Now>)>,
+    /// Links of `node` closed (their queues dropped) while in range.
+    closed: Option<(u32, std::ops::Range<Now>)>,
+    /// Every packet takes this long.
+    latency: Duration,
+}
+
+/// The network: packets in flight, by (from, to), with their arrival time.
+struct Network {
+    queues: BTreeMap<(u32, u32), Vec<(Now, Vec<u8>)>>,
+    draws: Draws,
+    faults: Faults,
+}
+
+impl Network {
+    fn new(faults: Faults) -> Self {
+        Self { queues: BTreeMap::new(), draws: Draws(0x9e37_79b9_7f4a_7c15), faults }
+    }
+
+    fn touches(node: u32, from: u32, to: u32) -> bool {
+        from == node || to == node
+    }
+
+    fn send(&mut self, now: Now, from: u32, to: u32, bytes: &[u8]) {
+        if let Some((node, p, r)) = &self.faults.loss {
+            if Self::touches(*node, from, to) && r.contains(&now) && self.draws.next() < *p {
+                return;
+            }
+        }
+        if let Some((node, r)) = &self.faults.closed {
+            if Self::touches(*node, from, to) && r.contains(&now) {
+                return;
+            }
+        }
+        self.queues.entry((from, to)).or_default().push((now + self.faults.latency, bytes.to_vec()));
+    }
+
+    /// What reaches `to` by `now`; a closed link drops what it held.
+    fn deliver(&mut self, to: u32, now: Now) -> Vec<(u32, Vec<u8>)> {
+        if let Some((node, r)) = &self.faults.closed {
+            if r.contains(&now) {
+                let node = *node;
+                self.queues.retain(|&(a, b), _| !Self::touches(node, a, b));
+            }
+        }
+        let mut out = Vec::new();
+        for (&(from, dest), q) in self.queues.iter_mut() {
+            if dest == to {
+                let due = q.iter().take_while(|(at, _)| *at <= now).count();
+                out.extend(q.drain(..due).map(|(_, b)| (from, b)));
+            }
+        }
+        out
+    }
+}
+
+/// The virtual leader: the leader node's messages (its state at each step),
+/// in lock-step at most [`WINDOW`] steps ahead of the slowest follower that
+/// hears it, in real time when due; its stamps on its own clock, which a
+/// test may step.
+struct VirtualLeader {
+    leader: Leader,
+    state: LeaderState,
+    /// The next step to publish.
+    k: u64,
+    /// Added to the leader's stamps from `at` on.
+    clock_step: Option<(Now, Duration)>,
+}
+
+impl VirtualLeader {
+    fn message(&self, k: u64, dt_s: f64, now: Now) -> Vec<u8> {
+        let stamp = match self.clock_step {
+            Some((at, by)) if now >= at => now + by,
+            _ => now,
+        };
+        wire::encode(&EstimateMsg {
+            header: Header {
+                version: FORMAT_VERSION,
+                sender: wire::LEADER_ID,
+                step: k,
+                time_s: k as f64 * dt_s,
+                sent_ns: stamp.as_nanos() as i64,
+            },
+            state: self.state,
+            fresh: true,
+        })
+    }
+}
+
+/// Four followers, their leader and the network, on virtual time.
+struct World {
+    scenario: Scenario,
+    followers: Vec<Follower>,
+    leader: VirtualLeader,
+    net: Network,
+    now: Now,
+    start: Start,
+    /// Every follower's telemetry so far, by index.
+    telemetry: Vec<Vec<Telemetry>>,
+}
+
+/// The run's epoch on the virtual timebase.
+const EPOCH: Now = Duration::from_secs(1_000);
+
+impl World {
+    fn new(scenario: Scenario, faults: Faults) -> Self {
+        let opts = Options { stall_timeout: Duration::from_secs(60), physical_node_faults: false };
+        let followers = (0..scenario.followers.len())
+            .map(|i| Follower::new(&scenario, i, Box::new(SimFollower::new(&scenario, i)), &opts))
+            .collect();
+        let leader = scenario.leader();
+        let state = leader.state(0.0);
+        let start = Start { fingerprint: 0, epoch_unix_ns: EPOCH.as_nanos() as u64, time_scale: 1.0, sent_ns: 0 };
+        let telemetry = vec![Vec::new(); scenario.followers.len()];
+        Self {
+            leader: VirtualLeader { leader, state, k: 0, clock_step: None },
+            net: Network::new(faults),
+            now: EPOCH,
+            start,
+            followers,
+            telemetry,
+            scenario,
+        }
+    }
+
+    fn start_all(&mut self) {
+        let now = self.now;
+        for f in &mut self.followers {
+            f.start(&self.start, None, now);
+        }
+        self.flush();
+    }
+
+    fn id(&self, i: usize) -> u32 {
+        self.scenario.graph.id(i)
+    }
+
+    /// Who hears node `from` (0: the leader).
+    fn listeners(&self, from: u32) -> Vec<u32> {
+        (0..self.followers.len())
+            .filter(|&i| self.followers[i].source_ids().contains(&from))
+            .map(|i| self.id(i))
+            .collect()
+    }
+
+    /// Every machine's answers onto the network and into the telemetry.
+    fn flush(&mut self) {
+        for i in 0..self.followers.len() {
+            let from = self.id(i);
+            let listeners = self.listeners(from);
+            while let Some(bytes) = self.followers[i].poll_transmit() {
+                for &to in &listeners {
+                    self.net.send(self.now, from, to, &bytes);
+                }
+            }
+            while let Some(b) = self.followers[i].poll_telemetry() {
+                self.telemetry[i].push(b.into_telemetry(Delivery::default(), None));
+            }
+            while self.followers[i].poll_say().is_some() {}
+        }
+    }
+
+    /// The leader publishes what it may: lock-step, up to WINDOW steps ahead
+    /// of the slowest follower that hears it; real time, what is due.
+    fn lead(&mut self) {
+        let dt = self.scenario.dt_s;
+        let lockstep = self.scenario.timing == formation_topology::Timing::Lockstep;
+        let slowest = (0..self.followers.len())
+            .filter(|&i| self.followers[i].source_ids().contains(&wire::LEADER_ID))
+            .map(|i| self.followers[i].step().unwrap_or(self.scenario.steps() + 1))
+            .min()
+            .unwrap_or(0);
+        let listeners = self.listeners(wire::LEADER_ID);
+        while self.leader.k <= self.scenario.steps() {
+            let k = self.leader.k;
+            let may = if lockstep {
+                k <= slowest + WINDOW
+            } else {
+                EPOCH + Duration::from_secs_f64(k as f64 * dt) <= self.now
+            };
+            if !may {
+                break;
+            }
+            if k > 0 {
+                self.leader.leader.advance(&self.leader.state.clone(), dt);
+                self.leader.state = self.leader.leader.state(k as f64 * dt);
+            }
+            let bytes = self.leader.message(k, dt, self.now);
+            for &to in &listeners {
+                self.net.send(self.now, wire::LEADER_ID, to, &bytes);
+            }
+            self.leader.k += 1;
+        }
+    }
+
+    /// One tick of `tick` virtual time: deliveries, then every machine does
+    /// what is due until it waits.
+    fn tick(&mut self, tick: Duration) {
+        self.now += tick;
+        self.lead();
+        for i in 0..self.followers.len() {
+            let id = self.id(i);
+            for (from, bytes) in self.net.deliver(id, self.now) {
+                self.followers[i].handle_estimate(Some(from), &bytes, Some(self.now));
+            }
+            for _ in 0..10_000 {
+                match self.followers[i].poll_timeout() {
+                    Some(at) if at <= self.now => self.followers[i].handle_timeout(self.now),
+                    _ => break,
+                }
+                self.flush();
+                self.lead();
+            }
+        }
+        // Lock-step: tell each machine which neighbours reported their final step.
+        let finished: Vec<u32> = (0..self.followers.len())
+            .filter(|&i| self.telemetry[i].iter().any(|t| t.reports_final_step(self.id(i), self.scenario.steps())))
+            .map(|i| self.id(i))
+            .collect();
+        for f in &mut self.followers {
+            for &id in &finished {
+                f.handle_done(id);
+            }
+        }
+        self.flush();
+    }
+
+    /// Ticks until every machine is done or `limit` of virtual time passed.
+    fn run(&mut self, tick: Duration, limit: Duration) {
+        let end = self.now + limit;
+        while self.now < end && self.followers.iter().any(|f| f.outcome().is_none()) {
+            self.tick(tick);
+        }
+    }
+
+    fn outcomes(&self) -> Vec<Option<Result<(), String>>> {
+        self.followers.iter().map(|f| f.outcome().cloned()).collect()
+    }
+
+    fn all_ok(&self) -> bool {
+        self.followers.iter().all(|f| matches!(f.outcome(), Some(Ok(()))))
+    }
+
+    /// Follower `i`'s samples, in step order.
+    fn samples(&self, i: usize) -> Vec<FollowerSample> {
+        self.telemetry[i]
+            .iter()
+            .flat_map(|t| match t {
+                Telemetry::Follower { samples, .. } => samples.clone(),
+                _ => Vec::new(),
+            })
+            .collect()
+    }
+
+    fn events(&self, i: usize) -> Vec<NetEvent> {
+        self.telemetry[i]
+            .iter()
+            .flat_map(|t| match t {
+                Telemetry::Follower { events, .. } => events.clone(),
+                _ => Vec::new(),
+            })
+            .collect()
+    }
+
+    fn counters(&self, i: usize) -> formation_protocol::counters::Counters {
+        match self.telemetry[i].last() {
+            Some(Telemetry::Follower { counters, .. }) => *counters,
+            _ => Default::default(),
+        }
+    }
+}
+
+/// The simulator's samples of every follower.
+fn simulate(s: &Scenario) -> Vec<Vec<(u64, [f64; 5])>> {
+    struct Rows(Vec<Vec<(u64, [f64; 5])>>);
+    impl Observer for Rows {
+        fn follower(&mut self, i: usize, k: u64, r: &formation_record::Row, _: bool) -> std::io::Result<()> {
+            self.0[i].push((k, [r.x, r.y, r.theta, r.tau_l, r.tau_r]));
+            Ok(())
+        }
+    }
+    let mut rows = Rows(vec![Vec::new(); s.followers.len()]);
+    Simulation::new(s).run(&mut rows, |_| {}).expect("the simulation runs");
+    rows.0
+}
+
+fn bits(samples: &[FollowerSample]) -> Vec<(u64, [f64; 5])> {
+    samples.iter().map(|s| (s.k, [s.pose.x, s.pose.y, s.pose.theta, s.torque_l, s.torque_r])).collect()
+}
+
+/// The first (step, follower) where the machines and the simulator differ.
+fn first_difference(w: &World, sim: &[Vec<(u64, [f64; 5])>]) -> Option<String> {
+    for (i, rows) in sim.iter().enumerate() {
+        let got = bits(&w.samples(i));
+        if got.len() != rows.len() {
+            return Some(format!("follower {}: {} samples, the simulator {}", w.id(i), got.len(), rows.len()));
+        }
+        for (a, b) in got.iter().zip(rows) {
+            let same = a.0 == b.0 && a.1.iter().zip(&b.1).all(|(x, y)| x.to_bits() == y.to_bits());
+            if !same {
+                return Some(format!("follower {} at step {}: {:?} against the simulator's {:?}", w.id(i), a.0, a, b));
+            }
+        }
+    }
+    None
+}
+
+const LOCKSTEP: &[&str] = &["duration=2", "timing=lockstep"];
+
+/// Lock-step with nothing lost: the machines' samples are the simulator's, bit for bit.
+#[test]
+fn lockstep_machines_equal_the_simulator_bit_for_bit() {
+    let s = paper(LOCKSTEP);
+    let sim = simulate(&s);
+    let mut w = World::new(s, Faults::default());
+    w.start_all();
+    w.run(Duration::from_millis(10), Duration::from_secs(600));
+    assert!(w.all_ok(), "not every follower completed: {:?}", w.outcomes());
+    assert_eq!(first_difference(&w, &sim), None);
+}
+
+/// Follower 3's links closed for 5 s of virtual time: what was queued is
+/// lost with them, the waiting followers' repeats bring it back, and the
+/// run still equals the simulator.
+#[test]
+fn a_message_lost_with_a_closed_link_is_sent_again() {
+    let s = paper(LOCKSTEP);
+    let sim = simulate(&s);
+    let closed = EPOCH + Duration::from_millis(200)..EPOCH + Duration::from_millis(5_200);
+    let mut w = World::new(s, Faults { closed: Some((3, closed)), ..Faults::default() });
+    w.start_all();
+    w.run(Duration::from_millis(10), Duration::from_secs(600));
+    assert!(w.all_ok(), "stalled after the link closed: {:?}", w.outcomes());
+    let republished: u64 = (0..4).map(|i| w.counters(i).republished).sum();
+    assert!(republished > 0, "nothing was repeated, so nothing was lost: the test tests nothing");
+    assert_eq!(first_difference(&w, &sim), None, "a repeat is the message it repeats");
+}
+
+/// The fault table removes 30 % of follower 2's messages (both ways) for
+/// 0.1–0.6 s while 30 % of its packets are also lost on the way: its
+/// neighbours do not wait for what the table removes, so they run ahead of
+/// it; the run completes and is still the simulator's (which applies the
+/// same table).
+#[test]
+fn thirty_percent_loss_through_a_fault_window_completes_and_equals_the_simulator() {
+    let mut sets = LOCKSTEP.to_vec();
+    sets.push("faults+={node=2, from=0.1, to=0.6, loss=0.3}");
+    let s = paper(&sets);
+    let sim = simulate(&s);
+    let lossy = EPOCH..EPOCH + Duration::from_secs(3_600);
+    let mut w = World::new(s, Faults { loss: Some((2, 0.3, lossy)), ..Faults::default() });
+    w.start_all();
+    let mut ahead_of_2 = 0;
+    let end = w.now + Duration::from_secs(600);
+    while w.now < end && !w.followers.iter().all(|f| f.outcome().is_some()) {
+        w.tick(Duration::from_millis(10));
+        let at = |i: usize| w.followers[i].step().unwrap_or(w.scenario.steps() + 1);
+        let k2 = at(1);
+        ahead_of_2 = ahead_of_2.max((0..4).map(|i| at(i).saturating_sub(k2)).max().unwrap_or(0));
+    }
+    assert!(w.all_ok(), "stalled: {:?}", w.outcomes());
+    assert!(
+        ahead_of_2 > 2,
+        "with messages removed by the table a neighbour runs ahead of follower 2: {ahead_of_2} steps"
+    );
+    assert!(w.counters(0).fault_lost > 0, "the table removed nothing at follower 1");
+    assert_eq!(first_difference(&w, &sim), None);
+}
+
+/// Hands follower 1 a genuine message of neighbour 2 for `step`, and says
+/// whether it was refused as from the future.
+fn from_the_future(w: &mut World, step: u64) -> bool {
+    from_the_future_of(w, 2, step)
+}
+
+/// The same for a message of `sender` (0: the leader).
+fn from_the_future_of(w: &mut World, sender: u32, step: u64) -> bool {
+    let before = w.followers[0].counters().rejected.future;
+    let bytes = wire::encode(&EstimateMsg {
+        header: Header { version: FORMAT_VERSION, sender, step, time_s: 0.0, sent_ns: 0 },
+        state: LeaderState::default(),
+        fresh: true,
+    });
+    let now = w.now;
+    w.followers[0].handle_estimate(Some(sender), &bytes, Some(now));
+    w.followers[0].counters().rejected.future > before
+}
+
+/// The look-ahead window, to the step, as docs/model.md §14 states it: in
+/// lock-step a neighbour's message may be 2 steps ahead of the receiver's
+/// step (no fault), and with a fault table the longest window plus one
+/// step per follower more; the leader's, its window of 200 steps more.
+/// Changing the agents' rule by one step fails here.
+#[test]
+fn the_lockstep_look_ahead_is_the_documented_window_to_the_step() {
+    // No fault: follower 1 at step 0 takes step 2 of follower 2, refuses 3.
+    let mut w = World::new(paper(LOCKSTEP), Faults::default());
+    assert!(!from_the_future(&mut w, 2), "step 2 of a neighbour is within the window");
+    assert!(from_the_future(&mut w, 3), "step 3 of a neighbour is beyond the window");
+    // The leader may run its window of 200 steps further.
+    assert!(!from_the_future_of(&mut w, 0, 202), "step 202 of the leader is within its window");
+    assert!(from_the_future_of(&mut w, 0, 203), "step 203 of the leader is beyond its window");
+    // A fault window of 0.5 s (500 steps) and four followers: 2 + 500 + 4.
+    let mut sets = LOCKSTEP.to_vec();
+    sets.push("faults+={node=3, from=0.2, to=0.7}");
+    let mut w = World::new(paper(&sets), Faults::default());
+    assert!(!from_the_future(&mut w, 506), "506 steps ahead is within the fault window's allowance");
+    assert!(from_the_future(&mut w, 507), "507 steps ahead is beyond it");
+}
+
+const REALTIME: &[&str] = &["duration=3", "timing=realtime"];
+
+/// Real time with a 5 ms link latency: a follower publishes its message
+/// for step k + 1 while at step k, so every message is used at least 4
+/// steps after the step it is for (5 ms on the way less the step it was
+/// early), its latency is the link's, and nothing is refused.
+#[test]
+fn realtime_with_a_delay_uses_messages_as_old_as_the_delay() {
+    let s = paper(REALTIME);
+    let mut w = World::new(s, Faults { latency: Duration::from_millis(5), ..Faults::default() });
+    w.start_all();
+    w.run(Duration::from_millis(1), Duration::from_secs(10));
+    assert!(w.all_ok(), "{:?}", w.outcomes());
+    for i in 0..4 {
+        let c = w.counters(i);
+        assert_eq!(c.rejected.future + c.rejected.malformed, 0, "follower {}: {:?}", w.id(i), c.rejected);
+        let links = match w.telemetry[i].last() {
+            Some(Telemetry::Follower { links, .. }) => links.clone(),
+            _ => Vec::new(),
+        };
+        assert_eq!(links.len(), w.followers[i].source_ids().len(), "follower {}: {links:?}", w.id(i));
+        for l in &links {
+            assert!(
+                l.age_steps[0] >= 4,
+                "follower {} used {}'s messages younger than the delay: {l:?}",
+                w.id(i),
+                l.source
+            );
+            assert!(
+                l.latency_us[0] >= 4_500,
+                "follower {}: {}'s latency below the link's 5 ms: {l:?}",
+                w.id(i),
+                l.source
+            );
+        }
+    }
+}
+
+/// Real time: follower 3 cut off from 1.0 to 1.5 s. Its neighbours name it
+/// silent after the silence timeout and heard again after; it is isolated,
+/// publishes nothing while isolated (the publish rule), and rejoins.
+#[test]
+fn realtime_a_silent_source_is_named_and_an_isolated_follower_keeps_quiet() {
+    let s = paper(REALTIME);
+    let cut = EPOCH + Duration::from_millis(1_000)..EPOCH + Duration::from_millis(1_500);
+    let mut w = World::new(s, Faults { closed: Some((3, cut)), ..Faults::default() });
+    w.start_all();
+    w.run(Duration::from_millis(1), Duration::from_secs(10));
+    assert!(w.all_ok(), "{:?}", w.outcomes());
+    let (i1, i3) = (w.scenario.index_of(1).unwrap(), w.scenario.index_of(3).unwrap());
+    let events1: Vec<EventKind> = w.events(i1).iter().map(|e| e.what).collect();
+    assert!(events1.contains(&EventKind::Silent(3)), "follower 1 never named 3 silent: {events1:?}");
+    let silent_at = w.events(i1).iter().find(|e| e.what == EventKind::Silent(3)).unwrap().k;
+    assert!((1_000..1_500).contains(&silent_at), "3 named silent at step {silent_at}, not during the cut");
+    assert!(
+        w.events(i1).iter().any(|e| e.what == EventKind::Heard(3) && e.k > silent_at),
+        "follower 1 never heard 3 again: {events1:?}"
+    );
+    let events3: Vec<EventKind> = w.events(i3).iter().map(|e| e.what).collect();
+    assert!(events3.contains(&EventKind::Isolated) && events3.contains(&EventKind::Rejoined), "{events3:?}");
+    let sent3 = w.counters(i3).sent;
+    let steps = w.scenario.steps();
+    assert!(sent3 < steps - 100, "follower 3 published {sent3} of {steps} steps: it did not keep quiet while isolated");
+}
+
+/// Real time: a neighbour's message stamped far ahead of the shared
+/// clock's step is refused as from the future; one within 0.1 s is taken.
+#[test]
+fn realtime_a_message_from_the_future_is_refused() {
+    let mut w = World::new(paper(REALTIME), Faults::default());
+    w.start_all();
+    w.run(Duration::from_millis(1), Duration::from_millis(500));
+    let k = w.followers[0].step().expect("running");
+    assert!(!from_the_future(&mut w, k + 50), "50 steps (50 ms) ahead is within the 0.1 s allowance");
+    assert!(from_the_future(&mut w, k + 5_000), "5 s ahead of the shared clock is from the future");
+}
+
+/// A restart: a process that hears a start 1.5 s old resumes 0.2 s ahead
+/// of the run's step; it publishes nothing until it adopts an estimate,
+/// then reports its resume in telemetry and completes the run.
+#[test]
+fn realtime_a_restart_rejoins_ahead_of_the_run_and_adopts_before_publishing() {
+    let s = paper(REALTIME);
+    let start = Start { fingerprint: 0, epoch_unix_ns: EPOCH.as_nanos() as u64, time_scale: 1.0, sent_ns: 0 };
+    assert_eq!(follower::rejoin_step(&start, 0.1, &s), Ok(0), "a start 0.1 s old is not a restart");
+    let k = follower::rejoin_step(&start, 1.5, &s).expect("the run is on");
+    assert_eq!(k, 1_700, "1.5 s into the run plus 0.2 s to set up, at 1 ms a step");
+    assert!(follower::rejoin_step(&start, 5.0, &s).is_err(), "a 3 s run is over after 5 s");
+
+    let mut w = World::new(s, Faults::default());
+    w.start_all();
+    w.run(Duration::from_millis(1), Duration::from_millis(1_500));
+    // Follower 4 restarts: a fresh machine resumes at step k.
+    let i4 = w.scenario.index_of(4).unwrap();
+    let opts = Options { stall_timeout: Duration::from_secs(60), physical_node_faults: false };
+    let body = Box::new(SimFollower::new(&w.scenario, i4));
+    w.followers[i4] = Follower::new(&w.scenario, i4, body, &opts);
+    w.telemetry[i4].clear();
+    let pose = w.scenario.followers[i4].pose;
+    let now = w.now;
+    w.followers[i4].start(&w.start, Some((k, pose)), now);
+    assert_eq!(w.followers[i4].poll_transmit(), None, "a restart publishes nothing before it adopts an estimate");
+    w.run(Duration::from_millis(1), Duration::from_secs(10));
+    assert!(w.all_ok(), "{:?}", w.outcomes());
+    let first = w.samples(i4).first().map(|s| s.k);
+    assert_eq!(first, Some(k), "the restart's first sample is its rejoin step");
+    let resumed = match w.telemetry[i4].first() {
+        Some(Telemetry::Follower { resumed, .. }) => *resumed,
+        _ => None,
+    };
+    assert_eq!(resumed.map(|r| r.k), Some(k), "the restart reports where it resumed");
+    assert!(w.counters(i4).sent > 0, "the restart never published");
+}
+
+/// Real time: the leader's clock steps 1 s ahead at t = 1 s (its stamps
+/// jump). No decision of the follower compares clocks: every sample is the
+/// one of the same run without the step, bit for bit.
+#[test]
+fn realtime_a_step_of_the_leaders_clock_changes_nothing() {
+    let run = |step: Option<(Now, Duration)>| {
+        let mut w = World::new(paper(REALTIME), Faults::default());
+        w.leader.clock_step = step;
+        w.start_all();
+        w.run(Duration::from_millis(1), Duration::from_secs(10));
+        assert!(w.all_ok(), "{:?}", w.outcomes());
+        (0..4).map(|i| bits(&w.samples(i))).collect::<Vec<_>>()
+    };
+    let plain = run(None);
+    let stepped = run(Some((EPOCH + Duration::from_secs(1), Duration::from_secs(1))));
+    assert_eq!(plain.len(), stepped.len());
+    for (i, (a, b)) in plain.iter().zip(&stepped).enumerate() {
+        let same = a.len() == b.len()
+            && a.iter()
+                .zip(b)
+                .all(|(x, y)| x.0 == y.0 && x.1.iter().zip(&y.1).all(|(p, q)| p.to_bits() == q.to_bits()));
+        assert!(same, "follower {}: the leader's clock step changed its run", i + 1);
+    }
+}
