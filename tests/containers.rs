@@ -86,7 +86,8 @@ fn with_podman_conf(program: &str, dir: &Path) -> Command {
 /// in the storage of `dir`.
 fn scratch_image(dir: &Path, tag: &str) {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/scratch-image.sh");
-    let o = with_podman_conf("sh", dir).arg(&script).arg(tag).arg(env!("CARGO_BIN_EXE_formation")).output().expect("sh");
+    let o =
+        with_podman_conf("sh", dir).arg(&script).arg(tag).arg(env!("CARGO_BIN_EXE_formation")).output().expect("sh");
     assert!(o.status.success(), "deploy/scratch-image.sh: {}", String::from_utf8_lossy(&o.stderr));
 }
 
