@@ -6,19 +6,33 @@
 //! - lock-step: the run folder equals `formation sim`'s byte for byte;
 //! - real time: the run completes, every step recorded;
 //! - real time, agent 3's container killed and started again: it rejoins
-//!   (docs/model.md §14's restarted agent) and the others carry on.
+//!   (docs/model.md §14's restarted agent) and the others carry on;
+//! - `deploy/compose.yaml` itself, under Debian's podman-compose: the 30 s
+//!   paper run over mutual TLS, `up --exit-code-from monitor` returning the
+//!   monitor's status when the run ends, the run folder complete.
 //!
 //! Podman runs with a configuration of this test's own (runc, cgroupfs,
 //! vfs storage in a temporary folder), which is what works on a CI machine
 //! without systemd; every container, the network and the storage are
-//! removed on every path. Where podman is missing or this is not root the
-//! test says so and passes, unless FORMATION_CONTAINERS_REQUIRED=1 (CI).
+//! removed on every path. Where podman (or podman-compose, for the compose
+//! test) is missing or this is not root the test says so and passes, unless
+//! FORMATION_CONTAINERS_REQUIRED=1 (CI). The tests take turns: two real-time
+//! formations of seven containers on one small machine would each make the
+//! other late.
 
 mod common;
 
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
+
+/// Held by each test for its whole run (one formation at a time).
+fn one_at_a_time() -> MutexGuard<'static, ()> {
+    static TURN: Mutex<()> = Mutex::new(());
+    TURN.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
 
 /// Whether containers can run here; panics if they must and cannot.
 fn available() -> bool {
@@ -40,6 +54,43 @@ fn available() -> bool {
     false
 }
 
+/// Podman's configuration for these tests in `dir`: runc, cgroupfs, and
+/// vfs storage inside `dir` (removed with it).
+fn write_podman_conf(dir: &Path) {
+    std::fs::write(
+        dir.join("containers.conf"),
+        "[containers]\ndefault_ulimits = []\n[engine]\nruntime = \"runc\"\ncgroup_manager = \"cgroupfs\"\nevents_logger = \"file\"\n",
+    )
+    .expect("containers.conf");
+    std::fs::write(
+        dir.join("storage.conf"),
+        format!(
+            "[storage]\ndriver = \"vfs\"\nrunroot = \"{}\"\ngraphroot = \"{}\"\n",
+            dir.join("run").display(),
+            dir.join("graph").display()
+        ),
+    )
+    .expect("storage.conf");
+}
+
+/// `program` (podman, or a tool that runs it) with the configuration of `dir`.
+fn with_podman_conf(program: &str, dir: &Path) -> Command {
+    let mut c = Command::new(program);
+    c.env("CONTAINERS_CONF", dir.join("containers.conf"))
+        .env("CONTAINERS_STORAGE_CONF", dir.join("storage.conf"))
+        .stdin(Stdio::null());
+    c
+}
+
+/// The image `tag`, made by deploy/scratch-image.sh from this build's binary
+/// in the storage of `dir`.
+fn scratch_image(dir: &Path, tag: &str) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/scratch-image.sh");
+    let o =
+        with_podman_conf("sh", dir).arg(&script).arg(tag).arg(env!("CARGO_BIN_EXE_formation")).output().expect("sh");
+    assert!(o.status.success(), "deploy/scratch-image.sh: {}", String::from_utf8_lossy(&o.stderr));
+}
+
 /// Podman with this test's configuration and storage; removes every
 /// container, the network and the storage when dropped.
 struct Pod {
@@ -53,21 +104,7 @@ struct Pod {
 impl Pod {
     fn new() -> Self {
         let dir = tempfile::tempdir().expect("tempdir");
-        let d = dir.path();
-        std::fs::write(
-            d.join("containers.conf"),
-            "[containers]\ndefault_ulimits = []\n[engine]\nruntime = \"runc\"\ncgroup_manager = \"cgroupfs\"\nevents_logger = \"file\"\n",
-        )
-        .expect("containers.conf");
-        std::fs::write(
-            d.join("storage.conf"),
-            format!(
-                "[storage]\ndriver = \"vfs\"\nrunroot = \"{}\"\ngraphroot = \"{}\"\n",
-                d.join("run").display(),
-                d.join("graph").display()
-            ),
-        )
-        .expect("storage.conf");
+        write_podman_conf(dir.path());
         // A /24 of 10.89.0.0/16 of this process's own.
         let octet = 20 + std::process::id() % 200;
         let network = format!("formation-test-{}", std::process::id());
@@ -85,11 +122,7 @@ impl Pod {
     }
 
     fn command(&self) -> Command {
-        let mut c = Command::new("podman");
-        c.env("CONTAINERS_CONF", self.dir.path().join("containers.conf"))
-            .env("CONTAINERS_STORAGE_CONF", self.dir.path().join("storage.conf"))
-            .stdin(Stdio::null());
-        c
+        with_podman_conf("podman", self.dir.path())
     }
 
     fn run(&self, args: &[&str]) -> Output {
@@ -110,17 +143,7 @@ impl Pod {
 
     /// The image, made by deploy/scratch-image.sh from this build's binary.
     fn build_image(&self) {
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/scratch-image.sh");
-        let o = Command::new("sh")
-            .arg(&script)
-            .arg(&self.image)
-            .arg(env!("CARGO_BIN_EXE_formation"))
-            .env("CONTAINERS_CONF", self.dir.path().join("containers.conf"))
-            .env("CONTAINERS_STORAGE_CONF", self.dir.path().join("storage.conf"))
-            .stdin(Stdio::null())
-            .output()
-            .expect("sh");
-        assert!(o.status.success(), "deploy/scratch-image.sh: {}", String::from_utf8_lossy(&o.stderr));
+        scratch_image(self.dir.path(), &self.image);
     }
 
     fn ip(&self, host: u8) -> String {
@@ -237,6 +260,7 @@ fn seven_containers_run_the_formation() {
     if !available() {
         return;
     }
+    let _turn = one_at_a_time();
     let mut pod = Pod::new();
     pod.build_image();
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -299,4 +323,194 @@ fn seven_containers_run_the_formation() {
         );
     }
     eprintln!("containers: restart gap {gaps:?}; follower 3 below 0.2 m {settled:?} s after it");
+}
+
+/// Whether podman-compose is here; panics if containers must run and it is not.
+fn compose_available() -> bool {
+    let version = Command::new("podman-compose").arg("--version").stdin(Stdio::null()).output().ok();
+    if let Some(o) = version.filter(|o| o.status.success()) {
+        let text = String::from_utf8_lossy(&o.stdout);
+        eprintln!("{}", text.lines().find(|l| l.contains("compose")).unwrap_or("podman-compose"));
+        return true;
+    }
+    let why = "podman-compose is missing (apt-get install podman-compose)";
+    assert!(
+        std::env::var("FORMATION_CONTAINERS_REQUIRED").as_deref() != Ok("1"),
+        "FORMATION_CONTAINERS_REQUIRED=1 but the compose file cannot run here: {why}"
+    );
+    eprintln!("skipped: the compose file cannot run here ({why})");
+    false
+}
+
+/// The image the compose file names (`image: formation`), in this test's storage.
+const COMPOSE_IMAGE: &str = "formation";
+
+/// `deploy/compose.yaml` as a user runs it: the file copied unchanged into
+/// a checkout of its own in a temporary folder (`deploy/` with `tls/` and
+/// `out/` beside the file, `scenarios/` one up), podman with this test's
+/// configuration, and a project name of this run's own. When dropped,
+/// `up`'s process group is killed and every container, volume and network
+/// of the project and the image are removed (podman-compose 1.0.3's `down`
+/// leaves the network behind), the storage with the folder.
+struct Compose {
+    dir: tempfile::TempDir,
+    project: String,
+    up: Option<Child>,
+}
+
+impl Compose {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().expect("tempdir");
+        write_podman_conf(dir.path());
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
+        let project = format!("formation-compose-{}-{nanos}", std::process::id());
+        let compose = Compose { dir, project, up: None };
+        let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+        std::fs::create_dir_all(compose.deploy()).expect("deploy/");
+        std::fs::create_dir_all(compose.root().join("scenarios")).expect("scenarios/");
+        std::fs::copy(repo.join("deploy/compose.yaml"), compose.deploy().join("compose.yaml")).expect("compose.yaml");
+        std::fs::copy(common::SCENARIO, compose.root().join("scenarios/paper.toml")).expect("paper.toml");
+        compose
+    }
+
+    fn root(&self) -> PathBuf {
+        self.dir.path().join("checkout")
+    }
+
+    fn deploy(&self) -> PathBuf {
+        self.root().join("deploy")
+    }
+
+    fn podman(&self, args: &[&str]) -> Output {
+        with_podman_conf("podman", self.dir.path()).args(args).output().expect("podman")
+    }
+
+    /// How long after the first of the project's containers to end the
+    /// monitor's ended (what `--exit-code-from` under podman-compose 1.0.3
+    /// allows a second for), in seconds.
+    fn monitor_lag_s(&self) -> Option<f64> {
+        let label = format!("label=io.podman.compose.project={}", self.project);
+        let names = self.podman(&["ps", "-a", "-q", "--filter", &label]);
+        let names: Vec<String> = String::from_utf8_lossy(&names.stdout).split_whitespace().map(String::from).collect();
+        let mut args = vec!["inspect", "-f", "{{.Name}} {{.State.Running}} {{.State.FinishedAt.UnixNano}}"];
+        args.extend(names.iter().map(String::as_str));
+        let out = String::from_utf8_lossy(&self.podman(&args).stdout).into_owned();
+        let ended: Vec<(String, i64)> = out
+            .lines()
+            .filter_map(|l| match l.split_whitespace().collect::<Vec<_>>()[..] {
+                [name, "false", at] => Some((name.to_string(), at.parse().ok()?)),
+                _ => None,
+            })
+            .collect();
+        let monitor = ended.iter().find(|(n, _)| n.ends_with("_monitor_1"))?.1;
+        let first = ended.iter().map(|(_, at)| *at).min()?;
+        Some((monitor - first) as f64 * 1e-9)
+    }
+
+    /// The certificates, made as the compose file's header says.
+    fn certs(&self) {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+        c.args(["certs", common::SCENARIO, "--out"]).arg(self.deploy().join("tls"));
+        for node in ["router", "monitor", "leader", "agent-1", "agent-2", "agent-3", "agent-4"] {
+            c.args(["--san", node]);
+        }
+        common::run_ok(&mut c);
+    }
+
+    /// `podman-compose -p PROJECT -f deploy/compose.yaml up --exit-code-from
+    /// monitor`, in a process group of its own, waited for at most `limit`:
+    /// its exit code and its output.
+    fn up(&mut self, limit: Duration) -> (Option<i32>, String) {
+        let log_path = self.dir.path().join("up.log");
+        let log = std::fs::File::create(&log_path).expect("up.log");
+        let child = with_podman_conf("podman-compose", self.dir.path())
+            .args(["-p", &self.project, "-f"])
+            .arg(self.deploy().join("compose.yaml"))
+            .args(["up", "--exit-code-from", "monitor"])
+            .current_dir(self.root())
+            .stdout(log.try_clone().expect("log"))
+            .stderr(log)
+            .process_group(0)
+            .spawn()
+            .expect("podman-compose");
+        let up = self.up.insert(child);
+        let t = Instant::now();
+        let status = loop {
+            if let Some(s) = up.try_wait().expect("try_wait") {
+                break Some(s);
+            }
+            if t.elapsed() > limit {
+                break None;
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        };
+        let text = std::fs::read_to_string(&log_path).unwrap_or_default();
+        let Some(status) = status else {
+            panic!("podman-compose up still running after {limit:?}; its output ends:\n{}", tail(&text, 40));
+        };
+        self.up = None;
+        (status.code(), text)
+    }
+}
+
+impl Drop for Compose {
+    fn drop(&mut self) {
+        if let Some(mut up) = self.up.take() {
+            let _ = Command::new("kill").args(["-KILL", "--", &format!("-{}", up.id())]).stderr(Stdio::null()).status();
+            let _ = up.kill();
+            let _ = up.wait();
+        }
+        let label = format!("label=io.podman.compose.project={}", self.project);
+        let _ = self.podman(&["rm", "-f", "-t", "0", "--filter", &label]);
+        let _ = self.podman(&["volume", "prune", "-f", "--filter", &label]);
+        let _ = self.podman(&["network", "rm", "-f", &format!("{}_formation", self.project)]);
+        let _ = self.podman(&["rmi", "-f", COMPOSE_IMAGE]);
+    }
+}
+
+/// The last `n` lines of `text`.
+fn tail(text: &str, n: usize) -> String {
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(n)..].join("\n")
+}
+
+#[test]
+fn the_compose_file_runs_the_paper_over_mutual_tls() {
+    if !available() || !compose_available() {
+        return;
+    }
+    let _turn = one_at_a_time();
+    let mut compose = Compose::new();
+    scratch_image(compose.dir.path(), COMPOSE_IMAGE);
+    compose.certs();
+
+    // `up` returns when the monitor has written the run folder, with the
+    // monitor's exit status (0: complete and healthy).
+    let t = Instant::now();
+    let (code, log) = compose.up(Duration::from_secs(150));
+    let wall = t.elapsed();
+    let run = compose.deploy().join("out/paper");
+    assert_eq!(
+        code,
+        Some(0),
+        "podman-compose up --exit-code-from monitor exited {code:?} after {wall:.1?} (the monitor's status, or 255 \
+         when the monitor had not ended a second after the first container did); its output ends:\n{}",
+        tail(&log, 40)
+    );
+    assert!(log.contains("router listening on tls/"), "the router did not listen on TLS:\n{}", tail(&log, 40));
+    common::exit_matches_health(0, &run, &[], "the compose file's run");
+    let n = json(&run, "network.json");
+    let s = json(&run, "summary.json");
+    assert_eq!(n["complete"], true, "the compose file's run: ending {}, lost {}", n["ending"], n["lost_steps"]);
+    assert_eq!(n["timing"], "realtime");
+    assert_eq!(s["duration"].as_f64(), Some(30.0), "the paper's 30 s run");
+    assert_eq!(n["steps"], s["steps"]);
+    for f in ["leader.csv", "follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv"] {
+        assert!(run.join(f).is_file(), "the run folder has no {f}");
+    }
+    let lag = compose.monitor_lag_s().map_or("?".into(), |s| format!("{s:.2} s"));
+    eprintln!(
+        "compose: up returned 0 after {wall:.1?}; {} steps recorded; the monitor ended {lag} after the first container",
+        n["recorded_steps"]
+    );
 }
