@@ -61,11 +61,55 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for Denials {
 /// Runs a node to its end and says how it ended: errors as one line on
 /// stderr, and the exit status.
 pub fn run(node: Node) -> ExitCode {
-    // Before the runtime's threads start. A router keeps zenoh's own
-    // threads: it forwards, and a forwarding task may wait for room in a
-    // full queue (lock-step traffic is not dropped), which on one thread
-    // would hold the thread that empties it.
-    if !matches!(node, Node::Router(_)) {
+    match node {
+        Node::Agent(a) => run_agent(a),
+        Node::Leader(a) => run_leader(a),
+        Node::Monitor(a) => run_monitor(a),
+        Node::Router(r) => run_router(r),
+    }
+}
+
+/// The `agent` binary. Each node has its own entry, so that a binary links
+/// only its node: a headless agent carries no live page, Foxglove server,
+/// replay or certificate generator.
+pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
+    let name = formation_net::names::agent_name(a.id.first().copied().unwrap_or(0));
+    shell(&a.node.zenoh.clone(), &name, true, async move { agent::run(&a).await.map(|()| ExitCode::SUCCESS) })
+}
+
+/// The `leader` binary.
+pub fn run_leader(a: leader::LeaderArgs) -> ExitCode {
+    shell(&a.node.zenoh.clone(), formation_net::names::LEADER, true, async move {
+        leader::run(&a).await.map(|()| ExitCode::SUCCESS)
+    })
+}
+
+/// The `monitor` binary.
+pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
+    shell(&a.node.zenoh.clone(), formation_net::names::MONITOR, true, async move {
+        monitor::run(&a).await.map(monitor_status)
+    })
+}
+
+/// The `router` binary. A router keeps zenoh's own threads: it forwards,
+/// and a forwarding task may wait for room in a full queue (lock-step
+/// traffic is not dropped), which on one thread would hold the thread that
+/// empties it.
+pub fn run_router(r: router::RouterArgs) -> ExitCode {
+    shell(&r.zenoh.clone(), formation_net::names::ROUTER, false, async move {
+        router::run(&r).await.map(|()| ExitCode::SUCCESS)
+    })
+}
+
+/// The shell of every node: zenoh's runtime (`shared_runtime`: on this
+/// process's threads), logging, the TLS revocation list, the async
+/// runtime, and the end as one line and an exit status.
+fn shell<F>(zenoh: &formation_net::session::ZenohArgs, name: &str, shared_runtime: bool, work: F) -> ExitCode
+where
+    F: std::future::Future<Output = Result<ExitCode, formation_net::Error>>,
+{
+    // Before the runtime's threads start.
+    if shared_runtime {
         session::default_runtime();
     }
     {
@@ -82,15 +126,9 @@ pub fn run(node: Node) -> ExitCode {
         );
         let _ = tracing_subscriber::registry().with(log).with(acl).try_init();
     }
-    let (zenoh, name) = match &node {
-        Node::Agent(a) => (&a.node.zenoh, formation_net::names::agent_name(a.id.first().copied().unwrap_or(0))),
-        Node::Leader(a) => (&a.node.zenoh, formation_net::names::LEADER.to_string()),
-        Node::Monitor(a) => (&a.node.zenoh, formation_net::names::MONITOR.to_string()),
-        Node::Router(r) => (&r.zenoh, formation_net::names::ROUTER.to_string()),
-    };
     // The authority's revocation list, for the TLS link (before any thread starts).
     if let Some(dir) = &zenoh.tls {
-        formation_net::identity::export_crl(dir, &name);
+        formation_net::identity::export_crl(dir, name);
     }
     let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
         Ok(r) => r,
@@ -99,14 +137,7 @@ pub fn run(node: Node) -> ExitCode {
             return ExitCode::from(1);
         }
     };
-    let result: Result<ExitCode, Error> = runtime.block_on(async {
-        match &node {
-            Node::Agent(a) => agent::run(a).await.map(|()| ExitCode::SUCCESS).map_err(Error::from),
-            Node::Leader(a) => leader::run(a).await.map(|()| ExitCode::SUCCESS).map_err(Error::from),
-            Node::Monitor(a) => monitor::run(a).await.map(monitor_status).map_err(Error::from),
-            Node::Router(z) => router::run(z).await.map(|()| ExitCode::SUCCESS).map_err(Error::from),
-        }
-    });
+    let result: Result<ExitCode, Error> = runtime.block_on(work).map_err(Error::from);
     // Zenoh's background tasks must not keep the process alive.
     runtime.shutdown_timeout(Duration::from_secs(1));
     match result {

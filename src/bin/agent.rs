@@ -2,7 +2,7 @@
 //! one follower of the formation as its own process (`formation_net::agent`).
 
 use clap::Parser;
-use formation::node::{self, Node};
+use formation::node;
 
 #[derive(Parser, Debug)]
 #[command(about = "One follower of the formation as a zenoh node (multicast scouting off)")]
@@ -12,5 +12,5 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    node::run(Node::Agent(Cli::parse().args))
+    node::run_agent(Cli::parse().args)
 }

@@ -3,7 +3,7 @@
 //! (`formation_net::leader`).
 
 use clap::Parser;
-use formation::node::{self, Node};
+use formation::node;
 
 #[derive(Parser, Debug)]
 #[command(about = "The formation's virtual leader as a zenoh node (multicast scouting off)")]
@@ -13,5 +13,5 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    node::run(Node::Leader(Cli::parse().args))
+    node::run_leader(Cli::parse().args)
 }

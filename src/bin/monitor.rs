@@ -3,7 +3,7 @@
 //! Exit status 130 after Ctrl-C, 143 after SIGTERM (the folder holds what was received).
 
 use clap::Parser;
-use formation::node::{self, Node};
+use formation::node;
 
 #[derive(Parser, Debug)]
 #[command(about = "Records a networked formation run: live formation error, run folder, message counts")]
@@ -13,5 +13,5 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    node::run(Node::Monitor(Cli::parse().args))
+    node::run_monitor(Cli::parse().args)
 }

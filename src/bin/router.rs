@@ -5,7 +5,7 @@
 //! until SIGINT/SIGTERM and closes the session. Multicast scouting is off.
 
 use clap::Parser;
-use formation::node::{self, Node};
+use formation::node;
 
 #[derive(Parser, Debug)]
 #[command(about = "Zenoh router for formation nodes (loopback by default, no multicast)")]
@@ -15,5 +15,5 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    node::run(Node::Router(Cli::parse().router))
+    node::run_router(Cli::parse().router)
 }
