@@ -403,10 +403,7 @@ fn the_protocol_crate_has_no_runtime_no_network_and_reads_no_clock() {
     let manifest = std::fs::read_to_string(dir.join("Cargo.toml")).expect("protocol/Cargo.toml");
     let deps = manifest.split("[dev-dependencies]").next().unwrap_or("");
     for banned in ["zenoh", "tokio", "axum", "futures", "async"] {
-        assert!(
-            !deps.lines().any(|l| l.trim_start().starts_with(banned)),
-            "protocol/Cargo.toml depends on {banned}"
-        );
+        assert!(!deps.lines().any(|l| l.trim_start().starts_with(banned)), "protocol/Cargo.toml depends on {banned}");
     }
     let mut readings = Vec::new();
     for entry in std::fs::read_dir(dir.join("src")).expect("protocol/src") {
