@@ -15,7 +15,6 @@ use std::time::Duration;
 
 use formation_plant::Pose;
 use formation_protocol::follower::{self, Batch, Follower, LATE};
-use formation_protocol::Now;
 use formation_topology::wire;
 use formation_topology::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
@@ -140,12 +139,6 @@ impl Shared {
     }
 }
 
-/// The run's timebase now, as the machine takes it (0 before any estimate;
-/// the loop starts only after the first).
-fn now(timebase: &Timebase) -> Now {
-    Duration::from_nanos(timebase.now_ns().unwrap_or(0).max(0) as u64)
-}
-
 /// Runs the follower at `index` with `body` on an open session.
 pub async fn run_follower(
     session: &zenoh::Session,
@@ -189,7 +182,7 @@ pub async fn run_follower(
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
     let fingerprint = barrier::fingerprint(scenario);
     let writer = opts.checkpoint.map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone()));
-    shared.lock().start(&start, resume, now(&timebase));
+    shared.lock().start(&start, resume, timebase.now());
     let watcher = watch_router(session, &shared, lockstep).await;
     // Telemetry leaves the loop through a bounded store and a thread of its
     // own, so a slow or dead link to the monitor never holds a step; it is
@@ -355,7 +348,7 @@ impl Node {
         let mut batches: Vec<Batch> = Vec::new();
         loop {
             let mut m = self.shared.lock();
-            let t = now(&self.timebase);
+            let t = self.timebase.now();
             self.tell(&mut m);
             m.handle_timeout(t);
             transmit.extend(std::iter::from_fn(|| m.poll_transmit()));
@@ -416,7 +409,7 @@ impl Node {
     fn sleep(&self) {
         let mut m = self.shared.lock();
         let Some(at) = m.poll_timeout() else { return };
-        let t = now(&self.timebase);
+        let t = self.timebase.now();
         if at <= t {
             return;
         }
@@ -424,9 +417,7 @@ impl Node {
             let _ = self.shared.woken.wait_timeout(m, at - t).unwrap_or_else(|p| p.into_inner());
         } else {
             drop(m);
-            let due = self.timebase.instant_at(at.as_nanos() as i64);
-            let wake = due.unwrap_or_else(|| std::time::Instant::now() + (at - t));
-            std::thread::sleep(wake.saturating_duration_since(std::time::Instant::now()));
+            self.timebase.sleep_until(at);
         }
     }
 }

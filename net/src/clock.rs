@@ -165,6 +165,25 @@ impl Timebase {
         Some(instant_of(mono))
     }
 
+    /// The timebase now as the protocol's machines take it
+    /// ([`formation_protocol::Now`]: a duration since the Unix epoch on the
+    /// leader's clock); zero before any estimate.
+    pub fn now(&self) -> Duration {
+        Duration::from_nanos(self.now_ns().unwrap_or(0).max(0) as u64)
+    }
+
+    /// Sleeps until the timebase reads `at` (at once if it does already),
+    /// on this node's monotonic clock through the estimate, which follows
+    /// the clocks' drift.
+    pub fn sleep_until(&self, at: Duration) {
+        let now = self.now();
+        if at <= now {
+            return;
+        }
+        let wake = self.instant_at(at.as_nanos() as i64).unwrap_or_else(|| Instant::now() + (at - now));
+        std::thread::sleep(wake.saturating_duration_since(Instant::now()));
+    }
+
     /// How long ago the timebase read `tb_ns` (negative: still to come), in
     /// seconds; None before any estimate.
     pub fn since_s(&self, tb_ns: i64) -> Option<f64> {
