@@ -29,6 +29,7 @@ use std::time::{Duration, Instant};
 
 use clap::Args;
 use formation_topology::wire;
+use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
@@ -445,21 +446,21 @@ fn latencies(a: &BenchNetArgs, figures: &mut [(&mut Figures, Option<&std::path::
             let kind = if tls.is_some() { "tls" } else { "tcp" };
             eprintln!("bench-net ({kind}): latency, round {} of {ROUNDS} …", round + 1);
             let port = a.base_port + 40 + 50 * i as u16 + 2 * round;
-            let (e, p, o, (rtt, cpu)) = runtime
+            let l = runtime
                 .block_on(latency(port, a.round_trips, *tls))
                 .map_err(|e| Error::Run(format!("latency benchmark ({kind}): {e}")))?;
-            if f.time_rtt.0.is_nan() || rtt.0 < f.time_rtt.0 {
-                (f.time_rtt, f.time_cpu_us) = (rtt, cpu);
-            }
             // NaN (no round yet) or a better round.
-            if f.estimate.0.is_nan() || e.0 < f.estimate.0 {
-                f.estimate = e;
+            if f.time_rtt.0.is_nan() || l.time_rtt.0 < f.time_rtt.0 {
+                (f.time_rtt, f.time_cpu_us) = (l.time_rtt, l.time_cpu_us);
             }
-            if f.plain.0.is_nan() || p.0 < f.plain.0 {
-                f.plain = p;
+            if f.estimate.0.is_nan() || l.estimate.0 < f.estimate.0 {
+                f.estimate = l.estimate;
             }
-            if f.open_ms.is_nan() || o < f.open_ms {
-                f.open_ms = o;
+            if f.plain.0.is_nan() || l.plain.0 < f.plain.0 {
+                f.plain = l.plain;
+            }
+            if f.open_ms.is_nan() || l.open_ms < f.open_ms {
+                f.open_ms = l.open_ms;
             }
         }
     }
@@ -503,123 +504,167 @@ fn receive(inbox: &Mutex<Inbox>, key: &str, bytes: &[u8], neighbours: &[u32]) ->
     }
 }
 
-/// ((p50, p99) estimate one-hop, (p50, p99) plain one-hop) in µs, the
-/// median time to open a client session to a listening peer in ms, and the
-/// offset exchange's ((p50, p99) round trip in µs, CPU per exchange in µs). The two
-/// sessions are agents 1 and 2 (with their identities under `tls`); the
-/// plain ping-pong uses the same keys in another run's namespace, so the
-/// access-control policy lets it through.
-type Latencies = ((f64, f64), (f64, f64), f64, ((f64, f64), f64));
+/// One round of the latency benchmark. The two sessions are agents 1 and 2
+/// (with their identities under `tls`); the plain ping-pong uses the same
+/// keys in another run's namespace, so the access-control policy lets it
+/// through.
+struct Latencies {
+    /// One-hop latency (half round trip, µs), (p50, p99): through the
+    /// agents' estimate path, and plain zenoh.
+    estimate: (f64, f64),
+    plain: (f64, f64),
+    /// Median time to open a client session to a listening peer, ms.
+    open_ms: f64,
+    /// The offset exchange: round trip (p50, p99), µs, and this process's
+    /// CPU per exchange (both sides), µs.
+    time_rtt: (f64, f64),
+    time_cpu_us: f64,
+}
 
-async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<Latencies, Error> {
-    let ep = format!("tcp/127.0.0.1:{port}");
-    let as_agent = |id: u32| ZenohArgs {
+/// The arguments of a session with agent `id`'s identity.
+fn as_agent(id: u32, tls: Option<&std::path::Path>) -> ZenohArgs {
+    ZenohArgs {
         tls: tls.map(std::path::Path::to_path_buf),
         identity: Some(formation_net::names::agent_name(id)),
         ..Default::default()
-    };
-    let a = session::open(&ZenohArgs { listen: vec![ep.clone()], ..as_agent(1) }).await?;
+    }
+}
+
+async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<Latencies, Error> {
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let a = session::open(&ZenohArgs { listen: vec![ep.clone()], ..as_agent(1, tls) }).await?;
     let b = session::open(&ZenohArgs {
         listen: vec![format!("tcp/127.0.0.1:{}", port + 1)],
         connect: vec![ep.clone()],
-        ..as_agent(2)
+        ..as_agent(2, tls)
     })
     .await?;
-    // Handshakes: a client of agent 2's identity opening to A, 20 times.
+    let open_ms = handshake_ms(&ep, tls).await?;
+    let _answers = answer(&b).await?;
+    let (pinger, _counters) = Pinger::declare(&a).await?;
+    let (mut est, mut plain) = tokio::task::spawn_blocking(move || pinger.ping_pong(n))
+        .await
+        .map_err(|e| Error::Run(format!("the latency measurement panicked: {e}")))??;
+    let (e50, e99, _) = timing::percentiles(&mut est);
+    let (p50, p99, _) = timing::percentiles(&mut plain);
+    let (time_rtt, time_cpu_us) = time_exchange(&a, &ep, tls, n).await?;
+    let _ = a.close().await;
+    let _ = b.close().await;
+    Ok(Latencies { estimate: (e50, e99), plain: (p50, p99), open_ms, time_rtt, time_cpu_us })
+}
+
+/// Handshakes: a client of agent 2's identity opening to `ep`, 20 times;
+/// the median, ms.
+async fn handshake_ms(ep: &str, tls: Option<&std::path::Path>) -> Result<f64, Error> {
     let mut opens = Vec::with_capacity(20);
     for _ in 0..20 {
         let t = Instant::now();
         let c = session::open(&ZenohArgs {
             mode: Some(session::ZenohMode::Client),
-            connect: vec![ep.clone()],
-            ..as_agent(2)
+            connect: vec![ep.to_string()],
+            ..as_agent(2, tls)
         })
         .await?;
         opens.push(t.elapsed().as_secs_f64() * 1e3);
         let _ = c.close().await;
     }
     let (open_ms, _, _) = timing::percentiles(&mut opens);
-    let run = "bench-lat";
-    let k = |rest: &str| names::key(run, rest);
-    // The plain ping-pong rides on the same key shapes in another namespace.
-    let ping = names::key("bench-ping", "estimate/1");
-    let pong = names::key("bench-ping", "estimate/2");
-    // B: echo plain pings, answer estimates from "follower 1" with its own as "follower 2".
-    let b_plain_pub = b
-        .declare_publisher(pong.clone())
+    Ok(open_ms)
+}
+
+/// The run of the estimate ping-pong.
+const LATENCY_RUN: &str = "bench-lat";
+
+/// A publisher of the ping-pong: express, blocking when congested.
+async fn publisher(s: &zenoh::Session, key: String) -> Result<Publisher<'static>, Error> {
+    s.declare_publisher(key)
         .express(true)
         .congestion_control(CongestionControl::Block)
         .await
-        .map_err(|e| Error::Run(e.to_string()))?;
-    let b_est_pub = b
-        .declare_publisher(k("estimate/2"))
-        .express(true)
-        .congestion_control(CongestionControl::Block)
-        .await
-        .map_err(|e| Error::Run(e.to_string()))?;
-    let _b_plain = b
-        .declare_subscriber(ping.clone())
+        .map_err(|e| Error::Run(e.to_string()))
+}
+
+/// Session B: echo plain pings, answer estimates from "follower 1" with its
+/// own as "follower 2". The subscribers answer while they are held.
+async fn answer(b: &zenoh::Session) -> Result<[Subscriber<()>; 2], Error> {
+    let b_plain_pub = publisher(b, names::key("bench-ping", "estimate/2")).await?;
+    let b_est_pub = publisher(b, names::key(LATENCY_RUN, "estimate/2")).await?;
+    let plain = b
+        .declare_subscriber(names::key("bench-ping", "estimate/1"))
         .callback(move |s| {
             let _ = b_plain_pub.put(s.payload().to_bytes().into_owned()).wait();
         })
         .await
         .map_err(|e| Error::Run(e.to_string()))?;
     let b_inbox = Arc::new(Mutex::new(Inbox::new(1, false)));
-    let bi = b_inbox.clone();
-    let _b_est = b
-        .declare_subscriber(k("estimate/1"))
+    let est = b
+        .declare_subscriber(names::key(LATENCY_RUN, "estimate/1"))
         .callback(move |s| {
             let bytes = s.payload().to_bytes();
-            if receive(&bi, s.key_expr().as_str(), &bytes, &[1]) {
+            if receive(&b_inbox, s.key_expr().as_str(), &bytes, &[1]) {
                 let step = wire::decode(&bytes).map(|m| m.header.step).unwrap_or(0);
                 let _ = b_est_pub.put(estimate(2, step)).wait();
             }
         })
         .await
         .map_err(|e| Error::Run(e.to_string()))?;
-    // A: count answers.
-    let plain_flag = Arc::new(Flag::default());
-    let est_flag = Arc::new(Flag::default());
-    let pf = plain_flag.clone();
-    let _a_plain =
-        a.declare_subscriber(pong).callback(move |_| pf.hit()).await.map_err(|e| Error::Run(e.to_string()))?;
-    let a_inbox = Arc::new(Mutex::new(Inbox::new(1, false)));
-    let (ai, ef) = (a_inbox.clone(), est_flag.clone());
-    let _a_est = a
-        .declare_subscriber(k("estimate/2"))
-        .callback(move |s| {
-            if receive(&ai, s.key_expr().as_str(), &s.payload().to_bytes(), &[2]) {
-                ef.hit();
-            }
-        })
-        .await
-        .map_err(|e| Error::Run(e.to_string()))?;
-    let a_plain_pub = a
-        .declare_publisher(ping)
-        .express(true)
-        .congestion_control(CongestionControl::Block)
-        .await
-        .map_err(|e| Error::Run(e.to_string()))?;
-    let a_est_pub = a
-        .declare_publisher(k("estimate/1"))
-        .express(true)
-        .congestion_control(CongestionControl::Block)
-        .await
-        .map_err(|e| Error::Run(e.to_string()))?;
-    let size = estimate(1, 0).len();
+    Ok([plain, est])
+}
 
-    let measured = tokio::task::spawn_blocking(move || -> Result<(Vec<f64>, Vec<f64>), Error> {
+/// Session A's side of the ping-pong: what it publishes and how many
+/// answers came back. The plain ping-pong rides on the same key shapes in
+/// another namespace.
+struct Pinger {
+    est_pub: Publisher<'static>,
+    plain_pub: Publisher<'static>,
+    est_flag: Arc<Flag>,
+    plain_flag: Arc<Flag>,
+}
+
+impl Pinger {
+    /// The publishers, and the subscribers that count answers (held as
+    /// long as answers are counted).
+    async fn declare(a: &zenoh::Session) -> Result<(Self, [Subscriber<()>; 2]), Error> {
+        let plain_flag = Arc::new(Flag::default());
+        let est_flag = Arc::new(Flag::default());
+        let pf = plain_flag.clone();
+        let plain = a
+            .declare_subscriber(names::key("bench-ping", "estimate/2"))
+            .callback(move |_| pf.hit())
+            .await
+            .map_err(|e| Error::Run(e.to_string()))?;
+        let a_inbox = Arc::new(Mutex::new(Inbox::new(1, false)));
+        let ef = est_flag.clone();
+        let est = a
+            .declare_subscriber(names::key(LATENCY_RUN, "estimate/2"))
+            .callback(move |s| {
+                if receive(&a_inbox, s.key_expr().as_str(), &s.payload().to_bytes(), &[2]) {
+                    ef.hit();
+                }
+            })
+            .await
+            .map_err(|e| Error::Run(e.to_string()))?;
+        let plain_pub = publisher(a, names::key("bench-ping", "estimate/1")).await?;
+        let est_pub = publisher(a, names::key(LATENCY_RUN, "estimate/1")).await?;
+        Ok((Self { est_pub, plain_pub, est_flag, plain_flag }, [plain, est]))
+    }
+
+    /// `n` interleaved round trips of each kind once both directions carry
+    /// traffic: the one-hop latencies (half round trips), µs, estimate and
+    /// plain. Blocks the thread.
+    fn ping_pong(self, n: usize) -> Result<(Vec<f64>, Vec<f64>), Error> {
+        let size = estimate(1, 0).len();
+        let hits = |f: &Flag| *f.hits.lock().unwrap_or_else(|p| p.into_inner());
+        let put = |p: &Publisher<'static>, bytes: Vec<u8>| p.put(bytes).wait().map_err(|e| Error::Run(e.to_string()));
         // Wait until both directions carry traffic.
         let t = Instant::now();
         let mut step = 0u64;
         loop {
             step += 1;
-            a_est_pub.put(estimate(1, step)).wait().map_err(|e| Error::Run(e.to_string()))?;
-            a_plain_pub.put(vec![0u8; size]).wait().map_err(|e| Error::Run(e.to_string()))?;
+            put(&self.est_pub, estimate(1, step))?;
+            put(&self.plain_pub, vec![0u8; size])?;
             std::thread::sleep(Duration::from_millis(20));
-            if *est_flag.hits.lock().unwrap_or_else(|p| p.into_inner()) > 0
-                && *plain_flag.hits.lock().unwrap_or_else(|p| p.into_inner()) > 0
-            {
+            if hits(&self.est_flag) > 0 && hits(&self.plain_flag) > 0 {
                 break;
             }
             if t.elapsed() >= Duration::from_secs(10) {
@@ -627,41 +672,42 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<L
             }
         }
         std::thread::sleep(Duration::from_millis(100));
-        let (mut e_done, mut p_done) = (
-            *est_flag.hits.lock().unwrap_or_else(|p| p.into_inner()),
-            *plain_flag.hits.lock().unwrap_or_else(|p| p.into_inner()),
-        );
+        let (mut e_done, mut p_done) = (hits(&self.est_flag), hits(&self.plain_flag));
         let (mut est, mut plain) = (Vec::with_capacity(n), Vec::with_capacity(n));
         for _ in 0..n {
             step += 1;
             let t = Instant::now();
-            a_est_pub.put(estimate(1, step)).wait().map_err(|e| Error::Run(e.to_string()))?;
+            put(&self.est_pub, estimate(1, step))?;
             e_done += 1;
-            if !est_flag.wait_for(e_done) {
+            if !self.est_flag.wait_for(e_done) {
                 return Err(Error::Run("estimate answer lost".into()));
             }
             est.push(t.elapsed().as_secs_f64() * 1e6 / 2.0);
             let t = Instant::now();
-            a_plain_pub.put(vec![0u8; size]).wait().map_err(|e| Error::Run(e.to_string()))?;
+            put(&self.plain_pub, vec![0u8; size])?;
             p_done += 1;
-            if !plain_flag.wait_for(p_done) {
+            if !self.plain_flag.wait_for(p_done) {
                 return Err(Error::Run("pong lost".into()));
             }
             plain.push(t.elapsed().as_secs_f64() * 1e6 / 2.0);
         }
         Ok((est, plain))
-    })
-    .await
-    .map_err(|e| Error::Run(format!("the latency measurement panicked: {e}")))??;
-    let (mut est, mut plain) = measured;
-    let (e50, e99, _) = timing::percentiles(&mut est);
-    let (p50, p99, _) = timing::percentiles(&mut plain);
-    // The offset exchange: session b answers as the leader, a asks as an
-    // agent, back to back; the CPU of this process (both sides) per exchange.
+    }
+}
+
+/// The offset exchange: a session of the leader's identity (only it may
+/// answer, under the TLS policy) answers, `a` asks as an agent, back to
+/// back, `n` times: the round trip (p50, p99), µs, and the CPU of this
+/// process (both sides) per exchange, µs.
+async fn time_exchange(
+    a: &zenoh::Session,
+    ep: &str,
+    tls: Option<&std::path::Path>,
+    n: usize,
+) -> Result<((f64, f64), f64), Error> {
     let keys = formation_net::names::Keys { run: "bench-net".into() };
-    // The leader's identity answers (only it may, under the TLS policy).
     let leader = session::open(&ZenohArgs {
-        connect: vec![ep.clone()],
+        connect: vec![ep.to_string()],
         identity: Some(formation_net::names::LEADER.to_string()),
         tls: tls.map(std::path::Path::to_path_buf),
         ..Default::default()
@@ -671,7 +717,7 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<L
     let time_key = keys.time();
     let mut warm = 0;
     for _ in 0..200 {
-        if formation_net::timesync::ask(&a, &time_key).await.is_some() {
+        if formation_net::timesync::ask(a, &time_key).await.is_some() {
             warm += 1;
             if warm == 20 {
                 break;
@@ -687,7 +733,7 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<L
     let mut rtts = Vec::with_capacity(n);
     for _ in 0..n {
         let t = Instant::now();
-        if formation_net::timesync::ask(&a, &time_key).await.is_none() {
+        if formation_net::timesync::ask(a, &time_key).await.is_none() {
             return Err(Error::Run("a time query went unanswered".into()));
         }
         rtts.push(t.elapsed().as_secs_f64() * 1e6);
@@ -695,7 +741,5 @@ async fn latency(port: u16, n: usize, tls: Option<&std::path::Path>) -> Result<L
     let cpu_us = (process_cpu_s() - cpu0) * 1e6 / n.max(1) as f64;
     let (r50, r99, _) = timing::percentiles(&mut rtts);
     let _ = leader.close().await;
-    let _ = a.close().await;
-    let _ = b.close().await;
-    Ok(((e50, e99), (p50, p99), open_ms, ((r50, r99), cpu_us)))
+    Ok(((r50, r99), cpu_us))
 }

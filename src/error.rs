@@ -53,6 +53,15 @@ impl From<formation_record::RecordError> for Error {
     }
 }
 
+impl From<formation_certs::generate::GenerateError> for Error {
+    fn from(e: formation_certs::generate::GenerateError) -> Self {
+        match e {
+            formation_certs::generate::GenerateError::Input(m) => Error::Input(m),
+            formation_certs::generate::GenerateError::Run(m) => Error::Run(m),
+        }
+    }
+}
+
 impl From<formation_net::Error> for Error {
     fn from(e: formation_net::Error) -> Self {
         match e {

@@ -172,7 +172,7 @@ fn certs_with_a_file_where_a_folder_goes_or_a_folder_in_a_node_folder_changes_no
 /// The identity of every node checks out against the folder's authority.
 fn every_identity_checks(dir: &Path) {
     for n in NODES {
-        formation_net::identity::identity(dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
+        formation_certs::identity(dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
         let key = dir.join(n).join(format!("{n}.key"));
         let mode = std::fs::metadata(&key).expect("key").permissions().mode() & 0o777;
         assert_eq!(mode, 0o600, "{}: {mode:o}", key.display());
@@ -262,6 +262,6 @@ fn certs_force_node_and_revoke_replace_whole_folders_and_keep_what_they_do_not_w
             }
         }
     }
-    let e = formation_net::identity::identity(&dir, "agent-1").expect_err("a revoked certificate");
+    let e = formation_certs::identity(&dir, "agent-1").expect_err("a revoked certificate");
     assert!(e.0.contains("revoked"), "{e}");
 }

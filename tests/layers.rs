@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 9] = [
+const LAYERS: [&str; 10] = [
     "formation-plant",
     "formation-leader",
     "formation-agent",
@@ -16,6 +16,7 @@ const LAYERS: [&str; 9] = [
     "formation-record",
     "formation-sim",
     "formation-protocol",
+    "formation-certs",
     "formation-net",
     "formation",
 ];

@@ -100,12 +100,12 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     common::certs(&dir);
     let names = ["router", "leader", "monitor", "agent-1", "agent-2", "agent-3", "agent-4"];
     for n in names {
-        let id = formation_net::identity::identity(&dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
+        let id = formation_certs::identity(&dir, n).unwrap_or_else(|e| panic!("{n}: {e}"));
         let mode = std::fs::metadata(&id.key).expect("key").permissions().mode() & 0o777;
         assert_eq!(mode, 0o600, "{n}'s key is {mode:o}, not readable by its owner only");
         // A node's folder alone (as copied to its host) is enough, and holds no authority key.
         let own = dir.join(n);
-        formation_net::identity::identity(&own, n).unwrap_or_else(|e| panic!("{n}'s folder alone: {e}"));
+        formation_certs::identity(&own, n).unwrap_or_else(|e| panic!("{n}'s folder alone: {e}"));
         let files: Vec<String> = std::fs::read_dir(&own)
             .expect("node folder")
             .map(|e| e.expect("entry").file_name().into_string().unwrap())
@@ -129,12 +129,12 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     let said = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success() && said.contains("using the existing authority"), "--node said: {said}");
     assert_eq!(std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem"), ca, "the authority was replaced");
-    formation_net::identity::identity(&dir, "agent-3").expect("re-issued agent-3 under the same authority");
+    formation_certs::identity(&dir, "agent-3").expect("re-issued agent-3 under the same authority");
     // The old certificate with the new folder's revocation list: revoked.
     std::fs::copy(dir.join("agent-3/revoked.crl"), old3.join("revoked.crl")).expect("copy crl");
     std::fs::copy(dir.join("agent-3/policy.json5"), old3.join("policy.json5")).expect("copy policy");
     std::fs::copy(dir.join("agent-3/policy.pem"), old3.join("policy.pem")).expect("copy policy.pem");
-    let e = formation_net::identity::identity(&old3, "agent-3").expect_err("the superseded certificate");
+    let e = formation_certs::identity(&old3, "agent-3").expect_err("the superseded certificate");
     assert!(e.0.contains("revoked"), "{e}");
     // --force: a new authority, which the old certificates do not verify against.
     let o = certs(&dir, &["--force"]);

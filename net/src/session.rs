@@ -274,7 +274,7 @@ impl ZenohArgs {
                 .identity
                 .as_deref()
                 .ok_or_else(|| SessionError::Config(format!("--tls: this node has no name to look for")))?;
-            let id = crate::identity::identity(dir, name).map_err(|e| SessionError::Config(e.0))?;
+            let id = formation_certs::identity(dir, name).map_err(|e| SessionError::Config(e.0))?;
             for (key, value) in crate::identity::zenoh_tls(&id) {
                 set(&mut config, key, &value)?;
             }

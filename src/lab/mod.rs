@@ -414,56 +414,14 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         events.extend(cut_events(a, sites, scenario.steps() as f64 * scenario.dt_s)?);
         events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
     }
-    // Inside the re-run under unshare, uid 0 is the mapped user: prepare
-    // the namespace there whatever privilege() says.
-    if a.opts.web.foxglove.is_some() {
-        return Err(Error::Input(
-            "--foxglove is not available in the lab (its monitor lives in a network namespace of its own); \
-             use --web here, or --foxglove on launch or monitor"
-                .into(),
-        ));
-    }
-    let privilege = if std::env::var_os(netns::UNSHARED_ENV).is_some() {
-        netns::prepare_unshared().map_err(|e| Error::Run(e.0))?;
-        netns::Privilege::Root
-    } else {
-        netns::privilege().map_err(|e| Error::Input(e.0))?
-    };
-    match privilege {
-        netns::Privilege::Root => a.opts.warnings(&scenario, &out),
-        netns::Privilege::Unshare if a.opts.web.web.is_some() => {
-            return Err(Error::Input(
-                "--web needs root here: without it the lab runs in a network namespace of its own, \
-                 which a browser on this machine cannot reach"
-                    .into(),
-            ));
-        }
-        netns::Privilege::Unshare => {
-            // Not root: the same command inside a user and network namespace of its own.
-            let status = netns::reexec()
-                .map_err(|e| Error::Run(e.0))?
-                .status()
-                .map_err(|e| Error::Run(format!("running {}: {e}", netns::UNSHARE.join(" "))))?;
-            return match status.code() {
-                Some(0) => Ok(()),
-                Some(2) => Err(Error::Input("(the lab inside unshare refused its input; see above)".into())),
-                _ => Err(Error::Run(format!("the lab inside unshare failed ({status})"))),
-            };
-        }
+    if !runs_here(a, &scenario, &out)? {
+        return Ok(());
     }
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
     for stale in netns::sweep_stale() {
         eprintln!("removed namespace {stale}, left by a lab that was killed");
     }
-    let mut hosts: Vec<String> = Vec::new();
-    if a.mode == LaunchMode::Client {
-        hosts.push("router".into());
-    }
-    if let Some(sites) = &sites {
-        hosts.extend(sites.routers[1..].iter().cloned());
-    }
-    hosts.extend(["monitor".to_string(), "leader".to_string()]);
-    hosts.extend(scenario.graph.ids().iter().map(|&id| agent_host(id)));
+    let hosts = lab_hosts(a, &scenario, &sites);
     let names: Vec<&str> = hosts.iter().map(String::as_str).collect();
     let lab = netns::Lab::create(&names).map_err(|e| Error::Run(format!("building the lab network: {e}")))?;
     for (x, y, p) in &slow {
@@ -473,7 +431,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         eprintln!(
             "lab: {} hosts on a bridge, 10.77.0.0/16 ({} mode, run {run}); {} planned fault events",
             hosts.len(),
-            if a.mode == LaunchMode::Client { "client" } else { "peer" },
+            mode_name(a),
             events.len()
         );
         for n in &notes {
@@ -504,22 +462,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     drop(children);
     drop(lab);
     let (summary, performed) = result?;
-    let shifted: serde_json::Map<String, serde_json::Value> =
-        clocks.iter().map(|(h, s)| (h.clone(), json!(s))).collect();
-    let record = json!({
-        "mode": if a.mode == LaunchMode::Client { "client" } else { "peer" },
-        "events": performed,
-        "notes": notes,
-        "clock_shift_s": shifted,
-        "slow_links": slow.iter().map(|(x, y, p)| json!({"between": [x, y], "loss_percent": p})).collect::<Vec<_>>(),
-        "sites": sites.as_ref().map(|s| {
-            let mut by: Vec<(String, Vec<String>)> = s.names.iter().map(|n| (n.clone(), Vec::new())).collect();
-            for (host, &i) in &s.of {
-                by[i].1.push(host.clone());
-            }
-            by.into_iter().map(|(n, h)| (n, json!(h))).collect::<serde_json::Map<_, _>>()
-        }),
-    });
+    let record = lab_record(a, performed, &notes, &clocks, &slow, &sites);
     std::fs::write(out.join("lab.json"), serde_json::to_string_pretty(&record).unwrap_or_default() + "\n")
         .map_err(|e| Error::Run(format!("writing {}: {e}", out.join("lab.json").display())))?;
     let health = launch::read_health(&out);
@@ -531,6 +474,102 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         println!("wrote {}", out.display());
     }
     launch::degraded_error(health, &out)
+}
+
+/// "client" or "peer", as `--mode` says.
+fn mode_name(a: &LabArgs) -> &'static str {
+    if a.mode == LaunchMode::Client {
+        "client"
+    } else {
+        "peer"
+    }
+}
+
+/// Whether the lab runs in this process: as root (or inside the re-run
+/// under unshare), yes; otherwise the same command runs inside a user and
+/// network namespace of its own, and `Ok(false)` says it succeeded.
+fn runs_here(a: &LabArgs, scenario: &Scenario, out: &Path) -> Result<bool, Error> {
+    if a.opts.web.foxglove.is_some() {
+        return Err(Error::Input(
+            "--foxglove is not available in the lab (its monitor lives in a network namespace of its own); \
+             use --web here, or --foxglove on launch or monitor"
+                .into(),
+        ));
+    }
+    // Inside the re-run under unshare, uid 0 is the mapped user: prepare
+    // the namespace there whatever privilege() says.
+    let privilege = if std::env::var_os(netns::UNSHARED_ENV).is_some() {
+        netns::prepare_unshared().map_err(|e| Error::Run(e.0))?;
+        netns::Privilege::Root
+    } else {
+        netns::privilege().map_err(|e| Error::Input(e.0))?
+    };
+    match privilege {
+        netns::Privilege::Root => {
+            a.opts.warnings(scenario, out);
+            Ok(true)
+        }
+        netns::Privilege::Unshare if a.opts.web.web.is_some() => Err(Error::Input(
+            "--web needs root here: without it the lab runs in a network namespace of its own, \
+             which a browser on this machine cannot reach"
+                .into(),
+        )),
+        netns::Privilege::Unshare => {
+            // Not root: the same command inside a user and network namespace of its own.
+            let status = netns::reexec()
+                .map_err(|e| Error::Run(e.0))?
+                .status()
+                .map_err(|e| Error::Run(format!("running {}: {e}", netns::UNSHARE.join(" "))))?;
+            match status.code() {
+                Some(0) => Ok(false),
+                Some(2) => Err(Error::Input("(the lab inside unshare refused its input; see above)".into())),
+                _ => Err(Error::Run(format!("the lab inside unshare failed ({status})"))),
+            }
+        }
+    }
+}
+
+/// The lab's hosts, each a network namespace: the router (client mode),
+/// the other sites' routers, the monitor, the leader, one per agent.
+fn lab_hosts(a: &LabArgs, scenario: &Scenario, sites: &Option<Sites>) -> Vec<String> {
+    let mut hosts: Vec<String> = Vec::new();
+    if a.mode == LaunchMode::Client {
+        hosts.push("router".into());
+    }
+    if let Some(sites) = sites {
+        hosts.extend(sites.routers[1..].iter().cloned());
+    }
+    hosts.extend(["monitor".to_string(), "leader".to_string()]);
+    hosts.extend(scenario.graph.ids().iter().map(|&id| agent_host(id)));
+    hosts
+}
+
+/// lab.json: the mode, the fault events performed, the notes, the shifted
+/// clocks, the slow links and the sites.
+fn lab_record(
+    a: &LabArgs,
+    performed: Vec<serde_json::Value>,
+    notes: &[String],
+    clocks: &[(String, f64)],
+    slow: &[(String, String, f64)],
+    sites: &Option<Sites>,
+) -> serde_json::Value {
+    let shifted: serde_json::Map<String, serde_json::Value> =
+        clocks.iter().map(|(h, s)| (h.clone(), json!(s))).collect();
+    json!({
+        "mode": mode_name(a),
+        "events": performed,
+        "notes": notes,
+        "clock_shift_s": shifted,
+        "slow_links": slow.iter().map(|(x, y, p)| json!({"between": [x, y], "loss_percent": p})).collect::<Vec<_>>(),
+        "sites": sites.as_ref().map(|s| {
+            let mut by: Vec<(String, Vec<String>)> = s.names.iter().map(|n| (n.clone(), Vec::new())).collect();
+            for (host, &i) in &s.of {
+                by[i].1.push(host.clone());
+            }
+            by.into_iter().map(|(n, h)| (n, json!(h))).collect::<serde_json::Map<_, _>>()
+        }),
+    })
 }
 
 /// A file removed when dropped.

@@ -632,8 +632,20 @@ pub fn role_name(r: Role) -> &'static str {
 
 /// Every docs/model.md §12 claim, checked on the first case of the roles it needs.
 pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
-    use Role::*;
     let mut b = ClaimBuilder { cases, out: vec![] };
+    backstepping_claims(&mut b, p);
+    normal_case_claims(&mut b);
+    fault_case_claims(&mut b);
+    chattering_claims(&mut b);
+    estimator_claims(&mut b);
+    formation_claims(&mut b);
+    b.out
+}
+
+/// The kinematic controllers: conventional backstepping's jump, the
+/// bioinspired one's bounded peaks.
+fn backstepping_claims(b: &mut ClaimBuilder<'_>, p: &ClaimParams) {
+    use Role::*;
     let jump = p.jump_follower;
     b.check(
         &format!(
@@ -667,6 +679,11 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         Window::Whole,
         |s| over_followers(s[0], false, |_, m| m.vc_peak),
     );
+}
+
+/// The normal case: ASIF against KF, and both filters' RMSE band.
+fn normal_case_claims(b: &mut ClaimBuilder<'_>) {
+    use Role::*;
     b.check(
         "Normal case: ASIF and KF velocity RMSE within 2 % of each other",
         "largest |ASIF − KF| / KF over followers and channels",
@@ -705,6 +722,11 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         Window::Whole,
         |s| rmse_extreme(s, false),
     );
+}
+
+/// The fault case: ASIF against KF after the change of mass and inertia.
+fn fault_case_claims(b: &mut ClaimBuilder<'_>) {
+    use Role::*;
     b.check(
         "Fault case: ASIF linear RMSE at most half the KF's, for every follower",
         "largest ASIF / KF linear RMSE over followers",
@@ -729,6 +751,11 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
             over_followers(s[0], false, |id, a| Some(a.rmse_w? / s[1].summary.followers.get(&id)?.rmse_w?))
         },
     );
+}
+
+/// Chattering: the torque variation of the three sliding-mode controllers.
+fn chattering_claims(b: &mut ClaimBuilder<'_>) {
+    use Role::*;
     b.check(
         "Chattering: conventional SMC torque variation ≥ 50× the bioinspired SMC's",
         "smallest SMC / bioinspired torque variation over followers",
@@ -756,6 +783,11 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         Window::Whole,
         |s| over_followers(s[0], false, |id, t| Some(t.torque_tv? / s[1].summary.followers.get(&id)?.torque_tv?)),
     );
+}
+
+/// The estimator: from the leader's state, and from zero estimates.
+fn estimator_claims(b: &mut ClaimBuilder<'_>) {
+    use Role::*;
     b.check(
         "Estimator: position error of every follower below 0.01 m at t = T",
         "largest estimator position error at t = T",
@@ -783,6 +815,11 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         Window::At(ESTIMATOR_CHECK_TIMES_S[1]),
         |s| s[0].estimator_error_6s.values().copied().reduce(f64::max),
     );
+}
+
+/// The formation: bounded over the last 10 s.
+fn formation_claims(b: &mut ClaimBuilder<'_>) {
+    use Role::*;
     b.check(
         "Formation: bounded, every follower's formation-error RMS over the last 10 s below 0.2 m",
         "largest formation-error RMS over the last 10 s",
@@ -794,7 +831,6 @@ pub fn claims(cases: &[Case], p: &ClaimParams) -> Vec<Check> {
         // not the claim's quantity, so not measured.
         |s| (s[0].summary.duration > 10.0).then(|| over_followers(s[0], false, |_, m| m.formation_rms_last10))?,
     );
-    b.out
 }
 
 /// `Some` when every run's fault happens before its end: the fault claims

@@ -75,7 +75,41 @@ const SPACING: f64 = 2.0;
 /// The scenario file's text for `spec` (checked: it loads, and the graph
 /// satisfies Lemma 1, or the error names the unreachable followers).
 pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
-    let bad = |message: String| ScenarioError::Syntax { file: String::new(), line: None, message };
+    check(spec)?;
+    let n = spec.followers;
+    let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
+    let side = f64::from(n).sqrt().ceil() as u32;
+    let offsets = slots(spec, side, &mut rng);
+    let body_errors: Vec<[f64; 2]> =
+        (0..n).map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)]).collect();
+    let (edges, radius_used) = graph_edges(spec, side, &offsets, &mut rng)?;
+    // The leader is heard by the followers whose slots are nearest to it.
+    let mut by_distance: Vec<u32> = (0..n).collect();
+    by_distance.sort_by(|&a, &b| {
+        let d = |i: u32| offsets[i as usize][0].hypot(offsets[i as usize][1]);
+        d(a).total_cmp(&d(b)).then(a.cmp(&b))
+    });
+    let hears: std::collections::BTreeSet<u32> = by_distance.iter().take(spec.leader_links as usize).copied().collect();
+
+    let t = text(spec, &edges, radius_used, &offsets, &body_errors, &hears);
+    let scenario = Scenario::from_toml(&t, "generated scenario", "generated", &[])?;
+    let line = match scenario.graph.lambda_min_h() {
+        Some(l) => format!("# λ_min(H) = {l:.6} (Lemma 1: positive, the leader reaches every follower)."),
+        None => format!(
+            "# λ_min(H) not computed for {n} followers (dense eigenvalues); Lemma 1 holds: the leader reaches every follower."
+        ),
+    };
+    Ok(t.replace("#LAMBDA#", &line))
+}
+
+/// An error in the options of `formation generate`.
+fn bad(message: String) -> ScenarioError {
+    ScenarioError::Syntax { file: String::new(), line: None, message }
+}
+
+/// The spec's sizes and options fit together and stay within a scenario's
+/// limits.
+fn check(spec: &Spec) -> Result<(), ScenarioError> {
     let n = spec.followers;
     if n == 0 {
         return Err(bad("--followers must be at least 1".into()));
@@ -113,11 +147,14 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
     if spec.chords > 0 && spec.graph != GraphKind::Ring {
         return Err(bad(format!("--chords is for --graph ring, not {}", spec.graph.name())));
     }
-    let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
-    let side = f64::from(n).sqrt().ceil() as u32;
-    // Slots: a square block behind the leader (x < 0), centred on its track;
-    // random ones for the random geometric graph, in an area of the same size.
-    let offsets: Vec<[f64; 2]> = (0..n)
+    Ok(())
+}
+
+/// The formation slots (offsets from the leader, m): a square block of
+/// `side` columns behind the leader (x < 0), centred on its track; random
+/// ones for the random geometric graph, in an area of the same size.
+fn slots(spec: &Spec, side: u32, rng: &mut ChaCha8Rng) -> Vec<[f64; 2]> {
+    (0..spec.followers)
         .map(|i| match spec.graph {
             GraphKind::RandomGeometric => {
                 let extent = SPACING * f64::from(side);
@@ -128,9 +165,18 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
                 [-SPACING * f64::from(col + 1), SPACING * (f64::from(row) - f64::from(side - 1) / 2.0)]
             }
         })
-        .collect();
-    let body_errors: Vec<[f64; 2]> =
-        (0..n).map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)]).collect();
+        .collect()
+}
+
+/// The graph's edges between follower ids, and the link radius used (the
+/// random geometric graph only).
+fn graph_edges(
+    spec: &Spec,
+    side: u32,
+    offsets: &[[f64; 2]],
+    rng: &mut ChaCha8Rng,
+) -> Result<(Vec<(u32, u32)>, Option<f64>), ScenarioError> {
+    let n = spec.followers;
     let mut edges: Vec<(u32, u32)> = Vec::new();
     let mut radius_used = None;
     match spec.graph {
@@ -139,22 +185,7 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
             if n > 2 {
                 edges.push((1, n));
             }
-            let max_edges = u64::from(n) * u64::from(n - 1) / 2;
-            if edges.len() as u64 + u64::from(spec.chords) > max_edges {
-                return Err(bad(format!(
-                    "--chords {}: a ring of {n} has room for {} more edges",
-                    spec.chords,
-                    max_edges - edges.len() as u64
-                )));
-            }
-            let mut seen: std::collections::HashSet<(u32, u32)> = edges.iter().copied().collect();
-            let target = edges.len() + spec.chords as usize;
-            while edges.len() < target {
-                let (a, b) = (rng.random_range(1..=n), rng.random_range(1..=n));
-                if a != b && seen.insert((a.min(b), a.max(b))) {
-                    edges.push((a.min(b), a.max(b)));
-                }
-            }
+            add_chords(&mut edges, n, spec.chords, rng)?;
         }
         GraphKind::Grid => {
             for i in 0..n {
@@ -168,7 +199,7 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
             }
         }
         GraphKind::RandomGeometric => {
-            let radius = spec.radius.unwrap_or_else(|| 1.2 * connecting_radius(&offsets));
+            let radius = spec.radius.unwrap_or_else(|| 1.2 * connecting_radius(offsets));
             radius_used = Some(radius);
             for a in 0..n as usize {
                 for b in a + 1..n as usize {
@@ -186,14 +217,41 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
         }
         GraphKind::Line => edges.extend((1..n).map(|i| (i, i + 1))),
     }
-    // The leader is heard by the followers whose slots are nearest to it.
-    let mut by_distance: Vec<u32> = (0..n).collect();
-    by_distance.sort_by(|&a, &b| {
-        let d = |i: u32| offsets[i as usize][0].hypot(offsets[i as usize][1]);
-        d(a).total_cmp(&d(b)).then(a.cmp(&b))
-    });
-    let hears: std::collections::BTreeSet<u32> = by_distance.iter().take(spec.leader_links as usize).copied().collect();
+    Ok((edges, radius_used))
+}
 
+/// `chords` random extra edges on a ring of `n`, none repeated.
+fn add_chords(edges: &mut Vec<(u32, u32)>, n: u32, chords: u32, rng: &mut ChaCha8Rng) -> Result<(), ScenarioError> {
+    let max_edges = u64::from(n) * u64::from(n - 1) / 2;
+    if edges.len() as u64 + u64::from(chords) > max_edges {
+        return Err(bad(format!(
+            "--chords {}: a ring of {n} has room for {} more edges",
+            chords,
+            max_edges - edges.len() as u64
+        )));
+    }
+    let mut seen: std::collections::HashSet<(u32, u32)> = edges.iter().copied().collect();
+    let target = edges.len() + chords as usize;
+    while edges.len() < target {
+        let (a, b) = (rng.random_range(1..=n), rng.random_range(1..=n));
+        if a != b && seen.insert((a.min(b), a.max(b))) {
+            edges.push((a.min(b), a.max(b)));
+        }
+    }
+    Ok(())
+}
+
+/// The commented TOML file, with `#LAMBDA#` where λ_min(H)'s line goes once
+/// the scenario has loaded.
+fn text(
+    spec: &Spec,
+    edges: &[(u32, u32)],
+    radius_used: Option<f64>,
+    offsets: &[[f64; 2]],
+    body_errors: &[[f64; 2]],
+    hears: &std::collections::BTreeSet<u32>,
+) -> String {
+    let n = spec.followers;
     let mut t = String::new();
     let _ = writeln!(
         t,
@@ -238,14 +296,7 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
         }
         let _ = writeln!(t);
     }
-    let scenario = Scenario::from_toml(&t, "generated scenario", "generated", &[])?;
-    let line = match scenario.graph.lambda_min_h() {
-        Some(l) => format!("# λ_min(H) = {l:.6} (Lemma 1: positive, the leader reaches every follower)."),
-        None => format!(
-            "# λ_min(H) not computed for {n} followers (dense eigenvalues); Lemma 1 holds: the leader reaches every follower."
-        ),
-    };
-    Ok(t.replace("#LAMBDA#", &line))
+    t
 }
 
 /// The smallest link radius that connects `points`: the longest edge of

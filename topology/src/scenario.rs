@@ -12,7 +12,7 @@ use formation_plant::{Disturbance, NoiseCov, Pose, RobotParams, Velocity};
 use serde::Serialize;
 
 use crate::error::ScenarioError;
-use crate::file::{exact, ScenarioFile};
+use crate::file::{exact, LeaderFile, ScenarioFile};
 use crate::graph::Graph;
 
 /// How followers initialise their leader estimate.
@@ -643,7 +643,57 @@ fn validate(
     overridden: &[(String, String)],
 ) -> Result<Scenario, ScenarioError> {
     let c = Check { label, source, overridden };
-    let name = file.name.clone().unwrap_or_else(|| default_name.to_string());
+    let name = validate_name(&c, file.name.clone().unwrap_or_else(|| default_name.to_string()))?;
+    validate_steps(&c, &file)?;
+    let estimate_init = match file.estimate_init.as_str() {
+        "leader" => EstimateInit::Leader,
+        "zero" => EstimateInit::Zero,
+        other => return Err(c.fail("estimate_init", format!("`{other}` is not one of: leader, zero"))),
+    };
+    let timing = match file.timing.as_str() {
+        "lockstep" => Timing::Lockstep,
+        "realtime" => Timing::Realtime,
+        other => return Err(c.fail("timing", format!("`{other}` is not one of: lockstep, realtime"))),
+    };
+    let (leader_profile, leader_pose) = validate_leader(&c, &file.leader)?;
+    validate_table_sizes(&c, &file)?;
+    let followers = validate_followers(&c, &file, leader_pose)?;
+    let graph = validate_graph(&c, &file, &followers)?;
+    validate_gains(&c, &file)?;
+    let fault = validate_fault(&c, &file)?;
+    let faults = validate_faults(&c, &file, &followers, &graph)?;
+    let (network, rejoin) = validate_network(&c, &file)?;
+    let r = &file.robot;
+    let robot = RobotParams {
+        mass_kg: r.mass,
+        inertia_kgm2: r.inertia,
+        wheel_radius_m: r.wheel_radius,
+        half_axle_m: r.half_axle,
+    };
+    Ok(Scenario {
+        name,
+        seed: file.seed,
+        dt_s: file.dt,
+        duration_s: file.duration,
+        noise: file.noise,
+        covariance: NoiseCov { q: file.covariance.q, r: file.covariance.r },
+        estimate_init,
+        timing,
+        leader_profile,
+        leader_pose,
+        followers,
+        graph,
+        control: Arc::new(control_params(&file, robot, fault, rejoin)),
+        robot,
+        disturbance: Disturbance { linear_n: file.disturbance.dv, angular_nm: file.disturbance.dw },
+        network,
+        faults,
+        source: file,
+    })
+}
+
+/// `name`: the run's folder and every key of its traffic.
+fn validate_name(c: &Check<'_>, name: String) -> Result<String, ScenarioError> {
     if name.chars().count() > MAX_NAME_CHARS {
         let start: String = name.chars().take(20).collect();
         return Err(c.fail(
@@ -654,6 +704,11 @@ fn validate(
     if name.is_empty() || !name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_') {
         return Err(c.fail("name", format!("`{name}` must be non-empty and use only letters, digits, '-' and '_'")));
     }
+    Ok(name)
+}
+
+/// `dt` and `duration`: a whole number of steps, at most [`MAX_STEPS`].
+fn validate_steps(c: &Check<'_>, file: &ScenarioFile) -> Result<(), ScenarioError> {
     c.positive("dt", &[file.dt])?;
     c.positive("duration", &[file.duration])?;
     let (dt, duration) = (num(file.dt), num(file.duration));
@@ -683,19 +738,11 @@ fn validate(
             format!("{duration} s is not a whole number of steps of {dt} s (T/Δt = {ratio})"),
         ));
     }
-    let estimate_init = match file.estimate_init.as_str() {
-        "leader" => EstimateInit::Leader,
-        "zero" => EstimateInit::Zero,
-        other => return Err(c.fail("estimate_init", format!("`{other}` is not one of: leader, zero"))),
-    };
-    let timing = match file.timing.as_str() {
-        "lockstep" => Timing::Lockstep,
-        "realtime" => Timing::Realtime,
-        other => return Err(c.fail("timing", format!("`{other}` is not one of: lockstep, realtime"))),
-    };
+    Ok(())
+}
 
-    // Leader.
-    let l = &file.leader;
+/// `[leader]`: the trajectory and the leader's initial pose.
+fn validate_leader(c: &Check<'_>, l: &LeaderFile) -> Result<(Profile, Pose), ScenarioError> {
     c.finite("leader.pose", &l.pose)?;
     c.non_negative("leader.ramp", &[l.ramp])?;
     c.finite("leader.speed", &[l.speed])?;
@@ -712,9 +759,11 @@ fn validate(
             )
         }
     };
-    let leader_pose = Pose::new(l.pose[0], l.pose[1], l.pose[2]);
+    Ok((Profile { trajectory, ramp_s: l.ramp }, Pose::new(l.pose[0], l.pose[1], l.pose[2])))
+}
 
-    // Followers.
+/// The lengths of `followers`, `edges` and `faults`, before any is read.
+fn validate_table_sizes(c: &Check<'_>, file: &ScenarioFile) -> Result<(), ScenarioError> {
     if file.followers.is_empty() {
         return Err(c.fail("followers", "at least one follower is needed"));
     }
@@ -733,6 +782,15 @@ fn validate(
             format!("{} fault rows; the fault table may have at most {MAX_FAULT_ROWS}", file.faults.len()),
         ));
     }
+    Ok(())
+}
+
+/// `[[followers]]`, in ascending id (the order of the graph).
+fn validate_followers(
+    c: &Check<'_>,
+    file: &ScenarioFile,
+    leader_pose: Pose,
+) -> Result<Vec<FollowerSpec>, ScenarioError> {
     let mut order: Vec<usize> = (0..file.followers.len()).collect();
     order.sort_by_key(|&i| file.followers[i].id);
     let mut followers = Vec::with_capacity(order.len());
@@ -767,9 +825,13 @@ fn validate(
             hears_leader: f.leader_link,
         });
     }
-    let ids: Vec<u32> = followers.iter().map(|f| f.id).collect();
+    Ok(followers)
+}
 
-    // Edges.
+/// `edges` and the followers' `leader_link`: a graph the leader reaches
+/// whole (Lemma 1).
+fn validate_graph(c: &Check<'_>, file: &ScenarioFile, followers: &[FollowerSpec]) -> Result<Graph, ScenarioError> {
+    let ids: Vec<u32> = followers.iter().map(|f| f.id).collect();
     let mut edges = Vec::with_capacity(file.edges.len());
     let mut seen = std::collections::HashSet::with_capacity(file.edges.len());
     for (e, &[a, b]) in file.edges.iter().enumerate() {
@@ -801,11 +863,15 @@ fn validate(
                 assignment: assignment.to_string(),
                 message: ScenarioError::GraphNotConnected { file: String::new(), unreachable }.to_string(),
             },
-            None => ScenarioError::GraphNotConnected { file: label.to_string(), unreachable },
+            None => ScenarioError::GraphNotConnected { file: c.label.to_string(), unreachable },
         });
     }
+    Ok(graph)
+}
 
-    // Gains and models.
+/// `[estimator]`, `[backstepping]`, `[sliding_mode]`, `[robot]`,
+/// `[disturbance]`, `[covariance]`, `[asif]`: the gains and models.
+fn validate_gains(c: &Check<'_>, file: &ScenarioFile) -> Result<(), ScenarioError> {
     let est = &file.estimator;
     c.positive("estimator.k", &est.k)?;
     c.non_negative("estimator.ka", &est.ka)?;
@@ -831,33 +897,31 @@ fn validate(
     c.finite("disturbance.dw", &[file.disturbance.dw])?;
     c.non_negative("covariance.q", &file.covariance.q)?;
     c.positive("covariance.r", &file.covariance.r)?;
-    c.positive("asif.rho_max", &file.asif.rho_max)?;
-    let fault = match file.fault.time {
-        None => None,
-        Some(time_s) => {
-            c.non_negative("fault.time", &[time_s])?;
-            if time_s > file.duration {
-                return Err(c.fail_with(
-                    "fault.time",
-                    &["duration"],
-                    format!("must lie within [0, duration] = [0, {}] s, got {time_s}", file.duration),
-                ));
-            }
-            c.positive("fault.mass_factor", &[file.fault.mass_factor])?;
-            c.positive("fault.inertia_factor", &[file.fault.inertia_factor])?;
-            Some(Fault { time_s, mass_factor: file.fault.mass_factor, inertia_factor: file.fault.inertia_factor })
-        }
-    };
-    let robot = RobotParams {
-        mass_kg: r.mass,
-        inertia_kgm2: r.inertia,
-        wheel_radius_m: r.wheel_radius,
-        half_axle_m: r.half_axle,
-    };
-    let faults = validate_faults(&c, &file, &followers, &graph)?;
+    c.positive("asif.rho_max", &file.asif.rho_max)
+}
+
+/// `[fault]`: the change of mass and inertia at one time, if any.
+fn validate_fault(c: &Check<'_>, file: &ScenarioFile) -> Result<Option<Fault>, ScenarioError> {
+    let Some(time_s) = file.fault.time else { return Ok(None) };
+    c.non_negative("fault.time", &[time_s])?;
+    if time_s > file.duration {
+        return Err(c.fail_with(
+            "fault.time",
+            &["duration"],
+            format!("must lie within [0, duration] = [0, {}] s, got {time_s}", file.duration),
+        ));
+    }
+    c.positive("fault.mass_factor", &[file.fault.mass_factor])?;
+    c.positive("fault.inertia_factor", &[file.fault.inertia_factor])?;
+    Ok(Some(Fault { time_s, mass_factor: file.fault.mass_factor, inertia_factor: file.fault.inertia_factor }))
+}
+
+/// `[network]`: the networked run's settings and the rejoin rule.
+fn validate_network(c: &Check<'_>, file: &ScenarioFile) -> Result<(NetworkSettings, RejoinRule), ScenarioError> {
     let n = &file.network;
+    let dt = num(file.dt);
     c.positive("network.silence_timeout", &[n.silence_timeout])?;
-    let rejoin_policy = match n.rejoin.as_str() {
+    let policy = match n.rejoin.as_str() {
         "consensus" => RejoinPolicy::Consensus,
         "adopt" => RejoinPolicy::Adopt,
         other => return Err(c.fail("network.rejoin", format!("`{other}` is not one of: consensus, adopt"))),
@@ -875,8 +939,8 @@ fn validate(
             ),
         ));
     }
-    let rejoin_after_steps = (n.rejoin_after / file.dt).round() as u64;
-    if rejoin_after_steps == 0 {
+    let after_steps = (n.rejoin_after / file.dt).round() as u64;
+    if after_steps == 0 {
         return Err(
             c.fail("network.rejoin_after", format!("{} s is less than half a step of {dt} s", num(n.rejoin_after)))
         );
@@ -888,56 +952,44 @@ fn validate(
     if n.delay_steps > MAX_DELAY_STEPS {
         return Err(c.fail("network.delay_steps", format!("{} is more than {MAX_DELAY_STEPS}", n.delay_steps)));
     }
+    let settings = NetworkSettings {
+        silence_timeout_s: n.silence_timeout,
+        time_scale: n.time_scale,
+        telemetry_batch: n.telemetry_batch,
+        hearing_record: n.hearing_record,
+        delay_steps: n.delay_steps,
+    };
+    Ok((settings, RejoinRule { policy, after_steps }))
+}
 
-    Ok(Scenario {
-        name,
-        seed: file.seed,
-        dt_s: file.dt,
-        duration_s: file.duration,
-        noise: file.noise,
-        covariance: NoiseCov { q: file.covariance.q, r: file.covariance.r },
-        estimate_init,
-        timing,
-        leader_profile: Profile { trajectory, ramp_s: l.ramp },
-        leader_pose,
-        followers,
-        graph,
-        control: Arc::new(ControlParams {
-            estimator: EstimatorGains { k: est.k, ka: est.ka, kb: est.kb },
-            kinematic: file.kinematic,
-            kinematic_gains: KinematicGains { c1: bs.c1, c2: bs.c2, c3: bs.c3, shunting: bs.shunting },
-            dynamic: file.dynamic,
-            dynamic_gains: DynamicGains {
-                ca: sm.ca,
-                cb: sm.cb,
-                shunting_v: sm.shunting_v,
-                shunting_w: sm.shunting_w,
-                k1: sm.k1,
-                k2: sm.k2,
-            },
-            filter: FilterParams {
-                kind: file.filter,
-                q: file.covariance.q,
-                r: file.covariance.r,
-                rho_max: file.asif.rho_max,
-            },
-            model: robot,
-            fault,
-            rejoin: RejoinRule { policy: rejoin_policy, after_steps: rejoin_after_steps },
-            dt_s: file.dt,
-        }),
-        robot,
-        disturbance: Disturbance { linear_n: file.disturbance.dv, angular_nm: file.disturbance.dw },
-        network: NetworkSettings {
-            silence_timeout_s: n.silence_timeout,
-            time_scale: n.time_scale,
-            telemetry_batch: n.telemetry_batch,
-            hearing_record: n.hearing_record,
-            delay_steps: n.delay_steps,
+/// The controllers, filter and model every follower shares, from a file
+/// already validated.
+fn control_params(file: &ScenarioFile, model: RobotParams, fault: Option<Fault>, rejoin: RejoinRule) -> ControlParams {
+    let (est, bs, sm) = (&file.estimator, &file.backstepping, &file.sliding_mode);
+    ControlParams {
+        estimator: EstimatorGains { k: est.k, ka: est.ka, kb: est.kb },
+        kinematic: file.kinematic,
+        kinematic_gains: KinematicGains { c1: bs.c1, c2: bs.c2, c3: bs.c3, shunting: bs.shunting },
+        dynamic: file.dynamic,
+        dynamic_gains: DynamicGains {
+            ca: sm.ca,
+            cb: sm.cb,
+            shunting_v: sm.shunting_v,
+            shunting_w: sm.shunting_w,
+            k1: sm.k1,
+            k2: sm.k2,
         },
-        faults,
-        source: file,
-    })
+        filter: FilterParams {
+            kind: file.filter,
+            q: file.covariance.q,
+            r: file.covariance.r,
+            rho_max: file.asif.rho_max,
+        },
+        model,
+        fault,
+        rejoin,
+        dt_s: file.dt,
+    }
 }
 
 /// docs/model.md §14's fault table: each row one link of the graph or one follower,

@@ -1,0 +1,23 @@
+//! The certificate folder of a secure deployment.
+//!
+//! `formation certs` writes it ([`generate`], behind the `generate`
+//! feature, which only the `formation` crate turns on): an authority, for
+//! every node a key and a certificate whose common name is the node's name,
+//! the access-control policy signed by the authority, and a revocation
+//! list. A node started with `--tls DIR` checks its files there before it
+//! opens a session ([`identity`]).
+//!
+//! This crate knows files, X.509 and the folder's layout, nothing of the
+//! network: it never imports tokio, zenoh or a crate of the workspace. What
+//! the policy allows (key expressions, zenoh's `access_control` section)
+//! and the zenoh settings of `--tls` are `formation_net::identity`'s; the
+//! policy reaches [`generate`] as JSON through the `formation` binary.
+//! Without `generate` nothing here makes a key or a certificate (no
+//! rcgen).
+
+#[cfg(feature = "generate")]
+pub mod generate;
+pub mod identity;
+
+pub use identity::{identity, node_dir, policy_digest_name, Identity, IdentityError};
+pub use identity::{CA_CERT, CA_DIR, CA_KEY, CRL, POLICY, POLICY_CERT, POLICY_SUBJECT};
