@@ -118,30 +118,7 @@ pub async fn run_leader(
         need: std::sync::atomic::AtomicU64::new(0),
         moved: Condvar::new(),
     });
-    let mut subs = Vec::new();
-    for (slot, &id) in hearing.iter().enumerate() {
-        let p = progress.clone();
-        subs.push(
-            session
-                .declare_subscriber(keys.estimate(id))
-                .callback(move |s| {
-                    let key_id = names::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
-                    if let Ok(m) = wire::decode(&s.payload().to_bytes()) {
-                        let published = p.published.load(std::sync::atomic::Ordering::Acquire);
-                        let mut r = p.reached.lock().unwrap_or_else(|e| e.into_inner());
-                        if note_reached(&mut r, slot, key_id, &m.header, published) {
-                            let wake = window_reached(&r, p.need.load(std::sync::atomic::Ordering::Acquire));
-                            drop(r);
-                            if wake {
-                                p.moved.notify_all();
-                            }
-                        }
-                    }
-                })
-                .await
-                .map_err(|e| zerr("declaring a subscriber", e))?,
-        );
-    }
+    let subs = watch_reached(session, keys, &hearing, &progress).await?;
     let estimate_pub = session
         .declare_publisher(keys.estimate(wire::LEADER_ID))
         .congestion_control(estimate_congestion(scenario))
@@ -164,12 +141,7 @@ pub async fn run_leader(
     let (start, announcer) =
         startup::lead_start(session, keys, &timebase, &hellos, &ready, scenario, time_scale, lead).await?;
     if print_start {
-        use std::io::Write;
-        let mut out = std::io::stdout().lock();
-        // The epoch, and how far ahead of now it is on the leader's own
-        // clock (for a lab whose clock is not the leader's).
-        let ahead = start.epoch_unix_ns as i64 - timebase.now_ns().unwrap_or(0);
-        let _ = writeln!(out, "start {} {} {ahead}", start.epoch_unix_ns, start.time_scale).and_then(|()| out.flush());
+        print_start_line(&start, &timebase);
     }
 
     let scenario = scenario.clone();
@@ -199,6 +171,50 @@ pub async fn run_leader(
     drop(subs);
     drop(done_subs);
     outcome.map_err(|e| Error::Run(format!("leader: {e}")))
+}
+
+/// Lock-step: one subscriber per hearing follower's estimate key, filing
+/// how far each has reached ([`note_reached`]) and waking the loop when the
+/// slowest reaches what it waits for.
+async fn watch_reached(
+    session: &zenoh::Session,
+    keys: &Keys,
+    hearing: &[u32],
+    progress: &Arc<Reached>,
+) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, Error> {
+    let mut subs = Vec::new();
+    for (slot, &id) in hearing.iter().enumerate() {
+        let p = progress.clone();
+        let sub = session
+            .declare_subscriber(keys.estimate(id))
+            .callback(move |s| {
+                let key_id = names::last_chunk(s.key_expr().as_str()).parse::<u32>().ok();
+                let Ok(m) = wire::decode(&s.payload().to_bytes()) else { return };
+                let published = p.published.load(std::sync::atomic::Ordering::Acquire);
+                let mut r = p.reached.lock().unwrap_or_else(|e| e.into_inner());
+                if note_reached(&mut r, slot, key_id, &m.header, published) {
+                    let wake = window_reached(&r, p.need.load(std::sync::atomic::Ordering::Acquire));
+                    drop(r);
+                    if wake {
+                        p.moved.notify_all();
+                    }
+                }
+            })
+            .await
+            .map_err(|e| zerr("declaring a subscriber", e))?;
+        subs.push(sub);
+    }
+    Ok(subs)
+}
+
+/// `start <epoch ns> <time scale> <ns ahead>` on stdout: the epoch, and how
+/// far ahead of now it is on the leader's own clock (for a lab whose clock
+/// is not the leader's).
+fn print_start_line(start: &Start, timebase: &clock::Timebase) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let ahead = start.epoch_unix_ns as i64 - timebase.now_ns().unwrap_or(0);
+    let _ = writeln!(out, "start {} {} {ahead}", start.epoch_unix_ns, start.time_scale).and_then(|()| out.flush());
 }
 
 fn put(p: &Publisher<'_>, bytes: Vec<u8>) -> Result<(), Error> {
@@ -286,21 +302,31 @@ fn leader_loop(
         }
     }
     if lockstep {
-        // A follower may still wait for one of the last messages (lost?):
-        // repeat what the slowest may have missed until every hearing
-        // follower reports its final step, for at most LINGER.
-        let hearing = progress.reached.lock().unwrap_or_else(|e| e.into_inner()).len();
-        let mut linger = gate::Wait::new(crate::clock::mono(), gate::LINGER_REPEAT_EVERY, LINGER);
-        while let gate::WaitStep::Wait { repeat: again, .. } = linger.poll(crate::clock::mono()) {
-            if followers_done.lock().unwrap_or_else(|e| e.into_inner()).len() >= hearing {
-                break;
-            }
-            if again {
-                let slowest = gate::slowest_step(&progress.reached.lock().unwrap_or_else(|e| e.into_inner()));
-                repeat(estimate_pub, &recent, slowest)?;
-            }
-            std::thread::sleep(Duration::from_millis(10));
+        linger(progress, estimate_pub, &recent, followers_done)?;
+    }
+    Ok(())
+}
+
+/// Lock-step, after the last step: a follower may still wait for one of
+/// the last messages (lost?): repeat what the slowest may have missed until
+/// every hearing follower reports its final step, for at most [`LINGER`].
+fn linger(
+    progress: &Reached,
+    estimate_pub: &Publisher<'_>,
+    recent: &Kept,
+    followers_done: &Mutex<std::collections::BTreeSet<u32>>,
+) -> Result<(), Error> {
+    let hearing = progress.reached.lock().unwrap_or_else(|e| e.into_inner()).len();
+    let mut linger = gate::Wait::new(clock::mono(), gate::LINGER_REPEAT_EVERY, LINGER);
+    while let gate::WaitStep::Wait { repeat: again, .. } = linger.poll(clock::mono()) {
+        if followers_done.lock().unwrap_or_else(|e| e.into_inner()).len() >= hearing {
+            break;
         }
+        if again {
+            let slowest = gate::slowest_step(&progress.reached.lock().unwrap_or_else(|e| e.into_inner()));
+            repeat(estimate_pub, recent, slowest)?;
+        }
+        std::thread::sleep(Duration::from_millis(10));
     }
     Ok(())
 }
