@@ -16,7 +16,7 @@
 
 use crate::error::Error;
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use formation_agent::LeaderState;
 use formation_topology::Scenario;
@@ -24,7 +24,7 @@ use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHand
 use serde_json::json;
 
 use formation_record::mcap::{columns_schema, names, pose_in_frame, stamp, EVENT, POSE_IN_FRAME};
-use formation_record::{Row, FOLLOWER_HEADER, LEADER_HEADER};
+use formation_record::{LiveSink, Row, FOLLOWER_HEADER, LEADER_HEADER};
 
 /// At most this many messages per channel and second of run time.
 pub const LIVE_HZ: f64 = 50.0;
@@ -40,7 +40,8 @@ struct FollowerChannels {
 pub struct FoxgloveLive {
     /// The server holds only a weak reference to its context.
     _context: Arc<Context>,
-    server: Option<WebSocketServerHandle>,
+    /// Taken to stop it.
+    server: Mutex<Option<WebSocketServerHandle>>,
     port: u16,
     leader_pose: Arc<RawChannel>,
     leader_state: Arc<RawChannel>,
@@ -95,7 +96,7 @@ impl FoxgloveLive {
         let every = ((1.0 / (LIVE_HZ * scenario.dt_s)).round() as u64).max(1);
         Ok(Self {
             _context: ctx,
-            server: Some(server),
+            server: Mutex::new(Some(server)),
             port,
             leader_pose,
             leader_state,
@@ -112,17 +113,23 @@ impl FoxgloveLive {
         self.port
     }
 
-    /// Viewers connected now.
-    pub fn viewers(&self) -> usize {
-        self.server.as_ref().map_or(0, |s| s.client_count())
-    }
-
     fn wanted(&self, k: u64) -> bool {
         k % self.every == 0 || k == self.last_k
     }
 
+    /// Stops the server and disconnects its viewers.
+    pub async fn stop(&self) {
+        let server = self.server.lock().unwrap_or_else(|p| p.into_inner()).take();
+        if let Some(s) = server {
+            s.stop().wait().await;
+        }
+    }
+}
+
+/// The recorder's rows and events, as run.mcap's messages.
+impl LiveSink for FoxgloveLive {
     /// The leader's state of step k, as `leader.csv`'s row.
-    pub fn leader(&self, k: u64, l: &LeaderState) {
+    fn leader(&self, k: u64, l: &LeaderState) {
         if !self.wanted(k) || !(self.leader_pose.has_sinks() || self.leader_state.has_sinks()) {
             return;
         }
@@ -138,7 +145,7 @@ impl FoxgloveLive {
     }
 
     /// Follower `index`'s row of step k, as `follower_<id>.csv`'s.
-    pub fn follower(&self, index: usize, k: u64, row: &Row) {
+    fn follower(&self, index: usize, k: u64, row: &Row) {
         let Some(c) = self.followers.get(index) else { return };
         if !self.wanted(k) {
             return;
@@ -159,17 +166,15 @@ impl FoxgloveLive {
     }
 
     /// A network event `node` noticed at step k (every one, not thinned).
-    pub fn event(&self, node: &str, k: u64, what: &str) {
+    fn event(&self, node: &str, k: u64, what: &str) {
         if self.events.has_sinks() {
             let t = k as f64 * self.dt_s;
             send(&self.events, stamp(t).0, &json!({"node": node, "t": t, "event": what}));
         }
     }
 
-    /// Stops the server and disconnects its viewers.
-    pub async fn stop(mut self) {
-        if let Some(s) = self.server.take() {
-            s.stop().wait().await;
-        }
+    /// Viewers connected now.
+    fn viewers(&self) -> usize {
+        self.server.lock().unwrap_or_else(|p| p.into_inner()).as_ref().map_or(0, |s| s.client_count())
     }
 }

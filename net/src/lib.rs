@@ -12,8 +12,9 @@
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
-//! | nodes | [`agent`], [`leader`], [`monitor`] (with [`web`] and [`foxglove`]), [`router`] |
-//! | a run again | [`replay`] (on the monitor's recorder), [`explain`], [`playback`] |
+//! | a run's record (no zenoh) | [`recorder`] (its viewers: [`web`] and [`foxglove`]) |
+//! | nodes | [`agent`], [`leader`], [`monitor`] (on the recorder), [`router`] |
+//! | a run again | [`replay`] (on the recorder), [`explain`], [`playback`] |
 
 pub mod agent;
 pub mod barrier;
@@ -39,6 +40,7 @@ pub mod monitor;
 pub mod names;
 pub mod node;
 pub mod playback;
+pub mod recorder;
 pub mod replay;
 pub mod router;
 pub mod session;

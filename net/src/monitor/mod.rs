@@ -7,24 +7,14 @@
 //! message counters. Ctrl-C or SIGTERM: writes everything received so far
 //! and exits with status 130 (SIGINT) or 143 (SIGTERM).
 //!
-//! | module | its job |
-//! | --- | --- |
-//! | [`args`] | the command line ([`MonitorArgs`], [`WebArgs`]) |
-//! | `stream` | one node's batches put back in step order, and checked |
-//! | `recorder` | the [`Recorder`]: telemetry in, the run folder out |
-//! | `network_json` | `network.json` |
-//! | `live` | the live line and the live page's JSON |
-//! | `node` | the zenoh side: [`run`] and its loop |
+//! What it records is [`crate::recorder::Recorder`]'s job (the same
+//! recorder replays and playbacks use); this module is the node around
+//! it: its arguments ([`args`]), and the zenoh side ([`run`] and its loop,
+//! in `node`).
 
 mod args;
-mod live;
-mod network_json;
 mod node;
-mod recorder;
-mod stream;
 
 pub use crate::watch::Ending;
 pub use args::{MonitorArgs, WebArgs};
-pub use node::run;
-pub use recorder::{model_errors, Recorder};
-pub use stream::Gap;
+pub use node::{model_errors, run};

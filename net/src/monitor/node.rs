@@ -4,6 +4,7 @@
 //! then it writes the run folder and says how the run ended. Only this
 //! module knows zenoh and the terminal.
 
+use std::collections::BTreeMap;
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 use std::pin::Pin;
@@ -16,13 +17,14 @@ use formation_record::RecordOptions;
 use formation_topology::Scenario;
 use tokio::sync::mpsc;
 
-use super::{model_errors, MonitorArgs, Recorder};
+use super::MonitorArgs;
 use crate::barrier::{self, Start};
 use crate::codec;
 use crate::error::Error;
 use crate::foxglove::FoxgloveLive;
 use crate::health::{ControlWatch, Verdict};
 use crate::names::{self, Keys, MONITOR};
+use crate::recorder::Recorder;
 use crate::startup;
 use crate::watch::{Ending, Watch};
 use crate::web::{self, Live};
@@ -45,13 +47,13 @@ pub async fn run(args: &MonitorArgs) -> Result<(Ending, Option<Verdict>), Error>
         Some(addr) => {
             let live = FoxgloveLive::start(addr, &scenario, &keys.run).await?;
             crate::node::say(&format!("foxglove: ws://{}:{}", addr.ip(), live.port()));
-            Some(live)
+            Some(Arc::new(live))
         }
         None => None,
     };
     let mut recorder = start_record(args, &scenario, &keys.run)?;
-    if let Some(live) = foxglove {
-        recorder.set_foxglove(live);
+    if let Some(live) = &foxglove {
+        recorder.add_sink(live.clone());
     }
     let session = match args.node.open(MONITOR, &scenario).await {
         Ok(s) => s,
@@ -61,7 +63,8 @@ pub async fn run(args: &MonitorArgs) -> Result<(Ending, Option<Verdict>), Error>
             return Err(e);
         }
     };
-    let result = monitor(&session, &scenario, &keys, recorder, args, began, web.as_deref()).await;
+    let viewers = Viewers { web: web.as_deref(), foxglove: foxglove.as_deref() };
+    let result = monitor(&session, &scenario, &keys, recorder, args, began, viewers).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -215,6 +218,22 @@ impl Ears {
 
     async fn acknowledge(&self, recorder: &Recorder) {
         let _ = self.acks.put(codec::encode(&recorder.ack())).await;
+    }
+}
+
+/// The run's viewers: the live page (fed frames) and the Foxglove server
+/// (fed rows by the recorder).
+#[derive(Clone, Copy)]
+struct Viewers<'a> {
+    web: Option<&'a Live>,
+    foxglove: Option<&'a FoxgloveLive>,
+}
+
+impl Viewers<'_> {
+    /// Whether anyone watches now.
+    fn watched(&self) -> bool {
+        use formation_record::LiveSink;
+        self.web.is_some_and(|w| w.viewers() > 0) || self.foxglove.is_some_and(|f| f.viewers() > 0)
     }
 }
 
@@ -372,7 +391,7 @@ async fn monitor(
     recorder: Recorder,
     args: &MonitorArgs,
     began: Instant,
-    web: Option<&Live>,
+    viewers: Viewers<'_>,
 ) -> Result<(Ending, Option<Verdict>), Error> {
     let ears = Ears::declare(session, keys, scenario).await?;
     tokio::spawn(crate::denials::report(session.clone(), MONITOR.to_string(), Some(keys.run.clone())));
@@ -382,7 +401,7 @@ async fn monitor(
     tokio::pin!(barrier);
     let watch = Watch::new(began, Instant::now(), Duration::from_secs_f64(args.idle_timeout));
     let tty = std::io::stderr().is_terminal();
-    let mut m = Monitor { args, recorder, watch, ears, frames: Frames { web, seq: 0 }, tty };
+    let mut m = Monitor { args, recorder, watch, ears, frames: Frames { web: viewers.web, seq: 0 }, tty };
     let ending = match m.record(barrier, needs.len() + 1).await? {
         Stopped::Ended(ending) => ending,
         Stopped::NotStarted(e) => {
@@ -398,16 +417,14 @@ async fn monitor(
         eprintln!();
     }
     let Monitor { mut recorder, watch, ears, .. } = m;
-    let foxglove = recorder.take_foxglove();
     recorder.set_wall(watch.startup_s(), run_s);
     recorder.control = ears.control.lock().unwrap_or_else(|p| p.into_inner()).clone();
     let result = finish(recorder, ending, scenario, args);
-    let watched = web.is_some_and(|w| w.viewers() > 0) || foxglove.as_ref().is_some_and(|f| f.viewers() > 0);
-    if watched && matches!(ending, Ending::Complete | Ending::Idle) {
+    if viewers.watched() && matches!(ending, Ending::Complete | Ending::Idle) {
         // Open pages get the final frame before the server ends with the process.
         tokio::time::sleep(Duration::from_secs_f64(args.web.web_linger)).await;
     }
-    if let Some(f) = foxglove {
+    if let Some(f) = viewers.foxglove {
         f.stop().await;
     }
     result
@@ -449,5 +466,29 @@ fn finish(
             unfinished.join(", "),
             dir.display()
         ))),
+    }
+}
+
+/// The model runs at the end of a run only up to this many follower-steps
+/// (the paper's 4 followers for 30 s are 120,004: 0.3 s).
+const MODEL_MAX_FOLLOWER_STEPS: u64 = 3_000_000;
+
+/// Each follower's formation error over the last 10 s in the model of the
+/// run (the simulator on the same scenario: delay, loss and fault table),
+/// or why the model was not run.
+pub fn model_errors(scenario: &Scenario) -> Result<BTreeMap<u32, Option<f64>>, String> {
+    let n = scenario.followers.len() as u64 * (scenario.steps() + 1);
+    if n > MODEL_MAX_FOLLOWER_STEPS {
+        return Err(format!(
+            "not run at the end of the run: {n} follower-steps (above {MODEL_MAX_FOLLOWER_STEPS}); \
+             formation replay RUN_DIR --explain compares the run with its model"
+        ));
+    }
+    let mut sim = formation_sim::Simulation::new(scenario);
+    match sim.run(&mut formation_sim::NoRecord, |_| {}) {
+        Ok(metrics) => {
+            Ok(scenario.followers.iter().zip(metrics).map(|(f, m)| (f.id, m.formation_rms_last10)).collect())
+        }
+        Err(e) => Err(format!("the model did not finish: {e}")),
     }
 }

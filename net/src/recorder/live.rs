@@ -8,7 +8,7 @@ use std::time::Instant;
 use formation_topology::Scenario;
 use serde_json::{json, Value};
 
-use super::recorder::{NodeStats, Recorder};
+use super::{NodeStats, Recorder};
 use crate::telemetry::EventKind;
 
 /// The live page names a node whose telemetry stopped this long ago (s).

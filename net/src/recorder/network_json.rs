@@ -5,8 +5,8 @@
 
 use serde_json::{json, Map, Value};
 
-use super::recorder::{NodeStats, Recorder};
 use super::stream::Stream;
+use super::{NodeStats, Recorder};
 use crate::barrier;
 use crate::health::Health;
 use crate::watch::Ending;
@@ -144,7 +144,7 @@ impl Recorder {
 
 /// A node's stream figures as `network.json` gives them.
 struct Figures<'a> {
-    gaps: &'a [super::stream::Gap],
+    gaps: &'a [super::Gap],
     reordered: u64,
     duplicates: u64,
     recovered: Vec<Value>,

@@ -1,22 +1,33 @@
-//! The monitor's record of a run ([`Recorder`]), independent of zenoh: fed
-//! telemetry payloads and the time, it puts each node's batches back in
+//! A networked run's record ([`Recorder`]), independent of zenoh: fed
+//! telemetry payloads and the time (the monitor), or a run's steps
+//! re-computed (a replay, a playback), it puts each node's batches back in
 //! step order, pairs every follower's sample with the leader's state of
 //! its step, and writes the run folder (rows, `summary.json`,
-//! `network.json`, `hearing.bin`).
+//! `network.json`, `hearing.bin`). The rows go to its viewers as well,
+//! through [`LiveSink`] (the Foxglove server): it knows no server.
+//!
+//! | module | its job |
+//! | --- | --- |
+//! | `stream` | one node's batches put back in step order, and checked |
+//! | `network_json` | `network.json` |
+//! | `live` | the monitor's live line and the live page's JSON |
+//!
+//! It never imports a node ([`crate::monitor`], the agent, the leader) or
+//! zenoh.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Instant;
 
 use formation_agent::LeaderState;
 use formation_record::hearing::{Density, End, FollowerHearing, HearingRecord, Rescued, Resume, ScenarioSource};
 use formation_record::{
-    FollowerSample, Heard, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary, HEARING_FILE,
+    FollowerSample, Heard, LiveSink, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary, HEARING_FILE,
 };
 use formation_topology::Scenario;
 use serde_json::json;
 
-use super::stream::{check_batch, Stream};
 use crate::barrier;
 use crate::codec;
 use crate::counters::Counters;
@@ -24,29 +35,36 @@ use crate::health::{ControlWatch, Evidence, Health};
 use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
 use crate::timing::LoopStats;
 use crate::watch::Ending;
+use stream::{check_batch, Stream};
+
+mod live;
+mod network_json;
+mod stream;
+
+pub use stream::Gap;
 
 /// What the monitor knows of one node (0: the leader) from its telemetry.
 #[derive(Default)]
-pub(super) struct NodeStats {
-    pub(super) messages: u64,
-    pub(super) bytes: u64,
+struct NodeStats {
+    messages: u64,
+    bytes: u64,
     /// Steps recorded from this node's telemetry.
-    pub(super) samples: u64,
+    samples: u64,
     /// The newest batch so far, as (incarnation, first step): counters and
     /// delivery figures are taken from it (a batch sent again is older).
     newest: Option<(u64, u64)>,
-    pub(super) counters: Counters,
-    pub(super) delivery: Delivery,
-    pub(super) loop_stats: Option<LoopStats>,
+    counters: Counters,
+    delivery: Delivery,
+    loop_stats: Option<LoopStats>,
     /// The newest estimate of the leader's clock (followers).
-    pub(super) clock: Option<ClockReport>,
+    clock: Option<ClockReport>,
     /// The newest per-link latency and age (followers), at most one per source.
-    pub(super) links: Vec<LinkStats>,
-    pub(super) done: bool,
+    links: Vec<LinkStats>,
+    done: bool,
     /// What the network did to this node, as it noticed it.
-    pub(super) timeline: BTreeSet<NetEvent>,
+    timeline: BTreeSet<NetEvent>,
     /// When its last checked batch arrived.
-    pub(super) heard: Option<Instant>,
+    heard: Option<Instant>,
 }
 
 /// Rescued messages taken from one batch, and held in all.
@@ -102,40 +120,40 @@ impl NodeStats {
 
 /// One follower's record: its samples in step order, paired with the
 /// leader's state of their step.
-pub(super) struct FollowerTrack {
-    pub(super) id: u32,
+struct FollowerTrack {
+    id: u32,
     offset: [f64; 2],
     /// Samples with what the follower heard at their step.
-    pub(super) stream: Stream<(FollowerSample, Box<[Heard]>)>,
+    stream: Stream<(FollowerSample, Box<[Heard]>)>,
     /// The hearing record of the steps recorded.
     hearing: FollowerHearing,
     /// Samples in step order, waiting for the leader's state of their step.
     pending: VecDeque<FollowerSample>,
     /// Every step below this is a row or lost.
-    pub(super) next_k: u64,
+    next_k: u64,
     /// Samples whose leader state was lost (no row).
-    pub(super) unpaired: u64,
+    unpaired: u64,
     metrics: MetricsAccumulator,
-    pub(super) formation_error: f64,
+    formation_error: f64,
     /// The newest row and the leader state it was measured against (the live page).
-    pub(super) latest: Option<(Row, LeaderState)>,
+    latest: Option<(Row, LeaderState)>,
 }
 
 /// The monitor's bookkeeping, independent of zenoh (fed with telemetry payloads).
 /// [`super::network_json`] writes its `network.json`, [`super::live`] its
 /// live page's frames.
 pub struct Recorder {
-    pub(super) scenario: Scenario,
+    scenario: Scenario,
     writer: RunWriter,
-    pub(super) followers: Vec<FollowerTrack>,
-    pub(super) leader_stream: Stream<LeaderState>,
+    followers: Vec<FollowerTrack>,
+    leader_stream: Stream<LeaderState>,
     /// Leader states of steps `leader_base`.. (None: lost).
     leader: VecDeque<Option<LeaderState>>,
     leader_base: u64,
-    pub(super) nodes: BTreeMap<u32, NodeStats>,
-    pub(super) malformed: u64,
+    nodes: BTreeMap<u32, NodeStats>,
+    malformed: u64,
     /// Of those, by the key they came on (`telemetry/<id>`; None: not a number).
-    pub(super) malformed_by_key: BTreeMap<Option<u32>, u64>,
+    malformed_by_key: BTreeMap<Option<u32>, u64>,
     /// Puts from other processes on the run's control keys.
     pub control: ControlWatch,
     /// The model's formation error per follower (or why it was not run):
@@ -147,10 +165,10 @@ pub struct Recorder {
     pub denied: crate::denials::Table,
     /// Wall clock: the monitor's start to the leader's start, and the start
     /// to the end of the record (network.json's `wall`).
-    pub(super) startup_s: Option<f64>,
-    pub(super) run_s: Option<f64>,
-    /// `--foxglove`: the rows and events as they are recorded.
-    foxglove: Option<crate::foxglove::FoxgloveLive>,
+    startup_s: Option<f64>,
+    run_s: Option<f64>,
+    /// Viewers of the rows and events as they are recorded (`--foxglove`).
+    sinks: Vec<Arc<dyn LiveSink>>,
     /// The leader's recorded steps, as spans [from, to).
     leader_spans: Vec<(u64, u64)>,
     /// Messages rescued by their receivers, by (sender, stamp).
@@ -202,7 +220,7 @@ impl Recorder {
             denied: Default::default(),
             startup_s: None,
             run_s: None,
-            foxglove: None,
+            sinks: Vec::new(),
             leader_spans: Vec::new(),
             rescued: BTreeMap::new(),
             source: None,
@@ -235,8 +253,8 @@ impl Recorder {
             if self.writer.wants(k, k == self.scenario.steps()) {
                 self.writer.leader_row(k as f64 * self.scenario.dt_s, s)?;
             }
-            if let Some(live) = &self.foxglove {
-                live.leader(k, s);
+            for sink in &self.sinks {
+                sink.leader(k, s);
             }
         }
         while self.leader_base + (self.leader.len() as u64) < k {
@@ -268,14 +286,9 @@ impl Recorder {
         self.process()
     }
 
-    /// Sends every row and network event from now on to `live` as well.
-    pub fn set_foxglove(&mut self, live: crate::foxglove::FoxgloveLive) {
-        self.foxglove = Some(live);
-    }
-
-    /// The Foxglove server, taken out to stop it.
-    pub fn take_foxglove(&mut self) -> Option<crate::foxglove::FoxgloveLive> {
-        self.foxglove.take()
+    /// Sends every row and network event from now on to `sink` as well.
+    pub fn add_sink(&mut self, sink: Arc<dyn LiveSink>) {
+        self.sinks.push(sink);
     }
 
     /// Counts `n` refused telemetry messages (or steps of one) on `telemetry/<key_id>`.
@@ -496,8 +509,10 @@ impl Recorder {
         let n = self.nodes.entry(id).or_default();
         // A batch sent again repeats its events: a set keeps each once.
         for e in events.into_iter().take(MAX_EVENTS_PER_BATCH) {
-            if let (true, Some(live)) = (n.timeline.insert(e), &self.foxglove) {
-                live.event(&id.to_string(), e.k, &e.what.describe());
+            if n.timeline.insert(e) {
+                for sink in &self.sinks {
+                    sink.event(&id.to_string(), e.k, &e.what.describe());
+                }
             }
         }
     }
@@ -552,8 +567,8 @@ impl Recorder {
                 if self.writer.wants(k, k == steps) {
                     self.writer.follower_row(index, &row)?;
                 }
-                if let Some(live) = &self.foxglove {
-                    live.follower(index, k, &row);
+                for sink in &self.sinks {
+                    sink.follower(index, k, &row);
                 }
             }
             if f.pending.is_empty() {
@@ -677,30 +692,6 @@ impl Recorder {
         }
         let dir = self.writer.finish(&summary)?;
         Ok((summary, dir, health))
-    }
-}
-
-/// The model runs at the end of a run only up to this many follower-steps
-/// (the paper's 4 followers for 30 s are 120,004: 0.3 s).
-const MODEL_MAX_FOLLOWER_STEPS: u64 = 3_000_000;
-
-/// Each follower's formation error over the last 10 s in the model of the
-/// run (the simulator on the same scenario: delay, loss and fault table),
-/// or why the model was not run.
-pub fn model_errors(scenario: &Scenario) -> Result<BTreeMap<u32, Option<f64>>, String> {
-    let n = scenario.followers.len() as u64 * (scenario.steps() + 1);
-    if n > MODEL_MAX_FOLLOWER_STEPS {
-        return Err(format!(
-            "not run at the end of the run: {n} follower-steps (above {MODEL_MAX_FOLLOWER_STEPS}); \
-             formation replay RUN_DIR --explain compares the run with its model"
-        ));
-    }
-    let mut sim = formation_sim::Simulation::new(scenario);
-    match sim.run(&mut formation_sim::NoRecord, |_| {}) {
-        Ok(metrics) => {
-            Ok(scenario.followers.iter().zip(metrics).map(|(f, m)| (f.id, m.formation_rms_last10)).collect())
-        }
-        Err(e) => Err(format!("the model did not finish: {e}")),
     }
 }
 
