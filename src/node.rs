@@ -9,7 +9,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::Args;
-use formation_net::monitor::Ending;
+use formation_net::monitor::{Ending, Signal};
 use formation_net::session;
 use formation_net::{agent, leader, monitor, router};
 
@@ -103,8 +103,8 @@ pub fn run(node: Node) -> ExitCode {
         match &node {
             Node::Agent(a) => agent::run(a).await.map(|()| ExitCode::SUCCESS).map_err(Error::from),
             Node::Leader(a) => leader::run(a).await.map(|()| ExitCode::SUCCESS).map_err(Error::from),
-            Node::Monitor(a) => monitor::run(a).await.map(monitor_status).map_err(Error::from),
-            Node::Router(z) => router::run(z).await.map(|()| ExitCode::SUCCESS).map_err(Error::from),
+            Node::Monitor(a) => monitor::run(a, signalled()).await.map(monitor_status).map_err(Error::from),
+            Node::Router(z) => router::run(z, signalled()).await.map(|()| ExitCode::SUCCESS).map_err(Error::from),
         }
     });
     // Zenoh's background tasks must not keep the process alive.
@@ -114,6 +114,29 @@ pub fn run(node: Node) -> ExitCode {
         Err(e) => {
             eprintln!("error: {e}");
             e.exit_code()
+        }
+    }
+}
+
+/// The shutdown the monitor and the router are given: resolves on the
+/// first SIGINT or SIGTERM, saying which. The handlers are installed when
+/// it is first polled (where the node starts waiting for a signal, as
+/// before the libraries took a shutdown future): a signal before that ends
+/// the process as the system does. If they cannot be installed it says so
+/// and never resolves.
+async fn signalled() -> Signal {
+    use tokio::signal::unix::{signal, SignalKind};
+    // Streams created once, so that a signal arriving between two polls is not lost.
+    match (signal(SignalKind::terminate()), signal(SignalKind::interrupt())) {
+        (Ok(mut term), Ok(mut int)) => tokio::select! {
+            _ = int.recv() => Signal::Interrupt,
+            _ = term.recv() => Signal::Terminate,
+        },
+        (Err(e), _) | (_, Err(e)) => {
+            eprintln!(
+                "warning: cannot install the SIGINT and SIGTERM handlers ({e}): a signal ends the node unrecorded"
+            );
+            std::future::pending().await
         }
     }
 }

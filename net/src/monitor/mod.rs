@@ -4,8 +4,10 @@
 //! [`formation_record::RunWriter`], [`formation_record::MetricsAccumulator`]
 //! and [`formation_record::Summary`], so a lock-step run gives a
 //! byte-identical `summary.json`) plus `network.json` with each node's
-//! message counters. Ctrl-C or SIGTERM: writes everything received so far
-//! and exits with status 130 (SIGINT) or 143 (SIGTERM).
+//! message counters. When its shutdown future resolves (the binaries':
+//! Ctrl-C or SIGTERM) it writes everything received so far, and
+//! `network.json` names the signal (the binary then exits with status 130
+//! for SIGINT or 143 for SIGTERM).
 //!
 //! What it records is [`crate::recorder::Recorder`]'s job (the same
 //! recorder replays and playbacks use); this module is the node around
@@ -15,6 +17,6 @@
 mod args;
 mod node;
 
-pub use crate::watch::Ending;
+pub use crate::watch::{Ending, Signal};
 pub use args::{MonitorArgs, WebArgs};
 pub use node::{model_errors, run};

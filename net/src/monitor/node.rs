@@ -5,6 +5,7 @@
 //! module knows zenoh and the terminal.
 
 use std::collections::BTreeMap;
+use std::future::Future;
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 use std::pin::Pin;
@@ -26,7 +27,7 @@ use crate::health::{ControlWatch, Verdict};
 use crate::names::{self, Keys, MONITOR};
 use crate::recorder::Recorder;
 use crate::startup;
-use crate::watch::{Ending, Watch};
+use crate::watch::{Ending, Signal, Watch};
 use crate::web::{self, Live};
 
 /// How often the monitor acknowledges what it holds.
@@ -36,9 +37,14 @@ const ACK_PERIOD: Duration = Duration::from_millis(100);
 /// dropped and counted (its sender sends it again: it is not acknowledged).
 const MAX_QUEUED_BYTES: usize = 64 << 20;
 
-/// Runs the monitor to the end of the run (or Ctrl-C / SIGTERM / idle timeout).
-/// Returns how the run ended (`Idle` is an error) and its health's verdict.
-pub async fn run(args: &MonitorArgs) -> Result<(Ending, Option<Verdict>), Error> {
+/// Runs the monitor to the end of the run, the idle timeout, or until
+/// `shutdown` resolves (polled from the start of the run's loop on; its
+/// signal becomes the ending). Returns how the run ended (`Idle` is an
+/// error) and its health's verdict.
+pub async fn run(
+    args: &MonitorArgs,
+    shutdown: impl Future<Output = Signal>,
+) -> Result<(Ending, Option<Verdict>), Error> {
     let began = Instant::now();
     let (scenario, keys) = args.node.load(MONITOR)?;
     check(args)?;
@@ -64,7 +70,7 @@ pub async fn run(args: &MonitorArgs) -> Result<(Ending, Option<Verdict>), Error>
         }
     };
     let viewers = Viewers { web: web.as_deref(), foxglove: foxglove.as_deref() };
-    let result = monitor(&session, &scenario, &keys, recorder, args, began, viewers).await;
+    let result = monitor(&session, &scenario, &keys, recorder, args, began, viewers, shutdown).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -280,22 +286,18 @@ fn written(e: std::io::Error) -> Error {
 
 impl Monitor<'_> {
     /// Listens until the run ends: the start, telemetry, reports,
-    /// acknowledgements, frames, signals and the live line.
+    /// acknowledgements, frames, the shutdown and the live line.
     async fn record(
         &mut self,
-        mut barrier: Pin<&mut impl std::future::Future<Output = Result<Start, Error>>>,
+        mut barrier: Pin<&mut impl Future<Output = Result<Start, Error>>>,
         nodes: usize,
+        mut shutdown: Pin<&mut impl Future<Output = Signal>>,
     ) -> Result<Stopped, Error> {
         let mut status =
             tokio::time::interval(if self.tty { Duration::from_millis(250) } else { Duration::from_secs(2) });
         let mut frames = tokio::time::interval(web::FRAME_PERIOD);
         frames.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         let mut ack_tick = tokio::time::interval(ACK_PERIOD);
-        let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-            .map_err(|e| Error::Run(format!("installing the SIGTERM handler: {e}")))?;
-        // A stream created once, so that a signal arriving between two polls is not lost.
-        let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
-            .map_err(|e| Error::Run(format!("installing the SIGINT handler: {e}")))?;
         let live = !self.args.quiet;
         let ending = loop {
             tokio::select! {
@@ -326,8 +328,7 @@ impl Monitor<'_> {
                     let state = if self.watch.started() { "running" } else { "waiting" };
                     self.frames.publish(&self.recorder, &self.watch, state);
                 }
-                _ = sigint.recv() => break Ending::Interrupted,
-                _ = sigterm.recv() => break Ending::Terminated,
+                signal = &mut shutdown => break Ending::from(signal),
                 _ = status.tick() => {
                     if let Some(end) = self.watch.on_tick(Instant::now()) {
                         break end;
@@ -392,6 +393,7 @@ async fn monitor(
     args: &MonitorArgs,
     began: Instant,
     viewers: Viewers<'_>,
+    shutdown: impl Future<Output = Signal>,
 ) -> Result<(Ending, Option<Verdict>), Error> {
     let ears = Ears::declare(session, keys, scenario).await?;
     tokio::spawn(crate::denials::report(session.clone(), MONITOR.to_string(), Some(keys.run.clone())));
@@ -402,7 +404,8 @@ async fn monitor(
     let watch = Watch::new(began, Instant::now(), Duration::from_secs_f64(args.idle_timeout));
     let tty = std::io::stderr().is_terminal();
     let mut m = Monitor { args, recorder, watch, ears, frames: Frames { web: viewers.web, seq: 0 }, tty };
-    let ending = match m.record(barrier, needs.len() + 1).await? {
+    tokio::pin!(shutdown);
+    let ending = match m.record(barrier, needs.len() + 1, shutdown).await? {
         Stopped::Ended(ending) => ending,
         Stopped::NotStarted(e) => {
             // A start that failed leaves no folder behind.
