@@ -178,8 +178,8 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
                     serde_json::from_str(&formation_net::recorder::Recorder::scene_json(&s, &run)).unwrap_or_default();
                 scene["playback"] =
                     serde_json::json!({"duration": s.steps() as f64 * s.dt_s, "speed": a.speed, "from": a.run.display().to_string()});
-                let live = formation_net::web::Live::new(scene.to_string());
-                let at = formation_net::web::serve(formation_net::web::Bind::Tcp(addr), live.clone()).await?;
+                let live = formation_view::web::Live::new(scene.to_string());
+                let at = formation_view::web::serve(formation_view::web::Bind::Tcp(addr), live.clone()).await?;
                 live.set_control(Box::new(move |body| Control::parse(body).is_some_and(|c| tx.send(c).is_ok())));
                 eprintln!("live page: {at} (playing {} at {}×)", a.run.display(), a.speed);
                 Some(live)
@@ -188,7 +188,7 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
         };
         let foxglove = match a.foxglove {
             Some(addr) => {
-                let f = formation_net::foxglove::FoxgloveLive::start(addr, &s, &run).await?;
+                let f = formation_view::foxglove::FoxgloveLive::start(addr, &s, &run).await?;
                 eprintln!("foxglove: ws://{}:{}", addr.ip(), f.port());
                 Some(std::sync::Arc::new(f))
             }

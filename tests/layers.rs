@@ -8,13 +8,14 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 8] = [
+const LAYERS: [&str; 9] = [
     "formation-plant",
     "formation-leader",
     "formation-agent",
     "formation-topology",
     "formation-record",
     "formation-sim",
+    "formation-view",
     "formation-net",
     "formation",
 ];

@@ -22,6 +22,15 @@ impl From<std::io::Error> for Error {
     }
 }
 
+impl From<formation_view::ViewError> for Error {
+    fn from(e: formation_view::ViewError) -> Self {
+        match e {
+            formation_view::ViewError::Input(m) => Error::Input(m),
+            formation_view::ViewError::Run(m) => Error::Run(m),
+        }
+    }
+}
+
 /// A zenoh call that failed: what was being done, and zenoh's words.
 pub fn zerr(what: &str, e: impl std::fmt::Display) -> Error {
     Error::Run(format!("{what}: {e}"))

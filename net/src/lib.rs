@@ -12,7 +12,7 @@
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
-//! | a run's record (no zenoh) | [`recorder`] (its viewers: [`web`] and [`foxglove`]) |
+//! | a run's record (no zenoh) | [`recorder`] (its viewers: `formation_view`'s live page and Foxglove server) |
 //! | nodes | [`agent`], [`leader`], [`monitor`] (on the recorder), [`router`] |
 //! | a run again | [`replay`] (on the recorder), [`explain`], [`playback`] |
 
@@ -27,7 +27,6 @@ pub mod courier;
 pub mod denials;
 pub mod error;
 pub mod explain;
-pub mod foxglove;
 pub mod gate;
 pub mod health;
 pub mod hearing;
@@ -50,6 +49,5 @@ pub mod timebase;
 pub mod timesync;
 pub mod timing;
 pub mod watch;
-pub mod web;
 
 pub use error::Error;

@@ -4,7 +4,7 @@
 
 use formation_agent::LeaderState;
 
-use crate::Row;
+use crate::row::Row;
 
 /// A viewer fed the run in step order per node, as it is recorded.
 /// Calls must return at once (a viewer is on no control path: it drops

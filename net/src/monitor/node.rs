@@ -16,19 +16,19 @@ use std::time::{Duration, Instant};
 use formation_record::hearing::ScenarioSource;
 use formation_record::RecordOptions;
 use formation_topology::Scenario;
+use formation_view::foxglove::FoxgloveLive;
+use formation_view::web::{self, Live};
 use tokio::sync::mpsc;
 
-use super::MonitorArgs;
+use super::args::MonitorArgs;
 use crate::barrier::{self, Start};
 use crate::codec;
 use crate::error::Error;
-use crate::foxglove::FoxgloveLive;
 use crate::health::{ControlWatch, Verdict};
 use crate::names::{self, Keys, MONITOR};
 use crate::recorder::Recorder;
 use crate::startup;
 use crate::watch::{Ending, Signal, Watch};
-use crate::web::{self, Live};
 
 /// How often the monitor acknowledges what it holds.
 const ACK_PERIOD: Duration = Duration::from_millis(100);

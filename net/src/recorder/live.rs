@@ -1,6 +1,6 @@
 //! What the monitor shows while it records: the terminal's live line and
 //! the live page's JSON (its scene, and one frame per publication; see
-//! [`crate::web`]).
+//! [`formation_view::web`]).
 
 use std::collections::BTreeSet;
 use std::time::Instant;
@@ -77,7 +77,7 @@ impl Recorder {
         .to_string()
     }
 
-    /// One frame of the live page (see [`crate::web`]): every follower's
+    /// One frame of the live page (see [`formation_view::web`]): every follower's
     /// newest row, the nodes' counters and what the network did; and the
     /// same frame for the history, without the nodes and events (a late
     /// viewer needs those only from the newest frame).
