@@ -212,6 +212,19 @@ async fn events(State(live): State<Arc<Live>>) -> impl IntoResponse {
     Sse::new(frames).keep_alive(KeepAlive::new().interval(Duration::from_secs(5)))
 }
 
+/// `POST /api/control`: a playback's pause, play, speed or seek.
+async fn control(State(live): State<Arc<Live>>, body: String) -> axum::http::StatusCode {
+    use axum::http::StatusCode;
+    if body.len() > 1024 {
+        return StatusCode::PAYLOAD_TOO_LARGE;
+    }
+    match &*live.control.lock().unwrap_or_else(|p| p.into_inner()) {
+        None => StatusCode::NOT_FOUND,
+        Some(f) if f(&body) => StatusCode::NO_CONTENT,
+        Some(_) => StatusCode::BAD_REQUEST,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -231,18 +244,5 @@ mod tests {
         assert!(*kept.last().unwrap() >= 9 * HISTORY as u64, "{kept:?}");
         let json: serde_json::Value = serde_json::from_str(&h.json()).expect("valid JSON");
         assert_eq!(json["frames"].as_array().map(Vec::len), Some(kept.len()));
-    }
-}
-
-/// `POST /api/control`: a playback's pause, play, speed or seek.
-async fn control(State(live): State<Arc<Live>>, body: String) -> axum::http::StatusCode {
-    use axum::http::StatusCode;
-    if body.len() > 1024 {
-        return StatusCode::PAYLOAD_TOO_LARGE;
-    }
-    match &*live.control.lock().unwrap_or_else(|p| p.into_inner()) {
-        None => StatusCode::NOT_FOUND,
-        Some(f) if f(&body) => StatusCode::NO_CONTENT,
-        Some(_) => StatusCode::BAD_REQUEST,
     }
 }

@@ -385,6 +385,9 @@ impl Monitor<'_> {
     }
 }
 
+/// Records the run on `session` until it ends; writes the run folder.
+// The node's parts as run() built them: grouping them would only rename them.
+#[allow(clippy::too_many_arguments)]
 async fn monitor(
     session: &zenoh::Session,
     scenario: &Scenario,
