@@ -62,6 +62,15 @@ impl From<formation_certs::generate::GenerateError> for Error {
     }
 }
 
+impl From<formation_view::ViewError> for Error {
+    fn from(e: formation_view::ViewError) -> Self {
+        match e {
+            formation_view::ViewError::Input(m) => Error::Input(m),
+            formation_view::ViewError::Run(m) => Error::Run(m),
+        }
+    }
+}
+
 impl From<formation_net::Error> for Error {
     fn from(e: formation_net::Error) -> Self {
         match e {

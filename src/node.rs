@@ -9,7 +9,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::Args;
-use formation_net::monitor::Ending;
+use formation_net::monitor::{Ending, Signal};
 use formation_net::session;
 use formation_net::{agent, leader, monitor, router};
 
@@ -87,7 +87,7 @@ pub fn run_leader(a: leader::LeaderArgs) -> ExitCode {
 /// The `monitor` binary.
 pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
     shell(&a.node.zenoh.clone(), formation_net::names::MONITOR, true, async move {
-        monitor::run(&a).await.map(monitor_status)
+        monitor::run(&a, signalled()).await.map(monitor_status)
     })
 }
 
@@ -97,7 +97,7 @@ pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
 /// empties it.
 pub fn run_router(r: router::RouterArgs) -> ExitCode {
     shell(&r.zenoh.clone(), formation_net::names::ROUTER, false, async move {
-        router::run(&r).await.map(|()| ExitCode::SUCCESS)
+        router::run(&r, signalled()).await.map(|()| ExitCode::SUCCESS)
     })
 }
 
@@ -145,6 +145,29 @@ where
         Err(e) => {
             eprintln!("error: {e}");
             e.exit_code()
+        }
+    }
+}
+
+/// The shutdown the monitor and the router are given: resolves on the
+/// first SIGINT or SIGTERM, saying which. The handlers are installed when
+/// it is first polled (where the node starts waiting for a signal, as
+/// before the libraries took a shutdown future): a signal before that ends
+/// the process as the system does. If they cannot be installed it says so
+/// and never resolves.
+async fn signalled() -> Signal {
+    use tokio::signal::unix::{signal, SignalKind};
+    // Streams created once, so that a signal arriving between two polls is not lost.
+    match (signal(SignalKind::terminate()), signal(SignalKind::interrupt())) {
+        (Ok(mut term), Ok(mut int)) => tokio::select! {
+            _ = int.recv() => Signal::Interrupt,
+            _ = term.recv() => Signal::Terminate,
+        },
+        (Err(e), _) | (_, Err(e)) => {
+            eprintln!(
+                "warning: cannot install the SIGINT and SIGTERM handlers ({e}): a signal ends the node unrecorded"
+            );
+            std::future::pending().await
         }
     }
 }

@@ -175,11 +175,11 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
         let live = match a.web {
             Some(addr) => {
                 let mut scene: serde_json::Value =
-                    serde_json::from_str(&formation_net::monitor::Recorder::scene_json(&s, &run)).unwrap_or_default();
+                    serde_json::from_str(&formation_net::recorder::Recorder::scene_json(&s, &run)).unwrap_or_default();
                 scene["playback"] =
                     serde_json::json!({"duration": s.steps() as f64 * s.dt_s, "speed": a.speed, "from": a.run.display().to_string()});
-                let live = formation_net::web::Live::new(scene.to_string());
-                let at = formation_net::web::serve(formation_net::web::Bind::Tcp(addr), live.clone()).await?;
+                let live = formation_view::web::Live::new(scene.to_string());
+                let at = formation_view::web::serve(formation_view::web::Bind::Tcp(addr), live.clone()).await?;
                 live.set_control(Box::new(move |body| Control::parse(body).is_some_and(|c| tx.send(c).is_ok())));
                 eprintln!("live page: {at} (playing {} at {}×)", a.run.display(), a.speed);
                 Some(live)
@@ -188,21 +188,23 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
         };
         let foxglove = match a.foxglove {
             Some(addr) => {
-                let f = formation_net::foxglove::FoxgloveLive::start(addr, &s, &run).await?;
+                let f = formation_view::foxglove::FoxgloveLive::start(addr, &s, &run).await?;
                 eprintln!("foxglove: ws://{}:{}", addr.ip(), f.port());
-                Some(f)
+                Some(std::sync::Arc::new(f))
             }
             None => None,
         };
         let (speed, linger) = (a.speed, std::time::Duration::from_secs_f64(a.linger));
+        let sinks: Vec<std::sync::Arc<dyn formation_record::LiveSink>> =
+            foxglove.iter().map(|f| f.clone() as std::sync::Arc<dyn formation_record::LiveSink>).collect();
         let task = tokio::task::spawn_blocking(move || {
-            let out = Outputs { live };
-            playback::play(&loaded, speed, &out, foxglove, &rx, linger)
+            let out = Outputs { live, sinks };
+            playback::play(&loaded, speed, &out, &rx, linger)
         });
         tokio::select! {
             r = task => {
-                let fox = r.map_err(|e| CliError::Run(format!("the playback stopped: {e}")))??;
-                if let Some(f) = fox {
+                r.map_err(|e| CliError::Run(format!("the playback stopped: {e}")))??;
+                if let Some(f) = foxglove {
                     f.stop().await;
                 }
                 Ok(())

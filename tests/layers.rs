@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 10] = [
+const LAYERS: [&str; 11] = [
     "formation-plant",
     "formation-leader",
     "formation-agent",
@@ -17,6 +17,7 @@ const LAYERS: [&str; 10] = [
     "formation-sim",
     "formation-protocol",
     "formation-certs",
+    "formation-view",
     "formation-net",
     "formation",
 ];

@@ -12,8 +12,9 @@
 //! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
 //! | zenoh session | [`identity`], [`session`], [`node`] |
 //! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
-//! | nodes | [`agent`], [`leader`], [`monitor`] (with [`web`] and [`foxglove`]), [`router`] |
-//! | a run again | [`replay`] (on the monitor's recorder), [`explain`], [`playback`] |
+//! | a run's record (no zenoh) | [`recorder`] (its viewers: `formation_view`'s live page and Foxglove server) |
+//! | nodes | [`agent`], [`leader`], [`monitor`] (on the recorder), [`router`] |
+//! | a run again | [`replay`] (on the recorder), [`explain`], [`playback`] |
 
 pub mod agent;
 pub mod checkpoint;
@@ -21,7 +22,6 @@ pub mod clock;
 pub mod courier;
 pub mod denials;
 pub mod explain;
-pub mod foxglove;
 pub mod health;
 pub mod identity;
 pub mod leader;
@@ -29,6 +29,7 @@ pub mod limits;
 pub mod monitor;
 pub mod node;
 pub mod playback;
+pub mod recorder;
 pub mod replay;
 pub mod router;
 pub mod session;
@@ -37,7 +38,6 @@ pub mod telemetry;
 pub mod timesync;
 pub mod timing;
 pub mod watch;
-pub mod web;
 
 pub use error::Error;
 

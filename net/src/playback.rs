@@ -1,7 +1,7 @@
 //! `formation monitor --replay RUN_DIR`: a finished networked run played on
 //! the live page (`--web`) and to Foxglove (`--foxglove`) at a chosen
 //! speed, with pause and seek, re-computed from its hearing record through
-//! the monitor's own recorder (so the page shows what the run recorded).
+//! the monitor's recorder (so the page shows what the run recorded).
 //!
 //! The replay runs on a thread of its own and is paced by the wall clock:
 //! step k is due `k Δt / speed` after the playback's anchor. A seek forward
@@ -14,12 +14,12 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use formation_agent::LeaderState;
-use formation_record::{FollowerSample, Heard, RecordOptions};
+use formation_record::{FollowerSample, Heard, LiveSink, RecordOptions};
+use formation_view::web::{Live, FRAME_PERIOD};
 
 use crate::error::Error;
-use crate::monitor::Recorder;
+use crate::recorder::Recorder;
 use crate::replay::{self, Hearing, Loaded, Sink};
-use crate::web::{Live, FRAME_PERIOD};
 
 /// What the page (or a test) asks of a playback.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -54,10 +54,11 @@ pub const MAX_SPEED: f64 = 1000.0;
 /// The slowest (a 30 s run then lasts 50 min; slower never ends in practice).
 pub const MIN_SPEED: f64 = 0.01;
 
-/// Where a playback's frames go (the live page); Foxglove gets the
-/// recorder's rows through [`play`]'s `foxglove`.
+/// Where a playback goes: its frames to the live page, the recorder's
+/// rows to the sinks (the Foxglove server).
 pub struct Outputs {
     pub live: Option<Arc<Live>>,
+    pub sinks: Vec<Arc<dyn LiveSink>>,
 }
 
 /// The state a playback keeps across restarts (seeks backward).
@@ -184,29 +185,26 @@ impl Sink for Player<'_> {
     }
 }
 
-/// Plays `loaded` at `speed` until its end, to the live page of `out` and
-/// to `foxglove`; then keeps the page and its controls for `linger` (a seek
-/// or play starts again). Blocking: run it on a thread of its own. Returns
-/// the Foxglove server, to stop it.
+/// Plays `loaded` at `speed` until its end, to the live page and the sinks
+/// of `out`; then keeps the page and its controls for `linger` (a seek or
+/// play starts again). Blocking: run it on a thread of its own.
 pub fn play(
     loaded: &Loaded,
     speed: f64,
     out: &Outputs,
-    foxglove: Option<crate::foxglove::FoxgloveLive>,
     controls: &mpsc::Receiver<Control>,
     linger: Duration,
-) -> Result<Option<crate::foxglove::FoxgloveLive>, Error> {
+) -> Result<(), Error> {
     let tmp = TempDir::new()?;
     let tmp = &tmp.0;
     let mut clock = Clock { speed, paused: false, at: Instant::now(), k0: 0, seq: 0, epoch: 0, last_frame: None };
     let mut from = 0;
     let began = Instant::now();
-    let mut foxglove = foxglove;
     loop {
         let opts = RecordOptions { dir: tmp.join(format!("play-{}", clock.epoch)), every: 1, csv: false, mcap: false };
         let mut recorder = Recorder::new(&loaded.scenario, &opts)?;
-        if let Some(f) = foxglove.take() {
-            recorder.set_foxglove(f);
+        for sink in &out.sinks {
+            recorder.add_sink(sink.clone());
         }
         let mut p = Player { recorder, loaded, out, controls, clock: &mut clock, target: from, restart: None, began };
         replay::replay(loaded, Hearing::Recorded, &mut p)?;
@@ -214,7 +212,6 @@ pub fn play(
         if restart.is_none() {
             p.publish("complete");
         }
-        foxglove = p.recorder.take_foxglove();
         p.recorder.discard();
         if let Some(k) = restart {
             from = k;
@@ -255,7 +252,7 @@ pub fn play(
             None => break,
         }
     }
-    Ok(foxglove)
+    Ok(())
 }
 
 /// A folder of its own for the recorders' (empty) run folders, removed on

@@ -5,7 +5,7 @@
 //! used; a message is its sender's output of the step before its stamp (the
 //! leader's: its state at the stamp). So every follower is stepped again in
 //! step order, each taking the messages its record names, and the rows and
-//! metrics go through the monitor's own [`Recorder`]: a faithful record
+//! metrics go through the monitor's [`Recorder`]: a faithful record
 //! gives the run's CSVs and `summary.json` byte for byte.
 //!
 //! The hearing can be replaced, wholly or for one link or one window of
@@ -23,7 +23,7 @@ use formation_sim::SimFollower;
 use formation_topology::Scenario;
 
 use crate::error::Error;
-use crate::monitor::Recorder;
+use crate::recorder::Recorder;
 
 /// A run folder's scenario and hearing record, checked against each other.
 pub struct Loaded {
@@ -343,7 +343,7 @@ fn next_start(f: &FollowerHearing, k: u64) -> Option<u64> {
     f.segments.iter().map(|s| s.first_k).find(|&first| first > k)
 }
 
-/// The monitor's recorder takes a replay as it takes telemetry: rows and
+/// The recorder takes a replay as the monitor's takes telemetry: rows and
 /// metrics of the steps the run recorded.
 impl Sink for Recorder {
     fn leader(&mut self, k: u64, state: &LeaderState, recorded: bool) -> Result<(), Error> {

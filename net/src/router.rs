@@ -1,6 +1,7 @@
 //! The zenoh router of a formation in client mode: one implementation, run
 //! by the `router` binary and by `formation node router`.
 
+use std::future::Future;
 use std::time::Duration;
 
 use crate::error::Error;
@@ -23,10 +24,10 @@ pub struct RouterArgs {
     pub overrides: Vec<String>,
 }
 
-/// A zenoh router until SIGINT or SIGTERM. Prints one line `router
-/// listening on <endpoints> (zid …)` to stdout once open (what `launch` and
-/// the lab wait for).
-pub async fn run(router: &RouterArgs) -> Result<(), Error> {
+/// A zenoh router until `shutdown` resolves (the binaries': SIGINT or
+/// SIGTERM). Prints one line `router listening on <endpoints> (zid …)` to
+/// stdout once open (what `launch` and the lab wait for).
+pub async fn run(router: &RouterArgs, shutdown: impl Future) -> Result<(), Error> {
     let mut args = router.zenoh.clone();
     args.mode = Some(ZenohMode::Router);
     args.identity = Some(ROUTER.to_string());
@@ -42,12 +43,7 @@ pub async fn run(router: &RouterArgs) -> Result<(), Error> {
     println!("router listening on {listen} (zid {})", session.zid());
     // What its access control refuses, to each run's monitor.
     tokio::spawn(crate::denials::report(session.clone(), ROUTER.to_string(), None));
-    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| Error::Run(format!("installing the SIGTERM handler: {e}")))?;
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => {}
-        _ = term.recv() => {}
-    }
+    shutdown.await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     Ok(())
 }

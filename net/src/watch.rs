@@ -30,6 +30,26 @@ impl Ending {
     }
 }
 
+/// The signal that stops a monitored run: what the monitor's shutdown
+/// future resolves to. The binary installs the handlers (`src/node.rs`); a
+/// test passes a future of its own.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Signal {
+    /// SIGINT (Ctrl-C).
+    Interrupt,
+    /// SIGTERM.
+    Terminate,
+}
+
+impl From<Signal> for Ending {
+    fn from(s: Signal) -> Self {
+        match s {
+            Signal::Interrupt => Ending::Interrupted,
+            Signal::Terminate => Ending::Terminated,
+        }
+    }
+}
+
 /// One monitored run, from the monitor's start to its end.
 #[derive(Clone, Debug)]
 pub struct Watch {

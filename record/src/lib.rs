@@ -6,11 +6,13 @@
 //! same rows, the same numbers.
 //!
 //! Modules, each using only those listed before it: [`row`], [`columns`],
-//! [`outage`], [`metrics`], [`summary`], [`hearing`], [`mcap`], [`folder`].
+//! [`outage`], [`metrics`], [`summary`], [`hearing`], [`mcap`], [`folder`],
+//! [`live`].
 
 pub mod columns;
 pub mod folder;
 pub mod hearing;
+pub mod live;
 pub mod mcap;
 pub mod metrics;
 pub mod outage;
@@ -20,6 +22,7 @@ pub mod summary;
 pub use columns::{read_columns, read_columns_checked, RecordError};
 pub use folder::{at_path, refuse_foreign_folder, RecordOptions, RunWriter};
 pub use hearing::{FollowerHearing, Heard, HeardRuns, HearingRecord, HEARING_FILE};
+pub use live::LiveSink;
 pub use metrics::{last10_from_k, FollowerMetrics, MetricsAccumulator};
 pub use outage::{FaultSummary, OutageMetrics};
 pub use row::{FollowerSample, Row, FOLLOWER_HEADER, LEADER_HEADER};

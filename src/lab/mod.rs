@@ -715,7 +715,7 @@ impl Ctx<'_> {
             Some(addr) => {
                 let socket =
                     RemoveOnDrop(std::env::temp_dir().join(format!("formation-lab-{}-web.sock", std::process::id())));
-                let bound = formation_net::web::forward(addr, socket.0.clone()).await?;
+                let bound = formation_view::web::forward(addr, socket.0.clone()).await?;
                 c.arg("--web-unix").arg(&socket.0).arg("--web-linger").arg(self.a.opts.web.web_linger.to_string());
                 eprintln!("live page: http://{bound}/");
                 Some(socket)

@@ -14,9 +14,9 @@
 //! The crate is built without its default features: no aws-lc (a C and
 //! CMake build), no lz4, no derive macro; plain `ws://` only.
 
-use crate::error::Error;
+use crate::error::ViewError;
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use formation_agent::LeaderState;
 use formation_topology::Scenario;
@@ -24,7 +24,7 @@ use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHand
 use serde_json::json;
 
 use formation_record::mcap::{columns_schema, names, pose_in_frame, stamp, EVENT, POSE_IN_FRAME};
-use formation_record::{Row, FOLLOWER_HEADER, LEADER_HEADER};
+use formation_record::{LiveSink, Row, FOLLOWER_HEADER, LEADER_HEADER};
 
 /// At most this many messages per channel and second of run time.
 pub const LIVE_HZ: f64 = 50.0;
@@ -40,7 +40,8 @@ struct FollowerChannels {
 pub struct FoxgloveLive {
     /// The server holds only a weak reference to its context.
     _context: Arc<Context>,
-    server: Option<WebSocketServerHandle>,
+    /// Taken to stop it.
+    server: Mutex<Option<WebSocketServerHandle>>,
     port: u16,
     leader_pose: Arc<RawChannel>,
     leader_state: Arc<RawChannel>,
@@ -52,12 +53,12 @@ pub struct FoxgloveLive {
     dt_s: f64,
 }
 
-fn channel(ctx: &Arc<Context>, topic: &str, schema: &str, data: &str) -> Result<Arc<RawChannel>, Error> {
+fn channel(ctx: &Arc<Context>, topic: &str, schema: &str, data: &str) -> Result<Arc<RawChannel>, ViewError> {
     ctx.channel_builder(topic)
         .message_encoding("json")
         .schema(Schema::new(schema.to_string(), "jsonschema", data.as_bytes().to_vec()))
         .build_raw()
-        .map_err(|e| Error::Input(format!("foxglove channel {topic}: {e}")))
+        .map_err(|e| ViewError::Input(format!("foxglove channel {topic}: {e}")))
 }
 
 fn send(ch: &RawChannel, ns: u64, v: &serde_json::Value) {
@@ -66,7 +67,7 @@ fn send(ch: &RawChannel, ns: u64, v: &serde_json::Value) {
 
 impl FoxgloveLive {
     /// Serves the channels of `scenario`'s run at `addr` (port 0: any free port).
-    pub async fn start(addr: SocketAddr, scenario: &Scenario, run: &str) -> Result<Self, Error> {
+    pub async fn start(addr: SocketAddr, scenario: &Scenario, run: &str) -> Result<Self, ViewError> {
         let ctx = Context::new();
         let server = ctx
             .websocket_server()
@@ -74,7 +75,7 @@ impl FoxgloveLive {
             .bind(addr.ip().to_string(), addr.port())
             .start()
             .await
-            .map_err(|e| Error::Input(format!("--foxglove {addr}: {e}")))?;
+            .map_err(|e| ViewError::Input(format!("--foxglove {addr}: {e}")))?;
         let port = server.port();
         let leader_names = names(LEADER_HEADER);
         let follower_names = names(FOLLOWER_HEADER);
@@ -95,7 +96,7 @@ impl FoxgloveLive {
         let every = ((1.0 / (LIVE_HZ * scenario.dt_s)).round() as u64).max(1);
         Ok(Self {
             _context: ctx,
-            server: Some(server),
+            server: Mutex::new(Some(server)),
             port,
             leader_pose,
             leader_state,
@@ -112,17 +113,23 @@ impl FoxgloveLive {
         self.port
     }
 
-    /// Viewers connected now.
-    pub fn viewers(&self) -> usize {
-        self.server.as_ref().map_or(0, |s| s.client_count())
-    }
-
     fn wanted(&self, k: u64) -> bool {
         k % self.every == 0 || k == self.last_k
     }
 
+    /// Stops the server and disconnects its viewers.
+    pub async fn stop(&self) {
+        let server = self.server.lock().unwrap_or_else(|p| p.into_inner()).take();
+        if let Some(s) = server {
+            s.stop().wait().await;
+        }
+    }
+}
+
+/// The recorder's rows and events, as run.mcap's messages.
+impl LiveSink for FoxgloveLive {
     /// The leader's state of step k, as `leader.csv`'s row.
-    pub fn leader(&self, k: u64, l: &LeaderState) {
+    fn leader(&self, k: u64, l: &LeaderState) {
         if !self.wanted(k) || !(self.leader_pose.has_sinks() || self.leader_state.has_sinks()) {
             return;
         }
@@ -138,7 +145,7 @@ impl FoxgloveLive {
     }
 
     /// Follower `index`'s row of step k, as `follower_<id>.csv`'s.
-    pub fn follower(&self, index: usize, k: u64, row: &Row) {
+    fn follower(&self, index: usize, k: u64, row: &Row) {
         let Some(c) = self.followers.get(index) else { return };
         if !self.wanted(k) {
             return;
@@ -159,17 +166,15 @@ impl FoxgloveLive {
     }
 
     /// A network event `node` noticed at step k (every one, not thinned).
-    pub fn event(&self, node: &str, k: u64, what: &str) {
+    fn event(&self, node: &str, k: u64, what: &str) {
         if self.events.has_sinks() {
             let t = k as f64 * self.dt_s;
             send(&self.events, stamp(t).0, &json!({"node": node, "t": t, "event": what}));
         }
     }
 
-    /// Stops the server and disconnects its viewers.
-    pub async fn stop(mut self) {
-        if let Some(s) = self.server.take() {
-            s.stop().wait().await;
-        }
+    /// Viewers connected now.
+    fn viewers(&self) -> usize {
+        self.server.lock().unwrap_or_else(|p| p.into_inner()).as_ref().map_or(0, |s| s.client_count())
     }
 }

@@ -1,0 +1,832 @@
+//! A networked run's record ([`Recorder`]), independent of zenoh: fed
+//! telemetry payloads and the time (the monitor), or a run's steps
+//! re-computed (a replay, a playback), it puts each node's batches back in
+//! step order, pairs every follower's sample with the leader's state of
+//! its step, and writes the run folder (rows, `summary.json`,
+//! `network.json`, `hearing.bin`). The rows go to its viewers as well,
+//! through [`LiveSink`] (the Foxglove server): it knows no server.
+//!
+//! | module | its job |
+//! | --- | --- |
+//! | `stream` | one node's batches put back in step order, and checked |
+//! | `network_json` | `network.json` |
+//! | `live` | the monitor's live line and the live page's JSON |
+//!
+//! It never imports a node ([`crate::monitor`], the agent, the leader) or
+//! zenoh.
+
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use formation_agent::LeaderState;
+use formation_record::hearing::{Density, End, FollowerHearing, HearingRecord, Rescued, Resume, ScenarioSource};
+use formation_record::{
+    FollowerSample, Heard, LiveSink, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary, HEARING_FILE,
+};
+use formation_topology::Scenario;
+use serde_json::json;
+
+use crate::barrier;
+use crate::codec;
+use crate::counters::Counters;
+use crate::health::{ControlWatch, Evidence, Health};
+use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
+use crate::timing::LoopStats;
+use crate::watch::Ending;
+use stream::{check_batch, Stream};
+
+mod live;
+mod network_json;
+mod stream;
+
+pub use stream::Gap;
+
+/// What the monitor knows of one node (0: the leader) from its telemetry.
+#[derive(Default)]
+struct NodeStats {
+    messages: u64,
+    bytes: u64,
+    /// Steps recorded from this node's telemetry.
+    samples: u64,
+    /// The newest batch so far, as (incarnation, first step): counters and
+    /// delivery figures are taken from it (a batch sent again is older).
+    newest: Option<(u64, u64)>,
+    counters: Counters,
+    delivery: Delivery,
+    loop_stats: Option<LoopStats>,
+    /// The newest estimate of the leader's clock (followers).
+    clock: Option<ClockReport>,
+    /// The newest per-link latency and age (followers), at most one per source.
+    links: Vec<LinkStats>,
+    done: bool,
+    /// What the network did to this node, as it noticed it.
+    timeline: BTreeSet<NetEvent>,
+    /// When its last checked batch arrived.
+    heard: Option<Instant>,
+}
+
+/// Rescued messages taken from one batch, and held in all.
+const MAX_RESCUED_PER_BATCH: usize = 4096;
+const MAX_RESCUED: usize = 1 << 20;
+
+/// Events taken from one batch (a forged batch cannot fill the monitor's memory).
+const MAX_EVENTS_PER_BATCH: usize = 256;
+
+/// A checked batch's bookkeeping: what every node's telemetry carries
+/// besides its steps.
+struct Batch {
+    /// When it arrived.
+    now: Instant,
+    /// Its size on the wire.
+    bytes: usize,
+    first_k: u64,
+    counters: Counters,
+    done: bool,
+    loop_stats: Option<LoopStats>,
+    delivery: Delivery,
+}
+
+impl NodeStats {
+    /// Files a checked batch's bookkeeping.
+    fn note(&mut self, b: &Batch) {
+        self.messages += 1;
+        self.bytes += b.bytes as u64;
+        self.heard = Some(b.now);
+        self.done |= b.done;
+        let at = (b.delivery.incarnation, b.first_k);
+        if self.newest.is_none_or(|n| at >= n) {
+            self.newest = Some(at);
+            self.counters = b.counters;
+            self.delivery = b.delivery;
+        }
+        // Non-finite timing would turn into nulls in network.json.
+        let finite = |l: &LoopStats| {
+            [
+                l.period_error_p50_us,
+                l.period_error_p99_us,
+                l.period_error_max_us,
+                l.lateness_p50_us,
+                l.lateness_p99_us,
+                l.lateness_max_us,
+            ]
+            .iter()
+            .all(|x| x.is_finite())
+        };
+        self.loop_stats = b.loop_stats.filter(finite).or(self.loop_stats);
+    }
+}
+
+/// One follower's record: its samples in step order, paired with the
+/// leader's state of their step.
+struct FollowerTrack {
+    id: u32,
+    offset: [f64; 2],
+    /// Samples with what the follower heard at their step.
+    stream: Stream<(FollowerSample, Box<[Heard]>)>,
+    /// The hearing record of the steps recorded.
+    hearing: FollowerHearing,
+    /// Samples in step order, waiting for the leader's state of their step.
+    pending: VecDeque<FollowerSample>,
+    /// Every step below this is a row or lost.
+    next_k: u64,
+    /// Samples whose leader state was lost (no row).
+    unpaired: u64,
+    metrics: MetricsAccumulator,
+    formation_error: f64,
+    /// The newest row and the leader state it was measured against (the live page).
+    latest: Option<(Row, LeaderState)>,
+}
+
+/// The monitor's bookkeeping, independent of zenoh (fed with telemetry payloads).
+/// [`super::network_json`] writes its `network.json`, [`super::live`] its
+/// live page's frames.
+pub struct Recorder {
+    scenario: Scenario,
+    writer: RunWriter,
+    followers: Vec<FollowerTrack>,
+    leader_stream: Stream<LeaderState>,
+    /// Leader states of steps `leader_base`.. (None: lost).
+    leader: VecDeque<Option<LeaderState>>,
+    leader_base: u64,
+    nodes: BTreeMap<u32, NodeStats>,
+    malformed: u64,
+    /// Of those, by the key they came on (`telemetry/<id>`; None: not a number).
+    malformed_by_key: BTreeMap<Option<u32>, u64>,
+    /// Puts from other processes on the run's control keys.
+    pub control: ControlWatch,
+    /// The model's formation error per follower (or why it was not run):
+    /// with it, `finish` writes network.json's `health`.
+    model: Option<Result<BTreeMap<u32, Option<f64>>, String>>,
+    /// Telemetry messages dropped on arrival (the queue was full).
+    pub queue_dropped: u64,
+    /// What every node's access control refused (crate::denials).
+    pub denied: crate::denials::Table,
+    /// Wall clock: the monitor's start to the leader's start, and the start
+    /// to the end of the record (network.json's `wall`).
+    startup_s: Option<f64>,
+    run_s: Option<f64>,
+    /// Viewers of the rows and events as they are recorded (`--foxglove`).
+    sinks: Vec<Arc<dyn LiveSink>>,
+    /// The leader's recorded steps, as spans [from, to).
+    leader_spans: Vec<(u64, u64)>,
+    /// Messages rescued by their receivers, by (sender, stamp).
+    rescued: BTreeMap<(u32, u64), Rescued>,
+    /// The scenario as the run loaded it: with it, `hearing.bin` is written.
+    source: Option<ScenarioSource>,
+    density: Density,
+}
+
+impl Recorder {
+    pub fn new(scenario: &Scenario, opts: &RecordOptions) -> std::io::Result<Self> {
+        let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
+        let writer = RunWriter::create(opts, &ids)?;
+        let followers = scenario
+            .followers
+            .iter()
+            .enumerate()
+            .map(|(index, f)| FollowerTrack {
+                id: f.id,
+                offset: f.offset,
+                stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
+                hearing: FollowerHearing::new(f.id, scenario.sources_of(index)),
+                pending: VecDeque::new(),
+                next_k: 0,
+                unpaired: 0,
+                metrics: MetricsAccumulator::for_scenario(scenario),
+                formation_error: f64::NAN,
+                latest: None,
+            })
+            .collect();
+        let mut nodes = BTreeMap::new();
+        nodes.insert(0, NodeStats::default());
+        for id in ids {
+            nodes.insert(id, NodeStats::default());
+        }
+        Ok(Self {
+            scenario: scenario.clone(),
+            writer,
+            followers,
+            leader_stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
+            leader: VecDeque::new(),
+            leader_base: 0,
+            nodes,
+            malformed: 0,
+            malformed_by_key: BTreeMap::new(),
+            control: Default::default(),
+            model: None,
+            queue_dropped: 0,
+            denied: Default::default(),
+            startup_s: None,
+            run_s: None,
+            sinks: Vec::new(),
+            leader_spans: Vec::new(),
+            rescued: BTreeMap::new(),
+            source: None,
+            density: Density { every: opts.every.max(1), csv: opts.csv, mcap: opts.mcap },
+        })
+    }
+
+    /// The scenario as loaded (file text and overrides): the run folder
+    /// gets the hearing record (`hearing.bin`), which `formation replay` reads.
+    pub fn set_source(&mut self, source: ScenarioSource) {
+        self.source = Some(source);
+    }
+
+    /// A replay (`crate::replay`): the leader's state of step k, `None` if
+    /// the run did not record it. Call in step order.
+    pub fn replayed_leader(&mut self, k: u64, state: Option<&LeaderState>) -> std::io::Result<()> {
+        self.file_leader(k, state)?;
+        self.leader_stream.end = k + 1;
+        Ok(())
+    }
+
+    /// The leader's state of step k, in step order (`None`: not recorded):
+    /// its row, Foxglove, and the state the followers' rows of k pair with.
+    fn file_leader(&mut self, k: u64, state: Option<&LeaderState>) -> std::io::Result<()> {
+        if let Some(s) = state {
+            match self.leader_spans.last_mut() {
+                Some(span) if span.1 == k => span.1 = k + 1,
+                _ => self.leader_spans.push((k, k + 1)),
+            }
+            if self.writer.wants(k, k == self.scenario.steps()) {
+                self.writer.leader_row(k as f64 * self.scenario.dt_s, s)?;
+            }
+            for sink in &self.sinks {
+                sink.leader(k, s);
+            }
+        }
+        while self.leader_base + (self.leader.len() as u64) < k {
+            self.leader.push_back(None);
+        }
+        self.leader.push_back(state.copied());
+        Ok(())
+    }
+
+    /// A replay: follower `index`'s sample of step k and what it heard.
+    pub fn replayed_follower(&mut self, index: usize, k: u64, sample: FollowerSample, heard: &[Heard]) {
+        let f = &mut self.followers[index];
+        f.stream.end = k + 1;
+        f.hearing.push(k, heard);
+        f.pending.push_back(sample);
+    }
+
+    /// A replay: follower `index`'s restarts and end, as the run recorded them.
+    pub fn replayed_hearing(&mut self, index: usize, resumes: &[Resume], end: End) {
+        let h = &mut self.followers[index].hearing;
+        for r in resumes {
+            h.resumed(*r);
+        }
+        h.end = end;
+    }
+
+    /// A replay: rows for every sample whose leader state is known.
+    pub fn settle(&mut self) -> std::io::Result<()> {
+        self.process()
+    }
+
+    /// Sends every row and network event from now on to `sink` as well.
+    pub fn add_sink(&mut self, sink: Arc<dyn LiveSink>) {
+        self.sinks.push(sink);
+    }
+
+    /// Counts `n` refused telemetry messages (or steps of one) on `telemetry/<key_id>`.
+    fn refuse(&mut self, key_id: Option<u32>, n: u64) {
+        if n == 0 {
+            return;
+        }
+        self.malformed += n;
+        // Ids the scenario does not know are counted together (a forger's keys cannot fill memory).
+        let key = key_id.filter(|&id| id == 0 || self.scenario.index_of(id).is_some());
+        *self.malformed_by_key.entry(key).or_default() += n;
+    }
+
+    /// The model's formation error per follower, or why there is none: with
+    /// it, `finish` judges the run's health (network.json's `health`).
+    pub fn set_model(&mut self, model: Result<BTreeMap<u32, Option<f64>>, String>) {
+        self.model = Some(model);
+    }
+
+    /// The run's health (None without [`Recorder::set_model`]).
+    pub fn health(&self, summary: &Summary) -> Option<Health> {
+        let model = self.model.as_ref()?;
+        let dt = self.scenario.dt_s;
+        let mut e = Evidence { steps: self.scenario.steps(), dt_s: dt, ..Default::default() };
+        let mut invalid = 0;
+        for (&id, n) in &self.nodes {
+            invalid += n.counters.rejected.invalid();
+            if id == 0 {
+                continue;
+            }
+            let mut open = None;
+            for ev in &n.timeline {
+                match ev.what {
+                    EventKind::Isolated => {
+                        open.get_or_insert(ev.k);
+                    }
+                    EventKind::Rejoined => {
+                        if let Some(from) = open.take() {
+                            e.isolations.push((id, from, Some(ev.k)));
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            if let Some(from) = open {
+                e.isolations.push((id, from, None));
+            }
+            if let Some(c) = n.clock {
+                let second = c.guard.second_clock_since_ns.map(|_| c.guard.worst_disagreement_ms);
+                if c.steps > 0 || second.is_some() {
+                    e.clocks.push((format!("follower {id}"), c.steps, second));
+                }
+            }
+        }
+        match model {
+            Ok(m) => {
+                e.errors = summary
+                    .followers
+                    .iter()
+                    .map(|(&id, f)| (id, f.formation_rms_last10, m.get(&id).copied().flatten()))
+                    .collect()
+            }
+            Err(why) => e.model_skipped = Some(why.clone()),
+        }
+        e.refused = vec![
+            ("telemetry messages refused (malformed or on another's key)".into(), self.malformed),
+            ("estimate messages refused by followers (malformed, forged or not a neighbour's)".into(), invalid),
+            ("puts refused on control keys".into(), self.control.refused()),
+            ("telemetry messages dropped by the monitor (queue full)".into(), self.queue_dropped),
+            ("followers with a second sender on their key".into(), self.twins().len() as u64),
+            ("messages refused by access control".into(), self.denied.rows().len() as u64),
+        ];
+        e.restarts = self
+            .followers
+            .iter()
+            .filter(|f| !f.stream.restarts.is_empty())
+            .map(|f| (format!("follower {}", f.id), f.stream.restarts.clone()))
+            .collect();
+        if !self.leader_stream.restarts.is_empty() {
+            e.restarts.push(("the leader".into(), self.leader_stream.restarts.clone()));
+        }
+        let leader = self.nodes.get(&0).map(|n| n.counters).unwrap_or_default();
+        e.time_queries = (leader.time_queries, leader.time_queries_peak_per_s, self.scenario.followers.len() as u64);
+        Some(crate::health::judge(&e))
+    }
+
+    /// Files one telemetry message received on `telemetry/<key_id>` at `now`.
+    pub fn telemetry(&mut self, key_id: Option<u32>, bytes: &[u8], now: Instant) -> std::io::Result<()> {
+        let Some(t) = codec::decode::<Telemetry>(bytes) else {
+            self.refuse(key_id, 1);
+            return Ok(());
+        };
+        let bytes = bytes.len();
+        match t {
+            Telemetry::Leader { first_k, states, counters, done, loop_stats, delivery } => {
+                let batch = Batch { now, bytes, first_k, counters, done, loop_stats, delivery };
+                self.leader_batch(key_id, batch, states)?;
+            }
+            Telemetry::Follower {
+                id,
+                first_k,
+                samples,
+                counters,
+                done,
+                loop_stats,
+                delivery,
+                events,
+                clock,
+                links,
+                heard,
+                rescued,
+                resumed,
+                diverged,
+            } => {
+                let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
+                    self.refuse(key_id, 1);
+                    return Ok(());
+                };
+                // The batch's last step as sent (a diverged one is cut below).
+                let last_k = first_k + samples.len().saturating_sub(1) as u64;
+                let Some((samples, cut)) = self.check_follower_batch(index, first_k, samples, heard) else {
+                    self.refuse(key_id, 1);
+                    return Ok(());
+                };
+                self.refuse(key_id, u64::from(cut));
+                let batch = Batch { now, bytes, first_k, counters, done, loop_stats, delivery };
+                self.note_follower(index, &batch, clock, links);
+                self.file_events(id, events);
+                self.file_rescued(index, rescued);
+                let steps = self.scenario.steps();
+                let f = &mut self.followers[index];
+                if let Some(r) = resumed.filter(|r| r.pose.iter().all(|x| x.is_finite()) && r.k <= steps) {
+                    f.hearing.resumed(r);
+                }
+                if let Some(quantity) = diverged {
+                    f.hearing.end = End::Diverged { k: last_k, quantity: quantity.chars().take(100).collect() };
+                } else if done {
+                    f.hearing.end = End::Completed;
+                }
+                self.file_samples(index, &batch, samples);
+            }
+        }
+        self.process()
+    }
+
+    /// A leader batch: its states filed in step order.
+    fn leader_batch(&mut self, key_id: Option<u32>, b: Batch, states: Vec<LeaderState>) -> std::io::Result<()> {
+        let steps = self.scenario.steps();
+        // A sender's batches hold at most this many steps: a longer one is forged.
+        let most = self.scenario.network.telemetry_batch.max(1) as usize;
+        if key_id != Some(0) {
+            self.refuse(key_id, 1);
+            return Ok(());
+        }
+        let Some((states, cut)) = check_batch(states, b.first_k, steps, most, |_, s| s.is_finite()) else {
+            self.refuse(key_id, 1);
+            return Ok(());
+        };
+        self.refuse(key_id, u64::from(cut));
+        let n = self.nodes.entry(0).or_default();
+        n.note(&b);
+        let mut fresh = Vec::new();
+        self.leader_stream.file(b.first_k, states, b.delivery.available_from, b.delivery.incarnation, &mut fresh);
+        n.samples += fresh.len() as u64;
+        for (k, s) in fresh {
+            self.file_leader(k, Some(&s))?;
+        }
+        while self.leader_base + (self.leader.len() as u64) < self.leader_stream.end {
+            self.leader.push_back(None);
+        }
+        Ok(())
+    }
+
+    /// Follower `index`'s samples, each with what it heard, checked against
+    /// the run (None: refused whole) and cut at the first bad one (`true`
+    /// with the samples kept); the number of samples as sent is the
+    /// length before the cut.
+    #[allow(clippy::type_complexity)]
+    fn check_follower_batch(
+        &self,
+        index: usize,
+        first_k: u64,
+        samples: Vec<FollowerSample>,
+        heard: formation_record::HeardRuns,
+    ) -> Option<(Vec<(FollowerSample, Box<[Heard]>)>, bool)> {
+        // The hearing record covers the batch's steps, one entry per source
+        // (none with `network.hearing_record = false`).
+        let slots = self.followers[index].hearing.sources.len();
+        let (want_steps, want_slots) =
+            if self.scenario.network.hearing_record { (samples.len(), slots) } else { (0, 0) };
+        if heard.steps as usize != want_steps || heard.slots.len() != want_slots || !heard.is_consistent() {
+            return None;
+        }
+        let mut per_step = heard.expand().into_iter().map(Vec::into_boxed_slice);
+        let samples: Vec<_> = samples.into_iter().map(|s| (s, per_step.next().unwrap_or_default())).collect();
+        let ok = |k: u64, (s, _): &(FollowerSample, Box<[Heard]>)| s.k == k && s.is_finite();
+        let most = self.scenario.network.telemetry_batch.max(1) as usize;
+        check_batch(samples, first_k, self.scenario.steps(), most, ok)
+    }
+    /// Files follower `index`'s batch bookkeeping, and from its newest
+    /// batch its estimate of the leader's clock and its links' figures.
+    fn note_follower(&mut self, index: usize, b: &Batch, clock: Option<ClockReport>, links: Vec<LinkStats>) {
+        let g = &self.scenario.graph;
+        let n = self.nodes.entry(self.followers[index].id).or_default();
+        n.note(b);
+        if n.newest == Some((b.delivery.incarnation, b.first_k)) {
+            n.clock = clock.filter(|c| c.offset_ms.is_finite() && c.uncertainty_us.is_finite()).or(n.clock);
+            // A forged batch cannot fill the monitor's memory: one entry per source.
+            let sources = g.neighbours(index).len() + usize::from(g.hears_leader(index));
+            if links.len() <= sources {
+                n.links = links;
+            }
+        }
+    }
+
+    /// Files what the network did to follower `id`, as it noticed it.
+    fn file_events(&mut self, id: u32, events: Vec<NetEvent>) {
+        let n = self.nodes.entry(id).or_default();
+        // A batch sent again repeats its events: a set keeps each once.
+        for e in events.into_iter().take(MAX_EVENTS_PER_BATCH) {
+            if n.timeline.insert(e) {
+                for sink in &self.sinks {
+                    sink.event(&id.to_string(), e.k, &e.what.describe());
+                }
+            }
+        }
+    }
+
+    /// Files the messages follower `index`'s sources sent that it rescued
+    /// (a forged batch cannot fill the monitor's memory).
+    fn file_rescued(&mut self, index: usize, rescued: Vec<Rescued>) {
+        let steps = self.scenario.steps();
+        let sources = &self.followers[index].hearing.sources;
+        for r in rescued.into_iter().take(MAX_RESCUED_PER_BATCH) {
+            let ok = sources.contains(&r.source) && r.stamp <= steps && r.state.is_finite();
+            if ok && self.rescued.len() < MAX_RESCUED {
+                self.rescued.entry((r.source, r.stamp)).or_insert(r);
+            }
+        }
+    }
+
+    /// Files follower `index`'s checked samples into its stream; those now
+    /// in step order wait for the leader's state of their step.
+    fn file_samples(&mut self, index: usize, b: &Batch, samples: Vec<(FollowerSample, Box<[Heard]>)>) {
+        let recording = self.scenario.network.hearing_record;
+        let f = &mut self.followers[index];
+        let mut fresh = Vec::new();
+        f.stream.file(b.first_k, samples, b.delivery.available_from, b.delivery.incarnation, &mut fresh);
+        self.nodes.entry(f.id).or_default().samples += fresh.len() as u64;
+        for (k, (sample, heard)) in fresh {
+            if recording {
+                f.hearing.push(k, &heard);
+            }
+            f.pending.push_back(sample);
+        }
+    }
+
+    /// Turns every follower sample whose leader state is known into a row.
+    fn process(&mut self) -> std::io::Result<()> {
+        let steps = self.scenario.steps();
+        let dt = self.scenario.dt_s;
+        let leader_end = self.leader_base + self.leader.len() as u64;
+        for (index, f) in self.followers.iter_mut().enumerate() {
+            while f.pending.front().is_some_and(|s| s.k < leader_end) {
+                let Some(sample) = f.pending.pop_front() else { break };
+                let k = sample.k;
+                f.next_k = k + 1;
+                let Some(l) = self.leader.get((k - self.leader_base) as usize).copied().flatten() else {
+                    f.unpaired += 1;
+                    continue;
+                };
+                let row = Row::new(&sample, &l, f.offset, dt);
+                f.metrics.push(k, &row);
+                f.formation_error = row.formation_error;
+                f.latest = Some((row, l));
+                if self.writer.wants(k, k == steps) {
+                    self.writer.follower_row(index, &row)?;
+                }
+                for sink in &self.sinks {
+                    sink.follower(index, k, &row);
+                }
+            }
+            if f.pending.is_empty() {
+                f.next_k = f.next_k.max(f.stream.end.min(leader_end));
+            }
+        }
+        // Leader states every follower has used are no longer needed.
+        let used =
+            self.followers.iter().map(|f| f.pending.front().map_or(f.next_k, |s| s.k)).min().unwrap_or(leader_end);
+        while self.leader_base < used && !self.leader.is_empty() {
+            self.leader.pop_front();
+            self.leader_base += 1;
+        }
+        Ok(())
+    }
+
+    /// Per node (0: the leader), the first step the monitor does not hold.
+    pub fn ack(&self) -> Ack {
+        let mut next_k = vec![(0, self.leader_stream.end)];
+        next_k.extend(self.followers.iter().map(|f| (f.id, f.stream.end)));
+        Ack { fingerprint: barrier::fingerprint(&self.scenario), next_k }
+    }
+
+    /// Steps of any node that will never be recorded (lost, or left without a leader state).
+    pub fn lost_steps(&self) -> u64 {
+        self.leader_stream.lost_steps() + self.followers.iter().map(|f| f.stream.lost_steps() + f.unpaired).sum::<u64>()
+    }
+
+    /// Removes the folder being written (a run that never started).
+    pub fn discard(self) {
+        self.writer.discard();
+    }
+
+    /// Appends the buffered CSV rows to the (partial) folder.
+    pub fn flush(&mut self) -> std::io::Result<()> {
+        self.writer.flush()
+    }
+
+    /// Whether every node has reported its final step and all of it is recorded
+    /// or marked lost.
+    /// (Gaps included: see [`Recorder::lost_steps`].)
+    pub fn complete(&self) -> bool {
+        let steps = self.scenario.steps();
+        self.nodes.values().all(|n| n.done)
+            && self.leader_stream.end == steps + 1
+            && self.followers.iter().all(|f| f.next_k == steps + 1 && f.pending.is_empty())
+    }
+
+    /// Steps recorded by every follower.
+    pub fn recorded_steps(&self) -> u64 {
+        self.followers.iter().map(|f| f.next_k).min().unwrap_or(0)
+    }
+
+    /// Nodes that have not reported their final step.
+    pub fn unfinished(&self) -> Vec<String> {
+        self.nodes
+            .iter()
+            .filter(|(_, n)| !n.done)
+            .map(|(&id, _)| if id == 0 { "leader".to_string() } else { format!("follower {id}") })
+            .collect()
+    }
+
+    /// Followers flagged as twinned by a neighbour: who, seen by whom, since
+    /// when (run time, s), and how many messages showed it.
+    pub fn twins(&self) -> Vec<serde_json::Value> {
+        let mut by: BTreeMap<u32, (Vec<u32>, u64, u64)> = BTreeMap::new();
+        for (&receiver, n) in &self.nodes {
+            for l in n.links.iter().filter(|l| l.twin_since.is_some()) {
+                let e = by.entry(l.source).or_insert((Vec::new(), u64::MAX, 0));
+                e.0.push(receiver);
+                e.1 = e.1.min(l.twin_since.unwrap_or(u64::MAX));
+                e.2 += l.twin_messages;
+            }
+        }
+        by.into_iter()
+            .map(|(source, (seen_by, since, messages))| {
+                json!({ "follower": source, "seen_by": seen_by, "since_t": since as f64 * self.scenario.dt_s,
+                        "messages": messages })
+            })
+            .collect()
+    }
+
+    /// The wall-clock figures of network.json's `wall`.
+    pub fn set_wall(&mut self, startup_s: Option<f64>, run_s: Option<f64>) {
+        self.startup_s = startup_s;
+        self.run_s = run_s;
+    }
+
+    /// The hearing record of what has been received (with the scenario set
+    /// by [`Recorder::set_source`]).
+    pub fn hearing_record(&self) -> Option<HearingRecord> {
+        if !self.scenario.network.hearing_record {
+            return None;
+        }
+        Some(HearingRecord {
+            format: formation_record::hearing::HEARING_FORMAT,
+            scenario: self.source.clone()?,
+            fingerprint: barrier::fingerprint(&self.scenario),
+            density: self.density,
+            leader: self.leader_spans.clone(),
+            followers: self.followers.iter().map(|f| f.hearing.clone()).collect(),
+            rescued: self.rescued.values().copied().collect(),
+        })
+    }
+
+    /// Writes `network.json` and `summary.json` (metrics of what was
+    /// received) and moves the folder into place.
+    pub fn finish(self, ending: Ending) -> std::io::Result<(Summary, PathBuf)> {
+        self.finish_judged(ending).map(|(s, d, _)| (s, d))
+    }
+
+    /// [`Recorder::finish`], with the run's health when a model was set.
+    pub fn finish_judged(self, ending: Ending) -> std::io::Result<(Summary, PathBuf, Option<Health>)> {
+        let metrics = self.followers.iter().map(|f| (f.id, f.metrics.finish())).collect();
+        let outages = self.followers.iter().map(|f| (f.id, f.metrics.outages())).collect();
+        let summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
+        let health = self.health(&summary);
+        self.writer.write_file("network.json", &self.network_json_with(ending, health.as_ref()))?;
+        if let Some(record) = self.hearing_record() {
+            self.writer.write_bytes(HEARING_FILE, &record.encode())?;
+        }
+        let dir = self.writer.finish(&summary)?;
+        Ok((summary, dir, health))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use formation_record::HeardRuns;
+
+    fn sample(k: u64) -> FollowerSample {
+        FollowerSample {
+            k,
+            pose: Default::default(),
+            velocity: Default::default(),
+            velocity_estimate: Default::default(),
+            estimate: Default::default(),
+            command: Default::default(),
+            torque_l: 0.0,
+            torque_r: 0.0,
+        }
+    }
+
+    /// A recorder of the paper scenario cut to 10 steps, in a temporary folder.
+    fn paper_recorder() -> (tempfile::TempDir, Scenario, Recorder) {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+        let scenario = Scenario::load(&path, &["duration=0.01".to_string()]).expect("scenario");
+        let dir = tempfile::tempdir().expect("tempdir");
+        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false };
+        let r = Recorder::new(&scenario, &opts).expect("recorder");
+        (dir, scenario, r)
+    }
+
+    #[test]
+    fn a_forged_batch_of_another_length_does_not_desynchronise_the_recorder() {
+        let (_dir, scenario, mut r) = paper_recorder();
+        let steps = scenario.steps();
+        let leader = |first_k: u64, n: u64, done: bool| {
+            codec::encode(&Telemetry::Leader {
+                first_k,
+                states: vec![LeaderState::default(); n as usize],
+                counters: Counters::default(),
+                done,
+                loop_stats: None,
+                delivery: Delivery::default(),
+            })
+        };
+        let slots = |id: u32| scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
+        let follower = |id: u32, first_k: u64, samples: Vec<FollowerSample>, done: bool| {
+            codec::encode(&Telemetry::Follower {
+                id,
+                first_k,
+                heard: HeardRuns::uniform(slots(id), samples.len() as u32, Heard::Age(0)),
+                rescued: Vec::new(),
+                resumed: None,
+                diverged: None,
+                samples,
+                counters: Counters::default(),
+                done,
+                loop_stats: None,
+                delivery: Delivery::default(),
+                events: Vec::new(),
+                clock: None,
+                links: Vec::new(),
+            })
+        };
+        r.telemetry(Some(0), &leader(0, steps + 1, true), Instant::now()).unwrap();
+        let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
+        // Forged: the expected first step, but 2 samples instead of the whole batch; then a NaN sample.
+        r.telemetry(Some(ids[0]), &follower(ids[0], 0, (0..2).map(sample).collect(), false), Instant::now()).unwrap();
+        let mut nan = sample(2);
+        nan.torque_l = f64::NAN;
+        r.telemetry(Some(ids[0]), &follower(ids[0], 2, vec![nan], false), Instant::now()).unwrap();
+        // Forged: beyond the run's end, claiming done.
+        r.telemetry(
+            Some(ids[0]),
+            &follower(ids[0], steps, (steps..steps + 3).map(sample).collect(), true),
+            Instant::now(),
+        )
+        .unwrap();
+        assert_eq!(r.malformed, 2);
+        assert_eq!(r.followers[0].next_k + r.followers[0].pending.len() as u64, 2);
+        assert!(!r.nodes[&ids[0]].done, "a rejected batch must not set done");
+        // The genuine batches, overlapping the forged one, still complete the run.
+        for &id in &ids {
+            r.telemetry(Some(id), &follower(id, 0, (0..=steps).map(sample).collect(), true), Instant::now()).unwrap();
+        }
+        assert!(r.complete());
+        assert_eq!(r.recorded_steps(), steps + 1);
+    }
+
+    #[test]
+    fn an_interrupted_run_writes_a_summary_that_says_who_is_short() {
+        let (_dir, scenario, mut r) = paper_recorder();
+        let steps = scenario.steps();
+        let states = vec![LeaderState::default(); steps as usize + 1];
+        let leader = Telemetry::Leader {
+            first_k: 0,
+            states,
+            counters: Counters::default(),
+            done: true,
+            loop_stats: None,
+            delivery: Delivery::default(),
+        };
+        r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
+        let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
+        // The third follower stops after 4 of the steps + 1 samples.
+        for &id in &ids {
+            let n = if id == ids[2] { 4 } else { steps + 1 };
+            let samples = (0..n).map(sample).collect();
+            let slots = scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
+            let batch = Telemetry::Follower {
+                id,
+                first_k: 0,
+                heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
+                rescued: Vec::new(),
+                resumed: None,
+                diverged: None,
+                samples,
+                counters: Counters::default(),
+                done: false,
+                loop_stats: None,
+                delivery: Delivery::default(),
+                events: Vec::new(),
+                clock: None,
+                links: Vec::new(),
+            };
+            r.telemetry(Some(id), &codec::encode(&batch), Instant::now()).unwrap();
+        }
+        let (summary, dir) = r.finish(Ending::Interrupted).expect("partial run written");
+        assert!(!summary.complete);
+        let short: Vec<_> = summary.incomplete.iter().map(|(&id, s)| (id, s.recorded, s.expected)).collect();
+        assert_eq!(short, vec![(ids[2], 4, steps + 1)], "followers short (id, recorded, expected)");
+        let m = &summary.followers[&ids[2]];
+        assert_eq!((m.formation_final, m.estimator_error_final), (None, None), "no sample at t = T: {m:?}");
+        assert!(summary.followers[&ids[0]].formation_final.is_some(), "{:?}", summary.followers[&ids[0]]);
+        let json = std::fs::read_to_string(dir.join("summary.json")).unwrap();
+        assert!(json.contains("\"complete\": false"), "{json}");
+    }
+}
