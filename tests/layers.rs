@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 11] = [
+const LAYERS: [&str; 12] = [
     "formation-plant",
     "formation-leader",
     "formation-agent",
@@ -18,6 +18,7 @@ const LAYERS: [&str; 11] = [
     "formation-protocol",
     "formation-certs",
     "formation-view",
+    "formation-replay",
     "formation-net",
     "formation",
 ];

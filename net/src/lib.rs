@@ -21,25 +21,22 @@ pub mod checkpoint;
 pub mod clock;
 pub mod courier;
 pub mod denials;
-pub mod explain;
-pub mod health;
 pub mod identity;
 pub mod leader;
 pub mod limits;
 pub mod monitor;
 pub mod node;
-pub mod playback;
-pub mod recorder;
-pub mod replay;
 pub mod router;
 pub mod session;
 pub mod startup;
 pub mod telemetry;
 pub mod timesync;
 pub mod timing;
-pub mod watch;
 
 pub use error::Error;
+
+// A run's record and its replay live in formation-replay.
+pub use formation_replay::{explain, health, playback, recorder, replay, watch};
 
 // The protocol's rules live in formation-protocol; the nodes here reach them
 // by their old paths.

@@ -10,7 +10,7 @@
 //!
 //! | part | modules |
 //! | --- | --- |
-//! | names and encodings | [`names`], [`codec`], [`counters`], [`error`] |
+//! | names and encodings | [`names`], [`codec`], [`counters`], [`error`], [`denied`] (access-control reports) |
 //! | start-up | [`barrier`] (the start barrier), [`clockguard`] and [`timebase`] (the leader's clock as others estimate it) |
 //! | receiving | [`inbox`] (checks, the fault table, freshness), [`latency`], [`hearing`] (what was heard, for the record) |
 //! | lock-step | [`gate`] (look-ahead, repeats, stalls) |
@@ -22,6 +22,7 @@ pub mod clockguard;
 pub mod codec;
 pub mod counters;
 pub mod courier;
+pub mod denied;
 pub mod error;
 pub mod follower;
 pub mod gate;
