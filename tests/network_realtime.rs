@@ -1,4 +1,4 @@
-//! A real-time networked run (ports 17700–17799, 127.0.0.1 only): the run
+//! A real-time networked run (free ports on 127.0.0.1): the run
 //! ends and the formation and estimator errors stay within bounds.
 //!
 //! Settings and tolerances, and why: tests run unoptimised on a loaded
@@ -39,7 +39,8 @@ fn realtime_run_ends_within_spec_bounds() {
     let _alone = one_at_a_time();
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("net");
-    let mut g = Group::launch(&out, &SETS, &["--time-scale", "2", "--base-port", "17700", "--run", "rt", "--mcap"]);
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &SETS, &["--time-scale", "2", "--base-port", &base, "--run", "rt", "--mcap"]);
 
     let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
     sim.args(["sim", SCENARIO, "-q", "--out"]).arg(tmp.path().join("sim"));
@@ -132,7 +133,8 @@ fn a_realtime_run_with_a_communication_delay_is_the_one_the_simulator_predicts()
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("net");
     let before = common::Host::now();
-    let mut g = Group::launch(&out, &sets, &["--time-scale", "2", "--base-port", "17720", "--run", "rt-delay"]);
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &sets, &["--time-scale", "2", "--base-port", &base, "--run", "rt-delay"]);
     let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
     sim.args(["sim", SCENARIO, "-q", "--out"]).arg(tmp.path().join("sim"));
     for s in sets {
