@@ -98,6 +98,17 @@ impl Ports {
     }
 }
 
+/// Held by every test of the `realtime` binary while it runs (their runs
+/// are judged on their timing, or load the machine on purpose): one at a
+/// time in the binary, so no two of them share the two cores.
+pub static ALONE: Mutex<()> = Mutex::new(());
+
+/// `ALONE`, taken (a test that panicked while holding it does not stop
+/// the others).
+pub fn alone() -> std::sync::MutexGuard<'static, ()> {
+    ALONE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// A child process leading its own process group; the group is killed on drop.
 pub struct Group(pub Child);
 

@@ -1,10 +1,10 @@
 //! Issue 25: `formation replay` re-computes a networked run from its
 //! hearing record byte for byte, an altered record shows where it was
 //! altered, and the model's hearing replays into `formation sim`'s folder.
-//! (The lab's replays: tests/lab.rs, a cut-off follower, a restarted agent
+//! (The lab's replays: tests/realtime/lab.rs, a cut-off follower, a restarted agent
 //! and a slow link that `--explain` finds.)
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Command;

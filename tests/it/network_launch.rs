@@ -6,7 +6,7 @@
 //! `formation launch` runs in its own process group, so "no process behind"
 //! means: no process left in that group (every child inherits it).
 
-mod common;
+use crate::common;
 
 use std::os::unix::process::CommandExt;
 use std::process::Command;

@@ -4,7 +4,7 @@
 //! and 50 agents per process in peer mode (four ports), on free ports of
 //! 127.0.0.1 (`common::Ports`).
 
-mod common;
+use crate::common;
 
 use std::process::Command;
 
@@ -18,6 +18,8 @@ const TORQUE_TV_MEDIAN: f64 = 0.03;
 
 #[test]
 fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
+    // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
+    let _alone = common::alone();
     let base = common::Ports::free(1).release().to_string();
     hundred_agents_in_lockstep(&["--mode", "client", "--base-port", &base, "--run", "scale100"], 0.1);
 }
@@ -26,6 +28,8 @@ fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
 /// in-process messages never on a socket; still the simulator's bytes.
 #[test]
 fn a_hundred_agents_in_two_processes_in_lockstep_equal_the_simulator() {
+    // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
+    let _alone = common::alone();
     // Ports: the monitor, the leader, two agent processes.
     let base = common::Ports::free(4).release().to_string();
     hundred_agents_in_lockstep(&["--group", "50", "--base-port", &base, "--run", "scale100g"], 0.5);
@@ -110,6 +114,8 @@ fn hundred_agents_in_lockstep(launch_args: &[&str], duration: f64) {
 /// prints `formation replay --explain`'s ranking of the links.
 #[test]
 fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
+    // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
+    let _alone = common::alone();
     let dir = tempfile::tempdir().expect("tempdir");
     let scenario = dir.path().join("ring50.toml");
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))

@@ -7,7 +7,7 @@
 //! its table and the pixels of its canvas) and compared with the run folder
 //! the monitor wrote.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

@@ -5,7 +5,7 @@
 //! Each run is `formation launch` in its own process group; a guard kills
 //! the whole group on every path, and every wait is bounded.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -4,7 +4,7 @@
 //! with no certificate (free ports on 127.0.0.1, see `common::Ports`;
 //! multicast scouting off). Every figure in a message is what the test measured.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -15,8 +15,9 @@ use common::{Group, Ports, LAUNCH_PORTS};
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 
 /// Every test here loads the machine (floods, storms, real-time runs) and the
-/// real-time one is judged on its timing: one at a time.
-static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+/// real-time one is judged on its timing: one at a time (with every other
+/// test of the `realtime` binary).
+use crate::common::ALONE as ONE_AT_A_TIME;
 
 fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }

@@ -20,11 +20,11 @@
 //! targets for nightly are in `fuzz/` (docs/security.md, "Fuzzing the
 //! decoders").
 //!
-//! Run with `cargo test --test fuzz_decoders -- --nocapture` to see, per
+//! Run with `cargo test --test it fuzz_decoders:: -- --nocapture` to see, per
 //! decoder, the inputs, how many decoded and how many were refused, the
 //! largest allocation and the time taken.
 
-mod common;
+use crate::common;
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -688,7 +688,7 @@ fn every_decoder_survives_a_million_mutated_inputs() {
         if t.seeds_decoded != t.seeds {
             wrong.push(format!(
                 "{name}: only {} of its {} captured messages decode (the format changed? capture the corpus \
-                 again: cargo test --test fuzz_decoders -- --ignored capture_corpus)",
+                 again: cargo test --test it fuzz_decoders::capture_corpus -- --ignored)",
                 t.seeds_decoded, t.seeds
             ));
         }
@@ -982,7 +982,7 @@ fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str) -> Captured 
 /// publishes its denial reports). The runs' hearing.bin and their agents'
 /// checkpoints are copied too. Then per decoder at most [`KEEP`] distinct
 /// payloads, spread over keys and over each run. Run by hand:
-/// `cargo test --test fuzz_decoders -- --ignored capture_corpus`.
+/// `cargo test --test it fuzz_decoders::capture_corpus -- --ignored`.
 #[test]
 #[ignore = "rewrites tests/fuzz_corpus from real runs"]
 fn capture_corpus() {

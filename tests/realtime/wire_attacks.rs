@@ -13,7 +13,7 @@
 //! the simulator's exactly; real time: within 1 %), and network.json must
 //! name the attack.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -23,8 +23,9 @@ use std::time::{Duration, Instant};
 use common::{Group, Ports};
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 
-/// Each run here is judged on what the formation did: one at a time.
-static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+/// Each run here is judged on what the formation did: one at a time (with
+/// every other test of the `realtime` binary).
+use crate::common::ALONE as ONE_AT_A_TIME;
 
 fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }

@@ -17,20 +17,16 @@
 //! coarser step), and real time adds a lag of a step or two (≈ 1.2 m/s ×
 //! 10–20 ms). Both are also checked against the simulator: within 0.1 m.
 
-mod common;
+use crate::common;
 
 use std::process::Command;
-use std::sync::Mutex;
 
 use common::{json, Group, SCENARIO};
 
 /// The two runs share two cores: side by side, each is the other's load
-/// (twelve processes at 200 Hz), so they run one after the other.
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
-    ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner())
-}
+/// (twelve processes at 200 Hz), so they run one after the other (and
+/// after every other test of the `realtime` binary).
+use common::alone as one_at_a_time;
 
 const SETS: [&str; 4] = ["timing=realtime", "dt=0.01", "duration=30", "network.silence_timeout=0.2"];
 

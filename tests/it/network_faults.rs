@@ -4,7 +4,7 @@
 //! a message the table removes), and real-time runs apply the table at the
 //! receiver.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Command;

@@ -4,7 +4,7 @@
 //! advertise and subscribe, binary message frames), and compared with the
 //! run folder the monitor wrote.
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::path::Path;

@@ -3,7 +3,7 @@
 //! including a router crash and restart. Multicast scouting is off in every
 //! session (see `formation_net::session`).
 
-mod common;
+use crate::common;
 
 use std::future::IntoFuture;
 use std::io::{BufRead, BufReader};

@@ -3,7 +3,7 @@
 //! `common::Ports`; multicast scouting off in every session). Every count
 //! in a message is what the test measured.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -142,7 +142,7 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     assert!(o.status.success(), "--force: {}", String::from_utf8_lossy(&o.stderr));
     assert_ne!(std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem"), ca, "--force kept the old authority");
     // Links are never followed: a planted link to an unrelated file is
-    // refused before anything is written (tests/certs_safety.rs checks every byte).
+    // refused before anything is written (tests/it/certs_safety.rs checks every byte).
     let victim = tmp.path().join("victim.txt");
     std::fs::write(&victim, "unrelated").expect("victim");
     std::fs::remove_file(dir.join("agent-1/policy.json5")).expect("rm");
