@@ -4,13 +4,110 @@
 
 #![allow(dead_code)] // each test binary uses its own part of this module
 
+use std::collections::BTreeSet;
+use std::net::TcpListener;
 use std::os::unix::process::CommandExt;
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 pub const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
 pub const LIMIT: Duration = Duration::from_secs(60);
+
+/// Loopback ports a paper-scenario `formation launch --base-port P` uses:
+/// P, P + 1, …, P + 5 in peer mode (monitor, leader, four agents); in
+/// client mode only P (the router).
+pub const LAUNCH_PORTS: usize = 6;
+
+/// Every port `Ports::free` has handed out in this process: never twice.
+static HANDED_OUT: Mutex<BTreeSet<u16>> = Mutex::new(BTreeSet::new());
+
+/// `count` consecutive TCP ports on 127.0.0.1 that the OS says are free,
+/// for one test: `launch --base-port` takes consecutive ports, and a test
+/// that starts a router or a listening session needs to know its port.
+///
+/// How they are chosen, and why concurrent tests do not collide:
+/// - The OS picks the first one (bind 127.0.0.1:0, so somewhere in
+///   `ip_local_port_range`, at a random place), and each of the next
+///   `count - 1` is bound too: a port that a socket holds (a listener, a
+///   live connection's local end) fails to bind and the block is tried
+///   again elsewhere (one in TIME_WAIT binds here as it does for the node,
+///   both asking for SO_REUSEADDR). Fixed ports collided whenever the same test ran twice at
+///   once (two worktrees, two `cargo test`s) or something else held them.
+/// - Every listener stays open, so nothing else on the machine can take the
+///   ports, until `release` — to be called just before starting the
+///   process that binds them (it cannot bind them while we hold them).
+/// - A port is handed out at most once per process (`HANDED_OUT`): after
+///   `release` the OS may pick it again, but another test of this binary is
+///   never given it, however its timing goes. What is left is another
+///   process asking the OS for a port (or a connection taking it as its
+///   local port) in the moment between `release` and the child's bind: the
+///   OS starts each search at a random place in ~28,000 ports, so that is
+///   rare, and the fixed ports had no protection from it either.
+///
+/// Tests whose processes run in network namespaces (`formation lab`, the
+/// containers) need none of this: each node listens on its own address in
+/// its own namespace (the lab uses port 7447 on every host), so a fixed
+/// port there cannot meet another test's.
+pub struct Ports {
+    first: u16,
+    held: Vec<TcpListener>,
+}
+
+impl Ports {
+    pub fn free(count: usize) -> Self {
+        assert!((1..=1000).contains(&count), "{count} ports");
+        let count = count as u16;
+        let mut handed_out = HANDED_OUT.lock().unwrap_or_else(|e| e.into_inner());
+        for _ in 0..1000 {
+            let Ok(first) = TcpListener::bind("127.0.0.1:0") else { continue };
+            let Ok(base) = first.local_addr().map(|a| a.port()) else { continue };
+            if u32::from(base) + u32::from(count) > u32::from(u16::MAX) + 1 {
+                continue;
+            }
+            let block = base..=base + (count - 1);
+            if block.clone().any(|p| handed_out.contains(&p)) {
+                continue;
+            }
+            let mut held = vec![first];
+            for p in block.clone().skip(1) {
+                match TcpListener::bind(("127.0.0.1", p)) {
+                    Ok(l) => held.push(l),
+                    Err(_) => break,
+                }
+            }
+            if held.len() == usize::from(count) {
+                handed_out.extend(block);
+                return Ports { first: base, held };
+            }
+        }
+        panic!("no {count} consecutive free loopback ports in 1000 tries");
+    }
+
+    /// The first port.
+    pub fn base(&self) -> u16 {
+        self.first
+    }
+
+    /// Lets go of the ports (they stay this test's): call just before
+    /// starting what binds them. Returns the first port.
+    pub fn release(mut self) -> u16 {
+        self.held.clear();
+        self.first
+    }
+}
+
+/// Held by every test of the `realtime` binary while it runs (their runs
+/// are judged on their timing, or load the machine on purpose): one at a
+/// time in the binary, so no two of them share the two cores.
+pub static ALONE: Mutex<()> = Mutex::new(());
+
+/// `ALONE`, taken (a test that panicked while holding it does not stop
+/// the others).
+pub fn alone() -> std::sync::MutexGuard<'static, ()> {
+    ALONE.lock().unwrap_or_else(|e| e.into_inner())
+}
 
 /// A child process leading its own process group; the group is killed on drop.
 pub struct Group(pub Child);

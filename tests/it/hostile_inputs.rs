@@ -4,7 +4,7 @@
 //! its message must contain; none may panic, hang (every case has a
 //! deadline), or run silently.
 //!
-//! Run with `cargo test --test hostile_inputs`; a failure lists every case
+//! Run with `cargo test --test it hostile_inputs::`; a failure lists every case
 //! that did not answer as stated, with what it printed.
 
 use std::io::Read;

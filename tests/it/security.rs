@@ -1,9 +1,9 @@
 //! `formation certs` and `--tls`: mutual TLS on every link and access
-//! control derived from the topology (ports 17660–17699, 127.0.0.1 only,
-//! multicast scouting off in every session). Every count in a message is
-//! what the test measured.
+//! control derived from the topology (free ports on 127.0.0.1, see
+//! `common::Ports`; multicast scouting off in every session). Every count
+//! in a message is what the test measured.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use common::{Group, LIMIT, SCENARIO};
+use common::{Group, Ports, LAUNCH_PORTS, LIMIT, SCENARIO};
 use formation_agent::LeaderState;
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
@@ -26,8 +26,9 @@ fn certs(dir: &Path, extra: &[&str]) -> std::process::Output {
         .expect("formation certs")
 }
 
-/// A TLS router child on `port`, up and listening.
-fn router(port: u16, dir: &Path) -> Group {
+/// A TLS router child on a free port, up and listening; the port.
+fn router(dir: &Path) -> (u16, Group) {
+    let port = Ports::free(1).release();
     let ep = format!("tcp/127.0.0.1:{port}");
     let d = dir.display().to_string();
     let g = Group::spawn(&["node", "router", "--listen", &ep, "--tls", &d]);
@@ -36,16 +37,16 @@ fn router(port: u16, dir: &Path) -> Group {
         assert!(t.elapsed() < Duration::from_secs(20), "the TLS router did not listen on {port} within 20 s");
         std::thread::sleep(Duration::from_millis(50));
     }
-    g
+    (port, g)
 }
 
-/// A folder of certificates and a TLS router using them on `port`.
-fn tls_router(port: u16) -> (tempfile::TempDir, PathBuf, Group) {
+/// A folder of certificates and a TLS router using them; its port.
+fn tls_router() -> (tempfile::TempDir, PathBuf, u16, Group) {
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
     common::certs(&dir);
-    let g = router(port, &dir);
-    (tmp, dir, g)
+    let (port, g) = router(&dir);
+    (tmp, dir, port, g)
 }
 
 fn client(port: u16) -> ZenohArgs {
@@ -141,7 +142,7 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     assert!(o.status.success(), "--force: {}", String::from_utf8_lossy(&o.stderr));
     assert_ne!(std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem"), ca, "--force kept the old authority");
     // Links are never followed: a planted link to an unrelated file is
-    // refused before anything is written (tests/certs_safety.rs checks every byte).
+    // refused before anything is written (tests/it/certs_safety.rs checks every byte).
     let victim = tmp.path().join("victim.txt");
     std::fs::write(&victim, "unrelated").expect("victim");
     std::fs::remove_file(dir.join("agent-1/policy.json5")).expect("rm");
@@ -182,12 +183,13 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
 /// `formation launch --tls` in lock-step equals `formation sim` byte for
 /// byte; with `forge`, a session with agent 2's valid identity floods agent
 /// 3's and the leader's estimate keys through the router during the run.
-fn tls_same_as_sim(mode: &str, port: u16, run: &str, forge: bool) {
+fn tls_same_as_sim(mode: &str, run: &str, forge: bool) {
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
     common::certs(&dir);
     let net = tmp.path().join("net");
     let d = dir.display().to_string();
+    let port = Ports::free(LAUNCH_PORTS).release();
     let p = port.to_string();
     let mut g = Group::launch(&net, &["duration=1"], &["--mode", mode, "--base-port", &p, "--run", run, "--tls", &d]);
     let sim = tmp.path().join("sim");
@@ -244,12 +246,12 @@ fn tls_same_as_sim(mode: &str, port: u16, run: &str, forge: bool) {
 
 #[test]
 fn tls_lockstep_equals_the_simulator_in_peer_mode() {
-    tls_same_as_sim("peer", 17660, "tls-peer", false);
+    tls_same_as_sim("peer", "tls-peer", false);
 }
 
 #[test]
 fn tls_lockstep_equals_the_simulator_in_client_mode() {
-    tls_same_as_sim("client", 17670, "tls-client", false);
+    tls_same_as_sim("client", "tls-client", false);
 }
 
 /// The case: agent 2's own valid certificate, 10,000 estimates on
@@ -258,7 +260,7 @@ fn tls_lockstep_equals_the_simulator_in_client_mode() {
 /// rejected): none reaches a follower, and the run equals the simulator.
 #[test]
 fn forged_estimates_from_a_valid_agent_during_a_tls_run_change_nothing() {
-    tls_same_as_sim("client", 17675, "tls-forged", true);
+    tls_same_as_sim("client", "tls-forged", true);
 }
 
 /// Connects as agent 2 to the run's router and puts 10,000 forged estimates
@@ -313,7 +315,6 @@ async fn rogue(args: &ZenohArgs) -> (bool, u64) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
-    let port = 17680;
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
     common::certs(&dir);
@@ -321,7 +322,7 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
     copy_dir(&dir.join("agent-2"), &revoked2);
     let o = certs(&dir, &["--node", "agent-2"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let _router = router(port, &dir);
+    let (port, _router) = router(&dir);
     let other = tmp.path().join("other");
     common::certs(&other);
     // The receiver (the leader may receive every estimate) and a positive
@@ -405,8 +406,7 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_valid_agent_cannot_speak_for_another_node() {
-    let port = 17685;
-    let (_tmp, dir, _router) = tls_router(port);
+    let (_tmp, dir, port, _router) = tls_router();
     // Receivers: follower 1 (hears the leader and follower 2... and may
     // receive estimates 0 and its neighbours'), follower 4 (a neighbour of
     // follower 3), the monitor (telemetry).
@@ -475,7 +475,7 @@ fn copy_dir(from: &Path, to: &Path) {
 fn agent2(dir: &Path) -> (Option<i32>, String) {
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))
         .args(["node", "agent", "--id", "2", "--scenario", SCENARIO, "--mode", "client"])
-        .args(["--connect", "tcp/127.0.0.1:17699", "--open-timeout", "3", "--tls"])
+        .args(["--connect", &format!("tcp/127.0.0.1:{}", Ports::free(1).release()), "--open-timeout", "3", "--tls"])
         .arg(dir)
         .output()
         .expect("agent");
@@ -551,7 +551,7 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
     // launch checks every node before it starts any.
     let out = tmp.path().join("run");
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["launch", SCENARIO, "-q", "--base-port", "17690", "--tls"])
+        .args(["launch", SCENARIO, "-q", "--base-port", &Ports::free(LAUNCH_PORTS).release().to_string(), "--tls"])
         .arg(&expired)
         .arg("--out")
         .arg(&out)
@@ -571,7 +571,7 @@ async fn a_peer_refuses_a_valid_agent_speaking_for_another() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let dir = tmp.path().join("certs");
     common::certs(&dir);
-    let port = 17688;
+    let port = Ports::free(1).release();
     let peer = |name: &str, listen: Vec<String>, connect: Vec<String>| ZenohArgs {
         mode: Some(ZenohMode::Peer),
         listen,

@@ -1,10 +1,10 @@
 //! Issue 25: `formation replay` re-computes a networked run from its
 //! hearing record byte for byte, an altered record shows where it was
 //! altered, and the model's hearing replays into `formation sim`'s folder.
-//! (The lab's replays: tests/lab.rs, a cut-off follower, a restarted agent
+//! (The lab's replays: tests/realtime/lab.rs, a cut-off follower, a restarted agent
 //! and a slow link that `--explain` finds.)
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Command;
@@ -38,7 +38,8 @@ fn a_real_time_run_replays_byte_for_byte() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("rt");
     let sets = ["timing=realtime", "network.delay_steps=1", "duration=4"];
-    let mut g = Group::launch(&out, &sets, &["--base-port", "18500", "--run", "replay-rt", "--mcap"]);
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &sets, &["--base-port", &base, "--run", "replay-rt", "--mcap"]);
     assert!(g.wait(Duration::from_secs(90)).success(), "formation launch failed");
     let (ok, text) = replay_cli(&[], &out);
     assert!(ok && text.contains("byte-identical"), "the replay differs from the real-time run:\n{text}");
@@ -113,7 +114,7 @@ fn frames(port: u16, ms: u64) -> Vec<(f64, bool, u64)> {
 /// page at the speed asked; it pauses, seeks back (a new epoch, from the
 /// time asked) and forward, and refuses a control it does not know.
 fn plays_on_the_live_page(run: &Path) {
-    let port = 18540;
+    let port = common::Ports::free(1).release();
     let run_s = run.display().to_string();
     let addr = format!("127.0.0.1:{port}");
     let _g = Group::spawn(&["monitor", "--replay", &run_s, "--web", &addr, "--speed", "0.5", "--linger", "30"]);
@@ -179,7 +180,8 @@ fn a_lockstep_run_with_faults_replays_and_an_altered_entry_shows_where() {
         "faults+={link=[1,2], from=1, to=2.5}",
         "faults+={node=4, from=3, to=3.5, loss=0.3}",
     ];
-    let mut g = Group::launch(&out, &sets, &["--base-port", "18520", "--run", "replay-ls"]);
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &sets, &["--base-port", &base, "--run", "replay-ls"]);
     assert!(g.wait(Duration::from_secs(90)).success(), "formation launch failed");
     let (ok, text) = replay_cli(&[], &out);
     assert!(ok && text.contains("byte-identical"), "the replay differs from the lock-step run:\n{text}");

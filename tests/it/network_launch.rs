@@ -1,23 +1,25 @@
-//! `formation launch` end to end (ports 17600–17699, 127.0.0.1 only): a
+//! `formation launch` end to end (free ports on 127.0.0.1, see
+//! `common::Ports`): a
 //! short run exits 0 and leaves no process behind; SIGINT mid-run stops
 //! every child and the monitor's run folder keeps what it received.
 //!
 //! `formation launch` runs in its own process group, so "no process behind"
 //! means: no process left in that group (every child inherits it).
 
-mod common;
+use crate::common;
 
 use std::os::unix::process::CommandExt;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use common::{Group, LIMIT};
+use common::{Group, Ports, LAUNCH_PORTS, LIMIT};
 
 #[test]
 fn short_launch_succeeds_and_leaves_nothing_behind() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
-    let mut g = Group::launch(&out, &["duration=0.5"], &["--base-port", "17600", "--run", "launch-ok"]);
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &["duration=0.5"], &["--base-port", &base, "--run", "launch-ok"]);
     let status = g.wait(LIMIT);
     assert!(status.success(), "formation launch failed: {status}");
     g.assert_group_empty();
@@ -33,7 +35,8 @@ fn short_launch_succeeds_and_leaves_nothing_behind() {
 fn sigint_stops_every_child_and_keeps_the_folder() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
-    let mut g = Group::launch(&out, &["duration=300"], &["--base-port", "17610", "--run", "launch-int"]);
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &["duration=300"], &["--base-port", &base, "--run", "launch-int"]);
     // Wait until the monitor has written some samples (its folder is
     // `<out>.partial` until it finishes).
     let partial = tmp.path().join("run.partial").join("leader.csv");
@@ -81,13 +84,15 @@ fn base_port_zero_is_refused_up_front() {
 fn a_bad_group_is_refused_up_front() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let certs = tmp.path().join("certs");
+    // Refused before anything listens: the ports are only named.
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
     for (extra, why) in [
         (vec!["--group", "0"], "--group 0"),
         (vec!["--group", "2", "--tls", certs.to_str().expect("utf-8")], "--group with --tls"),
     ] {
         let out = tmp.path().join("run");
         let out_s = out.display().to_string();
-        let mut args = vec!["launch", common::SCENARIO, "-q", "--out", &out_s, "--base-port", "17620"];
+        let mut args = vec!["launch", common::SCENARIO, "-q", "--out", &out_s, "--base-port", &base];
         args.extend(extra.iter().copied());
         // Refused before any child starts: nothing to wait for.
         let o = Command::new(env!("CARGO_BIN_EXE_formation")).args(&args).output().expect("formation launch");
@@ -103,9 +108,11 @@ fn a_bad_group_is_refused_up_front() {
 /// not have, says so in one line and exits 2.
 #[test]
 fn an_agent_refuses_a_repeated_or_unknown_follower() {
+    // Refused before it connects: the port is only named.
+    let connect = format!("tcp/127.0.0.1:{}", Ports::free(1).release());
     for (ids, why) in [("1,2,1", "follower 1 is given twice"), ("1,9", "has no follower 9")] {
         let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-            .args(["node", "agent", "--scenario", common::SCENARIO, "--id", ids, "--connect", "tcp/127.0.0.1:17629"])
+            .args(["node", "agent", "--scenario", common::SCENARIO, "--id", ids, "--connect", &connect])
             .output()
             .expect("formation node agent");
         let stderr = String::from_utf8_lossy(&o.stderr);
@@ -122,13 +129,14 @@ fn an_agent_refuses_a_repeated_or_unknown_follower() {
 fn the_monitor_exits_143_on_sigterm_and_130_on_sigint() {
     let by_hand: &[&str] = &[];
     let by_launch: &[&str] = &["node", "monitor"];
-    for (signal, code, port, exe, first) in [
-        ("-TERM", 143, "17620", env!("CARGO_BIN_EXE_monitor"), by_hand),
-        ("-INT", 130, "17621", env!("CARGO_BIN_EXE_monitor"), by_hand),
-        ("-TERM", 143, "17622", env!("CARGO_BIN_EXE_formation"), by_launch),
-        ("-INT", 130, "17623", env!("CARGO_BIN_EXE_formation"), by_launch),
+    for (signal, code, exe, first) in [
+        ("-TERM", 143, env!("CARGO_BIN_EXE_monitor"), by_hand),
+        ("-INT", 130, env!("CARGO_BIN_EXE_monitor"), by_hand),
+        ("-TERM", 143, env!("CARGO_BIN_EXE_formation"), by_launch),
+        ("-INT", 130, env!("CARGO_BIN_EXE_formation"), by_launch),
     ] {
         let tmp = tempfile::tempdir().expect("tempdir");
+        let port = Ports::free(1).release();
         let out = tmp.path().join("run");
         let child = Command::new(exe)
             .args(first)
@@ -158,11 +166,14 @@ fn the_monitor_exits_143_on_sigterm_and_130_on_sigint() {
 /// `<out>.partial` folder behind.
 #[test]
 fn a_taken_monitor_port_leaves_no_partial_folder() {
-    let held = std::net::TcpListener::bind("127.0.0.1:17632").expect("hold the port");
+    // Held (listening) for the whole test.
+    let held = Ports::free(1);
+    let port = held.base();
+    let listen = format!("tcp/127.0.0.1:{port}");
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
     let result = Command::new(env!("CARGO_BIN_EXE_monitor"))
-        .args(["--scenario", common::SCENARIO, "-q", "--run", "mon-taken", "--listen", "tcp/127.0.0.1:17632", "--out"])
+        .args(["--scenario", common::SCENARIO, "-q", "--run", "mon-taken", "--listen", &listen, "--out"])
         .arg(&out)
         .stdin(std::process::Stdio::null())
         .output()
@@ -170,7 +181,7 @@ fn a_taken_monitor_port_leaves_no_partial_folder() {
     drop(held);
     let stderr = String::from_utf8_lossy(&result.stderr);
     assert_eq!(result.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("17632") && stderr.contains("Address already in use"), "{stderr}");
+    assert!(stderr.contains(&port.to_string()) && stderr.contains("Address already in use"), "{stderr}");
     let left: Vec<_> = std::fs::read_dir(tmp.path()).expect("tmp").map(|e| e.expect("entry").file_name()).collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
@@ -179,17 +190,19 @@ fn a_taken_monitor_port_leaves_no_partial_folder() {
 /// after `--open-timeout` with one line naming the endpoint (exit 1).
 #[test]
 fn a_client_without_its_router_gives_up_naming_it() {
+    // Nothing listens there (the port is this test's, released).
+    let connect = format!("tcp/127.0.0.1:{}", Ports::free(1).release());
     let began = Instant::now();
     let result = Command::new(env!("CARGO_BIN_EXE_agent"))
         .args(["--scenario", common::SCENARIO, "--id", "1", "--run", "no-router", "--mode", "client"])
-        .args(["--connect", "tcp/127.0.0.1:17633", "--open-timeout", "2"])
+        .args(["--connect", &connect, "--open-timeout", "2"])
         .stdin(std::process::Stdio::null())
         .output()
         .expect("run agent");
     let took = began.elapsed();
     let stderr = String::from_utf8_lossy(&result.stderr);
     assert_eq!(result.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("no zenoh router or peer answered at tcp/127.0.0.1:17633 within 2 s"), "{stderr}");
+    assert!(stderr.contains(&format!("no zenoh router or peer answered at {connect} within 2 s")), "{stderr}");
     assert!(took < Duration::from_secs(15), "gave up after {took:?} with --open-timeout 2");
 }
 
@@ -201,9 +214,12 @@ fn a_client_without_its_router_gives_up_naming_it() {
 fn a_twin_of_a_running_node_is_refused_and_the_run_goes_on() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("first");
-    // Router on 17650 (client mode); real time, 12 s.
+    // The router on `port` (client mode); real time, 12 s.
     let sets = ["timing=realtime", "duration=12"];
-    let mut first = Group::launch(&out, &sets, &["--mode", "client", "--base-port", "17650", "--run", "twin"]);
+    let port = Ports::free(1).release();
+    let connect = format!("tcp/127.0.0.1:{port}");
+    let base = port.to_string();
+    let mut first = Group::launch(&out, &sets, &["--mode", "client", "--base-port", &base, "--run", "twin"]);
     std::thread::sleep(Duration::from_secs(5));
     for (bin, extra) in [("leader", vec![]), ("agent", vec!["--id", "3"])] {
         let began = Instant::now();
@@ -212,7 +228,7 @@ fn a_twin_of_a_running_node_is_refused_and_the_run_goes_on() {
             _ => env!("CARGO_BIN_EXE_agent"),
         })
         .args(["--scenario", common::SCENARIO, "--run", "twin", "--mode", "client"])
-        .args(["--connect", "tcp/127.0.0.1:17650", "--set", sets[0], "--set", sets[1]])
+        .args(["--connect", &connect, "--set", sets[0], "--set", sets[1]])
         .args(&extra)
         .stdin(std::process::Stdio::null())
         .output()
@@ -241,6 +257,7 @@ fn a_node_with_another_scenario_is_named_with_the_key_that_differs() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("mismatch");
     let out_s = out.display().to_string();
+    let ep = format!("tcp/127.0.0.1:{}", Ports::free(1).release());
     let spawn = |bin: &str, extra: &[&str]| {
         let exe = match bin {
             "router" => env!("CARGO_BIN_EXE_router"),
@@ -250,11 +267,11 @@ fn a_node_with_another_scenario_is_named_with_the_key_that_differs() {
         };
         let mut c = Command::new(exe);
         if bin == "router" {
-            c.args(["--listen", "tcp/127.0.0.1:17655"]);
+            c.args(["--listen", &ep]);
         } else {
             c.args(["--scenario", common::SCENARIO, "--run", "mismatch", "--mode", "client"]).args([
                 "--connect",
-                "tcp/127.0.0.1:17655",
+                &ep,
                 "--set",
                 "timing=realtime",
                 "--set",

@@ -1,9 +1,10 @@
 //! 100 agents as processes on one host (issue 12): a generated ring of 100
 //! followers through `formation launch`, lock-step, equals the simulator
-//! byte for byte: one process per agent in client mode (router port 17646),
-//! and 50 agents per process in peer mode (ports 18420–18423), 127.0.0.1 only.
+//! byte for byte: one process per agent in client mode (one router port),
+//! and 50 agents per process in peer mode (four ports), on free ports of
+//! 127.0.0.1 (`common::Ports`).
 
-mod common;
+use crate::common;
 
 use std::process::Command;
 
@@ -17,14 +18,21 @@ const TORQUE_TV_MEDIAN: f64 = 0.03;
 
 #[test]
 fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
-    hundred_agents_in_lockstep(&["--mode", "client", "--base-port", "17646", "--run", "scale100"], 0.1);
+    // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
+    let _alone = common::alone();
+    let base = common::Ports::free(1).release().to_string();
+    hundred_agents_in_lockstep(&["--mode", "client", "--base-port", &base, "--run", "scale100"], 0.1);
 }
 
 /// `launch --group 50`: two agent processes of 50 followers each, their
 /// in-process messages never on a socket; still the simulator's bytes.
 #[test]
 fn a_hundred_agents_in_two_processes_in_lockstep_equal_the_simulator() {
-    hundred_agents_in_lockstep(&["--group", "50", "--base-port", "18420", "--run", "scale100g"], 0.5);
+    // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
+    let _alone = common::alone();
+    // Ports: the monitor, the leader, two agent processes.
+    let base = common::Ports::free(4).release().to_string();
+    hundred_agents_in_lockstep(&["--group", "50", "--base-port", &base, "--run", "scale100g"], 0.5);
 }
 
 fn hundred_agents_in_lockstep(launch_args: &[&str], duration: f64) {
@@ -106,6 +114,8 @@ fn hundred_agents_in_lockstep(launch_args: &[&str], duration: f64) {
 /// prints `formation replay --explain`'s ranking of the links.
 #[test]
 fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
+    // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
+    let _alone = common::alone();
     let dir = tempfile::tempdir().expect("tempdir");
     let scenario = dir.path().join("ring50.toml");
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))
@@ -118,7 +128,9 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let sets = ["timing=realtime", "dt=0.01", "duration=10", "network.delay_steps=1"];
     let net = dir.path().join("net");
     let net_s = net.display().to_string();
-    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", "18200", "--run", "rt50"];
+    // Ports: the monitor, the leader, 50 agents.
+    let base = common::Ports::free(52).release().to_string();
+    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", &base, "--run", "rt50"];
     // As root (CI): every node under real-time scheduling, as a real-time
     // deployment runs; the 3 % below is judged with it.
     // SAFETY: geteuid has no preconditions.

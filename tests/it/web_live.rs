@@ -1,5 +1,5 @@
-//! The live page (`launch --web`) in a real headless browser (ports
-//! 18000–18049, 127.0.0.1 only): Chromium from the distribution, driven
+//! The live page (`launch --web`) in a real headless browser (free ports on
+//! 127.0.0.1, see `common::Ports`): Chromium from the distribution, driven
 //! through chromedriver (WebDriver). Where neither is installed the test
 //! says so and is skipped, unless FORMATION_BROWSER_REQUIRED is set (CI).
 //!
@@ -7,7 +7,7 @@
 //! its table and the pixels of its canvas) and compared with the run folder
 //! the monitor wrote.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -196,14 +196,15 @@ fn two_browsers_watch_a_lockstep_run_that_still_equals_the_simulator() {
     // Long enough (about 10 s of wall-clock time) for both browsers to
     // start and one of them to close while the run goes on.
     let sets = ["duration=30"];
-    let page_port = 18020;
+    let page_port = common::Ports::free(1).release();
     let web = format!("127.0.0.1:{page_port}");
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
     let mut g =
-        Group::launch(&out, &sets, &["--base-port", "18030", "--run", "web-ls", "--web", &web, "--web-linger", "5"]);
+        Group::launch(&out, &sets, &["--base-port", &base, "--run", "web-ls", "--web", &web, "--web-linger", "5"]);
     wait_for_port(page_port, LIMIT);
     let page = format!("http://{web}/");
-    let a = Browser::start(&chromium, &chromedriver, 18010);
-    let mut b = Some(Browser::start(&chromium, &chromedriver, 18011));
+    let a = Browser::start(&chromium, &chromedriver, common::Ports::free(1).release());
+    let mut b = Some(Browser::start(&chromium, &chromedriver, common::Ports::free(1).release()));
     a.goto(&page);
     if let Some(b) = &b {
         b.goto(&page);
@@ -300,14 +301,16 @@ fn two_browsers_watch_a_lockstep_run_that_still_equals_the_simulator() {
 
 #[test]
 fn a_web_address_that_cannot_be_used_gets_one_clear_line() {
-    let taken = std::net::TcpListener::bind("127.0.0.1:18040").expect("bind 18040");
+    // Held (listening) until the monitor has tried it.
+    let taken = common::Ports::free(1);
+    let addr = format!("127.0.0.1:{}", taken.base());
     let out = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["node", "monitor", "--scenario", SCENARIO, "--web", "127.0.0.1:18040", "--open-timeout", "2"])
+        .args(["node", "monitor", "--scenario", SCENARIO, "--web", &addr, "--open-timeout", "2"])
         .output()
         .expect("formation monitor");
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "exit status; stderr: {err}");
-    assert!(err.contains("--web 127.0.0.1:18040: cannot listen there"), "stderr: {err}");
+    assert!(err.contains(&format!("--web {addr}: cannot listen there")), "stderr: {err}");
     drop(taken);
     for (bad, says) in
         [("--web=localhost", "invalid value 'localhost' for '--web"), ("--web-linger=-1", "--web-linger")]

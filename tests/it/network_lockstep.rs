@@ -1,16 +1,17 @@
-//! Lock-step networked runs against the in-process simulator (ports
-//! 17500–17599, 127.0.0.1 only, multicast scouting off in every session).
+//! Lock-step networked runs against the in-process simulator (free ports
+//! on 127.0.0.1, see `common::Ports`; multicast scouting off in every
+//! session).
 //!
 //! Each run is `formation launch` in its own process group; a guard kills
 //! the whole group on every path, and every wait is bounded.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use common::{Group, LIMIT, SCENARIO};
+use common::{Group, Ports, LAUNCH_PORTS, LIMIT, SCENARIO};
 use formation_agent::LeaderState;
 use formation_net::session::{self, ZenohArgs};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
@@ -51,8 +52,9 @@ fn network(dir: &Path) -> serde_json::Value {
 
 #[test]
 fn lockstep_noise_free_equals_sim() {
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
     let (_dir, net) =
-        same_as_sim("noise off", &["duration=2", "noise=false"], &["--base-port", "17500", "--run", "ls-a"]);
+        same_as_sim("noise off", &["duration=2", "noise=false"], &["--base-port", &base, "--run", "ls-a"]);
     let n = network(&net);
     assert_eq!(n["complete"], true);
     assert_eq!(n["nodes"]["1"]["rejected_invalid"], 0);
@@ -60,12 +62,14 @@ fn lockstep_noise_free_equals_sim() {
 
 #[test]
 fn lockstep_with_noise_equals_sim() {
-    same_as_sim("noise on", &["duration=2"], &["--base-port", "17510", "--run", "ls-b"]);
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    same_as_sim("noise on", &["duration=2"], &["--base-port", &base, "--run", "ls-b"]);
 }
 
 #[test]
 fn client_mode_through_router_equals_sim() {
-    same_as_sim("client mode", &["duration=1"], &["--mode", "client", "--base-port", "17520", "--run", "ls-c"]);
+    let base = Ports::free(1).release().to_string();
+    same_as_sim("client mode", &["duration=1"], &["--mode", "client", "--base-port", &base, "--run", "ls-c"]);
 }
 
 fn msg(sender: u32, step: u64, v: f64) -> Vec<u8> {
@@ -87,11 +91,13 @@ async fn rogue_messages_are_rejected_and_counted() {
     let tmp = dir.path();
     let net = tmp.join("net");
     let sets = ["duration=3", "noise=false"];
-    // Ports: monitor 17540, leader 17541, agents 17542–17545; the rogue listens on 17550.
-    let mut g = Group::launch(&net, &sets, &["--base-port", "17540", "--run", "rogue"]);
+    // Ports: the monitor's base, the leader's base + 1, the agents' base +
+    // 2 to base + 5; the rogue listens on base + 6.
+    let base = Ports::free(LAUNCH_PORTS + 1).release();
+    let mut g = Group::launch(&net, &sets, &["--base-port", &base.to_string(), "--run", "rogue"]);
     let args = ZenohArgs {
-        listen: vec!["tcp/127.0.0.1:17550".into()],
-        connect: (17541..=17545).map(|p| format!("tcp/127.0.0.1:{p}")).collect(),
+        listen: vec![format!("tcp/127.0.0.1:{}", base + 6)],
+        connect: (base + 1..=base + 5).map(|p| format!("tcp/127.0.0.1:{p}")).collect(),
         ..Default::default()
     };
     let rogue = tokio::time::timeout(Duration::from_secs(10), session::open(&args)).await.expect("open").expect("open");

@@ -1,22 +1,23 @@
 //! A node that holds a valid certificate and attacks the formation with
 //! only what it may send: its own keys flooded with `Block`, telemetry far
 //! larger than a batch, and a storm of failed TLS handshakes from a host
-//! with no certificate (ports 18500–18559, 127.0.0.1 only, multicast
-//! scouting off). Every figure in a message is what the test measured.
+//! with no certificate (free ports on 127.0.0.1, see `common::Ports`;
+//! multicast scouting off). Every figure in a message is what the test measured.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use common::Group;
+use common::{Group, Ports, LAUNCH_PORTS};
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 
 /// Every test here loads the machine (floods, storms, real-time runs) and the
-/// real-time one is judged on its timing: one at a time.
-static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+/// real-time one is judged on its timing: one at a time (with every other
+/// test of the `realtime` binary).
+use crate::common::ALONE as ONE_AT_A_TIME;
 
 fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }
@@ -188,9 +189,10 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
     common::certs(&certs);
     let c = certs.display().to_string();
     let sets = ["timing=realtime", "duration=12"];
-    let run = |kind: Attack, port: u16| -> (std::path::PathBuf, Done, u64) {
+    let run = |kind: Attack| -> (std::path::PathBuf, Done, u64) {
         let out = tmp.path().join(format!("{kind:?}"));
         let name = format!("atk-{kind:?}").to_lowercase();
+        let port = Ports::free(1).release();
         let base = port.to_string();
         let mut g =
             Group::launch(&out, &sets, &["--mode", "client", "--tls", &c, "--base-port", &base, "--run", &name]);
@@ -215,9 +217,9 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
         (out, Arc::try_unwrap(done).unwrap_or_default(), peak)
     };
     let host = common::Host::now();
-    let (calm, _, calm_rss) = run(Attack::None, 18500);
-    let (flood, flooded, flood_rss) = run(Attack::Flood, 18502);
-    let (twin, twinned, twin_rss) = run(Attack::Twin, 18504);
+    let (calm, _, calm_rss) = run(Attack::None);
+    let (flood, flooded, flood_rss) = run(Attack::Flood);
+    let (twin, twinned, twin_rss) = run(Attack::Twin);
     let machine = common::Host::now().since(&host);
 
     let sent = flooded.sent.load(Ordering::Relaxed);
@@ -285,7 +287,7 @@ fn telemetry_sent_straight_to_the_monitor_cannot_fill_its_memory() {
     let out = tmp.path().join("net");
     let sets = ["duration=5"];
     // Peer ports: the monitor's is the first.
-    let port = 18510;
+    let port = Ports::free(LAUNCH_PORTS).release();
     let mut g = Group::launch(&out, &sets, &["--tls", &c, "--base-port", &port.to_string(), "--run", "mem"]);
     let stop = Arc::new(AtomicBool::new(false));
     let rss = watch_monitor(g.0.id(), stop.clone());
@@ -339,7 +341,7 @@ async fn a_storm_of_failed_handshakes_does_not_delay_a_certified_join() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let certs = tmp.path().join("certs");
     common::certs(&certs);
-    let port = 18520;
+    let port = Ports::free(1).release();
     let ep = format!("tcp/127.0.0.1:{port}");
     let _router = Group::spawn(&["node", "router", "--listen", &ep, "--tls", &certs.display().to_string()]);
     let t = Instant::now();

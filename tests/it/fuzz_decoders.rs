@@ -20,11 +20,11 @@
 //! targets for nightly are in `fuzz/` (docs/security.md, "Fuzzing the
 //! decoders").
 //!
-//! Run with `cargo test --test fuzz_decoders -- --nocapture` to see, per
+//! Run with `cargo test --test it fuzz_decoders:: -- --nocapture` to see, per
 //! decoder, the inputs, how many decoded and how many were refused, the
 //! largest allocation and the time taken.
 
-mod common;
+use crate::common;
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -688,7 +688,7 @@ fn every_decoder_survives_a_million_mutated_inputs() {
         if t.seeds_decoded != t.seeds {
             wrong.push(format!(
                 "{name}: only {} of its {} captured messages decode (the format changed? capture the corpus \
-                 again: cargo test --test fuzz_decoders -- --ignored capture_corpus)",
+                 again: cargo test --test it fuzz_decoders::capture_corpus -- --ignored)",
                 t.seeds_decoded, t.seeds
             ));
         }
@@ -859,11 +859,10 @@ fn large_inputs_of_empty_elements() {
 // ---------------------------------------------------------------------------
 // The corpus: captured from real runs.
 
-/// The capture's runs: name, duration (s) and the loopback port of its
-/// router (18900 and up: no other test uses them). Three durations give
-/// three hearing records of different lengths.
-const CAPTURE_RUNS: [(&str, &str, u16); 3] =
-    [("fuzzcap", "1", 18900), ("fuzzcap2", "0.2", 18910), ("fuzzcap3", "0.05", 18920)];
+/// The capture's runs: name and duration (s); each run's router is on a
+/// free loopback port (`common::Ports`). Three durations give three hearing
+/// records of different lengths.
+const CAPTURE_RUNS: [(&str, &str); 3] = [("fuzzcap", "1"), ("fuzzcap2", "0.2"), ("fuzzcap3", "0.05")];
 /// Files kept per decoder.
 const KEEP: usize = 20;
 
@@ -877,7 +876,7 @@ struct Captured {
 }
 
 /// One capture run (see [`capture_corpus`]).
-fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str, port: u16) -> Captured {
+fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str) -> Captured {
     use formation_net::session::{self, ZenohArgs, ZenohMode};
     use std::os::unix::process::CommandExt;
     use std::sync::{Arc, Mutex};
@@ -886,6 +885,7 @@ fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str, port: u16) -
     // The agents write their checkpoints in $TMPDIR/formation-checkpoints.
     let tmpdir = tmp.join(format!("{run}-tmp"));
     std::fs::create_dir_all(&tmpdir).expect("tmp");
+    let port = common::Ports::free(1).release();
     let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_formation"));
     cmd.args(["launch", common::SCENARIO, "-q", "--out"])
         .arg(&out)
@@ -974,7 +974,7 @@ fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str, port: u16) -
 
 /// Captures `tests/fuzz_corpus/` from real runs: `formation launch` of the
 /// paper scenario (1 s, 0.2 s and 0.05 s, lock-step, telemetry batches of
-/// 10 steps) over TLS in client mode on ports 18900, 18910 and 18920, while
+/// 10 steps) over TLS in client mode on free loopback ports, while
 /// sessions of this test, with the run's certificates, hear every key of
 /// the run (as the leader, whose role hears them all), ask the leader's
 /// clock (as agent 1, like a follower) and put agent 3's estimates on its
@@ -982,7 +982,7 @@ fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str, port: u16) -
 /// publishes its denial reports). The runs' hearing.bin and their agents'
 /// checkpoints are copied too. Then per decoder at most [`KEEP`] distinct
 /// payloads, spread over keys and over each run. Run by hand:
-/// `cargo test --test fuzz_decoders -- --ignored capture_corpus`.
+/// `cargo test --test it fuzz_decoders::capture_corpus -- --ignored`.
 #[test]
 #[ignore = "rewrites tests/fuzz_corpus from real runs"]
 fn capture_corpus() {
@@ -991,8 +991,8 @@ fn capture_corpus() {
     common::certs(&certs);
     // Per decoder, the samples by key (in the order heard).
     let mut by: std::collections::BTreeMap<&str, std::collections::BTreeMap<String, Vec<Vec<u8>>>> = Default::default();
-    for (run, duration, port) in CAPTURE_RUNS {
-        let c = capture_run(tmp.path(), &certs, run, duration, port);
+    for (run, duration) in CAPTURE_RUNS {
+        let c = capture_run(tmp.path(), &certs, run, duration);
         let prefix = format!("formation/{run}/");
         for (key, bytes) in c.heard {
             let rest = key.strip_prefix(&prefix).unwrap_or(&key).to_string();

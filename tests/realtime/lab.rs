@@ -5,15 +5,15 @@
 //! test says why and passes, unless FORMATION_LAB_REQUIRED=1 (set by CI,
 //! which runs as root): then it fails.
 
-mod common;
+use crate::common;
 
 use std::process::Command;
-use std::sync::Mutex;
 use std::time::Duration;
 
 use common::Group;
 
-static ONE_LAB: Mutex<()> = Mutex::new(());
+/// One lab at a time, and no other test of the `realtime` binary beside it.
+use crate::common::ALONE as ONE_LAB;
 const LIMIT: Duration = Duration::from_secs(150);
 const BASE: [&str; 2] = ["timing=realtime", "duration=20"];
 

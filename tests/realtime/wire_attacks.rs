@@ -1,6 +1,6 @@
 //! Issue 30's attacks from the wire, each with its crafted bytes here, each
-//! held: a process on the run's router (no TLS, client mode, ports
-//! 19100–19159 on 127.0.0.1, multicast scouting off) sends
+//! held: a process on the run's router (no TLS, client mode, a free port
+//! on 127.0.0.1, multicast scouting off) sends
 //! - a 46-byte telemetry message on `telemetry/1` whose `diverged` string
 //!   declares 2^62 bytes (it aborted the monitor), a 13-byte start-up
 //!   `ready` with a like length field (it aborted four nodes, the leader
@@ -13,18 +13,19 @@
 //! the simulator's exactly; real time: within 1 %), and network.json must
 //! name the attack.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use common::Group;
+use common::{Group, Ports};
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 
-/// Each run here is judged on what the formation did: one at a time.
-static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+/// Each run here is judged on what the formation did: one at a time (with
+/// every other test of the `realtime` binary).
+use crate::common::ALONE as ONE_AT_A_TIME;
 
 fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }
@@ -85,7 +86,6 @@ fn crafted_length_fields_and_control_floods_crash_nothing_and_are_counted() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let (out, sim) = (tmp.path().join("run"), tmp.path().join("sim"));
     let sets = ["duration=5"];
-    let port = 19100u16;
     let run = "wire-lengths";
     let telemetry = telemetry_declaring_2_pow_62();
     let ready = ready_declaring_2_pow_62();
@@ -93,6 +93,7 @@ fn crafted_length_fields_and_control_floods_crash_nothing_and_are_counted() {
     assert!(telemetry.len() <= 46 && ready.len() == 13, "{} and {} bytes", telemetry.len(), ready.len());
     let stop = Arc::new(AtomicBool::new(false));
     let (puts, queries) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let port = Ports::free(1).release();
     let mut g = Group::launch(&out, &sets, &["--mode", "client", "--base-port", &port.to_string(), "--run", run]);
     let attacker = {
         let (stop, puts, queries) = (stop.clone(), puts.clone(), queries.clone());
@@ -231,15 +232,16 @@ fn a_second_clock_half_a_second_ahead_never_moves_the_formation() {
     let host = common::Host::now();
     let mut wrong = Vec::new();
     let mut seen = Vec::new();
-    for (case, after, port) in
-        [("from the start", Duration::ZERO, 19120u16), ("joining mid-run", Duration::from_secs(4), 19140)]
+    for (case, after, tag) in
+        [("from the start", Duration::ZERO, "start"), ("joining mid-run", Duration::from_secs(4), "mid")]
     {
-        let out = tmp.path().join(port.to_string());
-        let run = format!("wire-clock-{port}");
+        let out = tmp.path().join(tag);
+        let run = format!("wire-clock-{tag}");
         let stop = Arc::new(AtomicBool::new(false));
         let answered = Arc::new(AtomicU64::new(0));
         let (first_unix_ns, epoch) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
         let began = Instant::now();
+        let port = Ports::free(1).release();
         let mut g = Group::launch(
             &out,
             &["timing=realtime", "duration=10"],

@@ -1,4 +1,4 @@
-//! A real-time networked run (ports 17700–17799, 127.0.0.1 only): the run
+//! A real-time networked run (free ports on 127.0.0.1): the run
 //! ends and the formation and estimator errors stay within bounds.
 //!
 //! Settings and tolerances, and why: tests run unoptimised on a loaded
@@ -17,20 +17,16 @@
 //! coarser step), and real time adds a lag of a step or two (≈ 1.2 m/s ×
 //! 10–20 ms). Both are also checked against the simulator: within 0.1 m.
 
-mod common;
+use crate::common;
 
 use std::process::Command;
-use std::sync::Mutex;
 
 use common::{json, Group, SCENARIO};
 
 /// The two runs share two cores: side by side, each is the other's load
-/// (twelve processes at 200 Hz), so they run one after the other.
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
-    ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner())
-}
+/// (twelve processes at 200 Hz), so they run one after the other (and
+/// after every other test of the `realtime` binary).
+use common::alone as one_at_a_time;
 
 const SETS: [&str; 4] = ["timing=realtime", "dt=0.01", "duration=30", "network.silence_timeout=0.2"];
 
@@ -39,7 +35,8 @@ fn realtime_run_ends_within_spec_bounds() {
     let _alone = one_at_a_time();
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("net");
-    let mut g = Group::launch(&out, &SETS, &["--time-scale", "2", "--base-port", "17700", "--run", "rt", "--mcap"]);
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &SETS, &["--time-scale", "2", "--base-port", &base, "--run", "rt", "--mcap"]);
 
     let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
     sim.args(["sim", SCENARIO, "-q", "--out"]).arg(tmp.path().join("sim"));
@@ -132,7 +129,8 @@ fn a_realtime_run_with_a_communication_delay_is_the_one_the_simulator_predicts()
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("net");
     let before = common::Host::now();
-    let mut g = Group::launch(&out, &sets, &["--time-scale", "2", "--base-port", "17720", "--run", "rt-delay"]);
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &sets, &["--time-scale", "2", "--base-port", &base, "--run", "rt-delay"]);
     let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
     sim.args(["sim", SCENARIO, "-q", "--out"]).arg(tmp.path().join("sim"));
     for s in sets {

@@ -1,15 +1,15 @@
-//! docs/model.md §14's fault table in networked runs (ports 17800–17899, 127.0.0.1
-//! only, multicast scouting off): lock-step runs with a fault table equal
+//! docs/model.md §14's fault table in networked runs (free ports on
+//! 127.0.0.1, see `common::Ports`; multicast scouting off): lock-step runs with a fault table equal
 //! `formation sim` with the same table byte for byte (a node never waits for
 //! a message the table removes), and real-time runs apply the table at the
 //! receiver.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Command;
 
-use common::{Group, LIMIT};
+use common::{Group, Ports, LAUNCH_PORTS, LIMIT};
 
 fn sim(dir: &Path, sets: &[&str]) {
     let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
@@ -23,10 +23,10 @@ fn sim(dir: &Path, sets: &[&str]) {
 
 /// `formation launch` in lock-step with `sets` against `formation sim`:
 /// summary.json (with its metrics under faults) and every CSV byte for byte.
-fn lockstep_equals_sim(tag: &str, sets: &[&str], port: u16) -> serde_json::Value {
+fn lockstep_equals_sim(tag: &str, sets: &[&str]) -> serde_json::Value {
     let dir = tempfile::tempdir().expect("tempdir");
     let (net, simdir) = (dir.path().join("net"), dir.path().join("sim"));
-    let port = port.to_string();
+    let port = Ports::free(LAUNCH_PORTS).release().to_string();
     let mut g = Group::launch(&net, sets, &["--base-port", &port, "--run", tag]);
     sim(&simdir, sets);
     let status = g.wait(LIMIT);
@@ -49,11 +49,8 @@ fn lost(n: &serde_json::Value, node: &str) -> u64 {
 
 #[test]
 fn lockstep_follower_cut_off_for_1_s_equals_sim() {
-    let n = lockstep_equals_sim(
-        "fl-node",
-        &["duration=2.5", "network.rejoin=adopt", "faults+={node=3, from=0.5, to=1.5}"],
-        17800,
-    );
+    let n =
+        lockstep_equals_sim("fl-node", &["duration=2.5", "network.rejoin=adopt", "faults+={node=3, from=0.5, to=1.5}"]);
     // Follower 3 hears 1 and 4; 1 and 4 hear 3: each loses 1000 steps' messages (republications count too).
     for node in ["1", "3", "4"] {
         assert!(lost(&n, node) >= 1000, "follower {node} dropped {} messages by the table: {n}", lost(&n, node));
@@ -63,13 +60,13 @@ fn lockstep_follower_cut_off_for_1_s_equals_sim() {
 
 #[test]
 fn lockstep_leader_link_cut_for_1_s_equals_sim() {
-    let n = lockstep_equals_sim("fl-leader", &["duration=2.5", "faults+={link=[0, 1], from=0.5, to=1.5}"], 17810);
+    let n = lockstep_equals_sim("fl-leader", &["duration=2.5", "faults+={link=[0, 1], from=0.5, to=1.5}"]);
     assert!(lost(&n, "1") >= 1000, "follower 1 dropped {} leader messages: {n}", lost(&n, "1"));
 }
 
 #[test]
 fn lockstep_30_percent_loss_on_one_link_equals_sim() {
-    let n = lockstep_equals_sim("fl-loss", &["duration=2", "faults+={link=[1, 3], from=0, to=2, loss=0.3}"], 17820);
+    let n = lockstep_equals_sim("fl-loss", &["duration=2", "faults+={link=[1, 3], from=0, to=2, loss=0.3}"]);
     let (a, b) = (lost(&n, "1"), lost(&n, "3"));
     assert!(
         (450..=800).contains(&a) && (450..=800).contains(&b),
@@ -82,7 +79,8 @@ fn realtime_applies_the_table_at_the_receiver() {
     let dir = tempfile::tempdir().expect("tempdir");
     let net = dir.path().join("net");
     let sets = ["timing=realtime", "dt=0.01", "duration=8", "network.time_scale=2", "faults+={node=3, from=3, to=4}"];
-    let mut g = Group::launch(&net, &sets, &["--base-port", "17830", "--run", "fl-rt", "--mcap"]);
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&net, &sets, &["--base-port", &base, "--run", "fl-rt", "--mcap"]);
     let status = g.wait(LIMIT);
     assert!(status.success(), "formation launch failed: {status}");
     let n = common::json(&net, "network.json");

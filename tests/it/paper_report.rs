@@ -2,7 +2,7 @@
 //! and table, the tables hold the runs' own numbers, and the report states
 //! each docs/model.md §12 claim with its measurement.
 
-mod common;
+use crate::common;
 
 use common::run_ok;
 use std::collections::BTreeMap;

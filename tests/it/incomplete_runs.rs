@@ -3,7 +3,7 @@
 //! short, a metric whose window was not reached is null (not 0), and
 //! `formation report` shows every claim on it as N/A with the reason.
 
-mod common;
+use crate::common;
 
 use common::run_ok;
 use std::collections::BTreeMap;

@@ -1,10 +1,10 @@
-//! `--foxglove`: the run live over the Foxglove WebSocket protocol (ports
-//! 18300–18319, 127.0.0.1 only), read by a client of our own that speaks
+//! `--foxglove`: the run live over the Foxglove WebSocket protocol (free
+//! ports on 127.0.0.1, see `common::Ports`), read by a client of our own that speaks
 //! the protocol as Foxglove does (subprotocol `foxglove.sdk.v1`, JSON
 //! advertise and subscribe, binary message frames), and compared with the
 //! run folder the monitor wrote.
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -59,12 +59,13 @@ async fn foxglove_sees_the_channels_of_a_lockstep_run_as_recorded_and_the_run_st
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
     let sets = ["duration=20"];
-    let port = 18300;
+    let port = common::Ports::free(1).release();
     let addr = format!("127.0.0.1:{port}");
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
     let mut g = Group::launch(
         &out,
         &sets,
-        &["--base-port", "18305", "--run", "fox-ls", "--foxglove", &addr, "--web-linger", "2"],
+        &["--base-port", &base, "--run", "fox-ls", "--foxglove", &addr, "--web-linger", "2"],
     );
 
     let mut ws = connect(&addr, &mut g).await;
@@ -194,10 +195,10 @@ async fn foxglove_sees_the_channels_of_a_lockstep_run_as_recorded_and_the_run_st
 /// run played again at 10× from its hearing record; what Foxglove receives
 /// of follower 1 is its recorded rows, step by step, to the final step.
 async fn plays_again_to_foxglove(out: &Path) {
-    let addr = "127.0.0.1:18310";
+    let addr = format!("127.0.0.1:{}", common::Ports::free(1).release());
     let run = out.display().to_string();
-    let mut g = Group::spawn(&["monitor", "--replay", &run, "--foxglove", addr, "--speed", "10", "--linger", "0"]);
-    let mut ws = connect(addr, &mut g).await;
+    let mut g = Group::spawn(&["monitor", "--replay", &run, "--foxglove", &addr, "--speed", "10", "--linger", "0"]);
+    let mut ws = connect(&addr, &mut g).await;
     let channel = loop {
         let m = tokio::time::timeout(Duration::from_secs(20), ws.next()).await.expect("advertise").expect("open");
         if let Ok(Message::Text(text)) = m {
@@ -236,11 +237,13 @@ async fn plays_again_to_foxglove(out: &Path) {
 
 #[test]
 fn a_foxglove_address_that_cannot_be_used_gets_one_clear_line_and_no_folder() {
-    let taken = std::net::TcpListener::bind("127.0.0.1:18301").expect("bind 18301");
+    // Held (listening) until the monitor has tried it.
+    let taken = common::Ports::free(1);
+    let addr = format!("127.0.0.1:{}", taken.base());
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["node", "monitor", "--scenario", SCENARIO, "--foxglove", "127.0.0.1:18301", "--open-timeout", "2"])
+        .args(["node", "monitor", "--scenario", SCENARIO, "--foxglove", &addr, "--open-timeout", "2"])
         .arg("--out")
         .arg(&out)
         .output()
@@ -248,14 +251,15 @@ fn a_foxglove_address_that_cannot_be_used_gets_one_clear_line_and_no_folder() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "exit status; stderr: {err}");
     assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
-    assert!(err.contains("--foxglove 127.0.0.1:18301"), "stderr: {err}");
+    assert!(err.contains(&format!("--foxglove {addr}")), "stderr: {err}");
     drop(taken);
     let leftovers: Vec<_> = std::fs::read_dir(tmp.path()).expect("tmp").flatten().map(|e| e.file_name()).collect();
     assert!(leftovers.is_empty(), "a failed start left {leftovers:?}");
 
-    // The lab's monitor lives in a namespace of its own: refused, in one line.
+    // The lab's monitor lives in a namespace of its own: refused, in one
+    // line, before anything listens (the address is only named).
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["lab", SCENARIO, "--foxglove", "127.0.0.1:18302"])
+        .args(["lab", SCENARIO, "--foxglove", &addr])
         .output()
         .expect("formation lab");
     let err = String::from_utf8_lossy(&o.stderr);

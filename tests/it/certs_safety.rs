@@ -5,7 +5,7 @@
 //! were. A run that passes the checks writes the new folders beside the old
 //! ones and swaps them in: nothing half-written, nothing left behind.
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::os::unix::fs::PermissionsExt;

@@ -1,7 +1,9 @@
-//! End-to-end zenoh transport tests on loopback (ports 17400–17499):
+//! End-to-end zenoh transport tests on loopback (free ports the OS gives):
 //! two peers in one process, and two clients through the `router` binary,
 //! including a router crash and restart. Multicast scouting is off in every
 //! session (see `formation_net::session`).
+
+use crate::common;
 
 use std::future::IntoFuture;
 use std::io::{BufRead, BufReader};
@@ -92,7 +94,7 @@ async fn close(s: Session) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_peers_in_one_process() {
-    let port = 17401;
+    let port = common::Ports::free(1).release();
     let a = open(ZenohArgs { listen: vec![ep(port)], ..Default::default() }).await;
     let b = open(ZenohArgs { connect: vec![ep(port)], ..Default::default() }).await;
 
@@ -156,7 +158,7 @@ impl Drop for Router {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_clients_through_router_survive_restart() {
-    let port = 17402;
+    let port = common::Ports::free(1).release();
     let mut router = Router::start(port).await;
     let c1 = open(client(port)).await;
     let c2 = open(client(port)).await;
@@ -201,7 +203,7 @@ async fn two_clients_through_router_survive_restart() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn client_waits_for_a_late_router() {
-    let port = 17403;
+    let port = common::Ports::free(1).release();
     let opening = tokio::spawn(async move { session::open(&client(port)).await });
     tokio::time::sleep(Duration::from_millis(300)).await;
     assert!(!opening.is_finished(), "client open() should wait for its router");
