@@ -39,9 +39,9 @@ use crate::bench_netns::estimate;
 use crate::error::Error;
 use crate::launch::{LaunchArgs, LaunchMode, RunOptions};
 use formation_net::inbox::{self, Inbox, Source};
+use formation_net::loop_timing as timing;
 use formation_net::names;
 use formation_net::session::{self, ZenohArgs};
-use formation_net::timing;
 use formation_sim::{NoRecord, Simulation};
 
 #[derive(Args, Debug, Clone)]
@@ -148,7 +148,7 @@ struct Figures {
     plain: (f64, f64),
     /// Median time to open a client session to a listening peer, ms.
     open_ms: f64,
-    /// The offset exchange (crate::timesync): round trip p50/p99 (µs), and
+    /// The offset exchange (crate::clock_sync): round trip p50/p99 (µs), and
     /// CPU per exchange, both sides (µs).
     time_rtt: (f64, f64),
     time_cpu_us: f64,
@@ -713,11 +713,11 @@ async fn time_exchange(
         ..Default::default()
     })
     .await?;
-    let _answers = formation_net::timesync::serve(&leader, &keys, formation_net::clock::Timebase::leader()).await?;
+    let _answers = formation_net::clock_sync::serve(&leader, &keys, formation_net::clock::Timebase::leader()).await?;
     let time_key = keys.time();
     let mut warm = 0;
     for _ in 0..200 {
-        if formation_net::timesync::ask(a, &time_key).await.is_some() {
+        if formation_net::clock_sync::ask(a, &time_key).await.is_some() {
             warm += 1;
             if warm == 20 {
                 break;
@@ -733,7 +733,7 @@ async fn time_exchange(
     let mut rtts = Vec::with_capacity(n);
     for _ in 0..n {
         let t = Instant::now();
-        if formation_net::timesync::ask(a, &time_key).await.is_none() {
+        if formation_net::clock_sync::ask(a, &time_key).await.is_none() {
             return Err(Error::Run("a time query went unanswered".into()));
         }
         rtts.push(t.elapsed().as_secs_f64() * 1e6);

@@ -14,7 +14,7 @@ use formation_agent::LeaderState;
 use formation_net::clock::Timebase;
 use formation_net::names::Keys;
 use formation_net::session::{self, ZenohArgs};
-use formation_net::{timesync, timing};
+use formation_net::{clock_sync, loop_timing as timing};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use zenoh::Wait;
 
@@ -65,7 +65,7 @@ pub async fn echo(listen: &str) -> Result<(), Error> {
         })
         .await
         .map_err(zerr("declaring"))?;
-    let _t = timesync::serve(&s, &Keys { run: "bench-net".into() }, Timebase::leader()).await?;
+    let _t = clock_sync::serve(&s, &Keys { run: "bench-net".into() }, Timebase::leader()).await?;
     println!("echo ready");
     tokio::signal::ctrl_c().await.map_err(|e| Error::Run(e.to_string()))?;
     Ok(())
@@ -125,7 +125,7 @@ pub async fn ping(connect: &str, n: usize) -> Result<(), Error> {
     let mut t = Vec::with_capacity(n);
     for _ in 0..n {
         let at = Instant::now();
-        if timesync::ask(&s, &key).await.is_some() {
+        if clock_sync::ask(&s, &key).await.is_some() {
             t.push(at.elapsed().as_secs_f64() * 1e6);
         }
     }

@@ -23,6 +23,7 @@ use zenoh::Wait;
 use crate::barrier::{self, Start};
 use crate::checkpoint;
 use crate::clock::{self, Timebase};
+use crate::clock_sync;
 use crate::codec;
 use crate::courier::Courier;
 use crate::error::{zerr, Error};
@@ -30,7 +31,6 @@ use crate::names::{self, Keys};
 use crate::node::{estimate_congestion, NodeArgs};
 use crate::startup;
 use crate::telemetry::{self, EventKind};
-use crate::timesync;
 use formation_sim::SimFollower;
 
 pub use formation_protocol::follower::Body;
@@ -154,7 +154,7 @@ pub async fn run_follower(
     // The run's timebase is the leader's: ask it from now on.
     let timebase = Timebase::estimated();
     let quarter_step_ns = scenario.dt_s / barrier::positive_scale(scenario.network.time_scale) * 1e9 / 4.0;
-    let sync = timesync::follow(session.clone(), keys, timebase.clone(), format!("follower {id}"), quarter_step_ns);
+    let sync = clock_sync::follow(session.clone(), keys, timebase.clone(), format!("follower {id}"), quarter_step_ns);
     let machine = Follower::new(scenario, index, body, &opts.protocol);
     let sources = machine.source_ids().to_vec();
     let neighbours: Vec<u32> = sources.iter().copied().filter(|&s| s != wire::LEADER_ID).collect();
@@ -177,7 +177,7 @@ pub async fn run_follower(
     };
     let needs: Vec<String> = sources.iter().map(u32::to_string).collect();
     let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
-    timesync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
+    clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
     let resume = rejoin(&shared, &start, scenario, index, &timebase, opts.checkpoint.as_deref()).await?;
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
     let fingerprint = barrier::fingerprint(scenario);

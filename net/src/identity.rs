@@ -61,7 +61,7 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
             ],
             // Every estimate (lock-step pacing, and its own for twins) and telemetry (who finished).
             receive: vec![any_run("estimate/*"), any_run("telemetry/*"), control.clone()],
-            // The run's timebase (crate::timesync).
+            // The run's timebase (crate::clock_sync).
             answer: vec![any_run("control/time")],
             ask: vec![],
         },

@@ -18,6 +18,7 @@ use zenoh::Wait;
 
 use crate::barrier::Start;
 use crate::clock;
+use crate::clock_sync;
 use crate::codec;
 use crate::counters::Counters;
 use crate::courier::Courier;
@@ -25,10 +26,9 @@ use crate::error::{zerr, Error};
 use crate::gate::{self, Kept, WINDOW};
 use crate::names::{self, Keys, MONITOR};
 use crate::node::{estimate_congestion, NodeArgs};
+use crate::pacing::Pacer;
 use crate::startup;
 use crate::telemetry::{self, Telemetry};
-use crate::timesync;
-use crate::timing::Pacer;
 
 /// `leader` arguments.
 #[derive(Debug, Clone)]
@@ -109,7 +109,7 @@ pub async fn run_leader(
     // The run's timebase is this leader's clock; the others ask it from now on.
     let timebase = clock::Timebase::leader();
     let queries = Arc::new(crate::counters::QueryCount::default());
-    let time_server = timesync::serve_counted(session, keys, timebase.clone(), queries.clone()).await?;
+    let time_server = clock_sync::serve_counted(session, keys, timebase.clone(), queries.clone()).await?;
     let hearing: Vec<u32> =
         (0..scenario.graph.len()).filter(|&i| scenario.graph.hears_leader(i)).map(|i| scenario.graph.id(i)).collect();
     let progress = Arc::new(Reached {

@@ -1,24 +1,26 @@
-//! The formation on a network: the protocol's rules as plain types that
-//! own no socket and no clock (start barrier, lock-step gate, inbox,
-//! courier), and the zenoh nodes that drive them: the leader, an agent per
-//! follower, the monitor that records the run, and the router.
+//! The formation on zenoh: the nodes. Each node is a translation between
+//! zenoh and the rules of `formation-protocol` (the follower's machine, the
+//! start barrier, the lock-step gate): subscriber callbacks feed the rules,
+//! a loop asks them what to send and when to wake, and performs it. The
+//! leader, an agent per follower, the monitor (recording through
+//! `formation-replay`'s `Recorder`, viewed through `formation-view`) and
+//! the router.
 //!
-//! Layers, each module using only those of the layers below it:
+//! This crate holds what needs zenoh, tokio, a thread or a clock, and
+//! nothing else: a rule that can be decided from what arrived and the time
+//! belongs in `formation-protocol`, where tests run it on virtual time.
 //!
-//! | layer | modules |
+//! | part | modules |
 //! | --- | --- |
-//! | names and wire | [`names`], [`codec`], [`counters`], [`error`] |
-//! | protocol rules (no IO, no clock) | [`barrier`], [`latency`], [`inbox`], [`gate`], [`hearing`], [`courier`], [`watch`], [`timebase`], [`clockguard`], [`health`] |
-//! | the wall clock, pacing, files | [`clock`], [`timing`], [`checkpoint`] |
-//! | zenoh session | [`identity`], [`session`], [`node`] |
-//! | shared node parts | [`startup`], [`timesync`], [`telemetry`] |
-//! | a run's record (no zenoh) | [`recorder`] (its viewers: `formation_view`'s live page and Foxglove server) |
-//! | nodes | [`agent`], [`leader`], [`monitor`] (on the recorder), [`router`] |
-//! | a run again | [`replay`] (on the recorder), [`explain`], [`playback`] |
+//! | the one clock of a node, and the run's timebase | [`clock`] (reads the clocks), [`clock_sync`] (asks and answers the leader's clock on zenoh), [`pacing`] (the leader's real-time loop) |
+//! | zenoh session | [`identity`] (the topology's access policy), [`session`], [`limits`], [`node`] |
+//! | shared node parts | [`startup`] (the barrier on zenoh), [`telemetry`] (delivery and acknowledgements), [`courier`] (its thread), [`checkpoint`], [`denials`] |
+//! | nodes | [`agent`], [`leader`], [`monitor`], [`router`] |
 
 pub mod agent;
 pub mod checkpoint;
 pub mod clock;
+pub mod clock_sync;
 pub mod courier;
 pub mod denials;
 pub mod identity;
@@ -26,20 +28,18 @@ pub mod leader;
 pub mod limits;
 pub mod monitor;
 pub mod node;
+pub mod pacing;
 pub mod router;
 pub mod session;
 pub mod startup;
 pub mod telemetry;
-pub mod timesync;
-pub mod timing;
 
 pub use error::Error;
 
 // A run's record and its replay live in formation-replay.
 pub use formation_replay::{explain, health, playback, recorder, replay, watch};
 
-// The protocol's rules live in formation-protocol; the nodes here reach them
-// by their old paths.
+// The rules the nodes drive, by the names the nodes use.
 pub use formation_protocol::{
-    barrier, clockguard, codec, counters, error, gate, hearing, inbox, latency, names, timebase,
+    barrier, clock_estimate, clockguard, codec, counters, error, gate, hearing, inbox, latency, loop_timing, names,
 };

@@ -33,8 +33,8 @@ use crate::counters::Counters;
 use crate::gate::{self, Kept};
 use crate::hearing::EarLog;
 use crate::inbox::{self, Inbox, Source};
+use crate::loop_timing::{LoopStats, LoopTimer};
 use crate::telemetry::{ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
-use crate::timing::{LoopStats, LoopTimer};
 use crate::Now;
 
 /// The seam between the protocol and the robot: one follower's step.

@@ -11,13 +11,14 @@
 //! | part | modules |
 //! | --- | --- |
 //! | names and encodings | [`names`], [`codec`], [`counters`], [`error`], [`denied`] (access-control reports) |
-//! | start-up | [`barrier`] (the start barrier), [`clockguard`] and [`timebase`] (the leader's clock as others estimate it) |
+//! | start-up | [`barrier`] (the start barrier), [`clock_estimate`] (the leader's clock as another node estimates it) and [`clockguard`] (which answers are the leader's) |
 //! | receiving | [`inbox`] (checks, the fault table, freshness), [`latency`], [`hearing`] (what was heard, for the record) |
 //! | lock-step | [`gate`] (look-ahead, repeats, stalls) |
-//! | telemetry | [`telemetry`] (the messages), [`courier`] (what is kept until acknowledged), [`timing`] (loop timing figures) |
+//! | telemetry | [`telemetry`] (the messages), [`courier`] (what is kept until acknowledged), [`loop_timing`] (how late each step woke) |
 //! | one follower | [`follower`]: all of the above for one agent, as one machine |
 
 pub mod barrier;
+pub mod clock_estimate;
 pub mod clockguard;
 pub mod codec;
 pub mod counters;
@@ -29,10 +30,9 @@ pub mod gate;
 pub mod hearing;
 pub mod inbox;
 pub mod latency;
+pub mod loop_timing;
 pub mod names;
 pub mod telemetry;
-pub mod timebase;
-pub mod timing;
 
 pub use error::Error;
 

@@ -9,7 +9,7 @@
 //! | `control/ready/<node>` | agents and monitor, until the start | `barrier::Ready` |
 //! | `control/start` | leader, every 100 ms during the run | `barrier::Start` |
 //! | `control/ack` | monitor, every 100 ms during the run | `telemetry::Ack` |
-//! | `control/time` | leader's queryable, asked by every agent every 250 ms | `timesync::TimeReply` |
+//! | `control/time` | leader's queryable, asked by every agent every 250 ms | `clock_sync::TimeReply` |
 //!
 //! `<node>` is `0` for the leader, the follower id, or `monitor`.
 

@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::counters::Counters;
 use crate::courier::CourierStats;
-use crate::timing::LoopStats;
+use crate::loop_timing::LoopStats;
 use formation_record::hearing::{HeardRuns, Rescued, Resume};
 use formation_record::FollowerSample;
 
@@ -61,8 +61,8 @@ pub struct Delivery {
     pub courier: CourierStats,
 }
 
+pub use crate::clock_estimate::ClockReport;
 pub use crate::latency::LinkStats;
-pub use crate::timebase::ClockReport;
 
 /// One entry of a node's network timeline (`network.json`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]

@@ -33,8 +33,8 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use formation_net::barrier::{Ready, Start};
+use formation_net::clock_sync::TimeReply;
 use formation_net::telemetry::{Ack, Telemetry};
-use formation_net::timesync::TimeReply;
 use formation_record::hearing::{HearingError, HearingRecord};
 
 // ---------------------------------------------------------------------------

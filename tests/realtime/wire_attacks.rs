@@ -207,7 +207,7 @@ async fn forge_time(
             use zenoh::Wait;
             let t2 = unix_ns() + ahead_ns;
             let reply =
-                formation_net::codec::encode(&formation_net::timesync::TimeReply { t2, t3: unix_ns() + ahead_ns });
+                formation_net::codec::encode(&formation_net::clock_sync::TimeReply { t2, t3: unix_ns() + ahead_ns });
             if q.reply(q.key_expr().clone(), reply).wait().is_ok() && answered.fetch_add(1, Ordering::Relaxed) == 0 {
                 first_unix_ns.store(unix_ns() as u64, Ordering::Relaxed);
             }

@@ -32,8 +32,8 @@ use crate::barrier;
 use crate::codec;
 use crate::counters::Counters;
 use crate::health::{ControlWatch, Evidence, Health};
+use crate::loop_timing::LoopStats;
 use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
-use crate::timing::LoopStats;
 use crate::watch::Ending;
 use stream::{check_batch, Stream};
 

@@ -1,7 +1,7 @@
 //! Real-time pacing of a node's loop on the run's timebase (the leader's);
-//! the timing figures it gathers are [`formation_protocol::timing`]'s.
+//! the timing figures it gathers are [`formation_protocol::loop_timing`]'s.
 
-pub use formation_protocol::timing::*;
+pub use formation_protocol::loop_timing::*;
 
 use std::time::{Duration, Instant};
 

@@ -2,7 +2,7 @@
 //! timebase when a question arrived and when it answers; every other node
 //! asks every [`EVERY`] (faster at first) and files each answer as a
 //! four-timestamp exchange in its [`Timebase`]. The estimate itself is
-//! [`crate::timebase`]'s.
+//! [`crate::clock_estimate`]'s.
 
 use std::time::Duration;
 
@@ -10,10 +10,10 @@ use serde::{Deserialize, Serialize};
 use zenoh::Wait;
 
 use crate::clock::{self, Timebase};
+use crate::clock_estimate::Exchange;
 use crate::codec;
 use crate::error::{zerr, Error};
 use crate::names::Keys;
-use crate::timebase::Exchange;
 
 /// The leader's answer: its timebase when the question arrived (`t2`) and
 /// when it answered (`t3`), ns.
@@ -104,7 +104,8 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
             }
             // Judged once the drift is measured (before, its allowance dominates).
             if !warned {
-                let measured = |e: &crate::timebase::Estimate| e.periods >= crate::timebase::MIN_SLOPE_PERIODS;
+                let measured =
+                    |e: &crate::clock_estimate::Estimate| e.periods >= crate::clock_estimate::MIN_SLOPE_PERIODS;
                 if let Some(e) = timebase.estimate().filter(|e| measured(e) && e.uncertainty_ns > quarter_step_ns) {
                     warned = true;
                     crate::node::say(&format!(
