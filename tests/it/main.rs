@@ -23,6 +23,7 @@ mod foxglove_live;
 mod fuzz_decoders;
 mod hostile_inputs;
 mod incomplete_runs;
+mod layers;
 mod link_faults;
 mod mcap_recording;
 mod network_faults;
