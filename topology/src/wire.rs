@@ -84,7 +84,7 @@ pub const MAX_INPUT: usize = 1 << 26;
 /// and grows only with elements actually read. The claims count an empty
 /// string or list as 8 bytes where it takes 24 in memory, so an input made
 /// of empty elements can take up to 48 × its length in one allocation and
-/// 72 × at the peak (measured by `tests/fuzz_decoders.rs`): bounded, but
+/// 72 × at the peak (measured by `tests/it/fuzz_decoders.rs`): bounded, but
 /// for a 64 MiB file that is 3 GiB. bincode's limit is a type
 /// parameter, so the input's length picks the smallest power-of-two limit
 /// above it. None if it does not decode, leaves bytes over, or is
