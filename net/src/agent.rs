@@ -25,6 +25,7 @@ use crate::checkpoint;
 use crate::clock::{self, Timebase};
 use crate::clock_sync;
 use crate::codec;
+use crate::counters::AtomicRejects;
 use crate::courier::Courier;
 use crate::error::{zerr, Error};
 use crate::names::{self, Keys};
@@ -131,6 +132,9 @@ struct Shared {
     machine: Mutex<Follower>,
     /// A lock-step step's inputs are complete.
     woken: Condvar,
+    /// Messages refused on arrival, counted without the machine's lock (a
+    /// flood of garbage must not hold the loop); handed over each wake-up.
+    refused: AtomicRejects,
 }
 
 impl Shared {
@@ -158,7 +162,7 @@ pub async fn run_follower(
     let machine = Follower::new(scenario, index, body, &opts.protocol);
     let sources = machine.source_ids().to_vec();
     let neighbours: Vec<u32> = sources.iter().copied().filter(|&s| s != wire::LEADER_ID).collect();
-    let shared = Arc::new(Shared { machine: Mutex::new(machine), woken: Condvar::new() });
+    let shared = Arc::new(Shared { machine: Mutex::new(machine), woken: Condvar::new(), refused: Default::default() });
     // Subscribers first (the start barrier relies on it), one per source.
     let subscribers = subscribe(session, keys, &sources, &shared, &timebase).await?;
     let estimate_pub = session
@@ -221,16 +225,21 @@ async fn subscribe(
     timebase: &Timebase,
 ) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, Error> {
     let mut subscribers = Vec::new();
+    let checker = shared.lock().checker();
     for &src in sources {
-        let (shared, timebase) = (shared.clone(), timebase.clone());
+        let (shared, timebase, checker) = (shared.clone(), timebase.clone(), checker.clone());
         let sub = session
             .declare_subscriber(keys.estimate(src))
             .callback(move |sample| {
                 let key_id = names::last_chunk(sample.key_expr().as_str()).parse::<u32>().ok();
                 let bytes = sample.payload().to_bytes();
-                // The receipt, on the run's timebase (read before the lock).
+                // Checked, and the receipt read on the run's timebase, before the lock.
+                let (source, msg) = match checker.check(key_id, &bytes) {
+                    Ok(m) => m,
+                    Err(r) => return shared.refused.add(r),
+                };
                 let at = timebase.now_ns().map(|ns| Duration::from_nanos(ns.max(0) as u64));
-                let arrival = shared.lock().handle_estimate(key_id, &bytes, at);
+                let arrival = shared.lock().handle_checked(source, &msg, at);
                 if let Some(sent_ns) = arrival.leader_sent_ns {
                     // The leader's own stamp: a floor for its clock (clockguard).
                     timebase.leader_sent(sent_ns);
@@ -378,9 +387,12 @@ impl Node {
         }
     }
 
-    /// What the node noticed that the machine cannot see: a second clock on
-    /// `control/time`, neighbours done (lock-step).
+    /// What the node noticed that the machine cannot see: messages refused
+    /// on arrival, a second clock on `control/time`, neighbours done (lock-step).
     fn tell(&self, m: &mut Follower) {
+        if let Some(refused) = self.shared.refused.take() {
+            m.handle_rejected(&refused);
+        }
         if self.timebase.second_clock() {
             m.handle_event(EventKind::SecondClock);
         }

@@ -35,6 +35,54 @@ impl RejectCounts {
     pub fn invalid(&self) -> u64 {
         self.malformed + self.version + self.non_finite + self.wrong_sender + self.not_neighbour + self.future
     }
+
+    /// Adds another tally's counts.
+    pub fn merge(&mut self, o: &RejectCounts) {
+        self.malformed += o.malformed;
+        self.version += o.version;
+        self.non_finite += o.non_finite;
+        self.wrong_sender += o.wrong_sender;
+        self.not_neighbour += o.not_neighbour;
+        self.stale += o.stale;
+        self.future += o.future;
+    }
+}
+
+/// Refusals counted where messages arrive, without a lock: a flood of
+/// garbage on a neighbour's key never holds the follower's machine; the
+/// node hands the counts over with [`AtomicRejects::take`].
+#[derive(Debug, Default)]
+pub struct AtomicRejects {
+    counts: [std::sync::atomic::AtomicU64; 7],
+}
+
+impl AtomicRejects {
+    pub fn add(&self, r: Reject) {
+        let i = match r {
+            Reject::Malformed => 0,
+            Reject::Version => 1,
+            Reject::NonFinite => 2,
+            Reject::WrongSender => 3,
+            Reject::NotNeighbour => 4,
+            Reject::Stale => 5,
+            Reject::Future => 6,
+        };
+        self.counts[i].fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// The counts since the last take (None: nothing refused).
+    pub fn take(&self) -> Option<RejectCounts> {
+        let c: Vec<u64> = self.counts.iter().map(|a| a.swap(0, std::sync::atomic::Ordering::Relaxed)).collect();
+        c.iter().any(|&n| n > 0).then(|| RejectCounts {
+            malformed: c[0],
+            version: c[1],
+            non_finite: c[2],
+            wrong_sender: c[3],
+            not_neighbour: c[4],
+            stale: c[5],
+            future: c[6],
+        })
+    }
 }
 
 /// A node's message counters, sent with every telemetry batch.

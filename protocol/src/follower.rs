@@ -25,11 +25,11 @@ use formation_plant::Pose;
 use formation_record::hearing::{HeardRuns, Rescued, Resume};
 use formation_record::{FollowerSample, Heard};
 use formation_sim::SimFollower;
-use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_topology::wire::{self, EstimateMsg, Header, Reject, FORMAT_VERSION};
 use formation_topology::{FaultTarget, Scenario, Timing};
 
 use crate::barrier::{self, Start};
-use crate::counters::Counters;
+use crate::counters::{Counters, RejectCounts};
 use crate::gate::{self, Kept};
 use crate::hearing::EarLog;
 use crate::inbox::{self, Inbox, Source};
@@ -121,6 +121,20 @@ pub const LINGER_LOOK_EVERY: Duration = Duration::from_millis(10);
 
 /// A process that hears a start older than this is a restart.
 pub const LATE: Duration = Duration::from_millis(200);
+
+/// The arrival checks of one follower ([`Follower::checker`]).
+#[derive(Clone, Debug)]
+pub struct Checker {
+    hears_leader: bool,
+    neighbours: Vec<u32>,
+}
+
+impl Checker {
+    /// [`inbox::check`] for this follower: the message and its source, or why not.
+    pub fn check(&self, key_id: Option<u32>, bytes: &[u8]) -> Result<(Source, EstimateMsg), Reject> {
+        inbox::check(key_id, bytes, self.hears_leader, &self.neighbours)
+    }
+}
 
 /// What arrived on an estimate key, once checked.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -380,25 +394,43 @@ impl Follower {
     /// A message on the estimate key of `key_id` (None: the key's last part
     /// is not an id), received at `now` (None: the timebase not yet known).
     pub fn handle_estimate(&mut self, key_id: Option<u32>, bytes: &[u8], now: Option<Now>) -> Arrival {
+        match self.checker().check(key_id, bytes) {
+            Ok((source, msg)) => self.handle_checked(source, &msg, now),
+            Err(r) => {
+                self.inbox.reject(r);
+                Arrival::default()
+            }
+        }
+    }
+
+    /// The checks every message passes before it reaches the machine
+    /// (docs/model.md §13), to run where messages arrive, without the
+    /// machine: decoding, the key's sender, a source this follower hears.
+    pub fn checker(&self) -> Checker {
+        Checker { hears_leader: self.rules.hears_leader, neighbours: self.rules.neighbours.clone() }
+    }
+
+    /// A message that passed the [`Checker`], received at `now`.
+    pub fn handle_checked(&mut self, source: Source, msg: &EstimateMsg, now: Option<Now>) -> Arrival {
         let n = self.rules.neighbours.len();
         let mut arrival = Arrival::default();
         self.inbox.set_time(now);
-        match inbox::check(key_id, bytes, self.rules.hears_leader, &self.rules.neighbours) {
-            Ok((source, msg)) => {
-                let slot = if let Source::Neighbour(slot) = source { slot } else { n };
-                if slot == n {
-                    arrival.leader_sent_ns = Some(msg.header.sent_ns);
-                }
-                if let (true, Some(now)) = (self.inbox.accept(slot, &msg), now) {
-                    self.inbox.note_latency(slot, msg.header.sent_ns, now.as_nanos() as i64);
-                }
-            }
-            Err(r) => self.inbox.reject(r),
+        let slot = if let Source::Neighbour(slot) = source { slot } else { n };
+        if slot == n {
+            arrival.leader_sent_ns = Some(msg.header.sent_ns);
+        }
+        if let (true, Some(now)) = (self.inbox.accept(slot, msg), now) {
+            self.inbox.note_latency(slot, msg.header.sent_ns, now.as_nanos() as i64);
         }
         // Wake the loop only when its step is complete: one wake-up per
         // step instead of one per message.
         arrival.wake = self.inbox.completes_wait();
         arrival
+    }
+
+    /// Messages the [`Checker`] refused, counted where they arrived.
+    pub fn handle_rejected(&mut self, counts: &RejectCounts) {
+        self.inbox.counters.rejected.merge(counts);
     }
 
     /// Something the node noticed outside the messages (the router lost or
