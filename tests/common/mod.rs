@@ -224,6 +224,16 @@ pub fn certs(dir: &Path) {
     run_ok(Command::new(env!("CARGO_BIN_EXE_formation")).args(["certs", SCENARIO, "--out"]).arg(dir));
 }
 
+/// `formation certs SCENARIO --out DIR EXTRA…`; its output, whatever it is.
+pub fn certs_with(dir: &Path, extra: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["certs", SCENARIO, "--out"])
+        .arg(dir)
+        .args(extra)
+        .output()
+        .expect("formation certs")
+}
+
 /// Per follower, the metrics a real-time run must share with the simulator.
 pub const COMPARED: [&str; 4] = ["formation_rms_last10", "formation_final", "estimator_error_final", "torque_tv"];
 

@@ -10,21 +10,8 @@ use crate::common;
 use std::collections::BTreeMap;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
-use std::process::Command;
-
-use common::SCENARIO;
 
 const NODES: [&str; 7] = ["router", "leader", "monitor", "agent-1", "agent-2", "agent-3", "agent-4"];
-
-/// `formation certs SCENARIO --out DIR EXTRA…`; its output.
-fn certs(dir: &Path, extra: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["certs", SCENARIO, "--out"])
-        .arg(dir)
-        .args(extra)
-        .output()
-        .expect("formation certs")
-}
 
 /// What a path under `root` is, never following a link: a file's bytes and
 /// permissions, a link's target, a folder's permissions.
@@ -63,7 +50,7 @@ fn snapshot(root: &Path) -> BTreeMap<PathBuf, Entry> {
 fn refused_and_unchanged(dir: &Path, outside: &Path, extra: &[&str], says: &str, names: &str) {
     let (before, outside_before) = (snapshot(dir), snapshot(outside));
     assert!(before.contains_key(Path::new("ca/ca.key")), "the test folder has no authority key to lose");
-    let o = certs(dir, extra);
+    let o = common::certs_with(dir, extra);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "certs {extra:?}: status {:?}, said: {err}", o.status.code());
     let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
@@ -118,7 +105,7 @@ fn certs_with_a_linked_node_folder_changes_nothing() {
     std::fs::remove_file(dir.join("agent-3")).expect("rm link");
     std::fs::rename(&elsewhere, dir.join("agent-3")).expect("agent-3 back");
     let before = snapshot(&ca_elsewhere);
-    let o = certs(&dir, &["--force"]);
+    let o = common::certs_with(&dir, &["--force"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "--force with ca/ a link: {err}");
     let ca = dir.join("ca").display().to_string();
@@ -207,12 +194,12 @@ fn certs_force_node_and_revoke_replace_whole_folders_and_keep_what_they_do_not_w
     let elsewhere = target(tmp.path(), &dir.join("agent-3"));
     std::fs::rename(dir.join("agent-3"), tmp.path().join("agent-3-aside")).expect("move");
     std::os::unix::fs::symlink(&elsewhere, dir.join("agent-3")).expect("symlink");
-    let o = certs(&dir, &["--force"]);
+    let o = common::certs_with(&dir, &["--force"]);
     assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
     std::fs::remove_file(dir.join("agent-3")).expect("rm link");
     std::fs::rename(tmp.path().join("agent-3-aside"), dir.join("agent-3")).expect("back");
     let old = snapshot(&dir);
-    let o = certs(&dir, &["--force"]);
+    let o = common::certs_with(&dir, &["--force"]);
     assert!(o.status.success(), "--force: {}", String::from_utf8_lossy(&o.stderr));
     let said = String::from_utf8_lossy(&o.stdout);
     assert!(
@@ -233,7 +220,7 @@ fn certs_force_node_and_revoke_replace_whole_folders_and_keep_what_they_do_not_w
     // --node agent-3: its key and certificate new; the authority's key and
     // every other node's key and certificate byte for byte as they were.
     let old = new;
-    let o = certs(&dir, &["--node", "agent-3"]);
+    let o = common::certs_with(&dir, &["--node", "agent-3"]);
     assert!(o.status.success(), "--node: {}", String::from_utf8_lossy(&o.stderr));
     no_leftovers(&dir);
     every_identity_checks(&dir);
@@ -250,7 +237,7 @@ fn certs_force_node_and_revoke_replace_whole_folders_and_keep_what_they_do_not_w
 
     // --revoke agent-1: no key or certificate changes; its certificate is refused.
     let old = new;
-    let o = certs(&dir, &["--revoke", "agent-1"]);
+    let o = common::certs_with(&dir, &["--revoke", "agent-1"]);
     assert!(o.status.success(), "--revoke: {}", String::from_utf8_lossy(&o.stderr));
     no_leftovers(&dir);
     let new = snapshot(&dir);

@@ -16,16 +16,6 @@ use formation_agent::LeaderState;
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 
-/// `formation certs SCENARIO --out DIR EXTRA…`; its output.
-fn certs(dir: &Path, extra: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["certs", SCENARIO, "--out"])
-        .arg(dir)
-        .args(extra)
-        .output()
-        .expect("formation certs")
-}
-
 /// A TLS router child on a free port, up and listening; the port.
 fn router(dir: &Path) -> (u16, Group) {
     let port = Ports::free(1).release();
@@ -117,7 +107,7 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     assert_eq!(ca_mode, 0o600, "the authority's key is {ca_mode:o}");
     // Again: refused, nothing replaced.
     let before = std::fs::read(dir.join("agent-3/agent-3.key")).expect("key");
-    let o = certs(&dir, &[]);
+    let o = common::certs_with(&dir, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "a second run without --force: {err}");
     assert!(err.contains("exists") && err.contains("--force"), "{err}");
@@ -126,7 +116,7 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     let old3 = tmp.path().join("old-agent-3");
     copy_dir(&dir.join("agent-3"), &old3);
     let ca = std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem");
-    let o = certs(&dir, &["--node", "agent-3"]);
+    let o = common::certs_with(&dir, &["--node", "agent-3"]);
     let said = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success() && said.contains("using the existing authority"), "--node said: {said}");
     assert_eq!(std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem"), ca, "the authority was replaced");
@@ -138,7 +128,7 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     let e = formation_certs::identity(&old3, "agent-3").expect_err("the superseded certificate");
     assert!(e.0.contains("revoked"), "{e}");
     // --force: a new authority, which the old certificates do not verify against.
-    let o = certs(&dir, &["--force"]);
+    let o = common::certs_with(&dir, &["--force"]);
     assert!(o.status.success(), "--force: {}", String::from_utf8_lossy(&o.stderr));
     assert_ne!(std::fs::read(dir.join("ca/ca.pem")).expect("ca.pem"), ca, "--force kept the old authority");
     // Links are never followed: a planted link to an unrelated file is
@@ -147,14 +137,14 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
     std::fs::write(&victim, "unrelated").expect("victim");
     std::fs::remove_file(dir.join("agent-1/policy.json5")).expect("rm");
     std::os::unix::fs::symlink(&victim, dir.join("agent-1/policy.json5")).expect("symlink");
-    let o = certs(&dir, &["--node", "agent-1"]);
+    let o = common::certs_with(&dir, &["--node", "agent-1"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "--node with a planted link: {err}");
     assert!(err.contains("symbolic link") && err.contains("policy.json5"), "{err}");
     assert_eq!(std::fs::read_to_string(&victim).expect("victim"), "unrelated", "a file was written through a link");
     let linked = tmp.path().join("linked");
     std::os::unix::fs::symlink(tmp.path().join("elsewhere"), &linked).expect("symlink");
-    let o = certs(&linked, &[]);
+    let o = common::certs_with(&linked, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "--out through a link: {err}");
     assert!(err.contains("symbolic link"), "{err}");
@@ -320,7 +310,7 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
     common::certs(&dir);
     let revoked2 = tmp.path().join("revoked-agent-2");
     copy_dir(&dir.join("agent-2"), &revoked2);
-    let o = certs(&dir, &["--node", "agent-2"]);
+    let o = common::certs_with(&dir, &["--node", "agent-2"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let (port, _router) = router(&dir);
     let other = tmp.path().join("other");
@@ -453,7 +443,7 @@ fn reissued(tmp: &Path, dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
     copy_dir(dir, &copy);
     let mut args = vec!["--node", "agent-2"];
     args.extend_from_slice(extra);
-    let o = certs(&copy, &args);
+    let o = common::certs_with(&copy, &args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     copy
 }
@@ -518,7 +508,7 @@ fn expired_not_yet_valid_missing_and_wrong_files_are_one_line_and_exit_2() {
     std::fs::copy(foreign.join("agent-2/policy.pem"), forged_signature.join("agent-2/policy.pem")).expect("copy");
     let revoked = tmp.path().join("revoked");
     copy_dir(&dir, &revoked);
-    let o = certs(&revoked, &["--revoke", "agent-2"]);
+    let o = common::certs_with(&revoked, &["--revoke", "agent-2"]);
     assert!(o.status.success(), "--revoke: {}", String::from_utf8_lossy(&o.stderr));
     // A folder in the layout of the previous `formation certs` (flat, ca.key beside the nodes' files).
     let old_layout = tmp.path().join("old-layout");
