@@ -63,6 +63,44 @@ pub struct ScenarioFile {
     /// Link faults (docs/model.md §14): outages and loss over windows of run time.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub faults: Vec<LinkFaultFile>,
+    /// The formation on ROS 2's wire (rmw_zenoh; docs/ros2.md).
+    #[serde(default, skip_serializing_if = "Ros2File::is_off")]
+    pub ros2: Ros2File,
+}
+
+/// `[ros2]`: the formation's topics on rmw_zenoh's wire, and robots driven
+/// through ROS 2 (docs/ros2.md). Off unless `enabled` (or `robots`) says otherwise.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ros2File {
+    /// Publish every robot's odometry, command, leader estimate and transform
+    /// (and `/clock` in lock-step) as ROS 2 topics.
+    #[serde(default)]
+    pub enabled: bool,
+    /// ROS_DOMAIN_ID: the first chunk of every ROS 2 key.
+    #[serde(default)]
+    pub domain_id: u32,
+    /// `simulated` (each agent simulates its robot), `stand-in` (a
+    /// `formation robot` process per follower, driven through ROS 2) or
+    /// `external` (real robots or Gazebo: `/follower_<i>/odom` in,
+    /// `/follower_<i>/cmd_vel` out). Anything but `simulated` turns ROS 2 on.
+    #[serde(default = "d::robots")]
+    pub robots: String,
+    /// A driven robot whose odometry is older than this (s) is sent zero velocity.
+    #[serde(default = "d::odom_timeout")]
+    pub odom_timeout: f64,
+}
+
+impl Default for Ros2File {
+    fn default() -> Self {
+        Self { enabled: false, domain_id: 0, robots: d::robots(), odom_timeout: d::odom_timeout() }
+    }
+}
+
+impl Ros2File {
+    fn is_off(&self) -> bool {
+        *self == Self::default()
+    }
 }
 
 /// One row of docs/model.md §14's fault table: one link (both directions; 0 is the
@@ -386,6 +424,12 @@ default_impl!(NetworkFile {
 /// docs/model.md §10's values, the defaults of every key.
 mod d {
     use super::*;
+    pub fn robots() -> String {
+        "simulated".into()
+    }
+    pub fn odom_timeout() -> f64 {
+        0.5
+    }
     pub fn seed() -> u64 {
         1
     }

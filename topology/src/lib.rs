@@ -15,4 +15,4 @@ pub mod wire;
 
 pub use error::ScenarioError;
 pub use graph::Graph;
-pub use scenario::{EstimateInit, FaultTarget, FollowerSpec, LinkFault, Scenario, Timing};
+pub use scenario::{EstimateInit, FaultTarget, FollowerSpec, LinkFault, RobotSource, Ros2Settings, Scenario, Timing};

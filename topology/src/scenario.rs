@@ -57,6 +57,37 @@ pub struct NetworkSettings {
     pub delay_steps: u64,
 }
 
+/// Who moves the followers' robots when ROS 2 is on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RobotSource {
+    /// Each agent simulates its own robot and publishes what it does.
+    Simulated,
+    /// A `formation robot` process per follower, driven through ROS 2.
+    StandIn,
+    /// Robots this project does not run (a TurtleBot, Gazebo), driven through ROS 2.
+    External,
+}
+
+impl RobotSource {
+    /// Driven through ROS 2's `cmd_vel` and `odom` rather than simulated in the agent.
+    pub fn driven(self) -> bool {
+        self != RobotSource::Simulated
+    }
+}
+
+/// `[ros2]`, validated.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Ros2Settings {
+    pub domain_id: u32,
+    pub robots: RobotSource,
+    /// A driven robot's odometry older than this is a stopped robot.
+    pub odom_timeout_s: f64,
+}
+
+/// Largest ROS_DOMAIN_ID (ROS 2's own limit: 0–232).
+pub const MAX_DOMAIN_ID: u32 = 232;
+
 /// Largest `network.delay_steps` accepted.
 pub const MAX_DELAY_STEPS: u64 = 1000;
 /// Most followers in one scenario (a networked run is one process each; the
@@ -156,6 +187,8 @@ pub struct Scenario {
     pub network: NetworkSettings,
     /// docs/model.md §14's fault table (empty: perfect links).
     pub faults: Vec<LinkFault>,
+    /// The formation on ROS 2's wire (None: off).
+    pub ros2: Option<Ros2Settings>,
     /// The file as it was read and overridden, for the record of a run.
     pub source: ScenarioFile,
 }
@@ -663,6 +696,7 @@ fn validate(
     let fault = validate_fault(&c, &file)?;
     let faults = validate_faults(&c, &file, &followers, &graph)?;
     let (network, rejoin) = validate_network(&c, &file)?;
+    let ros2 = validate_ros2(&c, &file)?;
     let r = &file.robot;
     let robot = RobotParams {
         mass_kg: r.mass,
@@ -688,8 +722,30 @@ fn validate(
         disturbance: Disturbance { linear_n: file.disturbance.dv, angular_nm: file.disturbance.dw },
         network,
         faults,
+        ros2,
         source: file,
     })
+}
+
+/// `[ros2]`: off, or the domain and who moves the robots.
+fn validate_ros2(c: &Check<'_>, file: &ScenarioFile) -> Result<Option<Ros2Settings>, ScenarioError> {
+    let r = &file.ros2;
+    let robots = match r.robots.as_str() {
+        "simulated" => RobotSource::Simulated,
+        "stand-in" => RobotSource::StandIn,
+        "external" => RobotSource::External,
+        other => return Err(c.fail("ros2.robots", format!("`{other}` is not one of: simulated, stand-in, external"))),
+    };
+    if r.domain_id > MAX_DOMAIN_ID {
+        return Err(
+            c.fail("ros2.domain_id", format!("{} is above ROS 2's largest domain id, {MAX_DOMAIN_ID}", r.domain_id))
+        );
+    }
+    c.positive("ros2.odom_timeout", &[r.odom_timeout])?;
+    if !(r.enabled || robots.driven()) {
+        return Ok(None);
+    }
+    Ok(Some(Ros2Settings { domain_id: r.domain_id, robots, odom_timeout_s: r.odom_timeout }))
 }
 
 /// `name`: the run's folder and every key of its traffic.
@@ -1395,6 +1451,27 @@ mod tests {
         assert_eq!(
             message(ARRAYS, &["fault.time=31"]),
             "--set fault.time=31: fault.time: must lie within [0, duration] = [0, 30] s, got 31"
+        );
+    }
+
+    #[test]
+    fn ros2_is_off_by_default_and_turned_on_by_enabled_or_driven_robots() {
+        assert_eq!(load(ARRAYS, &[]).unwrap().ros2, None);
+        let on = load(ARRAYS, &["ros2.enabled=true", "ros2.domain_id=7"]).unwrap().ros2.unwrap();
+        assert_eq!((on.domain_id, on.robots, on.odom_timeout_s), (7, RobotSource::Simulated, 0.5));
+        let driven = load(ARRAYS, &["ros2.robots=\"external\""]).unwrap().ros2.unwrap();
+        assert_eq!(driven.robots, RobotSource::External);
+        assert_eq!(
+            message(ARRAYS, &["ros2.robots=\"turtle\""]),
+            "--set ros2.robots=\"turtle\": ros2.robots: `turtle` is not one of: simulated, stand-in, external"
+        );
+        assert_eq!(
+            message(ARRAYS, &["ros2.domain_id=233"]),
+            "--set ros2.domain_id=233: ros2.domain_id: 233 is above ROS 2's largest domain id, 232"
+        );
+        assert_eq!(
+            message(ARRAYS, &["ros2.odom_timeout=0"]),
+            "--set ros2.odom_timeout=0: ros2.odom_timeout: must be positive, got 0"
         );
     }
 }
