@@ -8,7 +8,9 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 12] = [
+const LAYERS: [&str; 13] = [
+    // ROS 2's wire and bags: uses no other formation crate.
+    "formation-ros2",
     "formation-plant",
     "formation-leader",
     "formation-agent",
