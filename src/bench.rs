@@ -68,7 +68,7 @@ pub fn measure(
     for _ in 0..repeat.max(1) {
         let seconds = if record {
             let dir = std::env::temp_dir().join(format!("formation-bench-{}", std::process::id()));
-            let opts = RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false };
+            let opts = RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false, rosbag2: false };
             let started = Instant::now();
             formation_sim::run_to_folder(&s, &opts, threads, |_| {})?;
             let seconds = started.elapsed().as_secs_f64();
@@ -176,7 +176,7 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
     let started = Instant::now();
     formation_sim::run_to_folder(
         &paper,
-        &RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false },
+        &RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false, rosbag2: false },
         1,
         |_| {},
     )?;

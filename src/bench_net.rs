@@ -89,6 +89,10 @@ pub struct BenchNetArgs {
     /// each, period error side by side, its size against the CSVs'.
     #[arg(long)]
     pub hearing: bool,
+    /// Only what ROS 2 costs: the real-time loop's period error at 1 kHz
+    /// with the scenario's [ros2] topics on and off, side by side.
+    #[arg(long, conflicts_with = "hearing")]
+    pub ros2: bool,
     /// Every lock-step and scale figure is measured twice: one process per
     /// agent (as on separate machines), and `launch --group N` (N followers
     /// per agent process on one session). 0: every follower in one process.
@@ -115,12 +119,16 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
             quiet: true,
             tls: None,
             mcap: false,
+            rosbag2: false,
             web: Default::default(),
             rt_priority: None,
+            ros2: false,
+            robots: None,
         },
         mode: LaunchMode::Peer,
         base_port: Some(port),
         group: 1,
+        router: None,
     }
 }
 
@@ -176,6 +184,11 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         return crate::bench_netns::run_side(a.echo.as_deref(), a.ping.as_deref(), a.round_trips);
     }
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
+    if a.ros2 {
+        return crate::bench_ros2::run(a.realtime_duration, a.base_port, &|sets, port, out, run| {
+            launch_args(a, sets, port, out, run)
+        });
+    }
     if a.hearing {
         return crate::bench_hearing::run(a.realtime_duration, a.base_port, &|sets, port, out, run| {
             launch_args(a, sets, port, out, run)

@@ -56,6 +56,12 @@ pub enum Command {
     /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
     #[command(allow_negative_numbers = true)]
     BenchNet(crate::bench_net::BenchNetArgs),
+    /// A stand-in robot that speaks ROS 2: follower ID's velocity-commanded
+    /// robot (robot.model = "velocity"), driven on /follower_ID/cmd_vel,
+    /// publishing /follower_ID/odom and /tf over zenoh as rmw_zenoh does
+    /// (docs/ros2.md). `launch --robots stand-in` starts one per follower.
+    #[command(allow_negative_numbers = true)]
+    Robot(formation_net::ros2::robot::RobotArgs),
     /// Make a certificate authority, a certificate and key per node and the
     /// access-control policy of a scenario, for `--tls DIR` (mutual TLS on
     /// every link, each node allowed to speak only for itself).
@@ -167,6 +173,11 @@ pub struct SimArgs {
     /// combine with --every for long runs.
     #[arg(long, conflicts_with = "no_csv")]
     pub mcap: bool,
+    /// Also write rosbag2/: the CSVs' rows as a ROS 2 bag (metadata.yaml and
+    /// an MCAP file of CDR messages: odom, cmd_vel, leader_estimate, /tf,
+    /// /clock) that `ros2 bag` and Foxglove open (docs/ros2.md).
+    #[arg(long, conflicts_with = "no_csv")]
+    pub rosbag2: bool,
     /// Print nothing but errors.
     #[arg(long, short)]
     pub quiet: bool,
@@ -212,6 +223,7 @@ pub fn main() -> ExitCode {
         Command::Replay(a) => crate::replay::run(&a),
         Command::Monitor(a) => crate::replay::playback(&a),
         Command::Node(a) => return crate::node::run(a.node),
+        Command::Robot(a) => return crate::node::run_robot(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -235,7 +247,7 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
         0 => 1,
         n => n,
     };
-    let opts = RecordOptions { dir, every: a.every, csv: !a.no_csv, mcap: a.mcap };
+    let opts = RecordOptions { dir, every: a.every, csv: !a.no_csv, mcap: a.mcap, rosbag2: a.rosbag2 };
     let (summary, dir) = run_to_folder(&scenario, &opts, a.quiet, threads)?;
     if !a.quiet {
         print!("{}", summary.table());

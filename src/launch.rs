@@ -68,6 +68,11 @@ pub struct RunOptions {
     /// combine with --every for long runs.
     #[arg(long)]
     pub mcap: bool,
+    /// Also write rosbag2/: the CSVs' rows as a ROS 2 bag (metadata.yaml and
+    /// an MCAP file of CDR messages: odom, cmd_vel, leader_estimate, /tf,
+    /// /clock) that `ros2 bag` and Foxglove open (docs/ros2.md).
+    #[arg(long)]
+    pub rosbag2: bool,
     #[command(flatten)]
     pub web: formation_net::monitor::WebArgs,
     /// Real time: run every node under the OS's real-time scheduling
@@ -77,6 +82,36 @@ pub struct RunOptions {
     /// 50-agent ring from 2–50 late link-steps in 10 s to 0–4.
     #[arg(long, value_name = "N")]
     pub rt_priority: Option<u8>,
+    /// Publish the formation on ROS 2's wire (rmw_zenoh): each follower's
+    /// odom, cmd_vel and leader_estimate in /follower_<i>, /leader/odom,
+    /// /tf, and /clock in lock-step (the scenario's [ros2] table; docs/ros2.md).
+    #[arg(long)]
+    pub ros2: bool,
+    /// Who moves the robots: simulated (in each agent), stand-in (a
+    /// `formation robot` process per follower, driven through ROS 2's
+    /// cmd_vel and odom) or external (real robots or Gazebo; the run waits
+    /// for their odometry). stand-in and external need robot.model =
+    /// "velocity" and turn --ros2 on.
+    #[arg(long, value_enum, value_name = "WHO")]
+    pub robots: Option<Robots>,
+}
+
+/// `--robots`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Robots {
+    Simulated,
+    StandIn,
+    External,
+}
+
+impl Robots {
+    fn name(self) -> &'static str {
+        match self {
+            Robots::Simulated => "simulated",
+            Robots::StandIn => "stand-in",
+            Robots::External => "external",
+        }
+    }
 }
 
 /// Puts this process (and every process it starts from now on) under
@@ -100,7 +135,9 @@ fn real_time_scheduling(priority: u8) -> Result<(), CliError> {
 impl RunOptions {
     /// The scenario, the run name and the run folder, checked (bad input: exit 2).
     pub fn resolve(&self) -> Result<(Scenario, String, PathBuf), CliError> {
-        let scenario = self.scenario.load()?;
+        let scenario = Scenario::load(&self.scenario.scenario, &self.overrides())
+            .map_err(|e| CliError::Input(e.to_string()))?;
+
         formation_net::node::networked(&scenario)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
         formation_net::names::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
@@ -125,6 +162,18 @@ impl RunOptions {
             formation_net::identity::check_all(dir, &scenario).map_err(|e| CliError::Input(e.0))?;
         }
         Ok((scenario, run, out))
+    }
+
+    /// The scenario's overrides, with what --ros2 and --robots set.
+    pub fn overrides(&self) -> Vec<String> {
+        let mut o = self.scenario.overrides.clone();
+        if self.ros2 {
+            o.push("ros2.enabled=true".into());
+        }
+        if let Some(r) = self.robots {
+            o.push(format!("ros2.robots=\"{}\"", r.name()));
+        }
+        o
     }
 
     /// What a run says before it starts, once its input is known to be good:
@@ -154,6 +203,11 @@ pub struct LaunchArgs {
     /// fits large formations on few cores. Not with --tls.
     #[arg(long, default_value_t = 1, value_name = "N")]
     pub group: usize,
+    /// Join this zenoh router (e.g. rmw_zenohd's, tcp/127.0.0.1:7447)
+    /// instead of starting one: every node is its client, as ROS 2 nodes
+    /// on rmw_zenoh are.
+    #[arg(long, value_name = "ENDPOINT")]
+    pub router: Option<String>,
 }
 
 /// The child processes of a launch; every one still running is killed on drop.
@@ -307,6 +361,19 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
                 .into(),
         ));
     }
+    if let Some(r) = &a.router {
+        let z = session::ZenohArgs {
+            mode: Some(session::ZenohMode::Client),
+            connect: vec![r.clone()],
+            ..Default::default()
+        };
+        z.to_config().map_err(|e| CliError::Input(format!("--router {r}: {e}")))?;
+        if a.opts.tls.is_some() {
+            return Err(CliError::Input(
+                "--router with --tls: a router this launch does not start does not hold the run's certificates".into(),
+            ));
+        }
+    }
     let (scenario, run, out) = a.opts.resolve()?;
     a.opts.warnings(&scenario, &out);
     let exe = std::env::current_exe().map_err(|e| CliError::Run(format!("locating this executable: {e}")))?;
@@ -379,7 +446,7 @@ pub(crate) fn node_args(c: &mut Command, node: &str, opts: &RunOptions, run: &st
 /// `--scenario FILE --set …` of a run.
 pub(crate) fn scenario_args(c: &mut Command, opts: &RunOptions) {
     c.arg("--scenario").arg(&opts.scenario.scenario);
-    for o in &opts.scenario.overrides {
+    for o in &opts.overrides() {
         c.arg("--set").arg(o);
     }
     // Every node (and the router) knows the run's rate: the limits on what
@@ -463,15 +530,25 @@ async fn launch(
     let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
         .map_err(|e| CliError::Run(format!("installing the SIGINT handler: {e}")))?;
     let n = scenario.followers.len();
+    let robots = match scenario.ros2.map(|r| r.robots) {
+        Some(formation_topology::RobotSource::StandIn) => Robots::StandIn,
+        Some(formation_topology::RobotSource::External) => Robots::External,
+        _ => Robots::Simulated,
+    };
+    let domain = scenario.ros2.map_or(0, |r| r.domain_id);
     // Agent processes: followers by index, `group` consecutive ones each.
     let groups: Vec<std::ops::Range<usize>> = (0..n).step_by(a.group).map(|i| i..(i + a.group).min(n)).collect();
     let group_of = |i: usize| i / a.group;
     // Ports: monitor, leader, agent processes (peer); or the router (client).
-    let count = if a.mode == LaunchMode::Peer { groups.len() + 2 } else { 1 };
+    // --router: every node a client of a router this launch does not own.
+    let mode = if a.router.is_some() { LaunchMode::Client } else { a.mode };
+    let own_router = mode == LaunchMode::Client && a.router.is_none();
+    let count = if mode == LaunchMode::Peer { groups.len() + 2 } else { 1 };
     let p = ports(a.base_port, count)?;
+    let router_ep = a.router.clone().unwrap_or_else(|| ep(p[0]));
     let endpoints = |c: &mut Command, listen: Option<u16>, connect: &[u16]| {
-        if a.mode == LaunchMode::Client {
-            c.args(["--mode", "client", "--connect", &ep(p[0])]);
+        if mode == LaunchMode::Client {
+            c.args(["--mode", "client", "--connect", &router_ep]);
             return;
         }
         if let Some(l) = listen {
@@ -487,23 +564,27 @@ async fn launch(
     if !a.opts.quiet {
         eprintln!(
             "launching {} processes ({} mode, run {run}): leader, {n} agents{}, monitor{}",
-            groups.len() + 2 + usize::from(a.mode == LaunchMode::Client),
-            if a.mode == LaunchMode::Peer { "peer" } else { "client" },
+            groups.len() + 2 + usize::from(own_router) + if robots == Robots::StandIn { n } else { 0 },
+            if mode == LaunchMode::Peer { "peer" } else { "client" },
             if groups.len() < n {
                 format!(" in {} processes of up to {}", groups.len(), a.group)
             } else {
                 String::new()
             },
-            if a.mode == LaunchMode::Client { ", router" } else { "" },
+            match (own_router, &a.router) {
+                (true, _) => ", router".to_string(),
+                (false, Some(r)) => format!(", all clients of the router at {r}"),
+                (false, None) => String::new(),
+            } + if robots == Robots::StandIn { &" and a stand-in robot per follower"[..] } else { "" },
         );
         if let Some(hint) = formation_net::node::realtime_hint(scenario) {
             eprintln!("{hint}");
         }
     }
-    if a.mode == LaunchMode::Client {
+    if own_router {
         start_router(children, exe, p[0], &a.opts, scenario.timing)?;
     }
-    let (mon_port, lead_port) = if a.mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
+    let (mon_port, lead_port) = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
 
     let mut c = node_command(exe, "monitor", a, run);
     c.arg("--out").arg(out).stdout(Stdio::null());
@@ -512,6 +593,9 @@ async fn launch(
     }
     if a.opts.mcap {
         c.arg("--mcap");
+    }
+    if a.opts.rosbag2 {
+        c.arg("--rosbag2");
     }
     c.args(a.opts.web.to_args());
     endpoints(&mut c, Some(mon_port), &[]);
@@ -529,7 +613,7 @@ async fn launch(
         let mut c = node_command(exe, "agent", a, run);
         c.arg("--id").arg(ids.join(","));
         let mut connect = vec![mon_port, lead_port];
-        if a.mode == LaunchMode::Peer {
+        if mode == LaunchMode::Peer {
             // Every earlier process that holds a neighbour, once.
             let mut dial: Vec<usize> = members
                 .clone()
@@ -541,9 +625,32 @@ async fn launch(
             dial.dedup();
             connect.extend(dial.into_iter().map(|h| p[2 + h]));
         }
-        endpoints(&mut c, a.mode.eq(&LaunchMode::Peer).then(|| p.get(2 + g).copied().unwrap_or(0)), &connect);
+        let listen = mode.eq(&LaunchMode::Peer).then(|| p.get(2 + g).copied().unwrap_or(0));
+        endpoints(&mut c, listen, &connect);
         let name = if ids.len() == 1 { format!("agent {}", ids[0]) } else { format!("agents {}", ids.join(",")) };
         spawn(children, &name, c)?;
+        // A robot talks to its own agent only (peer), or through the router.
+        for id in &ids {
+            match robots {
+                Robots::StandIn => {
+                    let mut c = node_command(exe, "robot", a, run);
+                    c.arg("--id").arg(id);
+                    endpoints(&mut c, None, &listen.into_iter().collect::<Vec<_>>());
+                    spawn(children, &format!("robot {id}"), c)?;
+                }
+                Robots::External if !a.opts.quiet => {
+                    let at = match listen {
+                        Some(port) => ep(port),
+                        None => router_ep.clone(),
+                    };
+                    eprintln!(
+                        "waiting for robot {id}: publish /follower_{id}/odom (nav_msgs/msg/Odometry), take \
+                         /follower_{id}/cmd_vel (geometry_msgs/msg/Twist), ROS domain {domain}, zenoh at {at}"
+                    );
+                }
+                _ => {}
+            }
+        }
     }
 
     let mut tick = tokio::time::interval(Duration::from_millis(50));
@@ -570,8 +677,10 @@ pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summa
                 children.kill_all();
                 return Some(Err(CliError::Run(format!("the monitor failed ({status})"))));
             }
-            // The run is recorded; the nodes are done or about to be.
+            // The run is recorded; the nodes are done or about to be, and
+            // a real-time stand-in robot is told to stop.
             children.remove("monitor");
+            children.terminate(|n| n.starts_with("robot "));
             children.reap(Duration::from_secs(5));
             let path = out.join("summary.json");
             let read = std::fs::read_to_string(&path).map_err(|e| e.to_string());

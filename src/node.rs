@@ -34,6 +34,8 @@ pub enum Node {
     Monitor(monitor::MonitorArgs),
     /// A zenoh router for client mode (as the `router` binary).
     Router(router::RouterArgs),
+    /// A stand-in robot speaking ROS 2 (as `formation robot`).
+    Robot(formation_net::ros2::robot::RobotArgs),
 }
 
 /// Hands zenoh's access-control denials to [`formation_net::denials::note`].
@@ -66,7 +68,20 @@ pub fn run(node: Node) -> ExitCode {
         Node::Leader(a) => run_leader(a),
         Node::Monitor(a) => run_monitor(a),
         Node::Router(r) => run_router(r),
+        Node::Robot(r) => run_robot(r),
     }
+}
+
+/// `formation robot`: a stand-in robot on ROS 2's wire until the run ends or a signal.
+pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
+    let name = format!("robot-{}", r.id);
+    shell(&r.node.zenoh.clone(), &name, true, async move {
+        formation_net::ros2::robot::run(&r, async {
+            signalled().await;
+        })
+        .await
+        .map(|()| ExitCode::SUCCESS)
+    })
 }
 
 /// The `agent` binary. Each node has its own entry, so that a binary links

@@ -31,6 +31,9 @@ use crate::error::{zerr, Error};
 use crate::names::{self, Keys};
 use crate::node::{estimate_congestion, NodeArgs};
 use crate::startup;
+use crate::ros2::driven::{self, DrivenRobot, OdomInbox};
+use crate::ros2::topics::{FollowerTopics, Stamps};
+use crate::ros2::wire::{RosNode, RosSubscription};
 use crate::telemetry::{self, EventKind};
 use formation_sim::SimFollower;
 
@@ -97,11 +100,17 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
         .iter()
         .zip(&indices)
         .map(|(&id, &index)| {
+            let driven = scenario.ros2.is_some_and(|r| r.robots.driven());
+            let odometry = driven.then(|| Arc::new(OdomInbox::default()));
             let opts = FollowerOptions {
                 protocol: follower::Options { stall_timeout: stall, physical_node_faults: args.physical_node_faults },
                 checkpoint: Some(checkpoint::path(&checkpoint_dir, &keys.run, id)),
+                odometry: odometry.clone(),
             };
-            let body = Box::new(SimFollower::new(&scenario, index));
+            let body: Box<dyn Body> = match odometry {
+                Some(inbox) => Box::new(DrivenRobot::new(&scenario, index, inbox)),
+                None => Box::new(SimFollower::new(&scenario, index)),
+            };
             run_follower(&session, &scenario, &keys, index, body, opts)
         })
         .collect();
@@ -125,6 +134,8 @@ pub struct FollowerOptions {
     pub protocol: follower::Options,
     /// Where the robot's pose is checkpointed (real time), for a restart.
     pub checkpoint: Option<std::path::PathBuf>,
+    /// The robot is driven through ROS 2: its odometry arrives here.
+    pub odometry: Option<Arc<OdomInbox>>,
 }
 
 /// The machine, shared by the subscriber callbacks and the loop's thread.
@@ -165,6 +176,19 @@ pub async fn run_follower(
     let shared = Arc::new(Shared { machine: Mutex::new(machine), woken: Condvar::new(), refused: Default::default() });
     // Subscribers first (the start barrier relies on it), one per source.
     let subscribers = subscribe(session, keys, &sources, &shared, &timebase).await?;
+    // ROS 2: the topics go out once the run's epoch is known; a driven
+    // robot's odometry is heard from now on.
+    let topics: SharedTopics = Arc::new(Mutex::new(None));
+    let ros_node = match scenario.ros2 {
+        Some(r) => Some(RosNode::declare(session, r.domain_id, &crate::ros2::follower_namespace(id), "agent").await?),
+        None => None,
+    };
+    let odometry = match (&opts.odometry, &ros_node) {
+        (Some(inbox), Some(node)) => {
+            Some(subscribe_odometry(node, scenario, inbox.clone(), &shared, &topics, &timebase).await?)
+        }
+        _ => None,
+    };
     let estimate_pub = session
         .declare_publisher(keys.estimate(id))
         .congestion_control(estimate_congestion(scenario))
@@ -186,6 +210,11 @@ pub async fn run_follower(
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
     let fingerprint = barrier::fingerprint(scenario);
     let writer = opts.checkpoint.map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone()));
+    if let Some(r) = scenario.ros2 {
+        let driven = opts.odometry.is_some();
+        let t = FollowerTopics::declare(session, scenario, r.domain_id, id, driven, start.epoch_unix_ns).await?;
+        *topics.lock().unwrap_or_else(|p| p.into_inner()) = Some(t);
+    }
     shared.lock().start(&start, resume, timebase.now());
     let watcher = watch_router(session, &shared, lockstep).await;
     // Telemetry leaves the loop through a bounded store and a thread of its
@@ -201,6 +230,7 @@ pub async fn run_follower(
         neighbours_done,
         lockstep,
         incarnation: clock::unix_ns(),
+        topics: topics.clone(),
     };
     let outcome = tokio::task::spawn_blocking(move || node.drive())
         .await
@@ -209,7 +239,12 @@ pub async fn run_follower(
     if let Some(w) = writer {
         w.stop();
     }
-    drop((acks, sync, subscribers, done_subs));
+    if let Some(inbox) = &opts.odometry {
+        if let Some(line) = inbox.refused.summary() {
+            crate::node::say(&format!("follower {id}: odometry refused on {}/odom: {line}", crate::ros2::follower_namespace(id)));
+        }
+    }
+    drop((acks, sync, subscribers, done_subs, odometry, ros_node));
     if let Some(w) = watcher {
         w.abort();
     }
@@ -253,6 +288,36 @@ async fn subscribe(
         subscribers.push(sub);
     }
     Ok(subscribers)
+}
+
+/// The follower's ROS 2 publishers, once the run's epoch is known.
+type SharedTopics = Arc<Mutex<Option<FollowerTopics>>>;
+
+/// A driven robot's odometry into `inbox`: a lock-step step's wakes the
+/// loop; a repeat of the step before is answered with its command again.
+async fn subscribe_odometry(
+    node: &RosNode,
+    scenario: &Scenario,
+    inbox: Arc<OdomInbox>,
+    shared: &Arc<Shared>,
+    topics: &SharedTopics,
+    timebase: &Timebase,
+) -> Result<RosSubscription, Error> {
+    let s = shared.clone();
+    let wake = Arc::new(move || {
+        // Under the lock, so that the loop cannot miss it between its check and its wait.
+        drop(s.lock());
+        s.woken.notify_all();
+    });
+    let t = topics.clone();
+    let repeat = Arc::new(move |k: u64| {
+        if let Some(topics) = t.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
+            let _ = topics.repeat_command(k);
+        }
+    });
+    // Lock-step odometry names its step by its stamp, k Δt.
+    let stamps = Stamps::of(scenario, 0);
+    driven::subscribe_odometry(node, scenario, inbox, stamps, timebase.clone(), wake, repeat).await
 }
 
 /// Where this process begins: None for a run only starting; a restart's
@@ -346,6 +411,8 @@ struct Node {
     lockstep: bool,
     /// This process's start (ns since the Unix epoch), sent with telemetry.
     incarnation: u64,
+    /// ROS 2 on: each step's topics.
+    topics: SharedTopics,
 }
 
 impl Node {
@@ -365,7 +432,15 @@ impl Node {
             let said: Vec<String> = std::iter::from_fn(|| m.poll_say()).collect();
             let checkpoint = m.checkpoint();
             let outcome = m.outcome().cloned();
+            let sample = m.take_sample();
             drop(m);
+            if let Some(s) = sample {
+                if let Some(t) = self.topics.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
+                    if let Err(e) = t.publish(&s) {
+                        return Err(e.to_string());
+                    }
+                }
+            }
             for bytes in transmit.drain(..) {
                 if let Err(e) = self.publisher.put(bytes).wait() {
                     return Err(zerr("publishing", e).to_string());

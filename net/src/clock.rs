@@ -36,6 +36,11 @@ pub fn mono() -> std::time::Duration {
     Instant::now().saturating_duration_since(origin())
 }
 
+/// Sleeps until [`mono`] reads `at` (at once if it does already).
+pub fn sleep_until_mono(at: Duration) {
+    std::thread::sleep(at.saturating_sub(mono()));
+}
+
 /// The instant at which [`mono_ns`] reads `ns` (a time before the first
 /// reading is the first reading).
 pub fn instant_of(ns: i64) -> Instant {

@@ -27,6 +27,7 @@ use crate::gate::{self, Kept, WINDOW};
 use crate::names::{self, Keys, MONITOR};
 use crate::node::{estimate_congestion, NodeArgs};
 use crate::pacing::Pacer;
+use crate::ros2::topics::LeaderTopics;
 use crate::startup;
 use crate::telemetry::{self, Telemetry};
 
@@ -144,6 +145,10 @@ pub async fn run_leader(
         print_start_line(&start, &timebase);
     }
 
+    let mut topics = match scenario.ros2 {
+        Some(r) => Some(LeaderTopics::declare(session, scenario, r.domain_id, start.epoch_unix_ns).await?),
+        None => None,
+    };
     let scenario = scenario.clone();
     let timebase = timebase.clone();
     // Telemetry through a bounded store and its own thread (see agent.rs).
@@ -160,6 +165,7 @@ pub async fn run_leader(
             &courier,
             &followers_done,
             &queries,
+            topics.as_mut(),
         )
     })
     .await
@@ -232,6 +238,7 @@ fn leader_loop(
     telemetry: &Courier,
     followers_done: &Mutex<std::collections::BTreeSet<u32>>,
     queries: &crate::counters::QueryCount,
+    mut topics: Option<&mut LeaderTopics>,
 ) -> Result<(), Error> {
     let steps = s.steps();
     let dt = s.dt_s;
@@ -269,6 +276,9 @@ fn leader_loop(
             p.wait(k);
         }
         batch.push(state);
+        if let Some(t) = topics.as_deref_mut() {
+            t.publish(k, &state)?;
+        }
         if !last {
             leader.advance(&state, dt);
             state = leader.state((k + 1) as f64 * dt);

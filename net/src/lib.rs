@@ -16,6 +16,7 @@
 //! | zenoh session | [`identity`] (the topology's access policy), [`session`], [`limits`], [`node`] |
 //! | shared node parts | [`startup`] (the barrier on zenoh), [`telemetry`] (delivery and acknowledgements), [`courier`] (its thread), [`checkpoint`], [`denials`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`], [`router`] |
+//! | ROS 2 (rmw_zenoh's wire) | [`ros2`]: the formation's topics, robots driven through `cmd_vel` and `odom`, the stand-in robot |
 
 pub mod agent;
 pub mod checkpoint;
@@ -29,6 +30,7 @@ pub mod limits;
 pub mod monitor;
 pub mod node;
 pub mod pacing;
+pub mod ros2;
 pub mod router;
 pub mod session;
 pub mod startup;

@@ -66,6 +66,16 @@ pub trait Body: Send {
     fn resume(&mut self, k: u64, pose: Pose);
     /// Waiting for a first source to adopt an estimate from.
     fn adopting(&self) -> bool;
+    /// Lock-step: whether the robot's input for step k is in. A robot driven
+    /// through ROS 2 must have reported its odometry of step k; a simulated
+    /// robot always has.
+    fn robot_ready(&self, _k: u64) -> bool {
+        true
+    }
+    /// Who [`Body::robot_ready`] waits for, for the operator.
+    fn robot_name(&self) -> &str {
+        "the robot"
+    }
 }
 
 impl Body for SimFollower {
@@ -267,6 +277,8 @@ pub struct Follower {
     transmit: VecDeque<Vec<u8>>,
     telemetry: VecDeque<Batch>,
     say: VecDeque<String>,
+    /// The sample of the last step computed, until taken.
+    latest: Option<FollowerSample>,
 }
 
 impl Follower {
@@ -349,6 +361,7 @@ impl Follower {
             transmit: VecDeque::new(),
             telemetry: VecDeque::new(),
             say: VecDeque::new(),
+            latest: None,
             rules,
         };
         f.set_window(scenario.network.time_scale);
@@ -513,7 +526,7 @@ impl Follower {
             Phase::Stepping(k) if !self.rules.lockstep => Some(self.due(*k)),
             Phase::Stepping(k) => {
                 let k = *k;
-                if self.inbox.has_all(k) {
+                if self.inbox.has_all(k) && self.body.robot_ready(k) {
                     Some(Now::ZERO)
                 } else {
                     Some(self.wait.as_ref().map_or(Now::ZERO, gate::Wait::next_wake))
@@ -536,6 +549,12 @@ impl Follower {
     /// The next line for the operator (stderr).
     pub fn poll_say(&mut self) -> Option<String> {
         self.say.pop_front()
+    }
+
+    /// The sample of the last step computed, once (for a node that publishes
+    /// each step's state as it happens, such as its ROS 2 topics).
+    pub fn take_sample(&mut self) -> Option<FollowerSample> {
+        self.latest.take()
     }
 
     /// The end of the run: None while it runs; Err says why it failed.
@@ -573,7 +592,7 @@ impl Follower {
     fn step_if_ready(&mut self, k: u64, now: Now) {
         let leader = if self.rules.lockstep {
             self.inbox.set_step(k);
-            if !self.inbox.has_all(k) {
+            if !self.inbox.has_all(k) || !self.body.robot_ready(k) {
                 self.wait_for_inputs(k, now);
                 return;
             }
@@ -635,7 +654,11 @@ impl Follower {
     }
 
     fn missing(&mut self, k: u64) -> (String, usize) {
-        let names: Vec<&str> = self.inbox.missing(k).iter().map(|&s| self.rules.source_names[s].as_str()).collect();
+        let mut names: Vec<&str> =
+            self.inbox.missing(k).iter().map(|&s| self.rules.source_names[s].as_str()).collect();
+        if !self.body.robot_ready(k) {
+            names.push(self.body.robot_name());
+        }
         (names.join(" and "), names.len())
     }
 
@@ -722,6 +745,7 @@ impl Follower {
             _ => {}
         }
         self.samples.push(sample);
+        self.latest = Some(sample);
         let diverged = self.body.check_finite().err();
         if k % 10 == 0 {
             self.checkpoint = Some((k, sample.pose));

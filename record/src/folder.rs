@@ -21,6 +21,8 @@ pub struct RecordOptions {
     pub csv: bool,
     /// Also write run.mcap from the CSVs ([`crate::mcap`]).
     pub mcap: bool,
+    /// Also write rosbag2/ from the CSVs ([`crate::rosbag2`]).
+    pub rosbag2: bool,
 }
 
 /// Writes a run folder. Rows are buffered per follower and appended to the
@@ -33,6 +35,7 @@ pub struct RunWriter {
     every: u64,
     csv: bool,
     mcap: bool,
+    rosbag2: bool,
     ids: Vec<u32>,
     buffers: Vec<Vec<u8>>,
     leader_buffer: Vec<u8>,
@@ -57,6 +60,7 @@ impl RunWriter {
             every: opts.every.max(1),
             csv: opts.csv,
             mcap: opts.mcap,
+            rosbag2: opts.rosbag2,
             ids: ids.to_vec(),
             buffers: vec![FOLLOWER_HEADER.as_bytes().to_vec(); ids.len()],
             leader_buffer: LEADER_HEADER.as_bytes().to_vec(),
@@ -160,6 +164,9 @@ impl RunWriter {
         self.write_file("summary.json", &summary.to_json())?;
         if self.csv && self.mcap {
             crate::mcap::write(&self.dir, &self.ids)?;
+        }
+        if self.csv && self.rosbag2 {
+            crate::rosbag2::write(&self.dir, &self.ids)?;
         }
         refuse_foreign_folder(&self.final_dir)?;
         if self.final_dir.exists() {

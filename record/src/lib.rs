@@ -14,6 +14,7 @@ pub mod folder;
 pub mod hearing;
 pub mod live;
 pub mod mcap;
+pub mod rosbag2;
 pub mod metrics;
 pub mod outage;
 pub mod row;

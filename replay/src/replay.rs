@@ -395,7 +395,7 @@ pub fn replay_to_folder_with(
     progress: &mut dyn FnMut(u64),
 ) -> Result<Vec<Problem>, Error> {
     let d = loaded.record.density;
-    let opts = RecordOptions { dir: out.to_path_buf(), every: d.every, csv: d.csv, mcap: false };
+    let opts = RecordOptions { dir: out.to_path_buf(), every: d.every, csv: d.csv, mcap: false, rosbag2: false };
     let mut recorder = Recorder::new(&loaded.scenario, &opts)?;
     recorder.set_source(loaded.record.scenario.clone());
     for (i, f) in loaded.record.followers.iter().enumerate() {

@@ -31,6 +31,7 @@ pub mod bag;
 pub mod cdr;
 pub mod keys;
 pub mod msgs;
+pub mod planar;
 #[cfg(test)]
 mod type_hash;
 

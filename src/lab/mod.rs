@@ -405,6 +405,13 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
 /// `formation lab`.
 pub fn run(a: &LabArgs) -> Result<(), Error> {
     let (scenario, run, out) = a.opts.resolve()?;
+    if scenario.ros2.is_some_and(|r| r.robots.driven()) {
+        return Err(Error::Input(
+            "lab: robots driven through ROS 2 (ros2.robots = stand-in or external) run with `formation launch`; the \
+             lab's namespaces hold simulated robots (--ros2 publishes their topics)"
+                .into(),
+        ));
+    }
     let (events, notes) = plan(a, &scenario)?;
     let (clocks, faketime) = clock_shifts(a, &scenario)?;
     let sites = parse_sites(a, &scenario)?;
@@ -724,6 +731,9 @@ impl Ctx<'_> {
         };
         if self.a.opts.mcap {
             c.arg("--mcap");
+        }
+        if self.a.opts.rosbag2 {
+            c.arg("--rosbag2");
         }
         if self.a.opts.quiet {
             c.arg("--quiet");

@@ -379,3 +379,41 @@ pub fn empty_follower_batch(id: u32) -> formation_net::telemetry::Telemetry {
         diverged: None,
     }
 }
+
+/// The Python that has the ROS 2 checks' modules (eclipse-zenoh, rosbags,
+/// mcap-ros2-support): `FORMATION_PYTHON`, else `python3`. None, with a
+/// line saying why, when it lacks them; with `FORMATION_ROS2_REQUIRED=1`
+/// (CI) that is a failure instead.
+pub fn ros2_python() -> Option<std::path::PathBuf> {
+    let python = std::env::var_os("FORMATION_PYTHON").map_or_else(|| "python3".into(), std::path::PathBuf::from);
+    let probe = Command::new(&python).args(["-c", "import zenoh, rosbags, mcap_ros2"]).output();
+    let why = match probe {
+        Ok(o) if o.status.success() => return Some(python),
+        Ok(o) => String::from_utf8_lossy(&o.stderr).lines().last().unwrap_or("").to_string(),
+        Err(e) => format!("cannot run {}: {e}", python.display()),
+    };
+    let line = format!(
+        "{}: {why} (the ROS 2 checks need eclipse-zenoh==1.10.2, rosbags and mcap-ros2-support; .ci/run installs them)",
+        python.display()
+    );
+    assert!(std::env::var("FORMATION_ROS2_REQUIRED").as_deref() != Ok("1"), "{line}");
+    eprintln!("skipped: {line}");
+    None
+}
+
+/// A ROS 2 check script of tests/ros2/.
+pub fn ros2_script(name: &str) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros2").join(name)
+}
+
+/// The paper scenario with velocity-commanded robots.
+pub const VELOCITY_SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper-velocity.toml");
+
+/// Waits (bounded) until something listens on 127.0.0.1:`port`.
+pub fn wait_listening(port: u16, limit: Duration) {
+    let t = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(t.elapsed() < limit, "nothing listens on port {port} after {limit:?}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}

@@ -32,6 +32,7 @@ mod network_lockstep;
 mod paper_claims;
 mod paper_report;
 mod replay;
+mod ros2;
 mod security;
 mod sim_parallel;
 mod web_live;

@@ -13,4 +13,5 @@ mod attacks;
 mod lab;
 mod network_realtime;
 mod network_scale;
+mod ros2;
 mod wire_attacks;

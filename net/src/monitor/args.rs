@@ -24,6 +24,11 @@ pub struct MonitorArgs {
     /// combine with --every for long runs.
     #[cfg_attr(feature = "clap", arg(long))]
     pub mcap: bool,
+    /// Also write rosbag2/: the CSVs' rows as a ROS 2 bag (metadata.yaml and
+    /// an MCAP file of CDR messages: odom, cmd_vel, leader_estimate, /tf,
+    /// /clock) that `ros2 bag` and Foxglove open (docs/ros2.md).
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub rosbag2: bool,
     /// Give up when no telemetry arrives for this long (s).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 60.0, value_name = "SECONDS"))]
     pub idle_timeout: f64,

@@ -106,7 +106,7 @@ async fn serve_live_page(args: &MonitorArgs, scenario: &Scenario, run: &str) -> 
 /// against the run's fingerprint).
 fn start_record(args: &MonitorArgs, scenario: &Scenario, run: &str) -> Result<Recorder, Error> {
     let dir = args.out.clone().unwrap_or_else(|| PathBuf::from("runs").join(run));
-    let opts = RecordOptions { dir, every: args.every.max(1), csv: true, mcap: args.mcap };
+    let opts = RecordOptions { dir, every: args.every.max(1), csv: true, mcap: args.mcap, rosbag2: args.rosbag2 };
     let mut recorder =
         Recorder::new(scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
     if let Ok(text) = std::fs::read_to_string(&args.node.scenario) {

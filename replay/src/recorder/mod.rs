@@ -718,7 +718,7 @@ mod tests {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
         let scenario = Scenario::load(&path, &["duration=0.01".to_string()]).expect("scenario");
         let dir = tempfile::tempdir().expect("tempdir");
-        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false };
+        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
         let r = Recorder::new(&scenario, &opts).expect("recorder");
         (dir, scenario, r)
     }

@@ -1,0 +1,333 @@
+//! A robot the agent drives through ROS 2 instead of simulating it: the
+//! follower's brain steps on the pose and twist the robot's `odom` reports
+//! and its command goes out on `cmd_vel` (the interface of TurtleBot,
+//! Gazebo's diff-drive plugin and most mobile bases). Such a robot is
+//! velocity-commanded (`robot.model = "velocity"`), so `formation sim`
+//! predicts the run: the simulator feeds the brain the same odometry view
+//! of its robot (docs/model.md).
+//!
+//! Lock-step: odometry names its step by its stamp (k Δt); step k waits
+//! for the robot's odometry of step k ([`Body::robot_ready`]), and a robot
+//! that repeats step k − 1's odometry is sent step k − 1's command again.
+//! Real time: each step uses the newest odometry; a robot silent for
+//! `ros2.odom_timeout` is sent zero velocity, and the run says so.
+//!
+//! Odometry from the future, with a quantity that is not finite, or a jump
+//! of more than [`JUMP_M`] from the last one taken is counted and refused.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use formation_agent::{Follower, LeaderState, Message};
+use formation_plant::{Pose, Velocity};
+use formation_record::FollowerSample;
+use formation_ros2::msgs::Odometry;
+use formation_topology::{Scenario, Timing};
+
+use super::topics::{Stamps, QOS};
+use super::wire::{RosNode, RosSubscription};
+use crate::agent::Body;
+use crate::clock::{self, Timebase};
+use crate::error::Error;
+
+/// A move between two odometry messages longer than this (m) is a jump
+/// (an odometry reset, or a message that is not this robot's): refused.
+pub const JUMP_M: f64 = 1.0;
+
+/// One odometry message, taken.
+#[derive(Clone, Copy, Debug)]
+struct Odom {
+    /// Lock-step: the step its stamp names.
+    step: Option<u64>,
+    pose: Pose,
+    twist: Velocity,
+    /// When it arrived (this process's monotonic clock).
+    arrived: Duration,
+}
+
+/// Odometry refused, by reason.
+#[derive(Debug, Default)]
+pub struct Refused {
+    pub undecodable: AtomicU64,
+    pub not_finite: AtomicU64,
+    pub future: AtomicU64,
+    pub jump: AtomicU64,
+}
+
+impl Refused {
+    /// "3 from the future, 1 not finite", or None when nothing was refused.
+    pub fn summary(&self) -> Option<String> {
+        let parts: Vec<String> = [
+            (&self.future, "from the future"),
+            (&self.not_finite, "not finite"),
+            (&self.jump, "jumps"),
+            (&self.undecodable, "undecodable"),
+        ]
+        .iter()
+        .filter_map(|(n, what)| {
+            let n = n.load(Ordering::Relaxed);
+            (n > 0).then(|| format!("{n} {what}"))
+        })
+        .collect();
+        (!parts.is_empty()).then(|| parts.join(", "))
+    }
+}
+
+/// What the odometry subscription and the body share.
+#[derive(Default)]
+pub struct OdomInbox {
+    latest: Mutex<Option<Odom>>,
+    /// Lock-step: the step the body waits for next.
+    awaited: AtomicU64,
+    pub refused: Refused,
+}
+
+impl OdomInbox {
+    fn latest(&self) -> Option<Odom> {
+        *self.latest.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Checks one message and keeps it if it passes; answers the step it
+    /// names (lock-step) when it was taken.
+    fn offer(
+        &self,
+        m: &Odometry,
+        stamps: &Stamps,
+        lockstep: bool,
+        now_ns: Option<i64>,
+        future_ns: i64,
+    ) -> Result<Option<u64>, ()> {
+        let p = &m.pose.pose;
+        let pose = Pose::new(p.position.x, p.position.y, p.orientation.yaw());
+        let twist = Velocity::new(m.twist.twist.linear.x, m.twist.twist.angular.z);
+        if !(pose.is_finite() && twist.is_finite()) {
+            self.refused.not_finite.fetch_add(1, Ordering::Relaxed);
+            return Err(());
+        }
+        let stamp = m.header.stamp.as_nanos();
+        let step = if lockstep {
+            // Only the step awaited or one before (a repeat) can exist yet;
+            // a stamp off the run's steps is not this run's.
+            match stamps.step_of(stamp) {
+                Some(k) if k <= self.awaited.load(Ordering::Relaxed) => Some(k),
+                _ => {
+                    self.refused.future.fetch_add(1, Ordering::Relaxed);
+                    return Err(());
+                }
+            }
+        } else {
+            if now_ns.is_some_and(|now| stamp > now + future_ns) {
+                self.refused.future.fetch_add(1, Ordering::Relaxed);
+                return Err(());
+            }
+            None
+        };
+        let mut latest = self.latest.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(last) = *latest {
+            if (pose.x - last.pose.x).hypot(pose.y - last.pose.y) > JUMP_M {
+                self.refused.jump.fetch_add(1, Ordering::Relaxed);
+                return Err(());
+            }
+        }
+        *latest = Some(Odom { step, pose, twist, arrived: clock::mono() });
+        Ok(step)
+    }
+}
+
+/// Subscribes a driven robot's `odom`: each message checked into `inbox`;
+/// `wake` when a lock-step step's odometry is in; `repeat(k)` when a
+/// lock-step robot says step k again while step k + 1 is awaited.
+pub async fn subscribe_odometry(
+    node: &RosNode,
+    scenario: &Scenario,
+    inbox: Arc<OdomInbox>,
+    stamps: Stamps,
+    timebase: Timebase,
+    wake: Arc<dyn Fn() + Send + Sync>,
+    repeat: Arc<dyn Fn(u64) + Send + Sync>,
+) -> Result<RosSubscription, Error> {
+    let lockstep = scenario.timing == Timing::Lockstep;
+    let future_ns = (scenario.ros2.map_or(0.5, |r| r.odom_timeout_s) * 1e9) as i64;
+    node.subscribe::<Odometry, _>("odom", QOS, move |m, _attachment| {
+        let Ok(m) = m else {
+            inbox.refused.undecodable.fetch_add(1, Ordering::Relaxed);
+            return;
+        };
+        match inbox.offer(&m, &stamps, lockstep, timebase.now_ns(), future_ns) {
+            Ok(Some(k)) if k == inbox.awaited.load(Ordering::Relaxed) => wake(),
+            Ok(Some(k)) => repeat(k),
+            _ => {}
+        }
+    })
+    .await
+}
+
+/// The follower's body when its robot is driven through ROS 2.
+pub struct DrivenRobot {
+    brain: Follower,
+    inbox: Arc<OdomInbox>,
+    lockstep: bool,
+    timeout: Duration,
+    /// The topic, for what the run says.
+    topic: String,
+    /// The pose before any odometry arrived (the scenario's initial pose).
+    initial: Pose,
+    /// Sending zero velocity since (monotonic), while the odometry is stale.
+    stopped_since: Option<Duration>,
+    id: u32,
+}
+
+impl DrivenRobot {
+    /// Follower `index`'s brain driving the robot whose odometry arrives in `inbox`.
+    pub fn new(scenario: &Scenario, index: usize, inbox: Arc<OdomInbox>) -> Self {
+        let spec = &scenario.followers[index];
+        let brain = Follower::new(scenario.follower_config(index), scenario.initial_estimate(), spec.velocity);
+        let id = spec.id;
+        Self {
+            brain,
+            inbox,
+            lockstep: scenario.timing == Timing::Lockstep,
+            timeout: Duration::from_secs_f64(scenario.ros2.map_or(0.5, |r| r.odom_timeout_s)),
+            topic: format!("{}/odom", super::follower_namespace(id)),
+            initial: spec.pose,
+            stopped_since: None,
+            id,
+        }
+    }
+
+    /// Real time: the newest odometry, or None when it is older than the
+    /// timeout (or never came); says when that starts and ends.
+    fn fresh_odometry(&mut self) -> (Option<Odom>, Option<Odom>) {
+        let latest = self.inbox.latest();
+        let now = clock::mono();
+        let fresh = latest.filter(|o| now.saturating_sub(o.arrived) <= self.timeout);
+        match (fresh.is_some(), self.stopped_since) {
+            (false, None) => {
+                self.stopped_since = Some(now);
+                let why = if latest.is_some() {
+                    format!("no odometry on {} for {:.1} s", self.topic, self.timeout.as_secs_f64())
+                } else {
+                    format!("no odometry on {} yet", self.topic)
+                };
+                crate::node::say(&format!("follower {}: {why}: sending zero velocity", self.id));
+            }
+            (true, Some(since)) => {
+                self.stopped_since = None;
+                crate::node::say(&format!(
+                    "follower {}: odometry on {} again after {:.1} s: driving",
+                    self.id,
+                    self.topic,
+                    now.saturating_sub(since).as_secs_f64()
+                ));
+            }
+            _ => {}
+        }
+        (fresh, latest)
+    }
+
+    /// Odometry refused so far, as one line, if any.
+    pub fn refused_line(&self) -> Option<String> {
+        self.inbox.refused.summary().map(|s| format!("follower {}: odometry refused on {}: {s}", self.id, self.topic))
+    }
+}
+
+impl Body for DrivenRobot {
+    fn step(
+        &mut self,
+        t_s: f64,
+        dt_s: f64,
+        leader: Option<&LeaderState>,
+        neighbours: &[Message],
+        last: bool,
+    ) -> (FollowerSample, Message) {
+        let k = (t_s / dt_s).round() as u64;
+        let (odom, stop) = if self.lockstep {
+            // robot_ready made sure it is step k's.
+            (self.inbox.latest(), false)
+        } else {
+            let (fresh, latest) = self.fresh_odometry();
+            (fresh.or(latest), fresh.is_none())
+        };
+        let (pose, z) = odom.map_or((self.initial, Velocity::default()), |o| (o.pose, o.twist));
+        let out = self.brain.step(&pose, z, leader, neighbours);
+        let mut sample = FollowerSample::new(&out, pose, z);
+        if stop {
+            sample.command = Velocity::default();
+        }
+        if !last {
+            self.inbox.awaited.store(k + 1, Ordering::Relaxed);
+        }
+        (sample, out.next_message)
+    }
+    fn initial_message(&self) -> Message {
+        self.brain.tagged_message()
+    }
+    fn check_finite(&self) -> Result<(), &'static str> {
+        self.brain.check_finite().map_err(|e| e.0)
+    }
+    fn silent_steps(&self) -> u64 {
+        self.brain.silent_steps()
+    }
+    fn resume(&mut self, k: u64, _pose: Pose) {
+        // The robot is where its odometry says; only the brain starts again.
+        self.brain.resume_at(k);
+        self.inbox.awaited.store(k, Ordering::Relaxed);
+    }
+    fn adopting(&self) -> bool {
+        self.brain.adopting()
+    }
+    fn robot_ready(&self, k: u64) -> bool {
+        self.inbox.latest().is_some_and(|o| o.step == Some(k))
+    }
+    fn robot_name(&self) -> &str {
+        &self.topic
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use formation_ros2::planar::{self, Frames};
+
+    fn odom(stamp_ns: i64, x: f64, y: f64) -> Odometry {
+        planar::odometry(&Frames::of("/follower_1"), stamp_ns, (x, y, 0.25), (0.5, 0.1))
+    }
+
+    fn counts(r: &Refused) -> [u64; 4] {
+        [&r.future, &r.not_finite, &r.jump, &r.undecodable].map(|n| n.load(Ordering::Relaxed))
+    }
+
+    #[test]
+    fn lock_step_odometry_is_taken_for_the_awaited_step_or_a_repeat_and_refused_from_the_future() {
+        let stamps = Stamps::lockstep(0.01);
+        let inbox = OdomInbox::default();
+        inbox.awaited.store(3, Ordering::Relaxed);
+        assert_eq!(inbox.offer(&odom(stamps.ns(3), 1.0, 2.0), &stamps, true, None, 0), Ok(Some(3)));
+        let o = inbox.latest().expect("taken");
+        assert_eq!((o.step, o.pose.x, o.pose.y, o.twist), (Some(3), 1.0, 2.0, Velocity::new(0.5, 0.1)));
+        assert_eq!(inbox.offer(&odom(stamps.ns(2), 1.0, 2.0), &stamps, true, None, 0), Ok(Some(2)), "a repeat");
+        assert_eq!(inbox.offer(&odom(stamps.ns(4), 1.0, 2.0), &stamps, true, None, 0), Err(()), "step 4 before its command");
+        assert_eq!(inbox.offer(&odom(stamps.ns(3) + 1, 1.0, 2.0), &stamps, true, None, 0), Err(()), "off the steps");
+        assert_eq!(counts(&inbox.refused), [2, 0, 0, 0]);
+    }
+
+    #[test]
+    fn odometry_that_is_not_finite_jumps_or_comes_from_the_future_is_counted_and_refused() {
+        let stamps = Stamps::lockstep(0.01);
+        let inbox = OdomInbox::default();
+        let now = 1_000_000_000_000;
+        let timeout = 500_000_000;
+        assert_eq!(inbox.offer(&odom(now, 0.0, 0.0), &stamps, false, Some(now), timeout), Ok(None));
+        assert_eq!(inbox.offer(&odom(now, f64::NAN, 0.0), &stamps, false, Some(now), timeout), Err(()));
+        let mut inf = odom(now, 0.0, 0.0);
+        inf.twist.twist.angular.z = f64::INFINITY;
+        assert_eq!(inbox.offer(&inf, &stamps, false, Some(now), timeout), Err(()));
+        assert_eq!(inbox.offer(&odom(now, 1.5, 0.0), &stamps, false, Some(now), timeout), Err(()), "1.5 m at once");
+        assert_eq!(inbox.offer(&odom(now + 2 * timeout, 0.1, 0.0), &stamps, false, Some(now), timeout), Err(()));
+        assert_eq!(inbox.offer(&odom(now + timeout / 2, 0.5, 0.0), &stamps, false, Some(now), timeout), Ok(None));
+        assert_eq!(inbox.latest().map(|o| o.pose.x), Some(0.5));
+        assert_eq!(counts(&inbox.refused), [1, 2, 1, 0]);
+        assert_eq!(inbox.refused.summary().as_deref(), Some("1 from the future, 2 not finite, 1 jumps"));
+    }
+}

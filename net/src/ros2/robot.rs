@@ -1,0 +1,220 @@
+//! `formation robot --id i`: a stand-in robot that speaks ROS 2. It runs
+//! the project's velocity-commanded robot for follower i (the plant
+//! `formation sim` runs for `robot.model = "velocity"`, with the same noise
+//! stream), takes `/follower_<i>/cmd_vel` and publishes
+//! `/follower_<i>/odom` and its transforms, as a TurtleBot or Gazebo's
+//! diff-drive plugin would. `launch --robots stand-in` starts one per
+//! follower, so the whole loop runs through the ROS 2 wire.
+//!
+//! Lock-step: odometry of step k is stamped k Δt and sent again every
+//! [`REPEAT_EVERY`] until step k's command arrives (its attachment's
+//! source time names the step); then the robot advances one step. It ends
+//! after the last step's command, or gives up after `--stall-timeout`.
+//! Real time: every period the robot advances with the newest command
+//! (zero when none came for `ros2.odom_timeout`) and publishes its
+//! odometry stamped with the wall clock; it ends on Ctrl-C or SIGTERM, or
+//! when commands stop for [`DONE_AFTER`] after they had begun.
+
+use std::future::Future;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use formation_plant::{Drive, NoiseSource, Velocity, VelocityRobot};
+use formation_ros2::msgs::{Odometry, TFMessage, Twist};
+use formation_topology::{Scenario, Timing};
+
+use super::topics::{odometry, Stamps, QOS};
+use formation_ros2::planar::Frames;
+use super::wire::{RosNode, RosPublisher};
+use crate::clock;
+use crate::error::Error;
+use crate::node::NodeArgs;
+
+/// Lock-step: odometry is said again this often while its command is awaited.
+pub const REPEAT_EVERY: Duration = Duration::from_millis(100);
+/// Real time: commands that stop this long after they began end the run.
+pub const DONE_AFTER: Duration = Duration::from_secs(3);
+
+/// `robot` arguments.
+#[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
+pub struct RobotArgs {
+    #[cfg_attr(feature = "clap", command(flatten))]
+    pub node: NodeArgs,
+    /// The follower whose robot this is.
+    #[cfg_attr(feature = "clap", arg(long, value_name = "ID"))]
+    pub id: u32,
+    /// Lock-step: give up if commands stop arriving for this long (s).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 60.0, value_name = "SECONDS"))]
+    pub stall_timeout: f64,
+}
+
+/// A command as it arrived: the twist and the step its source time names.
+#[derive(Clone, Copy, Debug)]
+struct Command {
+    v: Velocity,
+    source_ns: Option<i64>,
+    arrived: Duration,
+}
+
+/// Runs the stand-in robot until the run ends (or `shutdown`).
+pub async fn run(args: &RobotArgs, shutdown: impl Future<Output = ()>) -> Result<(), Error> {
+    if args.node.zenoh.tls.is_some() {
+        return Err(Error::Input(
+            "formation robot: --tls is not for robots (ROS 2 robots do not hold the formation's certificates); run \
+             the robot on a network ROS 2 trusts"
+                .into(),
+        ));
+    }
+    let (scenario, _keys) = args.node.load(&format!("robot-{}", args.id))?;
+    let index = scenario.index_of(args.id).ok_or_else(|| {
+        let all: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
+        Error::Input(format!("scenario {} has no follower {} (ids: {})", scenario.name, args.id, all.join(", ")))
+    })?;
+    let Drive::Velocity { lag_s } = scenario.control.drive else {
+        return Err(Error::Input(format!(
+            "formation robot: scenario {} has robot.model = \"torque\"; a robot driven through ROS 2 takes velocity \
+             commands (set robot.model = \"velocity\")",
+            scenario.name
+        )));
+    };
+    if !(args.stall_timeout.is_finite() && args.stall_timeout > 0.0) {
+        return Err(Error::Input("--stall-timeout must be positive".into()));
+    }
+    let domain = scenario.ros2.map_or(0, |r| r.domain_id);
+    let session = args.node.open(&format!("robot-{}", args.id), &scenario).await?;
+    let namespace = super::follower_namespace(args.id);
+    let node = RosNode::declare(&session, domain, &namespace, "robot").await?;
+    let congestion = crate::node::estimate_congestion(&scenario);
+    let mut out = Outputs {
+        odom: node.publisher("odom", QOS, congestion).await?,
+        tf: node.publisher("/tf", QOS, congestion).await?,
+        frames: Frames::of(&namespace),
+    };
+    let latest: Arc<Mutex<Option<Command>>> = Arc::new(Mutex::new(None));
+    let l = latest.clone();
+    let _commands = node
+        .subscribe::<Twist, _>("cmd_vel", QOS, move |m, att| {
+            let Ok(t) = m else { return };
+            let v = Velocity::new(t.linear.x, t.angular.z);
+            if v.is_finite() {
+                let c = Command { v, source_ns: att.map(|a| a.source_timestamp_ns), arrived: clock::mono() };
+                *l.lock().unwrap_or_else(|p| p.into_inner()) = Some(c);
+            }
+        })
+        .await?;
+    let spec = &scenario.followers[index];
+    let plant = Plant {
+        robot: VelocityRobot::new(lag_s, spec.pose, spec.velocity),
+        noise: NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id),
+    };
+    let stall = Duration::from_secs_f64(args.stall_timeout);
+    let scenario2 = scenario.clone();
+    let work = tokio::task::spawn_blocking(move || match scenario2.timing {
+        Timing::Lockstep => lockstep(&scenario2, plant, &mut out, &latest, stall),
+        Timing::Realtime => realtime(&scenario2, plant, &mut out, &latest),
+    });
+    let result = tokio::select! {
+        r = work => r.map_err(|e| Error::Run(format!("robot {}: loop panicked: {e}", args.id)))?,
+        () = shutdown => Ok(()),
+    };
+    drop(_commands);
+    drop(node);
+    let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+    result
+}
+
+/// The robot and its noise: what `formation sim` steps for this follower.
+struct Plant {
+    robot: VelocityRobot,
+    noise: NoiseSource,
+}
+
+impl Plant {
+    fn advance(&mut self, command: Velocity, dt_s: f64) {
+        let draw = self.noise.draw();
+        self.robot.advance(command, dt_s, draw);
+    }
+}
+
+struct Outputs {
+    odom: RosPublisher<Odometry>,
+    tf: RosPublisher<TFMessage>,
+    frames: Frames,
+}
+
+impl Outputs {
+    /// The odometry of `p` (the true pose, its heading as a quaternion, and
+    /// the measured velocity z), and its transforms.
+    fn publish(&mut self, ns: i64, p: &Plant) -> Result<(), Error> {
+        let pose = p.robot.pose;
+        self.odom.put(&odometry(&self.frames, ns, pose, p.robot.measurement), ns)?;
+        self.tf.put(&super::topics::transforms(&self.frames, ns, pose), ns)
+    }
+}
+
+fn lockstep(
+    s: &Scenario,
+    mut plant: Plant,
+    out: &mut Outputs,
+    latest: &Mutex<Option<Command>>,
+    stall: Duration,
+) -> Result<(), Error> {
+    let stamps = Stamps::of(s, 0);
+    let steps = s.steps();
+    let mut k = 0u64;
+    out.publish(stamps.ns(0), &plant)?;
+    let mut said = clock::mono();
+    let mut heard = clock::mono();
+    loop {
+        let command = *latest.lock().unwrap_or_else(|p| p.into_inner());
+        match command {
+            Some(c) if c.source_ns == Some(stamps.ns(k)) => {
+                if k == steps {
+                    return Ok(());
+                }
+                plant.advance(c.v, s.dt_s);
+                k += 1;
+                out.publish(stamps.ns(k), &plant)?;
+                said = clock::mono();
+                heard = said;
+            }
+            _ => {
+                let now = clock::mono();
+                if now - heard > stall {
+                    return Err(Error::Run(format!(
+                        "no command for step {k} on cmd_vel for {:.0} s (stall timeout): is the agent running?",
+                        stall.as_secs_f64()
+                    )));
+                }
+                if now - said >= REPEAT_EVERY {
+                    out.publish(stamps.ns(k), &plant)?;
+                    said = now;
+                }
+                std::thread::sleep(Duration::from_micros(50));
+            }
+        }
+    }
+}
+
+fn realtime(s: &Scenario, mut plant: Plant, out: &mut Outputs, latest: &Mutex<Option<Command>>) -> Result<(), Error> {
+    let period = Duration::from_secs_f64(s.dt_s / crate::barrier::positive_scale(s.network.time_scale));
+    let timeout = Duration::from_secs_f64(s.ros2.map_or(0.5, |r| r.odom_timeout_s));
+    let began = clock::mono();
+    let mut began_driving = false;
+    out.publish(clock::unix_ns() as i64, &plant)?;
+    for tick in 1u64.. {
+        let due = began + period * tick as u32;
+        clock::sleep_until_mono(due);
+        let now = clock::mono();
+        let command = *latest.lock().unwrap_or_else(|p| p.into_inner());
+        let fresh = command.filter(|c| now.saturating_sub(c.arrived) <= timeout);
+        began_driving |= fresh.is_some();
+        if began_driving && command.is_some_and(|c| now.saturating_sub(c.arrived) > DONE_AFTER) {
+            return Ok(());
+        }
+        plant.advance(fresh.map_or(Velocity::default(), |c| c.v), s.dt_s);
+        out.publish(clock::unix_ns() as i64, &plant)?;
+    }
+    Ok(())
+}

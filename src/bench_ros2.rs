@@ -1,0 +1,61 @@
+//! `formation bench-net --ros2`: what publishing on ROS 2's wire costs the
+//! control loop. The scenario in real time at 1 kHz, alternately with and
+//! without `[ros2]` (each agent then also puts odom, cmd_vel,
+//! leader_estimate and /tf every step, the leader its odom and /tf): the
+//! real-time loop's period error side by side (median of the runs).
+
+use crate::bench_hearing::{network_json, worst_period};
+use crate::error::Error;
+use crate::launch::LaunchArgs;
+
+/// Runs of each kind; the medians are printed.
+const RUNS: usize = 3;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// `launch(sets, port, out, run)` builds the launch of one run.
+pub fn run(
+    duration_s: f64,
+    port: u16,
+    launch: &dyn Fn(&[String], u16, std::path::PathBuf, &str) -> LaunchArgs,
+) -> Result<(), Error> {
+    let tmp = std::env::temp_dir().join(format!("formation-bench-ros2-{}", std::process::id()));
+    let (mut on, mut off) = (Vec::new(), Vec::new());
+    for r in 0..RUNS {
+        for ros2 in [true, false] {
+            eprintln!("bench-net --ros2: run {} of {RUNS}, ROS 2 {} …", r + 1, if ros2 { "on" } else { "off" });
+            let sets = vec![
+                format!("duration={duration_s}"),
+                "timing=realtime".into(),
+                "dt=0.001".into(),
+                format!("ros2.enabled={ros2}"),
+            ];
+            let out = tmp.join(format!("run-{r}-{ros2}"));
+            let mut l = launch(&sets, port + 10 * (2 * r as u16 + u16::from(ros2)), out.clone(), "bench-ros2");
+            l.opts.time_scale = Some(1.0);
+            crate::launch::run(&l)?;
+            let p = worst_period(&network_json(&out, "the real-time run")?);
+            if ros2 {
+                on.push(p);
+            } else {
+                off.push(p);
+            }
+            let _ = std::fs::remove_dir_all(&out);
+        }
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+    let m = |v: &[(f64, f64, f64)], f: fn(&(f64, f64, f64)) -> f64| median(v.iter().map(f).collect());
+    println!("ROS 2 topics: real time at 1 kHz, {duration_s} s, median of {RUNS} runs each");
+    println!("  {:<46}{:>16}{:>16}", "", "ROS 2 on", "ROS 2 off");
+    println!(
+        "  {:<46}{:>16}{:>16}",
+        "worst node's |period − 1 ms| p50 / p99 µs",
+        format!("{:.1} / {:.1}", m(&on, |p| p.0), m(&on, |p| p.1)),
+        format!("{:.1} / {:.1}", m(&off, |p| p.0), m(&off, |p| p.1))
+    );
+    println!("  {:<46}{:>16}{:>16}", "  max µs", format!("{:.1}", m(&on, |p| p.2)), format!("{:.1}", m(&off, |p| p.2)));
+    Ok(())
+}

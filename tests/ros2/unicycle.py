@@ -1,0 +1,130 @@
+"""A robot that is not the formation's code: a unicycle integrated from
+`cmd_vel`, publishing `odom` on rmw_zenoh's wire (Python eclipse-zenoh and
+rosbags' CDR, with the 33-byte attachment and liveliness tokens). After
+--stop-after seconds of driving it stops publishing odometry but keeps
+listening, and counts the commands it still receives (an agent should send
+zero velocity).
+
+    python unicycle.py --connect tcp/127.0.0.1:7447 --id 1 --pose 0 0 0 \
+        --dt 0.01 --seconds 20 --stop-after 8 --out robot.json
+"""
+import argparse
+import hashlib
+import json
+import math
+import struct
+import sys
+import threading
+import time
+
+import numpy as np
+import zenoh
+from rosbags.typesys import Stores, get_typestore
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--connect", required=True)
+    ap.add_argument("--domain", type=int, default=0)
+    ap.add_argument("--id", type=int, required=True)
+    ap.add_argument("--pose", type=float, nargs=3, default=[0.0, 0.0, 0.0])
+    ap.add_argument("--dt", type=float, default=0.01)
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--stop-after", type=float, default=1e9, help="s after the first command")
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args()
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T = store.types
+    ns = f"follower_{a.id}"
+
+    def key(topic, typename):
+        pkg, kind, name = typename.split("/")
+        return f"{a.domain}/{ns}/{topic}/{pkg}::{kind}::dds_::{name}_/{store.hash_rihs01(typename)}"
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([a.connect]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    zid = str(session.info.zid())
+    odom_t, twist_t = "nav_msgs/msg/Odometry", "geometry_msgs/msg/Twist"
+
+    def token(eid, kind, topic, typename):
+        pkg, k, name = typename.split("/")
+        return (f"@ros2_lv/{a.domain}/{zid}/0/{eid}/{kind}/%/%{ns}/unicycle/%{ns}%{topic}/"
+                f"{pkg}::{k}::dds_::{name}_/{store.hash_rihs01(typename)}/::,10:,:,:,,")
+
+    tokens = [
+        session.liveliness().declare_token(f"@ros2_lv/{a.domain}/{zid}/0/0/NN/%/%{ns}/unicycle"),
+        session.liveliness().declare_token(token(1, "MP", "odom", odom_t)),
+        session.liveliness().declare_token(token(2, "MS", "cmd_vel", twist_t)),
+    ]
+    gid = hashlib.sha256(token(1, "MP", "odom", odom_t).encode()).digest()[:16]
+    pub = session.declare_publisher(key("odom", odom_t))
+
+    lock = threading.Lock()
+    state = {"cmd": (0.0, 0.0), "first": None, "after_stop": [], "commands": 0}
+
+    def on_cmd(sample):
+        m = store.deserialize_cdr(sample.payload.to_bytes(), twist_t)
+        with lock:
+            state["cmd"] = (m.linear.x, m.angular.z)
+            state["commands"] += 1
+            if state["first"] is None:
+                state["first"] = time.monotonic()
+            elif time.monotonic() - state["first"] > a.stop_after:
+                state["after_stop"].append([m.linear.x, m.angular.z])
+
+    sub = session.declare_subscriber(key("cmd_vel", twist_t), on_cmd)
+    x, y, th = a.pose
+    v = w = 0.0
+    seq = 1
+    began = time.monotonic()
+    published = 0
+    tick = began
+    while time.monotonic() - began < a.seconds:
+        tick += a.dt
+        time.sleep(max(0.0, tick - time.monotonic()))
+        with lock:
+            v, w = state["cmd"]
+            first = state["first"]
+        stopped = first is not None and time.monotonic() - first > a.stop_after
+        if stopped:
+            continue
+        x += a.dt * v * math.cos(th)
+        y += a.dt * v * math.sin(th)
+        th += a.dt * w
+        now = time.time_ns()
+        stamp = T["builtin_interfaces/msg/Time"](sec=now // 1_000_000_000, nanosec=now % 1_000_000_000)
+        header = T["std_msgs/msg/Header"](stamp=stamp, frame_id=f"{ns}/odom")
+        P, Q, V3 = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"], T["geometry_msgs/msg/Vector3"]
+        pose = T["geometry_msgs/msg/Pose"](position=P(x=x, y=y, z=0.0),
+                                           orientation=Q(x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2)))
+        twist = T["geometry_msgs/msg/Twist"](linear=V3(x=v, y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=w))
+        msg = T[odom_t](
+            header=header, child_frame_id=f"{ns}/base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+        )
+        att = struct.pack("<qq", seq, now) + bytes([16]) + gid
+        pub.put(bytes(store.serialize_cdr(msg, odom_t)), attachment=att)
+        seq += 1
+        published += 1
+        if first is None and published == 1:
+            print(f"unicycle {a.id}: publishing odometry", file=sys.stderr, flush=True)
+    sub.undeclare()
+    for t in tokens:
+        t.undeclare()
+    session.close()
+    with lock:
+        out = {"published": published, "commands": state["commands"], "after_stop": state["after_stop"],
+               "pose": [x, y, th]}
+    with open(a.out, "w") as f:
+        json.dump(out, f)
+    print(f"unicycle {a.id}: {published} odometry messages, {out['commands']} commands, "
+          f"{len(out['after_stop'])} after it stopped", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
