@@ -1,6 +1,6 @@
 //! The simulator's step allocates nothing: a counting global allocator in
 //! this test binary sees zero allocations over many steps of the paper
-//! scenario and of a generated 1000-follower ring.
+//! scenario (on either robot) and of a generated 1000-follower ring.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -57,6 +57,8 @@ fn stepping_does_not_allocate() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
     let paper = Scenario::load(&path, &[]).unwrap();
     assert_eq!(allocations_in_steps(&paper, 2000), 0, "paper scenario");
+    let velocity = Scenario::load(&path, &["robot.model=velocity".to_string()]).unwrap();
+    assert_eq!(allocations_in_steps(&velocity, 2000), 0, "paper scenario on velocity-commanded robots");
     let ring = generate::ring_with_chords(1000, 200, 3).unwrap();
     assert_eq!(allocations_in_steps(&ring, 20), 0, "1000-follower ring");
 }

@@ -1,7 +1,9 @@
 //! One follower's brain: estimator, kinematic and dynamic controller and
 //! velocity filter, stepped in docs/model.md §9's order. The plant is not in here:
 //! the follower sees only its measured pose and the velocity measurement,
-//! so a real robot driver can take the simulated robot's place.
+//! so a real robot driver can take the simulated robot's place. With a
+//! velocity-commanded robot (docs/model.md §15) the brain stops at the
+//! kinematic command: the robot's own loop follows it.
 
 use std::sync::Arc;
 
@@ -13,7 +15,7 @@ use crate::filter::{FilterParams, VelocityFilter};
 use crate::kinematic::{self, BodyError, KinematicGains, KinematicKind};
 use crate::links::{self, Message, RejoinPolicy, RejoinRule};
 use formation_leader::LeaderState;
-use formation_plant::{Pose, RobotParams, Torque, Velocity};
+use formation_plant::{Drive, Pose, RobotParams, Torque, Velocity};
 
 /// The filter-model fault of section IV: from `time_s` on, the filter's model
 /// uses m_f = mass_factor · m and I_f = inertia_factor · I. The robot itself
@@ -42,6 +44,10 @@ pub struct ControlParams {
     /// What a follower does when it hears a source again after isolation (docs/model.md §14).
     pub rejoin: RejoinRule,
     pub dt_s: f64,
+    /// How the robot is driven: torques from the dynamic controller, or the
+    /// kinematic command itself (docs/model.md §15; the lag is the robot's,
+    /// the brain does not use it).
+    pub drive: Drive,
 }
 
 /// One follower's place in the formation and the shared control parameters.
@@ -89,8 +95,10 @@ pub struct StepOutput {
     pub command: Velocity,
     /// (v̇_c, ω̇_c), backward differences.
     pub command_rate: Velocity,
-    /// (v̂, ω̂), the filter's estimate at k.
+    /// (v̂, ω̂), the filter's estimate at k (with a velocity-commanded
+    /// robot, the measurement z(k)).
     pub velocity_estimate: Velocity,
+    /// τ(k) (zero with a velocity-commanded robot).
     pub torque: Torque,
     /// How many sources (leader + neighbours) entered the estimator at k.
     pub sources: u32,
@@ -222,9 +230,15 @@ impl Follower {
     /// at k if this follower hears it (and has it); `neighbours` yields the
     /// neighbours' messages for k in ascending id.
     ///
-    /// In order: the filter folds in z(k) (predict with τ(k−1) and the model
-    /// valid at t_(k−1), update with z(k)); the outputs are computed from the
-    /// states at k; the estimator's rates; then every state advances to k+1.
+    /// In order: the outputs are computed from the states at k; the
+    /// filter folds in z(k) (predict with τ(k−1) and the model valid at
+    /// t_(k−1), update with z(k)) before the dynamic controller reads it;
+    /// the estimator's rates; then every state advances to k+1.
+    ///
+    /// With [`Drive::Velocity`] (docs/model.md §15) the step ends at the
+    /// kinematic command: no filter and no dynamic controller run, the
+    /// velocity estimate is z(k) (even at k = 0) and the torque is zero.
+    /// `pose` and `z` are then the robot's odometry.
     ///
     /// docs/model.md §14: the sources not heard at k are simply not passed. After at
     /// least `rejoin.after_steps` steps without any source, the first step
@@ -258,12 +272,6 @@ impl Follower {
         let cfg = &*self.config.control;
         let dt = cfg.dt_s;
         let k = self.next_k;
-        if k > 0 {
-            let model = cfg.filter_model_at(self.last_k);
-            self.filter.update(&cfg.filter, &model, self.last_torque, dt, z);
-        } else if cfg.filter.kind == crate::filter::FilterKind::None {
-            self.filter.estimate = [z.v, z.w];
-        }
         let leader = if self.config.hears_leader { leader } else { None };
         let isolated = self.silent_steps >= cfg.rejoin.after_steps;
         let mut rejoined = false;
@@ -289,17 +297,32 @@ impl Follower {
             None => Velocity::default(),
         };
 
-        // Dynamic controller (eq. 37–43) on the filtered velocity.
-        let velocity_estimate = self.filter.estimate();
-        let e_eta = [command.v - velocity_estimate.v, command.w - velocity_estimate.w];
-        let [a_v, a_w] = dynamic::accelerations(
-            cfg.dynamic,
-            &cfg.dynamic_gains,
-            &self.dynamic,
-            e_eta,
-            [command_rate.v, command_rate.w],
-        );
-        let torque = cfg.model.acceleration_to_torque(a_v, a_w);
+        let (velocity_estimate, torque) = match cfg.drive {
+            Drive::Torque => {
+                // The filter folds in z(k) (section III-E).
+                if k > 0 {
+                    let model = cfg.filter_model_at(self.last_k);
+                    self.filter.update(&cfg.filter, &model, self.last_torque, dt, z);
+                } else if cfg.filter.kind == crate::filter::FilterKind::None {
+                    self.filter.estimate = [z.v, z.w];
+                }
+                // Dynamic controller (eq. 37–43) on the filtered velocity;
+                // its state advances to k+1.
+                let velocity_estimate = self.filter.estimate();
+                let e_eta = [command.v - velocity_estimate.v, command.w - velocity_estimate.w];
+                let [a_v, a_w] = dynamic::accelerations(
+                    cfg.dynamic,
+                    &cfg.dynamic_gains,
+                    &self.dynamic,
+                    e_eta,
+                    [command_rate.v, command_rate.w],
+                );
+                dynamic::advance(cfg.dynamic, &cfg.dynamic_gains, &mut self.dynamic, e_eta, dt);
+                (velocity_estimate, cfg.model.acceleration_to_torque(a_v, a_w))
+            }
+            // docs/model.md §15: the robot follows (v_c, ω_c) itself.
+            Drive::Velocity { .. } => (z, Torque::default()),
+        };
 
         // Estimator (eq. 11–15).
         let rates = estimator::rates(&cfg.estimator, &estimate, leader, neighbours.map(|m| &m.state));
@@ -316,7 +339,6 @@ impl Follower {
         if cfg.kinematic == KinematicKind::Bio {
             self.v_s = cfg.kinematic_gains.shunting.advance(self.v_s, body_error.x, dt);
         }
-        dynamic::advance(cfg.dynamic, &cfg.dynamic_gains, &mut self.dynamic, e_eta, dt);
         estimator::advance(&mut self.estimate, &rates, dt);
         self.last_command = Some(command);
         self.last_torque = torque;
@@ -379,6 +401,7 @@ mod tests {
             fault: Some(Fault { time_s: fault_time_s, mass_factor: 0.01, inertia_factor: 0.1 }),
             rejoin: RejoinRule::default(),
             dt_s,
+            drive: Drive::Torque,
         }
     }
 
@@ -506,6 +529,36 @@ mod tests {
         let mut g = follower(RejoinPolicy::Consensus, 100);
         g.resume_at(50);
         assert!(!g.tagged_message().fresh, "a restart's placeholder estimate is stale");
+    }
+
+    #[test]
+    fn a_velocity_driven_brain_stops_at_the_kinematic_command() {
+        // The same inputs to a torque brain and a velocity brain: the same
+        // kinematic command and estimate; the velocity brain's estimate is
+        // z(k) (at k = 0 too), its torque zero, its filter untouched.
+        let torque = follower(RejoinPolicy::Consensus, 100);
+        let mut c = (*torque.config.control).clone();
+        c.drive = Drive::Velocity { lag_s: 0.1 };
+        let config = FollowerConfig { control: Arc::new(c), ..torque.config.clone() };
+        let mut velocity = Follower::new(config, torque.message(), Velocity::default());
+        let mut torque = torque;
+        for k in 0..20 {
+            let pose = Pose::new(6.0 + 0.01 * k as f64, -4.0, 0.02 * k as f64);
+            let z = Velocity::new(0.1 * k as f64, -0.05);
+            let n = neighbour(1.0 + 0.01 * k as f64);
+            let (a, b) = (torque.step(&pose, z, None, [&n]), velocity.step(&pose, z, None, [&n]));
+            assert_eq!(
+                (a.command, a.command_rate, a.body_error, a.estimate),
+                (b.command, b.command_rate, b.body_error, b.estimate)
+            );
+            assert_eq!(b.velocity_estimate, z);
+            assert_eq!(b.torque, Torque::default());
+            // (At k = 0 the torque brain's shunting states and command rate are zero too.)
+            assert!(k == 0 || a.torque != Torque::default(), "k = {k}: the torque brain computed no torque");
+            assert_eq!(velocity.message(), torque.message(), "the estimator does not depend on the drive");
+        }
+        assert_eq!(velocity.filter().estimate, [0.0, 0.0], "no filter runs");
+        assert!(velocity.check_finite().is_ok());
     }
 
     #[test]

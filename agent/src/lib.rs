@@ -22,7 +22,7 @@ pub use estimator::EstimatorGains;
 pub use filter::{FilterKind, FilterParams, VelocityFilter};
 pub use follower::{ControlParams, Fault, Follower, FollowerConfig, NonFinite, StepOutput};
 pub use formation_leader::LeaderState;
-pub use formation_plant::{Pose, RobotParams, Torque, Velocity};
+pub use formation_plant::{Drive, Pose, RobotParams, Torque, Velocity};
 pub use kinematic::{BodyError, KinematicGains, KinematicKind};
 pub use links::{Hearing, LinkLoss, LossWindow, Message, RejoinPolicy, RejoinRule};
 pub use math::Shunting;

@@ -1,7 +1,9 @@
 //! The differential-drive robot of the paper (docs/model.md §4): unicycle kinematics
 //! (eq. 3), torque-driven velocity dynamics with the centre of mass on the
 //! wheel axle (eq. 4, C̄ = 0), a bounded disturbance (Assumption 2) and the
-//! discrete process and measurement noise of eq. 55–56.
+//! discrete process and measurement noise of eq. 55–56; and a
+//! velocity-commanded robot (docs/model.md §15), a mobile base that takes
+//! (v, ω) commands and reports odometry, as ROS 2 robots do.
 //!
 //! Everything here is pure: the noise comes from a generator the caller
 //! seeds, so the same (seed, follower id) draws the same numbers whether the
@@ -27,6 +29,17 @@ impl Pose {
 
     pub fn is_finite(&self) -> bool {
         self.x.is_finite() && self.y.is_finite() && self.theta.is_finite()
+    }
+
+    /// One forward-Euler step of the unicycle (eq. 3, docs/model.md §9 step 4):
+    /// the pose moves with ξ for Δt, `(s, c) = θ.sin_cos()` given. Both
+    /// robots move their pose with this.
+    #[inline]
+    pub fn advance(&mut self, velocity: Velocity, (s, c): (f64, f64), dt_s: f64) {
+        let Velocity { v, w } = velocity;
+        self.x += dt_s * v * c;
+        self.y += dt_s * v * s;
+        self.theta += dt_s * w;
     }
 }
 
@@ -219,9 +232,7 @@ impl Robot {
     ) -> Velocity {
         let Velocity { v, w } = self.velocity;
         let acc = self.acceleration_with(tau, disturbance);
-        self.pose.x += dt_s * v * c;
-        self.pose.y += dt_s * v * s;
-        self.pose.theta += dt_s * w;
+        self.pose.advance(self.velocity, (s, c), dt_s);
         self.velocity.v = v + dt_s * acc.v + noise.process.v;
         self.velocity.w = w + dt_s * acc.w + noise.process.w;
         self.measure(noise)
@@ -229,7 +240,113 @@ impl Robot {
 
     /// z = ξ + β (eq. 56).
     pub fn measure(&self, noise: NoiseDraw) -> Velocity {
-        Velocity::new(self.velocity.v + noise.measurement.v, self.velocity.w + noise.measurement.w)
+        measure(self.velocity, noise)
+    }
+}
+
+/// The velocity sensor: z = ξ + β (eq. 56), for both robots.
+#[inline]
+fn measure(velocity: Velocity, noise: NoiseDraw) -> Velocity {
+    Velocity::new(velocity.v + noise.measurement.v, velocity.w + noise.measurement.w)
+}
+
+/// How a follower drives its robot (docs/model.md §15): the brain and the
+/// robot agree on it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub enum Drive {
+    /// Wheel torques: the paper's robot ([`Robot`], eq. 4), driven by the
+    /// dynamic controller.
+    #[default]
+    Torque,
+    /// Body velocities (v_c, ω_c), followed by the robot's own low-level
+    /// velocity loop with time constant `lag_s`, s ([`VelocityRobot`]).
+    Velocity { lag_s: f64 },
+}
+
+/// The heading as a ROS odometry message carries it and a receiver reads it
+/// back: the quaternion (0, 0, sin(θ/2), cos(θ/2)) and yaw = 2 atan2(z, w).
+/// The ROS 2 node computes exactly this, so the simulator sees the heading
+/// an agent reading odometry sees, bit for bit. The result equals θ modulo
+/// 2π and lies in (−2π, 2π] (the quaternion is not brought to w ≥ 0, so
+/// this is θ modulo 4π, not a wrap into (−π, π]); every use of θ in the
+/// brain is through sin, cos or a wrapped difference (docs/model.md §1, §6).
+#[inline]
+pub fn odometry_heading(theta: f64) -> f64 {
+    let (s, c) = (theta * 0.5).sin_cos();
+    2.0 * s.atan2(c)
+}
+
+/// A velocity-commanded robot (docs/model.md §15, eq. V1): a mobile base
+/// (TurtleBot, Gazebo's diff-drive, most ROS 2 bases) that takes velocity
+/// commands u = (v_c, ω_c) and follows them through its own low-level
+/// velocity loop, modelled as a first-order lag of time constant T; it
+/// reports odometry: its pose, the heading through a quaternion
+/// ([`odometry_heading`]), and its measured body velocity z.
+///
+/// It has no disturbance: the robot's own velocity loop rejects the
+/// disturbance of Assumption 2 (what is left of it is in the process noise).
+///
+/// A stand-in robot process runs exactly this with
+/// `NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, id)`:
+/// at each step k it publishes [`VelocityRobot::odometry`], receives the
+/// command of step k and calls [`VelocityRobot::advance`] with it and the
+/// next draw of its noise source.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VelocityRobot {
+    /// T, s: the time constant of the robot's velocity loop.
+    pub lag_s: f64,
+    /// The true pose (θ not wrapped).
+    pub pose: Pose,
+    /// The true velocity ξ.
+    pub velocity: Velocity,
+    /// z(k) = ξ(k) + β: the velocity the robot measures and reports
+    /// (z(0) = ξ(0), as for the torque robot).
+    pub measurement: Velocity,
+}
+
+impl VelocityRobot {
+    /// A robot at `pose` moving with ξ(0) = `velocity`, measuring z(0) = ξ(0).
+    pub fn new(lag_s: f64, pose: Pose, velocity: Velocity) -> Self {
+        Self { lag_s, pose, velocity, measurement: velocity }
+    }
+
+    /// a = 1 − exp(−Δt/T) of eq. V1 (computed as −expm1(−Δt/T), which keeps
+    /// its digits when Δt ≪ T).
+    #[inline]
+    pub fn lag_gain(&self, dt_s: f64) -> f64 {
+        -(-dt_s / self.lag_s).exp_m1()
+    }
+
+    /// One step from k to k+1 under the command u(k) = `command`
+    /// (docs/model.md §15): the pose moves with ξ(k) exactly as the torque
+    /// robot's does ([`Pose::advance`]), then (eq. V1)
+    /// ξ(k+1) = ξ(k) + a (u(k) − ξ(k)) + α_k, a = 1 − exp(−Δt/T), the exact
+    /// discretisation of the lag T ξ̇ = u − ξ with u held over the step.
+    /// Returns (and keeps) the measurement z(k+1) = ξ(k+1) + β_k (eq. 56).
+    /// `noise` is one [`NoiseSource::draw`], α then β as for the torque robot.
+    pub fn advance(&mut self, command: Velocity, dt_s: f64, noise: NoiseDraw) -> Velocity {
+        let a = self.lag_gain(dt_s);
+        let Velocity { v, w } = self.velocity;
+        self.pose.advance(self.velocity, self.pose.theta.sin_cos(), dt_s);
+        self.velocity.v = v + a * (command.v - v) + noise.process.v;
+        self.velocity.w = w + a * (command.w - w) + noise.process.w;
+        self.measurement = measure(self.velocity, noise);
+        self.measurement
+    }
+
+    /// What the robot reports at step k (a ROS odometry message): its pose
+    /// with x, y exact and θ as [`odometry_heading`] reads it back, and its
+    /// measured velocity z(k).
+    pub fn odometry(&self) -> (Pose, Velocity) {
+        let p = self.pose;
+        (Pose::new(p.x, p.y, odometry_heading(p.theta)), self.measurement)
+    }
+
+    /// A robot stopped (ξ = z = 0) at `pose`: a restarted agent's (docs/model.md §14).
+    pub fn stop_at(&mut self, pose: Pose) {
+        self.pose = pose;
+        self.velocity = Velocity::default();
+        self.measurement = Velocity::default();
     }
 }
 
@@ -272,6 +389,67 @@ mod tests {
             let zb = b.advance_with(tau, b.pose.theta.sin_cos(), d.at(t), 1e-3, noise);
             assert_eq!((za, a.pose, a.velocity), (zb, b.pose, b.velocity));
         }
+    }
+
+    #[test]
+    fn the_velocity_robot_follows_a_step_as_a_first_order_lag() {
+        // A step of u = (1, −0.5) from rest: after T = n Δt the velocity is
+        // (1 − e^(−1)) of the step, the exact lag's value, for any Δt ≤ T
+        // (eq. V1 is the exact discretisation).
+        for (lag_s, dt_s) in [(0.1, 1e-3), (0.1, 0.01), (0.25, 0.05), (2.0, 1e-3), (0.1, 0.1)] {
+            let mut robot = VelocityRobot::new(lag_s, Pose::default(), Velocity::default());
+            let steps = (lag_s / dt_s).round() as u64;
+            for _ in 0..steps {
+                robot.advance(Velocity::new(1.0, -0.5), dt_s, NoiseDraw::default());
+            }
+            let want = 1.0 - (-1.0f64).exp();
+            assert!((robot.velocity.v - want).abs() < 1e-12, "T {lag_s}, Δt {dt_s}: v = {}", robot.velocity.v);
+            assert!((robot.velocity.w + 0.5 * want).abs() < 1e-12, "T {lag_s}, Δt {dt_s}: ω = {}", robot.velocity.w);
+            assert_eq!(robot.measurement, robot.velocity, "without noise z = ξ");
+        }
+        // A lag far below Δt: the command is reached in one step, nothing overflows.
+        let mut quick = VelocityRobot::new(1e-300, Pose::default(), Velocity::default());
+        assert_eq!(quick.advance(Velocity::new(0.7, 0.2), 1e-3, NoiseDraw::default()), Velocity::new(0.7, 0.2));
+    }
+
+    #[test]
+    fn both_robots_move_their_pose_with_the_same_euler_step() {
+        let pose = Pose::new(1.0, -2.0, 0.7);
+        let xi = Velocity::new(0.3, -0.1);
+        let mut torque = Robot::new(PAPER, Disturbance::default(), pose, xi);
+        let mut velocity = VelocityRobot::new(0.1, pose, xi);
+        let noise = NoiseDraw { process: Velocity::new(1e-3, -2e-3), measurement: Velocity::new(3e-3, 4e-3) };
+        torque.advance(Torque::default(), 0.0, 1e-3, noise);
+        let z = velocity.advance(xi, 1e-3, noise);
+        assert_eq!(torque.pose, velocity.pose, "pose(k+1) from ξ(k) alone");
+        // u = ξ: the lag adds nothing, only α; z = ξ + β.
+        assert_eq!(velocity.velocity, Velocity::new(0.3 + 1e-3, -0.1 - 2e-3));
+        assert_eq!(z, Velocity::new(velocity.velocity.v + 3e-3, velocity.velocity.w + 4e-3));
+        assert_eq!(velocity.odometry().1, z);
+    }
+
+    #[test]
+    fn odometry_heading_is_the_heading_modulo_two_pi() {
+        use std::f64::consts::{PI, TAU};
+        let mut theta = -20.0;
+        while theta <= 20.0 {
+            let h = odometry_heading(theta);
+            assert!(h > -TAU && h <= TAU, "θ = {theta}: {h} outside (−2π, 2π]");
+            // h − θ is a multiple of 2π; the difference is at most a few ulp of θ.
+            let d = h - theta;
+            let off = d - TAU * (d / TAU).round();
+            assert!(off.abs() <= 4.0 * f64::EPSILON * theta.abs().max(PI), "θ = {theta}: off by {off:e}");
+            theta += 0.01;
+        }
+        // Within (−π, π) the reading is θ itself, to the last bits.
+        for theta in [0.0, 1e-9, -0.3, 1.0, 3.0, -3.1] {
+            assert!((odometry_heading(theta) - theta).abs() <= 1e-15, "θ = {theta}");
+        }
+        assert_eq!(odometry_heading(0.0), 0.0);
+        assert!((odometry_heading(PI) - PI).abs() <= 1e-15);
+        let robot = VelocityRobot::new(0.1, Pose::new(2.0, -1.0, 7.0), Velocity::default());
+        let (pose, _) = robot.odometry();
+        assert_eq!((pose.x, pose.y, pose.theta), (2.0, -1.0, odometry_heading(7.0)));
     }
 
     #[test]

@@ -9,4 +9,4 @@ pub mod folder;
 pub mod simulation;
 
 pub use folder::{run_to_folder, FolderObserver};
-pub use simulation::{Diverged, NoRecord, Observer, SimError, SimFollower, Simulation};
+pub use simulation::{step_on_odometry, Diverged, NoRecord, Observer, SimError, SimFollower, SimRobot, Simulation};

@@ -66,6 +66,14 @@ fn lockstep_with_noise_equals_sim() {
     same_as_sim("noise on", &["duration=2"], &["--base-port", &base, "--run", "ls-b"]);
 }
 
+/// docs/model.md §15: the agents drive velocity-commanded robots (the same
+/// `SimFollower`, fed odometry), and lock-step still equals the simulator.
+#[test]
+fn lockstep_on_velocity_commanded_robots_equals_sim() {
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    same_as_sim("velocity robot", &["duration=2", "robot.model=velocity"], &["--base-port", &base, "--run", "ls-v"]);
+}
+
 #[test]
 fn client_mode_through_router_equals_sim() {
     let base = Ports::free(1).release().to_string();

@@ -172,6 +172,15 @@ pub struct SlidingModeFile {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RobotFile {
+    /// `torque` (the paper's robot) or `velocity` (a velocity-commanded
+    /// base, docs/model.md §15). Left out when written if `torque`, so a file
+    /// written before the key existed reads back the same.
+    #[serde(default, skip_serializing_if = "RobotModel::is_torque")]
+    pub model: RobotModel,
+    /// With `model = "velocity"`: T, the time constant of the robot's own
+    /// velocity loop, s (default [`DEFAULT_LAG_S`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lag: Option<f64>,
     #[serde(default = "d::mass")]
     pub mass: f64,
     #[serde(default = "d::inertia")]
@@ -181,6 +190,26 @@ pub struct RobotFile {
     #[serde(default = "d::half_axle")]
     pub half_axle: f64,
 }
+
+/// How the robot takes its commands (`[robot] model`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RobotModel {
+    /// Wheel torques (eq. 4): the paper's robot.
+    #[default]
+    Torque,
+    /// Velocity commands (v_c, ω_c) through a first-order lag (docs/model.md §15).
+    Velocity,
+}
+
+impl RobotModel {
+    pub fn is_torque(&self) -> bool {
+        *self == RobotModel::Torque
+    }
+}
+
+/// `[robot] lag` when `model = "velocity"` gives none, s (docs/model.md §15, decided).
+pub const DEFAULT_LAG_S: f64 = 0.1;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -364,6 +393,8 @@ default_impl!(SlidingModeFile {
     k2: d::st_k()
 });
 default_impl!(RobotFile {
+    model: RobotModel::Torque,
+    lag: None,
     mass: d::mass(),
     inertia: d::inertia(),
     wheel_radius: d::wheel_radius(),

@@ -8,11 +8,11 @@ use formation_agent::{
     LinkLoss, LossWindow, RejoinPolicy, RejoinRule, Shunting,
 };
 use formation_leader::{Leader, Profile, Trajectory};
-use formation_plant::{Disturbance, NoiseCov, Pose, RobotParams, Velocity};
+use formation_plant::{Disturbance, Drive, NoiseCov, Pose, RobotParams, Velocity};
 use serde::Serialize;
 
 use crate::error::ScenarioError;
-use crate::file::{exact, LeaderFile, ScenarioFile};
+use crate::file::{exact, LeaderFile, RobotModel, ScenarioFile, DEFAULT_LAG_S};
 use crate::graph::Graph;
 
 /// How followers initialise their leader estimate.
@@ -57,6 +57,10 @@ pub struct NetworkSettings {
     pub delay_steps: u64,
 }
 
+/// Largest `[robot] lag` accepted, s (docs/model.md §15): a mobile base's
+/// velocity loop settles within a second or so; a lag above this is more
+/// likely milliseconds written as seconds than a robot.
+pub const MAX_LAG_S: f64 = 10.0;
 /// Largest `network.delay_steps` accepted.
 pub const MAX_DELAY_STEPS: u64 = 1000;
 /// Most followers in one scenario (a networked run is one process each; the
@@ -661,6 +665,7 @@ fn validate(
     let graph = validate_graph(&c, &file, &followers)?;
     validate_gains(&c, &file)?;
     let fault = validate_fault(&c, &file)?;
+    let drive = validate_drive(&c, &file)?;
     let faults = validate_faults(&c, &file, &followers, &graph)?;
     let (network, rejoin) = validate_network(&c, &file)?;
     let r = &file.robot;
@@ -683,7 +688,7 @@ fn validate(
         leader_pose,
         followers,
         graph,
-        control: Arc::new(control_params(&file, robot, fault, rejoin)),
+        control: Arc::new(control_params(&file, robot, fault, rejoin, drive)),
         robot,
         disturbance: Disturbance { linear_n: file.disturbance.dv, angular_nm: file.disturbance.dw },
         network,
@@ -916,6 +921,44 @@ fn validate_fault(c: &Check<'_>, file: &ScenarioFile) -> Result<Option<Fault>, S
     Ok(Some(Fault { time_s, mass_factor: file.fault.mass_factor, inertia_factor: file.fault.inertia_factor }))
 }
 
+/// `[robot] model` and `lag`: how the robot is driven (docs/model.md §15).
+/// A lag belongs to a velocity-commanded robot only, and such a robot runs
+/// no filter for a `[fault]` to change.
+fn validate_drive(c: &Check<'_>, file: &ScenarioFile) -> Result<Drive, ScenarioError> {
+    let r = &file.robot;
+    match (r.model, r.lag) {
+        (RobotModel::Torque, None) => Ok(Drive::Torque),
+        (RobotModel::Torque, Some(_)) => Err(c.fail_with(
+            "robot.lag",
+            &["robot.model"],
+            "only a velocity-commanded robot has a lag: set robot.model = \"velocity\" or remove lag",
+        )),
+        (RobotModel::Velocity, lag) => {
+            let lag_s = lag.unwrap_or(DEFAULT_LAG_S);
+            c.positive("robot.lag", &[lag_s])?;
+            if lag_s > MAX_LAG_S {
+                return Err(c.fail(
+                    "robot.lag",
+                    format!(
+                        "must be at most {MAX_LAG_S} s (the time constant of the robot's velocity loop, in seconds), \
+                         got {}",
+                        num(lag_s)
+                    ),
+                ));
+            }
+            if file.fault.time.is_some() {
+                return Err(c.fail_with(
+                    "fault.time",
+                    &["robot.model"],
+                    "the fault changes the velocity filter's model, and a velocity-commanded robot \
+                     (robot.model = \"velocity\") runs no filter",
+                ));
+            }
+            Ok(Drive::Velocity { lag_s })
+        }
+    }
+}
+
 /// `[network]`: the networked run's settings and the rejoin rule.
 fn validate_network(c: &Check<'_>, file: &ScenarioFile) -> Result<(NetworkSettings, RejoinRule), ScenarioError> {
     let n = &file.network;
@@ -964,7 +1007,13 @@ fn validate_network(c: &Check<'_>, file: &ScenarioFile) -> Result<(NetworkSettin
 
 /// The controllers, filter and model every follower shares, from a file
 /// already validated.
-fn control_params(file: &ScenarioFile, model: RobotParams, fault: Option<Fault>, rejoin: RejoinRule) -> ControlParams {
+fn control_params(
+    file: &ScenarioFile,
+    model: RobotParams,
+    fault: Option<Fault>,
+    rejoin: RejoinRule,
+    drive: Drive,
+) -> ControlParams {
     let (est, bs, sm) = (&file.estimator, &file.backstepping, &file.sliding_mode);
     ControlParams {
         estimator: EstimatorGains { k: est.k, ka: est.ka, kb: est.kb },
@@ -989,6 +1038,7 @@ fn control_params(file: &ScenarioFile, model: RobotParams, fault: Option<Fault>,
         fault,
         rejoin,
         dt_s: file.dt,
+        drive,
     }
 }
 
@@ -1376,6 +1426,70 @@ mod tests {
         let text = format!("{ARRAYS}[robot]\nmass = -1.0\n");
         let line = text.lines().count();
         assert_eq!(message(&text, &["duration=1"]), format!("s.toml:{line}: robot.mass: must be positive, got -1"));
+    }
+
+    #[test]
+    fn a_velocity_commanded_robot_parses_with_its_lag() {
+        assert_eq!(load(ARRAYS, &[]).unwrap().control.drive, Drive::Torque, "the default is the paper's robot");
+        let with = |robot: &str| format!("{ARRAYS}[robot]\n{robot}\n");
+        let s = load(&with("model = \"velocity\""), &[]).unwrap();
+        assert_eq!(s.control.drive, Drive::Velocity { lag_s: DEFAULT_LAG_S });
+        let s = load(&with("model = \"velocity\"\nlag = 0.25"), &[]).unwrap();
+        assert_eq!(s.control.drive, Drive::Velocity { lag_s: 0.25 });
+        let s = load(ARRAYS, &["robot.model=velocity", "robot.lag=0.05"]).unwrap();
+        assert_eq!(s.control.drive, Drive::Velocity { lag_s: 0.05 });
+        // The bounds are (0, 10] s.
+        assert_eq!(
+            load(ARRAYS, &["robot.model=velocity", "robot.lag=10"]).unwrap().control.drive,
+            Drive::Velocity { lag_s: 10.0 }
+        );
+        // A torque scenario is written as before the key existed; a velocity one says so.
+        let written = toml::to_string(&load(ARRAYS, &[]).unwrap().source).unwrap();
+        assert!(!written.contains("model") && !written.contains("lag"), "{written}");
+        let written = toml::to_string(&s.source).unwrap();
+        assert!(written.contains("model = \"velocity\"") && written.contains("lag = 0.05"), "{written}");
+    }
+
+    #[test]
+    fn a_bad_lag_or_a_lag_without_the_velocity_model_is_refused() {
+        let with = |robot: &str| format!("{ARRAYS}[robot]\n{robot}\n");
+        // The line of `lag`, right after `[robot]`.
+        let line = with("").lines().count();
+        for (lag, says) in [
+            ("-1.0", "must be positive, got -1"),
+            ("0.0", "must be positive, got 0"),
+            ("inf", "must be a finite number, got inf"),
+            ("nan", "must be a finite number, got NaN"),
+            ("100.0", "must be at most 10 s (the time constant of the robot's velocity loop, in seconds), got 100"),
+        ] {
+            let text = with(&format!("lag = {lag}\nmodel = \"velocity\""));
+            assert_eq!(message(&text, &[]), format!("s.toml:{line}: robot.lag: {says}"));
+        }
+        assert_eq!(
+            message(&with("lag = 0.1"), &[]),
+            format!(
+                "s.toml:{line}: robot.lag: only a velocity-commanded robot has a lag: set robot.model = \"velocity\" \
+                 or remove lag"
+            )
+        );
+        // From the command line, the assignment at fault is named.
+        assert_eq!(
+            message(ARRAYS, &["robot.model=velocity", "robot.lag=-0.1"]),
+            "--set robot.lag=-0.1: robot.lag: must be positive, got -0.1"
+        );
+        assert_eq!(
+            message(&with("model = \"velocity\"\nlag = 0.2"), &["robot.model=torque"]),
+            "--set robot.model=torque: robot.lag: only a velocity-commanded robot has a lag: set robot.model = \
+             \"velocity\" or remove lag"
+        );
+        let m = message(ARRAYS, &["robot.model=wheels"]);
+        assert_eq!(m, "--set robot.model=wheels: `robot.model`: `wheels` is not one of: torque or velocity");
+        let m = message(&format!("{ARRAYS}[fault]\ntime = 10.0\n"), &["robot.model=velocity"]);
+        assert_eq!(
+            m,
+            "--set robot.model=velocity: fault.time: the fault changes the velocity filter's model, and a \
+             velocity-commanded robot (robot.model = \"velocity\") runs no filter"
+        );
     }
 
     #[test]
