@@ -247,7 +247,7 @@ fn the_models_hearing_replays_into_the_simulators_folder() {
         format: formation_record::hearing::HEARING_FORMAT,
         scenario: ScenarioSource { label: "paper.toml".into(), text, overrides: sets },
         fingerprint: formation_net::barrier::fingerprint(&scenario),
-        density: Density { every: 1, csv: true, mcap: false, rosbag2: false },
+        density: Density { every: 1, csv: true, mcap: false },
         leader: vec![(0, steps + 1)],
         followers,
         rescued: Vec::new(),

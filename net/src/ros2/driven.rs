@@ -171,6 +171,8 @@ pub struct DrivenRobot {
     timeout: Duration,
     /// The topic, for what the run says.
     topic: String,
+    /// What a lock-step step waits for, for what the run says.
+    waiting_for: String,
     /// The pose before any odometry arrived (the scenario's initial pose).
     initial: Pose,
     /// Sending zero velocity since (monotonic), while the odometry is stale.
@@ -190,6 +192,7 @@ impl DrivenRobot {
             lockstep: scenario.timing == Timing::Lockstep,
             timeout: Duration::from_secs_f64(scenario.ros2.map_or(0.5, |r| r.odom_timeout_s)),
             topic: format!("{}/odom", super::follower_namespace(id)),
+            waiting_for: format!("the robot's odometry on {}/odom", super::follower_namespace(id)),
             initial: spec.pose,
             stopped_since: None,
             id,
@@ -225,11 +228,6 @@ impl DrivenRobot {
         }
         (fresh, latest)
     }
-
-    /// Odometry refused so far, as one line, if any.
-    pub fn refused_line(&self) -> Option<String> {
-        self.inbox.refused.summary().map(|s| format!("follower {}: odometry refused on {}: {s}", self.id, self.topic))
-    }
 }
 
 impl Body for DrivenRobot {
@@ -250,8 +248,8 @@ impl Body for DrivenRobot {
             (fresh.or(latest), fresh.is_none())
         };
         let (pose, z) = odom.map_or((self.initial, Velocity::default()), |o| (o.pose, o.twist));
-        let out = self.brain.step(&pose, z, leader, neighbours);
-        let mut sample = FollowerSample::new(&out, pose, z);
+        // The simulator's own call for a robot seen through its odometry.
+        let (mut sample, out) = formation_sim::step_on_odometry(&mut self.brain, (pose, z), leader, neighbours);
         if stop {
             sample.command = Velocity::default();
         }
@@ -281,7 +279,7 @@ impl Body for DrivenRobot {
         self.inbox.latest().is_some_and(|o| o.step == Some(k))
     }
     fn robot_name(&self) -> &str {
-        &self.topic
+        &self.waiting_for
     }
 }
 
