@@ -98,20 +98,20 @@ fn a_foreign_subscriber_hears_follower_1_odom_on_rmw_zenohs_key() {
     let samples = seen["samples"].as_array().expect("samples");
     let rows = csv_rows(&out.join("follower_1.csv"));
     assert!(samples.len() >= rows.len() * 99 / 100, "{} samples of /follower_1/odom for {} steps", samples.len(), rows.len());
-    let mut row = 0usize;
+    // Each sample is the row of its step: stamps are the steps' due times, Δt apart.
+    let stamp0 = samples[0]["stamp_ns"].as_i64().expect("stamp");
     for (n, s) in samples.iter().enumerate() {
         assert_eq!(s["attachment_len"], 33, "sample {n}: attachment {s}");
         assert_eq!(s["decoded"], true, "sample {n}: {s}");
         assert_eq!(s["seq"].as_i64(), Some(n as i64 + 1), "sample {n}: sequence numbers from 1, one by one: {s}");
         assert_eq!((s["frame_id"].as_str(), s["child_frame_id"].as_str()), (Some("follower_1/odom"), Some("follower_1/base_link")));
+        let k = ((s["stamp_ns"].as_i64().expect("stamp") - stamp0) as f64 / 1e7).round() as usize;
+        let row = rows.get(k).unwrap_or_else(|| panic!("sample {n}: step {k} is beyond follower_1.csv's {} rows", rows.len()));
         let (x, y) = (s["x"].as_f64().unwrap(), s["y"].as_f64().unwrap());
-        // In order: the next CSV row with this position (every sample is a row).
-        let found = rows[row..].iter().position(|r| r[1] == x && r[2] == y);
-        let Some(at) = found else { panic!("sample {n} at ({x}, {y}) is no row of follower_1.csv from row {row} on") };
-        row += at;
+        assert_eq!((x, y), (row[1], row[2]), "sample {n} (step {k}): position vs follower_1.csv");
         let yaw = 2.0 * s["qz"].as_f64().unwrap().atan2(s["qw"].as_f64().unwrap());
-        assert!(same_heading(yaw, rows[row][3]), "sample {n}: heading {yaw} vs {} in the CSV", rows[row][3]);
-        assert_eq!((s["v"].as_f64().unwrap(), s["w"].as_f64().unwrap()), (rows[row][4], rows[row][5]), "sample {n}: twist");
+        assert!(same_heading(yaw, row[3]), "sample {n} (step {k}): heading {yaw} vs {} in the CSV", row[3]);
+        assert_eq!((s["v"].as_f64().unwrap(), s["w"].as_f64().unwrap()), (row[4], row[5]), "sample {n} (step {k}): twist");
     }
     let tokens: Vec<&str> = seen["tokens"].as_array().expect("tokens").iter().filter_map(|t| t.as_str()).collect();
     let odom = "nav_msgs::msg::dds_::Odometry_/RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0";
