@@ -135,8 +135,8 @@ fn real_time_scheduling(priority: u8) -> Result<(), CliError> {
 impl RunOptions {
     /// The scenario, the run name and the run folder, checked (bad input: exit 2).
     pub fn resolve(&self) -> Result<(Scenario, String, PathBuf), CliError> {
-        let scenario = Scenario::load(&self.scenario.scenario, &self.overrides())
-            .map_err(|e| CliError::Input(e.to_string()))?;
+        let scenario =
+            Scenario::load(&self.scenario.scenario, &self.overrides()).map_err(|e| CliError::Input(e.to_string()))?;
 
         formation_net::node::networked(&scenario)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());

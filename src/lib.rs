@@ -7,9 +7,9 @@
 pub mod args;
 pub mod bench;
 pub mod bench_hearing;
-pub mod bench_ros2;
 pub mod bench_net;
 pub mod bench_netns;
+pub mod bench_ros2;
 pub mod certs;
 pub mod cli;
 pub mod error;

@@ -236,8 +236,13 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     let results: Vec<Result<SeedRecord, CliError>> = jobs
         .par_iter()
         .map(|&(c, s)| {
-            let record =
-                (s == 0).then(|| RecordOptions { dir: a.out.join(&runs[c].0), every: a.every, csv: true, mcap: false, rosbag2: false });
+            let record = (s == 0).then(|| RecordOptions {
+                dir: a.out.join(&runs[c].0),
+                every: a.every,
+                csv: true,
+                mcap: false,
+                rosbag2: false,
+            });
             let r = run_seed(&runs[c].1, seeds[s], record.as_ref());
             bar.inc(1);
             r

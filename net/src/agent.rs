@@ -30,10 +30,10 @@ use crate::courier::Courier;
 use crate::error::{zerr, Error};
 use crate::names::{self, Keys};
 use crate::node::{estimate_congestion, NodeArgs};
-use crate::startup;
 use crate::ros2::driven::{self, DrivenRobot, OdomInbox};
 use crate::ros2::topics::{FollowerTopics, Stamps};
 use crate::ros2::wire::{RosNode, RosSubscription};
+use crate::startup;
 use crate::telemetry::{self, EventKind};
 use formation_sim::SimFollower;
 
@@ -241,7 +241,10 @@ pub async fn run_follower(
     }
     if let Some(inbox) = &opts.odometry {
         if let Some(line) = inbox.refused.summary() {
-            crate::node::say(&format!("follower {id}: odometry refused on {}/odom: {line}", crate::ros2::follower_namespace(id)));
+            crate::node::say(&format!(
+                "follower {id}: odometry refused on {}/odom: {line}",
+                crate::ros2::follower_namespace(id)
+            ));
         }
     }
     drop((acks, sync, subscribers, done_subs, odometry, ros_node));

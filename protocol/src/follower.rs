@@ -654,8 +654,7 @@ impl Follower {
     }
 
     fn missing(&mut self, k: u64) -> (String, usize) {
-        let mut names: Vec<&str> =
-            self.inbox.missing(k).iter().map(|&s| self.rules.source_names[s].as_str()).collect();
+        let mut names: Vec<&str> = self.inbox.missing(k).iter().map(|&s| self.rules.source_names[s].as_str()).collect();
         if !self.body.robot_ready(k) {
             names.push(self.body.robot_name());
         }

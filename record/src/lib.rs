@@ -14,9 +14,9 @@ pub mod folder;
 pub mod hearing;
 pub mod live;
 pub mod mcap;
-pub mod rosbag2;
 pub mod metrics;
 pub mod outage;
+pub mod rosbag2;
 pub mod row;
 pub mod summary;
 

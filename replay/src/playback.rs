@@ -201,7 +201,13 @@ pub fn play(
     let mut from = 0;
     let began = Instant::now();
     loop {
-        let opts = RecordOptions { dir: tmp.join(format!("play-{}", clock.epoch)), every: 1, csv: false, mcap: false, rosbag2: false };
+        let opts = RecordOptions {
+            dir: tmp.join(format!("play-{}", clock.epoch)),
+            every: 1,
+            csv: false,
+            mcap: false,
+            rosbag2: false,
+        };
         let mut recorder = Recorder::new(&loaded.scenario, &opts)?;
         for sink in &out.sinks {
             recorder.add_sink(sink.clone());

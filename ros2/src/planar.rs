@@ -45,8 +45,11 @@ fn header(frame: &str, stamp_ns: i64) -> Header {
 
 /// Odometry: the pose in `frames.odom`, the body twist in `frames.base_link`.
 pub fn odometry(frames: &Frames, stamp_ns: i64, (x, y, theta): (f64, f64, f64), (v, w): (f64, f64)) -> Odometry {
-    let mut m =
-        Odometry { header: header(&frames.odom, stamp_ns), child_frame_id: frames.base_link.clone(), ..Default::default() };
+    let mut m = Odometry {
+        header: header(&frames.odom, stamp_ns),
+        child_frame_id: frames.base_link.clone(),
+        ..Default::default()
+    };
     m.pose.pose = pose(x, y, theta);
     m.twist.twist = twist(v, w);
     m

@@ -257,7 +257,13 @@ fn the_models_hearing_replays_into_the_simulators_folder() {
     let model = dir.path().join("model");
     let problems = replay::replay_to_folder_with(&loaded, Hearing::Model, &model, &mut |_| {}).expect("replay");
     assert!(problems.is_empty(), "{problems:?}");
-    let opts = formation_record::RecordOptions { dir: dir.path().join("sim"), every: 1, csv: true, mcap: false, rosbag2: false };
+    let opts = formation_record::RecordOptions {
+        dir: dir.path().join("sim"),
+        every: 1,
+        csv: true,
+        mcap: false,
+        rosbag2: false,
+    };
     formation_sim::run_to_folder(&loaded.scenario, &opts, 1, |_| {}).expect("sim");
     let diffs = replay::compare(&dir.path().join("sim"), &model, &loaded.scenario);
     assert!(diffs.is_empty(), "the model's replay is not the simulator's run: {}", diffs[0]);

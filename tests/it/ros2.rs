@@ -37,20 +37,31 @@ fn stand_in_robots_in_lock_step_equal_formation_sim_and_record_a_readable_bag() 
         let got = std::fs::read(out.join(f)).expect("run file");
         let want = std::fs::read(sim.join(f)).expect("sim file");
         let first = got.iter().zip(&want).position(|(a, b)| a != b);
-        assert!(got == want, "{f} through stand-in robots differs from formation sim's (first differing byte {first:?}, {} vs {} bytes)", got.len(), want.len());
+        assert!(
+            got == want,
+            "{f} through stand-in robots differs from formation sim's (first differing byte {first:?}, {} vs {} bytes)",
+            got.len(),
+            want.len()
+        );
     }
 
     // The bag, read by rosbags and mcap-ros2-support.
     let Some(python) = common::ros2_python() else { return };
     let seen = dir.path().join("bag.json");
-    common::run_ok(Command::new(&python).arg(common::ros2_script("read_bag.py")).arg(out.join("rosbag2")).arg("--out").arg(&seen));
+    common::run_ok(
+        Command::new(&python).arg(common::ros2_script("read_bag.py")).arg(out.join("rosbag2")).arg("--out").arg(&seen),
+    );
     let topics = common::json(dir.path(), "bag.json");
     let rows = std::fs::read_to_string(out.join("follower_1.csv")).expect("csv").lines().count() as u64 - 1;
     let mut names: Vec<&String> = topics.as_object().expect("topics").keys().collect();
     names.sort();
     let mut want = vec!["/clock".to_string(), "/leader/odom".into(), "/tf".into()];
     for i in 1..=4 {
-        want.extend([format!("/follower_{i}/cmd_vel"), format!("/follower_{i}/leader_estimate"), format!("/follower_{i}/odom")]);
+        want.extend([
+            format!("/follower_{i}/cmd_vel"),
+            format!("/follower_{i}/leader_estimate"),
+            format!("/follower_{i}/odom"),
+        ]);
     }
     want.sort();
     assert_eq!(names, want.iter().collect::<Vec<_>>(), "the bag's topics");
@@ -65,7 +76,8 @@ fn stand_in_robots_in_lock_step_equal_formation_sim_and_record_a_readable_bag() 
     }
     // The odometry as the CSV has it (last row of follower 1).
     let last = std::fs::read_to_string(out.join("follower_1.csv")).expect("csv");
-    let cols: Vec<f64> = last.lines().last().expect("a row").split(',').take(4).map(|v| v.parse().expect("number")).collect();
+    let cols: Vec<f64> =
+        last.lines().last().expect("a row").split(',').take(4).map(|v| v.parse().expect("number")).collect();
     let pose = &topics["/follower_1/odom"]["last_pose"];
     let (x, y, th) = (pose[1].as_f64().unwrap(), pose[2].as_f64().unwrap(), pose[3].as_f64().unwrap());
     assert_eq!((x, y), (cols[1], cols[2]), "follower 1's last odometry position in the bag vs its CSV row");

@@ -76,7 +76,18 @@ fn a_foreign_subscriber_hears_follower_1_odom_on_rmw_zenohs_key() {
     let mut listener = python(
         &py,
         "listen.py",
-        &["--connect", &ep, "--topic", "/follower_1/odom", "--type", "nav_msgs/msg/Odometry", "--seconds", "60", "--out", &seen_s],
+        &[
+            "--connect",
+            &ep,
+            "--topic",
+            "/follower_1/odom",
+            "--type",
+            "nav_msgs/msg/Odometry",
+            "--seconds",
+            "60",
+            "--out",
+            &seen_s,
+        ],
         &tmp.path().join("listen.log"),
     );
     // The subscriber is declared before the run starts.
@@ -90,28 +101,50 @@ fn a_foreign_subscriber_hears_follower_1_odom_on_rmw_zenohs_key() {
     }
     let mut run = launch(&args, &tmp.path().join("launch.log"));
     let status = run.wait(common::LIMIT);
-    assert!(status.success(), "launch --ros2: {status}: {}", std::fs::read_to_string(tmp.path().join("launch.log")).unwrap_or_default());
+    assert!(
+        status.success(),
+        "launch --ros2: {status}: {}",
+        std::fs::read_to_string(tmp.path().join("launch.log")).unwrap_or_default()
+    );
     let done = listener.wait(common::LIMIT);
-    assert!(done.success(), "listen.py: {done}: {}", std::fs::read_to_string(tmp.path().join("listen.log")).unwrap_or_default());
+    assert!(
+        done.success(),
+        "listen.py: {done}: {}",
+        std::fs::read_to_string(tmp.path().join("listen.log")).unwrap_or_default()
+    );
 
     let seen = json(tmp.path(), "seen.json");
     let samples = seen["samples"].as_array().expect("samples");
     let rows = csv_rows(&out.join("follower_1.csv"));
-    assert!(samples.len() >= rows.len() * 99 / 100, "{} samples of /follower_1/odom for {} steps", samples.len(), rows.len());
+    assert!(
+        samples.len() >= rows.len() * 99 / 100,
+        "{} samples of /follower_1/odom for {} steps",
+        samples.len(),
+        rows.len()
+    );
     // Each sample is the row of its step: stamps are the steps' due times, Δt apart.
     let stamp0 = samples[0]["stamp_ns"].as_i64().expect("stamp");
     for (n, s) in samples.iter().enumerate() {
         assert_eq!(s["attachment_len"], 33, "sample {n}: attachment {s}");
         assert_eq!(s["decoded"], true, "sample {n}: {s}");
         assert_eq!(s["seq"].as_i64(), Some(n as i64 + 1), "sample {n}: sequence numbers from 1, one by one: {s}");
-        assert_eq!((s["frame_id"].as_str(), s["child_frame_id"].as_str()), (Some("follower_1/odom"), Some("follower_1/base_link")));
+        assert_eq!(
+            (s["frame_id"].as_str(), s["child_frame_id"].as_str()),
+            (Some("follower_1/odom"), Some("follower_1/base_link"))
+        );
         let k = ((s["stamp_ns"].as_i64().expect("stamp") - stamp0) as f64 / 1e7).round() as usize;
-        let row = rows.get(k).unwrap_or_else(|| panic!("sample {n}: step {k} is beyond follower_1.csv's {} rows", rows.len()));
+        let row = rows
+            .get(k)
+            .unwrap_or_else(|| panic!("sample {n}: step {k} is beyond follower_1.csv's {} rows", rows.len()));
         let (x, y) = (s["x"].as_f64().unwrap(), s["y"].as_f64().unwrap());
         assert_eq!((x, y), (row[1], row[2]), "sample {n} (step {k}): position vs follower_1.csv");
         let yaw = 2.0 * s["qz"].as_f64().unwrap().atan2(s["qw"].as_f64().unwrap());
         assert!(same_heading(yaw, row[3]), "sample {n} (step {k}): heading {yaw} vs {} in the CSV", row[3]);
-        assert_eq!((s["v"].as_f64().unwrap(), s["w"].as_f64().unwrap()), (row[4], row[5]), "sample {n} (step {k}): twist");
+        assert_eq!(
+            (s["v"].as_f64().unwrap(), s["w"].as_f64().unwrap()),
+            (row[4], row[5]),
+            "sample {n} (step {k}): twist"
+        );
     }
     let tokens: Vec<&str> = seen["tokens"].as_array().expect("tokens").iter().filter_map(|t| t.as_str()).collect();
     let odom = "nav_msgs::msg::dds_::Odometry_/RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0";
@@ -147,7 +180,24 @@ fn python_unicycles_are_driven_and_one_that_stops_is_sent_zero_velocity() {
         let (x, y, th) = (f.pose.x.to_string(), f.pose.y.to_string(), f.pose.theta.to_string());
         // Follower 4's robot stops publishing odometry 6 s after its first command.
         let stop = if i == 3 { "6" } else { "1000" };
-        let args = ["--connect", &ep, "--id", &id, "--pose", &x, &y, &th, "--dt", "0.01", "--seconds", "16", "--stop-after", stop, "--out", &out];
+        let args = [
+            "--connect",
+            &ep,
+            "--id",
+            &id,
+            "--pose",
+            &x,
+            &y,
+            &th,
+            "--dt",
+            "0.01",
+            "--seconds",
+            "16",
+            "--stop-after",
+            stop,
+            "--out",
+            &out,
+        ];
         robots.push(python(&py, "unicycle.py", &args, &tmp.path().join(format!("robot_{id}.log"))));
     }
     std::thread::sleep(Duration::from_secs(2));
@@ -156,7 +206,18 @@ fn python_unicycles_are_driven_and_one_that_stops_is_sent_zero_velocity() {
     // The unicycles take a command at once and measure without noise: the
     // model is the velocity robot with a vanishing lag, noise off.
     let sets = ["timing=\"realtime\"", "dt=0.01", "duration=10", "network.delay_steps=1", "noise=false"];
-    let mut args = vec!["launch", VELOCITY_SCENARIO, "--out", &o, "--robots", "external", "--router", &ep, "--run", "ros2-external"];
+    let mut args = vec![
+        "launch",
+        VELOCITY_SCENARIO,
+        "--out",
+        &o,
+        "--robots",
+        "external",
+        "--router",
+        &ep,
+        "--run",
+        "ros2-external",
+    ];
     for s in &sets {
         args.extend(["--set", s]);
     }
@@ -170,8 +231,14 @@ fn python_unicycles_are_driven_and_one_that_stops_is_sent_zero_velocity() {
     for robot in &mut robots {
         robot.wait(common::LIMIT.saturating_sub(began.elapsed()) + Duration::from_secs(20));
     }
-    assert!(said.contains("waiting for robot 1: publish /follower_1/odom"), "launch names the topics it waits for: {said}");
-    assert!(said.contains("follower 4: no odometry on /follower_4/odom for 0.5 s: sending zero velocity"), "the stop is said: {said}");
+    assert!(
+        said.contains("waiting for robot 1: publish /follower_1/odom"),
+        "launch names the topics it waits for: {said}"
+    );
+    assert!(
+        said.contains("follower 4: no odometry on /follower_4/odom for 0.5 s: sending zero velocity"),
+        "the stop is said: {said}"
+    );
 
     let summary = json(&out, "summary.json");
     let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
@@ -185,14 +252,25 @@ fn python_unicycles_are_driven_and_one_that_stops_is_sent_zero_velocity() {
         let e = summary["followers"][id]["formation_final"].as_f64().unwrap_or(f64::NAN);
         let m = model["followers"][id]["formation_final"].as_f64().unwrap_or(f64::NAN);
         // From 1 m (the scenario's initial error) to where the model is after 10 s.
-        assert!(e < 0.3 && (e - m).abs() <= 0.15 * m, "follower {id} (a Python unicycle) ends {e:.4} m from its slot, the model {m:.4} m");
+        assert!(
+            e < 0.3 && (e - m).abs() <= 0.15 * m,
+            "follower {id} (a Python unicycle) ends {e:.4} m from its slot, the model {m:.4} m"
+        );
     }
     let r4 = json(tmp.path(), "robot_4.json");
-    let after: Vec<(f64, f64)> = r4["after_stop"].as_array().expect("after_stop").iter()
-        .map(|c| (c[0].as_f64().unwrap(), c[1].as_f64().unwrap())).collect();
+    let after: Vec<(f64, f64)> = r4["after_stop"]
+        .as_array()
+        .expect("after_stop")
+        .iter()
+        .map(|c| (c[0].as_f64().unwrap(), c[1].as_f64().unwrap()))
+        .collect();
     // Commands sent before the agent noticed (up to the timeout) may still move it; the rest are zero.
     let zeros = after.iter().filter(|&&(v, w)| v == 0.0 && w == 0.0).count();
-    assert!(zeros >= 100, "robot 4 got {zeros} zero Twists of {} commands after it stopped publishing odometry", after.len());
+    assert!(
+        zeros >= 100,
+        "robot 4 got {zeros} zero Twists of {} commands after it stopped publishing odometry",
+        after.len()
+    );
     let last = after.last().copied().unwrap_or((f64::NAN, f64::NAN));
     assert_eq!(last, (0.0, 0.0), "the last command to the stopped robot 4");
 }
@@ -203,9 +281,11 @@ fn stand_in_robots_in_real_time_behave_like_the_model() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
     let o = out.display().to_string();
-    let sets = ["timing=\"realtime\"", "dt=0.01", "duration=15", "network.delay_steps=1", "network.silence_timeout=0.2"];
+    let sets =
+        ["timing=\"realtime\"", "dt=0.01", "duration=15", "network.delay_steps=1", "network.silence_timeout=0.2"];
     let before = common::Host::now();
-    let mut args = vec!["launch", VELOCITY_SCENARIO, "-q", "--out", &o, "--robots", "stand-in", "--run", "ros2-standin-rt"];
+    let mut args =
+        vec!["launch", VELOCITY_SCENARIO, "-q", "--out", &o, "--robots", "stand-in", "--run", "ros2-standin-rt"];
     for s in &sets {
         args.extend(["--set", s]);
     }
@@ -218,9 +298,14 @@ fn stand_in_robots_in_real_time_behave_like_the_model() {
     assert!(sim.status().expect("formation sim").success());
     let status = run.wait(common::LIMIT);
     let host = common::Host::now().since(&before);
-    assert!(status.success(), "launch --robots stand-in (real time): {status}: {}", std::fs::read_to_string(tmp.path().join("launch.log")).unwrap_or_default());
+    assert!(
+        status.success(),
+        "launch --robots stand-in (real time): {status}: {}",
+        std::fs::read_to_string(tmp.path().join("launch.log")).unwrap_or_default()
+    );
     run.assert_group_empty();
-    let (got, reference, network) = (json(&out, "summary.json"), json(&tmp.path().join("sim"), "summary.json"), json(&out, "network.json"));
+    let (got, reference, network) =
+        (json(&out, "summary.json"), json(&tmp.path().join("sim"), "summary.json"), json(&out, "network.json"));
     for id in ["1", "2", "3", "4"] {
         assert_eq!(got["followers"][id]["samples"], 1501, "follower {id}: every step recorded");
     }

@@ -27,9 +27,9 @@ use formation_topology::{Scenario, Timing};
 
 use super::topics::{Stamps, QOS};
 use super::wire::{RosNode, RosSubscription};
-use crate::agent::Body;
 use crate::clock::{self, Timebase};
 use crate::error::Error;
+use formation_protocol::follower::Body;
 
 /// A move between two odometry messages longer than this (m) is a jump
 /// (an odometry reset, or a message that is not this robot's): refused.
@@ -305,7 +305,11 @@ mod tests {
         let o = inbox.latest().expect("taken");
         assert_eq!((o.step, o.pose.x, o.pose.y, o.twist), (Some(3), 1.0, 2.0, Velocity::new(0.5, 0.1)));
         assert_eq!(inbox.offer(&odom(stamps.ns(2), 1.0, 2.0), &stamps, true, None, 0), Ok(Some(2)), "a repeat");
-        assert_eq!(inbox.offer(&odom(stamps.ns(4), 1.0, 2.0), &stamps, true, None, 0), Err(()), "step 4 before its command");
+        assert_eq!(
+            inbox.offer(&odom(stamps.ns(4), 1.0, 2.0), &stamps, true, None, 0),
+            Err(()),
+            "step 4 before its command"
+        );
         assert_eq!(inbox.offer(&odom(stamps.ns(3) + 1, 1.0, 2.0), &stamps, true, None, 0), Err(()), "off the steps");
         assert_eq!(counts(&inbox.refused), [2, 0, 0, 0]);
     }

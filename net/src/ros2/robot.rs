@@ -24,11 +24,11 @@ use formation_ros2::msgs::{Odometry, TFMessage, Twist};
 use formation_topology::{Scenario, Timing};
 
 use super::topics::{odometry, Stamps, QOS};
-use formation_ros2::planar::Frames;
 use super::wire::{RosNode, RosPublisher};
 use crate::clock;
 use crate::error::Error;
 use crate::node::NodeArgs;
+use formation_ros2::planar::Frames;
 
 /// Lock-step: odometry is said again this often while its command is awaited.
 pub const REPEAT_EVERY: Duration = Duration::from_millis(100);

@@ -46,7 +46,8 @@ impl RosNode {
     pub async fn declare(session: &zenoh::Session, domain: u32, namespace: &str, name: &str) -> Result<Self, Error> {
         let zid = session.zid().to_string();
         let id = next_id();
-        let key = keys::node_token(domain, &zid, id, ENCLAVE, namespace, name).map_err(|e| Error::Input(e.to_string()))?;
+        let key =
+            keys::node_token(domain, &zid, id, ENCLAVE, namespace, name).map_err(|e| Error::Input(e.to_string()))?;
         let token = session
             .liveliness()
             .declare_token(key)
