@@ -575,7 +575,7 @@ async fn launch(
                 (true, _) => ", router".to_string(),
                 (false, Some(r)) => format!(", all clients of the router at {r}"),
                 (false, None) => String::new(),
-            } + if robots == Robots::StandIn { &" and a stand-in robot per follower"[..] } else { "" },
+            } + if robots == Robots::StandIn { " and a stand-in robot per follower" } else { "" },
         );
         if let Some(hint) = formation_net::node::realtime_hint(scenario) {
             eprintln!("{hint}");

@@ -44,6 +44,7 @@ fn ns(t: f64) -> i64 {
 }
 
 /// Writes `dir/rosbag2/` from the CSVs in `dir` for the followers `ids`.
+#[allow(clippy::needless_range_loop)] // one row read across several columns
 pub fn write(dir: &Path, ids: &[u32]) -> std::io::Result<()> {
     let mut bag = BagWriter::create(&dir.join(DIR))?;
     let qos = Qos::default();
