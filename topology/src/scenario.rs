@@ -200,10 +200,26 @@ pub struct Scenario {
 
 impl Scenario {
     /// Reads, overrides (`KEY=VALUE`, dotted keys) and validates a scenario file.
+    ///
+    /// A path that names no file but a built-in scenario ([`BUILT_IN`]:
+    /// `paper`, `paper-velocity`, or their `scenarios/<name>.toml` as in a
+    /// checkout) loads the copy inside the binary, so an installed binary
+    /// runs the paper's scenario anywhere.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self, ScenarioError> {
         let label = path.display().to_string();
-        let text = read_scenario_file(path).map_err(|message| ScenarioError::Io { file: label.clone(), message })?;
         let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("scenario");
+        if !path.exists() {
+            if let Some((name, text)) = built_in(path) {
+                return Self::from_toml(text, &format!("{name} (built in)"), name, overrides);
+            }
+        }
+        let text = read_scenario_file(path).map_err(|mut message| {
+            if !path.exists() {
+                let names: Vec<&str> = BUILT_IN.iter().map(|(n, _)| *n).collect();
+                message.push_str(&format!(" (the built-in scenarios are {})", names.join(", ")));
+            }
+            ScenarioError::Io { file: label.clone(), message }
+        })?;
         Self::from_toml(&text, &label, stem, overrides)
     }
 
@@ -295,6 +311,22 @@ impl Scenario {
 
 /// Reads a scenario file: a regular file (not a FIFO, a device or a
 /// folder, which could block or never end) of at most [`MAX_FILE_BYTES`].
+/// The scenarios inside the binary: the files of `scenarios/` that the
+/// documentation runs, by name.
+pub const BUILT_IN: [(&str, &str); 2] = [
+    ("paper", include_str!("../../scenarios/paper.toml")),
+    ("paper-velocity", include_str!("../../scenarios/paper-velocity.toml")),
+];
+
+/// The built-in scenario `path` names: `paper`, `paper.toml` or
+/// `scenarios/paper.toml` (and the same for every name of [`BUILT_IN`]).
+pub fn built_in(path: &Path) -> Option<(&'static str, &'static str)> {
+    let text = path.to_str()?;
+    let name = text.strip_prefix("scenarios/").unwrap_or(text);
+    let name = name.strip_suffix(".toml").unwrap_or(name);
+    BUILT_IN.iter().find(|(n, _)| *n == name).copied()
+}
+
 fn read_scenario_file(path: &Path) -> Result<String, String> {
     use std::io::Read;
     let meta = std::fs::metadata(path).map_err(|e| format!("cannot read: {e}"))?;
@@ -1603,5 +1635,27 @@ mod tests {
             message(ARRAYS, &["ros2.odom_timeout=0"]),
             "--set ros2.odom_timeout=0: ros2.odom_timeout: must be positive, got 0"
         );
+    }
+
+    #[test]
+    fn the_paper_scenarios_are_built_in_and_a_file_of_that_name_comes_first() {
+        let dir = std::env::temp_dir().join(format!("formation-built-in-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let inside = dir.join("scenarios/paper.toml");
+        for name in ["paper", "paper.toml"] {
+            let s = Scenario::load(Path::new(name), &[]).expect("built in");
+            assert_eq!((s.name.as_str(), s.followers.len()), ("paper", 4), "{name}");
+        }
+        // From any folder, the checkout's path names the built-in copy.
+        let s = Scenario::load(&inside, &[]);
+        assert!(matches!(s, Err(ScenarioError::Io { .. })), "an absolute path that is no file is an error");
+        let v = Scenario::load(Path::new("scenarios/paper-velocity.toml"), &["duration=1".into()]).expect("built in");
+        assert_eq!((v.name.as_str(), v.steps()), ("paper-velocity", 1000));
+        // A file of that name is read, not the built-in one.
+        let own = dir.join("paper");
+        std::fs::write(&own, "name = \"mine\"\nedges = [[1, 2]]\n[[followers]]\nid = 1\noffset = [1.0, 0.0]\npose = [0.0, 0.0, 0.0]\nleader_link = true\n[[followers]]\nid = 2\noffset = [2.0, 0.0]\npose = [0.0, 0.0, 0.0]\n").unwrap();
+        assert_eq!(Scenario::load(&own, &[]).expect("the file").name, "mine");
+        assert!(Scenario::load(Path::new("no-such-scenario.toml"), &[]).is_err());
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
