@@ -383,8 +383,13 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
         .build()
         .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
+    let logs = zenoh_log::start(&out);
     let result = runtime.block_on(launch(a, &scenario, &run, &out, &exe, &mut children));
     drop(children);
+    let said = zenoh_log::finish(logs, &out);
+    if let Some(line) = said.filter(|_| !a.opts.quiet) {
+        eprintln!("{line}");
+    }
     let summary = result?;
     let health = read_health(&out);
     if !a.opts.quiet {
@@ -466,6 +471,7 @@ pub(crate) fn tls_arg(c: &mut Command, opts: &RunOptions) {
 }
 
 pub(crate) fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
+    zenoh_log::route(&mut c, name);
     let child = c.spawn().map_err(|e| CliError::Run(format!("starting {name}: {e}")))?;
     children.push(name.to_string(), child);
     Ok(())
@@ -495,6 +501,7 @@ pub(crate) fn start_router_with(children: &mut Children, c: Command) -> Result<(
 
 /// [`start_router_with`] for a router known to `children` as `name`.
 pub(crate) fn start_router_named(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
+    zenoh_log::route(&mut c, name);
     c.stdin(Stdio::null()).stdout(Stdio::piped());
     let mut child = c.spawn().map_err(|e| CliError::Run(format!("starting {name}: {e}")))?;
     let stdout = child.stdout.take();
@@ -717,5 +724,127 @@ mod tests {
         assert!(matches!(ports(Some(0), 3), Err(CliError::Input(_))));
         assert_eq!(ports(Some(65533), 3).ok(), Some(vec![65533, 65534, 65535]));
         assert!(matches!(ports(Some(65534), 3), Err(CliError::Input(_))));
+    }
+}
+
+/// Zenoh's own log lines of the nodes a launch starts: each node writes
+/// them to a file of its own (the node shell's `FORMATION_ZENOH_LOG`)
+/// rather than onto the terminal; at the end they go into the run folder's
+/// `zenoh-log/` and the launch says in one line how many errors and
+/// warnings which nodes logged, with the first error.
+pub(crate) mod zenoh_log {
+    use std::path::{Path, PathBuf};
+    use std::process::Command;
+    use std::sync::Mutex;
+
+    /// The folder the nodes of this process's launch log into, while it runs.
+    static DIR: Mutex<Option<PathBuf>> = Mutex::new(None);
+
+    /// The run folder's subfolder that keeps the logs.
+    pub const SUBDIR: &str = "zenoh-log";
+
+    /// Starts collecting beside the run folder `out` (the monitor replaces `out` itself).
+    pub fn start(out: &Path) -> Option<PathBuf> {
+        let mut dir = out.as_os_str().to_owned();
+        dir.push(".zenoh-log");
+        let dir = PathBuf::from(dir);
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).ok()?;
+        *DIR.lock().unwrap_or_else(|p| p.into_inner()) = Some(dir.clone());
+        Some(dir)
+    }
+
+    /// Tells node `name`'s command where its zenoh lines go.
+    pub fn route(c: &mut Command, name: &str) {
+        if let Some(dir) = DIR.lock().unwrap_or_else(|p| p.into_inner()).as_ref() {
+            let file: String = name.chars().map(|ch| if ch.is_ascii_alphanumeric() { ch } else { '-' }).collect();
+            c.env(crate::node::ZENOH_LOG_ENV, dir.join(format!("{file}.log")));
+        }
+    }
+
+    /// Moves what was logged into `out/zenoh-log/` (nothing logged: no
+    /// folder) and answers the line that sums it up, if anything was.
+    pub fn finish(dir: Option<PathBuf>, out: &Path) -> Option<String> {
+        *DIR.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        let dir = dir?;
+        let mut files: Vec<(String, String)> = std::fs::read_dir(&dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter_map(|e| {
+                let text = std::fs::read_to_string(e.path()).ok()?;
+                let name = e.path().file_stem()?.to_string_lossy().into_owned();
+                (!text.is_empty()).then_some((name, text))
+            })
+            .collect();
+        files.sort();
+        if files.is_empty() {
+            let _ = std::fs::remove_dir_all(&dir);
+            return None;
+        }
+        // Into the run folder; where there is none (the monitor failed) they stay beside it.
+        let kept = out.join(SUBDIR);
+        let _ = std::fs::remove_dir_all(&kept);
+        let kept = if out.is_dir() && std::fs::rename(&dir, &kept).is_ok() { kept } else { dir };
+        Some(summary(&files, &kept))
+    }
+
+    /// "zenoh logged 3 errors and 1 warning (agent-3: 3 errors; router: 1
+    /// warning); the first error: …; every line is in OUT/zenoh-log/".
+    pub fn summary(files: &[(String, String)], kept: &Path) -> String {
+        let count = |text: &str, level: &str| text.lines().filter(|l| l.contains(level)).count();
+        let mut per_node = Vec::new();
+        let (mut errors, mut warnings) = (0, 0);
+        for (name, text) in files {
+            let (e, w) = (count(text, " ERROR "), count(text, " WARN "));
+            errors += e;
+            warnings += w;
+            if e + w > 0 {
+                per_node.push(format!("{name}: {}", counted(e, w)));
+            }
+        }
+        let first = files.iter().flat_map(|(_, t)| t.lines()).find(|l| l.contains(" ERROR "));
+        let first = first.map_or(String::new(), |l| {
+            let msg = l.split_once(" ERROR ").map_or(l, |(_, m)| m).trim();
+            let short: String = msg.chars().take(200).collect();
+            format!("; the first error: {short}")
+        });
+        if per_node.is_empty() {
+            let lines: usize = files.iter().map(|(_, t)| t.lines().count()).sum();
+            return format!("zenoh logged {lines} lines, no errors or warnings; they are in {}", kept.display());
+        }
+        format!(
+            "zenoh logged {} ({}){first}; every line is in {}",
+            counted(errors, warnings),
+            per_node.join("; "),
+            kept.display()
+        )
+    }
+
+    fn counted(errors: usize, warnings: usize) -> String {
+        let plural = |n: usize, w: &str| format!("{n} {w}{}", if n == 1 { "" } else { "s" });
+        match (errors, warnings) {
+            (e, 0) => plural(e, "error"),
+            (0, w) => plural(w, "warning"),
+            (e, w) => format!("{} and {}", plural(e, "error"), plural(w, "warning")),
+        }
+    }
+
+    #[cfg(test)]
+    mod tests {
+        #[test]
+        fn the_summary_counts_errors_and_warnings_per_node_and_quotes_the_first_error() {
+            let files = vec![
+                ("agent-3".to_string(), "2026 ERROR zenoh::net: Unable to push non droppable network message. Closing transport!\n2026 ERROR zenoh::net: again\n".to_string()),
+                ("router".to_string(), "2026  WARN zenoh::x: slow\n".to_string()),
+            ];
+            let line = super::summary(&files, std::path::Path::new("runs/x/zenoh-log"));
+            assert_eq!(
+                line,
+                "zenoh logged 2 errors and 1 warning (agent-3: 2 errors; router: 1 warning); the first error: \
+                 zenoh::net: Unable to push non droppable network message. Closing transport!; every line is in \
+                 runs/x/zenoh-log"
+            );
+        }
     }
 }

@@ -38,6 +38,15 @@ pub enum Node {
     Robot(formation_net::ros2::robot::RobotArgs),
 }
 
+/// Set by `formation launch` on the nodes it starts: the file their zenoh
+/// log lines go to (appended), instead of stderr.
+pub const ZENOH_LOG_ENV: &str = "FORMATION_ZENOH_LOG";
+
+/// A log line of zenoh's own (its crates' targets), not the formation's.
+fn is_zenoh(target: &str) -> bool {
+    target == "zenoh" || target.starts_with("zenoh::") || target.starts_with("zenoh_")
+}
+
 /// Hands zenoh's access-control denials to [`formation_net::denials::note`].
 struct Denials;
 
@@ -131,15 +140,30 @@ where
         use tracing_subscriber::layer::SubscriberExt;
         use tracing_subscriber::util::SubscriberInitExt;
         use tracing_subscriber::Layer;
+        // Zenoh's own log lines go to the file `formation launch` names
+        // (ZENOH_LOG_ENV), not onto the user's terminal; the launch sums
+        // them up in one line. A node started by hand keeps them on stderr.
+        let zenoh_file = std::env::var_os(ZENOH_LOG_ENV)
+            .and_then(|p| std::fs::OpenOptions::new().create(true).append(true).open(p).ok());
+        let to_file = zenoh_file.is_some();
+        let not_zenoh = tracing_subscriber::filter::filter_fn(move |m| !(to_file && is_zenoh(m.target())));
         let log = tracing_subscriber::fmt::layer()
             .with_writer(std::io::stderr)
-            .with_filter(tracing_subscriber::EnvFilter::from_default_env());
+            .with_filter(tracing_subscriber::EnvFilter::from_default_env())
+            .with_filter(not_zenoh);
+        let file = zenoh_file.map(|f| {
+            tracing_subscriber::fmt::layer()
+                .with_ansi(false)
+                .with_writer(std::sync::Mutex::new(f))
+                .with_filter(tracing_subscriber::EnvFilter::from_default_env())
+                .with_filter(tracing_subscriber::filter::filter_fn(|m| is_zenoh(m.target())))
+        });
         // zenoh's access-control decisions, for the denials it counts.
         let acl = Denials.with_filter(
             tracing_subscriber::filter::Targets::new()
                 .with_target(formation_net::denials::ACL_TARGET, tracing::Level::TRACE),
         );
-        let _ = tracing_subscriber::registry().with(log).with(acl).try_init();
+        let _ = tracing_subscriber::registry().with(log).with(file).with(acl).try_init();
     }
     // The authority's revocation list, for the TLS link (before any thread starts).
     if let Some(dir) = &zenoh.tls {
