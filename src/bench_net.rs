@@ -93,6 +93,12 @@ pub struct BenchNetArgs {
     /// with the scenario's [ros2] topics on and off, side by side.
     #[arg(long, conflicts_with = "hearing")]
     pub ros2: bool,
+    /// Only the floor under an agent's CPU: plain zenoh processes with the
+    /// agents' exact message pattern beside the real agents, CPU per process
+    /// and step in steady state at 100 Hz and 1 kHz, their ratio, and an
+    /// idle agent's CPU.
+    #[arg(long, conflicts_with_all = ["hearing", "ros2"])]
+    pub floor: bool,
     /// Every lock-step and scale figure is measured twice: one process per
     /// agent (as on separate machines), and `launch --group N` (N followers
     /// per agent process on one session). 0: every follower in one process.
@@ -184,6 +190,9 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         return crate::bench_netns::run_side(a.echo.as_deref(), a.ping.as_deref(), a.round_trips);
     }
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
+    if a.floor {
+        return crate::bench_floor::run(&a.scenario, a.base_port);
+    }
     if a.ros2 {
         return crate::bench_ros2::run(a.realtime_duration, a.base_port, &|sets, port, out, run| {
             launch_args(a, sets, port, out, run)

@@ -6,6 +6,7 @@
 
 pub mod args;
 pub mod bench;
+pub mod bench_floor;
 pub mod bench_hearing;
 pub mod bench_net;
 pub mod bench_netns;

@@ -36,6 +36,9 @@ pub enum Node {
     Router(router::RouterArgs),
     /// A stand-in robot speaking ROS 2 (as `formation robot`).
     Robot(formation_net::ros2::robot::RobotArgs),
+    /// `bench-net --floor`'s plain-zenoh process with an agent's message pattern.
+    #[command(hide = true)]
+    Floor(crate::bench_floor::FloorArgs),
 }
 
 /// Set by `formation launch` on the nodes it starts: the file their zenoh
@@ -78,6 +81,12 @@ pub fn run(node: Node) -> ExitCode {
         Node::Monitor(a) => run_monitor(a),
         Node::Router(r) => run_router(r),
         Node::Robot(r) => run_robot(r),
+        Node::Floor(f) => {
+            let name = format!("floor-{}", f.id);
+            shell(&f.node.zenoh.clone(), &name, true, async move {
+                crate::bench_floor::node(&f).await.map(|()| ExitCode::SUCCESS)
+            })
+        }
     }
 }
 

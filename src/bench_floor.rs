@@ -1,0 +1,220 @@
+//! `formation bench-net --floor`: the floor under an agent's CPU. Plain
+//! zenoh processes with the agents' exact message pattern — each publishes
+//! one estimate-sized message per step on its estimate key and subscribes
+//! to its neighbours' and (if it hears it) the leader's, with the same
+//! session settings, priorities and congestion control — beside the real
+//! agents of the same scenario, both measured the same way: each process's
+//! on-CPU time (every thread, /proc/PID/task/*/schedstat) over a steady
+//! window in the middle of the run (start-up and linger excluded), per
+//! process and step. Also the idle cost: an agent waiting for a start that
+//! does not come.
+
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use formation_net::node::NodeArgs;
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use zenoh::Wait;
+
+use crate::error::Error;
+
+/// `formation node floor`: one plain-zenoh stand-in for an agent (or, with
+/// `--id 0`, the leader), publishing every period for `--seconds`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct FloorArgs {
+    #[command(flatten)]
+    pub node: NodeArgs,
+    /// The follower whose pattern this is (0: the leader's).
+    #[arg(long)]
+    pub id: u32,
+    /// How long to publish (s).
+    #[arg(long)]
+    pub seconds: f64,
+}
+
+/// Runs one floor process.
+pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
+    let identity = if a.id == 0 { "leader".to_string() } else { formation_net::names::agent_name(a.id) };
+    let (scenario, keys) = a.node.load(&identity)?;
+    let session = a.node.open(&identity, &scenario).await?;
+    let mut sources: Vec<u32> = Vec::new();
+    if a.id != 0 {
+        let i = scenario.index_of(a.id).ok_or_else(|| formation_net::Error::Input(format!("no follower {}", a.id)))?;
+        sources.extend(scenario.graph.neighbours(i).iter().map(|&j| scenario.graph.id(j)));
+        if scenario.graph.hears_leader(i) {
+            sources.push(wire::LEADER_ID);
+        }
+    }
+    let received = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let mut subs = Vec::new();
+    for s in sources {
+        let r = received.clone();
+        let sub = session
+            .declare_subscriber(keys.estimate(s))
+            .callback(move |sample| {
+                // What an agent does at least: take the bytes and decode them.
+                let _ = wire::decode(&sample.payload().to_bytes());
+                r.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            })
+            .await
+            .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+        subs.push(sub);
+    }
+    let publisher = session
+        .declare_publisher(keys.estimate(a.id))
+        .congestion_control(formation_net::node::estimate_congestion(&scenario))
+        .priority(formation_net::node::priority::ESTIMATE)
+        .express(formation_net::node::estimate_express(&scenario))
+        .await
+        .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+    let period = Duration::from_secs_f64(scenario.dt_s);
+    let steps = (a.seconds / scenario.dt_s) as u64;
+    tokio::task::spawn_blocking(move || {
+        let began = Instant::now();
+        for k in 0..steps {
+            let due = began + period * k as u32;
+            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            let msg = EstimateMsg {
+                header: Header { version: FORMAT_VERSION, sender: 0, step: k, time_s: k as f64 * 1e-3, sent_ns: 0 },
+                state: Default::default(),
+                fresh: true,
+            };
+            let _ = publisher.put(wire::encode(&msg)).wait();
+        }
+    })
+    .await
+    .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+    drop(subs);
+    let _ = session.close().await;
+    Ok(())
+}
+
+/// On-CPU ns of every thread of `pid` so far.
+fn cpu_ns(pid: u32) -> u64 {
+    let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else { return 0 };
+    tasks
+        .flatten()
+        .filter_map(|t| std::fs::read_to_string(t.path().join("schedstat")).ok())
+        .filter_map(|s| s.split_whitespace().next().and_then(|x| x.parse::<u64>().ok()))
+        .sum()
+}
+
+/// Processes whose command line holds every one of `words`.
+fn pids_with(words: &[&str]) -> Vec<u32> {
+    let mut found = Vec::new();
+    for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+        let Ok(cmd) = std::fs::read(format!("/proc/{pid}/cmdline")) else { continue };
+        let args: Vec<String> = cmd.split(|&b| b == 0).map(|a| String::from_utf8_lossy(a).into_owned()).collect();
+        if words.iter().all(|w| args.iter().any(|a| a == w)) {
+            found.push(pid);
+        }
+    }
+    found
+}
+
+/// CPU µs per step of each process named by `words`, over `window` from
+/// `after` on, at `rate` steps per second.
+fn sample(words: &[&str], after: Duration, window: Duration, rate: f64) -> Vec<f64> {
+    std::thread::sleep(after);
+    let pids = pids_with(words);
+    let before: Vec<u64> = pids.iter().map(|&p| cpu_ns(p)).collect();
+    std::thread::sleep(window);
+    let steps = window.as_secs_f64() * rate;
+    pids.iter().zip(before).map(|(&p, b)| cpu_ns(p).saturating_sub(b) as f64 / 1e3 / steps).collect()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// The floor, the agents and the idle cost, at 100 Hz and 1 kHz.
+pub fn run(scenario: &std::path::Path, port: u16) -> Result<(), Error> {
+    let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
+    let s = formation_topology::Scenario::load(scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
+    let ids: Vec<u32> = s.graph.ids().to_vec();
+    let (seconds, after, window) = (12.0, Duration::from_secs(4), Duration::from_secs(5));
+    println!("CPU per process and step, steady state (a {window:?} window from {after:?} into a {seconds} s run), this machine");
+    println!("  {:<34}{:>14}{:>14}{:>10}", "", "floor µs", "agent µs", "ratio");
+    for (hz, dt) in [(100.0, "0.01"), (1000.0, "0.001")] {
+        let sets = [format!("dt={dt}"), "timing=\"realtime\"".into(), format!("duration={seconds}")];
+        // The floor: a leader and one process per follower, peers, each
+        // connected to the leader and its lower-id neighbours as launch does.
+        let run = format!("floor{}", hz as u32);
+        let mut children = Vec::new();
+        let all: Vec<u32> = std::iter::once(0).chain(ids.iter().copied()).collect();
+        for (n, &id) in all.iter().enumerate() {
+            let mut c = Command::new(&exe);
+            c.args(["node", "floor", "--scenario"]).arg(scenario).args(["--run", &run, "--id", &id.to_string()]);
+            c.args([
+                "--seconds",
+                &seconds.to_string(),
+                "--no-gossip",
+                "--listen",
+                &format!("tcp/127.0.0.1:{}", port + n as u16),
+            ]);
+            for set in &sets {
+                c.args(["--set", set]);
+            }
+            for m in 0..n {
+                c.args(["--connect", &format!("tcp/127.0.0.1:{}", port + m as u16)]);
+            }
+            c.env(formation_net::node::LAUNCHED_ENV, "1")
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(Stdio::null());
+            children.push(c.spawn().map_err(|e| Error::Run(format!("starting a floor process: {e}")))?);
+        }
+        let floor = sample(&["floor", &run], after, window, hz);
+        for mut c in children {
+            let _ = c.wait();
+        }
+        // The agents of a real launch, sampled the same way.
+        let out = std::env::temp_dir().join(format!("formation-bench-floor-{}-{run}", std::process::id()));
+        let lrun = format!("agents{}", hz as u32);
+        let mut l = Command::new(&exe);
+        l.args(["launch"]).arg(scenario).args(["-q", "--out"]).arg(&out).args([
+            "--run",
+            &lrun,
+            "--base-port",
+            &(port + 20).to_string(),
+        ]);
+        for set in &sets {
+            l.args(["--set", set]);
+        }
+        let mut launch = l
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .map_err(|e| Error::Run(format!("starting the launch: {e}")))?;
+        let agents = sample(&["agent", &lrun], after, window, hz);
+        let _ = launch.wait();
+        let _ = std::fs::remove_dir_all(&out);
+        let (f, g) = (median(floor.clone()), median(agents.clone()));
+        println!(
+            "  {:<34}{:>14.1}{:>14.1}{:>10.2}",
+            format!("{hz} Hz (median of {} / {})", floor.len(), agents.len()),
+            f,
+            g,
+            g / f
+        );
+    }
+    // Idle: an agent that waits for a start that never comes.
+    let mut c = Command::new(&exe);
+    let idle_run = format!("idle{}", std::process::id());
+    c.args(["node", "agent", "--scenario"]).arg(scenario).args(["--run", &idle_run, "--id", &ids[0].to_string()]);
+    c.args(["--listen", &format!("tcp/127.0.0.1:{}", port + 40), "--open-timeout", "60"]);
+    c.env(formation_net::node::LAUNCHED_ENV, "1").stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
+    let mut idle = c.spawn().map_err(|e| Error::Run(format!("starting the idle agent: {e}")))?;
+    let window = Duration::from_secs(5);
+    let per = sample(&["agent", &idle_run], Duration::from_secs(2), window, 1.0);
+    let _ = idle.kill();
+    let _ = idle.wait();
+    let share = per.first().copied().unwrap_or(f64::NAN) / 1e6 * 100.0;
+    println!("  an agent waiting with nothing to do: {share:.3} % of a core");
+    let _ = PathBuf::new();
+    Ok(())
+}
