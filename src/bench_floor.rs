@@ -9,7 +9,6 @@
 //! process and step. Also the idle cost: an agent waiting for a start that
 //! does not come.
 
-use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -17,6 +16,7 @@ use formation_net::node::NodeArgs;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use zenoh::Wait;
 
+use crate::bench_hearing::median;
 use crate::error::Error;
 
 /// `formation node floor`: one plain-zenoh stand-in for an agent (or, with
@@ -125,11 +125,6 @@ fn sample(words: &[&str], after: Duration, window: Duration, rate: f64) -> Vec<f
     pids.iter().zip(before).map(|(&p, b)| cpu_ns(p).saturating_sub(b) as f64 / 1e3 / steps).collect()
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-}
-
 /// The floor, the agents and the idle cost, at 100 Hz and 1 kHz.
 pub fn run(scenario: &std::path::Path, port: u16) -> Result<(), Error> {
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
@@ -215,6 +210,5 @@ pub fn run(scenario: &std::path::Path, port: u16) -> Result<(), Error> {
     let _ = idle.wait();
     let share = per.first().copied().unwrap_or(f64::NAN) / 1e6 * 100.0;
     println!("  an agent waiting with nothing to do: {share:.3} % of a core");
-    let _ = PathBuf::new();
     Ok(())
 }

@@ -29,7 +29,21 @@ pub(crate) fn network_json(dir: &std::path::Path, what: &str) -> Result<serde_js
         .ok_or_else(|| Error::Run(format!("reading {what}'s network.json")))
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// Two kinds of run's period errors (p50, p99, max µs each), medians side by side.
+pub(crate) fn periods_side_by_side(a: (&str, &[(f64, f64, f64)]), b: (&str, &[(f64, f64, f64)])) {
+    let m = |v: &[(f64, f64, f64)], f: fn(&(f64, f64, f64)) -> f64| median(v.iter().map(f).collect());
+    let (on, off) = (a.1, b.1);
+    println!("  {:<46}{:>16}{:>16}", "", a.0, b.0);
+    println!(
+        "  {:<46}{:>16}{:>16}",
+        "worst node's |period − 1 ms| p50 / p99 µs",
+        format!("{:.1} / {:.1}", m(on, |p| p.0), m(on, |p| p.1)),
+        format!("{:.1} / {:.1}", m(off, |p| p.0), m(off, |p| p.1))
+    );
+    println!("  {:<46}{:>16}{:>16}", "  max µs", format!("{:.1}", m(on, |p| p.2)), format!("{:.1}", m(off, |p| p.2)));
+}
+
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }
@@ -86,16 +100,8 @@ pub fn run(
         }
     }
     let _ = std::fs::remove_dir_all(&tmp);
-    let m = |v: &[(f64, f64, f64)], f: fn(&(f64, f64, f64)) -> f64| median(v.iter().map(f).collect());
     println!("hearing record: real time at 1 kHz, one-step delay, {duration_s} s, median of {RUNS} runs each");
-    println!("  {:<46}{:>16}{:>16}", "", "record on", "record off");
-    println!(
-        "  {:<46}{:>16}{:>16}",
-        "worst node's |period − 1 ms| p50 / p99 µs",
-        format!("{:.1} / {:.1}", m(&on, |p| p.0), m(&on, |p| p.1)),
-        format!("{:.1} / {:.1}", m(&off, |p| p.0), m(&off, |p| p.1))
-    );
-    println!("  {:<46}{:>16}{:>16}", "  max µs", format!("{:.1}", m(&on, |p| p.2)), format!("{:.1}", m(&off, |p| p.2)));
+    periods_side_by_side(("record on", &on), ("record off", &off));
     let per_step = median(sizes.iter().map(|&(b, s, _)| b as f64 / s.max(1) as f64).collect());
     let share = median(sizes.iter().map(|&(b, _, c)| b as f64 / c.max(1) as f64).collect());
     let bytes = median(sizes.iter().map(|&(b, _, _)| b as f64).collect());

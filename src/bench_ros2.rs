@@ -4,17 +4,12 @@
 //! leader_estimate and /tf every step, the leader its odom and /tf): the
 //! real-time loop's period error side by side (median of the runs).
 
-use crate::bench_hearing::{network_json, worst_period};
+use crate::bench_hearing::{network_json, periods_side_by_side, worst_period};
 use crate::error::Error;
 use crate::launch::LaunchArgs;
 
 /// Runs of each kind; the medians are printed.
 const RUNS: usize = 3;
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-}
 
 /// `launch(sets, port, out, run)` builds the launch of one run.
 pub fn run(
@@ -47,15 +42,7 @@ pub fn run(
         }
     }
     let _ = std::fs::remove_dir_all(&tmp);
-    let m = |v: &[(f64, f64, f64)], f: fn(&(f64, f64, f64)) -> f64| median(v.iter().map(f).collect());
     println!("ROS 2 topics: real time at 1 kHz, {duration_s} s, median of {RUNS} runs each");
-    println!("  {:<46}{:>16}{:>16}", "", "ROS 2 on", "ROS 2 off");
-    println!(
-        "  {:<46}{:>16}{:>16}",
-        "worst node's |period − 1 ms| p50 / p99 µs",
-        format!("{:.1} / {:.1}", m(&on, |p| p.0), m(&on, |p| p.1)),
-        format!("{:.1} / {:.1}", m(&off, |p| p.0), m(&off, |p| p.1))
-    );
-    println!("  {:<46}{:>16}{:>16}", "  max µs", format!("{:.1}", m(&on, |p| p.2)), format!("{:.1}", m(&off, |p| p.2)));
+    periods_side_by_side(("ROS 2 on", &on), ("ROS 2 off", &off));
     Ok(())
 }

@@ -12,7 +12,7 @@
 //! nodes on rmw_zenoh do.
 
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use crate::common::{self, json, Group, SCENARIO, VELOCITY_SCENARIO};
@@ -26,33 +26,32 @@ fn router() -> (Group, String) {
     (g, ep)
 }
 
-/// A Python script in its own process group, stderr to `log`.
-fn python(python: &Path, script: &str, args: &[&str], log: &Path) -> Group {
+/// `program ARGS…` in its own process group, stderr to `log`.
+fn logged(program: &std::ffi::OsStr, args: &[&std::ffi::OsStr], log: &Path) -> Group {
     use std::os::unix::process::CommandExt;
-    let child = Command::new(python)
-        .arg(common::ros2_script(script))
+    let child = Command::new(program)
         .args(args)
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(log).expect("log"))
         .process_group(0)
         .spawn()
-        .expect("python");
+        .unwrap_or_else(|e| panic!("{}: {e}", program.to_string_lossy()));
     Group(child)
+}
+
+/// A Python script of tests/ros2/.
+fn python(python: &Path, script: &str, args: &[&str], log: &Path) -> Group {
+    let script = common::ros2_script(script);
+    let all: Vec<&std::ffi::OsStr> =
+        std::iter::once(script.as_os_str()).chain(args.iter().map(std::ffi::OsStr::new)).collect();
+    logged(python.as_os_str(), &all, log)
 }
 
 /// `formation launch …` with stderr kept in `log`.
 fn launch(args: &[&str], log: &Path) -> Group {
-    use std::os::unix::process::CommandExt;
-    let child: Child = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(log).expect("log"))
-        .process_group(0)
-        .spawn()
-        .expect("formation");
-    Group(child)
+    let all: Vec<&std::ffi::OsStr> = args.iter().map(std::ffi::OsStr::new).collect();
+    logged(std::ffi::OsStr::new(env!("CARGO_BIN_EXE_formation")), &all, log)
 }
 
 fn csv_rows(path: &Path) -> Vec<Vec<f64>> {
