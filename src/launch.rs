@@ -758,7 +758,7 @@ pub(crate) mod zenoh_log {
     pub fn route(c: &mut Command, name: &str) {
         if let Some(dir) = DIR.lock().unwrap_or_else(|p| p.into_inner()).as_ref() {
             let file: String = name.chars().map(|ch| if ch.is_ascii_alphanumeric() { ch } else { '-' }).collect();
-            c.env(crate::node::ZENOH_LOG_ENV, dir.join(format!("{file}.log")));
+            c.env(formation_net::node::ZENOH_LOG_ENV, dir.join(format!("{file}.log")));
         }
     }
 

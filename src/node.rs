@@ -41,10 +41,6 @@ pub enum Node {
     Floor(crate::bench_floor::FloorArgs),
 }
 
-/// Set by `formation launch` on the nodes it starts: the file their zenoh
-/// log lines go to (appended), instead of stderr.
-pub const ZENOH_LOG_ENV: &str = "FORMATION_ZENOH_LOG";
-
 /// A log line of zenoh's own (its crates' targets), not the formation's.
 fn is_zenoh(target: &str) -> bool {
     target == "zenoh" || target.starts_with("zenoh::") || target.starts_with("zenoh_")
@@ -150,9 +146,9 @@ where
         use tracing_subscriber::util::SubscriberInitExt;
         use tracing_subscriber::Layer;
         // Zenoh's own log lines go to the file `formation launch` names
-        // (ZENOH_LOG_ENV), not onto the user's terminal; the launch sums
+        // (`formation_net::node::ZENOH_LOG_ENV`), not onto the user's terminal; the launch sums
         // them up in one line. A node started by hand keeps them on stderr.
-        let zenoh_file = std::env::var_os(ZENOH_LOG_ENV)
+        let zenoh_file = std::env::var_os(formation_net::node::ZENOH_LOG_ENV)
             .and_then(|p| std::fs::OpenOptions::new().create(true).append(true).open(p).ok());
         let to_file = zenoh_file.is_some();
         let not_zenoh = tracing_subscriber::filter::filter_fn(move |m| !(to_file && is_zenoh(m.target())));
