@@ -74,24 +74,39 @@ impl RosNode {
         }
     }
 
-    fn token(&self, kind: EntityKind, topic: &str, type_: &str, hash: &str, qos: Qos) -> Result<(u32, String), Error> {
-        let entity = next_id();
-        let key = keys::endpoint_token(
+    /// One endpoint of `M` on `topic` (resolved): its liveliness token,
+    /// declared, with the token's key (a publisher's GID is made from it),
+    /// and the data key its samples travel on.
+    async fn endpoint<M: Message>(
+        &self,
+        kind: EntityKind,
+        topic: &str,
+        qos: Qos,
+    ) -> Result<(LivelinessToken, String, String), Error> {
+        let bad = |e: formation_ros2::keys::NameError| Error::Input(e.to_string());
+        let token_key = keys::endpoint_token(
             self.domain,
             &self.zid,
             self.id,
-            entity,
+            next_id(),
             kind,
             ENCLAVE,
             &self.namespace,
             &self.name,
             topic,
-            type_,
-            hash,
+            M::TYPE,
+            M::HASH,
             qos,
         )
-        .map_err(|e| Error::Input(e.to_string()))?;
-        Ok((entity, key))
+        .map_err(bad)?;
+        let token = self
+            .session
+            .liveliness()
+            .declare_token(token_key.clone())
+            .await
+            .map_err(|e| zerr(&format!("declaring the liveliness token of {topic}"), e))?;
+        let data_key = keys::data_key_of::<M>(self.domain, topic).map_err(bad)?;
+        Ok((token, token_key, data_key))
     }
 
     /// A publisher of `M` on `topic`. `congestion`: `Drop` for a loop that
@@ -104,14 +119,7 @@ impl RosNode {
         congestion: CongestionControl,
     ) -> Result<RosPublisher<M>, Error> {
         let topic = self.resolve(topic);
-        let (_, token_key) = self.token(EntityKind::Publisher, &topic, M::TYPE, M::HASH, qos)?;
-        let token = self
-            .session
-            .liveliness()
-            .declare_token(token_key.clone())
-            .await
-            .map_err(|e| zerr("declaring a ROS 2 publisher's liveliness token", e))?;
-        let key = keys::data_key_of::<M>(self.domain, &topic).map_err(|e| Error::Input(e.to_string()))?;
+        let (token, token_key, key) = self.endpoint::<M>(EntityKind::Publisher, &topic, qos).await?;
         let publisher = self
             .session
             .declare_publisher(key)
@@ -137,14 +145,7 @@ impl RosNode {
         F: Fn(Result<M, DecodeError>, Option<Attachment>) + Send + Sync + 'static,
     {
         let topic = self.resolve(topic);
-        let (_, token_key) = self.token(EntityKind::Subscription, &topic, M::TYPE, M::HASH, qos)?;
-        let token = self
-            .session
-            .liveliness()
-            .declare_token(token_key)
-            .await
-            .map_err(|e| zerr("declaring a ROS 2 subscription's liveliness token", e))?;
-        let key = keys::data_key_of::<M>(self.domain, &topic).map_err(|e| Error::Input(e.to_string()))?;
+        let (token, _, key) = self.endpoint::<M>(EntityKind::Subscription, &topic, qos).await?;
         let subscriber = self
             .session
             .declare_subscriber(key)
