@@ -136,7 +136,15 @@ const MAX_ANSWERS: usize = 8;
 pub async fn ask_all(session: &zenoh::Session, key: &str) -> Vec<Exchange> {
     let t1 = clock::mono_ns();
     let mut answers = Vec::new();
-    let Ok(replies) = session.get(key).consolidation(zenoh::query::ConsolidationMode::None).timeout(TIMEOUT).await
+    // Droppable (the answer travels with the question's congestion control;
+    // zenoh's default for queries is `Block`): a lost exchange is one
+    // missed sample, and no router or queue ever waits for a clock answer.
+    let Ok(replies) = session
+        .get(key)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .congestion_control(zenoh::qos::CongestionControl::Drop)
+        .timeout(TIMEOUT)
+        .await
     else {
         return answers;
     };

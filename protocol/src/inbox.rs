@@ -188,6 +188,14 @@ impl Inbox {
         base
     }
 
+    /// The step of the shared schedule at a sender's stamp `sent_ns` (None:
+    /// no schedule, or no stamp).
+    fn sent_step(&self, sent_ns: i64) -> Option<u64> {
+        let (epoch, period) = self.clock?;
+        let sent = Now::from_nanos(u64::try_from(sent_ns).ok().filter(|&n| n > 0)?);
+        Some((sent.saturating_sub(epoch).as_secs_f64() / period.as_secs_f64()) as u64)
+    }
+
     /// The furthest step of `slot` a genuine sender can have sent by now.
     fn limit(&self, slot: usize) -> u64 {
         self.pace().saturating_add(self.ahead[slot])
@@ -195,10 +203,15 @@ impl Inbox {
 
     /// Real time: whether `step` of `slot` shows (or, once flagged, comes
     /// from) a second sender on the source's key; see [`Twin`].
-    fn twinned(&mut self, slot: usize, step: u64, m: &Message) -> bool {
+    fn twinned(&mut self, slot: usize, step: u64, sent_ns: i64, m: &Message) -> bool {
         let pace = self.pace();
         if self.twins[slot].since.is_some() {
-            if step > pace + TWIN_PACE {
+            // Ahead of the run, or ahead of its own send stamp: a copy that
+            // arrives late (it took two more hops, or the host is loaded) can
+            // be back within the pace, but not within the time it says it
+            // was sent (the genuine sender stamps step k + 1 during step k).
+            let ahead_of_stamp = self.sent_step(sent_ns).is_some_and(|sent| step > sent + TWIN_PACE);
+            if step > pace + TWIN_PACE || ahead_of_stamp {
                 self.twins[slot].messages += 1;
                 return true;
             }
@@ -240,7 +253,7 @@ impl Inbox {
             return false;
         }
         let m = Message { state: msg.state, fresh: msg.fresh };
-        if !self.lockstep && self.twinned(slot, step, &m) {
+        if !self.lockstep && self.twinned(slot, step, msg.header.sent_ns, &m) {
             self.counters.rejected.add(Reject::Stale);
             return false;
         }
@@ -467,6 +480,55 @@ mod tests {
         // Held message newer than k: not used (and not "0 steps old").
         assert_eq!(inbox.latest(0, 5, 10), None);
         assert_eq!(inbox.latest(0, 8, 10).map(|(_, m)| m.state.v), Some(8.0));
+    }
+
+    fn stamped(sender: u32, step: u64, sent_step: u64, v: f64) -> EstimateMsg {
+        let mut m = msg(sender, step);
+        m.header.sent_ns = Now::from_millis(1000 + sent_step).as_nanos() as i64;
+        m.state.v = v;
+        m
+    }
+
+    /// A second sender on a source's key (a copy of each genuine message,
+    /// stamped 5 steps ahead, as the attack test sends): flagged after
+    /// TWIN_EVIDENCE messages that show it; then dropped both while it runs
+    /// ahead of the run's pace and when it arrives late enough to be back
+    /// within the pace, by its own send stamp.
+    #[test]
+    fn a_twin_is_flagged_and_its_copies_dropped_even_when_they_arrive_late() {
+        let mut inbox = Inbox::new(1, false);
+        inbox.set_ahead(0, 10);
+        inbox.set_clock(Now::from_millis(1000), Duration::from_millis(1));
+        let at = |inbox: &mut Inbox, k: u64| {
+            inbox.set_step(k);
+            inbox.set_time(Some(Now::from_millis(1000 + k)));
+        };
+        // Steps 10..=13: the genuine k + 1 (stamped k) and the twin's k + 6.
+        for k in 10..14 {
+            at(&mut inbox, k);
+            inbox.accept(0, &stamped(1, k + 1, k, 0.0));
+            inbox.accept(0, &stamped(1, k + 6, k, 5.0));
+        }
+        let t = inbox.twins()[0];
+        assert!(t.since.is_some(), "not flagged after {} messages of a second sender", t.messages);
+        // On time: the twin runs 5 steps ahead of the pace and is dropped.
+        at(&mut inbox, 20);
+        inbox.accept(0, &stamped(1, 21, 20, 0.0));
+        inbox.accept(0, &stamped(1, 26, 20, 5.0));
+        assert_eq!(inbox.latest(0, 21, 10).map(|(s, m)| (s, m.state.v)), Some((21, 0.0)));
+        // Late: at step 33 comes the twin's copy of the genuine 30 (sent at
+        // step 29), stamped 35: within the pace (35 <= 33 + 2), not within
+        // its send stamp (35 > 29 + 2).
+        at(&mut inbox, 33);
+        inbox.accept(0, &stamped(1, 34, 33, 0.0));
+        let dropped = inbox.twins()[0].messages;
+        inbox.accept(0, &stamped(1, 35, 29, 5.0));
+        assert_eq!(inbox.twins()[0].messages, dropped + 1, "a late copy within the pace was not dropped");
+        assert_eq!(inbox.latest(0, 34, 10).map(|(s, m)| (s, m.state.v)), Some((34, 0.0)));
+        // The genuine stream goes on being taken.
+        at(&mut inbox, 35);
+        inbox.accept(0, &stamped(1, 36, 35, 0.0));
+        assert_eq!(inbox.latest(0, 36, 10).map(|(s, m)| (s, m.state.v)), Some((36, 0.0)));
     }
 
     /// The slowest neighbour by its newest message, heard or not accepted;
