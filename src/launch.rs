@@ -386,9 +386,13 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
     let logs = zenoh_log::start(&out);
     let result = runtime.block_on(launch(a, &scenario, &run, &out, &exe, &mut children));
     drop(children);
-    let said = zenoh_log::finish(logs, &out);
-    if let Some(line) = said.filter(|_| !a.opts.quiet) {
-        eprintln!("{line}");
+    if let Some(said) = zenoh_log::finish(logs, &out) {
+        if !a.opts.quiet {
+            eprintln!("{}", said.line);
+        }
+        if let Some(closed) = said.closed {
+            eprintln!("{closed}");
+        }
     }
     let summary = result?;
     let health = read_health(&out);
@@ -762,11 +766,21 @@ pub(crate) mod zenoh_log {
         }
     }
 
+    /// What zenoh logged in a run, summed up.
+    pub struct Said {
+        /// The line that sums it up.
+        pub line: String,
+        /// The transports zenoh closed, as one line (said even with `-q`).
+        pub closed: Option<String>,
+    }
+
     /// Moves what was logged into `out/zenoh-log/` (nothing logged: no
-    /// folder) and answers the line that sums it up, if anything was.
-    pub fn finish(dir: Option<PathBuf>, out: &Path) -> Option<String> {
+    /// folder), adds `zenoh_log` to `out/network.json`, and answers what
+    /// sums it up, if anything was logged.
+    pub fn finish(dir: Option<PathBuf>, out: &Path) -> Option<Said> {
         *DIR.lock().unwrap_or_else(|p| p.into_inner()) = None;
         let dir = dir?;
+        let mut zids = Vec::new();
         let mut files: Vec<(String, String)> = std::fs::read_dir(&dir)
             .into_iter()
             .flatten()
@@ -774,10 +788,18 @@ pub(crate) mod zenoh_log {
             .filter_map(|e| {
                 let text = std::fs::read_to_string(e.path()).ok()?;
                 let name = e.path().file_stem()?.to_string_lossy().into_owned();
-                (!text.is_empty()).then_some((name, text))
+                Some((name, text))
             })
             .collect();
         files.sort();
+        // The nodes' own notes of their zids are not zenoh's lines.
+        for (name, text) in &mut files {
+            let (notes, rest): (Vec<&str>, Vec<&str>) =
+                text.lines().partition(|l| l.starts_with(formation_net::session::ZID_NOTE));
+            zids.extend(notes.iter().map(|l| (l[formation_net::session::ZID_NOTE.len()..].to_string(), name.clone())));
+            *text = rest.iter().map(|l| format!("{l}\n")).collect();
+        }
+        files.retain(|(_, t)| !t.is_empty());
         if files.is_empty() {
             let _ = std::fs::remove_dir_all(&dir);
             return None;
@@ -786,7 +808,76 @@ pub(crate) mod zenoh_log {
         let kept = out.join(SUBDIR);
         let _ = std::fs::remove_dir_all(&kept);
         let kept = if out.is_dir() && std::fs::rename(&dir, &kept).is_ok() { kept } else { dir };
-        Some(summary(&files, &kept))
+        let closed = closed_transports(&files, &zids);
+        add_to_network_json(out, &files, &closed);
+        Some(Said { line: summary(&files, &kept), closed: closed_line(&closed) })
+    }
+
+    /// (by, to, count) of zenoh's "Unable to push non droppable network
+    /// message to ZID. Closing transport!", `to` named by the zids the
+    /// nodes noted.
+    pub fn closed_transports(files: &[(String, String)], zids: &[(String, String)]) -> Vec<(String, String, usize)> {
+        let mut out: Vec<(String, String, usize)> = Vec::new();
+        for (by, text) in files {
+            for l in text.lines().filter(|l| l.contains("Closing transport")) {
+                let zid = l.split_once(" message to ").map(|(_, r)| r.split(['.', ' ']).next().unwrap_or(""));
+                let to =
+                    zid.map(|z| zids.iter().find(|(id, _)| id == z).map_or(format!("zid {z}"), |(_, n)| n.clone()));
+                let to = to.unwrap_or_else(|| "a peer".to_string());
+                match out.iter_mut().find(|(b, t, _)| b == by && *t == to) {
+                    Some(e) => e.2 += 1,
+                    None => out.push((by.clone(), to, 1)),
+                }
+            }
+        }
+        out
+    }
+
+    fn closed_line(closed: &[(String, String, usize)]) -> Option<String> {
+        if closed.is_empty() {
+            return None;
+        }
+        let n: usize = closed.iter().map(|c| c.2).sum();
+        let each: Vec<String> = closed
+            .iter()
+            .map(|(by, to, k)| if *k == 1 { format!("{by} → {to}") } else { format!("{by} → {to} ({k} times)") })
+            .collect();
+        Some(format!(
+            "warning: zenoh closed {n} transport{} ({}): a message that may not be dropped found the queue to that \
+             node full for zenoh's 5 s (the node starved of CPU, or its link stalled); it reconnected, and what it \
+             missed meanwhile is in network.json (isolated, telemetry_resent)",
+            if n == 1 { "" } else { "s" },
+            each.join(", ")
+        ))
+    }
+
+    /// `network.json`'s `zenoh_log`: errors and warnings per node, the
+    /// transports closed, the folder.
+    fn add_to_network_json(out: &Path, files: &[(String, String)], closed: &[(String, String, usize)]) {
+        let path = out.join("network.json");
+        let Some(mut v) =
+            std::fs::read_to_string(&path).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        else {
+            return;
+        };
+        let count = |text: &str, level: &str| text.lines().filter(|l| l.contains(level)).count();
+        let nodes: serde_json::Map<String, serde_json::Value> = files
+            .iter()
+            .map(|(n, t)| {
+                (n.clone(), serde_json::json!({ "errors": count(t, " ERROR "), "warnings": count(t, " WARN ") }))
+            })
+            .collect();
+        let closed: Vec<serde_json::Value> =
+            closed.iter().map(|(by, to, k)| serde_json::json!({ "by": by, "to": to, "count": k })).collect();
+        if let Some(o) = v.as_object_mut() {
+            o.insert(
+                "zenoh_log".into(),
+                serde_json::json!({ "folder": SUBDIR, "nodes": nodes, "transports_closed": closed }),
+            );
+        }
+        if let Ok(text) = serde_json::to_string_pretty(&v) {
+            let _ = std::fs::write(&path, text + "\n");
+        }
     }
 
     /// "zenoh logged 3 errors and 1 warning (agent-3: 3 errors; router: 1
@@ -845,6 +936,34 @@ pub(crate) mod zenoh_log {
                  zenoh::net: Unable to push non droppable network message. Closing transport!; every line is in \
                  runs/x/zenoh-log"
             );
+        }
+
+        /// The transports zenoh closed, by the node that closed them and
+        /// the node they went to (named by the zids the nodes noted).
+        #[test]
+        fn closed_transports_name_both_nodes() {
+            let push = |zid: &str| {
+                format!("2026-11-26T00:55:13Z ERROR zenoh_transport::unicast::universal::tx: Unable to push non droppable network message to {zid}. Closing transport!\n")
+            };
+            let files = vec![
+                ("router".to_string(), push("893eaf0a") + &push("893eaf0a") + &push("77aa")),
+                ("agent-1".to_string(), "2026 WARN zenoh::x: slow\n".to_string()),
+            ];
+            let zids = vec![("893eaf0a".to_string(), "agent-4".to_string())];
+            let closed = super::closed_transports(&files, &zids);
+            assert_eq!(
+                closed,
+                vec![
+                    ("router".to_string(), "agent-4".to_string(), 2),
+                    ("router".to_string(), "zid 77aa".to_string(), 1)
+                ]
+            );
+            let line = super::closed_line(&closed).expect("a line");
+            assert!(
+                line.starts_with("warning: zenoh closed 3 transports (router → agent-4 (2 times), router → zid 77aa)"),
+                "{line}"
+            );
+            assert_eq!(super::closed_line(&[]), None);
         }
     }
 }

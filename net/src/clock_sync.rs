@@ -28,6 +28,10 @@ pub const EVERY: Duration = Duration::from_millis(250);
 /// The first questions come this quickly, this many of them.
 const FIRST_EVERY: Duration = Duration::from_millis(20);
 const FIRST: u32 = 10;
+/// How often a node never answered for [`UNANSWERED_AFTER`] asks (or at
+/// once when it hears the leader's start).
+const UNANSWERED_EVERY: Duration = Duration::from_secs(1);
+const UNANSWERED_AFTER: Duration = Duration::from_secs(2);
 /// A question unanswered this long is lost.
 const TIMEOUT: Duration = Duration::from_secs(1);
 
@@ -78,21 +82,37 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
     Following(tokio::spawn(async move {
         // The leader's start announcements (every 100 ms through the run)
         // carry its timebase when sent: a floor no answer may fall below.
+        // They also wake a node that has never been answered (the leader
+        // not there yet, asked once a second) to ask at once.
         let stamps = timebase.clone();
+        let heard_start = std::sync::Arc::new(tokio::sync::Notify::new());
+        let wake = heard_start.clone();
         let _floor = session
             .declare_subscriber(start_key)
             .callback(move |s| {
                 if let Some(start) = codec::decode::<crate::barrier::Start>(&s.payload().to_bytes()) {
                     stamps.leader_sent(start.sent_ns);
+                    wake.notify_one();
                 }
             })
             .await;
         let mut asked = 0u32;
+        let (began, mut answered) = (std::time::Instant::now(), false);
         let mut warned = false;
         let mut named = false;
         loop {
             let answers = ask_all(&session, &key).await;
             timebase.add_answers(&answers);
+            // Never answered after a while (no leader yet): one question a
+            // second, so that a node waiting idle costs next to nothing.
+            answered |= !answers.is_empty();
+            if !answered && began.elapsed() > UNANSWERED_AFTER {
+                tokio::select! {
+                    _ = tokio::time::sleep(UNANSWERED_EVERY) => {}
+                    _ = heard_start.notified() => {}
+                }
+                continue;
+            }
             asked = asked.saturating_add(1);
             if !named && timebase.second_clock() {
                 named = true;

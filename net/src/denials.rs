@@ -99,6 +99,14 @@ fn run_of(key: &str) -> Option<&str> {
 }
 
 static TALLY: Mutex<Option<Tally>> = Mutex::new(None);
+/// The tally's version, watched by every [`report`] of the process: they
+/// sleep until it changes (a node without access control, or that refused
+/// nothing, never wakes for it).
+static CHANGED: std::sync::OnceLock<tokio::sync::watch::Sender<u64>> = std::sync::OnceLock::new();
+
+fn changed() -> &'static tokio::sync::watch::Sender<u64> {
+    CHANGED.get_or_init(|| tokio::sync::watch::channel(0).0)
+}
 
 thread_local! {
     /// The key zenoh began caching permissions for on this thread, and when.
@@ -119,7 +127,12 @@ pub fn note(line: &str) {
     let caching =
         CACHING.with(|c| c.borrow().as_ref().filter(|(_, at)| at.elapsed() < CACHING_BURST).map(|(k, _)| k.clone()));
     let mut t = TALLY.lock().unwrap_or_else(|p| p.into_inner());
-    t.get_or_insert_with(Tally::default).note(line, caching.as_deref());
+    let before = t.as_ref().map(|t| t.version);
+    let tally = t.get_or_insert_with(Tally::default);
+    tally.note(line, caching.as_deref());
+    if before != Some(tally.version) {
+        changed().send_replace(tally.version);
+    }
 }
 
 fn with_tally<R>(f: impl FnOnce(&Tally) -> R) -> R {
@@ -131,13 +144,17 @@ fn with_tally<R>(f: impl FnOnce(&Tally) -> R) -> R {
 pub const REPORT_PERIOD: Duration = Duration::from_millis(250);
 
 /// Publishes this process's denials for every run they concern (only
-/// `run`, if given), every [`REPORT_PERIOD`] while they change, as `node`. Runs until
-/// the session closes.
+/// `run`, if given), at most every [`REPORT_PERIOD`] while they change, as
+/// `node`; asleep while they do not. Runs until the session closes.
 pub async fn report(session: zenoh::Session, node: String, run: Option<String>) {
     let mut said = 0u64;
-    let mut tick = tokio::time::interval(REPORT_PERIOD);
+    let mut version = changed().subscribe();
+    version.mark_changed(); // what was refused before this started
     loop {
-        tick.tick().await;
+        if version.changed().await.is_err() {
+            return;
+        }
+        tokio::time::sleep(REPORT_PERIOD).await;
         if session.is_closed() {
             return;
         }

@@ -363,9 +363,25 @@ pub async fn open(args: &ZenohArgs) -> Result<zenoh::Session, SessionError> {
             let _ = tx.send(zenoh::open(config).wait());
         })
         .map_err(|e| SessionError::Open(format!("cannot start a thread to open the zenoh session: {e}")))?;
-    rx.await
+    let session = rx
+        .await
         .map_err(|_| SessionError::Open(format!("opening the zenoh session stopped without an answer")))?
-        .map_err(|e| SessionError::Open(format!("cannot open zenoh session (mode {mode}, {endpoints}): {e}")))
+        .map_err(|e| SessionError::Open(format!("cannot open zenoh session (mode {mode}, {endpoints}): {e}")))?;
+    note_zid(&session.zid().to_string());
+    Ok(session)
+}
+
+/// The line a node writes into its zenoh log (`crate::node::ZENOH_LOG_ENV`)
+/// when a session opens, so that the launch can name the node behind a zid
+/// in zenoh's own lines ("… to 30e9b3…. Closing transport!").
+pub const ZID_NOTE: &str = "formation: this node's zenoh id is ";
+
+fn note_zid(zid: &str) {
+    use std::io::Write;
+    let Some(path) = std::env::var_os(crate::node::ZENOH_LOG_ENV) else { return };
+    if let Ok(mut f) = std::fs::OpenOptions::new().create(true).append(true).open(path) {
+        let _ = writeln!(f, "{ZID_NOTE}{zid}");
+    }
 }
 
 #[cfg(test)]

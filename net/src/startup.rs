@@ -40,10 +40,73 @@ impl Whom<'_> {
 /// A node needing more nodes than this listens to everybody's barrier traffic.
 const FEW: usize = 32;
 
-async fn listen<H: Hears + Send + 'static>(
+/// A barrier machine and what wakes its loop: anything it hears for the
+/// first time (its `news`), so that a node on the slow idle tick answers a
+/// newcomer's hello, and sees the start, at once.
+struct Waiting<H> {
+    machine: Mutex<H>,
+    wake: tokio::sync::Notify,
+}
+
+/// A barrier machine's count of first-heard things.
+trait News {
+    fn news(&self) -> u64;
+    fn next_tick(&mut self, now: formation_protocol::Now) -> Duration;
+}
+
+impl News for Join {
+    fn news(&self) -> u64 {
+        Join::news(self)
+    }
+    fn next_tick(&mut self, now: formation_protocol::Now) -> Duration {
+        Join::next_tick(self, now)
+    }
+}
+
+impl News for Lead {
+    fn news(&self) -> u64 {
+        Lead::news(self)
+    }
+    fn next_tick(&mut self, now: formation_protocol::Now) -> Duration {
+        Lead::next_tick(self, now)
+    }
+}
+
+impl<H: Hears + News> Waiting<H> {
+    fn new(machine: H) -> Arc<Self> {
+        Arc::new(Self { machine: Mutex::new(machine), wake: tokio::sync::Notify::new() })
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, H> {
+        lock(&self.machine)
+    }
+
+    /// Feeds the machine; wakes the loop if that was news.
+    fn hear(&self, f: impl FnOnce(&mut H)) {
+        let mut m = self.lock();
+        let before = m.news();
+        f(&mut m);
+        let news = m.news() != before;
+        drop(m);
+        if news {
+            self.wake.notify_one();
+        }
+    }
+
+    /// Until the next tick, or at once on news.
+    async fn pause(&self) {
+        let next = self.lock().next_tick(crate::clock::mono());
+        tokio::select! {
+            _ = tokio::time::sleep(next) => {}
+            _ = self.wake.notified() => {}
+        }
+    }
+}
+
+async fn listen<H: Hears + News + Send + 'static>(
     session: &zenoh::Session,
     keys: &Keys,
-    machine: &Arc<Mutex<H>>,
+    waiting: &Arc<Waiting<H>>,
     from: Whom<'_>,
 ) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, Error> {
     let mut subs = Vec::new();
@@ -53,28 +116,28 @@ async fn listen<H: Hears + Send + 'static>(
             .callback(move |s| on(names::last_chunk(s.key_expr().as_str()), &s.payload().to_bytes()))
     };
     for key in from.keys(keys.hello("*"), |n| keys.hello(n)) {
-        let m = machine.clone();
+        let w = waiting.clone();
         subs.push(
-            declare(key, Box::new(move |from, _| lock(&m).on_hello(from)))
+            declare(key, Box::new(move |from, _| w.hear(|m| m.on_hello(from))))
                 .await
                 .map_err(|e| zerr("declaring the hello subscriber", e))?,
         );
     }
-    let m = machine.clone();
+    let w = waiting.clone();
     let on_start = move |_: &str, bytes: &[u8]| {
         if let Some(start) = codec::decode::<Start>(bytes) {
-            lock(&m).on_start(start, crate::clock::mono());
+            w.hear(|m| m.on_start(start, crate::clock::mono()));
         }
     };
     subs.push(declare(keys.start(), Box::new(on_start)).await.map_err(|e| zerr("declaring the start subscriber", e))?);
-    let m = machine.clone();
-    let on_abort = move |_: &str, bytes: &[u8]| lock(&m).on_abort(&String::from_utf8_lossy(bytes));
+    let w = waiting.clone();
+    let on_abort = move |_: &str, bytes: &[u8]| w.hear(|m| m.on_abort(&String::from_utf8_lossy(bytes)));
     subs.push(declare(keys.abort(), Box::new(on_abort)).await.map_err(|e| zerr("declaring the abort subscriber", e))?);
     for key in from.keys(keys.ready_all(), |n| keys.ready(n)) {
-        let m = machine.clone();
+        let w = waiting.clone();
         let on_ready = move |from: &str, bytes: &[u8]| {
             if let Some(r) = codec::decode::<Ready>(bytes) {
-                lock(&m).on_ready(from, r, crate::clock::mono());
+                w.hear(|m| m.on_ready(from, r, crate::clock::mono()));
             }
         };
         subs.push(declare(key, Box::new(on_ready)).await.map_err(|e| zerr("declaring the ready subscriber", e))?);
@@ -92,14 +155,14 @@ pub async fn wait_for_start(
     needs: &[String],
     scenario: &Scenario,
 ) -> Result<Start, Error> {
-    let machine = Arc::new(Mutex::new(Join::new(me, &keys.run, needs, scenario, crate::clock::mono())));
+    let waiting = Waiting::new(Join::new(me, &keys.run, needs, scenario, crate::clock::mono()));
     let from = if needs.len() <= FEW { Whom::Only(needs) } else { Whom::All };
-    let _subs = listen(session, keys, &machine, from).await?;
+    let _subs = listen(session, keys, &waiting, from).await?;
     let fingerprint = fingerprint(scenario);
     let ready_full = codec::encode(&Ready { fingerprint, keys: key_digests(scenario) });
     let ready_short = codec::encode(&Ready { fingerprint, keys: Vec::new() });
     loop {
-        let step = lock(&machine).poll(crate::clock::mono());
+        let step = waiting.lock().poll(crate::clock::mono());
         let ready = match step {
             JoinStep::Started(start) => return Ok(start),
             JoinStep::Failed(e) => return Err(e),
@@ -115,7 +178,7 @@ pub async fn wait_for_start(
             let bytes = if form == ReadyForm::Full { &ready_full } else { &ready_short };
             session.put(keys.ready(me), bytes.clone()).await.map_err(|e| zerr("saying ready", e))?;
         }
-        tokio::time::sleep(TICK).await;
+        waiting.pause().await;
     }
 }
 
@@ -135,10 +198,10 @@ pub async fn lead_start(
     time_scale: f64,
     lead: Duration,
 ) -> Result<(Start, tokio::task::JoinHandle<()>), Error> {
-    let machine = Arc::new(Mutex::new(Lead::new(&keys.run, needs_hello, expect_ready, scenario, crate::clock::mono())));
-    let subs = listen(session, keys, &machine, Whom::All).await?;
+    let waiting = Waiting::new(Lead::new(&keys.run, needs_hello, expect_ready, scenario, crate::clock::mono()));
+    let subs = listen(session, keys, &waiting, Whom::All).await?;
     loop {
-        let step = lock(&machine).poll(crate::clock::mono());
+        let step = waiting.lock().poll(crate::clock::mono());
         match step {
             LeadStep::Go => break,
             LeadStep::Failed(e) => return Err(e),
@@ -153,11 +216,11 @@ pub async fn lead_start(
             LeadStep::Wait { warnings } => warnings.iter().for_each(|w| eprintln!("{w}")),
         }
         session.put(keys.hello(names::LEADER_NODE), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
-        tokio::time::sleep(TICK).await;
+        waiting.pause().await;
     }
     drop(subs);
     let now = timebase.now_ns().unwrap_or(0).max(0) as u64;
-    let start = lock(&machine).start(now, lead, time_scale);
+    let start = waiting.lock().start(now, lead, time_scale);
     let session = session.clone();
     let key = keys.start();
     let timebase = timebase.clone();

@@ -2,7 +2,9 @@
 //!
 //! Zenoh peers connect asynchronously, and a message put before the other
 //! side knows of a subscription is silently lost. So before anything steps:
-//! every node declares its subscribers, then repeats `hello` every 50 ms. A
+//! every node declares its subscribers, then repeats `hello` every 50 ms
+//! (every second once it has heard nothing new for 2 s; anything new wakes
+//! it at once, see [`Join::next_tick`]). A
 //! node is *ready* once it has heard the `hello` of every node it receives
 //! from (an agent: its neighbours and, if a_i0 = 1, the leader; the monitor:
 //! everybody): the same transport that carried the hello carried the
@@ -123,6 +125,13 @@ pub const START_TIMEOUT: Duration = Duration::from_secs(120);
 /// How often a waiting node says hello (and ready) and asks its machine
 /// what to do.
 pub const TICK: Duration = Duration::from_millis(50);
+/// How often a waiting node that has heard nothing new for [`QUIET_AFTER`]
+/// says hello: a node started long before the others costs next to nothing
+/// while it waits (20 wake-ups a second were a third of an idle agent's CPU).
+/// What is new (a hello, a ready, the start) wakes it at once.
+pub const IDLE_TICK: Duration = Duration::from_secs(1);
+/// Nothing new heard for this long: tick every [`IDLE_TICK`].
+pub const QUIET_AFTER: Duration = Duration::from_secs(2);
 /// A ready carries the scenario's key digests once in this many.
 const DIGESTS_EVERY: u64 = 20;
 
@@ -150,6 +159,9 @@ struct Heard {
     foreign_start: Option<Now>,
     /// The leader's reason for refusing the run, if it did.
     abort: Option<String>,
+    /// Counts what was heard for the first time (a node's hello or ready,
+    /// the start, a refusal): a waiting node is woken when it changes.
+    news: u64,
 }
 
 impl Heard {
@@ -165,14 +177,17 @@ impl Heard {
     fn on_hello(&mut self, name: &str) {
         if !self.hello.contains(name) {
             self.hello.insert(name.to_string());
+            self.news += 1;
         }
     }
 
     fn on_start(&mut self, start: Start, now: Now) {
         if start.fingerprint == self.fingerprint {
+            self.news += u64::from(self.start.is_none());
             self.start.get_or_insert(start);
         } else {
             self.ignored += 1;
+            self.news += u64::from(self.foreign_start.is_none());
             self.foreign_start.get_or_insert(now);
         }
     }
@@ -181,10 +196,10 @@ impl Heard {
         if !self.expected.contains(name) {
             self.ignored += 1;
         } else if r.fingerprint == self.fingerprint {
-            self.ready.insert(name.to_string());
+            self.news += u64::from(self.ready.insert(name.to_string()));
         } else {
             self.ignored += 1;
-            self.ready_foreign.insert(name.to_string());
+            self.news += u64::from(self.ready_foreign.insert(name.to_string()));
             // Most readies carry no digests: the keys that differ are known
             // from the first that does.
             let e = self.differ.entry(name.to_string()).or_insert_with(|| (Vec::new(), now));
@@ -197,12 +212,36 @@ impl Heard {
     fn on_abort(&mut self, reason: &str) {
         let reason: String = reason.chars().take(500).collect();
         if !reason.is_empty() {
+            self.news += u64::from(self.abort.is_none());
             self.abort.get_or_insert(reason);
         }
     }
 
     fn missing(&self, of: &BTreeSet<String>, needs: &[String]) -> Vec<String> {
         needs.iter().filter(|n| !of.contains(*n)).cloned().collect()
+    }
+}
+
+/// When a waiting node last heard something new, for its tick.
+#[derive(Default)]
+struct Quiet {
+    news: u64,
+    since: Option<Now>,
+}
+
+impl Quiet {
+    /// [`TICK`] while something new was heard within [`QUIET_AFTER`] (or
+    /// the node just began), else [`IDLE_TICK`].
+    fn next_tick(&mut self, news: u64, now: Now) -> Duration {
+        if self.since.is_none() || news != self.news {
+            (self.news, self.since) = (news, Some(now));
+        }
+        let quiet_for = self.since.map_or(Duration::ZERO, |t| now.saturating_sub(t));
+        if quiet_for < QUIET_AFTER {
+            TICK
+        } else {
+            IDLE_TICK
+        }
     }
 }
 
@@ -283,6 +322,7 @@ pub struct Join {
     began: Now,
     readies: u64,
     warned: bool,
+    quiet: Quiet,
 }
 
 impl Join {
@@ -297,7 +337,21 @@ impl Join {
             began: now,
             readies: 0,
             warned: false,
+            quiet: Quiet { news: 0, since: Some(now) },
         }
+    }
+
+    /// Counts what this node heard for the first time; the caller wakes
+    /// the node (polls at once) when it changes.
+    pub fn news(&self) -> u64 {
+        self.heard.news
+    }
+
+    /// How long to wait after the tick at `now` before the next one (unless
+    /// [`Join::news`] changes first): [`TICK`], or [`IDLE_TICK`] once nothing
+    /// new was heard for [`QUIET_AFTER`].
+    pub fn next_tick(&mut self, now: Now) -> Duration {
+        self.quiet.next_tick(self.heard.news, now)
     }
 
     /// Start and Ready messages ignored (another scenario, or an unexpected sender).
@@ -305,7 +359,7 @@ impl Join {
         self.heard.ignored
     }
 
-    /// What to do at `now` (called every [`TICK`]).
+    /// What to do at `now` (called every tick, [`Join::next_tick`]).
     pub fn poll(&mut self, now: Now) -> JoinStep {
         let (me, run, h) = (&self.me, &self.run, &self.heard);
         if let Some(start) = h.start {
@@ -402,6 +456,7 @@ pub struct Lead {
     heard: Heard,
     began: Now,
     warned: BTreeSet<String>,
+    quiet: Quiet,
 }
 
 impl Lead {
@@ -413,7 +468,18 @@ impl Lead {
             heard: Heard::new(scenario, expect_ready),
             began: now,
             warned: BTreeSet::new(),
+            quiet: Quiet { news: 0, since: Some(now) },
         }
+    }
+
+    /// As [`Join::news`].
+    pub fn news(&self) -> u64 {
+        self.heard.news
+    }
+
+    /// As [`Join::next_tick`].
+    pub fn next_tick(&mut self, now: Now) -> Duration {
+        self.quiet.next_tick(self.heard.news, now)
     }
 
     /// Start and Ready messages ignored (another scenario, or an unexpected sender).
@@ -421,7 +487,7 @@ impl Lead {
         self.heard.ignored
     }
 
-    /// What to do at `now` (called every [`TICK`]).
+    /// What to do at `now` (called every tick, [`Join::next_tick`]).
     pub fn poll(&mut self, now: Now) -> LeadStep {
         let (run, h) = (&self.run, &self.heard);
         let hello_missing = h.missing(&h.hello, &self.needs_hello);
@@ -507,6 +573,38 @@ mod tests {
             t += TICK;
         }
         out
+    }
+
+    /// A node waiting long for others ticks once a second, not twenty
+    /// times; whatever it hears for the first time wakes it (its `news`
+    /// changes) and puts it back on the fast tick; repeats are no news.
+    #[test]
+    fn a_quiet_wait_ticks_slowly_and_news_brings_the_fast_tick_back() {
+        let s = paper(&[]);
+        let t0 = Now::from_secs(100);
+        let mut j = Join::new("1", "r", &names(&["2", "leader"]), &s, t0);
+        assert_eq!(j.next_tick(t0), TICK, "a node that just began");
+        assert_eq!(j.next_tick(t0 + QUIET_AFTER - TICK), TICK);
+        assert_eq!(j.next_tick(t0 + QUIET_AFTER), IDLE_TICK, "nothing heard for {QUIET_AFTER:?}");
+        let before = j.news();
+        j.on_hello("2");
+        assert_eq!(j.news(), before + 1, "a first hello is news");
+        j.on_hello("2");
+        assert_eq!(j.news(), before + 1, "a repeated hello is not");
+        let t = t0 + Duration::from_secs(30);
+        assert_eq!(j.next_tick(t), TICK, "news puts the fast tick back");
+        assert_eq!(j.next_tick(t + QUIET_AFTER), IDLE_TICK);
+        j.on_start(start(&s), t + QUIET_AFTER);
+        assert_eq!(j.news(), before + 2, "the start is news");
+        j.on_start(start(&s), t + QUIET_AFTER);
+        assert_eq!(j.news(), before + 2);
+
+        let mut l = Lead::new("r", &names(&["1"]), &names(&["1"]), &s, t0);
+        assert_eq!(l.next_tick(t0 + QUIET_AFTER), IDLE_TICK);
+        l.on_ready("1", ready(&s), t0 + QUIET_AFTER);
+        l.on_ready("1", ready(&s), t0 + QUIET_AFTER);
+        assert_eq!(l.news(), 1, "one node's first ready, once");
+        assert_eq!(l.next_tick(t0 + QUIET_AFTER), TICK);
     }
 
     #[test]

@@ -29,6 +29,42 @@ fn short_launch_succeeds_and_leaves_nothing_behind() {
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary")).expect("json");
     assert_eq!(summary["followers"]["4"]["samples"], 501);
+    // Zenoh logged nothing: no zenoh-log/ and no zenoh_log in network.json.
+    assert!(!out.join("zenoh-log").exists(), "a zenoh-log/ folder for a run where zenoh said nothing");
+    assert!(common::json(&out, "network.json").get("zenoh_log").is_none());
+}
+
+/// Zenoh's own lines (here INFO, with `RUST_LOG`) go to `zenoh-log/`, one
+/// file per node, each beginning with the node's own note of its zenoh id
+/// (the zid zenoh names in its lines), and `network.json` counts them.
+#[test]
+fn zenohs_own_lines_go_to_the_run_folder_and_name_each_node() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+    c.args(["launch", common::SCENARIO, "-q", "--set", "duration=0.2", "--base-port", &base, "--run", "launch-zlog"])
+        .arg("--out")
+        .arg(&out)
+        .env("RUST_LOG", "zenoh=info");
+    let o = c.output().expect("launch");
+    assert!(o.status.success(), "launch failed: {}", String::from_utf8_lossy(&o.stderr));
+    let logs = out.join("zenoh-log");
+    for node in ["leader", "monitor", "agent-1", "agent-4"] {
+        let text = std::fs::read_to_string(logs.join(format!("{node}.log")))
+            .unwrap_or_else(|e| panic!("zenoh-log/{node}.log: {e}"));
+        let noted = text
+            .lines()
+            .find_map(|l| l.strip_prefix(formation_net::session::ZID_NOTE))
+            .unwrap_or_else(|| panic!("{node} did not note its zid:\n{text}"));
+        let zenohs = text.lines().find_map(|l| l.split_once("Using ZID: ").map(|(_, z)| z.trim()));
+        assert_eq!(Some(noted), zenohs, "{node}: the noted zid is not the one zenoh uses");
+    }
+    let n = common::json(&out, "network.json");
+    let z = &n["zenoh_log"];
+    assert_eq!(z["folder"], "zenoh-log", "{z}");
+    assert_eq!(z["nodes"]["agent-1"]["errors"], 0, "{z}");
+    assert_eq!(z["transports_closed"], serde_json::json!([]), "{z}");
 }
 
 #[test]
