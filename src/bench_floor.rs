@@ -125,77 +125,148 @@ fn sample(words: &[&str], after: Duration, window: Duration, rate: f64) -> Vec<f
     pids.iter().zip(before).map(|(&p, b)| cpu_ns(p).saturating_sub(b) as f64 / 1e3 / steps).collect()
 }
 
-/// The floor, the agents and the idle cost, at 100 Hz and 1 kHz.
-pub fn run(scenario: &std::path::Path, port: u16) -> Result<(), Error> {
+/// How the processes of one measurement meet.
+#[derive(Clone, Copy, PartialEq, Debug)]
+enum Links {
+    /// Peers, each linked to the leader and the lower ids (as `launch`).
+    Peers,
+    /// Clients of one router (as `launch --mode client`).
+    Clients,
+}
+
+/// One case: the floor and the agents of `scenario` at `hz`, the median CPU
+/// µs per process and step of each, and how many processes each had.
+fn case(
+    exe: &std::path::Path,
+    scenario: &std::path::Path,
+    ids: &[u32],
+    hz: f64,
+    links: Links,
+    port: u16,
+) -> Result<((f64, usize), (f64, usize)), Error> {
+    // Many processes take longer to start: a later, still steady window.
+    let (seconds, after, window) = if ids.len() > 10 {
+        (16.0, Duration::from_secs(8), Duration::from_secs(5))
+    } else {
+        (12.0, Duration::from_secs(4), Duration::from_secs(5))
+    };
+    let sets = [format!("dt={}", 1.0 / hz), "timing=\"realtime\"".into(), format!("duration={seconds}")];
+    let run = format!("floor{}{}", hz as u32, ids.len());
+    let mut children = Vec::new();
+    let quiet = |c: &mut Command| {
+        c.env(formation_net::node::LAUNCHED_ENV, "1").stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
+    };
+    let router = format!("tcp/127.0.0.1:{port}");
+    if links == Links::Clients {
+        let mut c = Command::new(exe);
+        c.args(["node", "router", "--mode", "router", "--listen", &router, "--scenario"]).arg(scenario);
+        for set in &sets {
+            c.args(["--set", set]);
+        }
+        formation_net::session::router_runtime(&mut c, formation_topology::Timing::Realtime);
+        quiet(&mut c);
+        children.push(c.spawn().map_err(|e| Error::Run(format!("starting the floor's router: {e}")))?);
+    }
+    let all: Vec<u32> = std::iter::once(0).chain(ids.iter().copied()).collect();
+    for (n, &id) in all.iter().enumerate() {
+        let mut c = Command::new(exe);
+        c.args(["node", "floor", "--scenario"]).arg(scenario).args(["--run", &run, "--id", &id.to_string()]);
+        c.args(["--seconds", &seconds.to_string()]);
+        match links {
+            Links::Peers => {
+                c.args(["--no-gossip", "--listen", &format!("tcp/127.0.0.1:{}", port + 1 + n as u16)]);
+                for m in 0..n {
+                    c.args(["--connect", &format!("tcp/127.0.0.1:{}", port + 1 + m as u16)]);
+                }
+            }
+            Links::Clients => {
+                c.args(["--mode", "client", "--connect", &router]);
+            }
+        }
+        for set in &sets {
+            c.args(["--set", set]);
+        }
+        quiet(&mut c);
+        children.push(c.spawn().map_err(|e| Error::Run(format!("starting a floor process: {e}")))?);
+    }
+    let floor = sample(&["floor", &run], after, window, hz);
+    // The router's last: it outlives the floor processes.
+    let router_child = if links == Links::Clients { Some(children.remove(0)) } else { None };
+    for mut c in children {
+        let _ = c.wait();
+    }
+    if let Some(mut r) = router_child {
+        let _ = r.kill();
+        let _ = r.wait();
+    }
+    // The agents of a real launch, sampled the same way.
+    let out = std::env::temp_dir().join(format!("formation-bench-floor-{}-{run}", std::process::id()));
+    let lrun = format!("agents{}{}", hz as u32, ids.len());
+    let mut l = Command::new(exe);
+    l.args(["launch"]).arg(scenario).args(["-q", "--out"]).arg(&out).args([
+        "--run",
+        &lrun,
+        "--base-port",
+        &(port + 200).to_string(),
+    ]);
+    if links == Links::Clients {
+        l.args(["--mode", "client"]);
+    }
+    for set in &sets {
+        l.args(["--set", set]);
+    }
+    let mut launch = l
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .map_err(|e| Error::Run(format!("starting the launch: {e}")))?;
+    let agents = sample(&["agent", &lrun], after, window, hz);
+    let _ = launch.wait();
+    let _ = std::fs::remove_dir_all(&out);
+    let (nf, na) = (floor.len(), agents.len());
+    Ok(((median(floor), nf), (median(agents), na)))
+}
+
+fn row(what: String, ((f, nf), (g, na)): ((f64, usize), (f64, usize))) {
+    println!("  {:<54}{:>12.1}{:>12.1}{:>8.2}", format!("{what} (median of {nf} / {na})"), f, g, g / f);
+}
+
+/// The floor, the agents and the idle cost: the scenario's agents (peers)
+/// at 100 Hz and 1 kHz; generated rings of `rings` agents (n/5 chords,
+/// clients of one router) at 100 Hz.
+pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32]) -> Result<(), Error> {
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
     let s = formation_topology::Scenario::load(scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     let ids: Vec<u32> = s.graph.ids().to_vec();
-    let (seconds, after, window) = (12.0, Duration::from_secs(4), Duration::from_secs(5));
-    println!("CPU per process and step, steady state (a {window:?} window from {after:?} into a {seconds} s run), this machine");
-    println!("  {:<34}{:>14}{:>14}{:>10}", "", "floor µs", "agent µs", "ratio");
-    for (hz, dt) in [(100.0, "0.01"), (1000.0, "0.001")] {
-        let sets = [format!("dt={dt}"), "timing=\"realtime\"".into(), format!("duration={seconds}")];
-        // The floor: a leader and one process per follower, peers, each
-        // connected to the leader and its lower-id neighbours as launch does.
-        let run = format!("floor{}", hz as u32);
-        let mut children = Vec::new();
-        let all: Vec<u32> = std::iter::once(0).chain(ids.iter().copied()).collect();
-        for (n, &id) in all.iter().enumerate() {
-            let mut c = Command::new(&exe);
-            c.args(["node", "floor", "--scenario"]).arg(scenario).args(["--run", &run, "--id", &id.to_string()]);
-            c.args([
-                "--seconds",
-                &seconds.to_string(),
-                "--no-gossip",
-                "--listen",
-                &format!("tcp/127.0.0.1:{}", port + n as u16),
-            ]);
-            for set in &sets {
-                c.args(["--set", set]);
-            }
-            for m in 0..n {
-                c.args(["--connect", &format!("tcp/127.0.0.1:{}", port + m as u16)]);
-            }
-            c.env(formation_net::node::LAUNCHED_ENV, "1")
-                .stdin(Stdio::null())
-                .stdout(Stdio::null())
-                .stderr(Stdio::null());
-            children.push(c.spawn().map_err(|e| Error::Run(format!("starting a floor process: {e}")))?);
-        }
-        let floor = sample(&["floor", &run], after, window, hz);
-        for mut c in children {
-            let _ = c.wait();
-        }
-        // The agents of a real launch, sampled the same way.
-        let out = std::env::temp_dir().join(format!("formation-bench-floor-{}-{run}", std::process::id()));
-        let lrun = format!("agents{}", hz as u32);
-        let mut l = Command::new(&exe);
-        l.args(["launch"]).arg(scenario).args(["-q", "--out"]).arg(&out).args([
-            "--run",
-            &lrun,
-            "--base-port",
-            &(port + 20).to_string(),
-        ]);
-        for set in &sets {
-            l.args(["--set", set]);
-        }
-        let mut launch = l
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .map_err(|e| Error::Run(format!("starting the launch: {e}")))?;
-        let agents = sample(&["agent", &lrun], after, window, hz);
-        let _ = launch.wait();
-        let _ = std::fs::remove_dir_all(&out);
-        let (f, g) = (median(floor.clone()), median(agents.clone()));
-        println!(
-            "  {:<34}{:>14.1}{:>14.1}{:>10.2}",
-            format!("{hz} Hz (median of {} / {})", floor.len(), agents.len()),
-            f,
-            g,
-            g / f
-        );
+    println!(
+        "CPU per process and step in steady state (a 5 s window from 4 s into a 12 s run; 8 s into 16 s for rings), \
+         this machine"
+    );
+    println!("  {:<54}{:>12}{:>12}{:>8}", "", "floor µs", "agent µs", "ratio");
+    for hz in [100.0, 1000.0] {
+        eprintln!("bench-net (floor): {} agents, peers, {hz} Hz …", ids.len());
+        row(format!("{} agents, peers, {hz} Hz", ids.len()), case(&exe, scenario, &ids, hz, Links::Peers, port)?);
+    }
+    for (i, &n) in rings.iter().enumerate() {
+        let tmp = std::env::temp_dir().join(format!("formation-bench-floor-{}-ring{n}", std::process::id()));
+        std::fs::create_dir_all(&tmp).map_err(|e| Error::Run(format!("{}: {e}", tmp.display())))?;
+        let spec = formation_topology::generate::Spec {
+            chords: n / 5,
+            ..formation_topology::generate::Spec::new(n, formation_topology::generate::GraphKind::Ring)
+        };
+        let text = formation_topology::generate::toml(&spec).map_err(|e| Error::Input(e.to_string()))?;
+        let file = tmp.join(format!("ring{n}.toml"));
+        std::fs::write(&file, text).map_err(|e| Error::Run(format!("{}: {e}", file.display())))?;
+        let ring_ids: Vec<u32> = formation_topology::Scenario::load(&file, &[])
+            .map_err(|e| Error::Input(e.to_string()))?
+            .graph
+            .ids()
+            .to_vec();
+        eprintln!("bench-net (floor): a ring of {n} agents, clients of one router, 100 Hz …");
+        let measured = case(&exe, &file, &ring_ids, 100.0, Links::Clients, port + 400 + 400 * i as u16);
+        let _ = std::fs::remove_dir_all(&tmp);
+        row(format!("ring of {n}, clients, 100 Hz"), measured?);
     }
     // Idle: an agent that waits for a start that never comes.
     let mut c = Command::new(&exe);
@@ -205,7 +276,8 @@ pub fn run(scenario: &std::path::Path, port: u16) -> Result<(), Error> {
     c.env(formation_net::node::LAUNCHED_ENV, "1").stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
     let mut idle = c.spawn().map_err(|e| Error::Run(format!("starting the idle agent: {e}")))?;
     let window = Duration::from_secs(5);
-    let per = sample(&["agent", &idle_run], Duration::from_secs(2), window, 1.0);
+    // From 4 s: past the barrier's first 2 s of fast ticks (steady idle).
+    let per = sample(&["agent", &idle_run], Duration::from_secs(4), window, 1.0);
     let _ = idle.kill();
     let _ = idle.wait();
     let share = per.first().copied().unwrap_or(f64::NAN) / 1e6 * 100.0;

@@ -191,7 +191,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     }
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     if a.floor {
-        return crate::bench_floor::run(&a.scenario, a.base_port);
+        return crate::bench_floor::run(&a.scenario, a.base_port, &a.agents.0);
     }
     if a.ros2 {
         return crate::bench_ros2::run(a.realtime_duration, a.base_port, &|sets, port, out, run| {
