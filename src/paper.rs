@@ -155,6 +155,7 @@ struct PaperObserver<'w> {
     ids: Vec<u32>,
     check_steps: [Option<u64>; 2],
     at_checks: [BTreeMap<u32, f64>; 2],
+    vc_initial: BTreeMap<u32, f64>,
 }
 
 impl Observer for PaperObserver<'_> {
@@ -168,6 +169,9 @@ impl Observer for PaperObserver<'_> {
     fn follower(&mut self, index: usize, k: u64, row: &Row, last: bool) -> std::io::Result<()> {
         if let Some(f) = &mut self.folder {
             f.follower(index, k, row, last)?;
+        }
+        if k == 0 {
+            self.vc_initial.insert(self.ids[index], row.v_c);
         }
         for (slot, at) in self.check_steps.iter().zip(&mut self.at_checks) {
             if *slot == Some(k) {
@@ -190,18 +194,24 @@ pub fn run_seed(scenario: &Scenario, seed: u64, record: Option<&RecordOptions>) 
     });
     let mut writer = record.map(|o| RunWriter::create(o, &ids)).transpose()?;
     let mut sim = Simulation::new(&s);
-    let (metrics, at_checks) = {
+    let (metrics, at_checks, vc_initial) = {
         let folder = writer.as_mut().map(|w| FolderObserver::new(w, &s));
-        let mut obs = PaperObserver { folder, ids: ids.clone(), check_steps, at_checks: Default::default() };
+        let mut obs = PaperObserver {
+            folder,
+            ids: ids.clone(),
+            check_steps,
+            at_checks: Default::default(),
+            vc_initial: Default::default(),
+        };
         let metrics = sim.run(&mut obs, |_| {}).map_err(|e| CliError::Run(format!("{} seed {seed}: {e}", s.name)))?;
-        (metrics, obs.at_checks)
+        (metrics, obs.at_checks, obs.vc_initial)
     };
     let summary = Summary::new(&s, ids.iter().copied().zip(metrics).collect()).with_outages(&s, &sim.outages());
     if let Some(w) = writer {
         w.finish(&summary)?;
     }
     let [e4, e6] = at_checks;
-    Ok(SeedRecord { seed, summary, estimator_error_4s: e4, estimator_error_6s: e6 })
+    Ok(SeedRecord { seed, summary, estimator_error_4s: e4, estimator_error_6s: e6, vc_initial })
 }
 
 /// Runs `formation paper`.

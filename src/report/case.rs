@@ -34,6 +34,10 @@ pub struct SeedRecord {
     /// The same at t = 6 s.
     #[serde(default)]
     pub estimator_error_6s: BTreeMap<u32, f64>,
+    /// The kinematic controller's v_c at t = 0 (m/s), by follower id: the
+    /// speed jump of conventional backstepping is stated there (model §12).
+    #[serde(default)]
+    pub vc_initial: BTreeMap<u32, f64>,
 }
 
 /// The part a case plays in the paper's comparisons (docs/model.md §12), read from
@@ -183,12 +187,18 @@ impl Case {
             }
             seeds
         } else {
-            let (e4, e6) = if has_csv {
+            let (e4, e6, vc0) = if has_csv {
                 estimator_checkpoints_from_csv(dir, &ids, summary.dt, finite)?
             } else {
                 Default::default()
             };
-            vec![SeedRecord { seed: summary.seed, summary, estimator_error_4s: e4, estimator_error_6s: e6 }]
+            vec![SeedRecord {
+                seed: summary.seed,
+                summary,
+                estimator_error_4s: e4,
+                estimator_error_6s: e6,
+                vc_initial: vc0,
+            }]
         };
         let role = Role::of(&seeds[0].summary);
         Ok(Case { label, dir: dir.to_path_buf(), seeds, role, has_csv, networked: dir.join("network.json").is_file() })
@@ -281,17 +291,22 @@ fn key_at(text: &str, line: usize, column: usize) -> Option<String> {
 type ErrorById = BTreeMap<u32, f64>;
 
 /// The estimator position error at t = 4 s and 6 s from a folder's CSVs:
-/// the sample within half a step of the time, if there is one.
+/// the sample within half a step of the time, if there is one; and v_c at
+/// t = 0 (the CSVs print every value in full, so it is exact).
 fn estimator_checkpoints_from_csv(
     dir: &Path,
     ids: &[u32],
     dt_s: f64,
     finite: bool,
-) -> Result<(ErrorById, ErrorById), CliError> {
+) -> Result<(ErrorById, ErrorById, ErrorById), CliError> {
     let mut at = [BTreeMap::new(), BTreeMap::new()];
+    let mut vc0 = BTreeMap::new();
     for &id in ids {
         let path = dir.join(format!("follower_{id}.csv"));
-        let table = read_columns_checked(&path, &["t", "estimator_error"], finite)?;
+        let table = read_columns_checked(&path, &["t", "estimator_error", "v_c"], finite)?;
+        if table[0].first() == Some(&0.0) {
+            vc0.insert(id, table[2][0]);
+        }
         for (slot, &time) in at.iter_mut().zip(&ESTIMATOR_CHECK_TIMES_S) {
             let hit = table[0].iter().position(|&t| (t - time).abs() <= 0.5 * dt_s + 1e-9);
             if let Some(i) = hit {
@@ -300,7 +315,7 @@ fn estimator_checkpoints_from_csv(
         }
     }
     let [a, b] = at;
-    Ok((a, b))
+    Ok((a, b, vc0))
 }
 
 /// How the report was made and what it compares.
