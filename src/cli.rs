@@ -40,6 +40,11 @@ pub enum Command {
     /// Run every case the paper compares and write its figures, tables and claims.
     #[command(allow_negative_numbers = true)]
     Paper(crate::paper::PaperArgs),
+    /// Fit the values the paper leaves open (the robot's m and I, the
+    /// disturbance, the noise covariances, the ASIF's limit) jointly against
+    /// its Tables I and II by a seeded search, with each entry's sensitivity.
+    #[command(allow_negative_numbers = true)]
+    Calibrate(crate::calibrate::CalibrateArgs),
     /// The paper's figures and tables for any run folders, side by side.
     #[command(allow_negative_numbers = true)]
     Report(crate::report::ReportArgs),
@@ -210,6 +215,7 @@ pub fn main() -> ExitCode {
         Command::Sim(a) => sim(&a).map(|_| ()),
         Command::Bench(a) => crate::bench::run(&a),
         Command::Paper(a) => crate::paper::run(&a),
+        Command::Calibrate(a) => crate::calibrate::run(&a),
         Command::Report(a) => crate::report::run(&a),
         Command::Launch(a) => crate::launch::run(&a),
         Command::Lab(a) => crate::lab::run(&a),

@@ -11,6 +11,7 @@ pub mod bench_hearing;
 pub mod bench_net;
 pub mod bench_netns;
 pub mod bench_ros2;
+pub mod calibrate;
 pub mod certs;
 pub mod cli;
 pub mod error;

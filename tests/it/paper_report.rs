@@ -474,3 +474,40 @@ fn report_rejects_a_missing_or_foreign_folder_with_status_2() {
     let o = bin().arg("paper").args(["--set", "no_such_key=1", "--out"]).arg(tmp.path().join("p")).output().unwrap();
     assert_eq!(o.status.code(), Some(2), "stderr: {}", String::from_utf8_lossy(&o.stderr));
 }
+
+/// `formation calibrate` is seeded: the same command reaches the same
+/// values, the best loss is no worse than at the scenario's values, and it
+/// writes its table, its sensitivity and the values to set. (A small
+/// budget and 12 s runs: the fault at 10 s is inside.)
+#[test]
+fn calibrate_is_seeded_and_never_worse_than_where_it_starts() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let run = |out: &Path| {
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["calibrate", "-q", "--evaluations", "8", "--seeds", "1", "--set", "duration=12", "--out"])
+            .arg(out)
+            .output()
+            .expect("calibrate");
+        assert!(o.status.success(), "calibrate failed: {}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    let said = run(&a);
+    run(&b);
+    let fitted = |d: &Path| std::fs::read_to_string(d.join("fitted.txt")).expect("fitted.txt");
+    assert_eq!(fitted(&a), fitted(&b), "the same seed reached other values");
+    assert!(fitted(&a).contains("asif.rho_max=["), "{}", fitted(&a));
+    // "loss L0 at the scenario's values, L1 at the best of N evaluations"
+    let num = |after: &str| -> f64 {
+        said.split(after).nth(1).and_then(|r| r.split_whitespace().next()).and_then(|x| x.parse().ok()).unwrap()
+    };
+    let (l0, l1) = (num("loss "), num("values, "));
+    assert!(l1 <= l0, "the best loss {l1} is worse than the start's {l0}: {said}");
+    let rows = read_csv(&a.join("calibration.csv"));
+    assert_eq!(rows.len(), 32, "32 table entries");
+    assert!(rows.iter().any(|r| r["entry"] == "Table II, F3, KF angular" && r["paper"] == "2.14"));
+    let sens = std::fs::read_to_string(a.join("sensitivity.csv")).expect("sensitivity.csv");
+    assert_eq!(sens.lines().count(), 33, "a header and 32 entries");
+    let svg = std::fs::read_to_string(a.join("sensitivity.svg")).expect("sensitivity.svg");
+    assert!(svg.starts_with("<svg") && svg.matches("<rect").count() > 320, "a cell per entry and value");
+}

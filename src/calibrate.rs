@@ -1,0 +1,556 @@
+//! `formation calibrate`: fits the values docs/model.md marks "decided" (the
+//! robot's m and I, the disturbance, the noise covariances, the ASIF's
+//! limit) jointly against the paper's Table I and Table II, both channels,
+//! both filters, by a seeded search anyone can re-run.
+//!
+//! The loss is the mean over the 32 table entries (4 followers × KF/ASIF ×
+//! linear/angular × normal/fault) of ln(measured / paper)², the measured
+//! value the mean over `--seeds` seeds of the velocity RMSE (×10⁻²). The
+//! search works on ln(value) inside a box of plausible values for a small
+//! differential-drive robot ([`PARAMS`]): the starting point (the
+//! scenario's values, clamped into the box), then half the budget of
+//! uniform draws in the box (ChaCha8 seeded by `--search-seed`), then a
+//! pattern search from the best (each value × e^(±h), h halved when a sweep
+//! improves nothing). At the best point, each entry's sensitivity to each
+//! value is its elasticity, d ln(entry) / d ln(value), by central
+//! differences (×e^(±0.1)).
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use formation_topology::Scenario;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
+
+use crate::error::{at_least_one, CliError};
+use crate::paper::{case_scenario, run_seed, CASES};
+use crate::report::tables::{PAPER_TABLE_I, PAPER_TABLE_II};
+use formation_record::at_path;
+
+#[derive(clap::Args, Debug)]
+pub struct CalibrateArgs {
+    /// Scenario file whose decided values are fitted (the built-in `paper` if no such file).
+    #[arg(long, default_value = "scenarios/paper.toml")]
+    pub scenario: PathBuf,
+    /// Override a scenario value first, e.g. `--set duration=20`.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+    /// Seeds per case in every evaluation (the scenario's seed s … s+N−1).
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    pub seeds: u64,
+    /// Evaluations of the loss in the search (each runs the four filter cases × the seeds).
+    #[arg(long, default_value_t = 400, value_name = "N")]
+    pub evaluations: usize,
+    /// The search's own seed: the same seed reaches the same values.
+    #[arg(long, default_value_t = 1)]
+    pub search_seed: u64,
+    /// Folder for calibration.md, calibration.csv, sensitivity.csv/.svg and fitted.txt.
+    #[arg(long, default_value = "runs/calibrate")]
+    pub out: PathBuf,
+    /// Print nothing but errors and the result line.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+/// One decided value and the box it may move in.
+pub struct Param {
+    /// Name in the tables.
+    pub name: &'static str,
+    pub unit: &'static str,
+    pub lo: f64,
+    pub hi: f64,
+    /// Why the box is plausible.
+    pub why: &'static str,
+}
+
+/// The decided values, in the order of the `--set` keys below.
+pub const PARAMS: [Param; 10] = [
+    Param {
+        name: "robot.mass",
+        unit: "kg",
+        lo: 1.0,
+        hi: 30.0,
+        why: "TurtleBot3 Burger 1 kg to a Pioneer 3-DX with load",
+    },
+    Param {
+        name: "robot.inertia",
+        unit: "kg m²",
+        lo: 0.01,
+        hi: 8.0,
+        why: "m ρ² with ρ 0.1–0.5 m over that range of m",
+    },
+    Param {
+        name: "disturbance.dv",
+        unit: "N",
+        lo: 0.01,
+        hi: 5.0,
+        why: "up to half the traction of a 10 kg robot's rolling resistance and slope",
+    },
+    Param { name: "disturbance.dw", unit: "N m", lo: 0.01, hi: 2.0, why: "the same at a 0.2–0.4 m lever" },
+    Param {
+        name: "covariance.q (v)", unit: "(m/s)²", lo: 1e-5, hi: 1e-3, why: "per-step process noise σ 3–30 mm/s"
+    },
+    Param { name: "covariance.q (ω)", unit: "(rad/s)²", lo: 1e-5, hi: 1e-3, why: "σ 0.003–0.03 rad/s" },
+    Param {
+        name: "covariance.r (v)",
+        unit: "(m/s)²",
+        lo: 1e-5,
+        hi: 1e-3,
+        why: "wheel-odometry speed noise σ 3–30 mm/s",
+    },
+    Param { name: "covariance.r (ω)", unit: "(rad/s)²", lo: 1e-5, hi: 1e-3, why: "gyro noise σ 0.003–0.03 rad/s" },
+    Param { name: "asif.rho_max (v)", unit: "m/s", lo: 0.005, hi: 0.3, why: "a fraction of the robot's speed" },
+    Param { name: "asif.rho_max (ω)", unit: "rad/s", lo: 0.005, hi: 0.3, why: "a fraction of its turn rate" },
+];
+
+/// The `--set` values of a point.
+pub fn sets(x: &[f64; 10]) -> Vec<String> {
+    vec![
+        format!("robot.mass={}", x[0]),
+        format!("robot.inertia={}", x[1]),
+        format!("disturbance.dv={}", x[2]),
+        format!("disturbance.dw={}", x[3]),
+        format!("covariance.q=[{}, {}]", x[4], x[5]),
+        format!("covariance.r=[{}, {}]", x[6], x[7]),
+        format!("asif.rho_max=[{}, {}]", x[8], x[9]),
+    ]
+}
+
+/// The scenario's own values of [`PARAMS`].
+pub fn values_of(s: &Scenario) -> [f64; 10] {
+    let (q, r, rho) = (s.covariance.q, s.covariance.r, s.control.filter.rho_max);
+    [
+        s.robot.mass_kg,
+        s.robot.inertia_kgm2,
+        s.disturbance.linear_n,
+        s.disturbance.angular_nm,
+        q[0],
+        q[1],
+        r[0],
+        r[1],
+        rho[0],
+        rho[1],
+    ]
+}
+
+/// Both tables as measured (×10⁻², mean over seeds): `[table][follower][column]`,
+/// the columns as the paper's (linear KF, linear ASIF, angular KF, angular ASIF).
+pub type Tables = [[[f64; 4]; 4]; 2];
+
+/// The cases of the two tables: (CASES name, table, filter column 0 KF / 1 ASIF).
+const TABLE_CASES: [(&str, usize, usize); 4] =
+    [("kf-normal", 0, 0), ("proposed", 0, 1), ("kf-fault", 1, 0), ("asif-fault", 1, 1)];
+
+/// Mean over the 32 entries of ln(measured / paper)²; infinite if any
+/// entry is missing or not positive.
+pub fn loss(t: &Tables) -> f64 {
+    let paper = [PAPER_TABLE_I, PAPER_TABLE_II];
+    let mut sum = 0.0;
+    for (tab, want) in t.iter().zip(&paper) {
+        for (row, want_row) in tab.iter().zip(want) {
+            for (&got, &w) in row.iter().zip(want_row) {
+                if !(got > 0.0 && got.is_finite()) {
+                    return f64::INFINITY;
+                }
+                sum += (got / w).ln().powi(2);
+            }
+        }
+    }
+    sum / 32.0
+}
+
+/// Runs the four filter cases at `x` for `seeds` and returns both tables.
+fn evaluate(base: &Path, user: &[String], x: &[f64; 10], seeds: &[u64]) -> Result<Tables, CliError> {
+    let mut overrides = user.to_vec();
+    overrides.extend(sets(x));
+    let scenarios: Vec<Scenario> = TABLE_CASES
+        .iter()
+        .map(|(name, _, _)| {
+            let case = CASES.iter().find(|c| c.name == *name).expect("a paper case");
+            case_scenario(base, &overrides, case)
+        })
+        .collect::<Result<_, _>>()?;
+    let jobs: Vec<(usize, u64)> = (0..scenarios.len()).flat_map(|c| seeds.iter().map(move |&s| (c, s))).collect();
+    let runs: Vec<Result<(usize, formation_record::Summary), CliError>> =
+        jobs.par_iter().map(|&(c, seed)| run_seed(&scenarios[c], seed, None).map(|r| (c, r.summary))).collect();
+    let mut t: Tables = [[[0.0; 4]; 4]; 2];
+    for r in runs {
+        let (c, summary) = r?;
+        let (_, table, filter) = TABLE_CASES[c];
+        for (i, m) in summary.followers.values().take(4).enumerate() {
+            let n = seeds.len() as f64;
+            t[table][i][filter] += m.rmse_v.unwrap_or(f64::NAN) * 100.0 / n;
+            t[table][i][2 + filter] += m.rmse_w.unwrap_or(f64::NAN) * 100.0 / n;
+        }
+    }
+    Ok(t)
+}
+
+/// The point `x` with value `j` multiplied by e^h, kept in the box.
+fn moved(x: &[f64; 10], j: usize, h: f64) -> [f64; 10] {
+    let mut y = *x;
+    y[j] = (x[j] * h.exp()).clamp(PARAMS[j].lo, PARAMS[j].hi);
+    y
+}
+
+fn clamp_box(x: &[f64; 10]) -> [f64; 10] {
+    let mut y = *x;
+    for (v, p) in y.iter_mut().zip(&PARAMS) {
+        *v = v.clamp(p.lo, p.hi);
+    }
+    y
+}
+
+/// What the search found.
+pub struct Fit {
+    pub start: [f64; 10],
+    pub start_tables: Tables,
+    pub best: [f64; 10],
+    pub best_tables: Tables,
+    pub evaluations: usize,
+}
+
+/// The seeded search of the module docs, within `budget` evaluations
+/// (the start included).
+fn search(a: &CalibrateArgs, base: &Scenario, seeds: &[u64], bar: &ProgressBar) -> Result<Fit, CliError> {
+    let start = clamp_box(&values_of(base));
+    let eval = |x: &[f64; 10]| evaluate(&a.scenario, &a.overrides, x, seeds);
+    let start_tables = eval(&start)?;
+    let (mut best, mut best_tables, mut best_loss) = (start, start_tables, loss(&start_tables));
+    let mut used = 1;
+    let note = |used: usize, best_loss: f64| {
+        bar.set_position(used as u64);
+        bar.set_message(format!("best loss {best_loss:.4}"));
+    };
+    note(used, best_loss);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.search_seed);
+    let random = a.evaluations.saturating_sub(1) / 2;
+    for _ in 0..random {
+        let mut x = [0.0; 10];
+        for (v, p) in x.iter_mut().zip(&PARAMS) {
+            let u: f64 = rng.random();
+            *v = (p.lo.ln() + u * (p.hi.ln() - p.lo.ln())).exp();
+        }
+        let t = eval(&x)?;
+        used += 1;
+        if loss(&t) < best_loss {
+            (best, best_tables, best_loss) = (x, t, loss(&t));
+        }
+        note(used, best_loss);
+    }
+    let mut h = 0.5;
+    'search: while used < a.evaluations {
+        let mut improved = false;
+        for j in 0..PARAMS.len() {
+            for sign in [1.0, -1.0] {
+                if used >= a.evaluations {
+                    break 'search;
+                }
+                let x = moved(&best, j, sign * h);
+                if x == best {
+                    continue;
+                }
+                let t = eval(&x)?;
+                used += 1;
+                if loss(&t) < best_loss {
+                    (best, best_tables, best_loss) = (x, t, loss(&t));
+                    improved = true;
+                }
+                note(used, best_loss);
+            }
+        }
+        if !improved {
+            h /= 2.0;
+            if h < 0.01 {
+                break;
+            }
+        }
+    }
+    Ok(Fit { start, start_tables, best, best_tables, evaluations: used })
+}
+
+/// d ln(entry) / d ln(value) at `x`, `[entry][value]`, the entries in the
+/// order of [`entry_names`].
+fn sensitivity(a: &CalibrateArgs, x: &[f64; 10], seeds: &[u64]) -> Result<Vec<[f64; 10]>, CliError> {
+    const H: f64 = 0.1;
+    let mut out = vec![[0.0; 10]; 32];
+    for j in 0..PARAMS.len() {
+        let (up, down) = (moved(x, j, H), moved(x, j, -H));
+        let span = (up[j] / down[j]).ln();
+        let (tu, td) =
+            (evaluate(&a.scenario, &a.overrides, &up, seeds)?, evaluate(&a.scenario, &a.overrides, &down, seeds)?);
+        for (e, (u, d)) in flat(&tu).iter().zip(flat(&td)).enumerate() {
+            out[e][j] = if span > 0.0 { (u / d).ln() / span } else { 0.0 };
+        }
+    }
+    Ok(out)
+}
+
+/// The 32 entries in order: Table I then II, follower 1–4, the paper's columns.
+fn flat(t: &Tables) -> Vec<f64> {
+    t.iter().flat_map(|tab| tab.iter().flat_map(|row| row.iter().copied())).collect()
+}
+
+fn entry_names() -> Vec<String> {
+    let cols = ["KF linear", "ASIF linear", "KF angular", "ASIF angular"];
+    let mut out = Vec::new();
+    for table in ["I", "II"] {
+        for f in 1..=4 {
+            for c in cols {
+                out.push(format!("Table {table}, F{f}, {c}"));
+            }
+        }
+    }
+    out
+}
+
+pub fn run(a: &CalibrateArgs) -> Result<(), CliError> {
+    at_least_one("--seeds", a.seeds)?;
+    at_least_one("--evaluations", a.evaluations as u64)?;
+    crate::args::check_out_path("--out", &a.out, crate::args::MAX_OUT_NAME_BYTES)?;
+    let base = Scenario::load(&a.scenario, &a.overrides).map_err(|e| CliError::Input(e.to_string()))?;
+    if base.followers.len() != 4 {
+        return Err(CliError::Input(format!(
+            "{}: the paper's tables have 4 followers, this scenario {}",
+            a.scenario.display(),
+            base.followers.len()
+        )));
+    }
+    if base.duration_s <= crate::paper::PAPER_FAULT_TIME_S {
+        return Err(CliError::Input(format!(
+            "duration {} s: Table II needs the run past the fault at {} s",
+            base.duration_s,
+            crate::paper::PAPER_FAULT_TIME_S
+        )));
+    }
+    let seeds: Vec<u64> = (0..a.seeds).map(|i| base.seed + i).collect();
+    std::fs::create_dir_all(&a.out).map_err(at_path(&a.out, "cannot create the folder"))?;
+    let started = Instant::now();
+    let total = a.evaluations + 2 * PARAMS.len();
+    let bar = ProgressBar::with_draw_target(
+        Some(a.evaluations as u64),
+        if a.quiet { ProgressDrawTarget::hidden() } else { ProgressDrawTarget::stderr() },
+    );
+    bar.set_style(
+        ProgressStyle::with_template("calibrate [{bar:30}] {pos}/{len} evaluations {elapsed} (eta {eta}) {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let fit = search(a, &base, &seeds, &bar)?;
+    bar.finish_and_clear();
+    if !a.quiet {
+        eprintln!("calibrate: the sensitivity at the best point ({} more evaluations) …", 2 * PARAMS.len());
+    }
+    let sens = sensitivity(a, &fit.best, &seeds)?;
+    let took = started.elapsed().as_secs_f64();
+    let command = command_line(a);
+    write_outputs(&a.out, &fit, &sens, &command, took, total, seeds.len())?;
+    let (l0, l1) = (loss(&fit.start_tables), loss(&fit.best_tables));
+    println!(
+        "loss {l0:.4} at the scenario's values, {l1:.4} at the best of {} evaluations ({took:.1} s); wrote {}",
+        fit.evaluations,
+        a.out.join("calibration.md").display()
+    );
+    Ok(())
+}
+
+fn command_line(a: &CalibrateArgs) -> String {
+    let mut c = format!("formation calibrate --scenario {} --seeds {}", a.scenario.display(), a.seeds);
+    for o in &a.overrides {
+        c += &format!(" --set {o}");
+    }
+    c += &format!(" --evaluations {} --search-seed {} --out {}", a.evaluations, a.search_seed, a.out.display());
+    c
+}
+
+fn write_outputs(
+    out: &Path,
+    fit: &Fit,
+    sens: &[[f64; 10]],
+    command: &str,
+    took: f64,
+    total: usize,
+    seeds: usize,
+) -> Result<(), CliError> {
+    let write = |name: &str, text: &str| {
+        let p = out.join(name);
+        std::fs::write(&p, text).map_err(at_path(&p, "cannot write"))
+    };
+    let names = entry_names();
+    let paper: Vec<f64> = flat(&[PAPER_TABLE_I, PAPER_TABLE_II]);
+    let (before, after) = (flat(&fit.start_tables), flat(&fit.best_tables));
+    // calibration.csv: every entry.
+    let mut csv = String::from("entry,paper,scenario_values,fitted,scenario_rel_err,fitted_rel_err\n");
+    for e in 0..32 {
+        let _ = writeln!(
+            csv,
+            "\"{}\",{},{},{},{},{}",
+            names[e],
+            paper[e],
+            before[e],
+            after[e],
+            before[e] / paper[e] - 1.0,
+            after[e] / paper[e] - 1.0
+        );
+    }
+    write("calibration.csv", &csv)?;
+    let mut s = String::from("entry");
+    for p in &PARAMS {
+        s += &format!(",\"{}\"", p.name);
+    }
+    s.push('\n');
+    for (e, row) in sens.iter().enumerate() {
+        s += &format!("\"{}\"", names[e]);
+        for v in row {
+            s += &format!(",{v}");
+        }
+        s.push('\n');
+    }
+    write("sensitivity.csv", &s)?;
+    write("sensitivity.svg", &heatmap(&names, sens))?;
+    write("fitted.txt", &(sets(&fit.best).join("\n") + "\n"))?;
+
+    let mut md = String::new();
+    let _ = writeln!(md, "# Calibration of the decided values against Tables I and II\n");
+    let _ = writeln!(md, "Made by `{command}` in {took:.1} s ({} evaluations and {} for the sensitivity, {seeds} seed(s) each, of the four filter cases).\n", fit.evaluations, total - fit.evaluations.min(total));
+    let _ = writeln!(
+        md,
+        "Loss: the mean over the 32 entries of ln(measured / paper)². At the scenario's values {:.4} \
+         (a typical entry off by a factor e^√loss = {:.2}); fitted {:.4} ({:.2}).\n",
+        loss(&fit.start_tables),
+        loss(&fit.start_tables).sqrt().exp(),
+        loss(&fit.best_tables),
+        loss(&fit.best_tables).sqrt().exp()
+    );
+    let _ = writeln!(md, "## The values\n\n| value | scenario | fitted | allowed | moved | why that range |\n| --- | --- | --- | --- | --- | --- |");
+    for (j, p) in PARAMS.iter().enumerate() {
+        let moved = (fit.best[j] / fit.start[j]).ln().abs() > 0.05;
+        let _ = writeln!(
+            md,
+            "| {} ({}) | {} | {} | {}–{} | {} | {} |",
+            p.name,
+            p.unit,
+            sig(fit.start[j]),
+            sig(fit.best[j]),
+            sig(p.lo),
+            sig(p.hi),
+            if moved { format!("×{:.2}", fit.best[j] / fit.start[j]) } else { "no".into() },
+            p.why
+        );
+    }
+    let _ = writeln!(
+        md,
+        "\n## The fit (×10⁻²)\n\n| entry | paper | scenario's values | fitted |\n| --- | --- | --- | --- |"
+    );
+    for e in 0..32 {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.3} ({:+.0} %) | {:.3} ({:+.0} %) |",
+            names[e],
+            paper[e],
+            before[e],
+            (before[e] / paper[e] - 1.0) * 100.0,
+            after[e],
+            (after[e] / paper[e] - 1.0) * 100.0
+        );
+    }
+    let _ = writeln!(
+        md,
+        "\n## Sensitivity at the fitted values\n\n`sensitivity.svg` and `sensitivity.csv`: each entry's elasticity \
+         d ln(entry) / d ln(value) (0.5: the entry grows 0.5 % when the value grows 1 %).\n\n![sensitivity](sensitivity.svg)\n"
+    );
+    write("calibration.md", &md)?;
+    Ok(())
+}
+
+fn sig(x: f64) -> String {
+    if x == 0.0 {
+        "0".into()
+    } else if x.abs() >= 0.01 && x.abs() < 1000.0 {
+        format!("{}", (x * 1e4).round() / 1e4)
+    } else {
+        format!("{x:.3e}")
+    }
+}
+
+/// A heat map of the elasticities: entries down, values across, blue
+/// negative, red positive, saturating at ±2.
+fn heatmap(names: &[String], sens: &[[f64; 10]]) -> String {
+    let (cell_w, cell_h, left, top) = (64.0, 16.0, 190.0, 120.0);
+    let w = left + cell_w * PARAMS.len() as f64 + 20.0;
+    let h = top + cell_h * names.len() as f64 + 40.0;
+    let mut s = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"10\">\n\
+         <rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n\
+         <text x=\"8\" y=\"16\" font-size=\"13\">d ln(entry) / d ln(value) at the fitted values (blue −, red +, ±2 full)</text>\n"
+    );
+    for (j, p) in PARAMS.iter().enumerate() {
+        let x = left + cell_w * (j as f64 + 0.5);
+        let _ = writeln!(
+            s,
+            "<text x=\"{x}\" y=\"{}\" transform=\"rotate(-45 {x} {})\" text-anchor=\"start\">{}</text>",
+            top - 6.0,
+            top - 6.0,
+            p.name
+        );
+    }
+    for (e, row) in sens.iter().enumerate() {
+        let y = top + cell_h * e as f64;
+        let _ = writeln!(s, "<text x=\"{}\" y=\"{}\" text-anchor=\"end\">{}</text>", left - 6.0, y + 12.0, names[e]);
+        for (j, &v) in row.iter().enumerate() {
+            let t = (v / 2.0).clamp(-1.0, 1.0);
+            let (r, g, b) = if t >= 0.0 {
+                (255.0, 255.0 * (1.0 - t), 255.0 * (1.0 - t))
+            } else {
+                (255.0 * (1.0 + t), 255.0 * (1.0 + t), 255.0)
+            };
+            let x = left + cell_w * j as f64;
+            let _ = writeln!(
+                s,
+                "<rect x=\"{x}\" y=\"{y}\" width=\"{cell_w}\" height=\"{cell_h}\" fill=\"rgb({},{},{})\" stroke=\"#ddd\"/>\
+                 <text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{:.2}</text>",
+                r as u8,
+                g as u8,
+                b as u8,
+                x + cell_w / 2.0,
+                y + 12.0,
+                v
+            );
+        }
+    }
+    s.push_str("</svg>\n");
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_loss_is_zero_at_the_paper_and_grows_with_any_entry() {
+        let paper: Tables = [PAPER_TABLE_I, PAPER_TABLE_II];
+        assert_eq!(loss(&paper), 0.0);
+        let mut off = paper;
+        off[1][0][2] *= 2.0;
+        let l = loss(&off);
+        assert!((l - 2f64.ln().powi(2) / 32.0).abs() < 1e-15, "{l}");
+        off[0][3][1] = 0.0;
+        assert_eq!(loss(&off), f64::INFINITY, "a missing entry");
+    }
+
+    #[test]
+    fn every_value_has_a_set_key_and_a_box_that_holds_the_paper_scenarios_values() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+        let s = Scenario::load(&path, &[]).expect("paper");
+        let x = values_of(&s);
+        let again = Scenario::load(&path, &sets(&x)).expect("the --set keys load");
+        assert_eq!(values_of(&again), x, "the keys set exactly the values read");
+        for (v, p) in x.iter().zip(&PARAMS) {
+            assert!(p.lo < p.hi && p.lo > 0.0, "{}", p.name);
+            assert!((p.lo..=p.hi).contains(v), "{} = {v} outside {}–{}", p.name, p.lo, p.hi);
+        }
+        assert_eq!(entry_names().len(), 32);
+    }
+}
