@@ -19,9 +19,7 @@ any process that reaches its ports can read it, forge estimates or abort the run
 /// Set by `formation launch` and the lab on the nodes they start: the run
 /// has said [`UNAUTHENTICATED`] once already.
 pub const LAUNCHED_ENV: &str = "FORMATION_LAUNCHED";
-/// Set by `formation launch` on the nodes it starts: the file their zenoh
-/// log lines go to (appended), instead of stderr.
-pub const ZENOH_LOG_ENV: &str = "FORMATION_ZENOH_LOG";
+pub use crate::session::ZENOH_LOG_ENV;
 
 /// [`UNAUTHENTICATED`] on stderr for a node started by hand without `--tls`.
 pub fn warn_if_unauthenticated(zenoh: &ZenohArgs) {

@@ -371,14 +371,18 @@ pub async fn open(args: &ZenohArgs) -> Result<zenoh::Session, SessionError> {
     Ok(session)
 }
 
-/// The line a node writes into its zenoh log (`crate::node::ZENOH_LOG_ENV`)
+/// Set by `formation launch` on the nodes it starts: the file their zenoh
+/// log lines go to (appended), instead of stderr.
+pub const ZENOH_LOG_ENV: &str = "FORMATION_ZENOH_LOG";
+
+/// The line a node writes into its zenoh log ([`ZENOH_LOG_ENV`])
 /// when a session opens, so that the launch can name the node behind a zid
 /// in zenoh's own lines ("… to 30e9b3…. Closing transport!").
 pub const ZID_NOTE: &str = "formation: this node's zenoh id is ";
 
 fn note_zid(zid: &str) {
     use std::io::Write;
-    let Some(path) = std::env::var_os(crate::node::ZENOH_LOG_ENV) else { return };
+    let Some(path) = std::env::var_os(ZENOH_LOG_ENV) else { return };
     if let Ok(mut f) = std::fs::OpenOptions::new().create(true).append(true).open(path) {
         let _ = writeln!(f, "{ZID_NOTE}{zid}");
     }
