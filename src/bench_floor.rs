@@ -250,14 +250,7 @@ pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32]) -> Result<(), E
     }
     for (i, &n) in rings.iter().enumerate() {
         let tmp = std::env::temp_dir().join(format!("formation-bench-floor-{}-ring{n}", std::process::id()));
-        std::fs::create_dir_all(&tmp).map_err(|e| Error::Run(format!("{}: {e}", tmp.display())))?;
-        let spec = formation_topology::generate::Spec {
-            chords: n / 5,
-            ..formation_topology::generate::Spec::new(n, formation_topology::generate::GraphKind::Ring)
-        };
-        let text = formation_topology::generate::toml(&spec).map_err(|e| Error::Input(e.to_string()))?;
-        let file = tmp.join(format!("ring{n}.toml"));
-        std::fs::write(&file, text).map_err(|e| Error::Run(format!("{}: {e}", file.display())))?;
+        let file = crate::bench_net::ring_file(&tmp, n)?;
         let ring_ids: Vec<u32> = formation_topology::Scenario::load(&file, &[])
             .map_err(|e| Error::Input(e.to_string()))?
             .graph
