@@ -48,31 +48,7 @@ struct Waiting<H> {
     wake: tokio::sync::Notify,
 }
 
-/// A barrier machine's count of first-heard things.
-trait News {
-    fn news(&self) -> u64;
-    fn next_tick(&mut self, now: formation_protocol::Now) -> Duration;
-}
-
-impl News for Join {
-    fn news(&self) -> u64 {
-        Join::news(self)
-    }
-    fn next_tick(&mut self, now: formation_protocol::Now) -> Duration {
-        Join::next_tick(self, now)
-    }
-}
-
-impl News for Lead {
-    fn news(&self) -> u64 {
-        Lead::news(self)
-    }
-    fn next_tick(&mut self, now: formation_protocol::Now) -> Duration {
-        Lead::next_tick(self, now)
-    }
-}
-
-impl<H: Hears + News> Waiting<H> {
+impl<H: Hears> Waiting<H> {
     fn new(machine: H) -> Arc<Self> {
         Arc::new(Self { machine: Mutex::new(machine), wake: tokio::sync::Notify::new() })
     }
@@ -103,7 +79,7 @@ impl<H: Hears + News> Waiting<H> {
     }
 }
 
-async fn listen<H: Hears + News + Send + 'static>(
+async fn listen<H: Hears + Send + 'static>(
     session: &zenoh::Session,
     keys: &Keys,
     waiting: &Arc<Waiting<H>>,

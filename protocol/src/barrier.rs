@@ -4,7 +4,7 @@
 //! side knows of a subscription is silently lost. So before anything steps:
 //! every node declares its subscribers, then repeats `hello` every 50 ms
 //! (every second once it has heard nothing new for 2 s; anything new wakes
-//! it at once, see [`Join::next_tick`]). A
+//! it at once, see [`Hears::next_tick`]). A
 //! node is *ready* once it has heard the `hello` of every node it receives
 //! from (an agent: its neighbours and, if a_i0 = 1, the leader; the monitor:
 //! everybody): the same transport that carried the hello carried the
@@ -263,6 +263,14 @@ pub trait Hears {
     fn on_start(&mut self, start: Start, now: Now);
     /// The leader's refusal of the run (the leader itself ignores it).
     fn on_abort(&mut self, reason: &str);
+    /// Counts what was heard for the first time (a node's hello or ready,
+    /// the start, a refusal): the caller wakes the node (polls at once) when
+    /// it changes.
+    fn news(&self) -> u64;
+    /// How long to wait after the tick at `now` before the next one (unless
+    /// [`Hears::news`] changes first): [`TICK`], or [`IDLE_TICK`] once
+    /// nothing new was heard for [`QUIET_AFTER`].
+    fn next_tick(&mut self, now: Now) -> Duration;
 }
 
 impl Hears for Join {
@@ -278,6 +286,12 @@ impl Hears for Join {
     fn on_abort(&mut self, reason: &str) {
         self.heard.on_abort(reason);
     }
+    fn news(&self) -> u64 {
+        self.heard.news
+    }
+    fn next_tick(&mut self, now: Now) -> Duration {
+        self.quiet.next_tick(self.heard.news, now)
+    }
 }
 
 impl Hears for Lead {
@@ -289,6 +303,12 @@ impl Hears for Lead {
     }
     fn on_start(&mut self, _: Start, _: Now) {}
     fn on_abort(&mut self, _: &str) {}
+    fn news(&self) -> u64 {
+        self.heard.news
+    }
+    fn next_tick(&mut self, now: Now) -> Duration {
+        self.quiet.next_tick(self.heard.news, now)
+    }
 }
 
 /// What a node waiting for the start does at a tick.
@@ -341,25 +361,12 @@ impl Join {
         }
     }
 
-    /// Counts what this node heard for the first time; the caller wakes
-    /// the node (polls at once) when it changes.
-    pub fn news(&self) -> u64 {
-        self.heard.news
-    }
-
-    /// How long to wait after the tick at `now` before the next one (unless
-    /// [`Join::news`] changes first): [`TICK`], or [`IDLE_TICK`] once nothing
-    /// new was heard for [`QUIET_AFTER`].
-    pub fn next_tick(&mut self, now: Now) -> Duration {
-        self.quiet.next_tick(self.heard.news, now)
-    }
-
     /// Start and Ready messages ignored (another scenario, or an unexpected sender).
     pub fn ignored(&self) -> u64 {
         self.heard.ignored
     }
 
-    /// What to do at `now` (called every tick, [`Join::next_tick`]).
+    /// What to do at `now` (called every tick, [`Hears::next_tick`]).
     pub fn poll(&mut self, now: Now) -> JoinStep {
         let (me, run, h) = (&self.me, &self.run, &self.heard);
         if let Some(start) = h.start {
@@ -472,22 +479,12 @@ impl Lead {
         }
     }
 
-    /// As [`Join::news`].
-    pub fn news(&self) -> u64 {
-        self.heard.news
-    }
-
-    /// As [`Join::next_tick`].
-    pub fn next_tick(&mut self, now: Now) -> Duration {
-        self.quiet.next_tick(self.heard.news, now)
-    }
-
     /// Start and Ready messages ignored (another scenario, or an unexpected sender).
     pub fn ignored(&self) -> u64 {
         self.heard.ignored
     }
 
-    /// What to do at `now` (called every tick, [`Join::next_tick`]).
+    /// What to do at `now` (called every tick, [`Hears::next_tick`]).
     pub fn poll(&mut self, now: Now) -> LeadStep {
         let (run, h) = (&self.run, &self.heard);
         let hello_missing = h.missing(&h.hello, &self.needs_hello);
