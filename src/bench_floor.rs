@@ -33,6 +33,20 @@ pub struct FloorArgs {
     pub seconds: f64,
 }
 
+/// Writes the benchmarks' ring of `n` agents (n/5 chords) into a new
+/// folder `tmp`; its scenario file.
+pub fn ring_file(tmp: &std::path::Path, n: u32) -> Result<std::path::PathBuf, Error> {
+    std::fs::create_dir_all(tmp).map_err(|e| Error::Run(format!("{}: {e}", tmp.display())))?;
+    let spec = formation_topology::generate::Spec {
+        chords: n / 5,
+        ..formation_topology::generate::Spec::new(n, formation_topology::generate::GraphKind::Ring)
+    };
+    let text = formation_topology::generate::toml(&spec).map_err(|e| Error::Input(e.to_string()))?;
+    let file = tmp.join(format!("ring{n}.toml"));
+    std::fs::write(&file, text).map_err(|e| Error::Run(format!("{}: {e}", file.display())))?;
+    Ok(file)
+}
+
 /// Runs one floor process.
 pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
     let identity = if a.id == 0 { "leader".to_string() } else { formation_net::names::agent_name(a.id) };
@@ -250,7 +264,7 @@ pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32]) -> Result<(), E
     }
     for (i, &n) in rings.iter().enumerate() {
         let tmp = std::env::temp_dir().join(format!("formation-bench-floor-{}-ring{n}", std::process::id()));
-        let file = crate::bench_net::ring_file(&tmp, n)?;
+        let file = ring_file(&tmp, n)?;
         let ring_ids: Vec<u32> = formation_topology::Scenario::load(&file, &[])
             .map_err(|e| Error::Input(e.to_string()))?
             .graph

@@ -412,25 +412,11 @@ fn cpu_s(who: libc::c_int) -> f64 {
     s(u.ru_utime) + s(u.ru_stime)
 }
 
-/// Writes the benchmarks' ring of `n` agents (n/5 chords) into a new
-/// folder `tmp`; its scenario file.
-pub fn ring_file(tmp: &std::path::Path, n: u32) -> Result<PathBuf, Error> {
-    std::fs::create_dir_all(tmp).map_err(|e| Error::Run(format!("{}: {e}", tmp.display())))?;
-    let spec = formation_topology::generate::Spec {
-        chords: n / 5,
-        ..formation_topology::generate::Spec::new(n, formation_topology::generate::GraphKind::Ring)
-    };
-    let text = formation_topology::generate::toml(&spec).map_err(|e| Error::Input(e.to_string()))?;
-    let file = tmp.join(format!("ring{n}.toml"));
-    std::fs::write(&file, text).map_err(|e| Error::Run(format!("{}: {e}", file.display())))?;
-    Ok(file)
-}
-
 /// `n` agents on a generated ring as clients of one router, `group`
 /// followers per agent process, ports from `port`.
 fn scale(a: &BenchNetArgs, n: u32, group: usize, port: u16) -> Result<Scale, Error> {
     let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-scale{n}-{group}", std::process::id()));
-    let file = ring_file(&tmp, n)?;
+    let file = crate::bench_floor::ring_file(&tmp, n)?;
     let launch = |sets: Vec<String>, p: u16, out: &str, run: &str| {
         let mut l = launch_args(&BenchNetArgs { scenario: file.clone(), ..a.clone() }, &sets, p, tmp.join(out), run);
         l.mode = LaunchMode::Client;
