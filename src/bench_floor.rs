@@ -283,8 +283,9 @@ pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32]) -> Result<(), E
     c.env(formation_net::node::LAUNCHED_ENV, "1").stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
     let mut idle = c.spawn().map_err(|e| Error::Run(format!("starting the idle agent: {e}")))?;
     let window = Duration::from_secs(5);
-    // From 4 s: past the barrier's first 2 s of fast ticks (steady idle).
-    let per = sample(&["agent", &idle_run], Duration::from_secs(4), window, 1.0);
+    // From 12 s: past the barrier's first 2 s of fast ticks and the clock
+    // questions' first 10 s (steady idle).
+    let per = sample(&["agent", &idle_run], Duration::from_secs(12), window, 1.0);
     let _ = idle.kill();
     let _ = idle.wait();
     let share = per.first().copied().unwrap_or(f64::NAN) / 1e6 * 100.0;

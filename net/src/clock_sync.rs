@@ -29,9 +29,11 @@ pub const EVERY: Duration = Duration::from_millis(250);
 const FIRST_EVERY: Duration = Duration::from_millis(20);
 const FIRST: u32 = 10;
 /// How often a node never answered for [`UNANSWERED_AFTER`] asks (or at
-/// once when it hears the leader's start).
+/// once when it hears the leader's start). Before that, as always: nodes
+/// started together meet well within it, and their clocks are estimated
+/// exactly as before.
 const UNANSWERED_EVERY: Duration = Duration::from_secs(1);
-const UNANSWERED_AFTER: Duration = Duration::from_secs(2);
+const UNANSWERED_AFTER: Duration = Duration::from_secs(10);
 /// A question unanswered this long is lost.
 const TIMEOUT: Duration = Duration::from_secs(1);
 
@@ -82,8 +84,8 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
     Following(tokio::spawn(async move {
         // The leader's start announcements (every 100 ms through the run)
         // carry its timebase when sent: a floor no answer may fall below.
-        // They also wake a node that has never been answered (the leader
-        // not there yet, asked once a second) to ask at once.
+        // They also wake a node that has never been answered (no leader
+        // for a while, asked once a second) to ask at once.
         let stamps = timebase.clone();
         let heard_start = std::sync::Arc::new(tokio::sync::Notify::new());
         let wake = heard_start.clone();
@@ -103,8 +105,9 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
         loop {
             let answers = ask_all(&session, &key).await;
             timebase.add_answers(&answers);
-            // Never answered after a while (no leader yet): one question a
-            // second, so that a node waiting idle costs next to nothing.
+            // Never answered for UNANSWERED_AFTER (no leader yet, long after
+            // a launch's nodes have met): one question a second, so that a
+            // node waiting idle costs next to nothing.
             answered |= !answers.is_empty();
             if !answered && began.elapsed() > UNANSWERED_AFTER {
                 tokio::select! {
@@ -156,15 +159,7 @@ const MAX_ANSWERS: usize = 8;
 pub async fn ask_all(session: &zenoh::Session, key: &str) -> Vec<Exchange> {
     let t1 = clock::mono_ns();
     let mut answers = Vec::new();
-    // Droppable (the answer travels with the question's congestion control;
-    // zenoh's default for queries is `Block`): a lost exchange is one
-    // missed sample, and no router or queue ever waits for a clock answer.
-    let Ok(replies) = session
-        .get(key)
-        .consolidation(zenoh::query::ConsolidationMode::None)
-        .congestion_control(zenoh::qos::CongestionControl::Drop)
-        .timeout(TIMEOUT)
-        .await
+    let Ok(replies) = session.get(key).consolidation(zenoh::query::ConsolidationMode::None).timeout(TIMEOUT).await
     else {
         return answers;
     };

@@ -11,10 +11,9 @@
 //!   before they are decoded or forwarded.
 //! - Real-time runs only (lock-step estimates are needed, every one, and
 //!   the loops wait for them by design):
-//!   - `qos/network` overwrites every put and query under `formation/**`
-//!     to `congestion_control: drop` (a query's answers travel with the
-//!     query's), so a client that publishes or asks with `Block` cannot
-//!     make a router (or a peer) wait for a slow link;
+//!   - `qos/network` overwrites every put under `formation/**` to
+//!     `congestion_control: drop`, so a client that publishes with `Block`
+//!     cannot make a router (or a peer) wait for a slow link;
 //!   - `downsampling`, on routers only: each node's estimate key at most
 //!     [`RATE_FACTOR`] times the run's step rate, one rule per key (zenoh
 //!     keeps one clock per rule and transport). Without it a certified agent that flooded
@@ -106,7 +105,7 @@ impl Traffic {
         if self.realtime {
             out.push((
                 "qos/network",
-                json!([{ "id": "formation-never-block", "flows": ["ingress"], "messages": ["put", "query"],
+                json!([{ "id": "formation-never-block", "flows": ["ingress"], "messages": ["put"],
                          "key_exprs": ["formation/**"], "overwrite": { "congestion_control": "drop" } }]),
             ));
             // Routers only: a router multiplies a flood to every node behind
@@ -157,7 +156,6 @@ mod tests {
         assert_eq!(rules[2]["key_expr"], "formation/*/estimate/2", "{rules}");
         assert_eq!(rules[2]["freq"], 5_000.0, "{rules}");
         assert_eq!(s[1].1[0]["overwrite"]["congestion_control"], "drop", "{}", s[1].1);
-        assert_eq!(s[1].1[0]["messages"], json!(["put", "query"]), "{}", s[1].1);
         assert_eq!(s[0].1[1]["size_limit"], 50 * 512 + 65_536, "{}", s[0].1);
     }
 
