@@ -328,7 +328,6 @@ pub fn run(a: &CalibrateArgs) -> Result<(), CliError> {
     let seeds: Vec<u64> = (0..a.seeds).map(|i| base.seed + i).collect();
     std::fs::create_dir_all(&a.out).map_err(at_path(&a.out, "cannot create the folder"))?;
     let started = Instant::now();
-    let total = a.evaluations + 2 * PARAMS.len();
     let bar = ProgressBar::with_draw_target(
         Some(a.evaluations as u64),
         if a.quiet { ProgressDrawTarget::hidden() } else { ProgressDrawTarget::stderr() },
@@ -346,7 +345,7 @@ pub fn run(a: &CalibrateArgs) -> Result<(), CliError> {
     let sens = sensitivity(a, &fit.best, &seeds)?;
     let took = started.elapsed().as_secs_f64();
     let command = command_line(a);
-    write_outputs(&a.out, &fit, &sens, &command, took, total, seeds.len())?;
+    write_outputs(&a.out, &fit, &sens, &command, took, seeds.len())?;
     let (l0, l1) = (loss(&fit.start_tables), loss(&fit.best_tables));
     println!(
         "loss {l0:.4} at the scenario's values, {l1:.4} at the best of {} evaluations ({took:.1} s); wrote {}",
@@ -371,7 +370,6 @@ fn write_outputs(
     sens: &[[f64; 10]],
     command: &str,
     took: f64,
-    total: usize,
     seeds: usize,
 ) -> Result<(), CliError> {
     let write = |name: &str, text: &str| {
@@ -414,7 +412,7 @@ fn write_outputs(
 
     let mut md = String::new();
     let _ = writeln!(md, "# Calibration of the decided values against Tables I and II\n");
-    let _ = writeln!(md, "Made by `{command}` in {took:.1} s ({} evaluations and {} for the sensitivity, {seeds} seed(s) each, of the four filter cases).\n", fit.evaluations, total - fit.evaluations.min(total));
+    let _ = writeln!(md, "Made by `{command}` in {took:.1} s ({} evaluations and {} for the sensitivity, {seeds} seed(s) each, of the four filter cases).\n", fit.evaluations, 2 * PARAMS.len());
     let _ = writeln!(
         md,
         "Loss: the mean over the 32 entries of ln(measured / paper)². At the scenario's values {:.4} \
