@@ -31,6 +31,12 @@ pub struct FloorArgs {
     /// How long to publish (s).
     #[arg(long)]
     pub seconds: f64,
+    /// Lock-step: publish step k only once every source's step k − 1 is in
+    /// (the leader: while the slowest follower that hears it is within
+    /// the leader's window), as fast as that allows, for `--seconds / Δt`
+    /// steps; print the steady rate (the middle half of the steps).
+    #[arg(long)]
+    pub lockstep: bool,
 }
 
 /// Writes the benchmarks' ring of `n` agents (n/5 chords) into a new
@@ -59,6 +65,9 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
         if scenario.graph.hears_leader(i) {
             sources.push(wire::LEADER_ID);
         }
+    }
+    if a.lockstep {
+        return lockstep_node(a, &session, &keys, &scenario, sources).await;
     }
     let received = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
     let mut subs = Vec::new();
@@ -102,6 +111,231 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
     drop(subs);
     let _ = session.close().await;
     Ok(())
+}
+
+/// What a lock-step floor process has heard: each source's newest step.
+struct Heard {
+    newest: std::sync::Mutex<Vec<Option<u64>>>,
+    moved: std::sync::Condvar,
+}
+
+/// `--lockstep`: see [`FloorArgs::lockstep`]. A follower publishes step k,
+/// then waits for every source's step k (repeating its newest message
+/// every 10 ms while it waits, which also carries the start: a process
+/// that comes late hears it). The leader waits for the followers that
+/// hear it, at most the leader's window ahead of the slowest. Prints
+/// `steps/s R` on stdout.
+async fn lockstep_node(
+    a: &FloorArgs,
+    session: &zenoh::Session,
+    keys: &formation_net::names::Keys,
+    scenario: &formation_topology::Scenario,
+    sources: Vec<u32>,
+) -> Result<(), formation_net::Error> {
+    let leader = a.id == 0;
+    // The leader waits for the followers that hear it; a follower for its sources.
+    let waits: Vec<u32> = if leader {
+        (0..scenario.followers.len())
+            .filter(|&i| scenario.graph.hears_leader(i))
+            .map(|i| scenario.graph.id(i))
+            .collect()
+    } else {
+        sources
+    };
+    let heard = std::sync::Arc::new(Heard {
+        newest: std::sync::Mutex::new(vec![None; waits.len()]),
+        moved: std::sync::Condvar::new(),
+    });
+    let mut subs = Vec::new();
+    for (slot, &s) in waits.iter().enumerate() {
+        let h = heard.clone();
+        let sub = session
+            .declare_subscriber(keys.estimate(s))
+            .callback(move |sample| {
+                if let Ok(m) = wire::decode(&sample.payload().to_bytes()) {
+                    let mut n = h.newest.lock().unwrap_or_else(|p| p.into_inner());
+                    if n[slot].is_none_or(|k| m.header.step > k) {
+                        n[slot] = Some(m.header.step);
+                        h.moved.notify_one();
+                    }
+                }
+            })
+            .await
+            .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+        subs.push(sub);
+    }
+    let publisher = session
+        .declare_publisher(keys.estimate(a.id))
+        .congestion_control(formation_net::node::estimate_congestion(scenario))
+        .priority(formation_net::node::priority::ESTIMATE)
+        .express(formation_net::node::estimate_express(scenario))
+        .await
+        .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+    let steps = (a.seconds / scenario.dt_s).round() as u64;
+    let dt = scenario.dt_s;
+    let rate = tokio::task::spawn_blocking(move || -> Result<f64, String> {
+        let msg = |k: u64| {
+            wire::encode(&EstimateMsg {
+                header: Header { version: FORMAT_VERSION, sender: 0, step: k, time_s: k as f64 * dt, sent_ns: 0 },
+                state: Default::default(),
+                fresh: true,
+            })
+        };
+        let (from, to) = (steps / 4, 3 * steps / 4);
+        let mut marks = (Instant::now(), Instant::now());
+        for k in 0..=steps {
+            // What step k waits for: the sources' k − 1 (a follower); the
+            // slowest hearing follower within the window, and at the start
+            // every one of them (the leader).
+            let need = match (leader, k) {
+                (false, 0) => None,
+                (false, k) => Some(k - 1),
+                (true, 0) => None,
+                (true, 1) => Some(0),
+                (true, k) => k.checked_sub(formation_net::gate::WINDOW),
+            };
+            let bytes = msg(k.saturating_sub(1));
+            let mut n = heard.newest.lock().unwrap_or_else(|p| p.into_inner());
+            let began = Instant::now();
+            while let Some(need) = need {
+                if n.iter().all(|h| h.is_some_and(|s| s >= need)) {
+                    break;
+                }
+                let (g, t) = heard.moved.wait_timeout(n, Duration::from_millis(10)).unwrap_or_else(|p| p.into_inner());
+                n = g;
+                if t.timed_out() {
+                    if began.elapsed() > Duration::from_secs(30) {
+                        return Err(format!("no step {need} from every source for 30 s"));
+                    }
+                    if k > 0 {
+                        let _ = publisher.put(bytes.clone()).wait();
+                    }
+                }
+            }
+            drop(n);
+            if k == from {
+                marks.0 = Instant::now();
+            }
+            if k == to {
+                marks.1 = Instant::now();
+            }
+            let _ = publisher.put(msg(k)).wait();
+        }
+        Ok((to - from) as f64 / (marks.1 - marks.0).as_secs_f64().max(1e-9))
+    })
+    .await
+    .map_err(|e| formation_net::Error::Run(e.to_string()))?
+    .map_err(|e| formation_net::Error::Run(format!("{}: {e}", a.id)))?;
+    // Neighbours may still wait for the last steps: keep repeating them a while.
+    let _ = rate;
+    println!("steps/s {rate:.1}");
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    drop(subs);
+    let _ = session.close().await;
+    Ok(())
+}
+
+/// Starts the floor's processes (a router first for `Clients`, then the
+/// leader's stand-in and one per follower of `ids`), `extra` added to each
+/// floor process's arguments, their stdout piped.
+#[allow(clippy::too_many_arguments)]
+fn floor_processes(
+    exe: &std::path::Path,
+    scenario: &std::path::Path,
+    ids: &[u32],
+    links: Links,
+    port: u16,
+    sets: &[String],
+    run: &str,
+    extra: &[String],
+) -> Result<Vec<std::process::Child>, Error> {
+    let mut children = Vec::new();
+    let quiet = |c: &mut Command| {
+        c.env(formation_net::node::LAUNCHED_ENV, "1").stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
+    };
+    let router = format!("tcp/127.0.0.1:{port}");
+    if links == Links::Clients {
+        let mut c = Command::new(exe);
+        c.args(["node", "router", "--mode", "router", "--listen", &router, "--scenario"]).arg(scenario);
+        for set in sets {
+            c.args(["--set", set]);
+        }
+        formation_net::session::router_runtime(&mut c, formation_topology::Timing::Realtime);
+        quiet(&mut c);
+        children.push(c.spawn().map_err(|e| Error::Run(format!("starting the floor's router: {e}")))?);
+    }
+    let all: Vec<u32> = std::iter::once(0).chain(ids.iter().copied()).collect();
+    for (n, &id) in all.iter().enumerate() {
+        let mut c = Command::new(exe);
+        c.args(["node", "floor", "--scenario"]).arg(scenario).args(["--run", run, "--id", &id.to_string()]);
+        c.args(extra);
+        match links {
+            Links::Peers => {
+                c.args(["--no-gossip", "--listen", &format!("tcp/127.0.0.1:{}", port + 1 + n as u16)]);
+                for m in 0..n {
+                    c.args(["--connect", &format!("tcp/127.0.0.1:{}", port + 1 + m as u16)]);
+                }
+            }
+            Links::Clients => {
+                c.args(["--mode", "client", "--connect", &router]);
+            }
+        }
+        for set in sets {
+            c.args(["--set", set]);
+        }
+        quiet(&mut c);
+        c.stdout(Stdio::piped());
+        match c.spawn() {
+            Ok(child) => children.push(child),
+            Err(e) => {
+                for mut c in children {
+                    let _ = c.kill();
+                    let _ = c.wait();
+                }
+                return Err(Error::Run(format!("starting a floor process: {e}")));
+            }
+        }
+    }
+    Ok(children)
+}
+
+/// Lock-step's floor: the floor processes of `ids` (as [`FloorArgs::lockstep`])
+/// stepping `seconds / Δt` steps as fast as their messages allow; the
+/// median over the processes of each one's steady rate (steps/s, the
+/// middle half of its steps).
+pub fn lockstep_rate(
+    scenario: &std::path::Path,
+    sets: &[String],
+    seconds: f64,
+    clients: bool,
+    port: u16,
+) -> Result<f64, Error> {
+    let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
+    let s = formation_topology::Scenario::load(scenario, sets).map_err(|e| Error::Input(e.to_string()))?;
+    let links = if clients { Links::Clients } else { Links::Peers };
+    let run = format!("floorls{}", std::process::id());
+    let extra = ["--lockstep".to_string(), "--seconds".into(), seconds.to_string()];
+    let mut children = floor_processes(&exe, scenario, s.graph.ids(), links, port, sets, &run, &extra)?;
+    let router = if clients { Some(children.remove(0)) } else { None };
+    let mut rates = Vec::new();
+    let mut failed = 0;
+    for c in children {
+        match c.wait_with_output() {
+            Ok(o) if o.status.success() => {
+                let text = String::from_utf8_lossy(&o.stdout);
+                rates.extend(text.lines().filter_map(|l| l.strip_prefix("steps/s ")?.trim().parse::<f64>().ok()));
+            }
+            _ => failed += 1,
+        }
+    }
+    if let Some(mut r) = router {
+        let _ = r.kill();
+        let _ = r.wait();
+    }
+    if failed > 0 || rates.is_empty() {
+        return Err(Error::Run(format!("the lock-step floor: {failed} of its processes failed")));
+    }
+    Ok(median(rates))
 }
 
 /// On-CPU ns of every thread of `pid` so far.
@@ -166,43 +400,7 @@ fn case(
     };
     let sets = [format!("dt={}", 1.0 / hz), "timing=\"realtime\"".into(), format!("duration={seconds}")];
     let run = format!("floor{}{}", hz as u32, ids.len());
-    let mut children = Vec::new();
-    let quiet = |c: &mut Command| {
-        c.env(formation_net::node::LAUNCHED_ENV, "1").stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
-    };
-    let router = format!("tcp/127.0.0.1:{port}");
-    if links == Links::Clients {
-        let mut c = Command::new(exe);
-        c.args(["node", "router", "--mode", "router", "--listen", &router, "--scenario"]).arg(scenario);
-        for set in &sets {
-            c.args(["--set", set]);
-        }
-        formation_net::session::router_runtime(&mut c, formation_topology::Timing::Realtime);
-        quiet(&mut c);
-        children.push(c.spawn().map_err(|e| Error::Run(format!("starting the floor's router: {e}")))?);
-    }
-    let all: Vec<u32> = std::iter::once(0).chain(ids.iter().copied()).collect();
-    for (n, &id) in all.iter().enumerate() {
-        let mut c = Command::new(exe);
-        c.args(["node", "floor", "--scenario"]).arg(scenario).args(["--run", &run, "--id", &id.to_string()]);
-        c.args(["--seconds", &seconds.to_string()]);
-        match links {
-            Links::Peers => {
-                c.args(["--no-gossip", "--listen", &format!("tcp/127.0.0.1:{}", port + 1 + n as u16)]);
-                for m in 0..n {
-                    c.args(["--connect", &format!("tcp/127.0.0.1:{}", port + 1 + m as u16)]);
-                }
-            }
-            Links::Clients => {
-                c.args(["--mode", "client", "--connect", &router]);
-            }
-        }
-        for set in &sets {
-            c.args(["--set", set]);
-        }
-        quiet(&mut c);
-        children.push(c.spawn().map_err(|e| Error::Run(format!("starting a floor process: {e}")))?);
-    }
+    let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &[])?;
     let floor = sample(&["floor", &run], after, window, hz);
     // The router's last: it outlives the floor processes.
     let router_child = if links == Links::Clients { Some(children.remove(0)) } else { None };

@@ -153,6 +153,9 @@ struct Figures {
     /// The same with `group` followers per agent process (NaN with TLS, which needs one process each).
     grouped_rate: f64,
     group: usize,
+    /// Plain zenoh processes with the agents' lock-step pattern
+    /// (`bench_floor::lockstep_rate`), steps/s; NaN with TLS.
+    floor_rate: f64,
     /// Real time at 1 kHz: the worst node's |period − 1 ms| p50, p99, max (µs).
     period: (f64, f64, f64),
     /// Silent neighbour-steps summed over the agents.
@@ -233,6 +236,13 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     println!("  {:<50}{:>18}{}", "", "tcp", if tls.is_some() { format!("{:>18}", "tls") } else { String::new() });
     row("lock-step steps/s over zenoh", &|f| format!("{:.0}", f.net_rate));
     row("  wall s of the 2 s / long run", &|f| format!("{:.2} / {:.2}", f.t_short, f.t_long));
+    row("  plain-zenoh floor, same pattern (agents / floor)", &|f| {
+        if f.floor_rate.is_nan() {
+            "—".into()
+        } else {
+            format!("{:.0} ({:.2})", f.floor_rate, f.net_rate / f.floor_rate)
+        }
+    });
     row(&format!("  with {} followers per agent process (--group)", tcp.group), &|f| {
         if f.grouped_rate.is_nan() {
             "—".into()
@@ -270,23 +280,29 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         }
         println!("scale: generated rings (n/5 chords), clients of one router, plain TCP, on this machine");
         println!(
-            "  {:>6} {:>12} {:>12} {:>18} {:>16} {:>26} {:>8}",
+            "  {:>6} {:>12} {:>12} {:>18} {:>16} {:>16} {:>26} {:>8}",
             "agents",
             "per process",
             "start-up s",
             "lock-step steps/s",
             "(wall s, runs)",
+            "floor (ratio)",
             "real time 100 Hz: CPU s",
             "silent"
         );
         for r in rows {
             println!(
-                "  {:>6} {:>12} {:>12.2} {:>18.0} {:>16} {:>26} {:>8}",
+                "  {:>6} {:>12} {:>12.2} {:>18.0} {:>16} {:>16} {:>26} {:>8}",
                 r.agents,
                 r.group,
                 r.startup_s,
                 r.rate,
                 format!("{:.1} / {:.1}", r.t_short, r.t_long),
+                if r.floor_rate.is_nan() {
+                    "—".into()
+                } else {
+                    format!("{:.0} ({:.2})", r.floor_rate, r.rate / r.floor_rate)
+                },
                 format!("{:.4} per agent and run-s", r.cpu_per_agent_s),
                 r.silent
             );
@@ -348,6 +364,12 @@ fn measure(
     } else {
         f64::NAN
     };
+    let floor_rate = if tls.is_none() {
+        eprintln!("bench-net ({kind}): lock-step floor (plain zenoh, the same pattern) …");
+        crate::bench_floor::lockstep_rate(&a.scenario, &[], a.lockstep_duration, false, port + 90)?
+    } else {
+        f64::NAN
+    };
 
     // 2. Real-time period error at 1 kHz.
     eprintln!("bench-net ({kind}): real time at 1 kHz …");
@@ -368,6 +390,7 @@ fn measure(
         t_long,
         grouped_rate,
         group,
+        floor_rate,
         period,
         silent,
         estimate: nan,
@@ -388,6 +411,8 @@ struct Scale {
     rate: f64,
     t_short: f64,
     t_long: f64,
+    /// The plain-zenoh floor of the same lock-step pattern (one process each only).
+    floor_rate: f64,
     cpu_per_agent_s: f64,
     silent: u64,
 }
@@ -432,6 +457,12 @@ fn scale(a: &BenchNetArgs, n: u32, group: usize, port: u16) -> Result<Scale, Err
     let t_long = timed_launch(&launch(lockstep_sets(long), port + 5, "long", &format!("bench-s{n}b")))?;
     let rate = ((long - short) / 0.001_f64).round() / (t_long - t_short).max(1e-9);
     let startup_s = wall("long")?["wall"]["startup_s"].as_f64().unwrap_or(f64::NAN);
+    let floor_rate = if group == 1 {
+        eprintln!("bench-net (scale): {n} agents, lock-step floor (plain zenoh, the same pattern) …");
+        crate::bench_floor::lockstep_rate(&file, &lockstep_sets(long), long, true, port + 35)?
+    } else {
+        f64::NAN
+    };
     eprintln!("bench-net (scale): {n} agents, {group} per process, real time at 100 Hz …");
     let d = a.scale_realtime_duration;
     let sets =
@@ -444,7 +475,17 @@ fn scale(a: &BenchNetArgs, n: u32, group: usize, port: u16) -> Result<Scale, Err
     let net = wall("rt")?;
     let silent = net["nodes"].as_object().map_or(0, |m| m.values().map(|v| v["silent"].as_u64().unwrap_or(0)).sum());
     let _ = std::fs::remove_dir_all(&tmp);
-    Ok(Scale { agents: n, group, startup_s, rate, t_short, t_long, cpu_per_agent_s: cpu / f64::from(n) / d, silent })
+    Ok(Scale {
+        agents: n,
+        group,
+        startup_s,
+        rate,
+        t_short,
+        t_long,
+        floor_rate,
+        cpu_per_agent_s: cpu / f64::from(n) / d,
+        silent,
+    })
 }
 
 /// Latency and session opening, the transports alternating over `ROUNDS`

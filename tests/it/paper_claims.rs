@@ -174,3 +174,65 @@ fn initial_body_errors_match_the_spec() {
         );
     }
 }
+
+/// scenarios/paper-tables.toml (docs/paper-results.md, "Calibrating the
+/// decided values"): with the decided values fitted to the paper's tables,
+/// every entry of Tables I and II is within 10 % (Table I) or 15 % (Table
+/// II) of the paper, the normal case's KF and ASIF within 2 %, and the
+/// ASIF's fault-case advantage shows on both channels; the price the
+/// documentation states is there too: a formation error above 0.2 m.
+/// (One seed, the scenario's; `formation paper --scenario paper-tables
+/// --seeds 20` gives the same on every seed.)
+#[test]
+fn the_fitted_values_reproduce_both_tables_at_the_formations_expense() {
+    use formation::report::tables::{PAPER_TABLE_I, PAPER_TABLE_II};
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper-tables.toml");
+    let run = |sets: &[&str]| {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        let s = Scenario::load(&path, &sets).expect("paper-tables loads");
+        Simulation::new(&s).run(&mut NoRecord, |_| {}).expect("run completes")
+    };
+    let cases: [(&[&str], usize, usize); 4] = [
+        (&["filter=kf"], 0, 0),
+        (&["filter=asif"], 0, 1),
+        (&["filter=kf", "fault.time=10"], 1, 0),
+        (&["filter=asif", "fault.time=10"], 1, 1),
+    ];
+    let mut got = [[[0.0; 4]; 4]; 2];
+    let mut formation: f64 = 0.0;
+    for (sets, table, filter) in cases {
+        for (i, m) in run(sets).iter().enumerate() {
+            got[table][i][filter] = m.rmse_v.expect("measured") * 100.0;
+            got[table][i][2 + filter] = m.rmse_w.expect("measured") * 100.0;
+            if (table, filter) == (0, 1) {
+                formation = formation.max(m.formation_rms_last10.expect("measured"));
+            }
+        }
+    }
+    let cols = ["KF linear", "ASIF linear", "KF angular", "ASIF angular"];
+    for (t, (paper, tol)) in [(PAPER_TABLE_I, 0.10), (PAPER_TABLE_II, 0.15)].iter().enumerate() {
+        for (f, row) in paper.iter().enumerate() {
+            for (c, &want) in row.iter().enumerate() {
+                let x = got[t][f][c];
+                assert!(
+                    (x / want - 1.0).abs() <= *tol,
+                    "Table {}, F{} {}: {x:.3} against the paper's {want} ({:+.1} %, allowed ±{:.0} %)",
+                    ["I", "II"][t],
+                    f + 1,
+                    cols[c],
+                    (x / want - 1.0) * 100.0,
+                    tol * 100.0
+                );
+            }
+        }
+    }
+    for (f, row) in got[0].iter().enumerate() {
+        for (ch, (k, a)) in [("linear", (row[0], row[1])), ("angular", (row[2], row[3]))] {
+            assert!((a - k).abs() / k <= 0.02, "F{} {ch}, normal case: ASIF {a:.4} against KF {k:.4}", f + 1);
+        }
+    }
+    for (f, row) in got[1].iter().enumerate() {
+        assert!(row[3] < 0.7 * row[2], "F{} fault, angular: ASIF {:.3} not well below KF {:.3}", f + 1, row[3], row[2]);
+    }
+    assert!(formation > 0.2, "the formation error {formation:.3} m: the fitted values no longer cost the 0.2 m bound");
+}

@@ -497,12 +497,13 @@ fn calibrate_is_seeded_and_never_worse_than_where_it_starts() {
     let fitted = |d: &Path| std::fs::read_to_string(d.join("fitted.txt")).expect("fitted.txt");
     assert_eq!(fitted(&a), fitted(&b), "the same seed reached other values");
     assert!(fitted(&a).contains("asif.rho_max=["), "{}", fitted(&a));
-    // "loss L0 at the scenario's values, L1 at the best of N evaluations"
+    // "score S0 at the scenario's values, S1 at the best of N evaluations (…); worst condition W0 → W1 …"
     let num = |after: &str| -> f64 {
         said.split(after).nth(1).and_then(|r| r.split_whitespace().next()).and_then(|x| x.parse().ok()).unwrap()
     };
-    let (l0, l1) = (num("loss "), num("values, "));
-    assert!(l1 <= l0, "the best loss {l1} is worse than the start's {l0}: {said}");
+    let (l0, l1) = (num("score "), num("values, "));
+    assert!(l1 <= l0, "the best score {l1} is worse than the start's {l0}: {said}");
+    assert!(said.contains("worst condition"), "{said}");
     let rows = read_csv(&a.join("calibration.csv"));
     assert_eq!(rows.len(), 32, "32 table entries");
     assert!(rows.iter().any(|r| r["entry"] == "Table II, F3, KF angular" && r["paper"] == "2.14"));

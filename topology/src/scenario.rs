@@ -202,8 +202,8 @@ impl Scenario {
     /// Reads, overrides (`KEY=VALUE`, dotted keys) and validates a scenario file.
     ///
     /// A path that names no file but a built-in scenario ([`BUILT_IN`]:
-    /// `paper`, `paper-velocity`, or their `scenarios/<name>.toml` as in a
-    /// checkout) loads the copy inside the binary, so an installed binary
+    /// `paper`, `paper-velocity`, `paper-tables`, or their
+    /// `scenarios/<name>.toml` as in a checkout) loads the copy inside the binary, so an installed binary
     /// runs the paper's scenario anywhere.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self, ScenarioError> {
         let label = path.display().to_string();
@@ -313,9 +313,10 @@ impl Scenario {
 /// folder, which could block or never end) of at most [`MAX_FILE_BYTES`].
 /// The scenarios inside the binary: the files of `scenarios/` that the
 /// documentation runs, by name.
-pub const BUILT_IN: [(&str, &str); 2] = [
+pub const BUILT_IN: [(&str, &str); 3] = [
     ("paper", include_str!("../../scenarios/paper.toml")),
     ("paper-velocity", include_str!("../../scenarios/paper-velocity.toml")),
+    ("paper-tables", include_str!("../../scenarios/paper-tables.toml")),
 ];
 
 /// The built-in scenario `path` names: `paper`, `paper.toml` or
