@@ -400,7 +400,8 @@ fn case(
     };
     let sets = [format!("dt={}", 1.0 / hz), "timing=\"realtime\"".into(), format!("duration={seconds}")];
     let run = format!("floor{}{}", hz as u32, ids.len());
-    let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &[])?;
+    let extra = ["--seconds".to_string(), seconds.to_string()];
+    let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &extra)?;
     let floor = sample(&["floor", &run], after, window, hz);
     // The router's last: it outlives the floor processes.
     let router_child = if links == Links::Clients { Some(children.remove(0)) } else { None };

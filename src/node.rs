@@ -151,17 +151,20 @@ where
         let zenoh_file = std::env::var_os(formation_net::node::ZENOH_LOG_ENV)
             .and_then(|p| std::fs::OpenOptions::new().create(true).append(true).open(p).ok());
         let to_file = zenoh_file.is_some();
+        // One filter per layer (two filters' `and`, not a filter on a
+        // filtered layer): nested per-layer filters leave zenoh's per-message
+        // trace spans "sometimes" enabled, and the registry then builds and
+        // drops a span for every message (a fifth of a lock-step agent's CPU).
+        use tracing_subscriber::filter::FilterExt;
         let not_zenoh = tracing_subscriber::filter::filter_fn(move |m| !(to_file && is_zenoh(m.target())));
         let log = tracing_subscriber::fmt::layer()
             .with_writer(std::io::stderr)
-            .with_filter(tracing_subscriber::EnvFilter::from_default_env())
-            .with_filter(not_zenoh);
+            .with_filter(not_zenoh.and(tracing_subscriber::EnvFilter::from_default_env()));
         let file = zenoh_file.map(|f| {
-            tracing_subscriber::fmt::layer()
-                .with_ansi(false)
-                .with_writer(std::sync::Mutex::new(f))
-                .with_filter(tracing_subscriber::EnvFilter::from_default_env())
-                .with_filter(tracing_subscriber::filter::filter_fn(|m| is_zenoh(m.target())))
+            tracing_subscriber::fmt::layer().with_ansi(false).with_writer(std::sync::Mutex::new(f)).with_filter(
+                tracing_subscriber::filter::filter_fn(|m| is_zenoh(m.target()))
+                    .and(tracing_subscriber::EnvFilter::from_default_env()),
+            )
         });
         // zenoh's access-control decisions, for the denials it counts.
         let acl = Denials.with_filter(
