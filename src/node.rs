@@ -151,10 +151,12 @@ where
         let zenoh_file = std::env::var_os(formation_net::node::ZENOH_LOG_ENV)
             .and_then(|p| std::fs::OpenOptions::new().create(true).append(true).open(p).ok());
         let to_file = zenoh_file.is_some();
-        // One filter per layer (two filters' `and`, not a filter on a
-        // filtered layer): nested per-layer filters leave zenoh's per-message
-        // trace spans "sometimes" enabled, and the registry then builds and
-        // drops a span for every message (a fifth of a lock-step agent's CPU).
+        // One filter per layer (two filters' `and`), not a filter on a
+        // filtered layer: with the nested filters the registry built and
+        // dropped one of zenoh's trace spans for every message (perf of a
+        // lock-step agent: span_data, new_span, try_close, the EnvFilter's
+        // `enabled` per event), and the paper's lock-step run went 20-25 %
+        // slower (docs/performance.md).
         use tracing_subscriber::filter::FilterExt;
         let not_zenoh = tracing_subscriber::filter::filter_fn(move |m| !(to_file && is_zenoh(m.target())));
         let log = tracing_subscriber::fmt::layer()
