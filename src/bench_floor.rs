@@ -120,9 +120,9 @@ struct Heard {
 }
 
 /// `--lockstep`: see [`FloorArgs::lockstep`]. A follower publishes step k,
-/// then waits for every source's step k (repeating its newest message
-/// every 10 ms while it waits, which also carries the start: a process
-/// that comes late hears it). The leader waits for the followers that
+/// then waits for every source's step k (repeating its newest message as
+/// often as an agent does while it waits, which also carries the start: a
+/// process that comes late hears it). The leader waits for the followers that
 /// hear it, at most the leader's window ahead of the slowest. Prints
 /// `steps/s R` on stdout.
 async fn lockstep_node(
@@ -182,6 +182,9 @@ async fn lockstep_node(
             })
         };
         let (from, to) = (steps / 4, 3 * steps / 4);
+        // As often as the agents and the leader repeat theirs (protocol::gate).
+        let every =
+            if leader { formation_net::gate::LEADER_REPEAT_EVERY } else { formation_net::gate::FOLLOWER_REPEAT_EVERY };
         let mut marks = (Instant::now(), Instant::now());
         for k in 0..=steps {
             // What step k waits for: the sources' k − 1 (a follower); the
@@ -201,7 +204,7 @@ async fn lockstep_node(
                 if n.iter().all(|h| h.is_some_and(|s| s >= need)) {
                     break;
                 }
-                let (g, t) = heard.moved.wait_timeout(n, Duration::from_millis(10)).unwrap_or_else(|p| p.into_inner());
+                let (g, t) = heard.moved.wait_timeout(n, every).unwrap_or_else(|p| p.into_inner());
                 n = g;
                 if t.timed_out() {
                     if began.elapsed() > Duration::from_secs(30) {
