@@ -362,9 +362,15 @@ fn search(a: &CalibrateArgs, base: &Scenario, seeds: &[u64], bar: &ProgressBar) 
     let start_tables = eval(&start)?;
     let (mut best, mut best_tables, mut best_loss) = (start, start_tables, objective(a.target, &start_tables));
     let mut used = 1;
+    // Where the bar is not drawn (stderr not a terminal), a plain line every tenth of the budget.
+    let plain = !a.quiet && !std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let tenth = (a.evaluations / 10).max(1);
     let note = |used: usize, best_loss: f64| {
         bar.set_position(used as u64);
         bar.set_message(format!("best {} {best_loss:.4}", a.target.name()));
+        if plain && used % tenth == 0 {
+            eprintln!("calibrate: {used}/{} evaluations, best {} {best_loss:.4}", a.evaluations, a.target.name());
+        }
     };
     note(used, best_loss);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.search_seed);
