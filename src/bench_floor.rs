@@ -211,7 +211,10 @@ async fn lockstep_node(
                         return Err(format!("no step {need} from every source for 30 s"));
                     }
                     if k > 0 {
+                        // Not under the lock the callbacks take.
+                        drop(n);
                         let _ = publisher.put(bytes.clone()).wait();
+                        n = heard.newest.lock().unwrap_or_else(|p| p.into_inner());
                     }
                 }
             }
@@ -229,9 +232,8 @@ async fn lockstep_node(
     .await
     .map_err(|e| formation_net::Error::Run(e.to_string()))?
     .map_err(|e| formation_net::Error::Run(format!("{}: {e}", a.id)))?;
-    // Neighbours may still wait for the last steps: keep repeating them a while.
-    let _ = rate;
     println!("steps/s {rate:.1}");
+    // A while before the session closes, so that the last steps reach the neighbours.
     tokio::time::sleep(Duration::from_millis(300)).await;
     drop(subs);
     let _ = session.close().await;
