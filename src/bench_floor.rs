@@ -242,7 +242,8 @@ async fn lockstep_node(
 
 /// Starts the floor's processes (a router first for `Clients`, then the
 /// leader's stand-in and one per follower of `ids`), `extra` added to each
-/// floor process's arguments, their stdout piped.
+/// floor process's arguments; their stdout piped where `piped` (a lock-step
+/// floor prints its rate), else discarded.
 #[allow(clippy::too_many_arguments)]
 fn floor_processes(
     exe: &std::path::Path,
@@ -253,6 +254,7 @@ fn floor_processes(
     sets: &[String],
     run: &str,
     extra: &[String],
+    piped: bool,
 ) -> Result<Vec<std::process::Child>, Error> {
     let mut children = Vec::new();
     let quiet = |c: &mut Command| {
@@ -289,7 +291,9 @@ fn floor_processes(
             c.args(["--set", set]);
         }
         quiet(&mut c);
-        c.stdout(Stdio::piped());
+        if piped {
+            c.stdout(Stdio::piped());
+        }
         match c.spawn() {
             Ok(child) => children.push(child),
             Err(e) => {
@@ -320,7 +324,7 @@ pub fn lockstep_rate(
     let links = if clients { Links::Clients } else { Links::Peers };
     let run = format!("floorls{}", std::process::id());
     let extra = ["--lockstep".to_string(), "--seconds".into(), seconds.to_string()];
-    let mut children = floor_processes(&exe, scenario, s.graph.ids(), links, port, sets, &run, &extra)?;
+    let mut children = floor_processes(&exe, scenario, s.graph.ids(), links, port, sets, &run, &extra, true)?;
     let router = if clients { Some(children.remove(0)) } else { None };
     let mut rates = Vec::new();
     let mut failed = 0;
@@ -406,7 +410,7 @@ fn case(
     let sets = [format!("dt={}", 1.0 / hz), "timing=\"realtime\"".into(), format!("duration={seconds}")];
     let run = format!("floor{}{}", hz as u32, ids.len());
     let extra = ["--seconds".to_string(), seconds.to_string()];
-    let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &extra)?;
+    let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &extra, false)?;
     let floor = sample(&["floor", &run], after, window, hz);
     // The router's last: it outlives the floor processes.
     let router_child = if links == Links::Clients { Some(children.remove(0)) } else { None };
