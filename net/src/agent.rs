@@ -5,9 +5,12 @@
 //! leader's if a_i0 = 1), publishes what the machine says on its own key,
 //! and hands the machine's telemetry to a courier for the monitor.
 //!
-//! The machine's loop runs on its own OS thread (precise sleeps in real
-//! time, condition-variable waits in lock-step), fed by the subscriber
-//! callbacks under one lock; start-up and shut-down are async.
+//! The machine's loop is fed by the subscriber callbacks under one lock. In
+//! real time it is a task on zenoh's own thread, woken by a precise timer,
+//! so that what it publishes is written out in the same wake-up (a process
+//! of several followers gives each loop a thread of its own); in lock-step
+//! it runs on its own thread, waiting on a condition variable that the
+//! step's last input signals. Start-up and shut-down are async.
 
 use std::collections::BTreeSet;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
@@ -106,6 +109,7 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
                 protocol: follower::Options { stall_timeout: stall, physical_node_faults: args.physical_node_faults },
                 checkpoint: Some(checkpoint::path(&checkpoint_dir, &keys.run, id)),
                 odometry: odometry.clone(),
+                on_zenoh_thread: ids.len() == 1,
             };
             let body: Box<dyn Body> = match odometry {
                 Some(inbox) => Box::new(DrivenRobot::new(&scenario, index, inbox)),
@@ -136,6 +140,10 @@ pub struct FollowerOptions {
     pub checkpoint: Option<std::path::PathBuf>,
     /// The robot is driven through ROS 2: its odometry arrives here.
     pub odometry: Option<Arc<OdomInbox>>,
+    /// Real time: run the loop as a task on zenoh's application thread
+    /// (one follower in the process), not on a thread of its own (several,
+    /// which one thread would serialise).
+    pub on_zenoh_thread: bool,
 }
 
 /// The machine, shared by the subscriber callbacks and the loop's thread.
@@ -232,9 +240,12 @@ pub async fn run_follower(
         incarnation: clock::unix_ns(),
         topics: topics.clone(),
     };
-    let outcome = tokio::task::spawn_blocking(move || node.drive())
-        .await
-        .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
+    let outcome = if lockstep || !opts.on_zenoh_thread {
+        tokio::task::spawn_blocking(move || node.drive()).await
+    } else {
+        zenoh_runtime::ZRuntime::Application.spawn(node.drive_on_zenoh()).await
+    }
+    .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
     telemetry::finish_delivery(delivery, &format!("follower {id}")).await;
     if let Some(w) = writer {
         w.stop();
@@ -401,6 +412,14 @@ async fn watch_router(
     }))
 }
 
+/// What a turn sends, kept between turns so that a step allocates no
+/// vectors of its own.
+#[derive(Default)]
+struct Outbox {
+    transmit: Vec<Vec<u8>>,
+    batches: Vec<Batch>,
+}
+
 /// The loop's side of the node: the machine, and where its answers go.
 struct Node {
     shared: Arc<Shared>,
@@ -419,50 +438,80 @@ struct Node {
 }
 
 impl Node {
-    /// Feeds the machine the time until it is done: what it answers goes
-    /// out with the lock released; then it sleeps until the machine's next
-    /// deadline (real time), or until its step's inputs are in (lock-step).
+    /// Feeds the machine the time until it is done, sleeping between turns
+    /// until the machine's next deadline (real time) or until its step's
+    /// inputs are in (lock-step): on a thread of its own.
     fn drive(self) -> Result<(), String> {
-        let mut transmit: Vec<Vec<u8>> = Vec::new();
-        let mut batches: Vec<Batch> = Vec::new();
+        let mut out = Outbox::default();
         loop {
-            let mut m = self.shared.lock();
-            let t = self.timebase.now();
-            self.tell(&mut m);
-            m.handle_timeout(t);
-            transmit.extend(std::iter::from_fn(|| m.poll_transmit()));
-            batches.extend(std::iter::from_fn(|| m.poll_telemetry()));
-            let said: Vec<String> = std::iter::from_fn(|| m.poll_say()).collect();
-            let checkpoint = m.checkpoint();
-            let outcome = m.outcome().cloned();
-            let sample = m.take_sample();
-            drop(m);
-            if let Some(s) = sample {
-                if let Some(t) = self.topics.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
-                    if let Err(e) = t.publish(&s) {
-                        return Err(e.to_string());
-                    }
-                }
-            }
-            for bytes in transmit.drain(..) {
-                if let Err(e) = self.publisher.put(bytes).wait() {
-                    return Err(zerr("publishing", e).to_string());
-                }
-            }
-            for b in batches.drain(..) {
-                self.send(b);
-            }
-            for line in said {
-                crate::node::say(&line);
-            }
-            if checkpoint.is_some() {
-                *self.latest.lock().unwrap_or_else(|p| p.into_inner()) = checkpoint;
-            }
-            if let Some(r) = outcome {
+            if let Some(r) = self.turn(&mut out) {
                 return r;
             }
             self.sleep();
         }
+    }
+
+    /// The same in real time as a task on zenoh's application thread, the
+    /// one that writes to the sockets: the estimate a turn publishes goes
+    /// out in the same wake-up, instead of waking that thread from this
+    /// one. Measured (60 agents, one process each, 100 Hz, this project's
+    /// 2-core VM): docs/performance.md. Nothing in a turn waits on the
+    /// network: estimates and topics are droppable, telemetry goes to the
+    /// courier's thread. A turn holds zenoh's thread for its few
+    /// microseconds; the subscriber callbacks, on the same thread, never
+    /// wait for the machine's lock.
+    async fn drive_on_zenoh(self) -> Result<(), String> {
+        let timer = crate::timer::Timer::new().map_err(|e| format!("a timer for the loop: {e}"))?;
+        let mut out = Outbox::default();
+        loop {
+            if let Some(r) = self.turn(&mut out) {
+                return r;
+            }
+            match self.deadline() {
+                Some(at) => timer.sleep_until(at).await.map_err(|e| format!("the loop's timer: {e}"))?,
+                // Due already: let zenoh's tasks run before the next turn.
+                None => tokio::task::yield_now().await,
+            }
+        }
+    }
+
+    /// One turn: the machine is told the time and what the node noticed,
+    /// and what it answers goes out with its lock released. Some(outcome)
+    /// once the machine is done.
+    fn turn(&self, out: &mut Outbox) -> Option<Result<(), String>> {
+        let mut m = self.shared.lock();
+        let t = self.timebase.now();
+        self.tell(&mut m);
+        m.handle_timeout(t);
+        out.transmit.extend(std::iter::from_fn(|| m.poll_transmit()));
+        out.batches.extend(std::iter::from_fn(|| m.poll_telemetry()));
+        let said: Vec<String> = std::iter::from_fn(|| m.poll_say()).collect();
+        let checkpoint = m.checkpoint();
+        let outcome = m.outcome().cloned();
+        let sample = m.take_sample();
+        drop(m);
+        if let Some(s) = sample {
+            if let Some(t) = self.topics.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
+                if let Err(e) = t.publish(&s) {
+                    return Some(Err(e.to_string()));
+                }
+            }
+        }
+        for bytes in out.transmit.drain(..) {
+            if let Err(e) = self.publisher.put(bytes).wait() {
+                return Some(Err(zerr("publishing", e).to_string()));
+            }
+        }
+        for b in out.batches.drain(..) {
+            self.send(b);
+        }
+        for line in said {
+            crate::node::say(&line);
+        }
+        if checkpoint.is_some() {
+            *self.latest.lock().unwrap_or_else(|p| p.into_inner()) = checkpoint;
+        }
+        outcome
     }
 
     /// What the node noticed that the machine cannot see: messages refused
@@ -492,6 +541,17 @@ impl Node {
         };
         let t = b.into_telemetry(delivery, self.timebase.report());
         self.courier.push(first_k, end_k, codec::encode(&t));
+    }
+
+    /// The instant of the machine's next deadline in real time, on this
+    /// node's monotonic clock; None if it is due already.
+    fn deadline(&self) -> Option<std::time::Instant> {
+        let at = self.shared.lock().poll_timeout()?;
+        let t = self.timebase.now();
+        if at <= t {
+            return None;
+        }
+        Some(self.timebase.instant_at(at.as_nanos() as i64).unwrap_or_else(|| std::time::Instant::now() + (at - t)))
     }
 
     /// Until the machine's next deadline: a precise sleep in real time; in

@@ -9,8 +9,10 @@ use std::time::Duration;
 
 use crate::clock;
 
-/// How long the sending thread waits for work before it looks again.
-const TICK: Duration = Duration::from_millis(20);
+/// The longest the sending thread sleeps with nothing in flight; it is
+/// woken at once by a batch handed over, an acknowledgement that frees the
+/// window for a waiting batch, or the end.
+const IDLE: Duration = Duration::from_secs(1);
 
 #[derive(Debug)]
 struct State {
@@ -47,10 +49,19 @@ impl Courier {
         self.changed.notify_all();
     }
 
-    /// The monitor holds every step below `next_k`.
+    /// The monitor holds every step below `next_k`. The sending thread is
+    /// woken only if a batch waits for the window this frees: otherwise
+    /// the acknowledgement only moves its next resend later, and it wakes
+    /// at the earlier time, finds nothing due and sleeps on (at 100 Hz the
+    /// monitor's ten acknowledgements a second were most of its wake-ups).
     pub fn ack(&self, next_k: u64) {
-        self.lock().store.ack(next_k);
-        self.changed.notify_all();
+        let mut s = self.lock();
+        s.store.ack(next_k);
+        let waiting = s.store.has_unsent();
+        drop(s);
+        if waiting {
+            self.changed.notify_all();
+        }
     }
 
     pub fn stats(&self) -> CourierStats {
@@ -62,13 +73,15 @@ impl Courier {
         self.lock().store.unacknowledged_steps()
     }
 
-    /// The batches due now ([`Store::due`]); waits up to [`TICK`] for work.
-    /// None once closed and empty.
+    /// The batches due now ([`Store::due`]); with none, waits until the
+    /// oldest batch in flight is due again (at most [`IDLE`]) or the loop
+    /// hands one over. None once closed and empty.
     fn due(&self) -> Option<Vec<Arc<Vec<u8>>>> {
         let mut s = self.lock();
         let mut out = s.store.due(clock::mono());
         if out.is_empty() && !(s.closed && s.store.is_empty()) {
-            s = self.changed.wait_timeout(s, TICK).unwrap_or_else(|p| p.into_inner()).0;
+            let wait = s.store.next_resend().map_or(IDLE, |at| at.saturating_sub(clock::mono()).min(IDLE));
+            s = self.changed.wait_timeout(s, wait).unwrap_or_else(|p| p.into_inner()).0;
             out = s.store.due(clock::mono());
         }
         if s.closed && s.store.is_empty() {

@@ -12,7 +12,7 @@
 //!
 //! | part | modules |
 //! | --- | --- |
-//! | the one clock of a node, and the run's timebase | [`clock`] (reads the clocks), [`clock_sync`] (asks and answers the leader's clock on zenoh), [`pacing`] (the leader's real-time loop) |
+//! | the one clock of a node, and the run's timebase | [`clock`] (reads the clocks), [`clock_sync`] (asks and answers the leader's clock on zenoh), [`pacing`] (the leader's real-time loop), [`timer`] (a precise sleep for a loop that is a task) |
 //! | zenoh session | [`identity`] (the topology's access policy), [`session`], [`limits`], [`node`] |
 //! | shared node parts | [`startup`] (the barrier on zenoh), [`telemetry`] (delivery and acknowledgements), [`courier`] (its thread), [`checkpoint`], [`denials`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`], [`router`] |
@@ -35,6 +35,7 @@ pub mod router;
 pub mod session;
 pub mod startup;
 pub mod telemetry;
+pub mod timer;
 
 pub use error::Error;
 

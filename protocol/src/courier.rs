@@ -174,6 +174,11 @@ impl Store {
         out
     }
 
+    /// Whether a batch waits that was never sent (held back by the window).
+    pub fn has_unsent(&self) -> bool {
+        self.queue.iter().any(|b| b.sent.is_none())
+    }
+
     /// When the oldest batch in flight is due again (None: nothing in flight).
     pub fn next_resend(&self) -> Option<Now> {
         self.queue.front().and_then(|b| b.sent).map(|t| t + self.resend)
@@ -233,6 +238,7 @@ mod tests {
         assert_eq!(c.unacknowledged_steps(), 0, "every step acknowledged ({stats:?}, delivered {delivered:?})");
         assert!(stats.resent >= 10, "the batches lost to the dead link were sent again: {stats:?}");
         assert_eq!(c.next_resend(), None, "nothing left in flight");
+        assert!(!c.has_unsent(), "nothing waits to be sent");
     }
 
     #[test]
@@ -255,6 +261,7 @@ mod tests {
         // One window at 0, then again after 0.3, 0.6, 1.2, 2.4 and 2.4 s.
         assert_eq!(tries, vec![(0, window), (300, window), (900, window), (2100, window), (4500, window)]);
         assert_eq!(c.next_resend(), Some(at(t0, 4500) + MAX_RESEND), "the timeout stops doubling at MAX_RESEND");
+        assert!(c.has_unsent(), "batches wait behind the window (the courier's thread is woken for them)");
         // An acknowledgement resets the pace and frees the window.
         c.ack(50 * 25);
         assert_eq!(c.due(at(t0, 4510)).len(), window, "after the acknowledgement, the next window at once");

@@ -1,0 +1,99 @@
+//! A precise sleep for a loop that runs as a task: a `timerfd` on the
+//! reactor of the runtime that polls it, armed to the nanosecond as
+//! `std::thread::sleep` is (tokio's own timer counts whole milliseconds,
+//! a whole period at 1 kHz).
+//!
+//! Why a task and not a thread: an agent's real-time loop runs on zenoh's
+//! own thread ([`crate::agent`]), so that the estimate it publishes is
+//! written to the sockets in the same wake-up as the step, not handed to
+//! another thread that must be woken for it.
+
+use std::io;
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+use std::time::Instant;
+
+use tokio::io::unix::AsyncFd;
+use tokio::io::Interest;
+
+/// One timer; [`Timer::sleep_until`] re-arms it.
+pub struct Timer {
+    fd: AsyncFd<OwnedFd>,
+}
+
+impl Timer {
+    /// A timer on the reactor of the runtime this is called in.
+    pub fn new() -> io::Result<Self> {
+        // SAFETY: timerfd_create takes no pointers.
+        let raw = unsafe { libc::timerfd_create(libc::CLOCK_MONOTONIC, libc::TFD_NONBLOCK | libc::TFD_CLOEXEC) };
+        if raw < 0 {
+            return Err(io::Error::last_os_error());
+        }
+        // SAFETY: `raw` is a new descriptor that nothing else owns.
+        let fd = unsafe { OwnedFd::from_raw_fd(raw) };
+        // SAFETY: the descriptor is owned by the AsyncFd and is neither
+        // closed nor replaced while registered (it closes when it drops).
+        Ok(Self { fd: unsafe { AsyncFd::register_with_interest(fd, Interest::READABLE)? } })
+    }
+
+    /// Until `at` (at once if it has passed). `Instant` is CLOCK_MONOTONIC,
+    /// the timer's clock.
+    pub async fn sleep_until(&self, at: Instant) -> io::Result<()> {
+        let d = at.saturating_duration_since(Instant::now());
+        if d.is_zero() {
+            return Ok(());
+        }
+        let spec = libc::itimerspec {
+            it_interval: libc::timespec { tv_sec: 0, tv_nsec: 0 },
+            it_value: libc::timespec { tv_sec: d.as_secs() as libc::time_t, tv_nsec: d.subsec_nanos() as _ },
+        };
+        // SAFETY: a valid descriptor and a pointer to a local; no old value asked.
+        if unsafe { libc::timerfd_settime(self.fd.as_raw_fd(), 0, &spec, std::ptr::null_mut()) } < 0 {
+            return Err(io::Error::last_os_error());
+        }
+        loop {
+            let mut ready = self.fd.readable().await?;
+            let read = ready.try_io(|fd| {
+                let mut expirations = [0u8; 8];
+                // SAFETY: reads at most 8 bytes into a local buffer of 8.
+                let n = unsafe { libc::read(fd.as_raw_fd(), expirations.as_mut_ptr().cast(), 8) };
+                if n < 0 {
+                    Err(io::Error::last_os_error())
+                } else {
+                    Ok(())
+                }
+            });
+            match read {
+                Ok(result) => return result,
+                // Not yet (readiness was stale): wait again.
+                Err(_would_block) => continue,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    /// It sleeps until the instant, not a whole millisecond past it (the
+    /// loop's period at 1 kHz), and returns at once for an instant passed.
+    #[tokio::test(flavor = "current_thread")]
+    async fn it_wakes_at_the_instant_not_the_next_millisecond() {
+        let t = Timer::new().expect("timerfd");
+        let mut late = Vec::new();
+        for _ in 0..50 {
+            let at = Instant::now() + Duration::from_micros(300);
+            t.sleep_until(at).await.expect("sleep");
+            let now = Instant::now();
+            assert!(now >= at, "woke {:?} early", at - now);
+            late.push(now - at);
+        }
+        late.sort();
+        let median = late[late.len() / 2];
+        assert!(median < Duration::from_micros(500), "median lateness {median:?} (tokio's timer would be ~1 ms)");
+        let began = Instant::now();
+        t.sleep_until(began - Duration::from_millis(5)).await.expect("past");
+        assert!(began.elapsed() < Duration::from_millis(1), "an instant passed: at once");
+    }
+}
