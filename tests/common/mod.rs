@@ -85,6 +85,43 @@ impl Ports {
         panic!("no {count} consecutive free loopback ports in 1000 tries");
     }
 
+    /// `count` consecutive free ports below the kernel's ephemeral range
+    /// (`net.ipv4.ip_local_port_range`). A run of many processes makes many
+    /// outgoing connections, each from an ephemeral port: a block from
+    /// [`Ports::free`] lies in that range, and one of those connections can
+    /// take a port of the block between its release and a node's bind (seen
+    /// at 100 peers: "Address already in use"). Below the range only a
+    /// listener can take a port.
+    pub fn below_ephemeral(count: usize) -> Self {
+        assert!((1..=1000).contains(&count), "{count} ports");
+        let count = count as u16;
+        let ephemeral_low = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+            .ok()
+            .and_then(|t| t.split_whitespace().next().and_then(|x| x.parse::<u16>().ok()))
+            .unwrap_or(32768);
+        let (low, high) = (10_000u16, ephemeral_low.saturating_sub(count));
+        assert!(low < high, "no room below the ephemeral ports ({ephemeral_low})");
+        let mut handed_out = HANDED_OUT.lock().unwrap_or_else(|e| e.into_inner());
+        // Start where this process's id says, so that test binaries run at
+        // once do not all try the same block first.
+        let span = high - low;
+        let start = low + (std::process::id() % u32::from(span)) as u16;
+        let mut base = start;
+        for _ in 0..200 {
+            let block = base..=base + (count - 1);
+            if !block.clone().any(|p| handed_out.contains(&p)) {
+                let held: Vec<TcpListener> =
+                    block.clone().map_while(|p| TcpListener::bind(("127.0.0.1", p)).ok()).collect();
+                if held.len() == usize::from(count) {
+                    handed_out.extend(block);
+                    return Ports { first: base, held };
+                }
+            }
+            base = low + ((base - low + count) % span);
+        }
+        panic!("no {count} consecutive free loopback ports below {ephemeral_low} in 200 tries");
+    }
+
     /// The first port.
     pub fn base(&self) -> u16 {
         self.first

@@ -129,7 +129,8 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let net = dir.path().join("net");
     let net_s = net.display().to_string();
     // Ports: the monitor, the leader, 50 agents.
-    let base = common::Ports::free(52).release().to_string();
+    // Below the ephemeral ports, which the peers' outgoing links take.
+    let base = common::Ports::below_ephemeral(52).release().to_string();
     let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", &base, "--run", "rt50"];
     // As root (CI): every node under real-time scheduling, as a real-time
     // deployment runs; the 3 % below is judged with it.
