@@ -591,6 +591,9 @@ async fn launch(
         if let Some(hint) = formation_net::node::realtime_hint(scenario) {
             eprintln!("{hint}");
         }
+        if let Some(w) = scenario.estimator_stability_warning() {
+            eprintln!("{w}");
+        }
     }
     if own_router {
         start_router(children, exe, p[0], &a.opts, scenario.timing)?;

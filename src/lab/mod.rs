@@ -447,6 +447,9 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         if let Some(hint) = formation_net::node::realtime_hint(&scenario) {
             eprintln!("lab: {hint}");
         }
+        if let Some(w) = scenario.estimator_stability_warning() {
+            eprintln!("lab: {w}");
+        }
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)

@@ -420,3 +420,47 @@ fn a_communication_delay_beyond_the_limit_or_in_lockstep_is_refused() {
     assert!(stderr.contains("network.delay_steps = 1") && stderr.contains("lock-step"), "{stderr}");
     assert!(!out.exists(), "a run folder was made for a refused launch");
 }
+
+/// A delay that makes the leader estimator unstable on the graph is said
+/// in one warning line, with the growth per second, and the run still
+/// goes; without the delay (or at the paper scenario) nothing is said.
+#[test]
+fn an_unstable_estimator_under_delay_is_warned_about() {
+    let dir = tempfile::tempdir().unwrap();
+    let ring = dir.path().join("ring50.toml");
+    let o = formation(&[
+        "generate",
+        "--followers",
+        "50",
+        "--graph",
+        "ring",
+        "--chords",
+        "10",
+        "--seed",
+        "1",
+        "--out",
+        ring.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "generate: {}", String::from_utf8_lossy(&o.stderr));
+    let ring = std::fs::read_to_string(&ring).unwrap();
+    let run = |text: &str, d: &str| {
+        let (out, _dir) = sim_text(text, &["--set", "dt=0.01", "--set", "duration=0.5", "--set", d]);
+        assert!(out.status.success(), "sim {d}: {}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let warned = run(&ring, "network.delay_steps=1");
+    let line = warned.lines().find(|l| l.contains("unstable")).unwrap_or_else(|| panic!("no warning: {warned}"));
+    // ×1.30 a second: 1.00265 a step (numpy's eigenvalues), 100 steps a second.
+    let factor: f64 = line
+        .split('×')
+        .nth(1)
+        .and_then(|t| t.split_whitespace().next())
+        .and_then(|x| x.parse().ok())
+        .unwrap_or_else(|| panic!("no growth factor in: {line}"));
+    assert!((1.25..1.35).contains(&factor), "growth ×{factor} a second, expected about 1.30: {line}");
+    assert!(line.contains("network.delay_steps = 1") && line.contains("estimator.k"), "{line}");
+    let quiet = run(&ring, "network.delay_steps=0");
+    assert!(!quiet.contains("unstable"), "no delay, no warning: {quiet}");
+    let paper = run(&paper_text(), "network.delay_steps=2");
+    assert!(!paper.contains("unstable"), "the paper scenario is stable under delay: {paper}");
+}

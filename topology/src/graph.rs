@@ -10,6 +10,9 @@ use nalgebra::DMatrix;
 /// Largest graph for which λ_min(H) is computed densely at load time.
 pub const DENSE_EIGEN_LIMIT: usize = 1500;
 
+/// Steps of the recursion [`Graph::estimator_growth`] iterates.
+pub const GROWTH_STEPS: usize = 4000;
+
 /// An undirected follower graph with leader links.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Graph {
@@ -138,6 +141,72 @@ impl Graph {
         let eig = self.h_matrix().symmetric_eigen();
         eig.eigenvalues.iter().copied().reduce(f64::min)
     }
+
+    /// How much the position estimator's disagreement grows per step, at
+    /// most, when every neighbour's message is `delay` steps older than the
+    /// one step eq. 12 already takes (`network.delay_steps`): the spectral
+    /// radius of eq. 11–12 as the follower steps them, linearised about
+    /// consensus with the leader's terms fixed (per coordinate, gain `k`):
+    ///
+    ///   Ṗ_i(k) = ( −k (ξ_i P_i(k) − Σ_j a_ij P_j(k − d)) + Σ_j a_ij Ṗ_j(k − 1 − d) ) / ξ_i
+    ///   P_i(k + 1) = P_i(k) + Δt Ṗ_i(k)
+    ///
+    /// Above 1 the estimates oscillate, the sign alternating from step to
+    /// step, with an amplitude that grows by this factor each step (on a
+    /// ring of 50 with 10 chords at Δt = 10 ms, k = 1 and one step of
+    /// delay: 1.0026, while without the delay, or at Δt = 1 ms, it is below
+    /// 1). Found by iterating the recursion ([`GROWTH_STEPS`] steps, the
+    /// second half measured): O(steps × (followers + edges) × (d + 1)).
+    pub fn estimator_growth(&self, k: f64, dt_s: f64, delay: usize) -> f64 {
+        let n = self.len();
+        if n == 0 {
+            return 0.0;
+        }
+        // p[t] = P(k − t), t = 0..=d; r[t] = Ṗ(k − 1 − t), t = 0..=d.
+        let mut p = vec![vec![0.0; n]; delay + 1];
+        let mut r = vec![vec![0.0; n]; delay + 1];
+        // A fixed pseudo-random start (it must not be orthogonal to the mode).
+        let mut seed: u64 = 0x9E37_79B9_7F4A_7C15;
+        for v in p.iter_mut().chain(r.iter_mut()).flatten() {
+            seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            *v = (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5;
+        }
+        let mut log_growth = 0.0;
+        for step in 0..GROWTH_STEPS {
+            let mut rate = vec![0.0; n];
+            for (i, out) in rate.iter_mut().enumerate() {
+                let nb = self.neighbours(i);
+                let xi = nb.len() as f64 + f64::from(u8::from(self.leader_links[i]));
+                if xi == 0.0 {
+                    // No source: it dead-reckons on its own last rate.
+                    *out = r[0][i];
+                    continue;
+                }
+                let (mut e, mut rates) = (xi * p[0][i], 0.0);
+                for &j in nb {
+                    e -= p[delay][j];
+                    rates += r[delay][j];
+                }
+                *out = (-k * e + rates) / xi;
+            }
+            let next: Vec<f64> = p[0].iter().zip(&rate).map(|(pi, ri)| pi + dt_s * ri).collect();
+            p.rotate_right(1);
+            p[0] = next;
+            r.rotate_right(1);
+            r[0] = rate;
+            let norm = p.iter().chain(r.iter()).flatten().map(|v| v * v).sum::<f64>().sqrt();
+            if !(norm.is_finite() && norm > 0.0) {
+                return norm;
+            }
+            if step >= GROWTH_STEPS / 2 {
+                log_growth += norm.ln();
+            }
+            for v in p.iter_mut().chain(r.iter_mut()).flatten() {
+                *v /= norm;
+            }
+        }
+        (log_growth / (GROWTH_STEPS - GROWTH_STEPS / 2) as f64).exp()
+    }
 }
 
 #[cfg(test)]
@@ -190,5 +259,44 @@ mod tests {
     fn unreachable_names_the_cut_off_followers() {
         let g = Graph::new(vec![1, 2, 5, 9], &[(0, 1), (2, 3)], vec![true, false, false, false]);
         assert_eq!(g.unreachable(), vec![5, 9]);
+    }
+
+    /// The delayed estimator's growth against an independent computation
+    /// (numpy's eigenvalues of the same recursion written as a matrix,
+    /// 2026-11-26): a ring of 50 with 10 chords, seed 1, one follower
+    /// hearing the leader, as `formation generate --followers 50 --graph
+    /// ring --chords 10 --seed 1` writes it.
+    #[test]
+    fn the_delayed_estimator_grows_as_its_eigenvalues_say() {
+        let spec = crate::generate::Spec {
+            chords: 10,
+            seed: 1,
+            ..crate::generate::Spec::new(50, crate::generate::GraphKind::Ring)
+        };
+        let text = crate::generate::toml(&spec).expect("generate");
+        let dir = std::env::temp_dir().join(format!("formation-growth-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let file = dir.join("ring50.toml");
+        std::fs::write(&file, text).expect("write");
+        let g = crate::Scenario::load(&file, &[]).expect("load").graph;
+        let _ = std::fs::remove_dir_all(&dir);
+        for (k, dt, d, want) in [
+            (1.0, 0.01, 0, 0.99765),
+            (1.0, 0.01, 1, 1.00265),
+            (1.0, 0.01, 2, 1.00176),
+            (0.5, 0.01, 1, 1.00014),
+            (1.0, 0.001, 1, 0.99900),
+        ] {
+            let got = g.estimator_growth(k, dt, d);
+            assert!(
+                (got - want).abs() < 2e-4,
+                "k = {k}, Δt = {dt}, d = {d}: growth {got:.5} per step, numpy {want:.5}"
+            );
+        }
+        // The paper's graph: below 1 at every delay.
+        for d in 0..3 {
+            let got = paper().estimator_growth(1.0, 0.01, d);
+            assert!(got < 1.0, "paper graph, Δt = 10 ms, d = {d}: {got:.5}");
+        }
     }
 }

@@ -199,6 +199,41 @@ pub struct Scenario {
 }
 
 impl Scenario {
+    /// Followers above which [`Scenario::estimator_stability_warning`] does
+    /// not look (its cost grows with the graph: about a second at this size).
+    pub const STABILITY_CHECK_LIMIT: usize = 20_000;
+
+    /// A warning when the position estimator (eq. 11–12), as the followers
+    /// step it on this graph at this Δt, gain k_i and `network.delay_steps`,
+    /// is unstable: its disagreement grows by more than 5 % a second of the
+    /// run ([`Graph::estimator_growth`]). On the generated rings at Δt =
+    /// 10 ms, one step of delay is enough (docs/performance.md); at 1 ms it
+    /// is not. None for a stable setting or a graph above
+    /// [`Scenario::STABILITY_CHECK_LIMIT`].
+    pub fn estimator_stability_warning(&self) -> Option<String> {
+        if self.graph.len() > Self::STABILITY_CHECK_LIMIT || self.dt_s.is_nan() || self.dt_s <= 0.0 {
+            return None;
+        }
+        let d = usize::try_from(self.network.delay_steps).ok()?;
+        let mut ks = self.control.estimator.k.to_vec();
+        ks.sort_by(f64::total_cmp);
+        ks.dedup();
+        let (k, growth) = ks
+            .into_iter()
+            .map(|k| (k, self.graph.estimator_growth(k, self.dt_s, d)))
+            .max_by(|a, b| a.1.total_cmp(&b.1))?;
+        let per_second = growth.powf(1.0 / self.dt_s);
+        (per_second > 1.05).then(|| {
+            format!(
+                "warning: the leader estimator (eq. 11–12) is unstable here: at Δt = {} ms with network.delay_steps = \
+                 {d} and k_i = {k}, the followers' estimates oscillate with an amplitude that grows ×{per_second:.2} \
+                 a second of the run, and so do the torques; a smaller k_i (estimator.k), Δt or delay slows or \
+                 stops it (docs/performance.md, \"Fewer wake-ups per step\")",
+                self.dt_s * 1e3
+            )
+        })
+    }
+
     /// Reads, overrides (`KEY=VALUE`, dotted keys) and validates a scenario file.
     ///
     /// A path that names no file but a built-in scenario ([`BUILT_IN`]:
