@@ -547,11 +547,7 @@ impl Node {
     /// node's monotonic clock; None if it is due already.
     fn deadline(&self) -> Option<std::time::Instant> {
         let at = self.shared.lock().poll_timeout()?;
-        let t = self.timebase.now();
-        if at <= t {
-            return None;
-        }
-        Some(self.timebase.instant_at(at.as_nanos() as i64).unwrap_or_else(|| std::time::Instant::now() + (at - t)))
+        self.timebase.wake_instant(at)
     }
 
     /// Until the machine's next deadline: a precise sleep in real time; in

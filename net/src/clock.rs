@@ -181,12 +181,20 @@ impl Timebase {
     /// on this node's monotonic clock through the estimate, which follows
     /// the clocks' drift.
     pub fn sleep_until(&self, at: Duration) {
+        if let Some(wake) = self.wake_instant(at) {
+            std::thread::sleep(wake.saturating_duration_since(Instant::now()));
+        }
+    }
+
+    /// The instant on this node's monotonic clock at which the timebase
+    /// reads `at` (through the estimate; without one, `at` from now on);
+    /// None if it reads that already.
+    pub fn wake_instant(&self, at: Duration) -> Option<Instant> {
         let now = self.now();
         if at <= now {
-            return;
+            return None;
         }
-        let wake = self.instant_at(at.as_nanos() as i64).unwrap_or_else(|| Instant::now() + (at - now));
-        std::thread::sleep(wake.saturating_duration_since(Instant::now()));
+        Some(self.instant_at(at.as_nanos() as i64).unwrap_or_else(|| Instant::now() + (at - now)))
     }
 
     /// How long ago the timebase read `tb_ns` (negative: still to come), in

@@ -66,20 +66,9 @@ impl Ports {
             if u32::from(base) + u32::from(count) > u32::from(u16::MAX) + 1 {
                 continue;
             }
-            let block = base..=base + (count - 1);
-            if block.clone().any(|p| handed_out.contains(&p)) {
-                continue;
-            }
-            let mut held = vec![first];
-            for p in block.clone().skip(1) {
-                match TcpListener::bind(("127.0.0.1", p)) {
-                    Ok(l) => held.push(l),
-                    Err(_) => break,
-                }
-            }
-            if held.len() == usize::from(count) {
-                handed_out.extend(block);
-                return Ports { first: base, held };
+            drop(first);
+            if let Some(ports) = Self::take_block(base, count, &mut handed_out) {
+                return ports;
             }
         }
         panic!("no {count} consecutive free loopback ports in 1000 tries");
@@ -108,18 +97,27 @@ impl Ports {
         let start = low + (std::process::id() % u32::from(span)) as u16;
         let mut base = start;
         for _ in 0..200 {
-            let block = base..=base + (count - 1);
-            if !block.clone().any(|p| handed_out.contains(&p)) {
-                let held: Vec<TcpListener> =
-                    block.clone().map_while(|p| TcpListener::bind(("127.0.0.1", p)).ok()).collect();
-                if held.len() == usize::from(count) {
-                    handed_out.extend(block);
-                    return Ports { first: base, held };
-                }
+            if let Some(ports) = Self::take_block(base, count, &mut handed_out) {
+                return ports;
             }
             base = low + ((base - low + count) % span);
         }
         panic!("no {count} consecutive free loopback ports below {ephemeral_low} in 200 tries");
+    }
+
+    /// Holds `count` ports from `base` if none was handed out before and
+    /// every one binds.
+    fn take_block(base: u16, count: u16, handed_out: &mut BTreeSet<u16>) -> Option<Self> {
+        let block = base..=base + (count - 1);
+        if block.clone().any(|p| handed_out.contains(&p)) {
+            return None;
+        }
+        let held: Vec<TcpListener> = block.clone().map_while(|p| TcpListener::bind(("127.0.0.1", p)).ok()).collect();
+        if held.len() != usize::from(count) {
+            return None;
+        }
+        handed_out.extend(block);
+        Some(Ports { first: base, held })
     }
 
     /// The first port.

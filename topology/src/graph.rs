@@ -274,12 +274,7 @@ mod tests {
             ..crate::generate::Spec::new(50, crate::generate::GraphKind::Ring)
         };
         let text = crate::generate::toml(&spec).expect("generate");
-        let dir = std::env::temp_dir().join(format!("formation-growth-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).expect("dir");
-        let file = dir.join("ring50.toml");
-        std::fs::write(&file, text).expect("write");
-        let g = crate::Scenario::load(&file, &[]).expect("load").graph;
-        let _ = std::fs::remove_dir_all(&dir);
+        let g = crate::Scenario::from_toml(&text, "ring50", "ring50", &[]).expect("load").graph;
         for (k, dt, d, want) in [
             (1.0, 0.01, 0, 0.99765),
             (1.0, 0.01, 1, 1.00265),
