@@ -104,6 +104,13 @@ pub struct Evidence {
     pub time_queries: (u64, u64, u64),
     /// (node, the steps its restarted processes resumed from).
     pub restarts: Vec<(String, Vec<u64>)>,
+    /// Per follower in real time: how far its estimate of the leader's
+    /// clock may be off at its last report, µs.
+    pub clock_uncertainty_us: Vec<(u32, f64)>,
+    /// A quarter of the real-time period (Δt over the time scale), µs; 0 in
+    /// lock-step. A clock known worse than this puts steps early or late by
+    /// more than a quarter step.
+    pub quarter_step_us: f64,
 }
 
 /// The verdict from the evidence.
@@ -137,6 +144,9 @@ pub fn judge(e: &Evidence) -> Health {
                 *first as f64 * e.dt_s
             ));
         }
+    }
+    if let Some(line) = unsure_clocks(e) {
+        disturbed.push(line);
     }
     let mut by: BTreeMap<u32, Isolation> = BTreeMap::new();
     for &(id, from, to) in &e.isolations {
@@ -226,6 +236,32 @@ fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
     }
 }
 
+/// One line for every follower whose clock was known worse than a quarter
+/// step at the end (each follower's own warning, when it runs by itself; in
+/// a `launch` they are summed up here, not 100 lines on the terminal).
+fn unsure_clocks(e: &Evidence) -> Option<String> {
+    if e.quarter_step_us <= 0.0 {
+        return None;
+    }
+    let unsure: Vec<(u32, f64)> =
+        e.clock_uncertainty_us.iter().copied().filter(|&(_, u)| u > e.quarter_step_us).collect();
+    let worst = unsure.iter().copied().max_by(|a, b| a.1.total_cmp(&b.1))?;
+    let least = unsure.iter().map(|u| u.1).fold(f64::INFINITY, f64::min);
+    let range = if unsure.len() == 1 {
+        format!("±{:.3} ms", worst.1 * 1e-3)
+    } else {
+        format!("±{:.3}–{:.3} ms, follower {} the worst", least * 1e-3, worst.1 * 1e-3, worst.0)
+    };
+    Some(format!(
+        "{} of {} followers knew the leader's clock only to more than a quarter step ({:.3} ms) at the end ({range}): \
+         their steps may have run early or late by that much (a host short of CPU for its processes, or a slow \
+         network; network.json's nodes.*.clock and loop)",
+        unsure.len(),
+        e.clock_uncertainty_us.len(),
+        e.quarter_step_us * 1e-3
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -251,6 +287,28 @@ mod tests {
         assert_eq!(h.verdict, Verdict::Disturbed, "a clock step the formation survived: {h:?}");
         assert!(h.disturbed.iter().any(|d| d.contains("stepped 1 time")), "{:?}", h.disturbed);
         assert_eq!(judge(&Evidence::default()).verdict, Verdict::Healthy);
+    }
+
+    #[test]
+    fn followers_unsure_of_the_leaders_clock_are_summed_up_in_one_line() {
+        // 100 Hz: a quarter step is 2.5 ms.
+        let mut e = Evidence { quarter_step_us: 2_500.0, ..Default::default() };
+        e.clock_uncertainty_us =
+            (1..=100).map(|id| (id, if id % 4 == 0 { 2_500.0 + 100.0 * id as f64 } else { 800.0 })).collect();
+        let h = judge(&e);
+        assert_eq!(h.verdict, Verdict::Disturbed, "{h:?}");
+        assert_eq!(h.disturbed.len(), 1, "one line for every follower: {:?}", h.disturbed);
+        let line = &h.disturbed[0];
+        for words in ["25 of 100 followers", "(2.500 ms)", "±2.900–12.500 ms, follower 100 the worst"] {
+            assert!(line.contains(words), "'{words}' not in: {line}");
+        }
+        // At the quarter step exactly, and in lock-step (no period), nothing.
+        e.clock_uncertainty_us = vec![(1, 2_500.0), (2, 100.0)];
+        assert_eq!(judge(&e).verdict, Verdict::Healthy);
+        e.clock_uncertainty_us = vec![(1, 9_000.0)];
+        assert!(judge(&e).disturbed[0].contains("1 of 1 followers") && judge(&e).disturbed[0].contains("(±9.000 ms)"));
+        e.quarter_step_us = 0.0;
+        assert_eq!(judge(&e).verdict, Verdict::Healthy);
     }
 
     #[test]

@@ -23,28 +23,27 @@ pub const LAUNCH_PORTS: usize = 6;
 /// Every port `Ports::free` has handed out in this process: never twice.
 static HANDED_OUT: Mutex<BTreeSet<u16>> = Mutex::new(BTreeSet::new());
 
-/// `count` consecutive TCP ports on 127.0.0.1 that the OS says are free,
-/// for one test: `launch --base-port` takes consecutive ports, and a test
-/// that starts a router or a listening session needs to know its port.
+/// `count` consecutive TCP ports on 127.0.0.1 that are free, for one test:
+/// `launch --base-port` takes consecutive ports, and a test that starts a
+/// router or a listening session needs to know its port.
 ///
 /// How they are chosen, and why concurrent tests do not collide:
-/// - The OS picks the first one (bind 127.0.0.1:0, so somewhere in
-///   `ip_local_port_range`, at a random place), and each of the next
-///   `count - 1` is bound too: a port that a socket holds (a listener, a
-///   live connection's local end) fails to bind and the block is tried
-///   again elsewhere (one in TIME_WAIT binds here as it does for the node,
-///   both asking for SO_REUSEADDR). Fixed ports collided whenever the same test ran twice at
-///   once (two worktrees, two `cargo test`s) or something else held them.
+/// - Below the kernel's ephemeral range (`net.ipv4.ip_local_port_range`),
+///   from 10,000 up: outgoing connections take their local ports from that
+///   range, so there only a listener can take a port. (Blocks used to come
+///   from the OS's own pick, inside the range: at 100 peers, one peer's
+///   outgoing link took a port of a block between its release and a
+///   node's bind, "Address already in use".)
+/// - The search starts where this process's id says, so that test binaries
+///   run at once (two worktrees, two `cargo test`s) do not try the same
+///   block first, and each port of a block is bound: a port that a socket
+///   holds fails to bind and the next block is tried (one in TIME_WAIT
+///   binds here as it does for the node, both asking for SO_REUSEADDR).
 /// - Every listener stays open, so nothing else on the machine can take the
 ///   ports, until `release` — to be called just before starting the
 ///   process that binds them (it cannot bind them while we hold them).
-/// - A port is handed out at most once per process (`HANDED_OUT`): after
-///   `release` the OS may pick it again, but another test of this binary is
-///   never given it, however its timing goes. What is left is another
-///   process asking the OS for a port (or a connection taking it as its
-///   local port) in the moment between `release` and the child's bind: the
-///   OS starts each search at a random place in ~28,000 ports, so that is
-///   rare, and the fixed ports had no protection from it either.
+/// - A port is handed out at most once per process (`HANDED_OUT`): another
+///   test of this binary is never given it, however its timing goes.
 ///
 /// Tests whose processes run in network namespaces (`formation lab`, the
 /// containers) need none of this: each node listens on its own address in
@@ -57,31 +56,6 @@ pub struct Ports {
 
 impl Ports {
     pub fn free(count: usize) -> Self {
-        assert!((1..=1000).contains(&count), "{count} ports");
-        let count = count as u16;
-        let mut handed_out = HANDED_OUT.lock().unwrap_or_else(|e| e.into_inner());
-        for _ in 0..1000 {
-            let Ok(first) = TcpListener::bind("127.0.0.1:0") else { continue };
-            let Ok(base) = first.local_addr().map(|a| a.port()) else { continue };
-            if u32::from(base) + u32::from(count) > u32::from(u16::MAX) + 1 {
-                continue;
-            }
-            drop(first);
-            if let Some(ports) = Self::take_block(base, count, &mut handed_out) {
-                return ports;
-            }
-        }
-        panic!("no {count} consecutive free loopback ports in 1000 tries");
-    }
-
-    /// `count` consecutive free ports below the kernel's ephemeral range
-    /// (`net.ipv4.ip_local_port_range`). A run of many processes makes many
-    /// outgoing connections, each from an ephemeral port: a block from
-    /// [`Ports::free`] lies in that range, and one of those connections can
-    /// take a port of the block between its release and a node's bind (seen
-    /// at 100 peers: "Address already in use"). Below the range only a
-    /// listener can take a port.
-    pub fn below_ephemeral(count: usize) -> Self {
         assert!((1..=1000).contains(&count), "{count} ports");
         let count = count as u16;
         let ephemeral_low = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")

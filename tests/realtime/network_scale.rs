@@ -1,8 +1,9 @@
-//! 100 agents as processes on one host (issue 12): a generated ring of 100
+//! Many agents as processes on one host. Issue 12: a generated ring of 100
 //! followers through `formation launch`, lock-step, equals the simulator
 //! byte for byte: one process per agent in client mode (one router port),
 //! and 50 agents per process in peer mode (four ports), on free ports of
-//! 127.0.0.1 (`common::Ports`).
+//! 127.0.0.1 (`common::Ports`); 50 agents in real time behave like the
+//! simulator. Issue 33: 100 agents in real time, one process each.
 
 use crate::common;
 
@@ -116,81 +117,243 @@ fn hundred_agents_in_lockstep(launch_args: &[&str], duration: f64) {
 fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
     let _alone = common::alone();
-    let dir = tempfile::tempdir().expect("tempdir");
-    let scenario = dir.path().join("ring50.toml");
-    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["generate", "--followers", "50", "--graph", "ring", "--chords", "10", "--seed", "1", "--out"])
-        .arg(&scenario)
-        .output()
-        .expect("formation generate");
-    assert!(o.status.success(), "formation generate: {}", String::from_utf8_lossy(&o.stderr));
-    let scenario = scenario.display().to_string();
-    let sets = ["timing=realtime", "dt=0.01", "duration=10", "network.delay_steps=1"];
-    let net = dir.path().join("net");
-    let net_s = net.display().to_string();
-    // Ports: the monitor, the leader, 50 agents.
-    // Below the ephemeral ports, which the peers' outgoing links take.
-    let base = common::Ports::below_ephemeral(52).release().to_string();
-    let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", &base, "--run", "rt50"];
-    // As root (CI): every node under real-time scheduling, as a real-time
-    // deployment runs; the 3 % below is judged with it.
-    // SAFETY: geteuid has no preconditions.
-    let root = unsafe { libc::geteuid() } == 0;
-    if root {
-        args.extend(["--rt-priority", "10"]);
-    }
-    for s in sets {
-        args.extend(["--set", s]);
-    }
-    let before = common::Host::now();
-    let mut g = Group::spawn(&args);
-    let status = g.wait(std::time::Duration::from_secs(120));
-    let host = common::Host::now().since(&before);
-    assert!(status.success(), "formation launch with 50 agents failed: {status}");
-    g.assert_group_empty();
-    let sim = dir.path().join("sim");
-    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
-    c.args(["sim", &scenario, "-q", "--out"]).arg(&sim);
-    for s in sets {
-        c.args(["--set", s]);
-    }
-    common::run_ok(&mut c);
-    let (got, want, network) =
-        (common::json(&net, "summary.json"), common::json(&sim, "summary.json"), common::json(&net, "network.json"));
-    let mut bad = common::unlike_the_simulator(&got, &want, &network, 0.10, &common::COMPARED_CONVERGING);
-    let ratio = |id: &str| {
-        let (g, s) = (got["followers"][id]["torque_tv"].as_f64(), want["followers"][id]["torque_tv"].as_f64());
-        g.zip(s).map_or(f64::NAN, |(g, s)| g / s)
-    };
-    let mut ratios: Vec<f64> = want["followers"].as_object().expect("followers").keys().map(|id| ratio(id)).collect();
-    ratios.sort_by(f64::total_cmp);
-    let median = ratios.get(ratios.len() / 2).copied().unwrap_or(f64::NAN);
+    let run = RingInRealTime::run(50, &[], "rt50");
+    let mut bad = common::unlike_the_simulator(&run.got, &run.want, &run.network, 0.10, &common::COMPARED_CONVERGING);
+    let tv = run.torque_variation();
     // Without real-time scheduling a few messages a run come a step late on
     // a busy 2-core machine (see above): 25 %, as before.
-    let allowed = if root { TORQUE_TV_MEDIAN } else { 0.25 };
-    if !((median - 1.0).abs() <= allowed) {
-        bad.push(format!(
-            "the formation's median torque variation is {median:.3} of the simulator's (allowed 1 ± {allowed}; \
-             followers {:.3}–{:.3})",
-            ratios.first().unwrap_or(&f64::NAN),
-            ratios.last().unwrap_or(&f64::NAN)
-        ));
+    let allowed = if run.root { TORQUE_TV_MEDIAN } else { 0.25 };
+    if !((tv.median - 1.0).abs() <= allowed) {
+        bad.push(tv.complaint(allowed));
     }
-    let explained = if bad.is_empty() {
-        String::new()
-    } else {
-        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-            .args(["replay", "--explain", "--top", "5"])
-            .arg(&net)
-            .output()
-            .expect("formation replay --explain");
-        String::from_utf8_lossy(&o.stdout).into_owned()
-    };
+    let explained = if bad.is_empty() { String::new() } else { run.explain() };
     common::judge_if_quiet(
         "50 agents in real time, against the simulator",
         &bad,
-        host,
+        run.host,
         &format!("at 100 Hz\n{explained}"),
     );
-    eprintln!("50 agents in real time: median torque variation ratio {median:.3} (real time over the simulator)");
+    eprintln!("50 agents in real time: median torque variation ratio {:.3} (real time over the simulator)", tv.median);
+}
+
+/// How many link-steps of a 100-agent real-time run may differ from the
+/// model (a message older than `network.delay_steps`) for the run to be
+/// judged against the model's figures (see the test).
+const KEPT_THE_PERIOD: u64 = 50;
+
+/// Issue 33's 100 agents, one process each, linked as peers along the
+/// topology (as `launch` does), real time at 100 Hz with a one-step delay,
+/// no source silent: every step of every follower recorded, the record
+/// complete, and the run replayed byte for byte from its hearing record —
+/// unconditionally; and, when the host kept the period, within 3 % of the
+/// model (`formation sim` with the same delay).
+///
+/// The estimator gain is k_i = 0.3: on this ring at Δt = 10 ms and one step
+/// of delay, the scenario's k_i = 1 makes the model itself unstable (an
+/// oscillation growing ×1.46 a second; `formation sim` warns), and a run of
+/// an unstable model amplifies every late message without bound. With 0.3
+/// the model is stable, so a late message disturbs it once.
+///
+/// "Kept the period": 101 processes at 100 Hz fill this project's 2-core VM
+/// (90–95 % busy, zenoh's own floor for this traffic alone 1.6 cores; see
+/// docs/performance.md), and how many messages come a step late depends on
+/// the VM's speed of the hour. Measured 2026-11-26 (test build, as root
+/// with `--rt-priority 10`): 22, 289, 780, 1,386, 1,830 and 3,088 late
+/// link-steps of 241,241 in six runs, the median torque variation 1.000,
+/// 1.039, 1.069, 1.128, 1.221 and 1.233 of the model's. The model's
+/// figures are judged when at most [`KEPT_THE_PERIOD`] link-steps differ
+/// and none went silent (the first run); otherwise the test says by how
+/// much the host fell behind, and judges the rest.
+#[test]
+fn a_hundred_agents_in_real_time_at_100_hz_record_everything_and_follow_the_model() {
+    // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
+    let _alone = common::alone();
+    let run = RingInRealTime::run(100, &["estimator.k=[0.3,0.3,0.3]"], "rt100");
+    let n = &run.network;
+    assert_eq!(
+        n["complete"], true,
+        "100 agents: record not complete: ending {}, lost {}",
+        n["ending"], n["lost_steps"]
+    );
+    let steps = n["steps"].as_u64().expect("steps") + 1;
+    for id in 1..=100 {
+        let csv = std::fs::read_to_string(run.net.join(format!("follower_{id}.csv"))).expect("follower csv");
+        let rows = csv.lines().count().saturating_sub(1) as u64;
+        assert_eq!(rows, steps, "100 agents: follower {id} recorded {rows} steps of {steps}");
+    }
+    assert_ne!(n["health"]["verdict"], "degraded", "100 agents: {}", n["health"]);
+    let o =
+        Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(&run.net).output().expect("formation replay");
+    let replayed = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success() && replayed.contains("byte-identical"),
+        "100 agents: the replay differs from the run ({}):\n{replayed}{}",
+        o.status,
+        String::from_utf8_lossy(&o.stderr)
+    );
+
+    let explained = run.explain();
+    let hearing = Hearing::parse(&explained);
+    let tv = run.torque_variation();
+    let mut bad = common::unlike_the_simulator(&run.got, &run.want, n, 0.03, &common::COMPARED_CONVERGING);
+    if !((tv.median - 1.0).abs() <= TORQUE_TV_MEDIAN) {
+        bad.push(tv.complaint(TORQUE_TV_MEDIAN));
+    }
+    let kept = hearing.differ <= KEPT_THE_PERIOD && hearing.silent == 0;
+    let verdict = format!(
+        "{} of {} link-steps differ from the model ({} heard nothing); median torque variation {:.3} of the model's",
+        hearing.differ, hearing.link_steps, hearing.silent, tv.median
+    );
+    if kept {
+        assert!(
+            bad.is_empty(),
+            "100 agents in real time, the host keeping the period ({verdict}): {}\n{explained}",
+            bad.join("; ")
+        );
+    } else {
+        eprintln!(
+            "100 agents in real time: the host fell behind ({verdict}): not judged against the model's figures{}",
+            if bad.is_empty() { String::new() } else { format!(" ({} of them off)", bad.len()) }
+        );
+    }
+    eprintln!("100 agents in real time: {verdict}; the record complete and replayed byte for byte");
+}
+
+/// A generated ring of `followers` (chords: a fifth of them, seed 1) run
+/// by `formation launch` in real time at 100 Hz for 10 s with a one-step
+/// delay (plus `extra` settings), one process per agent, and by `formation
+/// sim` with the same settings.
+struct RingInRealTime {
+    _dir: tempfile::TempDir,
+    net: std::path::PathBuf,
+    got: serde_json::Value,
+    want: serde_json::Value,
+    network: serde_json::Value,
+    /// (stolen, others' CPU) over the run (`common::Host`).
+    host: (f64, f64),
+    /// As root (CI): every node under real-time scheduling (`--rt-priority
+    /// 10`), as a real-time deployment runs.
+    root: bool,
+}
+
+impl RingInRealTime {
+    fn run(followers: usize, extra: &[&str], tag: &str) -> Self {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let scenario = dir.path().join(format!("ring{followers}.toml"));
+        let chords = (followers / 5).to_string();
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["generate", "--followers", &followers.to_string(), "--graph", "ring", "--chords", &chords])
+            .args(["--seed", "1", "--out"])
+            .arg(&scenario)
+            .output()
+            .expect("formation generate");
+        assert!(o.status.success(), "formation generate: {}", String::from_utf8_lossy(&o.stderr));
+        let scenario = scenario.display().to_string();
+        let mut sets = vec!["timing=realtime", "dt=0.01", "duration=10", "network.delay_steps=1"];
+        sets.extend(extra);
+        let net = dir.path().join("net");
+        let net_s = net.display().to_string();
+        // Ports: the monitor, the leader, one per agent.
+        let base = common::Ports::free(followers + 2).release().to_string();
+        let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", &base, "--run", tag];
+        // SAFETY: geteuid has no preconditions.
+        let root = unsafe { libc::geteuid() } == 0;
+        if root {
+            args.extend(["--rt-priority", "10"]);
+        }
+        for s in &sets {
+            args.extend(["--set", s]);
+        }
+        let before = common::Host::now();
+        let mut g = Group::spawn(&args);
+        let status = g.wait(std::time::Duration::from_secs(120));
+        let host = common::Host::now().since(&before);
+        assert!(status.success(), "formation launch with {followers} agents failed: {status}");
+        g.assert_group_empty();
+        let sim = dir.path().join("sim");
+        let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+        c.args(["sim", &scenario, "-q", "--out"]).arg(&sim);
+        for s in &sets {
+            c.args(["--set", s]);
+        }
+        common::run_ok(&mut c);
+        let (got, want, network) = (
+            common::json(&net, "summary.json"),
+            common::json(&sim, "summary.json"),
+            common::json(&net, "network.json"),
+        );
+        RingInRealTime { _dir: dir, net, got, want, network, host, root }
+    }
+
+    /// The followers' torque variation, the run's over the model's.
+    fn torque_variation(&self) -> Ratios {
+        let ratio = |id: &str| {
+            let (g, s) =
+                (self.got["followers"][id]["torque_tv"].as_f64(), self.want["followers"][id]["torque_tv"].as_f64());
+            g.zip(s).map_or(f64::NAN, |(g, s)| g / s)
+        };
+        let mut r: Vec<f64> =
+            self.want["followers"].as_object().expect("followers").keys().map(|id| ratio(id)).collect();
+        r.sort_by(f64::total_cmp);
+        let at = |i: usize| r.get(i).copied().unwrap_or(f64::NAN);
+        Ratios { median: at(r.len() / 2), min: at(0), max: at(r.len().saturating_sub(1)) }
+    }
+
+    /// `formation replay --explain --top 5` on the run.
+    fn explain(&self) -> String {
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["replay", "--explain", "--top", "5"])
+            .arg(&self.net)
+            .output()
+            .expect("formation replay --explain");
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    }
+}
+
+/// A figure of every follower, the run's over the model's.
+struct Ratios {
+    median: f64,
+    min: f64,
+    max: f64,
+}
+
+impl Ratios {
+    fn complaint(&self, allowed: f64) -> String {
+        format!(
+            "the formation's median torque variation is {:.3} of the simulator's (allowed 1 ± {allowed}; followers \
+             {:.3}–{:.3})",
+            self.median, self.min, self.max
+        )
+    }
+}
+
+/// `replay --explain`'s hearing line: "hearing: D of N link-steps differ
+/// from the model (…): …, S heard nothing where the model heard, …".
+struct Hearing {
+    differ: u64,
+    link_steps: u64,
+    silent: u64,
+}
+
+impl Hearing {
+    fn parse(explained: &str) -> Self {
+        let line = explained
+            .lines()
+            .find(|l| l.starts_with("hearing:"))
+            .unwrap_or_else(|| panic!("no hearing line in formation replay --explain's output:\n{explained}"));
+        let number_before = |words: &str| -> u64 {
+            let head = line.split(words).next().unwrap_or("");
+            head.split_whitespace()
+                .last()
+                .and_then(|w| w.parse().ok())
+                .unwrap_or_else(|| panic!("no number before '{words}' in: {line}"))
+        };
+        let after_hearing = line.trim_start_matches("hearing:").trim_start();
+        let differ = after_hearing.split_whitespace().next().and_then(|w| w.parse().ok());
+        Hearing {
+            differ: differ.unwrap_or_else(|| panic!("no count in: {line}")),
+            link_steps: number_before(" link-steps"),
+            silent: number_before(" heard nothing"),
+        }
+    }
 }

@@ -313,6 +313,11 @@ impl Recorder {
         let model = self.model.as_ref()?;
         let dt = self.scenario.dt_s;
         let mut e = Evidence { steps: self.scenario.steps(), dt_s: dt, ..Default::default() };
+        if self.scenario.timing == formation_topology::Timing::Realtime {
+            // As each follower judges its own (net's agent).
+            let scale = formation_protocol::barrier::positive_scale(self.scenario.network.time_scale);
+            e.quarter_step_us = dt / scale * 1e6 / 4.0;
+        }
         let mut invalid = 0;
         for (&id, n) in &self.nodes {
             invalid += n.counters.rejected.invalid();
@@ -341,6 +346,7 @@ impl Recorder {
                 if c.steps > 0 || second.is_some() {
                     e.clocks.push((format!("follower {id}"), c.steps, second));
                 }
+                e.clock_uncertainty_us.push((id, c.uncertainty_us));
             }
         }
         match model {
