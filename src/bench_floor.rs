@@ -93,11 +93,18 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
         .map_err(|e| formation_net::Error::Run(e.to_string()))?;
     let period = Duration::from_secs_f64(scenario.dt_s);
     let steps = (a.seconds / scenario.dt_s) as u64;
-    tokio::task::spawn_blocking(move || {
-        let began = Instant::now();
+    // As an agent's real-time loop: a task on zenoh's own thread woken by
+    // a timerfd, so the put is written to the sockets in the same wake-up.
+    formation_net::timer::on_zenoh_thread(async move {
+        let timer = formation_net::timer::Timer::new().map_err(|e| format!("a timer: {e}"))?;
+        // Every floor process steps on one grid, the wall clock's whole
+        // seconds (the period divides a second), as agents step on the
+        // leader's timebase: neighbours' messages then arrive while a
+        // process is awake for its own step, as they do for an agent.
+        let wall = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+        let began = Instant::now() + (Duration::from_secs(wall.as_secs() + 1) - wall);
         for k in 0..steps {
-            let due = began + period * k as u32;
-            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            timer.sleep_until(began + period * k as u32).await.map_err(|e| format!("the timer: {e}"))?;
             let msg = EstimateMsg {
                 header: Header { version: FORMAT_VERSION, sender: 0, step: k, time_s: k as f64 * 1e-3, sent_ns: 0 },
                 state: Default::default(),
@@ -105,9 +112,11 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
             };
             let _ = publisher.put(wire::encode(&msg)).wait();
         }
+        Ok::<(), String>(())
     })
     .await
-    .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+    .and_then(|r| r)
+    .map_err(formation_net::Error::Run)?;
     drop(subs);
     let _ = session.close().await;
     Ok(())
@@ -357,14 +366,17 @@ fn cpu_ns(pid: u32) -> u64 {
         .sum()
 }
 
-/// Processes whose command line holds every one of `words`.
+/// Processes whose command line holds every one of `words`; not the
+/// floor's stand-in for the leader (`--id 0`): the agents' figures are the
+/// followers', so the floor's are too.
 fn pids_with(words: &[&str]) -> Vec<u32> {
     let mut found = Vec::new();
     for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
         let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
         let Ok(cmd) = std::fs::read(format!("/proc/{pid}/cmdline")) else { continue };
         let args: Vec<String> = cmd.split(|&b| b == 0).map(|a| String::from_utf8_lossy(a).into_owned()).collect();
-        if words.iter().all(|w| args.iter().any(|a| a == w)) {
+        let leader = args.windows(2).any(|w| w[0] == "--id" && w[1] == "0");
+        if words.iter().all(|w| args.iter().any(|a| a == w)) && !leader {
             found.push(pid);
         }
     }

@@ -247,9 +247,9 @@ pub async fn run_follower(
         topics: topics.clone(),
     };
     let outcome = if lockstep || !opts.on_zenoh_thread {
-        tokio::task::spawn_blocking(move || node.drive()).await
+        tokio::task::spawn_blocking(move || node.drive()).await.map_err(|e| e.to_string())
     } else {
-        zenoh_runtime::ZRuntime::Application.spawn(node.drive_on_zenoh()).await
+        crate::timer::on_zenoh_thread(node.drive_on_zenoh()).await
     }
     .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
     telemetry::finish_delivery(delivery, &format!("follower {id}")).await;

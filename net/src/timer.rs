@@ -71,6 +71,17 @@ impl Timer {
     }
 }
 
+/// Runs `task` on zenoh's application thread, where an agent's real-time
+/// loop runs (and `formation node floor`'s, measured against it), and
+/// waits for it; Err if it panicked.
+pub async fn on_zenoh_thread<F>(task: F) -> Result<F::Output, String>
+where
+    F: std::future::Future + Send + 'static,
+    F::Output: Send + 'static,
+{
+    zenoh_runtime::ZRuntime::Application.spawn(task).await.map_err(|e| e.to_string())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
