@@ -31,7 +31,7 @@ use serde_json::json;
 use crate::barrier;
 use crate::codec;
 use crate::counters::Counters;
-use crate::health::{ControlWatch, Evidence, Health};
+use crate::health::{ControlWatch, Evidence, Health, HearingEvidence};
 use crate::loop_timing::LoopStats;
 use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
 use crate::watch::Ending;
@@ -313,10 +313,28 @@ impl Recorder {
         let model = self.model.as_ref()?;
         let dt = self.scenario.dt_s;
         let mut e = Evidence { steps: self.scenario.steps(), dt_s: dt, ..Default::default() };
+        let delay_steps = self.scenario.network.delay_steps;
         if self.scenario.timing == formation_topology::Timing::Realtime {
             // As each follower judges its own (net's agent).
             let scale = formation_protocol::barrier::positive_scale(self.scenario.network.time_scale);
             e.quarter_step_us = dt / scale * 1e6 / 4.0;
+            // Without a delay, real time mixes a neighbour's message of the
+            // step and of the one before, which no model does (docs/lab.md).
+            // With a fault table the followers' counts include what the
+            // model loses too (`replay --explain` tells them apart).
+            if delay_steps > 0 && self.scenario.faults.is_empty() {
+                let g = &self.scenario.graph;
+                let sources: u64 =
+                    (0..g.len()).map(|i| g.neighbours(i).len() as u64 + u64::from(g.hears_leader(i))).sum();
+                let followers = self.nodes.iter().filter(|(&id, _)| id != 0).map(|(_, n)| n.counters);
+                let (older, silent) = followers.fold((0, 0), |(o, s), c| (o + c.older, s + c.silent));
+                e.hearing = Some(HearingEvidence {
+                    older,
+                    silent,
+                    link_steps: sources * (self.scenario.steps() + 1),
+                    delay_steps,
+                });
+            }
         }
         let mut invalid = 0;
         for (&id, n) in &self.nodes {
