@@ -144,9 +144,11 @@ const KEPT_THE_PERIOD: u64 = 50;
 /// Issue 33's 100 agents, one process each, linked as peers along the
 /// topology (as `launch` does), real time at 100 Hz with a one-step delay,
 /// no source silent: every step of every follower recorded, the record
-/// complete, and the run replayed byte for byte from its hearing record —
-/// unconditionally; and, when the host kept the period, within 3 % of the
-/// model (`formation sim` with the same delay).
+/// complete, the run replayed byte for byte from its hearing record, and
+/// its health saying whether more than 0.1 % of link-steps heard otherwise
+/// than the model, as `replay --explain` counts them — unconditionally;
+/// and, when the host kept the period, within 3 % of the model
+/// (`formation sim` with the same delay).
 ///
 /// The estimator gain is k_i = 0.2: on this ring at Δt = 10 ms and one step
 /// of delay, the scenario's k_i = 1 makes the model itself unstable (an
@@ -202,6 +204,17 @@ fn a_hundred_agents_in_real_time_at_100_hz_record_everything_and_follow_the_mode
     if !((tv.median - 1.0).abs() <= TORQUE_TV_MEDIAN) {
         bad.push(tv.complaint(TORQUE_TV_MEDIAN));
     }
+    // The run's health counts what `replay --explain` counts, and says it
+    // past 0.1 % of link-steps.
+    let said = n["health"]["disturbed"].to_string();
+    let over = hearing.differ * 1000 > hearing.link_steps;
+    assert_eq!(
+        said.contains(&format!("{} of {} link-steps", hearing.differ, hearing.link_steps)),
+        over,
+        "100 agents: {} of {} link-steps differ from the model (replay --explain), and the health says: {said}",
+        hearing.differ,
+        hearing.link_steps
+    );
     let kept = hearing.differ <= KEPT_THE_PERIOD && hearing.silent == 0;
     let verdict = format!(
         "{} of {} link-steps differ from the model ({} heard nothing); median torque variation {:.3} of the model's",
