@@ -349,6 +349,20 @@ pub fn judge_if_quiet(tag: &str, wrong: &[String], host: (f64, f64), context: &s
     );
 }
 
+/// `formation replay` re-computes the run in `out` from its hearing record
+/// into its CSVs and summary.json, byte for byte (issue 25).
+pub fn replays_byte_for_byte(tag: &str, out: &Path) {
+    let o = Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(out).output().expect("formation replay");
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success() && text.contains("byte-identical"),
+        "{tag}: the replay differs from the run ({}):\n{text}{}",
+        o.status,
+        String::from_utf8_lossy(&o.stderr)
+    );
+    eprintln!("{tag}: {}", text.lines().next().unwrap_or_default());
+}
+
 /// A run the model does not know everything of (a process killed, a
 /// partition, a slow cable): it may end degraded. Its exit status must be
 /// what its network.json's health says (3 for degraded, else 0), and a

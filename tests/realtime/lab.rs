@@ -141,20 +141,6 @@ fn steps_recorded(tag: &str, r: &Run, steps: usize) {
     }
 }
 
-/// `formation replay` re-computes the run from its hearing record into its
-/// CSVs and summary.json, byte for byte (issue 25).
-fn replays_byte_for_byte(tag: &str, r: &Run) {
-    let o = Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(&r.out).output().expect("formation replay");
-    let text = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        o.status.success() && text.contains("byte-identical"),
-        "{tag}: the replay differs from the run ({}):\n{text}{}",
-        o.status,
-        String::from_utf8_lossy(&o.stderr)
-    );
-    eprintln!("{tag}: {}", text.lines().next().unwrap_or_default());
-}
-
 fn num(v: &serde_json::Value) -> f64 {
     v.as_f64().unwrap_or(f64::NAN)
 }
@@ -291,7 +277,7 @@ fn follower_3_cut_off(tag: &str, mode: &str, rejoin: &str) -> Option<CutOff> {
     let sets = ["faults+={node=3, from=8, to=11}", rejoin];
     let r = lab(tag, &sets, &["--mode", mode]);
     every_step_recorded(tag, &r);
-    replays_byte_for_byte(tag, &r);
+    common::replays_byte_for_byte(tag, &r.out);
     let (_dir, sim_dir) = sim_on(&BASE, &sets);
     let s = common::json(&sim_dir, "summary.json");
     let mut others = Vec::new();
@@ -576,7 +562,7 @@ fn restarted(tag: &str) -> Run {
     let r = lab(tag, &[], &["--restart-agent", "3@8:2"]);
     // Its killed process's last telemetry is lost; its neighbours rescued
     // the messages of it they used, so every row is replayed.
-    replays_byte_for_byte(tag, &r);
+    common::replays_byte_for_byte(tag, &r.out);
     let lab_json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(r.out.join("lab.json")).expect("lab.json")).expect("lab.json");
     let back = num(&lab_json["events"][1]["performed_s"]);
@@ -665,7 +651,7 @@ fn lockstep_restart(victim: &str, tag: &str) {
             "follower {id}: row {first:?} differs from the simulator's before the restart at {resumed} s"
         );
     }
-    replays_byte_for_byte(tag, &r);
+    common::replays_byte_for_byte(tag, &r.out);
     eprintln!("lock-step restart: follower {victim} resumed at t = {resumed} s, the run completed");
 }
 
@@ -856,7 +842,7 @@ fn a_slow_link_is_the_one_explain_ranks_first() {
         &[],
         &["--mode", "peer", "--slow-link", "2:4=30"],
     );
-    replays_byte_for_byte(tag, &r);
+    common::replays_byte_for_byte(tag, &r.out);
     let o = Command::new(env!("CARGO_BIN_EXE_formation"))
         .args(["replay", "--explain", "--top", "20"])
         .arg(&r.out)

@@ -187,15 +187,7 @@ fn a_hundred_agents_in_real_time_at_100_hz_record_everything_and_follow_the_mode
         assert_eq!(rows, steps, "100 agents: follower {id} recorded {rows} steps of {steps}");
     }
     assert_ne!(n["health"]["verdict"], "degraded", "100 agents: {}", n["health"]);
-    let o =
-        Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(&run.net).output().expect("formation replay");
-    let replayed = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        o.status.success() && replayed.contains("byte-identical"),
-        "100 agents: the replay differs from the run ({}):\n{replayed}{}",
-        o.status,
-        String::from_utf8_lossy(&o.stderr)
-    );
+    common::replays_byte_for_byte("100 agents", &run.net);
 
     let explained = run.explain();
     let hearing = Hearing::parse(&explained);
