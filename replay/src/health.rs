@@ -7,7 +7,9 @@
 //!   something happened that a reader must know of: followers isolated from
 //!   every source, a second clock on `control/time`, a clock estimate that
 //!   stepped, a process restarted, refused messages and floods counted,
-//!   telemetry dropped.
+//!   telemetry dropped; in real time, followers' clocks known worse than a
+//!   quarter step, and link-steps that heard otherwise than the model (a
+//!   host or network slower than it assumes).
 //! - **healthy**: none of that.
 //!
 //! Also here: the monitor's count of what arrives on the run's control keys
@@ -280,9 +282,10 @@ fn heard_otherwise(e: &Evidence) -> Option<String> {
     ))
 }
 
-/// One line for every follower whose clock was known worse than a quarter
-/// step at the end (each follower's own warning, when it runs by itself; in
-/// a `launch` they are summed up here, not 100 lines on the terminal).
+/// One line for all the followers whose clock was known worse than a
+/// quarter step at the end (each follower's own warning, when it runs by
+/// itself; in a `launch` they are summed up here, not 100 lines on the
+/// terminal).
 fn unsure_clocks(e: &Evidence) -> Option<String> {
     if e.quarter_step_us <= 0.0 {
         return None;
