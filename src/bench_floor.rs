@@ -264,15 +264,20 @@ fn floor_processes(
     run: &str,
     extra: &[String],
     piped: bool,
+    eps: &crate::launch::Endpoints,
 ) -> Result<Vec<std::process::Child>, Error> {
     let mut children = Vec::new();
     let quiet = |c: &mut Command| {
         c.env(formation_net::node::LAUNCHED_ENV, "1").stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
     };
-    let router = format!("tcp/127.0.0.1:{port}");
+    let router = eps.dial(port);
     if links == Links::Clients {
         let mut c = Command::new(exe);
-        c.args(["node", "router", "--mode", "router", "--listen", &router, "--scenario"]).arg(scenario);
+        c.args(["node", "router", "--mode", "router"]);
+        for l in eps.listen(port) {
+            c.arg("--listen").arg(l);
+        }
+        c.arg("--scenario").arg(scenario);
         for set in sets {
             c.args(["--set", set]);
         }
@@ -287,9 +292,12 @@ fn floor_processes(
         c.args(extra);
         match links {
             Links::Peers => {
-                c.args(["--no-gossip", "--listen", &format!("tcp/127.0.0.1:{}", port + 1 + n as u16)]);
+                c.arg("--no-gossip");
+                for l in eps.listen(port + 1 + n as u16) {
+                    c.arg("--listen").arg(l);
+                }
                 for m in 0..n {
-                    c.args(["--connect", &format!("tcp/127.0.0.1:{}", port + 1 + m as u16)]);
+                    c.arg("--connect").arg(eps.dial(port + 1 + m as u16));
                 }
             }
             Links::Clients => {
@@ -326,6 +334,7 @@ pub fn lockstep_rate(
     sets: &[String],
     seconds: f64,
     clients: bool,
+    kind: crate::launch::Links,
     port: u16,
 ) -> Result<f64, Error> {
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
@@ -333,7 +342,8 @@ pub fn lockstep_rate(
     let links = if clients { Links::Clients } else { Links::Peers };
     let run = format!("floorls{}", std::process::id());
     let extra = ["--lockstep".to_string(), "--seconds".into(), seconds.to_string()];
-    let mut children = floor_processes(&exe, scenario, s.graph.ids(), links, port, sets, &run, &extra, true)?;
+    let eps = crate::launch::Endpoints::new(kind).map_err(|e| Error::Run(e.to_string()))?;
+    let mut children = floor_processes(&exe, scenario, s.graph.ids(), links, port, sets, &run, &extra, true, &eps)?;
     let router = if clients { Some(children.remove(0)) } else { None };
     let mut rates = Vec::new();
     let mut failed = 0;
@@ -411,6 +421,7 @@ fn case(
     ids: &[u32],
     hz: f64,
     links: Links,
+    kind: crate::launch::Links,
     port: u16,
 ) -> Result<((f64, usize), (f64, usize)), Error> {
     // Many processes take longer to start: a later, still steady window.
@@ -422,7 +433,8 @@ fn case(
     let sets = [format!("dt={}", 1.0 / hz), "timing=\"realtime\"".into(), format!("duration={seconds}")];
     let run = format!("floor{}{}", hz as u32, ids.len());
     let extra = ["--seconds".to_string(), seconds.to_string()];
-    let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &extra, false)?;
+    let eps = crate::launch::Endpoints::new(kind).map_err(|e| Error::Run(e.to_string()))?;
+    let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &extra, false, &eps)?;
     let floor = sample(&["floor", &run], after, window, hz);
     // The router's last: it outlives the floor processes.
     let router_child = if links == Links::Clients { Some(children.remove(0)) } else { None };
@@ -442,6 +454,8 @@ fn case(
         &lrun,
         "--base-port",
         &(port + 200).to_string(),
+        "--links",
+        if kind == crate::launch::Links::Unix { "unix" } else { "tcp" },
     ]);
     if links == Links::Clients {
         l.args(["--mode", "client"]);
@@ -469,7 +483,7 @@ fn row(what: String, ((f, nf), (g, na)): ((f64, usize), (f64, usize))) {
 /// The floor, the agents and the idle cost: the scenario's agents (peers)
 /// at 100 Hz and 1 kHz; generated rings of `rings` agents (n/5 chords,
 /// clients of one router) at 100 Hz.
-pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32]) -> Result<(), Error> {
+pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32], kind: crate::launch::Links) -> Result<(), Error> {
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
     let s = formation_topology::Scenario::load(scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     let ids: Vec<u32> = s.graph.ids().to_vec();
@@ -480,7 +494,7 @@ pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32]) -> Result<(), E
     println!("  {:<54}{:>12}{:>12}{:>8}", "", "floor µs", "agent µs", "ratio");
     for hz in [100.0, 1000.0] {
         eprintln!("bench-net (floor): {} agents, peers, {hz} Hz …", ids.len());
-        row(format!("{} agents, peers, {hz} Hz", ids.len()), case(&exe, scenario, &ids, hz, Links::Peers, port)?);
+        row(format!("{} agents, peers, {hz} Hz", ids.len()), case(&exe, scenario, &ids, hz, Links::Peers, kind, port)?);
     }
     for (i, &n) in rings.iter().enumerate() {
         let tmp = std::env::temp_dir().join(format!("formation-bench-floor-{}-ring{n}", std::process::id()));
@@ -491,7 +505,7 @@ pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32]) -> Result<(), E
             .ids()
             .to_vec();
         eprintln!("bench-net (floor): a ring of {n} agents, clients of one router, 100 Hz …");
-        let measured = case(&exe, &file, &ring_ids, 100.0, Links::Clients, port + 400 + 400 * i as u16);
+        let measured = case(&exe, &file, &ring_ids, 100.0, Links::Clients, kind, port + 400 + 400 * i as u16);
         let _ = std::fs::remove_dir_all(&tmp);
         row(format!("ring of {n}, clients, 100 Hz"), measured?);
     }

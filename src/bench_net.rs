@@ -37,7 +37,7 @@ use crate::args::ScenarioArgs;
 use crate::bench_hearing::{network_json, worst_period};
 use crate::bench_netns::estimate;
 use crate::error::Error;
-use crate::launch::{LaunchArgs, LaunchMode, RunOptions};
+use crate::launch::{LaunchArgs, LaunchMode, Links, RunOptions};
 use formation_net::inbox::{self, Inbox, Source};
 use formation_net::loop_timing as timing;
 use formation_net::names;
@@ -104,6 +104,17 @@ pub struct BenchNetArgs {
     /// per agent process on one session). 0: every follower in one process.
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub group: usize,
+    /// What the nodes' links run over, as `launch --links` (the floor's
+    /// plain-zenoh processes use the same) [default: unix; tcp with --tls].
+    #[arg(long, value_enum)]
+    pub links: Option<Links>,
+}
+
+impl BenchNetArgs {
+    /// The links of the runs without TLS (and of the floor).
+    fn plain_links(&self) -> Links {
+        self.links.unwrap_or(Links::Unix)
+    }
 }
 
 /// Followers per agent process of the grouped runs for `n` followers.
@@ -135,6 +146,7 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
         base_port: Some(port),
         group: 1,
         router: None,
+        links: Some(a.plain_links()),
     }
 }
 
@@ -194,7 +206,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     }
     let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     if a.floor {
-        return crate::bench_floor::run(&a.scenario, a.base_port, &a.agents.0);
+        return crate::bench_floor::run(&a.scenario, a.base_port, &a.agents.0, a.plain_links());
     }
     if a.ros2 {
         return crate::bench_ros2::run(a.realtime_duration, a.base_port, &|sets, port, out, run| {
@@ -233,7 +245,8 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         "{n} followers + leader, peer processes on this machine{}",
         if tls.is_some() { "; plain TCP against mutual TLS with access control" } else { "" }
     );
-    println!("  {:<50}{:>18}{}", "", "tcp", if tls.is_some() { format!("{:>18}", "tls") } else { String::new() });
+    let plain = if a.plain_links() == Links::Unix { "unix links" } else { "tcp" };
+    println!("  {:<50}{:>18}{}", "", plain, if tls.is_some() { format!("{:>18}", "tls") } else { String::new() });
     row("lock-step steps/s over zenoh", &|f| format!("{:.0}", f.net_rate));
     row("  wall s of the 2 s / long run", &|f| format!("{:.2} / {:.2}", f.t_short, f.t_long));
     row("  plain-zenoh floor, same pattern (agents / floor)", &|f| {
@@ -336,14 +349,22 @@ fn measure(
     tls: Option<&std::path::Path>,
     port: u16,
 ) -> Result<Figures, Error> {
-    let kind = if tls.is_some() { "tls" } else { "tcp" };
-    let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-{kind}", std::process::id()));
+    let kind = match (tls, a.plain_links()) {
+        (Some(_), _) => "tls",
+        (None, Links::Unix) => "unix links",
+        (None, Links::Tcp) => "tcp",
+    };
+    let tmp =
+        std::env::temp_dir().join(format!("formation-bench-net-{}-{}", std::process::id(), kind.replace(' ', "-")));
     eprintln!("bench-net ({kind}): lock-step runs …");
     // 1. Lock-step: two runs of different length; the difference is the stepping.
     let short = 2.0;
     let launch = |sets: &[String], p: u16, out: &str, run: &str| {
         let mut l = launch_args(a, sets, p, tmp.join(out), run);
         l.opts.tls = tls.map(std::path::Path::to_path_buf);
+        if tls.is_some() {
+            l.links = Some(Links::Tcp);
+        }
         l
     };
     let t_short = timed_launch(&launch(&lockstep_sets(short), port, "ls-short", "bench-ls1"))?;
@@ -366,7 +387,7 @@ fn measure(
     };
     let floor_rate = if tls.is_none() {
         eprintln!("bench-net ({kind}): lock-step floor (plain zenoh, the same pattern) …");
-        crate::bench_floor::lockstep_rate(&a.scenario, &[], a.lockstep_duration, false, port + 90)?
+        crate::bench_floor::lockstep_rate(&a.scenario, &[], a.lockstep_duration, false, a.plain_links(), port + 90)?
     } else {
         f64::NAN
     };
@@ -459,7 +480,7 @@ fn scale(a: &BenchNetArgs, n: u32, group: usize, port: u16) -> Result<Scale, Err
     let startup_s = wall("long")?["wall"]["startup_s"].as_f64().unwrap_or(f64::NAN);
     let floor_rate = if group == 1 {
         eprintln!("bench-net (scale): {n} agents, lock-step floor (plain zenoh, the same pattern) …");
-        crate::bench_floor::lockstep_rate(&file, &lockstep_sets(long), long, true, port + 35)?
+        crate::bench_floor::lockstep_rate(&file, &lockstep_sets(long), long, true, a.plain_links(), port + 35)?
     } else {
         f64::NAN
     };

@@ -1,6 +1,11 @@
 //! `formation launch`: the whole formation as separate OS processes on
 //! this machine — the leader, one agent per follower and the monitor (and a
-//! zenoh router in client mode) — talking over zenoh on 127.0.0.1.
+//! zenoh router in client mode) — talking over zenoh on this machine.
+//!
+//! Links ([`Links`]): by default the nodes dial each other over unix
+//! sockets in a private folder; each also listens on its loopback TCP port,
+//! for anything else that joins (a ROS 2 tool, a node started by hand).
+//! `--links tcp` (and always with --tls or --router): loopback TCP only.
 //!
 //! Peer mode (default): every node listens on its own loopback port; the
 //! leader connects to the monitor, each agent to the monitor, the leader and
@@ -38,6 +43,58 @@ pub enum LaunchMode {
     Peer,
     /// Clients of a `router` child.
     Client,
+}
+
+/// What the launched nodes' links to each other run over.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Links {
+    /// Unix-domain sockets in a private folder (mode 0700, removed at the
+    /// end): the same bytes as TCP without the kernel's TCP path, so fewer
+    /// late messages when the host is busy. Every node still listens on
+    /// its loopback TCP port as well, for anything else that joins.
+    Unix,
+    /// Loopback TCP, as between hosts (the only choice with --tls or --router).
+    Tcp,
+}
+
+/// The endpoints of the nodes of one launch, named by their loopback port:
+/// what a node listens on and what others dial to reach it. With unix
+/// links, the sockets' folder lives (and is removed) with this value.
+pub struct Endpoints {
+    unix: Option<tempfile::TempDir>,
+}
+
+impl Endpoints {
+    pub fn new(links: Links) -> Result<Self, CliError> {
+        let unix = match links {
+            Links::Tcp => None,
+            Links::Unix => Some(
+                tempfile::Builder::new()
+                    .prefix("formation-links-")
+                    .permissions(std::os::unix::fs::PermissionsExt::from_mode(0o700))
+                    .tempdir()
+                    .map_err(|e| CliError::Run(format!("making a folder for the nodes' unix sockets: {e}")))?,
+            ),
+        };
+        Ok(Self { unix })
+    }
+
+    /// What a node dials to reach the node that listens at `port`.
+    pub fn dial(&self, port: u16) -> String {
+        match &self.unix {
+            Some(dir) => format!("unixsock-stream/{}", dir.path().join(port.to_string()).display()),
+            None => ep(port),
+        }
+    }
+
+    /// What the node at `port` listens on: its TCP port, and its socket.
+    pub fn listen(&self, port: u16) -> Vec<String> {
+        let mut l = vec![ep(port)];
+        if self.unix.is_some() {
+            l.push(self.dial(port));
+        }
+        l
+    }
 }
 
 /// What every command that runs the whole networked formation takes
@@ -208,6 +265,29 @@ pub struct LaunchArgs {
     /// on rmw_zenoh are.
     #[arg(long, value_name = "ENDPOINT")]
     pub router: Option<String>,
+    /// What the nodes' links to each other run over [default: unix; tcp
+    /// with --tls or --router]. Unix sockets cost the host less than
+    /// loopback TCP (docs/performance.md); every node listens on its TCP
+    /// port either way.
+    #[arg(long, value_enum)]
+    pub links: Option<Links>,
+}
+
+impl LaunchArgs {
+    /// The links this launch uses (see [`LaunchArgs::links`]).
+    pub fn links(&self) -> Result<Links, CliError> {
+        let tcp_only = match (&self.opts.tls, &self.router) {
+            (Some(_), _) => Some("--tls (TLS runs over TCP)"),
+            (None, Some(_)) => Some("--router (every node dials that router)"),
+            (None, None) => None,
+        };
+        match (self.links, tcp_only) {
+            (Some(Links::Unix), Some(why)) => Err(CliError::Input(format!("--links unix cannot go with {why}"))),
+            (Some(l), _) => Ok(l),
+            (None, Some(_)) => Ok(Links::Tcp),
+            (None, None) => Ok(Links::Unix),
+        }
+    }
 }
 
 /// The child processes of a launch; every one still running is killed on drop.
@@ -361,6 +441,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
                 .into(),
         ));
     }
+    a.links()?;
     if let Some(r) = &a.router {
         let z = session::ZenohArgs {
             mode: Some(session::ZenohMode::Client),
@@ -485,12 +566,15 @@ pub(crate) fn spawn(children: &mut Children, name: &str, mut c: Command) -> Resu
 fn start_router(
     children: &mut Children,
     exe: &Path,
-    port: u16,
+    listen: &[String],
     opts: &RunOptions,
     timing: formation_topology::Timing,
 ) -> Result<(), CliError> {
     let mut c = Command::new(exe);
-    c.args(["node", "router", "--listen"]).arg(ep(port));
+    c.args(["node", "router"]);
+    for l in listen {
+        c.arg("--listen").arg(l);
+    }
     scenario_args(&mut c, opts);
     tls_arg(&mut c, opts);
     session::router_runtime(&mut c, timing);
@@ -556,27 +640,30 @@ async fn launch(
     let own_router = mode == LaunchMode::Client && a.router.is_none();
     let count = if mode == LaunchMode::Peer { groups.len() + 2 } else { 1 };
     let p = ports(a.base_port, count)?;
-    let router_ep = a.router.clone().unwrap_or_else(|| ep(p[0]));
+    let links = a.links()?;
+    let eps = Endpoints::new(links)?;
+    let router_ep = a.router.clone().unwrap_or_else(|| eps.dial(p[0]));
     let endpoints = |c: &mut Command, listen: Option<u16>, connect: &[u16]| {
         if mode == LaunchMode::Client {
             c.args(["--mode", "client", "--connect", &router_ep]);
             return;
         }
-        if let Some(l) = listen {
-            c.arg("--listen").arg(ep(l));
+        for l in listen.map(|l| eps.listen(l)).unwrap_or_default() {
+            c.arg("--listen").arg(l);
         }
         // The links below are every pair that talks (agent–neighbour,
         // agent–leader, node–monitor): no full mesh by gossip.
         c.arg("--no-gossip");
         for &q in connect {
-            c.arg("--connect").arg(ep(q));
+            c.arg("--connect").arg(eps.dial(q));
         }
     };
     if !a.opts.quiet {
         eprintln!(
-            "launching {} processes ({} mode, run {run}): leader, {n} agents{}, monitor{}",
+            "launching {} processes ({} mode, {} links, run {run}): leader, {n} agents{}, monitor{}",
             groups.len() + 2 + usize::from(own_router) + if robots == Robots::StandIn { n } else { 0 },
             if mode == LaunchMode::Peer { "peer" } else { "client" },
+            if links == Links::Unix { "unix-socket" } else { "TCP" },
             if groups.len() < n {
                 format!(" in {} processes of up to {}", groups.len(), a.group)
             } else {
@@ -596,7 +683,7 @@ async fn launch(
         }
     }
     if own_router {
-        start_router(children, exe, p[0], &a.opts, scenario.timing)?;
+        start_router(children, exe, &eps.listen(p[0]), &a.opts, scenario.timing)?;
     }
     let (mon_port, lead_port) = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
 
@@ -725,6 +812,56 @@ pub(crate) fn interrupt(children: &mut Children, out: &Path) -> CliError {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn links_are_unix_unless_tls_or_a_foreign_router() {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            l: LaunchArgs,
+        }
+        let links = |extra: &[&str]| {
+            let mut args = vec!["launch", "scenarios/paper.toml"];
+            args.extend_from_slice(extra);
+            Cli::try_parse_from(args).expect("parses").l.links()
+        };
+        assert_eq!(links(&[]).ok(), Some(Links::Unix));
+        assert_eq!(links(&["--mode", "client"]).ok(), Some(Links::Unix));
+        assert_eq!(links(&["--links", "tcp"]).ok(), Some(Links::Tcp));
+        assert_eq!(links(&["--tls", "certs"]).ok(), Some(Links::Tcp));
+        assert_eq!(links(&["--router", "tcp/127.0.0.1:7447"]).ok(), Some(Links::Tcp));
+        for (extra, why) in [
+            (["--tls", "certs"], "--links unix cannot go with --tls"),
+            (["--router", "tcp/127.0.0.1:7447"], "--links unix cannot go with --router"),
+        ] {
+            let mut args = vec!["--links", "unix"];
+            args.extend_from_slice(&extra);
+            match links(&args) {
+                Err(CliError::Input(m)) => assert!(m.starts_with(why), "{extra:?}: {m}"),
+                other => panic!("{extra:?}: {other:?}"),
+            }
+        }
+    }
+
+    /// Unix links: each node listens on its TCP port and on a socket in a
+    /// folder only this user can enter, which goes with the value.
+    #[test]
+    fn unix_endpoints_live_in_a_private_folder_removed_at_the_end() {
+        use std::os::unix::fs::PermissionsExt;
+        let eps = Endpoints::new(Links::Unix).expect("folder");
+        let dir = eps.unix.as_ref().expect("unix").path().to_path_buf();
+        assert_eq!(std::fs::metadata(&dir).expect("folder").permissions().mode() & 0o777, 0o700);
+        let dial = eps.dial(24001);
+        assert_eq!(dial, format!("unixsock-stream/{}/24001", dir.display()));
+        assert_eq!(eps.listen(24001), vec!["tcp/127.0.0.1:24001".to_string(), dial.clone()]);
+        // Unix sockets' paths are limited to 107 bytes.
+        assert!(dial.len() - "unixsock-stream/".len() < 100, "{dial}");
+        drop(eps);
+        assert!(!dir.exists(), "{} is left behind", dir.display());
+        let tcp = Endpoints::new(Links::Tcp).expect("tcp");
+        assert_eq!((tcp.dial(7), tcp.listen(7)), ("tcp/127.0.0.1:7".to_string(), vec!["tcp/127.0.0.1:7".to_string()]));
+    }
 
     #[test]
     fn base_port_range_is_checked_up_front() {

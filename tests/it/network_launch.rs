@@ -140,6 +140,31 @@ fn a_bad_group_is_refused_up_front() {
     }
 }
 
+/// `--links unix` with `--tls` (TLS runs over TCP) or `--router` (the nodes
+/// dial that router) is refused before anything starts, in one line.
+#[test]
+fn unix_links_that_cannot_be_are_refused_up_front() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let certs = tmp.path().join("certs");
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let router = format!("tcp/127.0.0.1:{base}");
+    for (extra, why) in [
+        (["--tls", certs.to_str().expect("utf-8")], "--links unix cannot go with --tls"),
+        (["--router", &router], "--links unix cannot go with --router"),
+    ] {
+        let out = tmp.path().join("run");
+        let out_s = out.display().to_string();
+        let mut args = vec!["launch", common::SCENARIO, "-q", "--out", &out_s, "--base-port", &base, "--links", "unix"];
+        args.extend(extra.iter().copied());
+        let o = Command::new(env!("CARGO_BIN_EXE_formation")).args(&args).output().expect("formation launch");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?} must be bad input: {:?}; stderr: {stderr}", o.status);
+        assert!(stderr.contains(why), "{extra:?}: stderr does not say {why:?}: {stderr}");
+        assert_eq!(stderr.trim().lines().count(), 1, "{extra:?}: one line, not {stderr}");
+        assert!(!out.exists(), "{extra:?}: a run folder was made");
+    }
+}
+
 /// An agent process given the same follower twice, or one the scenario does
 /// not have, says so in one line and exits 2.
 #[test]

@@ -74,6 +74,14 @@ fn lockstep_on_velocity_commanded_robots_equals_sim() {
     same_as_sim("velocity robot", &["duration=2", "robot.model=velocity"], &["--base-port", &base, "--run", "ls-v"]);
 }
 
+/// `launch --links tcp`: the nodes link over loopback TCP, as between hosts,
+/// instead of the default unix sockets; the same run.
+#[test]
+fn lockstep_over_tcp_links_equals_sim() {
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    same_as_sim("tcp links", &["duration=1"], &["--links", "tcp", "--base-port", &base, "--run", "ls-t"]);
+}
+
 #[test]
 fn client_mode_through_router_equals_sim() {
     let base = Ports::free(1).release().to_string();
