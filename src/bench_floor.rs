@@ -489,7 +489,8 @@ pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32], kind: crate::la
     let ids: Vec<u32> = s.graph.ids().to_vec();
     println!(
         "CPU per process and step in steady state (a 5 s window from 4 s into a 12 s run; 8 s into 16 s for rings), \
-         this machine"
+         {} links, this machine",
+        if kind == crate::launch::Links::Unix { "unix-socket" } else { "TCP" }
     );
     println!("  {:<54}{:>12}{:>12}{:>8}", "", "floor µs", "agent µs", "ratio");
     for hz in [100.0, 1000.0] {
