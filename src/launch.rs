@@ -266,9 +266,9 @@ pub struct LaunchArgs {
     #[arg(long, value_name = "ENDPOINT")]
     pub router: Option<String>,
     /// What the nodes' links to each other run over [default: unix; tcp
-    /// with --tls or --router]. Unix sockets cost the host less than
-    /// loopback TCP (docs/performance.md); every node listens on its TCP
-    /// port either way.
+    /// with --tls or --router]. On a busy host unix sockets leave fewer
+    /// messages late than loopback TCP (docs/performance.md); every node
+    /// listens on its TCP port either way.
     #[arg(long, value_enum)]
     pub links: Option<Links>,
 }
