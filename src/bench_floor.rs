@@ -455,7 +455,7 @@ fn case(
         "--base-port",
         &(port + 200).to_string(),
         "--links",
-        if kind == crate::launch::Links::Unix { "unix" } else { "tcp" },
+        kind.arg(),
     ]);
     if links == Links::Clients {
         l.args(["--mode", "client"]);
@@ -490,7 +490,7 @@ pub fn run(scenario: &std::path::Path, port: u16, rings: &[u32], kind: crate::la
     println!(
         "CPU per process and step in steady state (a 5 s window from 4 s into a 12 s run; 8 s into 16 s for rings), \
          {} links, this machine",
-        if kind == crate::launch::Links::Unix { "unix-socket" } else { "TCP" }
+        kind.label()
     );
     println!("  {:<54}{:>12}{:>12}{:>8}", "", "floor µs", "agent µs", "ratio");
     for hz in [100.0, 1000.0] {

@@ -245,7 +245,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         "{n} followers + leader, peer processes on this machine{}",
         if tls.is_some() { "; plain TCP against mutual TLS with access control" } else { "" }
     );
-    let plain = if a.plain_links() == Links::Unix { "unix links" } else { "tcp" };
+    let plain = format!("{} links", a.plain_links().label());
     println!("  {:<50}{:>18}{}", "", plain, if tls.is_some() { format!("{:>18}", "tls") } else { String::new() });
     row("lock-step steps/s over zenoh", &|f| format!("{:.0}", f.net_rate));
     row("  wall s of the 2 s / long run", &|f| format!("{:.2} / {:.2}", f.t_short, f.t_long));
@@ -349,13 +349,8 @@ fn measure(
     tls: Option<&std::path::Path>,
     port: u16,
 ) -> Result<Figures, Error> {
-    let kind = match (tls, a.plain_links()) {
-        (Some(_), _) => "tls",
-        (None, Links::Unix) => "unix links",
-        (None, Links::Tcp) => "tcp",
-    };
-    let tmp =
-        std::env::temp_dir().join(format!("formation-bench-net-{}-{}", std::process::id(), kind.replace(' ', "-")));
+    let kind = if tls.is_some() { "tls" } else { a.plain_links().arg() };
+    let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-{kind}", std::process::id()));
     eprintln!("bench-net ({kind}): lock-step runs …");
     // 1. Lock-step: two runs of different length; the difference is the stepping.
     let short = 2.0;

@@ -57,6 +57,24 @@ pub enum Links {
     Tcp,
 }
 
+impl Links {
+    /// Its `--links` value.
+    pub fn arg(self) -> &'static str {
+        match self {
+            Links::Unix => "unix",
+            Links::Tcp => "tcp",
+        }
+    }
+
+    /// How a line for people names it.
+    pub fn label(self) -> &'static str {
+        match self {
+            Links::Unix => "unix-socket",
+            Links::Tcp => "TCP",
+        }
+    }
+}
+
 /// The endpoints of the nodes of one launch, named by their loopback port:
 /// what a node listens on and what others dial to reach it. With unix
 /// links, the sockets' folder lives (and is removed) with this value.
@@ -663,7 +681,7 @@ async fn launch(
             "launching {} processes ({} mode, {} links, run {run}): leader, {n} agents{}, monitor{}",
             groups.len() + 2 + usize::from(own_router) + if robots == Robots::StandIn { n } else { 0 },
             if mode == LaunchMode::Peer { "peer" } else { "client" },
-            if links == Links::Unix { "unix-socket" } else { "TCP" },
+            links.label(),
             if groups.len() < n {
                 format!(" in {} processes of up to {}", groups.len(), a.group)
             } else {
