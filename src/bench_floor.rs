@@ -342,7 +342,7 @@ pub fn lockstep_rate(
     let links = if clients { Links::Clients } else { Links::Peers };
     let run = format!("floorls{}", std::process::id());
     let extra = ["--lockstep".to_string(), "--seconds".into(), seconds.to_string()];
-    let eps = crate::launch::Endpoints::new(kind).map_err(|e| Error::Run(e.to_string()))?;
+    let eps = crate::launch::Endpoints::new(kind)?;
     let mut children = floor_processes(&exe, scenario, s.graph.ids(), links, port, sets, &run, &extra, true, &eps)?;
     let router = if clients { Some(children.remove(0)) } else { None };
     let mut rates = Vec::new();
@@ -433,7 +433,7 @@ fn case(
     let sets = [format!("dt={}", 1.0 / hz), "timing=\"realtime\"".into(), format!("duration={seconds}")];
     let run = format!("floor{}{}", hz as u32, ids.len());
     let extra = ["--seconds".to_string(), seconds.to_string()];
-    let eps = crate::launch::Endpoints::new(kind).map_err(|e| Error::Run(e.to_string()))?;
+    let eps = crate::launch::Endpoints::new(kind)?;
     let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &extra, false, &eps)?;
     let floor = sample(&["floor", &run], after, window, hz);
     // The router's last: it outlives the floor processes.

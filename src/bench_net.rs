@@ -113,7 +113,7 @@ pub struct BenchNetArgs {
 impl BenchNetArgs {
     /// The links of the runs without TLS (and of the floor).
     fn plain_links(&self) -> Links {
-        self.links.unwrap_or(Links::Unix)
+        self.links.unwrap_or_default()
     }
 }
 

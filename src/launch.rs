@@ -46,12 +46,13 @@ pub enum LaunchMode {
 }
 
 /// What the launched nodes' links to each other run over.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Links {
     /// Unix-domain sockets in a private folder (mode 0700, removed at the
     /// end): the same bytes as TCP without the kernel's TCP path, so fewer
     /// late messages when the host is busy. Every node still listens on
     /// its loopback TCP port as well, for anything else that joins.
+    #[default]
     Unix,
     /// Loopback TCP, as between hosts (the only choice with --tls or --router).
     Tcp,
@@ -303,7 +304,7 @@ impl LaunchArgs {
             (Some(Links::Unix), Some(why)) => Err(CliError::Input(format!("--links unix cannot go with {why}"))),
             (Some(l), _) => Ok(l),
             (None, Some(_)) => Ok(Links::Tcp),
-            (None, None) => Ok(Links::Unix),
+            (None, None) => Ok(Links::default()),
         }
     }
 }
