@@ -9,8 +9,14 @@
 //!
 //! Peer mode (default): every node listens on its own loopback port; the
 //! leader connects to the monitor, each agent to the monitor, the leader and
-//! its lower-id neighbours (zenoh's gossip adds any missing link). Client
-//! mode: every node connects to a `router` child.
+//! the earlier processes that hold its neighbours (gossip off: these links
+//! are every pair that talks). Client mode: every node connects to a
+//! `router` child.
+//!
+//! Lease: every node of one host tells the others to wait 10 s for it
+//! before they call a link dead (`--lease-ms`, zenoh's own default; a node
+//! run by hand waits 1 s). A dead process's links close at once anyway;
+//! the 1 s lease only cost a loaded host its links.
 //!
 //! No process is left behind: on success, when any child fails (the monitor
 //! is told to write what it has, the rest are killed), on Ctrl-C or SIGTERM
@@ -538,6 +544,13 @@ pub(crate) fn degraded_error(health: Option<(String, bool)>, out: &Path) -> Resu
     }
 }
 
+/// The links' lease of a launch whose nodes all run on this host (none
+/// with `--router`, which may be elsewhere: its links keep the 1 s that
+/// notices a cut link). See [`session::LAUNCH_LEASE_MS`].
+fn one_host_lease(a: &LaunchArgs) -> Option<u64> {
+    a.router.is_none().then_some(session::LAUNCH_LEASE_MS)
+}
+
 fn node_command(exe: &Path, node: &str, a: &LaunchArgs, run: &str) -> Command {
     let mut c = Command::new(exe);
     node_args(&mut c, node, &a.opts, run);
@@ -588,11 +601,15 @@ fn start_router(
     listen: &[String],
     opts: &RunOptions,
     timing: formation_topology::Timing,
+    lease: Option<u64>,
 ) -> Result<(), CliError> {
     let mut c = Command::new(exe);
     c.args(["node", "router"]);
     for l in listen {
         c.arg("--listen").arg(l);
+    }
+    if let Some(ms) = lease {
+        c.arg("--lease-ms").arg(ms.to_string());
     }
     scenario_args(&mut c, opts);
     tls_arg(&mut c, opts);
@@ -662,7 +679,11 @@ async fn launch(
     let links = a.links()?;
     let eps = Endpoints::new(links)?;
     let router_ep = a.router.clone().unwrap_or_else(|| eps.dial(p[0]));
+    let lease = one_host_lease(a);
     let endpoints = |c: &mut Command, listen: Option<u16>, connect: &[u16]| {
+        if let Some(ms) = lease {
+            c.arg("--lease-ms").arg(ms.to_string());
+        }
         if mode == LaunchMode::Client {
             c.args(["--mode", "client", "--connect", &router_ep]);
             return;
@@ -702,7 +723,7 @@ async fn launch(
         }
     }
     if own_router {
-        start_router(children, exe, &eps.listen(p[0]), &a.opts, scenario.timing)?;
+        start_router(children, exe, &eps.listen(p[0]), &a.opts, scenario.timing, lease)?;
     }
     let (mon_port, lead_port) = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
 
@@ -861,6 +882,27 @@ mod tests {
                 other => panic!("{extra:?}: {other:?}"),
             }
         }
+    }
+
+    /// The nodes of one host get zenoh's 10 s lease; a foreign router's
+    /// clients keep the 1 s that notices a cut link.
+    #[test]
+    fn the_nodes_of_one_host_keep_their_links_ten_seconds() {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            l: LaunchArgs,
+        }
+        let lease = |extra: &[&str]| {
+            let mut args = vec!["launch", "scenarios/paper.toml"];
+            args.extend_from_slice(extra);
+            one_host_lease(&Cli::try_parse_from(args).expect("parses").l)
+        };
+        assert_eq!(lease(&[]), Some(10_000));
+        assert_eq!(lease(&["--mode", "client"]), Some(10_000));
+        assert_eq!(lease(&["--tls", "certs"]), Some(10_000));
+        assert_eq!(lease(&["--router", "tcp/127.0.0.1:7447"]), None);
     }
 
     /// Unix links: each node listens on its TCP port and on a socket in a

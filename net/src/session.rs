@@ -23,7 +23,9 @@
 //!    has dead-reckoned longer, and pulls its neighbours harder. And
 //!    `transport/link/tx/lease = 1000` where the file leaves zenoh's
 //!    10 000 (with zenoh's 4 keep-alives per lease): a link cut without a
-//!    FIN is noticed within about a second instead of 10 s.
+//!    FIN is noticed within about a second instead of 10 s. `--lease-ms`
+//!    replaces both the file's lease and this one: `formation launch` gives
+//!    the nodes it starts on one host 10 000 (see [`LAUNCH_LEASE_MS`]).
 //! 5. Listen endpoints: `--listen` if given; else the file's if it set any
 //!    (anything other than zenoh's built-in default); else
 //!    `tcp/127.0.0.1:0` for a peer (a peer needs a listener of its own:
@@ -85,6 +87,15 @@ pub struct ZenohArgs {
     /// not relay), so the links must cover every pair that talks.
     #[cfg_attr(feature = "clap", arg(long = "no-gossip"))]
     pub no_gossip: bool,
+    /// How long, in ms, the other end of a link waits for anything from
+    /// this node before it declares the link dead and reconnects [default:
+    /// 1000, or the config file's `transport/link/tx/lease`]. Short: a cut
+    /// link is noticed fast. Long: a host short of CPU does not lose its
+    /// links to a keep-alive sent late (`formation launch` uses 10000: on one
+    /// host a dead process's links close at once anyway).
+    #[cfg_attr(feature = "clap", arg(long = "lease-ms", value_name = "MS",
+        value_parser = clap::value_parser!(u64).range(100..=3_600_000)))]
+    pub lease_ms: Option<u64>,
     /// The node's name in its certificate (`router`, `leader`, `monitor`,
     /// `agent-<id>`): set by the node, not on the command line.
     #[cfg_attr(feature = "clap", arg(skip))]
@@ -96,8 +107,16 @@ pub struct ZenohArgs {
 }
 
 /// Link lease, ms: a link silent this long is declared dead (overridable
-/// with `transport/link/tx/lease` in a `--config` file).
+/// with `--lease-ms`, or `transport/link/tx/lease` in a `--config` file).
 pub const LEASE_MS: u64 = 1000;
+
+/// The lease `formation launch` gives the nodes it starts on one host
+/// (zenoh's own default). There a dead process's links close at once (the
+/// kernel closes its sockets), so the lease only decides how long a node
+/// starved of CPU may stay silent. With 1 s, 200 agents on the 2-core VM
+/// lost hundreds of links at start-up; their reconnections raced inside
+/// zenoh, and data reached subscribers of other keys (docs/performance.md).
+pub const LAUNCH_LEASE_MS: u64 = 10_000;
 
 /// Zenoh's own threads, unless the environment sets `ZENOH_RUNTIME`: every
 /// zenoh runtime (receive, transmit, accept, network) handed over to one
@@ -239,7 +258,10 @@ impl ZenohArgs {
         // A dead link is noticed within about a second (zenoh's default
         // lease is 10 s): keep-alives every 250 ms, lease 1 s.
         // (Only where the file left zenoh's defaults, 10 000 ms and 4.)
-        if get(&config, "transport/link/tx/lease")? == 10_000 {
+        // `--lease-ms` replaces both.
+        if let Some(ms) = self.lease_ms {
+            set(&mut config, "transport/link/tx/lease", &Value::from(ms))?;
+        } else if get(&config, "transport/link/tx/lease")? == 10_000 {
             set(&mut config, "transport/link/tx/lease", &Value::from(LEASE_MS))?;
         }
 
@@ -418,6 +440,17 @@ mod tests {
         assert_eq!(retry["period_increase_factor"], 2.0);
         assert_eq!(json(&c, "transport/link/tx/lease"), 1000);
         assert_eq!(json(&c, "transport/link/tx/keep_alive"), 4);
+    }
+
+    #[test]
+    fn lease_option_replaces_ours_and_the_files() {
+        let args = ZenohArgs { lease_ms: Some(LAUNCH_LEASE_MS), ..Default::default() };
+        assert_eq!(json(&args.to_config().unwrap(), "transport/link/tx/lease"), 10_000);
+        let f = file("{ transport: { link: { tx: { lease: 3000 } } } }");
+        let from_file = ZenohArgs { config: Some(f.path().into()), ..Default::default() };
+        assert_eq!(json(&from_file.to_config().unwrap(), "transport/link/tx/lease"), 3000);
+        let both = ZenohArgs { lease_ms: Some(250), ..from_file };
+        assert_eq!(json(&both.to_config().unwrap(), "transport/link/tx/lease"), 250);
     }
 
     #[test]

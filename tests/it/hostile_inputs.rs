@@ -524,6 +524,13 @@ fn cases() -> Vec<Case> {
             2,
             &["hearing.bin is another run's", "fingerprint 0000000000000bad"],
         ),
+        case(
+            "a lease too short to live",
+            None,
+            &["node", "agent", "--scenario", "{paper}", "--id", "1", "--lease-ms", "5"],
+            2,
+            &["--lease-ms", "5 is not in 100..=3600000"],
+        ),
         case("playback without a page", None, &["monitor", "--replay", "{dir}/garbage"], 2, &["--web, --foxglove"]),
         case(
             "playback at speed 0",
