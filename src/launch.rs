@@ -853,19 +853,22 @@ pub(crate) fn interrupt(children: &mut Children, out: &Path) -> CliError {
 mod tests {
     use super::*;
 
-    #[test]
-    fn links_are_unix_unless_tls_or_a_foreign_router() {
+    /// `launch scenarios/paper.toml` with `extra`, parsed.
+    fn launch_args(extra: &[&str]) -> LaunchArgs {
         use clap::Parser;
         #[derive(Parser)]
         struct Cli {
             #[command(flatten)]
             l: LaunchArgs,
         }
-        let links = |extra: &[&str]| {
-            let mut args = vec!["launch", "scenarios/paper.toml"];
-            args.extend_from_slice(extra);
-            Cli::try_parse_from(args).expect("parses").l.links()
-        };
+        let mut args = vec!["launch", "scenarios/paper.toml"];
+        args.extend_from_slice(extra);
+        Cli::try_parse_from(args).expect("parses").l
+    }
+
+    #[test]
+    fn links_are_unix_unless_tls_or_a_foreign_router() {
+        let links = |extra: &[&str]| launch_args(extra).links();
         assert_eq!(links(&[]).ok(), Some(Links::Unix));
         assert_eq!(links(&["--mode", "client"]).ok(), Some(Links::Unix));
         assert_eq!(links(&["--links", "tcp"]).ok(), Some(Links::Tcp));
@@ -888,17 +891,7 @@ mod tests {
     /// clients keep the 1 s that notices a cut link.
     #[test]
     fn the_nodes_of_one_host_keep_their_links_ten_seconds() {
-        use clap::Parser;
-        #[derive(Parser)]
-        struct Cli {
-            #[command(flatten)]
-            l: LaunchArgs,
-        }
-        let lease = |extra: &[&str]| {
-            let mut args = vec!["launch", "scenarios/paper.toml"];
-            args.extend_from_slice(extra);
-            one_host_lease(&Cli::try_parse_from(args).expect("parses").l)
-        };
+        let lease = |extra: &[&str]| one_host_lease(&launch_args(extra));
         assert_eq!(lease(&[]), Some(10_000));
         assert_eq!(lease(&["--mode", "client"]), Some(10_000));
         assert_eq!(lease(&["--tls", "certs"]), Some(10_000));
