@@ -8,9 +8,14 @@
 //!
 //! Sending again is paced so that it cannot swamp the network it waits
 //! for: at most [`WINDOW_BYTES`] are in flight (sent, not acknowledged), and
-//! while no acknowledgement arrives at all (a dead link) the time before
-//! the next try doubles, up to [`MAX_RESEND`]; the first acknowledgement
-//! that arrives again (the monitor sends one every 100 ms) resets it.
+//! each try that goes unanswered doubles the time before the next, up to
+//! [`MAX_RESEND`]. An acknowledgement that moves forward resets it; so does
+//! the first one after a try that heard none (a dead link is back: the
+//! monitor sends one every 100 ms). One that arrives but does not move
+//! forward does not: the monitor is there but did not get what was sent,
+//! because it is behind (its queue full). Resending every 300 ms into it,
+//! 150 couriers flooded a monitor that then lost a follower's last batch
+//! for good (docs/performance.md).
 //!
 //! The store is bounded: at most [`CAPACITY_STEPS`] unacknowledged steps
 //! (200 s of a follower's telemetry at 1 kHz, about 32 MB). Past that the
@@ -70,6 +75,10 @@ pub struct Store {
     stats: CourierStats,
     /// The current resend timeout (see the module docs).
     resend: Duration,
+    /// An acknowledgement arrived since the last try.
+    heard: bool,
+    /// The last try that went again heard no acknowledgement at all.
+    silent: bool,
 }
 
 impl Store {
@@ -82,6 +91,8 @@ impl Store {
             held_bytes: 0,
             stats: CourierStats::default(),
             resend: RESEND,
+            heard: false,
+            silent: false,
         }
     }
 
@@ -115,11 +126,16 @@ impl Store {
 
     /// The monitor holds every step below `next_k`: forget those batches.
     pub fn ack(&mut self, next_k: u64) {
-        // An acknowledgement arrived: the way to the monitor is open again.
-        self.resend = RESEND;
+        // After silence the way to the monitor is open again.
+        if std::mem::take(&mut self.silent) {
+            self.resend = RESEND;
+        }
+        self.heard = true;
         if next_k <= self.acked {
             return;
         }
+        // Progress: the monitor keeps up again.
+        self.resend = RESEND;
         self.acked = next_k;
         while self.queue.front().is_some_and(|b| b.end_k <= next_k) {
             if let Some(b) = self.queue.pop_front() {
@@ -149,17 +165,19 @@ impl Store {
 
     /// The batches due at `now`, oldest first, marked sent: if the oldest in
     /// flight has waited the resend timeout, everything in flight goes again
-    /// (and the timeout doubles until an acknowledgement arrives); then
-    /// batches never sent, while the window allows.
+    /// (and the timeout doubles until an acknowledgement moves forward, or
+    /// one comes after silence); then batches never sent, while the window
+    /// allows.
     pub fn due(&mut self, now: Now) -> Vec<Arc<Vec<u8>>> {
         let mut out = Vec::new();
-        let Self { queue, resend, stats, .. } = self;
+        let Self { queue, resend, stats, heard, silent, .. } = self;
         if queue.front().and_then(|b| b.sent).is_some_and(|t| now.saturating_sub(t) >= *resend) {
             for b in queue.iter_mut().take_while(|b| b.sent.is_some()) {
                 b.sent = None;
                 stats.resent += 1;
             }
             *resend = (*resend * 2).min(MAX_RESEND);
+            *silent = !std::mem::take(heard);
         }
         let mut in_flight: u64 = queue.iter().filter(|b| b.sent.is_some()).map(|b| b.bytes.len() as u64).sum();
         for b in queue.iter_mut().filter(|b| b.sent.is_none()) {
@@ -266,5 +284,60 @@ mod tests {
         c.ack(50 * 25);
         assert_eq!(c.due(at(t0, 4510)).len(), window, "after the acknowledgement, the next window at once");
         assert_eq!(c.next_resend(), Some(at(t0, 4510) + RESEND), "and the resend timeout is back to RESEND");
+    }
+
+    /// The tries of 100 batches of 10 kB over 5 s, with `ack(ms)` asked
+    /// every 100 ms for an acknowledgement to deliver.
+    fn tries(c: &mut Store, ack: impl Fn(u64) -> Option<u64>) -> Vec<(u64, usize)> {
+        for i in 0..100u64 {
+            c.push(i * 50, i * 50 + 50, vec![0; 10 * 1024]);
+        }
+        let mut tries = Vec::new();
+        for ms in (0..5000).step_by(10) {
+            if let Some(k) = ack(ms).filter(|_| ms % 100 == 50) {
+                c.ack(k);
+            }
+            let n = c.due(at(Now::ZERO, ms)).len();
+            if n > 0 {
+                tries.push((ms, n));
+            }
+        }
+        tries
+    }
+
+    /// A monitor that is there (it acknowledges every 100 ms) but behind
+    /// (what it acknowledges does not move): the tries back off as for a
+    /// dead link, instead of every 300 ms.
+    #[test]
+    fn acknowledgements_that_do_not_move_forward_leave_the_tries_backing_off() {
+        let mut c = Store::new(1_000_000);
+        let window = (WINDOW_BYTES / (10 * 1024)) as usize;
+        let tries = tries(&mut c, |_| Some(0));
+        assert_eq!(tries, vec![(0, window), (300, window), (900, window), (2100, window), (4500, window)]);
+    }
+
+    /// A dead link that comes back: the first acknowledgement after the
+    /// silence, though it does not move forward (what was sent was lost),
+    /// resets the pace: the next try 300 ms after the last, not 2.4 s.
+    #[test]
+    fn the_first_acknowledgement_after_silence_resets_the_pace() {
+        let mut c = Store::new(1_000_000);
+        let window = (WINDOW_BYTES / (10 * 1024)) as usize;
+        // Dead until 2.2 s; from then on the monitor acknowledges, without progress.
+        let tries = tries(&mut c, |ms| (ms >= 2200).then_some(0));
+        assert_eq!(
+            tries,
+            vec![
+                (0, window),
+                (300, window),
+                (900, window),
+                (2100, window),
+                (2400, window),
+                (3000, window),
+                (4200, window)
+            ],
+            "the acknowledgement at 2.25 s after a silent try brings the next one to 2.4 s (not 4.5 s); then, no \
+             progress, the tries back off again"
+        );
     }
 }
