@@ -372,20 +372,20 @@ async fn rejoin(
     let found = checkpoint_path.map(|p| checkpoint::read(p, barrier::fingerprint(scenario), start.epoch_unix_ns));
     let pose = match found {
         Some(Ok(c)) => {
-            eprintln!(
+            crate::node::say(&format!(
                 "follower {id}: rejoining the running formation at t = {:.3} s (step {first_step}), the robot \
                  stopped at the pose checkpointed at t = {:.3} s",
                 at(first_step),
                 at(c.k)
-            );
+            ));
             c.pose()
         }
         Some(Err(why)) => {
-            eprintln!(
+            crate::node::say(&format!(
                 "follower {id}: rejoining the running formation at t = {:.3} s (step {first_step}) from the \
                  initial pose: {why}",
                 at(first_step)
-            );
+            ));
             scenario.followers[index].pose
         }
         None => scenario.followers[index].pose,

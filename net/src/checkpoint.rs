@@ -146,10 +146,10 @@ pub fn start_writer(path: PathBuf, fingerprint: u64, epoch_unix_ns: u64, latest:
                 Err(e) => {
                     file = None;
                     if !said {
-                        eprintln!(
+                        crate::node::say(&format!(
                             "cannot write the checkpoint {}: {e} (a restart will begin from the initial pose)",
                             path.display()
-                        );
+                        ));
                         said = true;
                     }
                 }

@@ -6,9 +6,11 @@
 //! `--config` file sets the section itself:
 //!
 //! - `low_pass_filter`: a size limit per key (an estimate is about 83
-//!   bytes: 1 KiB; a telemetry batch of `network.telemetry_batch` steps:
-//!   [`telemetry_limit`]; control messages 64 KiB). Larger puts are dropped
-//!   before they are decoded or forwarded.
+//!   bytes: 1 KiB; a telemetry batch of `network.telemetry_batch` steps
+//!   from a follower with the scenario's most sources: [`telemetry_limit`];
+//!   control messages 64 KiB). Larger puts are dropped before they are
+//!   decoded or forwarded, silently: a limit below what a node legitimately
+//!   sends loses that message and every resend of it.
 //! - Real-time runs only (lock-step estimates are needed, every one, and
 //!   the loops wait for them by design):
 //!   - `qos/network` overwrites every put under `formation/**` to
@@ -43,9 +45,19 @@ pub const TELEMETRY_EXTRA_BYTES: u64 = 64 * 1024;
 /// An estimate key may carry at most this many times the run's step rate.
 pub const RATE_FACTOR: f64 = 5.0;
 
-/// Largest telemetry put of a run whose batches hold `batch` steps.
-pub fn telemetry_limit(batch: u32) -> u64 {
-    u64::from(batch.max(1)) * TELEMETRY_STEP_BYTES + TELEMETRY_EXTRA_BYTES
+/// Sources per follower a node that does not know the scenario allows for.
+pub const UNKNOWN_SOURCES: usize = 32;
+
+/// Largest telemetry put of a run whose batches hold `batch` steps and
+/// whose followers have at most `sources` sources (neighbours and the
+/// leader): the steps, the last batch's rescued messages
+/// ([`formation_protocol::follower::most_rescued_bytes`]; 14 KB a source
+/// at 50-step batches, which a follower with 7 sources took past a limit
+/// without them, and lost its last batch for good) and room for the rest.
+pub fn telemetry_limit(batch: u32, sources: usize) -> u64 {
+    u64::from(batch.max(1)) * TELEMETRY_STEP_BYTES
+        + formation_protocol::follower::most_rescued_bytes(sources, batch)
+        + TELEMETRY_EXTRA_BYTES
 }
 
 /// What a run's traffic is, as far as the limits need it.
@@ -71,19 +83,23 @@ impl Traffic {
         Traffic {
             realtime: scenario.timing == Timing::Realtime,
             step_hz: scenario.network.time_scale / scenario.dt_s,
-            telemetry_bytes: telemetry_limit(scenario.network.telemetry_batch),
+            telemetry_bytes: telemetry_limit(
+                scenario.network.telemetry_batch,
+                (0..scenario.graph.len()).map(|i| scenario.sources_of(i).len()).max().unwrap_or(0),
+            ),
             estimate_ids,
             router: false,
         }
     }
 
     /// A node that does not know the scenario (a router started by hand):
-    /// size limits only, for batches of up to 1,000 steps.
+    /// size limits only, for batches of up to 1,000 steps from followers
+    /// of up to [`UNKNOWN_SOURCES`] sources.
     pub fn unknown() -> Self {
         Traffic {
             realtime: false,
             step_hz: 0.0,
-            telemetry_bytes: telemetry_limit(1000),
+            telemetry_bytes: telemetry_limit(1000, UNKNOWN_SOURCES),
             estimate_ids: Vec::new(),
             router: true,
         }
@@ -146,7 +162,8 @@ mod tests {
         let keys: Vec<&str> = node.sections().into_iter().map(|(k, _)| k).collect();
         assert_eq!(keys, ["low_pass_filter", "qos/network"], "a node does not cap rates");
         let t = Traffic { router: true, ..node };
-        assert_eq!(t.telemetry_bytes, 50 * 512 + 65_536);
+        // The paper's followers have at most 3 sources.
+        assert_eq!(t.telemetry_bytes, 50 * 512 + 3 * 4 * 50 * 80 + 65_536);
         assert_eq!(t.estimate_ids, vec![0, 1, 2, 3, 4]);
         let s = t.sections();
         let keys: Vec<&str> = s.iter().map(|(k, _)| *k).collect();
@@ -156,13 +173,51 @@ mod tests {
         assert_eq!(rules[2]["key_expr"], "formation/*/estimate/2", "{rules}");
         assert_eq!(rules[2]["freq"], 5_000.0, "{rules}");
         assert_eq!(s[1].1[0]["overwrite"]["congestion_control"], "drop", "{}", s[1].1);
-        assert_eq!(s[0].1[1]["size_limit"], 50 * 512 + 65_536, "{}", s[0].1);
+        assert_eq!(s[0].1[1]["size_limit"], 50 * 512 + 3 * 4 * 50 * 80 + 65_536, "{}", s[0].1);
     }
 
     #[test]
     fn a_lockstep_run_limits_sizes_only() {
         let s = Traffic::of(&paper("lockstep")).sections();
         assert_eq!(s.iter().map(|(k, _)| *k).collect::<Vec<_>>(), ["low_pass_filter"]);
+    }
+
+    /// The last batch of a follower with many sources, every rescued
+    /// message at its largest encoding, fits under the limit the scenario
+    /// gives (the constant behind it is checked against the real encoding).
+    #[test]
+    fn the_limit_holds_a_last_batch_that_rescues_every_source() {
+        use formation_protocol::follower::{RESCUED_BYTES, RESCUE_BATCHES};
+        use formation_protocol::telemetry::Telemetry;
+        use formation_record::hearing::{HeardRuns, Rescued};
+        let worst = Rescued { source: u32::MAX, stamp: u64::MAX, state: Default::default(), fresh: true };
+        assert!(
+            formation_protocol::codec::encode(&worst).len() as u64 <= RESCUED_BYTES,
+            "a rescued message takes {} bytes",
+            formation_protocol::codec::encode(&worst).len()
+        );
+        let (batch, sources) = (50u32, 12usize);
+        let keep = RESCUE_BATCHES * batch as usize;
+        let last = Telemetry::Follower {
+            id: 1,
+            first_k: 0,
+            samples: vec![Default::default(); batch as usize],
+            counters: Default::default(),
+            done: true,
+            loop_stats: None,
+            delivery: Default::default(),
+            events: Vec::new(),
+            clock: None,
+            links: Vec::new(),
+            heard: HeardRuns::with_slots(sources, 8),
+            rescued: vec![worst; sources * keep],
+            resumed: None,
+            diverged: None,
+        };
+        let bytes = formation_protocol::codec::encode(&last).len() as u64;
+        let limit = telemetry_limit(batch, sources);
+        assert!(bytes <= limit, "the last batch takes {bytes} bytes, the limit is {limit}");
+        assert!(bytes > telemetry_limit(batch, 0), "{bytes} bytes: the old limit would have dropped it");
     }
 
     #[test]

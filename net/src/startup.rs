@@ -144,7 +144,7 @@ pub async fn wait_for_start(
             JoinStep::Failed(e) => return Err(e),
             JoinStep::Wait { ready, warning } => {
                 if let Some(w) = warning {
-                    eprintln!("{w}");
+                    crate::node::say(&w);
                 }
                 ready
             }
@@ -189,7 +189,7 @@ pub async fn lead_start(
                 }
                 return Err(error);
             }
-            LeadStep::Wait { warnings } => warnings.iter().for_each(|w| eprintln!("{w}")),
+            LeadStep::Wait { warnings } => warnings.iter().for_each(|w| crate::node::say(w)),
         }
         session.put(keys.hello(names::LEADER_NODE), Vec::<u8>::new()).await.map_err(|e| zerr("saying hello", e))?;
         waiting.pause().await;

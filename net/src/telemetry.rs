@@ -92,9 +92,9 @@ pub const DRAIN: std::time::Duration = std::time::Duration::from_secs(10);
 pub async fn finish_delivery(delivery: crate::courier::Delivery, who: &str) {
     let unacknowledged = tokio::task::spawn_blocking(move || delivery.finish(DRAIN)).await.unwrap_or(0);
     if unacknowledged > 0 {
-        eprintln!(
+        crate::node::say(&format!(
             "{who}: the monitor did not acknowledge {unacknowledged} steps of telemetry within {} s",
             DRAIN.as_secs()
-        );
+        ));
     }
 }

@@ -121,6 +121,17 @@ pub struct Options {
 /// have left unacknowledged (one batch being filled, one or two in flight).
 pub const RESCUE_BATCHES: usize = 4;
 
+/// The most bytes one rescued message takes in a telemetry batch (bincode,
+/// varints: the source at most 5, the stamp 9, the state 64, `fresh` 1).
+pub const RESCUED_BYTES: u64 = 80;
+
+/// The most bytes of rescued messages one batch of a follower with
+/// `sources` sources can carry, with batches of `batch` steps: its last
+/// batch rescues every source's last [`RESCUE_BATCHES`] batches' worth.
+pub fn most_rescued_bytes(sources: usize, batch: u32) -> u64 {
+    sources as u64 * RESCUE_BATCHES as u64 * u64::from(batch.max(1)) * RESCUED_BYTES
+}
+
 /// Lock-step: how long a follower keeps republishing its final message
 /// after its last step, waiting for its neighbours to report theirs.
 pub const LINGER: Duration = Duration::from_secs(1);

@@ -34,6 +34,39 @@ fn short_launch_succeeds_and_leaves_nothing_behind() {
     assert!(common::json(&out, "network.json").get("zenoh_log").is_none());
 }
 
+/// A follower that hears 8 sources (the complete graph of 8 followers,
+/// and the leader) sends with its last telemetry batch the last 200
+/// messages it used of each, about 110 KB: the monitor's size limit on
+/// telemetry must let that through. Under the old limit (91 KB at 50-step
+/// batches) zenoh dropped the batch, and every resend of it, at the
+/// monitor's door, and the run failed after 60 s waiting for it.
+#[test]
+fn a_follower_with_many_sources_delivers_its_last_telemetry() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let scenario = tmp.path().join("complete8.toml");
+    let g = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["generate", "--followers", "8", "--graph", "complete", "--out"])
+        .arg(&scenario)
+        .output()
+        .expect("formation generate");
+    assert!(g.status.success(), "generate: {}", String::from_utf8_lossy(&g.stderr));
+    let out = tmp.path().join("run");
+    // The monitor, the leader and 8 agents.
+    let base = Ports::free(10).release().to_string();
+    let (scenario, out_s) = (scenario.display().to_string(), out.display().to_string());
+    let args = ["launch", &scenario, "-q", "--out", &out_s, "--set", "duration=0.3", "--base-port", &base];
+    let began = Instant::now();
+    let mut g = Group::spawn(&[&args[..], &["--run", "launch-complete8"]].concat());
+    let status = g.wait(LIMIT);
+    assert!(status.success(), "formation launch failed after {:.1} s: {status}", began.elapsed().as_secs_f64());
+    g.assert_group_empty();
+    let network = common::json(&out, "network.json");
+    assert_eq!(network["complete"], true, "the record is incomplete: {}", network["lost_steps"]);
+    for id in 1..=8 {
+        assert_eq!(network["nodes"][id.to_string()]["done"], true, "follower {id}'s last batch did not arrive");
+    }
+}
+
 /// Zenoh's own lines (here INFO, with `RUST_LOG`) go to `zenoh-log/`, one
 /// file per node, each beginning with the node's own note of its zenoh id
 /// (the zid zenoh names in its lines), and `network.json` counts them.
