@@ -54,9 +54,20 @@ fn a_follower_with_many_sources_delivers_its_last_telemetry() {
     // The monitor, the leader and 8 agents.
     let base = Ports::free(10).release().to_string();
     let (scenario, out_s) = (scenario.display().to_string(), out.display().to_string());
-    let args = ["launch", &scenario, "-q", "--out", &out_s, "--set", "duration=0.3", "--base-port", &base];
     let began = Instant::now();
-    let mut g = Group::spawn(&[&args[..], &["--run", "launch-complete8"]].concat());
+    let mut g = Group::spawn(&[
+        "launch",
+        &scenario,
+        "-q",
+        "--out",
+        &out_s,
+        "--set",
+        "duration=0.3",
+        "--base-port",
+        &base,
+        "--run",
+        "launch-complete8",
+    ]);
     let status = g.wait(LIMIT);
     assert!(status.success(), "formation launch failed after {:.1} s: {status}", began.elapsed().as_secs_f64());
     g.assert_group_empty();
