@@ -182,7 +182,7 @@ where
     let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
         Ok(r) => r,
         Err(e) => {
-            eprintln!("error: cannot start the async runtime: {e}");
+            formation_net::node::say(&format!("error: cannot start the async runtime: {e}"));
             return ExitCode::from(1);
         }
     };
@@ -192,7 +192,7 @@ where
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e}");
+            formation_net::node::say(&format!("error: {e}"));
             e.exit_code()
         }
     }
@@ -213,9 +213,9 @@ async fn signalled() -> Signal {
             _ = term.recv() => Signal::Terminate,
         },
         (Err(e), _) | (_, Err(e)) => {
-            eprintln!(
+            formation_net::node::say(&format!(
                 "warning: cannot install the SIGINT and SIGTERM handlers ({e}): a signal ends the node unrecorded"
-            );
+            ));
             std::future::pending().await
         }
     }

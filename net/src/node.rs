@@ -24,7 +24,7 @@ pub use crate::session::ZENOH_LOG_ENV;
 /// [`UNAUTHENTICATED`] on stderr for a node started by hand without `--tls`.
 pub fn warn_if_unauthenticated(zenoh: &ZenohArgs) {
     if zenoh.tls.is_none() && std::env::var_os(LAUNCHED_ENV).is_none() {
-        eprintln!("{UNAUTHENTICATED}");
+        say(UNAUTHENTICATED);
     }
 }
 
@@ -120,7 +120,7 @@ impl NodeArgs {
                     )))
                 }
                 Err(_) if !said => {
-                    eprintln!("waiting for {} …", self.endpoints());
+                    say(&format!("waiting for {} …", self.endpoints()));
                     said = true;
                 }
                 Err(_) => {}

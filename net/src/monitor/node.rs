@@ -463,7 +463,7 @@ fn finish(
         Ending::Interrupted | Ending::Terminated => {
             let short = summary.shortfall_text().map(|s| format!(" (incomplete: {s})")).unwrap_or_default();
             let how = if ending == Ending::Terminated { "terminated" } else { "interrupted" };
-            eprintln!("{how}: wrote the {recorded} steps received to {}{short}", dir.display());
+            crate::node::say(&format!("{how}: wrote the {recorded} steps received to {}{short}", dir.display()));
             Ok((ending, verdict))
         }
         Ending::Idle => Err(Error::Run(format!(
