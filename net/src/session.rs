@@ -26,6 +26,8 @@
 //!    FIN is noticed within about a second instead of 10 s. `--lease-ms`
 //!    replaces both the file's lease and this one: `formation launch` gives
 //!    the nodes it starts on one host 10 000 (see [`LAUNCH_LEASE_MS`]).
+//!    A file that turns zenoh's QoS off (`transport/unicast/qos/enabled =
+//!    false`) is refused: the formation's traffic relies on its priorities.
 //! 5. Listen endpoints: `--listen` if given; else the file's if it set any
 //!    (anything other than zenoh's built-in default); else
 //!    `tcp/127.0.0.1:0` for a peer (a peer needs a listener of its own:
@@ -248,6 +250,22 @@ impl ZenohArgs {
         let mode = self.effective_mode(&config)?;
         set(&mut config, "mode", &Value::from(mode.as_str()))?;
 
+        // Zenoh's priorities (QoS): on, or the file is refused. Estimates
+        // never wait behind telemetry only because each priority has a
+        // queue of its own; and with one queue per link, zenoh's own
+        // messages that may not be dropped (declarations) wait on its one
+        // thread behind a lock-step run's estimates, for room that only
+        // that thread can make, until zenoh closes the link 5 s later.
+        if let Some(path) = &self.config {
+            if get(&config, "transport/unicast/qos/enabled")? == false {
+                return Err(SessionError::Config(format!(
+                    "zenoh config {}: transport/unicast/qos/enabled = false is not supported: the formation needs \
+                     zenoh's priorities (estimates before telemetry; without them lock-step runs stall)",
+                    path.display()
+                )));
+            }
+        }
+
         // Multicast scouting: off, always.
         set(&mut config, "scouting/multicast/enabled", &Value::Bool(false))?;
         set_if_unset(&mut config, "scouting/delay", Value::from(0))?;
@@ -451,6 +469,17 @@ mod tests {
         assert_eq!(json(&from_file.to_config().unwrap(), "transport/link/tx/lease"), 3000);
         let both = ZenohArgs { lease_ms: Some(250), ..from_file };
         assert_eq!(json(&both.to_config().unwrap(), "transport/link/tx/lease"), 250);
+    }
+
+    #[test]
+    fn a_file_that_turns_qos_off_is_refused_in_one_line() {
+        let f = file("{ transport: { unicast: { qos: { enabled: false } } } }");
+        let args = ZenohArgs { config: Some(f.path().into()), ..Default::default() };
+        let Err(SessionError::Config(m)) = args.to_config() else { panic!("a QoS-off config was accepted") };
+        assert!(m.contains("qos/enabled = false is not supported") && !m.contains('\n'), "{m}");
+        let on = file("{ transport: { unicast: { qos: { enabled: true } } } }");
+        let args = ZenohArgs { config: Some(on.path().into()), ..Default::default() };
+        assert_eq!(json(&args.to_config().unwrap(), "transport/unicast/qos/enabled"), true);
     }
 
     #[test]
