@@ -147,6 +147,7 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
         group: 1,
         router: None,
         links: Some(a.plain_links()),
+        zenoh_config: None,
     }
 }
 

@@ -18,6 +18,10 @@
 //! run by hand waits 1 s). A dead process's links close at once anyway;
 //! the 1 s lease only cost a loaded host its links.
 //!
+//! `--zenoh-config FILE`: every node and the router get `--config FILE`
+//! (checked once first, [`session::SharedFile`]); the launch still gives
+//! each its mode and links, and its lease unless the file set one.
+//!
 //! No process is left behind: on success, when any child fails (the monitor
 //! is told to write what it has, the rest are killed), on Ctrl-C or SIGTERM
 //! (forwarded; the monitor flushes its run folder), and when this process
@@ -296,6 +300,14 @@ pub struct LaunchArgs {
     /// listens on its TCP port either way.
     #[arg(long, value_enum)]
     pub links: Option<Links>,
+    /// A zenoh configuration file (json5, zenoh's format) for every node
+    /// this launch starts, the router included: buffers, batching, access
+    /// control, … It is checked once before anything starts, with a
+    /// node's rules for --config (multicast stays off, QoS must stay on),
+    /// and may not set id, mode, listen or connect: the launch gives each
+    /// node its own. A lease it sets replaces the launch's 10 s.
+    #[arg(long, value_name = "FILE.json5")]
+    pub zenoh_config: Option<PathBuf>,
 }
 
 impl LaunchArgs {
@@ -467,6 +479,12 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
         ));
     }
     a.links()?;
+    let zfile = match &a.zenoh_config {
+        Some(path) => {
+            Some(session::SharedFile::check(path).map_err(|e| CliError::Input(format!("--zenoh-config: {e}")))?)
+        }
+        None => None,
+    };
     if let Some(r) = &a.router {
         let z = session::ZenohArgs {
             mode: Some(session::ZenohMode::Client),
@@ -490,7 +508,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
         .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
     let logs = zenoh_log::start(&out);
-    let result = runtime.block_on(launch(a, &scenario, &run, &out, &exe, &mut children));
+    let result = runtime.block_on(launch(a, zfile.as_ref(), &scenario, &run, &out, &exe, &mut children));
     drop(children);
     if let Some(said) = zenoh_log::finish(logs, &out) {
         if !a.opts.quiet {
@@ -546,9 +564,18 @@ pub(crate) fn degraded_error(health: Option<(String, bool)>, out: &Path) -> Resu
 
 /// The links' lease of a launch whose nodes all run on this host (none
 /// with `--router`, which may be elsewhere: its links keep the 1 s that
-/// notices a cut link). See [`session::LAUNCH_LEASE_MS`].
-fn one_host_lease(a: &LaunchArgs) -> Option<u64> {
-    a.router.is_none().then_some(session::LAUNCH_LEASE_MS)
+/// notices a cut link), nor when `--zenoh-config` set one (the file's is
+/// kept). See [`session::LAUNCH_LEASE_MS`].
+fn one_host_lease(a: &LaunchArgs, zfile: Option<&session::SharedFile>) -> Option<u64> {
+    let own = zfile.and_then(|f| f.lease_ms).is_some();
+    (a.router.is_none() && !own).then_some(session::LAUNCH_LEASE_MS)
+}
+
+/// `--config FILE` of `--zenoh-config`, for every node and the router.
+fn zenoh_file_arg(c: &mut Command, zfile: Option<&session::SharedFile>) {
+    if let Some(f) = zfile {
+        c.arg("--config").arg(&f.path);
+    }
 }
 
 fn node_command(exe: &Path, node: &str, a: &LaunchArgs, run: &str) -> Command {
@@ -602,9 +629,11 @@ fn start_router(
     opts: &RunOptions,
     timing: formation_topology::Timing,
     lease: Option<u64>,
+    zfile: Option<&session::SharedFile>,
 ) -> Result<(), CliError> {
     let mut c = Command::new(exe);
     c.args(["node", "router"]);
+    zenoh_file_arg(&mut c, zfile);
     for l in listen {
         c.arg("--listen").arg(l);
     }
@@ -649,6 +678,7 @@ pub(crate) fn start_router_named(children: &mut Children, name: &str, mut c: Com
 
 async fn launch(
     a: &LaunchArgs,
+    zfile: Option<&session::SharedFile>,
     scenario: &Scenario,
     run: &str,
     out: &Path,
@@ -679,15 +709,17 @@ async fn launch(
     let links = a.links()?;
     let eps = Endpoints::new(links)?;
     let router_ep = a.router.clone().unwrap_or_else(|| eps.dial(p[0]));
-    let lease = one_host_lease(a);
+    let lease = one_host_lease(a, zfile);
     let endpoints = |c: &mut Command, listen: Option<u16>, connect: &[u16]| {
         if let Some(ms) = lease {
             c.arg("--lease-ms").arg(ms.to_string());
         }
+        zenoh_file_arg(c, zfile);
         if mode == LaunchMode::Client {
             c.args(["--mode", "client", "--connect", &router_ep]);
             return;
         }
+        c.args(["--mode", "peer"]);
         for l in listen.map(|l| eps.listen(l)).unwrap_or_default() {
             c.arg("--listen").arg(l);
         }
@@ -723,7 +755,7 @@ async fn launch(
         }
     }
     if own_router {
-        start_router(children, exe, &eps.listen(p[0]), &a.opts, scenario.timing, lease)?;
+        start_router(children, exe, &eps.listen(p[0]), &a.opts, scenario.timing, lease, zfile)?;
     }
     let (mon_port, lead_port) = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
 
@@ -891,11 +923,15 @@ mod tests {
     /// clients keep the 1 s that notices a cut link.
     #[test]
     fn the_nodes_of_one_host_keep_their_links_ten_seconds() {
-        let lease = |extra: &[&str]| one_host_lease(&launch_args(extra));
+        let lease = |extra: &[&str]| one_host_lease(&launch_args(extra), None);
         assert_eq!(lease(&[]), Some(10_000));
         assert_eq!(lease(&["--mode", "client"]), Some(10_000));
         assert_eq!(lease(&["--tls", "certs"]), Some(10_000));
         assert_eq!(lease(&["--router", "tcp/127.0.0.1:7447"]), None);
+        // A --zenoh-config file that sets a lease keeps it; one that does not gets 10 s.
+        let file = |lease_ms| session::SharedFile { path: "/z.json5".into(), lease_ms };
+        assert_eq!(one_host_lease(&launch_args(&[]), Some(&file(Some(3000)))), None);
+        assert_eq!(one_host_lease(&launch_args(&[]), Some(&file(None))), Some(10_000));
     }
 
     /// Unix links: each node listens on its TCP port and on a socket in a

@@ -209,6 +209,47 @@ fn config_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> Sessio
     SessionError::Config(format!("{what}: {e}"))
 }
 
+/// A zenoh configuration file, or one line saying what is wrong with it.
+fn read_file(path: &std::path::Path) -> Result<zenoh::Config, SessionError> {
+    let what = format!("zenoh config {}", path.display());
+    std::fs::metadata(path).map_err(|e| config_err(&what, e))?;
+    zenoh::Config::from_file(path).map_err(|e| config_err(&what, tidy_error(&e.to_string())))
+}
+
+/// Zenoh's error for a file it could not read, in one line: the message
+/// and its place, without the debug formatting, the parser's drawing or
+/// the location in zenoh's own source.
+fn tidy_error(e: &str) -> String {
+    // "… at /…/zenoh-config-1.10.2/src/lib.rs:1484."
+    let e = match e.rfind(" at /") {
+        Some(i) if e[i..].trim_end_matches('.').rsplit(':').next().is_some_and(|n| n.parse::<u32>().is_ok()) => &e[..i],
+        _ => e,
+    };
+    let number = |after: &str| -> Option<u64> {
+        let i = e.find(after)? + after.len();
+        e[i..].chars().take_while(char::is_ascii_digit).collect::<String>().parse().ok()
+    };
+    // serde: Message { msg: "unknown field `x`, …", location: Some(Location { line: 1, column: 16 }) }
+    if let Some(i) = e.find("msg: \"") {
+        let rest = &e[i + 6..];
+        let msg = rest.split("\", location").next().unwrap_or(rest).trim_end_matches("\" }");
+        return match (number("line: "), number("column: ")) {
+            (Some(l), Some(c)) => format!("{msg} (line {l}, column {c})"),
+            _ => msg.to_string(),
+        };
+    }
+    // json5's parser: " --> 2:1 | … = expected identifier or string"
+    if let Some(i) = e.find("= ") {
+        let msg = e[i + 2..].trim();
+        let place = e.find("--> ").map(|j| e[j + 4..].split_whitespace().next().unwrap_or("").to_string());
+        if let Some((l, c)) = place.as_deref().and_then(|p| p.split_once(':')) {
+            return format!("{msg} (line {l}, column {c})");
+        }
+        return msg.to_string();
+    }
+    e.split_whitespace().collect::<Vec<_>>().join(" ")
+}
+
 fn get(config: &zenoh::Config, key: &str) -> Result<Value, SessionError> {
     let json = config.get_json(key).map_err(|e| config_err(format_args!("zenoh config key {key}"), e))?;
     serde_json::from_str(&json).map_err(|e| config_err(format_args!("zenoh config key {key}: {json}"), e))
@@ -243,8 +284,7 @@ impl ZenohArgs {
     /// Build the zenoh configuration (see the module docs for the rules).
     pub fn to_config(&self) -> Result<zenoh::Config, SessionError> {
         let mut config = match &self.config {
-            Some(path) => zenoh::Config::from_file(path)
-                .map_err(|e| config_err(format_args!("reading zenoh config {}", path.display()), e))?,
+            Some(path) => read_file(path)?,
             None => zenoh::Config::default(),
         };
         let mode = self.effective_mode(&config)?;
@@ -378,6 +418,41 @@ fn tls_endpoints(list: &Value, what: &str) -> Result<Value, SessionError> {
     }
 }
 
+/// A zenoh configuration file that `formation launch` gives every node it
+/// starts (`--zenoh-config`), checked once before anything starts.
+#[derive(Clone, Debug)]
+pub struct SharedFile {
+    /// Absolute, so that every node finds it whatever its folder.
+    pub path: PathBuf,
+    /// The file's `transport/link/tx/lease`, if it set one other than
+    /// zenoh's default: then the launch keeps it instead of its own.
+    pub lease_ms: Option<u64>,
+}
+
+impl SharedFile {
+    /// Reads and checks `path`: a node's rules for `--config` (QoS on, …),
+    /// and no `id`, `mode`, `listen` or `connect` endpoints, which the launch
+    /// decides for each node. One line on any error.
+    pub fn check(path: &std::path::Path) -> Result<Self, SessionError> {
+        let path = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+        ZenohArgs { config: Some(path.clone()), ..Default::default() }.to_config()?;
+        let file = read_file(&path)?;
+        let builtin = zenoh::Config::default();
+        for key in ["id", "mode", "listen/endpoints", "connect/endpoints"] {
+            if get(&file, key)? != get(&builtin, key)? {
+                return Err(SessionError::Config(format!(
+                    "zenoh config {}: {key} is set; formation launch gives each node its own id, mode and links \
+                     (leave id, mode, listen and connect out of the file)",
+                    path.display()
+                )));
+            }
+        }
+        let lease = get(&file, "transport/link/tx/lease")?;
+        let lease_ms = (lease != get(&builtin, "transport/link/tx/lease")?).then(|| lease.as_u64()).flatten();
+        Ok(Self { path, lease_ms })
+    }
+}
+
 /// Endpoint lists of a config for messages: `listen [...], connect [...]`.
 pub fn describe_endpoints(config: &zenoh::Config) -> String {
     let show = |key: &str| config.get_json(key).unwrap_or_else(|e| format!("<{e}>"));
@@ -480,6 +555,35 @@ mod tests {
         let on = file("{ transport: { unicast: { qos: { enabled: true } } } }");
         let args = ZenohArgs { config: Some(on.path().into()), ..Default::default() };
         assert_eq!(json(&args.to_config().unwrap(), "transport/unicast/qos/enabled"), true);
+    }
+
+    /// `formation launch --zenoh-config`: the file is checked once, its
+    /// lease kept, and what the launch decides per node refused in one line.
+    #[test]
+    fn a_launch_file_keeps_its_lease_and_leaves_the_links_to_the_launch() {
+        let plain = file("{ transport: { link: { tx: { batch_size: 8192 } } } }");
+        let f = SharedFile::check(plain.path()).unwrap();
+        assert!(f.path.is_absolute(), "{}", f.path.display());
+        assert_eq!(f.lease_ms, None);
+        let lease = file("{ transport: { link: { tx: { lease: 3000 } } } }");
+        assert_eq!(SharedFile::check(lease.path()).unwrap().lease_ms, Some(3000));
+        for (text, key) in [
+            (r#"{ id: "aabbcc" }"#, "id is set"),
+            (r#"{ mode: "client" }"#, "mode is set"),
+            (r#"{ listen: { endpoints: ["tcp/127.0.0.1:7998"] } }"#, "listen/endpoints"),
+            (r#"{ connect: { endpoints: ["tcp/127.0.0.1:7999"] } }"#, "connect/endpoints"),
+            ("{ transport: { unicast: { qos: { enabled: false } } } }", "qos/enabled"),
+            ("{ transport: { nonsense: 1 } }", "unknown field `nonsense`"),
+            ("{ transport: { ", "expected identifier or string (line 1, column 16)"),
+        ] {
+            let f = file(text);
+            match SharedFile::check(f.path()) {
+                Err(SessionError::Config(m)) => assert!(m.contains(key) && !m.contains('\n'), "{text}: {m}"),
+                other => panic!("{text} was not refused: {other:?}"),
+            }
+        }
+        let missing = SharedFile::check(std::path::Path::new("/nonexistent/zenoh.json5"));
+        assert!(matches!(missing, Err(SessionError::Config(m)) if m.contains("/nonexistent/zenoh.json5")));
     }
 
     #[test]

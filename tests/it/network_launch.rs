@@ -417,3 +417,99 @@ fn a_node_with_another_scenario_is_named_with_the_key_that_differs() {
     assert!(!out.exists() && !dir.path().join("mismatch.partial").exists(), "the monitor left a folder");
     let _ = router.0.kill();
 }
+
+/// `--zenoh-config FILE`: every node the launch starts, the router
+/// included, is given the file (by its absolute path); a lease the file sets
+/// replaces the launch's; and a file that would give the nodes one id, a
+/// mode or links of its own, or is not zenoh's format, is refused in one
+/// line before anything starts.
+#[test]
+fn a_zenoh_config_file_reaches_every_node_or_is_refused_up_front() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    std::fs::write(tmp.path().join("z.json5"), "{ transport: { link: { tx: { batch_size: 8192, lease: 5000 } } } }")
+        .expect("write z.json5");
+    let absolute = tmp.path().join("z.json5").display().to_string();
+    let out = tmp.path().join("run");
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let out_s = out.display().to_string();
+    let args = [
+        "launch",
+        "-q",
+        "--out",
+        &out_s,
+        "--set",
+        "duration=2",
+        "--set",
+        "timing=realtime",
+        "--base-port",
+        &base,
+        "--run",
+        "launch-zfile",
+        "--mode",
+        "client",
+        "--zenoh-config",
+        "z.json5",
+    ];
+    let scenario = std::path::absolute(common::SCENARIO).expect("scenario path").display().to_string();
+    let child = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .arg(args[0])
+        .arg(&scenario)
+        .args(&args[1..])
+        .current_dir(tmp.path())
+        .stdin(std::process::Stdio::null())
+        .process_group(0)
+        .spawn()
+        .expect("spawn formation launch");
+    let mut g = Group(child);
+    // The router, the monitor, the leader and 4 agents, as they run (real
+    // time: each lives at least the run's 2 s).
+    let mut seen = std::collections::BTreeMap::new();
+    let t = Instant::now();
+    while seen.len() < 7 && t.elapsed() < Duration::from_secs(30) && g.0.try_wait().expect("try_wait").is_none() {
+        for pid in g.members() {
+            let Ok(raw) = std::fs::read(format!("/proc/{pid}/cmdline")) else { continue };
+            let argv: Vec<String> = raw.split(|&b| b == 0).map(|a| String::from_utf8_lossy(a).into_owned()).collect();
+            if argv.get(1).map(String::as_str) == Some("node") {
+                seen.insert(pid, argv);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let status = g.wait(LIMIT);
+    assert!(status.success(), "formation launch failed: {status}");
+    g.assert_group_empty();
+    let nodes: Vec<String> = seen.values().map(|a| a[2..].join(" ")).collect();
+    assert_eq!(seen.len(), 7, "saw {} node processes, not 7: {nodes:#?}", seen.len());
+    for argv in seen.values() {
+        let given = argv.windows(2).find(|w| w[0] == "--config").map(|w| w[1].as_str());
+        assert_eq!(given, Some(absolute.as_str()), "node {}: {:?}", argv[2], argv);
+        assert!(!argv.iter().any(|a| a == "--lease-ms"), "node {}: the file's lease was replaced: {argv:?}", argv[2]);
+    }
+    assert_eq!(common::json(&out, "summary.json")["followers"]["4"]["samples"], 2001);
+
+    for (text, why) in [
+        (r#"{ id: "aabbccdd" }"#, "id is set"),
+        (r#"{ connect: { endpoints: ["tcp/127.0.0.1:7999"] } }"#, "connect/endpoints is set"),
+        ("{ transport: { unicast: { qos: { enabled: false } } } }", "qos/enabled = false is not supported"),
+        ("{ transport: { nonsense: 1 } }", "unknown field `nonsense`"),
+    ] {
+        let bad = tmp.path().join("bad.json5");
+        std::fs::write(&bad, text).expect("write bad.json5");
+        let out = tmp.path().join("refused");
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["launch", common::SCENARIO, "-q", "--base-port", &base, "--out"])
+            .arg(&out)
+            .arg("--zenoh-config")
+            .arg(&bad)
+            .output()
+            .expect("formation launch");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{text} must be bad input: {:?}; stderr: {stderr}", o.status);
+        assert!(
+            stderr.contains(why) && stderr.contains("--zenoh-config"),
+            "{text}: stderr does not say {why:?}: {stderr}"
+        );
+        assert_eq!(stderr.trim().lines().count(), 1, "{text}: one line, not {stderr}");
+        assert!(!out.exists(), "{text}: a run folder was made");
+    }
+}
