@@ -58,7 +58,10 @@ pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
 pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(bool, String), CliError> {
     let tmp;
     let dir = match out {
-        Some(d) => d.to_path_buf(),
+        Some(d) => {
+            refuse_out_over_the_run(&loaded.dir, d)?;
+            d.to_path_buf()
+        }
         None => {
             tmp = tempfile::tempdir().map_err(|e| CliError::Run(format!("a temporary folder: {e}")))?;
             tmp.path().join("replay")
@@ -99,6 +102,38 @@ pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(bool, St
         text += &format!("replay written to {}\n", o.display());
     }
     Ok((diffs.is_empty(), text))
+}
+
+/// `--out` may not be the run's folder, in it, or hold it: the replay
+/// would replace the record it is compared with.
+fn refuse_out_over_the_run(run: &std::path::Path, out: &std::path::Path) -> Result<(), CliError> {
+    let resolved = |p: &std::path::Path| -> std::path::PathBuf {
+        // The deepest part that exists, resolved (links, `..`), and the rest.
+        let abs = std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+        let mut head = abs.clone();
+        let mut tail = Vec::new();
+        while !head.exists() {
+            match (head.file_name().map(ToOwned::to_owned), head.parent()) {
+                (Some(name), Some(parent)) => {
+                    tail.push(name);
+                    head = parent.to_path_buf();
+                }
+                _ => return abs,
+            }
+        }
+        let mut full = head.canonicalize().unwrap_or(head);
+        full.extend(tail.iter().rev());
+        full
+    };
+    let (r, o) = (resolved(run), resolved(out));
+    if o.starts_with(&r) || r.starts_with(&o) {
+        return Err(CliError::Input(format!(
+            "--out {}: the replay would replace the run {} it is compared with; choose a folder outside it",
+            out.display(),
+            run.display()
+        )));
+    }
+    Ok(())
 }
 
 /// `formation monitor --replay RUN_DIR`: a finished run played again.

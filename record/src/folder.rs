@@ -49,6 +49,7 @@ impl RunWriter {
         partial.push(".partial");
         let dir = PathBuf::from(partial);
         if dir.exists() {
+            refuse_foreign_partial(&dir)?;
             fs::remove_dir_all(&dir).map_err(at_path(&dir, "cannot remove the old folder"))?;
         }
         fs::create_dir_all(&dir).map_err(at_path(&dir, "cannot create the folder"))?;
@@ -189,24 +190,79 @@ impl RunWriter {
 }
 
 /// A run folder is replaced by a new run only if it is one: empty, or
-/// holding a `summary.json` or `network.json`. Anything else (`--out .`,
-/// `--out ~`, a folder of the user's, a file) is refused rather than deleted.
+/// holding a `summary.json` or `network.json` and nothing but what a run
+/// writes ([`is_run_entry`]). Anything else (`--out .`, `--out ~`, a folder
+/// of the user's, a run folder the user added notes to, a file) is refused
+/// rather than deleted.
 pub fn refuse_foreign_folder(dir: &Path) -> std::io::Result<()> {
     if fs::metadata(dir).is_ok_and(|m| !m.is_dir()) {
-        return Err(std::io::Error::new(
-            std::io::ErrorKind::AlreadyExists,
-            format!("{} exists and is not a folder: refusing to replace it", dir.display()),
-        ));
+        return Err(refused(format!("{} exists and is not a folder: refusing to replace it", dir.display())));
     }
-    let Ok(mut entries) = fs::read_dir(dir) else { return Ok(()) };
-    let is_run = dir.join("summary.json").is_file() || dir.join("network.json").is_file();
-    if is_run || entries.next().is_none() {
+    let Ok(entries) = fs::read_dir(dir) else { return Ok(()) };
+    let names: Vec<std::ffi::OsString> = entries.flatten().map(|e| e.file_name()).collect();
+    if names.is_empty() {
         return Ok(());
     }
-    Err(std::io::Error::new(
-        std::io::ErrorKind::AlreadyExists,
-        format!("{} exists and is not a run folder (no summary.json): refusing to replace it", dir.display()),
-    ))
+    let is_run = dir.join("summary.json").is_file() || dir.join("network.json").is_file();
+    if !is_run {
+        return Err(refused(format!(
+            "{} exists and is not a run folder (no summary.json): refusing to replace it",
+            dir.display()
+        )));
+    }
+    refuse_foreign_entries(dir, &names)
+}
+
+/// `<dir>.partial`, left by a run that did not finish, is removed only if
+/// it holds nothing but what a run writes.
+fn refuse_foreign_partial(dir: &Path) -> std::io::Result<()> {
+    let Ok(entries) = fs::read_dir(dir) else { return Ok(()) };
+    let names: Vec<std::ffi::OsString> = entries.flatten().map(|e| e.file_name()).collect();
+    refuse_foreign_entries(dir, &names)
+}
+
+fn refuse_foreign_entries(dir: &Path, names: &[std::ffi::OsString]) -> std::io::Result<()> {
+    let mut foreign: Vec<String> = names
+        .iter()
+        .filter(|n| !is_run_entry(&n.to_string_lossy()))
+        .map(|n| n.to_string_lossy().into_owned())
+        .collect();
+    if foreign.is_empty() {
+        return Ok(());
+    }
+    foreign.sort();
+    let more = if foreign.len() > 1 { format!(" (and {} more)", foreign.len() - 1) } else { String::new() };
+    Err(refused(format!(
+        "{} holds {}{more}, which no run writes: refusing to replace it (move that out, or choose another --out)",
+        dir.display(),
+        foreign[0]
+    )))
+}
+
+/// Whether a run writes an entry of this name in its folder: the CSVs,
+/// `summary.json`, `network.json`, `hearing.bin`, `run.mcap`, `rosbag2/`,
+/// `zenoh-log/` and the lab's `lab.json`.
+pub fn is_run_entry(name: &str) -> bool {
+    let follower_csv = name
+        .strip_prefix("follower_")
+        .and_then(|r| r.strip_suffix(".csv"))
+        .is_some_and(|id| !id.is_empty() && id.bytes().all(|b| b.is_ascii_digit()));
+    follower_csv
+        || matches!(
+            name,
+            "leader.csv"
+                | "summary.json"
+                | "network.json"
+                | crate::hearing::HEARING_FILE
+                | crate::mcap::FILE
+                | "rosbag2"
+                | "zenoh-log"
+                | "lab.json"
+        )
+}
+
+fn refused(message: String) -> std::io::Error {
+    std::io::Error::new(std::io::ErrorKind::AlreadyExists, message)
 }
 
 fn write_fields(b: &mut Vec<u8>, fields: &[f64]) {

@@ -295,6 +295,34 @@ fn out_never_replaces_a_folder_that_is_not_a_run_folder() {
         ]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
+    // A folder that looks like a run (a summary.json) but holds the user's
+    // files, a run folder the user added notes to, and a `.partial` left
+    // beside it that holds a file of the user's: refused, nothing deleted.
+    let sim = |out: &Path| {
+        formation(&["sim", scenario.to_str().unwrap(), "--out", out.to_str().unwrap(), "--set", "duration=0.1", "-q"])
+    };
+    let lookalike = tmp.path().join("lookalike");
+    std::fs::create_dir(&lookalike).unwrap();
+    std::fs::write(lookalike.join("summary.json"), "garbage").unwrap();
+    std::fs::write(lookalike.join("thesis.tex"), "precious").unwrap();
+    std::fs::write(run.join("notes.txt"), "mine").unwrap();
+    let beside = tmp.path().join("fresh");
+    let partial = tmp.path().join("fresh.partial");
+    std::fs::create_dir(&partial).unwrap();
+    std::fs::write(partial.join("mine.txt"), "mine").unwrap();
+    for (out, file, kept) in [
+        (&lookalike, "thesis.tex", lookalike.join("thesis.tex")),
+        (&run, "notes.txt", run.join("notes.txt")),
+        (&beside, "mine.txt", partial.join("mine.txt")),
+    ] {
+        let o = sim(out);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{}: {stderr}", out.display());
+        assert!(stderr.contains(&format!("holds {file}, which no run writes")), "{}: {stderr}", out.display());
+        assert_eq!(stderr.trim().lines().count(), 1, "one line, not {stderr}");
+        assert!(kept.exists(), "{} was deleted", kept.display());
+    }
+    assert_eq!(std::fs::read_to_string(run.join("notes.txt")).unwrap(), "mine");
 }
 
 #[test]

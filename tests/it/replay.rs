@@ -187,6 +187,25 @@ fn a_lockstep_run_with_faults_replays_and_an_altered_entry_shows_where() {
     assert!(ok && text.contains("byte-identical"), "the replay differs from the lock-step run:\n{text}");
     let (ok, text) = replay_cli(&["--explain"], &out);
     assert!(ok && text.contains("no departure"), "a lock-step run departed from the model:\n{text}");
+    // `--out` the run itself, a folder in it, or a folder holding it: refused
+    // in one line, the record untouched (it once replaced the run's
+    // hearing.bin and network.json, then said "byte-identical").
+    let before = std::fs::read(out.join(HEARING_FILE)).expect("hearing.bin");
+    for target in [out.clone(), out.join("again"), out.join("."), dir.path().to_path_buf()] {
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .arg("replay")
+            .arg(&out)
+            .arg("--out")
+            .arg(&target)
+            .output()
+            .expect("replay");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "--out {}: {stderr}", target.display());
+        assert!(stderr.contains("would replace the run"), "--out {}: {stderr}", target.display());
+        assert_eq!(stderr.trim().lines().count(), 1, "one line, not {stderr}");
+    }
+    assert_eq!(std::fs::read(out.join(HEARING_FILE)).expect("hearing.bin"), before, "hearing.bin was touched");
+    assert!(!out.join("again").exists(), "a folder was made in the run");
 
     // One entry altered.
     let altered = dir.path().join("altered");
