@@ -202,6 +202,21 @@ fn agent_list(s: &str) -> Result<AgentList, String> {
 
 pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     crate::error::at_least_one("--round-trips", a.round_trips as u64)?;
+    // The lock-step rate is the difference between a 2 s run and this one.
+    if !(a.lockstep_duration.is_finite() && a.lockstep_duration > 2.0) {
+        return Err(Error::Input(format!(
+            "--lockstep-duration {}: the long lock-step run must be longer than the short one (2 s); the rate is \
+             their difference (e.g. 20)",
+            a.lockstep_duration
+        )));
+    }
+    for (flag, d) in
+        [("--realtime-duration", a.realtime_duration), ("--scale-realtime-duration", a.scale_realtime_duration)]
+    {
+        if !(d.is_finite() && d > 0.0) {
+            return Err(Error::Input(format!("{flag} {d}: give a positive number of seconds")));
+        }
+    }
     if a.echo.is_some() || a.ping.is_some() {
         return crate::bench_netns::run_side(a.echo.as_deref(), a.ping.as_deref(), a.round_trips);
     }

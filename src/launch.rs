@@ -234,6 +234,8 @@ impl RunOptions {
         }
         let out = self.out.clone().unwrap_or_else(|| Path::new("runs").join(&run));
         crate::args::check_out_path("--out", &out, crate::args::MAX_OUT_NAME_BYTES)?;
+        // The monitor would refuse it too, but only once every node runs.
+        formation_record::refuse_replacing_foreign(&out).map_err(|e| CliError::Input(format!("--out: {e}")))?;
         if let Some(p) = self.rt_priority {
             if scenario.timing != formation_topology::Timing::Realtime {
                 return Err(CliError::Input(format!(

@@ -213,6 +213,16 @@ pub fn refuse_foreign_folder(dir: &Path) -> std::io::Result<()> {
     refuse_foreign_entries(dir, &names)
 }
 
+/// Whether a run may be written to `dir`: [`refuse_foreign_folder`] for
+/// it, and `<dir>.partial` (which the run replaces) holds nothing but what
+/// a run writes. For a command to check before it starts anything.
+pub fn refuse_replacing_foreign(dir: &Path) -> std::io::Result<()> {
+    refuse_foreign_folder(dir)?;
+    let mut partial = dir.as_os_str().to_owned();
+    partial.push(".partial");
+    refuse_foreign_partial(Path::new(&partial))
+}
+
 /// `<dir>.partial`, left by a run that did not finish, is removed only if
 /// it holds nothing but what a run writes.
 fn refuse_foreign_partial(dir: &Path) -> std::io::Result<()> {

@@ -21,7 +21,7 @@ pub mod row;
 pub mod summary;
 
 pub use columns::{read_columns, read_columns_checked, RecordError};
-pub use folder::{at_path, refuse_foreign_folder, RecordOptions, RunWriter};
+pub use folder::{at_path, refuse_foreign_folder, refuse_replacing_foreign, RecordOptions, RunWriter};
 pub use hearing::{FollowerHearing, Heard, HeardRuns, HearingRecord, HEARING_FILE};
 pub use live::LiveSink;
 pub use metrics::{last10_from_k, FollowerMetrics, MetricsAccumulator};

@@ -451,6 +451,20 @@ fn cases() -> Vec<Case> {
         ),
         case("bench with 0 threads", None, &["bench", "--threads", "0"], 2, &["--threads", "0"]),
         case(
+            "bench-net with a long lock-step run no longer than the short one",
+            None,
+            &["bench-net", "--lockstep-duration", "1", "--agents", "", "--base-port", "1"],
+            2,
+            &["--lockstep-duration 1", "longer than the short one"],
+        ),
+        case(
+            "bench-net with no real-time run",
+            None,
+            &["bench-net", "--realtime-duration", "0", "--agents", "", "--base-port", "1"],
+            2,
+            &["--realtime-duration 0", "positive"],
+        ),
+        case(
             "real-time priority for a lock-step run",
             None,
             &["launch", "{paper}", "--rt-priority", "10", "--out", "{dir}/out"],

@@ -513,3 +513,27 @@ fn a_zenoh_config_file_reaches_every_node_or_is_refused_up_front() {
         assert!(!out.exists(), "{text}: a run folder was made");
     }
 }
+
+/// `--out` a folder of the user's is refused in one line before any node
+/// starts (it used to start every node, then fail in the monitor with two
+/// lines and exit 1), and the folder is left as it was.
+#[test]
+fn an_out_folder_of_the_users_is_refused_up_front() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let mine = tmp.path().join("mine");
+    std::fs::create_dir(&mine).expect("mkdir");
+    std::fs::write(mine.join("keep.txt"), "mine").expect("write");
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["launch", common::SCENARIO, "-q", "--base-port", &base, "--out"])
+        .arg(&mine)
+        .output()
+        .expect("formation launch");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "must be bad input: {:?}; stderr: {stderr}", o.status);
+    assert!(stderr.contains("--out") && stderr.contains("not a run folder"), "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "one line, not {stderr}");
+    let left: Vec<_> = std::fs::read_dir(tmp.path()).expect("tmp").flatten().map(|e| e.file_name()).collect();
+    assert_eq!(left, vec![std::ffi::OsString::from("mine")], "something was written beside it");
+    assert_eq!(std::fs::read_to_string(mine.join("keep.txt")).expect("keep.txt"), "mine");
+}
