@@ -81,6 +81,10 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
     for (index, &id) in scenario.graph.ids().iter().enumerate() {
         let mut receive: Vec<String> =
             scenario.sources_of(index).iter().map(|s| any_run(&format!("estimate/{s}"))).collect();
+        // Its neighbours' telemetry: in lock-step it keeps repeating its last
+        // messages until they report their final step (telemetry::watch_done).
+        receive
+            .extend(scenario.sources_of(index).iter().filter(|&&s| s != 0).map(|s| any_run(&format!("telemetry/{s}"))));
         // Its own estimate and telemetry: a second process with its identity is refused (twins).
         receive.push(any_run(&format!("estimate/{id}")));
         receive.push(any_run(&format!("telemetry/{id}")));
