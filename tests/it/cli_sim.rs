@@ -120,7 +120,11 @@ fn lemma_1_violation_names_the_unreachable_followers() {
 fn bad_overrides_are_rejected() {
     let t = paper_text();
     assert_rejected(&t, &["--set", "nosuch=1"], &["--set nosuch=1", "unknown key `nosuch`"]);
-    assert_rejected(&t, &["--set", "robot.colour=1"], &["unknown key `robot.colour`"]);
+    assert_rejected(&t, &["--set", "robot.colour=1"], &["unknown key `robot.colour` (the keys here are `model`"]);
+    // Said once (it read "unknown key `nosuch` (unknown key `nosuch` (…))").
+    let (out, _dir) = sim_text(&t, &["--set", "nosuch=1"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(stderr.matches("unknown key").count(), 1, "{stderr}");
     assert_rejected(&t, &["--set", "duration=abc"], &["--set duration=abc", "expected a number"]);
     assert_rejected(&t, &["--set", "filter=ukf"], &["--set filter=ukf", "`ukf` is not one of: asif, kf, none"]);
     assert_rejected(&t, &["--set", "duration"], &["expected KEY=VALUE"]);

@@ -590,7 +590,11 @@ fn apply_overrides(text: &str, label: &str, overrides: &[String]) -> Result<(Sce
 fn override_message(key: &str, message: &str) -> String {
     let message = plain_message(message);
     let key = key.trim_end_matches('+').trim();
-    if message.starts_with("unknown key") {
+    if let Some(rest) = message.strip_prefix("unknown key `") {
+        // The message names the last part of the key: name all of it.
+        let after = rest.split_once('`').map_or("", |(_, a)| a);
+        format!("unknown key `{key}`{after}")
+    } else if message.starts_with("unknown key") {
         format!("unknown key `{key}` ({message})")
     } else {
         format!("`{key}`: {message}")
