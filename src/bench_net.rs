@@ -200,13 +200,17 @@ fn agent_list(s: &str) -> Result<AgentList, String> {
         .map(AgentList)
 }
 
+/// Run-time seconds of the short lock-step run (the rate is the long one's
+/// steps beyond it over the extra wall time).
+const SHORT_LOCKSTEP_S: f64 = 2.0;
+
 pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     crate::error::at_least_one("--round-trips", a.round_trips as u64)?;
-    // The lock-step rate is the difference between a 2 s run and this one.
-    if !(a.lockstep_duration.is_finite() && a.lockstep_duration > 2.0) {
+    // The lock-step rate is the difference between the short run and this one.
+    if !(a.lockstep_duration.is_finite() && a.lockstep_duration > SHORT_LOCKSTEP_S) {
         return Err(Error::Input(format!(
-            "--lockstep-duration {}: the long lock-step run must be longer than the short one (2 s); the rate is \
-             their difference (e.g. 20)",
+            "--lockstep-duration {}: the long lock-step run must be longer than the short one ({SHORT_LOCKSTEP_S} \
+             s); the rate is their difference (e.g. 20)",
             a.lockstep_duration
         )));
     }
@@ -369,7 +373,7 @@ fn measure(
     let tmp = std::env::temp_dir().join(format!("formation-bench-net-{}-{kind}", std::process::id()));
     eprintln!("bench-net ({kind}): lock-step runs …");
     // 1. Lock-step: two runs of different length; the difference is the stepping.
-    let short = 2.0;
+    let short = SHORT_LOCKSTEP_S;
     let launch = |sets: &[String], p: u16, out: &str, run: &str| {
         let mut l = launch_args(a, sets, p, tmp.join(out), run);
         l.opts.tls = tls.map(std::path::Path::to_path_buf);

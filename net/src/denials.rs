@@ -47,8 +47,7 @@ impl Tally {
     pub fn note(&mut self, line: &str, caching: Option<&str>) -> bool {
         let Some((who, rest)) = line.split_once(" is unauthorized to ") else { return false };
         let Some((action, key)) = rest.rsplit_once(" on ") else { return false };
-        let key = key.trim();
-        let key = key.strip_prefix("Some(").and_then(|k| k.strip_suffix(')')).unwrap_or(key).trim_matches('"');
+        let key = plain_key(key);
         let who = who.trim();
         let subject = match who.strip_prefix("Using cached result: ") {
             Some(zid) => self.names.get(zid).cloned().unwrap_or_else(|| zid.to_string()),
@@ -125,8 +124,13 @@ const CACHING_BURST: Duration = Duration::from_millis(250);
 /// The key a decision line is about (`… is unauthorized to ACTION on KEY`).
 fn decided_key(line: &str) -> Option<&str> {
     let (_, rest) = line.split_once(" is unauthorized to ").or_else(|| line.split_once(" is authorized to "))?;
-    let key = rest.rsplit_once(" on ")?.1.trim();
-    Some(key.strip_prefix("Some(").and_then(|k| k.strip_suffix(')')).unwrap_or(key).trim_matches('"'))
+    Some(plain_key(rest.rsplit_once(" on ")?.1))
+}
+
+/// A key as zenoh's line writes it (`k`, or `Some(k)` for an undeclaration), plain.
+fn plain_key(key: &str) -> &str {
+    let key = key.trim();
+    key.strip_prefix("Some(").and_then(|k| k.strip_suffix(')')).unwrap_or(key).trim_matches('"')
 }
 
 /// Counts a log line of zenoh's access control (see the module docs).

@@ -198,8 +198,7 @@ pub fn refuse_foreign_folder(dir: &Path) -> std::io::Result<()> {
     if fs::metadata(dir).is_ok_and(|m| !m.is_dir()) {
         return Err(refused(format!("{} exists and is not a folder: refusing to replace it", dir.display())));
     }
-    let Ok(entries) = fs::read_dir(dir) else { return Ok(()) };
-    let names: Vec<std::ffi::OsString> = entries.flatten().map(|e| e.file_name()).collect();
+    let Some(names) = names_in(dir) else { return Ok(()) };
     if names.is_empty() {
         return Ok(());
     }
@@ -226,9 +225,12 @@ pub fn refuse_replacing_foreign(dir: &Path) -> std::io::Result<()> {
 /// `<dir>.partial`, left by a run that did not finish, is removed only if
 /// it holds nothing but what a run writes.
 fn refuse_foreign_partial(dir: &Path) -> std::io::Result<()> {
-    let Ok(entries) = fs::read_dir(dir) else { return Ok(()) };
-    let names: Vec<std::ffi::OsString> = entries.flatten().map(|e| e.file_name()).collect();
-    refuse_foreign_entries(dir, &names)
+    names_in(dir).map_or(Ok(()), |names| refuse_foreign_entries(dir, &names))
+}
+
+/// The names in folder `dir`; None if it cannot be read (it does not exist).
+fn names_in(dir: &Path) -> Option<Vec<std::ffi::OsString>> {
+    Some(fs::read_dir(dir).ok()?.flatten().map(|e| e.file_name()).collect())
 }
 
 fn refuse_foreign_entries(dir: &Path, names: &[std::ffi::OsString]) -> std::io::Result<()> {
