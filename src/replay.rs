@@ -42,20 +42,37 @@ pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
     if a.explain {
         return crate::explain::run(&loaded, &a.metric, a.window, a.top);
     }
-    let (ok, text) = check(&loaded, a.out.as_deref())?;
+    let (verdict, text) = check(&loaded, a.out.as_deref())?;
     print!("{text}");
-    if ok {
-        Ok(())
-    } else {
-        Err(CliError::Run(format!(
+    match verdict {
+        Verdict::Identical => Ok(()),
+        // The run's own files are damaged: nothing to say about the replay.
+        Verdict::Damaged(what) => Err(CliError::Input(format!(
+            "{} is a damaged run folder ({}): its hearing record replays, but there is nothing whole to compare \
+             the replay with (--out DIR keeps the files the replay re-computes)",
+            a.run.display(),
+            what.join("; ")
+        ))),
+        Verdict::Differs => Err(CliError::Run(format!(
             "the replay of {} differs from the run: a bug in the hearing record or in the step's purity",
             a.run.display()
-        )))
+        ))),
     }
 }
 
-/// Replays a run and compares: whether it is byte-identical, and the report.
-pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(bool, String), CliError> {
+/// What the comparison of a replay with its run found.
+#[derive(Debug, PartialEq)]
+pub enum Verdict {
+    /// The CSVs and summary.json byte for byte.
+    Identical,
+    /// Whole files that differ.
+    Differs,
+    /// The run's files missing, cut short or not JSON (which).
+    Damaged(Vec<String>),
+}
+
+/// Replays a run and compares: the verdict, and the report.
+pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(Verdict, String), CliError> {
     let tmp;
     let dir = match out {
         Some(d) => {
@@ -101,7 +118,13 @@ pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(bool, St
     if let Some(o) = out {
         text += &format!("replay written to {}\n", o.display());
     }
-    Ok((diffs.is_empty(), text))
+    let damaged: Vec<String> = diffs.iter().filter_map(|d| d.damage.clone()).collect();
+    let verdict = match (diffs.is_empty(), damaged.is_empty()) {
+        (true, _) => Verdict::Identical,
+        (false, true) => Verdict::Differs,
+        (false, false) => Verdict::Damaged(damaged),
+    };
+    Ok((verdict, text))
 }
 
 /// `--out` may not be the run's folder, in it, or hold it: the replay

@@ -59,10 +59,14 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
         )));
     }
     // The record must be this folder's: network.json names the run's scenario.
-    if let Some(net) = std::fs::read_to_string(dir.join("network.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-    {
+    let network = match std::fs::read_to_string(dir.join("network.json")) {
+        Ok(t) => Some(serde_json::from_str::<serde_json::Value>(&t).map_err(|e| {
+            Error::Input(format!("{}: a damaged run folder: network.json is not JSON ({e})", dir.display()))
+        })?),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => return Err(Error::Input(format!("{}: network.json: {e}", dir.display()))),
+    };
+    if let Some(net) = network {
         let theirs = format!("{:016x}", record.fingerprint);
         let named = net["fingerprint"].as_str().map(|f| f == theirs).unwrap_or(true)
             && net["scenario"].as_str().map(|n| n == scenario.name).unwrap_or(true)
@@ -419,6 +423,9 @@ pub struct Difference {
     pub column: Option<String>,
     pub run: String,
     pub replay: String,
+    /// How the run's file is damaged, where the difference is damage
+    /// rather than a different value: missing, cut short, not JSON.
+    pub damage: Option<String>,
 }
 
 impl std::fmt::Display for Difference {
@@ -450,6 +457,7 @@ pub fn compare(run: &Path, replay: &Path, scenario: &Scenario) -> Vec<Difference
         if a == b {
             continue;
         }
+        let missing = a.is_none();
         let (a, b) = (a.unwrap_or_default(), b.unwrap_or_default());
         let (la, lb): (Vec<&str>, Vec<&str>) = (a.lines().collect(), b.lines().collect());
         let line = (0..la.len().max(lb.len())).find(|&i| la.get(i) != lb.get(i)).unwrap_or(0);
@@ -462,6 +470,7 @@ pub fn compare(run: &Path, replay: &Path, scenario: &Scenario) -> Vec<Difference
             column: None,
             run: x.to_string(),
             replay: y.to_string(),
+            damage: damage(&name, missing, &a, &la, &lb, line),
         };
         if name.ends_with(".csv") && line > 0 {
             let header: Vec<&str> = la.first().copied().unwrap_or_default().split(',').collect();
@@ -477,6 +486,29 @@ pub fn compare(run: &Path, replay: &Path, scenario: &Scenario) -> Vec<Difference
         out.push(d);
     }
     out
+}
+
+/// How the run's file `name` is damaged, if the first difference at
+/// `line` (0-based) is damage: the file missing, ending early, a line cut
+/// short of its header's columns, or summary.json not JSON. A value that
+/// differs in a whole file is not damage.
+fn damage(name: &str, missing: bool, text: &str, run: &[&str], replay: &[&str], line: usize) -> Option<String> {
+    if missing {
+        return Some(format!("{name} is missing"));
+    }
+    if name.ends_with(".json") {
+        return serde_json::from_str::<serde_json::Value>(text).err().map(|e| format!("{name} is not JSON ({e})"));
+    }
+    if line >= run.len() {
+        return Some(format!("{name} ends at line {} of the replay's {}", run.len(), replay.len()));
+    }
+    if line + 1 == run.len() && !text.ends_with('\n') {
+        return Some(format!("{name} ends mid-line, in line {} of the replay's {}", run.len(), replay.len()));
+    }
+    let columns = |l: &str| l.split(',').count();
+    let header = run.first().map_or(0, |h| columns(h));
+    (line > 0 && columns(run[line]) < header)
+        .then(|| format!("{name}'s line {} has {} of its {header} columns", line + 1, columns(run[line])))
 }
 
 /// A replay's metrics only (no folder): per follower, the metrics of the

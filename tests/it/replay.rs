@@ -181,7 +181,15 @@ fn a_lockstep_run_with_faults_replays_and_an_altered_entry_shows_where() {
         "faults+={node=4, from=3, to=3.5, loss=0.3}",
     ];
     let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
-    let mut g = Group::launch(&out, &sets, &["--base-port", &base, "--run", "replay-ls"]);
+    // The built-in scenario by name, as an installed binary runs it (its
+    // runs once had no hearing record: the monitor read no file `paper`).
+    let out_arg = out.display().to_string();
+    let mut args = vec!["launch", "paper", "-q", "--out", &out_arg, "--base-port", &base, "--run", "replay-ls"];
+    for s in &sets {
+        args.extend(["--set", s]);
+    }
+    assert!(!Path::new("paper").exists(), "a file `paper` here would be read instead of the built-in scenario");
+    let mut g = Group::spawn(&args);
     assert!(g.wait(Duration::from_secs(90)).success(), "formation launch failed");
     let (ok, text) = replay_cli(&[], &out);
     assert!(ok && text.contains("byte-identical"), "the replay differs from the lock-step run:\n{text}");
@@ -234,6 +242,57 @@ fn a_lockstep_run_with_faults_replays_and_an_altered_entry_shows_where() {
     assert!(first.contains(&(3, 2001)), "follower 3 should differ first at step 2001:\n{text}");
     assert!(first.iter().all(|&(_, k)| k >= 2001), "a row before step 2001 differs:\n{text}");
     assert!(text.contains("summary.json"), "the altered run's metrics should differ:\n{text}");
+    assert!(text.contains("a bug in the hearing record"), "whole files that differ blame the program:\n{text}");
+    damaged_copies_are_named(&out, dir.path());
+}
+
+/// A run folder whose own files are damaged (a CSV missing, ending early or
+/// cut mid-line, summary.json or network.json not JSON) is named as
+/// damaged, with the file, exit 2: the replay is not blamed (it said "a bug
+/// in the hearing record", exit 1).
+fn damaged_copies_are_named(run: &Path, scratch: &Path) {
+    let csv = std::fs::read_to_string(run.join("follower_2.csv")).expect("follower_2.csv");
+    let lines = csv.lines().count();
+    let cut_mid_line = &csv[..csv.len() / 2];
+    let whole_lines: String = csv.lines().take(lines / 2).map(|l| format!("{l}\n")).collect();
+    // Line 5 cut after two columns, the rest whole.
+    let row_cut: String = csv
+        .lines()
+        .enumerate()
+        .map(|(i, l)| {
+            if i == 4 {
+                format!("{}\n", l.splitn(3, ',').take(2).collect::<Vec<_>>().join(","))
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect();
+    type Damage<'a> = (&'a str, &'a str, Option<&'a str>, &'a str);
+    let cases: [Damage; 6] = [
+        ("csv-row", "follower_2.csv", Some(&row_cut), "follower_2.csv's line 5 has 2 of its"),
+        ("csv-missing", "follower_2.csv", None, "follower_2.csv is missing"),
+        ("csv-cut", "follower_2.csv", Some(cut_mid_line), "follower_2.csv ends mid-line"),
+        ("csv-short", "follower_2.csv", Some(&whole_lines), "follower_2.csv ends at line"),
+        ("summary", "summary.json", Some("{\"followers\": {"), "summary.json is not JSON"),
+        ("network", "network.json", Some("garbage"), "network.json is not JSON"),
+    ];
+    for (tag, file, content, says) in cases {
+        let copy = scratch.join(tag);
+        std::fs::create_dir(&copy).expect("mkdir");
+        for e in std::fs::read_dir(run).expect("run").flatten().filter(|e| e.path().is_file()) {
+            std::fs::copy(e.path(), copy.join(e.file_name())).expect("copy");
+        }
+        match content {
+            Some(c) => std::fs::write(copy.join(file), c).expect("write"),
+            None => std::fs::remove_file(copy.join(file)).expect("rm"),
+        }
+        let o = Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(&copy).output().expect("replay");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{tag}: exit {:?}: {stderr}", o.status.code());
+        assert!(stderr.contains("damaged run folder") && stderr.contains(says), "{tag}: {stderr}");
+        assert_eq!(stderr.trim().lines().count(), 1, "{tag}: one line, not {stderr}");
+        assert!(!stderr.contains("a bug"), "{tag}: the program blamed for a damaged folder: {stderr}");
+    }
 }
 
 /// The model's hearing (every message `network.delay_steps` late, the

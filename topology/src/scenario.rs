@@ -241,13 +241,24 @@ impl Scenario {
     /// `scenarios/<name>.toml` as in a checkout) loads the copy inside the binary, so an installed binary
     /// runs the paper's scenario anywhere.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self, ScenarioError> {
-        let label = path.display().to_string();
-        let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("scenario");
+        let (label, text) = Self::source(path)?;
+        let stem = match built_in(path).filter(|_| !path.exists()) {
+            Some((name, _)) => name,
+            None => path.file_stem().and_then(|s| s.to_str()).unwrap_or("scenario"),
+        };
+        Self::from_toml(&text, &label, stem, overrides)
+    }
+
+    /// The text [`Scenario::load`] reads for `path`, and the label it is
+    /// known by in errors: the file's, or the built-in copy's (a run's
+    /// hearing record carries it, so `formation replay` needs no file).
+    pub fn source(path: &Path) -> Result<(String, String), ScenarioError> {
         if !path.exists() {
             if let Some((name, text)) = built_in(path) {
-                return Self::from_toml(text, &format!("{name} (built in)"), name, overrides);
+                return Ok((format!("{name} (built in)"), text.to_string()));
             }
         }
+        let label = path.display().to_string();
         let text = read_scenario_file(path).map_err(|mut message| {
             if !path.exists() {
                 let names: Vec<&str> = BUILT_IN.iter().map(|(n, _)| *n).collect();
@@ -255,7 +266,7 @@ impl Scenario {
             }
             ScenarioError::Io { file: label.clone(), message }
         })?;
-        Self::from_toml(&text, &label, stem, overrides)
+        Ok((label, text))
     }
 
     /// Like [`Scenario::load`] from text; `label` names it in errors and
@@ -344,8 +355,6 @@ impl Scenario {
     }
 }
 
-/// Reads a scenario file: a regular file (not a FIFO, a device or a
-/// folder, which could block or never end) of at most [`MAX_FILE_BYTES`].
 /// The scenarios inside the binary: the files of `scenarios/` that the
 /// documentation runs, by name.
 pub const BUILT_IN: [(&str, &str); 3] = [
@@ -363,6 +372,8 @@ pub fn built_in(path: &Path) -> Option<(&'static str, &'static str)> {
     BUILT_IN.iter().find(|(n, _)| *n == name).copied()
 }
 
+/// Reads a scenario file: a regular file (not a FIFO, a device or a
+/// folder, which could block or never end) of at most [`MAX_FILE_BYTES`].
 fn read_scenario_file(path: &Path) -> Result<String, String> {
     use std::io::Read;
     let meta = std::fs::metadata(path).map_err(|e| format!("cannot read: {e}"))?;

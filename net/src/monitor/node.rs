@@ -109,12 +109,11 @@ fn start_record(args: &MonitorArgs, scenario: &Scenario, run: &str) -> Result<Re
     let opts = RecordOptions { dir, every: args.every.max(1), csv: true, mcap: args.mcap, rosbag2: args.rosbag2 };
     let mut recorder =
         Recorder::new(scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
-    if let Ok(text) = std::fs::read_to_string(&args.node.scenario) {
-        recorder.set_source(ScenarioSource {
-            label: args.node.scenario.display().to_string(),
-            text,
-            overrides: args.node.overrides.clone(),
-        });
+    // The text the scenario was loaded from: a file's, or the built-in
+    // copy's for `paper` (without it a run of a built-in scenario had no
+    // hearing record, and `formation replay` said it predated them).
+    if let Ok((label, text)) = Scenario::source(&args.node.scenario) {
+        recorder.set_source(ScenarioSource { label, text, overrides: args.node.overrides.clone() });
     }
     Ok(recorder)
 }
