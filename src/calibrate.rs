@@ -477,7 +477,7 @@ pub fn run(a: &CalibrateArgs) -> Result<(), CliError> {
         )));
     }
     let seeds: Vec<u64> = (0..a.seeds).map(|i| base.seed + i).collect();
-    std::fs::create_dir_all(&a.out).map_err(at_path(&a.out, "cannot create the folder"))?;
+    crate::outdir::check(&a.out, crate::outdir::Kind::Calibration)?;
     let started = Instant::now();
     let bar = ProgressBar::with_draw_target(
         Some(a.evaluations as u64),
@@ -496,7 +496,9 @@ pub fn run(a: &CalibrateArgs) -> Result<(), CliError> {
     let sens = sensitivity(a, &fit.best, &seeds)?;
     let took = started.elapsed().as_secs_f64();
     let command = command_line(a);
-    write_outputs(&a.out, a.target, &fit, &sens, &command, took, seeds.len())?;
+    let output = crate::outdir::Output::begin(&a.out, crate::outdir::Kind::Calibration)?;
+    write_outputs(output.dir(), a.target, &fit, &sens, &command, took, seeds.len())?;
+    output.finish()?;
     let (o0, o1) = (objective(a.target, &fit.at_start), objective(a.target, &fit.at_best));
     let (w0, w1) = (worst(&fit.at_start), worst(&fit.at_best));
     println!(

@@ -19,6 +19,7 @@ pub mod explain;
 pub mod lab;
 pub mod launch;
 pub mod node;
+pub mod outdir;
 pub mod paper;
 pub mod progress;
 pub mod replay;

@@ -219,6 +219,7 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     at_least_one("--seeds", a.seeds)?;
     at_least_one("--every", a.every)?;
     crate::args::check_out_path("--out", &a.out, crate::args::MAX_OUT_NAME_BYTES)?;
+    crate::outdir::check(&a.out, crate::outdir::Kind::Paper)?;
     let started = Instant::now();
     let base = Scenario::load(&a.scenario, &a.overrides).map_err(|e| CliError::Input(e.to_string()))?;
     let plan = if a.no_study { None } else { Some(study::plan(&base)) };
@@ -231,7 +232,9 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
         runs.push((c.name.clone(), scenario_with(&a.scenario, &a.overrides, &c.overrides, false)?));
     }
     let seeds: Vec<u64> = (0..a.seeds).map(|i| base.seed + i).collect();
-    std::fs::create_dir_all(&a.out).map_err(at_path(&a.out, "cannot create the folder"))?;
+    // The runs and seeds.json under <out>.partial; moved into place once
+    // every run is done, then the report is written beside them.
+    let output = crate::outdir::Output::begin(&a.out, crate::outdir::Kind::Paper)?;
 
     let jobs: Vec<(usize, usize)> = (0..runs.len()).flat_map(|c| (0..seeds.len()).map(move |s| (c, s))).collect();
     let bar = ProgressBar::with_draw_target(
@@ -247,7 +250,7 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
         .par_iter()
         .map(|&(c, s)| {
             let record = (s == 0).then(|| RecordOptions {
-                dir: a.out.join(&runs[c].0),
+                dir: output.dir().join(&runs[c].0),
                 every: a.every,
                 csv: true,
                 mcap: false,
@@ -272,13 +275,17 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     if !failures.is_empty() {
         return Err(CliError::Run(format!("{} run(s) failed:\n  {}", failures.len(), failures.join("\n  "))));
     }
-    let mut cases = Vec::with_capacity(runs.len());
-    for ((name, _), recs) in runs.iter().zip(per_case) {
-        let dir = a.out.join(name);
-        let json = serde_json::to_string_pretty(&recs).map_err(|e| CliError::Run(e.to_string()))?;
-        let path = dir.join(SEEDS_FILE);
+    for ((name, _), recs) in runs.iter().zip(&per_case) {
+        let json = serde_json::to_string_pretty(recs).map_err(|e| CliError::Run(e.to_string()))?;
+        let path = output.dir().join(name).join(SEEDS_FILE);
         std::fs::write(&path, json + "\n").map_err(at_path(&path, "cannot write"))?;
-        cases.push(Case::load(&dir, name.clone())?);
+    }
+    // An earlier output goes; if the report below fails, the runs stay
+    // (their seeds.json says whose they are, so a rerun replaces them).
+    let out = output.finish()?;
+    let mut cases = Vec::with_capacity(runs.len());
+    for (name, _) in &runs {
+        cases.push(Case::load(&out.join(name), name.clone())?);
     }
     let study_cases = cases.split_off(CASES.len());
     let study = plan.map(|p| {

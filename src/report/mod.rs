@@ -45,7 +45,6 @@ pub struct Written {
 /// Writes every figure, table and `report.md` into `out`; returns the path
 /// of `report.md` and what it shows.
 pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBuf, Written), CliError> {
-    fs::create_dir_all(out).map_err(at_path(out, "cannot create the folder"))?;
     let colours = plots::colours(cases, ctx.paper);
     let tables = tables::build(cases, ctx);
     for t in &tables.tables {
@@ -158,6 +157,7 @@ pub fn run(a: &ReportArgs) -> Result<(), CliError> {
             )));
         }
     }
+    crate::outdir::check(&a.out, crate::outdir::Kind::Report)?;
     let mut cases = Vec::with_capacity(a.runs.len());
     let mut used = BTreeMap::<String, usize>::new();
     for dir in &a.runs {
@@ -184,7 +184,9 @@ pub fn run(a: &ReportArgs) -> Result<(), CliError> {
          `formation paper --scenario FILE`."
             .to_string()];
     let ctx = Context { paper: false, command, params: ClaimParams::paper_defaults(), notes, study: None };
-    let (path, built) = write_report(&a.out, &cases, &ctx)?;
+    let output = crate::outdir::Output::begin(&a.out, crate::outdir::Kind::Report)?;
+    let (_, built) = write_report(output.dir(), &cases, &ctx)?;
+    let path = output.finish()?.join("report.md");
     if !a.quiet {
         print!("{}", tables::claims_text(&built.claims));
         print!("{}", built.faults);

@@ -454,6 +454,46 @@ fn report_compares_sim_folders_side_by_side() {
     assert!(results.values().any(|r| r == "PASS" || r == "FAIL"));
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains("bio-sim") && report.contains("smc-kf-fault"));
+    a_report_replaces_only_its_own_earlier_output(&out, &a);
+}
+
+/// `--out` an earlier report is replaced whole (no stale figure or table
+/// stays); a report folder with a user's file in it, a folder of the
+/// user's and a file are refused in one line, exit 2, untouched; an input
+/// error leaves the earlier report as it was, with no half-written folder
+/// (it wrote into any folder, and said "File exists (os error 17)" of a file).
+fn a_report_replaces_only_its_own_earlier_output(out: &Path, run: &Path) {
+    let report =
+        |out: &Path, run: &Path| bin().arg("report").arg(run).arg("--out").arg(out).arg("-q").output().unwrap();
+    std::fs::write(out.join("fig9_stale.svg"), "<svg/>").unwrap();
+    run_ok(&mut bin().arg("report").arg(run).arg("--out").arg(out).arg("-q"));
+    assert!(!out.join("fig9_stale.svg").exists(), "a stale figure stayed");
+    assert!(!out.join("table5_agreement.csv").exists(), "the last report's agreement table stayed");
+    let before = std::fs::read_to_string(out.join("report.md")).unwrap();
+    let refused = |target: &Path, says: &str| {
+        let o = report(target, run);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "--out {}: {stderr}", target.display());
+        assert!(stderr.contains(says), "--out {}: {stderr}", target.display());
+        assert_eq!(stderr.trim().lines().count(), 1, "one line, not {stderr}");
+    };
+    std::fs::write(out.join("thesis.tex"), "precious").unwrap();
+    refused(out, "holds thesis.tex, which this command does not write");
+    assert_eq!(std::fs::read_to_string(out.join("thesis.tex")).unwrap(), "precious");
+    std::fs::remove_file(out.join("thesis.tex")).unwrap();
+    let parent = out.parent().unwrap();
+    let mine = parent.join("mine");
+    std::fs::create_dir(&mine).unwrap();
+    std::fs::write(mine.join("data.csv"), "1,2\n").unwrap();
+    refused(&mine, "no report.md");
+    assert_eq!(std::fs::read_to_string(mine.join("data.csv")).unwrap(), "1,2\n");
+    let file = parent.join("a-file");
+    std::fs::write(&file, "x").unwrap();
+    refused(&file, "a file is there");
+    let o = report(out, &parent.join("no-such-run"));
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(std::fs::read_to_string(out.join("report.md")).unwrap(), before, "the earlier report changed");
+    assert!(!parent.join("report.partial").exists(), "a half-written report stayed");
 }
 
 #[test]
@@ -473,6 +513,16 @@ fn report_rejects_a_missing_or_foreign_folder_with_status_2() {
 
     let o = bin().arg("paper").args(["--set", "no_such_key=1", "--out"]).arg(tmp.path().join("p")).output().unwrap();
     assert_eq!(o.status.code(), Some(2), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+
+    // `paper --out` a folder of the user's: refused before any run.
+    let mine = tmp.path().join("mine");
+    std::fs::create_dir(&mine).unwrap();
+    std::fs::write(mine.join("notes.md"), "mine").unwrap();
+    let o = bin().arg("paper").arg("--out").arg(&mine).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "stderr: {err}");
+    assert!(err.contains("no report.md") && err.trim().lines().count() == 1, "stderr: {err}");
+    assert_eq!(std::fs::read_dir(&mine).unwrap().count(), 1, "paper wrote into a folder of the user's");
 }
 
 /// `formation calibrate` is seeded: the same command reaches the same
