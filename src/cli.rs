@@ -121,6 +121,11 @@ pub struct GenerateArgs {
     pub force: bool,
 }
 
+/// "1 follower", "2 followers".
+pub fn count(n: usize, word: &str) -> String {
+    format!("{n} {word}{}", if n == 1 { "" } else { "s" })
+}
+
 fn generate(a: &GenerateArgs) -> Result<(), CliError> {
     use formation_topology::generate::{self, GraphKind, Spec};
     let graph = GraphKind::parse(&a.graph).ok_or_else(|| CliError::Input(format!("--graph {}: unknown", a.graph)))?;
@@ -145,15 +150,18 @@ fn generate(a: &GenerateArgs) -> Result<(), CliError> {
     if a.out.exists() && !a.force {
         return Err(CliError::Input(format!("{} exists (--force to replace it)", a.out.display())));
     }
+    if let Some(parent) = a.out.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
+        return Err(CliError::Input(format!("--out {}: there is no folder {}", a.out.display(), parent.display())));
+    }
     std::fs::write(&a.out, &text).map_err(|e| CliError::Run(format!("writing {}: {e}", a.out.display())))?;
     let s = Scenario::load(&a.out, &[]).map_err(|e| CliError::Run(e.to_string()))?;
     let lambda = s.graph.lambda_min_h().map_or_else(|| "not computed at this size".to_string(), |l| format!("{l:.6}"));
     println!(
-        "wrote {}: {} followers, {} graph with {} edges, {} hearing the leader, λ_min(H) = {lambda}",
+        "wrote {}: {}, {} graph with {}, {} hearing the leader, λ_min(H) = {lambda}",
         a.out.display(),
-        s.followers.len(),
+        count(s.followers.len(), "follower"),
         graph.name(),
-        s.graph.edge_count(),
+        count(s.graph.edge_count(), "edge"),
         (0..s.graph.len()).filter(|&i| s.graph.hears_leader(i)).count(),
     );
     Ok(())

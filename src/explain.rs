@@ -101,14 +101,27 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
         });
         t += &format!("{:>5}  {:<14} {:>16} {:>12.4} {:>9}\n", rank + 1, l.to_string(), d, sh.explained, pct(sh.share));
     }
-    let top5: f64 = e.links.iter().take(5).map(|(_, s)| s.share).sum();
+    let listed = top.min(e.links.len());
+    let shown: f64 = e.links.iter().take(listed).map(|(_, s)| s.share).sum();
     let all: f64 = e.links.iter().map(|(_, s)| s.share).sum();
-    t += &format!(
-        "{} links heard differently; the top five explain {}, all of them one at a time {}\n",
-        e.links.len(),
-        pct(top5),
-        pct(all)
-    );
+    t += &match listed {
+        n if n == e.links.len() => {
+            let they = if n == 1 { "it explains" } else { "one at a time they explain" };
+            format!("{} heard differently; {they} {}\n", crate::cli::count(n, "link"), pct(all))
+        }
+        1 => format!(
+            "{} links heard differently; the first explains {}, all of them one at a time {}\n",
+            e.links.len(),
+            pct(shown),
+            pct(all)
+        ),
+        n => format!(
+            "{} links heard differently; the first {n} explain {}, all of them one at a time {}\n",
+            e.links.len(),
+            pct(shown),
+            pct(all)
+        ),
+    };
     t += &format!(
         "\nwindows of {:.3} s, by what replaying the run with that window as modelled takes away:\n",
         e.window_steps as f64 * dt

@@ -221,8 +221,8 @@ fn real_time_scheduling(priority: u8) -> Result<(), CliError> {
 impl RunOptions {
     /// The scenario, the run name and the run folder, checked (bad input: exit 2).
     pub fn resolve(&self) -> Result<(Scenario, String, PathBuf), CliError> {
-        let scenario =
-            Scenario::load(&self.scenario.scenario, &self.overrides()).map_err(|e| CliError::Input(e.to_string()))?;
+        let scenario = Scenario::load(&self.scenario.scenario, &self.overrides())
+            .map_err(|e| CliError::Input(self.as_typed(e)))?;
 
         formation_net::node::networked(&scenario)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
@@ -262,6 +262,19 @@ impl RunOptions {
             o.push(format!("ros2.robots=\"{}\"", r.name()));
         }
         o
+    }
+
+    /// A scenario error in the user's words: the `--set` that --ros2 and
+    /// --robots stand for named as the flag typed (it quoted
+    /// `--set ros2.robots="stand-in"` to a user who typed `--robots stand-in`).
+    fn as_typed(&self, e: formation_topology::ScenarioError) -> String {
+        let mut text = e.to_string();
+        if let Some(r) = self.robots {
+            let (set, typed) = (format!("--set ros2.robots=\"{}\"", r.name()), format!("--robots {}", r.name()));
+            text = text.replace(&format!("{set}: ros2.robots: `{}`:", r.name()), &format!("{typed}:"));
+            text = text.replace(&set, &typed);
+        }
+        text.replace("--set ros2.enabled=true", "--ros2")
     }
 
     /// What a run says before it starts, once its input is known to be good:

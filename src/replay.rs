@@ -26,21 +26,38 @@ pub struct ReplayArgs {
     #[arg(long)]
     pub explain: bool,
     /// With --explain: the metric to attribute (a summary.json metric of a
-    /// follower: torque_tv, formation_rms_last10, vc_peak, …).
-    #[arg(long, default_value = "torque_tv", value_name = "METRIC")]
-    pub metric: String,
-    /// With --explain: the length of the time windows ranked (s).
-    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
-    pub window: f64,
-    /// With --explain: how many links and windows to list.
-    #[arg(long, default_value_t = 10, value_name = "N")]
-    pub top: usize,
+    /// follower: torque_tv, formation_rms_last10, vc_peak, …) [default:
+    /// torque_tv].
+    #[arg(long, value_name = "METRIC")]
+    pub metric: Option<String>,
+    /// With --explain: the length of the time windows ranked (s) [default: 1].
+    #[arg(long, value_name = "SECONDS")]
+    pub window: Option<f64>,
+    /// With --explain: how many links and windows to list [default: 10].
+    #[arg(long, value_name = "N")]
+    pub top: Option<usize>,
 }
 
 pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
+    let given: Vec<&str> =
+        [("--metric", a.metric.is_some()), ("--window", a.window.is_some()), ("--top", a.top.is_some())]
+            .into_iter()
+            .filter_map(|(flag, set)| set.then_some(flag))
+            .collect();
+    if !a.explain && !given.is_empty() {
+        // They were ignored: the user asked for something not done.
+        let (last, rest) = given.split_last().unwrap_or((&"", &[]));
+        let flags = if rest.is_empty() { last.to_string() } else { format!("{} and {last}", rest.join(", ")) };
+        let verb = if rest.is_empty() { "goes" } else { "go" };
+        return Err(CliError::Input(format!("{flags} {verb} with --explain: add --explain, or leave {flags} out")));
+    }
+    if let Some(top) = a.top {
+        crate::error::at_least_one("--top", top as u64)?;
+    }
     let loaded = replay::load(&a.run)?;
     if a.explain {
-        return crate::explain::run(&loaded, &a.metric, a.window, a.top);
+        let metric = a.metric.as_deref().unwrap_or("torque_tv");
+        return crate::explain::run(&loaded, metric, a.window.unwrap_or(1.0), a.top.unwrap_or(10));
     }
     let (verdict, text) = check(&loaded, a.out.as_deref())?;
     print!("{text}");

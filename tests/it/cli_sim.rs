@@ -129,6 +129,20 @@ fn bad_overrides_are_rejected() {
     assert_rejected(&t, &["--set", "filter=ukf"], &["--set filter=ukf", "`ukf` is not one of: asif, kf, none"]);
     assert_rejected(&t, &["--set", "duration"], &["expected KEY=VALUE"]);
     assert_rejected(&t, &["--set", "robot.mass=0"], &["robot.mass: must be positive"]);
+    // Both assignments an error of two keys depends on (it named only the last).
+    assert_rejected(
+        &t,
+        &["--set", "dt=0.3", "--set", "duration=1"],
+        &["--set dt=0.3 --set duration=1: duration: 1 s is not a whole number of steps of 0.3 s"],
+    );
+    // The file's rejoin_after under half of a Δt the user set: the Δt is named, with the way out.
+    assert_rejected(
+        &t,
+        &["--set", "dt=0.3"],
+        &["--set dt=0.3: network.rejoin_after: 0.1 s is less than half a step", "--set network.rejoin_after=0.3"],
+    );
+    // No value (it read "`` is not a TOML value").
+    assert_rejected(&t, &["--set", "duration="], &["--set duration=: no value after `=`"]);
 }
 
 /// The 1-based line of the first line of `text` that starts with `start`.

@@ -46,8 +46,16 @@ fn a_real_time_run_replays_byte_for_byte() {
     let record = std::fs::metadata(out.join(HEARING_FILE)).expect("hearing.bin").len();
     let share = record as f64 / csv_bytes(&out) as f64;
     assert!(share < 0.02, "the hearing record is {record} B, {:.2} % of the CSVs (2 % at most)", 100.0 * share);
-    let (ok, text) = replay_cli(&["--explain"], &out);
+    let (ok, text) = replay_cli(&["--explain", "--top", "2"], &out);
     assert!(ok, "--explain failed:\n{text}");
+    // What it says of the links it lists is of those it lists (it said "the top five" of two).
+    let said = text.lines().find(|l| l.contains("links heard differently")).unwrap_or_default();
+    assert!(
+        said.contains("the first 2 explain")
+            || said.contains("one at a time they explain")
+            || said.contains("it explains"),
+        "--top 2: {said}"
+    );
     for id in 1..=4 {
         assert!(
             text.lines().any(|l| l.split_whitespace().next() == Some(&id.to_string())),

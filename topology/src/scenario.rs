@@ -617,6 +617,9 @@ fn override_message(key: &str, message: &str) -> String {
 /// is a string; anything else is an error with TOML's reason (a missing
 /// bracket is not taken for a string).
 fn parse_value(value: &str) -> Result<toml::Value, String> {
+    if value.trim().is_empty() {
+        return Err("no value after `=` (write KEY=VALUE, e.g. duration=20 or filter=kf)".into());
+    }
     match toml::from_str::<toml::Table>(&format!("v = {value}")) {
         Ok(mut t) => t.remove("v").ok_or_else(|| format!("`{value}` is not a value")),
         Err(_) if !value.is_empty() && value.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) => {
@@ -701,11 +704,18 @@ impl Check<'_> {
     /// any of them came from `--set`, the error names that assignment.
     fn fail_with(&self, field: &str, related: &[&str], message: impl Into<String>) -> ScenarioError {
         let message = message.into();
-        match std::iter::once(field).chain(related.iter().copied()).find_map(|f| self.assignment_of(f)) {
-            Some(assignment) => {
-                ScenarioError::Override { assignment: assignment.to_string(), message: format!("{field}: {message}") }
+        // Every `--set` among them, in the command line's order: with
+        // `--set dt=0.3 --set duration=1` both are the cause.
+        let mut given: Vec<&str> =
+            std::iter::once(field).chain(related.iter().copied()).filter_map(|f| self.assignment_of(f)).collect();
+        let position = |a: &str| self.overridden.iter().position(|(_, b)| b == a);
+        given.sort_by_key(|a| position(a));
+        given.dedup();
+        match given.is_empty() {
+            false => {
+                ScenarioError::Override { assignment: given.join(" --set "), message: format!("{field}: {message}") }
             }
-            None => ScenarioError::Invalid {
+            true => ScenarioError::Invalid {
                 file: self.label.to_string(),
                 line: self.source.and_then(|s| find_line(s, field)),
                 field: field.to_string(),
@@ -1134,9 +1144,14 @@ fn validate_network(c: &Check<'_>, file: &ScenarioFile) -> Result<(NetworkSettin
     }
     let after_steps = (n.rejoin_after / file.dt).round() as u64;
     if after_steps == 0 {
-        return Err(
-            c.fail("network.rejoin_after", format!("{} s is less than half a step of {dt} s", num(n.rejoin_after)))
-        );
+        return Err(c.fail_with(
+            "network.rejoin_after",
+            &["dt"],
+            format!(
+                "{} s is less than half a step of {dt} s (give it a step or more: --set network.rejoin_after={dt})",
+                num(n.rejoin_after)
+            ),
+        ));
     }
     c.positive("network.time_scale", &[n.time_scale])?;
     if n.telemetry_batch == 0 {
