@@ -114,18 +114,25 @@ pub const FAULT_CASES: [(&str, &[&str]); 3] = [
 /// Follower-steps/s of the paper scenario (its own duration) for each fault
 /// case, the best of `--repeat` repetitions of at least `work` follower-steps.
 fn fault_cases(a: &BenchArgs) -> Result<(), CliError> {
-    println!("\n{:<36} {:>9} {:>20} {:>7}", "paper scenario, fault table", "runs", "follower-steps/s", "ratio");
+    // Every case's scenario before the table starts: an error is one line.
+    let scenarios: Vec<Scenario> = FAULT_CASES
+        .iter()
+        .map(|(_, sets)| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            Scenario::load(&a.scenario, &sets).map_err(|e| CliError::Input(e.to_string()))
+        })
+        .collect::<Result<_, _>>()?;
+    let title = format!("{} scenario, fault table", scenarios[0].name);
+    println!("\n{title:<36} {:>9} {:>20} {:>7}", "runs", "follower-steps/s", "ratio");
     let mut base = None;
-    for (name, sets) in FAULT_CASES {
-        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
-        let s = Scenario::load(&a.scenario, &sets).map_err(|e| CliError::Input(e.to_string()))?;
+    for ((name, _), s) in FAULT_CASES.iter().zip(&scenarios) {
         let per_run = s.followers.len() as u64 * (s.steps() + 1);
         let runs = a.work.div_ceil(per_run).max(1);
         let mut best = 0.0f64;
         for _ in 0..a.repeat.max(1) {
             let started = Instant::now();
             for _ in 0..runs {
-                Simulation::new(&s).run(&mut NoRecord, |_| {})?;
+                Simulation::new(s).run(&mut NoRecord, |_| {})?;
             }
             best = best.max((runs * per_run) as f64 / started.elapsed().as_secs_f64());
         }
@@ -142,18 +149,21 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
     crate::error::at_least_one("--repeat", a.repeat.into())?;
     let mut threads = a.threads.clone();
     threads.dedup();
+    // Every scenario before the table starts: an error is one line, not a
+    // header and then an error.
+    let sizes: Vec<Scenario> = a.followers.iter().map(|&n| scenario_for(n, &a.scenario)).collect::<Result<_, _>>()?;
+    let paper = scenario_for(4, &a.scenario)?;
     println!(
         "{:>9} {:>7} {:>8} {:>7} {:>6} {:>9} {:>17} {:>12}",
         "followers", "edges", "steps", "threads", "record", "seconds", "follower-steps/s", "B/follower"
     );
-    for &n in &a.followers {
-        let scenario = scenario_for(n, &a.scenario)?;
+    for (&n, scenario) in a.followers.iter().zip(&sizes) {
         let steps = (a.work / u64::from(n.max(1))).max(100);
         let modes: &[bool] = if a.record { &[false, true] } else { &[false] };
         let mut first = true;
         for &record in modes {
             for &t in &threads {
-                let m = measure(&scenario, steps, record, t, a.repeat)?;
+                let m = measure(scenario, steps, record, t, a.repeat)?;
                 // The simulator's state per follower, once per size.
                 let bytes = if std::mem::take(&mut first) { m.bytes_per_follower.to_string() } else { String::new() };
                 println!(
@@ -170,8 +180,7 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
             }
         }
     }
-    // The paper scenario end to end, recording included.
-    let paper = scenario_for(4, &a.scenario)?;
+    // The --scenario end to end, recording included.
     let dir = std::env::temp_dir().join(format!("formation-bench-paper-{}", std::process::id()));
     let started = Instant::now();
     formation_sim::run_to_folder(
@@ -181,7 +190,8 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
         |_| {},
     )?;
     println!(
-        "paper scenario end to end ({} follower-steps, CSV of every sample): {:.3} s",
+        "{} scenario end to end ({} follower-steps, CSV of every sample): {:.3} s",
+        paper.name,
         paper.followers.len() as u64 * (paper.steps() + 1),
         started.elapsed().as_secs_f64()
     );
@@ -191,13 +201,15 @@ pub fn run(a: &BenchArgs) -> Result<(), CliError> {
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
-    /// Follower counts to measure; 4 is the paper scenario, larger counts are
-    /// generated rings with n/5 random chords.
-    #[arg(long, value_delimiter = ',', default_values_t = vec![4, 100, 10_000, 100_000])]
+    /// Follower counts to measure, comma-separated; 4 is --scenario (the
+    /// paper's), other counts are generated rings with n/5 random chords
+    /// [default: 4,100,10000,100000].
+    #[arg(long, value_delimiter = ',', default_values_t = vec![4, 100, 10_000, 100_000], hide_default_value = true, value_name = "N,…")]
     pub followers: Vec<u32>,
-    /// Threads to measure each count on: 1 steps the followers one after
-    /// another, N > 1 on N threads (as `sim --threads N`), `all` on every core.
-    #[arg(long, value_delimiter = ',', default_values = ["1", "all"], value_parser = parse_threads, value_name = "N|all")]
+    /// Threads to measure each count on, comma-separated: 1 steps the
+    /// followers one after another, N > 1 on N threads (as `sim --threads
+    /// N`), `all` on every core [default: 1,all].
+    #[arg(long, value_delimiter = ',', default_values = ["1", "all"], hide_default_value = true, value_parser = parse_threads, value_name = "N|all,…")]
     pub threads: Vec<usize>,
     /// Minimum follower-steps per measurement (at least 100 steps).
     #[arg(long, default_value_t = 2_000_000)]

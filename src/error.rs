@@ -15,6 +15,10 @@ pub enum Error {
     /// The run was recorded to its end, but degraded (exit status 3).
     #[error("{0}")]
     Degraded(String),
+    /// Stopped by a signal: exit status 128 + its number (130 for Ctrl-C,
+    /// 143 for SIGTERM), as a shell reports an interrupted command.
+    #[error("{0}")]
+    Interrupted(String, u8),
 }
 
 /// The exit status of a run recorded to its end whose health is degraded:
@@ -31,6 +35,7 @@ impl Error {
             Error::Input(_) => ExitCode::from(2),
             Error::Run(_) => ExitCode::from(1),
             Error::Degraded(_) => ExitCode::from(DEGRADED),
+            Error::Interrupted(_, signal) => ExitCode::from(128u8.saturating_add(*signal)),
         }
     }
 }

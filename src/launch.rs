@@ -629,7 +629,32 @@ pub(crate) fn tls_arg(c: &mut Command, opts: &RunOptions) {
     }
 }
 
+/// A node of a launch dies with it: should the launch itself be killed
+/// (SIGKILL, the OOM killer), the kernel sends each child SIGTERM, and it
+/// writes what it has and exits (they ran to the end of the run). Every
+/// child is started from the launch's main thread, whose end is the
+/// process's: the signal is tied to the thread that started the child.
+pub(crate) fn dies_with_launch(c: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let parent = std::process::id();
+    // SAFETY: between fork and exec only async-signal-safe calls (prctl,
+    // getppid, kill) run, on no shared state.
+    unsafe {
+        c.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The launch died before the line above: go now.
+            if libc::getppid() as u32 != parent {
+                libc::kill(libc::getpid(), libc::SIGTERM);
+            }
+            Ok(())
+        });
+    }
+}
+
 pub(crate) fn spawn(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
+    dies_with_launch(&mut c);
     zenoh_log::route(&mut c, name);
     let child = c.spawn().map_err(|e| CliError::Run(format!("starting {name}: {e}")))?;
     children.push(name.to_string(), child);
@@ -669,6 +694,7 @@ pub(crate) fn start_router_with(children: &mut Children, c: Command) -> Result<(
 
 /// [`start_router_with`] for a router known to `children` as `name`.
 pub(crate) fn start_router_named(children: &mut Children, name: &str, mut c: Command) -> Result<(), CliError> {
+    dies_with_launch(&mut c);
     zenoh_log::route(&mut c, name);
     c.stdin(Stdio::null()).stdout(Stdio::piped());
     let mut child = c.spawn().map_err(|e| CliError::Run(format!("starting {name}: {e}")))?;
@@ -845,8 +871,8 @@ async fn launch(
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            _ = sigint.recv() => return Err(interrupt(children, out)),
-            _ = sigterm.recv() => return Err(interrupt(children, out)),
+            _ = sigint.recv() => return Err(interrupt(children, out, libc::SIGINT)),
+            _ = sigterm.recv() => return Err(interrupt(children, out, libc::SIGTERM)),
         }
         if let Some(ended) = settle(children, out) {
             return ended;
@@ -889,11 +915,15 @@ pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summa
     None
 }
 
-/// Ctrl-C / SIGTERM: stop the nodes, let the monitor flush, kill the rest.
-pub(crate) fn interrupt(children: &mut Children, out: &Path) -> CliError {
+/// Ctrl-C / SIGTERM (`signal`): stop the nodes, let the monitor flush, kill
+/// the rest; the launch exits 128 + `signal`, as the monitor does.
+pub(crate) fn interrupt(children: &mut Children, out: &Path, signal: i32) -> CliError {
     children.terminate(|n| n != "monitor" && n != "router");
     children.wind_down();
-    CliError::Run(format!("interrupted: stopped every process; {} holds what the monitor received", out.display()))
+    CliError::Interrupted(
+        format!("interrupted: stopped every process; {} holds what the monitor received", out.display()),
+        signal as u8,
+    )
 }
 
 #[cfg(test)]

@@ -120,7 +120,8 @@ impl Summary {
         let mut parts: Vec<String> =
             self.incomplete.iter().take(3).map(|(&id, s)| s.describe(id, self.dt, self.duration)).collect();
         if self.incomplete.len() > 3 {
-            parts.push(format!("and {} more followers", self.incomplete.len() - 3));
+            let more = self.incomplete.len() - 3;
+            parts.push(format!("and {more} more follower{}", if more == 1 { "" } else { "s" }));
         }
         (!parts.is_empty()).then(|| parts.join("; "))
     }

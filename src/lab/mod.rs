@@ -748,6 +748,7 @@ impl Ctx<'_> {
         if let Some(x) = self.a.opts.time_scale {
             c.arg("--time-scale").arg(x.to_string());
         }
+        launch::dies_with_launch(&mut c);
         let mut leader = c.spawn().map_err(|e| Error::Run(format!("starting the leader: {e}")))?;
         let (tx, rx) = std::sync::mpsc::channel::<(u64, f64)>();
         if let Some(stdout) = leader.stdout.take() {
@@ -781,8 +782,8 @@ impl Ctx<'_> {
         loop {
             tokio::select! {
                 _ = tick.tick() => {}
-                _ = sigint.recv() => return Err(launch::interrupt(children, self.out)),
-                _ = sigterm.recv() => return Err(launch::interrupt(children, self.out)),
+                _ = sigint.recv() => return Err(launch::interrupt(children, self.out, libc::SIGINT)),
+                _ = sigterm.recv() => return Err(launch::interrupt(children, self.out, libc::SIGTERM)),
             }
             if clock.is_none() {
                 clock = rx.try_recv().ok();

@@ -130,7 +130,8 @@ fn sigint_stops_every_child_and_keeps_the_folder() {
     let sent = Command::new("kill").args(["-INT", &g.0.id().to_string()]).status().expect("kill");
     assert!(sent.success());
     let status = g.wait(Duration::from_secs(30));
-    assert!(!status.success(), "an interrupted launch must not report success");
+    // 130, as the monitor and a shell say of Ctrl-C (it was 1).
+    assert_eq!(status.code(), Some(130), "an interrupted launch: {status}");
     g.assert_group_empty();
     let network: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("network.json")).expect("network.json")).expect("json");
@@ -224,6 +225,41 @@ fn an_agent_refuses_a_repeated_or_unknown_follower() {
         assert_eq!(o.status.code(), Some(2), "--id {ids}: {:?}; stderr: {stderr}", o.status);
         assert!(stderr.contains(why), "--id {ids}: stderr does not say {why:?}: {stderr}");
     }
+}
+
+/// A launch killed outright (SIGKILL: no cleanup of its own) takes its
+/// nodes with it: each gets SIGTERM from the kernel, the monitor writes what
+/// it received (they ran on to the end of the run).
+#[test]
+fn a_killed_launch_takes_its_nodes_with_it() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let mut g = Group::launch(&out, &["duration=300"], &["--base-port", &base, "--run", "launch-kill"]);
+    let partial = tmp.path().join("run.partial").join("leader.csv");
+    let t = Instant::now();
+    while std::fs::metadata(&partial).map_or(0, |m| m.len()) < 10_000 {
+        assert!(t.elapsed() < LIMIT, "no samples recorded within {LIMIT:?}");
+        assert!(g.0.try_wait().expect("try_wait").is_none(), "launch ended early");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let nodes = g.members().len();
+    assert!(nodes >= 6, "the launch and its nodes: {:?}", g.members());
+    let sent = Command::new("kill").args(["-KILL", &g.0.id().to_string()]).status().expect("kill");
+    assert!(sent.success());
+    let _ = g.0.wait();
+    let t = Instant::now();
+    while !g.members().is_empty() {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "nodes still running 20 s after the launch died: {:?}",
+            g.members()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let network = common::json(&out, "network.json");
+    assert_eq!(network["ending"], "interrupted", "{network}");
+    assert_eq!(network["signal"], "SIGTERM", "{network}");
 }
 
 /// SIGTERM ends the monitor with 143 (128 + 15, the convention), Ctrl-C with
