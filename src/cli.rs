@@ -255,7 +255,7 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
     let scenario = a.scenario.load()?;
     let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
     crate::args::check_out_path("--out", &dir, crate::args::MAX_OUT_NAME_BYTES)?;
-    crate::runsize::warn_if_large(&scenario, a.every, !a.no_csv, a.mcap, &dir);
+    crate::runsize::check(&scenario, a.every, !a.no_csv, a.mcap, &dir)?;
     if let Some(w) = scenario.estimator_stability_warning() {
         eprintln!("{w}");
     }

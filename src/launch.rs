@@ -279,12 +279,14 @@ impl RunOptions {
 
     /// What a run says before it starts, once its input is known to be good:
     /// that its traffic is unauthenticated (without --tls), and the size of
-    /// a run that would write more than a few GB.
-    pub fn warnings(&self, scenario: &Scenario, out: &Path) {
+    /// a run that would write more than a few GB; a run larger than its
+    /// disk's free space is refused.
+    pub fn warnings(&self, scenario: &Scenario, out: &Path) -> Result<(), CliError> {
+        crate::runsize::check(scenario, 1, true, self.mcap, out)?;
         if self.tls.is_none() && !self.quiet {
             eprintln!("{}", formation_net::node::UNAUTHENTICATED);
         }
-        crate::runsize::warn_if_large(scenario, 1, true, self.mcap, out);
+        Ok(())
     }
 }
 
@@ -514,7 +516,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
         }
     }
     let (scenario, run, out) = a.opts.resolve()?;
-    a.opts.warnings(&scenario, &out);
+    a.opts.warnings(&scenario, &out)?;
     let exe = std::env::current_exe().map_err(|e| CliError::Run(format!("locating this executable: {e}")))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)

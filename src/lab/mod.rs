@@ -516,7 +516,7 @@ fn runs_here(a: &LabArgs, scenario: &Scenario, out: &Path) -> Result<bool, Error
     };
     match privilege {
         netns::Privilege::Root => {
-            a.opts.warnings(scenario, out);
+            a.opts.warnings(scenario, out)?;
             Ok(true)
         }
         netns::Privilege::Unshare if a.opts.web.web.is_some() => Err(Error::Input(

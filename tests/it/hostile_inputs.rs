@@ -471,6 +471,20 @@ fn cases() -> Vec<Case> {
             &["--top", "at least 1"],
         ),
         case(
+            "a run larger than the disk's free space (it started and filled the disk)",
+            Some(
+                formation_topology::generate::toml(&formation_topology::generate::Spec::new(
+                    1000,
+                    formation_topology::generate::GraphKind::Ring,
+                ))
+                .expect("a ring of 1000"),
+            ),
+            // 5e7 samples of 1000 followers: about 21 TB of CSV.
+            &["sim", "{file}", "--set", "dt=0.001", "--set", "duration=50000", "--out", "{dir}/out", "-q"],
+            2,
+            &["GB free", "--every N"],
+        ),
+        case(
             "generate into a folder that is not there",
             None,
             &["generate", "--followers", "3", "--graph", "ring", "--out", "{dir}/nope/x.toml"],
