@@ -218,7 +218,7 @@ pub fn check_threads(threads: usize) -> Result<(), CliError> {
 }
 
 pub fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli: Cli = crate::args::parse_or_exit();
     let result = match cli.command {
         Command::Sim(a) => sim(&a).map(|_| ()),
         Command::Bench(a) => crate::bench::run(&a),

@@ -12,5 +12,5 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    node::run_agent(Cli::parse().args)
+    node::run_agent(formation::args::parse_or_exit::<Cli>().args)
 }

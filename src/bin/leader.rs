@@ -13,5 +13,5 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    node::run_leader(Cli::parse().args)
+    node::run_leader(formation::args::parse_or_exit::<Cli>().args)
 }

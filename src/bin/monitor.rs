@@ -13,5 +13,5 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    node::run_monitor(Cli::parse().args)
+    node::run_monitor(formation::args::parse_or_exit::<Cli>().args)
 }

@@ -15,5 +15,5 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    node::run_router(Cli::parse().router)
+    node::run_router(formation::args::parse_or_exit::<Cli>().router)
 }

@@ -493,6 +493,13 @@ fn cases() -> Vec<Case> {
         ),
         case("bench with 0 threads", None, &["bench", "--threads", "0"], 2, &["--threads", "0"]),
         case(
+            "an option that does not exist",
+            None,
+            &["sim", "{paper}", "--no-such-option"],
+            2,
+            &["unexpected argument '--no-such-option'", "(formation sim --help)"],
+        ),
+        case(
             "bench-net with a long lock-step run no longer than the short one",
             None,
             &["bench-net", "--lockstep-duration", "1", "--agents", "", "--base-port", "1"],
@@ -889,6 +896,11 @@ fn check(c: &Case) -> Result<(), String> {
     }
     if stderr.lines().filter(|l| l.starts_with("error:")).count() != 1 {
         return Err(format!("expected one error line: {first_lines}"));
+    }
+    // Nothing but that line and warnings (clap's errors took 3-5 lines).
+    let lines = stderr.lines().filter(|l| !l.trim().is_empty() && !l.starts_with("warning:")).count();
+    if lines != 1 {
+        return Err(format!("{lines} lines, expected the error's one: {first_lines}"));
     }
     if d.join("out").exists() {
         return Err("a run folder was left behind".into());
