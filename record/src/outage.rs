@@ -151,16 +151,25 @@ fn cell(v: Option<f64>, prec: usize) -> String {
     v.map_or_else(|| "—".to_string(), |x| format!("{x:.prec$}"))
 }
 
-/// The printed table of metrics under faults.
-pub fn table(faults: &[FaultSummary]) -> String {
+/// The printed table of metrics under faults of a run of `duration_s`:
+/// the peaks' window and the recovery say where the run ended first.
+pub fn table(faults: &[FaultSummary], duration_s: f64) -> String {
     let mut out = String::new();
     for f in faults {
-        out += &format!(
-            "\n{} (peaks from {} s to {} s; recovery: estimator error < 0.02 m for 1 s)\n",
-            f.fault,
-            f.from,
-            f.to + AFTER_S
-        );
+        let until = f.to + AFTER_S;
+        let peaks = if until > duration_s {
+            format!("peaks from {} s to the run's end at {duration_s} s", f.from)
+        } else {
+            format!("peaks from {} s to {until} s", f.from)
+        };
+        // Recovery needs the error low for STAY_S after the window.
+        let judged = f.to + STAY_S <= duration_s;
+        let recovery = if judged {
+            format!("recovery: estimator error < {RECOVERED_M} m for {STAY_S} s")
+        } else {
+            format!("recovery: not judged, the run ends less than {STAY_S} s after the fault")
+        };
+        out += &format!("\n{} ({peaks}; {recovery})\n", f.fault);
         out += &format!(
             "{:>8} {:>9} {:>9} {:>9} {:>10} {:>9} {:>10}\n",
             "follower", "est_peak", "form_peak", "vc_peak", "vc_rate", "tau_peak", "recovery"
@@ -174,7 +183,11 @@ pub fn table(faults: &[FaultSummary]) -> String {
                 cell(m.peak_vc, 3),
                 cell(m.peak_vc_rate, 2),
                 cell(m.peak_torque, 3),
-                m.recovery_s.map_or_else(|| "not rec.".to_string(), |r| format!("{r:.3} s")),
+                match (m.recovery_s, judged) {
+                    (Some(r), _) => format!("{r:.3} s"),
+                    (None, true) => "not rec.".to_string(),
+                    (None, false) => "—".to_string(),
+                },
             );
         }
     }
@@ -187,6 +200,23 @@ mod tests {
 
     fn row(est: f64, vc: f64) -> Row {
         Row { estimator_error: est, v_c: vc, ..Default::default() }
+    }
+
+    #[test]
+    fn a_run_shorter_than_the_peaks_window_says_where_it_ended() {
+        let f = FaultSummary {
+            fault: "follower 3 down 1–1.5 s".into(),
+            from: 1.0,
+            to: 1.5,
+            loss: 1.0,
+            followers: [(3, OutageMetrics::default())].into_iter().collect(),
+        };
+        let short = table(std::slice::from_ref(&f), 2.0);
+        assert!(short.contains("peaks from 1 s to the run's end at 2 s"), "{short}");
+        assert!(short.contains("recovery: not judged") && !short.contains("not rec."), "{short}");
+        let long = table(&[f], 30.0);
+        assert!(long.contains("peaks from 1 s to 6.5 s; recovery: estimator error < 0.02 m for 1 s"), "{long}");
+        assert!(long.contains("not rec."), "{long}");
     }
 
     #[test]

@@ -171,7 +171,7 @@ impl Summary {
         if let Some(short) = self.shortfall_text() {
             out += &format!("incomplete run: {short}; — marks a metric whose window was not reached\n");
         }
-        out += &outage::table(&self.faults);
+        out += &outage::table(&self.faults, self.duration);
         out
     }
 }

@@ -584,7 +584,12 @@ pub fn write(out: &Path, faulted: &[&Case], study: Option<&Study>) -> Result<Wri
             } else {
                 String::new()
             };
-            let _ = write!(terminal, "\n{}{first}:{}", c.label, formation_record::outage::table(&c.summary().faults));
+            let _ = write!(
+                terminal,
+                "\n{}{first}:{}",
+                c.label,
+                formation_record::outage::table(&c.summary().faults, c.summary().duration)
+            );
         }
     }
     if !cases.is_empty() {
