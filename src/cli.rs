@@ -282,7 +282,53 @@ pub fn run_to_folder(
     threads: usize,
 ) -> Result<(Summary, PathBuf), CliError> {
     let mut progress = Progress::new(scenario.steps() + 1, &scenario.name, quiet);
-    let result = formation_sim::run_to_folder(scenario, opts, threads, |k| progress.set(k));
+    let stop = interrupt::catch();
+    let result = formation_sim::run_to_folder_until(scenario, opts, threads, Some(stop), |k| progress.set(k));
     progress.finish();
-    Ok(result?)
+    match result {
+        // Ctrl-C: what was recorded is kept, and said (it left a
+        // `<out>.partial` without its last rows or a summary, silently).
+        Err(formation_sim::SimError::Kept { source, kept }) if matches!(&*source, formation_sim::SimError::Io(e) if e.kind() == std::io::ErrorKind::Interrupted) => {
+            Err(CliError::Interrupted(
+                format!(
+                    "{source}: {} holds every step before it, and summary.json says `\"complete\": false`",
+                    kept.display()
+                )
+                .replace("writing the run folder: ", ""),
+                interrupt::signal() as u8,
+            ))
+        }
+        r => Ok(r?),
+    }
+}
+
+/// Ctrl-C and SIGTERM during an in-process run: a flag the run reads
+/// between steps, so it stops with its folder whole up to that step.
+mod interrupt {
+    use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
+
+    static STOP: AtomicBool = AtomicBool::new(false);
+    static SIGNAL: AtomicI32 = AtomicI32::new(libc::SIGINT);
+
+    extern "C" fn on_signal(signal: libc::c_int) {
+        // Async-signal-safe: two atomic stores.
+        SIGNAL.store(signal, Ordering::Relaxed);
+        STOP.store(true, Ordering::Relaxed);
+    }
+
+    /// Installs the handler for SIGINT and SIGTERM; the flag it sets.
+    pub fn catch() -> &'static AtomicBool {
+        let handler = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
+        // SAFETY: the handler only stores to atomics.
+        unsafe {
+            libc::signal(libc::SIGINT, handler);
+            libc::signal(libc::SIGTERM, handler);
+        }
+        &STOP
+    }
+
+    /// The signal that stopped the run.
+    pub fn signal() -> i32 {
+        SIGNAL.load(Ordering::Relaxed)
+    }
 }

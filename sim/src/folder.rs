@@ -3,6 +3,7 @@
 //! recorded when the run stops early).
 
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use formation_agent::LeaderState;
 use formation_record::{RecordOptions, Row, RunWriter, Summary};
@@ -15,16 +16,25 @@ pub struct FolderObserver<'w> {
     pub writer: &'w mut RunWriter,
     steps: u64,
     dt_s: f64,
+    /// Set (by a signal handler) to stop the run at the next step.
+    stop: Option<&'w AtomicBool>,
 }
 
 impl<'w> FolderObserver<'w> {
     pub fn new(writer: &'w mut RunWriter, scenario: &Scenario) -> Self {
-        Self { writer, steps: scenario.steps(), dt_s: scenario.dt_s }
+        Self { writer, steps: scenario.steps(), dt_s: scenario.dt_s, stop: None }
     }
 }
 
 impl Observer for FolderObserver<'_> {
     fn leader(&mut self, k: u64, state: &LeaderState) -> std::io::Result<()> {
+        // Stopped between steps: every step before k is whole.
+        if self.stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::Interrupted,
+                format!("interrupted at t = {} s (step {k})", (k as f64 * self.dt_s * 1e6).round() / 1e6),
+            ));
+        }
         if self.writer.wants(k, k == self.steps) {
             self.writer.leader_row(k as f64 * self.dt_s, state)?;
         }
@@ -50,27 +60,43 @@ pub fn run_to_folder(
     threads: usize,
     progress: impl FnMut(u64) + Send,
 ) -> Result<(Summary, PathBuf), SimError> {
+    run_to_folder_until(scenario, opts, threads, None, progress)
+}
+
+/// [`run_to_folder`] that stops at the step after `stop` is set (Ctrl-C),
+/// keeping what it recorded as a run stopped early does
+/// ([`SimError::Kept`], its source an `Interrupted` IO error).
+pub fn run_to_folder_until(
+    scenario: &Scenario,
+    opts: &RecordOptions,
+    threads: usize,
+    stop: Option<&AtomicBool>,
+    progress: impl FnMut(u64) + Send,
+) -> Result<(Summary, PathBuf), SimError> {
     if threads > 1 {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()
             .map_err(|e| SimError::Threads { threads, what: e.to_string() })?;
-        return pool.install(|| run_folder(scenario, opts, true, progress));
+        return pool.install(|| run_folder(scenario, opts, true, stop, progress));
     }
-    run_folder(scenario, opts, false, progress)
+    run_folder(scenario, opts, false, stop, progress)
 }
 
 fn run_folder(
     scenario: &Scenario,
     opts: &RecordOptions,
     parallel: bool,
+    stop: Option<&AtomicBool>,
     progress: impl FnMut(u64),
 ) -> Result<(Summary, PathBuf), SimError> {
     let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
     let mut writer = RunWriter::create(opts, &ids)?;
     let mut sim = Simulation::new(scenario);
     sim.set_parallel(parallel);
-    let result = sim.run(&mut FolderObserver::new(&mut writer, scenario), progress);
+    let mut observer = FolderObserver::new(&mut writer, scenario);
+    observer.stop = stop;
+    let result = sim.run(&mut observer, progress);
     match result {
         Ok(metrics) => {
             let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect())

@@ -8,5 +8,5 @@
 pub mod folder;
 pub mod simulation;
 
-pub use folder::{run_to_folder, FolderObserver};
+pub use folder::{run_to_folder, run_to_folder_until, FolderObserver};
 pub use simulation::{step_on_odometry, Diverged, NoRecord, Observer, SimError, SimFollower, SimRobot, Simulation};

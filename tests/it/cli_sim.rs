@@ -510,3 +510,45 @@ fn an_unstable_estimator_under_delay_is_warned_about() {
     let paper = run(&paper_text(), "network.delay_steps=2");
     assert!(!paper.contains("unstable"), "the paper scenario is stable under delay: {paper}");
 }
+
+/// Ctrl-C during `formation sim`: it stops between steps, says where and
+/// what it kept, exits 130, and `<out>.partial` holds every step before the
+/// stop with a summary.json saying the run is incomplete (it died with the
+/// signal, its last rows unwritten and no summary).
+#[test]
+fn an_interrupted_sim_keeps_every_step_before_the_stop_and_says_so() {
+    use std::os::unix::process::CommandExt;
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("long");
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["sim", scenario.to_str().unwrap(), "--set", "duration=3000", "--every", "100", "-q", "--out"])
+        .arg(&out)
+        .stderr(std::process::Stdio::piped())
+        .process_group(0)
+        .spawn()
+        .unwrap();
+    let leader = tmp.path().join("long.partial").join("leader.csv");
+    let t = std::time::Instant::now();
+    while std::fs::metadata(&leader).map_or(0, |m| m.len()) == 0 {
+        assert!(t.elapsed() < std::time::Duration::from_secs(60), "nothing written within 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(1000));
+    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
+    let o = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(130), "{stderr}");
+    assert!(stderr.contains("interrupted at t = ") && stderr.contains("long.partial holds every step"), "{stderr}");
+    let partial = tmp.path().join("long.partial");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(partial.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["complete"], false, "{summary}");
+    // Every follower's rows: one per 100th step recorded, through the last whole step.
+    for id in 1..=4 {
+        let recorded = summary["incomplete"][id.to_string()]["recorded"].as_u64().expect("recorded");
+        assert!(recorded >= 1000, "follower {id}: only {recorded} steps in a second");
+        let rows = std::fs::read_to_string(partial.join(format!("follower_{id}.csv"))).unwrap().lines().count() as u64;
+        assert_eq!(rows - 1, recorded.div_ceil(100), "follower {id}: {rows} lines for {recorded} steps");
+    }
+}
