@@ -121,11 +121,6 @@ pub struct GenerateArgs {
     pub force: bool,
 }
 
-/// "1 follower", "2 followers".
-pub fn count(n: usize, word: &str) -> String {
-    format!("{n} {word}{}", if n == 1 { "" } else { "s" })
-}
-
 fn generate(a: &GenerateArgs) -> Result<(), CliError> {
     use formation_topology::generate::{self, GraphKind, Spec};
     let graph = GraphKind::parse(&a.graph).ok_or_else(|| CliError::Input(format!("--graph {}: unknown", a.graph)))?;
@@ -159,9 +154,9 @@ fn generate(a: &GenerateArgs) -> Result<(), CliError> {
     println!(
         "wrote {}: {}, {} graph with {}, {} hearing the leader, λ_min(H) = {lambda}",
         a.out.display(),
-        count(s.followers.len(), "follower"),
+        crate::words::count(s.followers.len(), "follower"),
         graph.name(),
-        count(s.graph.edge_count(), "edge"),
+        crate::words::count(s.graph.edge_count(), "edge"),
         (0..s.graph.len()).filter(|&i| s.graph.hears_leader(i)).count(),
     );
     Ok(())

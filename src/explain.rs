@@ -107,7 +107,7 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
     t += &match listed {
         n if n == e.links.len() => {
             let they = if n == 1 { "it explains" } else { "one at a time they explain" };
-            format!("{} heard differently; {they} {}\n", crate::cli::count(n, "link"), pct(all))
+            format!("{} heard differently; {they} {}\n", crate::words::count(n, "link"), pct(all))
         }
         1 => format!(
             "{} links heard differently; the first explains {}, all of them one at a time {}\n",

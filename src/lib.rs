@@ -26,3 +26,4 @@ pub mod replay;
 pub mod report;
 pub mod runsize;
 pub mod study;
+pub mod words;

@@ -13,6 +13,10 @@ use formation_record::at_path;
 
 use crate::error::CliError;
 
+/// File, in a case folder, with every seed's record (written by
+/// `formation paper`, read by `formation report`).
+pub const SEEDS_FILE: &str = "seeds.json";
+
 /// Which command's output a folder is.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Kind {
@@ -41,7 +45,7 @@ impl Kind {
             || (self == Kind::Paper
                 && names.iter().any(|n| {
                     let case = dir.join(n);
-                    case.join(crate::report::SEEDS_FILE).is_file() && run_folder(&case)
+                    case.join(SEEDS_FILE).is_file() && run_folder(&case)
                 }))
     }
 
@@ -62,7 +66,7 @@ fn run_folder(dir: &Path) -> bool {
     names_in(dir).is_some_and(|names| {
         names.iter().all(|n| {
             let n = n.to_string_lossy();
-            formation_record::folder::is_run_entry(&n) || n == crate::report::SEEDS_FILE
+            formation_record::folder::is_run_entry(&n) || n == SEEDS_FILE
         })
     })
 }
@@ -226,7 +230,7 @@ mod tests {
         fs::write(o.dir().join("report.md"), "#\n").expect("write");
         fs::create_dir(o.dir().join("paper-asif")).expect("mkdir");
         fs::write(o.dir().join("paper-asif").join("summary.json"), "{}").expect("write");
-        fs::write(o.dir().join("paper-asif").join(crate::report::SEEDS_FILE), "[]").expect("write");
+        fs::write(o.dir().join("paper-asif").join(SEEDS_FILE), "[]").expect("write");
         o.finish().expect("finish");
         Output::begin(&paper, Kind::Paper).expect("an earlier paper");
         fs::write(paper.join("paper-asif").join("thesis.tex"), "x").expect("write");

@@ -14,8 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::CliError;
 
-/// File, in a case folder, with every seed's record (written by `formation paper`).
-pub const SEEDS_FILE: &str = "seeds.json";
+pub use crate::outdir::SEEDS_FILE;
 
 /// Times (s) at which docs/model.md §12 checks the estimator started from zero.
 pub const ESTIMATOR_CHECK_TIMES_S: [f64; 2] = [4.0, 6.0];
