@@ -37,6 +37,12 @@ pub const MAX_OUT_NAME_BYTES: usize = 200;
 /// more than [`MAX_PATH_BYTES`], a folder name of more than 255 bytes, or a
 /// last name of more than `leaf_most` bytes.
 pub fn check_out_path(flag: &str, path: &Path, leaf_most: usize) -> Result<(), CliError> {
+    if path.file_name().is_none() {
+        return Err(CliError::Input(format!(
+            "{flag} {}: name the folder or file to write (not `.`, `..` or `/`)",
+            path.display()
+        )));
+    }
     let total = path.as_os_str().len();
     let start = |name: &std::ffi::OsStr| -> String { name.to_string_lossy().chars().take(20).collect() };
     let names: Vec<&std::ffi::OsStr> = path

@@ -250,7 +250,7 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
     let scenario = a.scenario.load()?;
     let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
     crate::args::check_out_path("--out", &dir, crate::args::MAX_OUT_NAME_BYTES)?;
-    crate::runsize::check(&scenario, a.every, !a.no_csv, a.mcap, &dir)?;
+    crate::runsize::check(&scenario, a.every, !a.no_csv, a.mcap, &dir, "--every N, --no-csv or a shorter duration")?;
     if let Some(w) = scenario.estimator_stability_warning() {
         eprintln!("{w}");
     }
@@ -279,6 +279,7 @@ pub fn run_to_folder(
     let mut progress = Progress::new(scenario.steps() + 1, &scenario.name, quiet);
     let stop = interrupt::catch();
     let result = formation_sim::run_to_folder_until(scenario, opts, threads, Some(stop), |k| progress.set(k));
+    interrupt::release();
     progress.finish();
     match result {
         // Ctrl-C: what was recorded is kept, and said (it left a
@@ -311,15 +312,31 @@ mod interrupt {
         STOP.store(true, Ordering::Relaxed);
     }
 
-    /// Installs the handler for SIGINT and SIGTERM; the flag it sets.
+    /// Installs the handler for SIGINT and SIGTERM, once: a second Ctrl-C
+    /// ends the process as it always did (a run stuck writing). The flag
+    /// it sets.
     pub fn catch() -> &'static AtomicBool {
-        let handler = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
-        // SAFETY: the handler only stores to atomics.
-        unsafe {
-            libc::signal(libc::SIGINT, handler);
-            libc::signal(libc::SIGTERM, handler);
+        for signal in [libc::SIGINT, libc::SIGTERM] {
+            // SAFETY: a zeroed sigaction filled in; the handler only stores
+            // to atomics.
+            unsafe {
+                let mut action: libc::sigaction = std::mem::zeroed();
+                action.sa_sigaction = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
+                action.sa_flags = libc::SA_RESETHAND;
+                libc::sigemptyset(&mut action.sa_mask);
+                libc::sigaction(signal, &action, std::ptr::null_mut());
+            }
         }
         &STOP
+    }
+
+    /// The default actions again once the run is over.
+    pub fn release() {
+        // SAFETY: restoring the default disposition.
+        unsafe {
+            libc::signal(libc::SIGINT, libc::SIG_DFL);
+            libc::signal(libc::SIGTERM, libc::SIG_DFL);
+        }
     }
 
     /// The signal that stopped the run.

@@ -274,7 +274,10 @@ impl RunOptions {
             text = text.replace(&format!("{set}: ros2.robots: `{}`:", r.name()), &format!("{typed}:"));
             text = text.replace(&set, &typed);
         }
-        text.replace("--set ros2.enabled=true", "--ros2")
+        if self.ros2 {
+            text = text.replace("--set ros2.enabled=true", "--ros2");
+        }
+        text
     }
 
     /// What a run says before it starts, once its input is known to be good:
@@ -282,7 +285,8 @@ impl RunOptions {
     /// a run that would write more than a few GB; a run larger than its
     /// disk's free space is refused.
     pub fn warnings(&self, scenario: &Scenario, out: &Path) -> Result<(), CliError> {
-        crate::runsize::check(scenario, 1, true, self.mcap, out)?;
+        let less = if self.mcap { "a shorter duration or no --mcap" } else { "a shorter duration" };
+        crate::runsize::check(scenario, 1, true, self.mcap, out, less)?;
         if self.tls.is_none() && !self.quiet {
             eprintln!("{}", formation_net::node::UNAUTHENTICATED);
         }
@@ -640,15 +644,16 @@ pub(crate) fn dies_with_launch(c: &mut Command) {
     use std::os::unix::process::CommandExt;
     let parent = std::process::id();
     // SAFETY: between fork and exec only async-signal-safe calls (prctl,
-    // getppid, kill) run, on no shared state.
+    // getppid, _exit) run, on no shared state.
     unsafe {
         c.pre_exec(move || {
             if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
                 return Err(std::io::Error::last_os_error());
             }
-            // The launch died before the line above: go now.
+            // The launch died before the line above: go now (not by a
+            // signal: the launch's own handlers are still installed here).
             if libc::getppid() as u32 != parent {
-                libc::kill(libc::getpid(), libc::SIGTERM);
+                libc::_exit(1);
             }
             Ok(())
         });
@@ -1026,9 +1031,7 @@ pub(crate) mod zenoh_log {
 
     /// Starts collecting beside the run folder `out` (the monitor replaces `out` itself).
     pub fn start(out: &Path) -> Option<PathBuf> {
-        let mut dir = out.as_os_str().to_owned();
-        dir.push(".zenoh-log");
-        let dir = PathBuf::from(dir);
+        let dir = formation_record::folder::beside(out, ".zenoh-log");
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).ok()?;
         *DIR.lock().unwrap_or_else(|p| p.into_inner()) = Some(dir.clone());

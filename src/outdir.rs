@@ -49,15 +49,28 @@ impl Kind {
                 }))
     }
 
-    /// Whether the command writes an entry of this name in its folder.
-    fn writes(self, dir: &Path, name: &str) -> bool {
+    /// Whether the command writes an entry of this name in its folder (a
+    /// notes.md or data.csv of the user's is not one of them). `whole`: a
+    /// paper's case folders have their seeds.json (a finished output; an
+    /// unfinished `<out>.partial` may hold cases without it).
+    fn writes(self, dir: &Path, name: &str, whole: bool) -> bool {
         let path = dir.join(name);
         if path.is_dir() {
-            // Paper: a case's run folder (and its seeds.json).
-            return self == Kind::Paper && run_folder(&path);
+            // Paper: a case's run folder, with its seeds.json.
+            return self == Kind::Paper && run_folder(&path) && (!whole || path.join(SEEDS_FILE).is_file());
         }
-        let ext = Path::new(name).extension().and_then(|e| e.to_str()).unwrap_or("");
-        path.is_file() && matches!(ext, "md" | "csv" | "svg" | "png" | "txt")
+        let (stem, ext) = name.rsplit_once('.').unwrap_or((name, ""));
+        let report = name == "report.md"
+            || name == "claims.csv"
+            || (stem.starts_with("fig") && matches!(ext, "svg" | "png" | "csv"))
+            || (stem.starts_with("table") && ext == "csv");
+        let calibration =
+            matches!(name, "calibration.md" | "calibration.csv" | "sensitivity.csv" | "sensitivity.svg" | "fitted.txt");
+        path.is_file()
+            && match self {
+                Kind::Report | Kind::Paper => report,
+                Kind::Calibration => calibration,
+            }
     }
 }
 
@@ -84,9 +97,7 @@ pub struct Output {
 }
 
 fn partial_of(out: &Path) -> PathBuf {
-    let mut partial = out.as_os_str().to_owned();
-    partial.push(".partial");
-    PathBuf::from(partial)
+    formation_record::folder::beside(out, ".partial")
 }
 
 /// Whether the command may write `out`: it is absent, empty, or an
@@ -162,7 +173,7 @@ fn refuse_foreign(dir: &Path, kind: Kind, marker: bool) -> Result<(), CliError> 
         )));
     }
     let mut foreign: Vec<String> =
-        names.iter().map(|n| n.to_string_lossy().into_owned()).filter(|n| !kind.writes(dir, n)).collect();
+        names.iter().map(|n| n.to_string_lossy().into_owned()).filter(|n| !kind.writes(dir, n, marker)).collect();
     foreign.sort();
     match foreign.first() {
         None => Ok(()),
@@ -202,7 +213,18 @@ mod tests {
         let e = Output::begin(&out, Kind::Paper).err().expect("a folder of the user's");
         assert!(e.to_string().contains("holds notes"), "{e}");
         fs::remove_dir_all(out.join("notes")).expect("rm");
-        // A user's file among the report's.
+        // A user's file among the report's, even one named like a report's.
+        fs::write(out.join("notes.md"), "mine").expect("write");
+        let e = Output::begin(&out, Kind::Report).err().expect("a user's notes.md");
+        assert!(e.to_string().contains("holds notes.md"), "{e}");
+        fs::remove_file(out.join("notes.md")).expect("rm");
+        // `--out r/`: staged beside it, not inside it.
+        let slash = t.path().join("slash").join("");
+        let o = Output::begin(&slash, Kind::Report).expect("a trailing slash");
+        assert!(o.dir().ends_with("slash.partial"), "{}", o.dir().display());
+        fs::write(o.dir().join("report.md"), "#\n").expect("write");
+        o.finish().expect("finish");
+        assert!(t.path().join("slash").join("report.md").is_file());
         fs::write(out.join("thesis.tex"), "precious").expect("write");
         let e = Output::begin(&out, Kind::Report).err().expect("a user's file");
         assert!(e.to_string().contains("holds thesis.tex"), "{e}");

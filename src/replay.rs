@@ -70,9 +70,13 @@ pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
             a.run.display(),
             what.join("; ")
         ))),
-        Verdict::Differs => Err(CliError::Run(format!(
-            "the replay of {} differs from the run: a bug in the hearing record or in the step's purity",
-            a.run.display()
+        Verdict::Differs(damaged) => Err(CliError::Run(format!(
+            "the replay of {} differs from the run: a bug in the hearing record or in the step's purity{}",
+            a.run.display(),
+            match damaged.is_empty() {
+                true => String::new(),
+                false => format!(" (besides, the run's own files are damaged: {})", damaged.join("; ")),
+            }
         ))),
     }
 }
@@ -82,8 +86,9 @@ pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
 pub enum Verdict {
     /// The CSVs and summary.json byte for byte.
     Identical,
-    /// Whole files that differ.
-    Differs,
+    /// Whole files that differ (and which of the run's files are damaged
+    /// besides).
+    Differs(Vec<String>),
     /// The run's files missing, cut short or not JSON (which).
     Damaged(Vec<String>),
 }
@@ -136,10 +141,12 @@ pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(Verdict,
         text += &format!("replay written to {}\n", o.display());
     }
     let damaged: Vec<String> = diffs.iter().filter_map(|d| d.damage.clone()).collect();
-    let verdict = match (diffs.is_empty(), damaged.is_empty()) {
+    // Damage explains only the files it is in: a whole file that differs
+    // besides still blames the program.
+    let verdict = match (diffs.is_empty(), damaged.len() == diffs.len()) {
         (true, _) => Verdict::Identical,
-        (false, true) => Verdict::Differs,
-        (false, false) => Verdict::Damaged(damaged),
+        (false, true) => Verdict::Damaged(damaged),
+        (false, false) => Verdict::Differs(damaged),
     };
     Ok((verdict, text))
 }

@@ -41,12 +41,14 @@ pub fn free_bytes(dir: &Path) -> Option<u64> {
 /// Refuses a run that would write more than its disk has free (it started,
 /// filled the disk and failed, leaving a large `<out>.partial`); one line
 /// before a run that would write more than [`LARGE_RUN_BYTES`].
-pub fn check(scenario: &Scenario, every: u64, csv: bool, mcap: bool, dir: &Path) -> Result<(), CliError> {
+/// `less`: what writes less with this command (sim: "--every N or
+/// --no-csv"; launch: "a shorter duration").
+pub fn check(scenario: &Scenario, every: u64, csv: bool, mcap: bool, dir: &Path, less: &str) -> Result<(), CliError> {
     let bytes = projected_bytes(scenario, every, csv, mcap);
     if let Some(free) = free_bytes(dir).filter(|&free| bytes > free) {
         return Err(CliError::Input(format!(
-            "this run would write about {:.1} GB to {}, which has {:.1} GB free ({} samples of {} followers): --every \
-             N, --no-csv or a shorter duration write less",
+            "this run would write about {:.1} GB to {}, which has {:.1} GB free ({} samples of {} followers): {less} \
+             writes less",
             bytes as f64 / 1e9,
             dir.display(),
             free as f64 / 1e9,
@@ -54,15 +56,15 @@ pub fn check(scenario: &Scenario, every: u64, csv: bool, mcap: bool, dir: &Path)
             scenario.followers.len()
         )));
     }
-    warn_if_large(scenario, bytes, dir);
+    warn_if_large(scenario, bytes, dir, less);
     Ok(())
 }
 
 /// One line before a run that would write more than [`LARGE_RUN_BYTES`].
-fn warn_if_large(scenario: &Scenario, bytes: u64, dir: &Path) {
+fn warn_if_large(scenario: &Scenario, bytes: u64, dir: &Path, less: &str) {
     if bytes > LARGE_RUN_BYTES {
         eprintln!(
-            "warning: this run will write about {:.1} GB to {} ({} samples of {} followers); --every N or --no-csv write less",
+            "warning: this run will write about {:.1} GB to {} ({} samples of {} followers); {less} writes less",
             bytes as f64 / 1e9,
             dir.display(),
             scenario.steps() + 1,

@@ -45,9 +45,7 @@ pub struct RunWriter {
 impl RunWriter {
     pub fn create(opts: &RecordOptions, ids: &[u32]) -> std::io::Result<Self> {
         refuse_foreign_folder(&opts.dir)?;
-        let mut partial = opts.dir.clone().into_os_string();
-        partial.push(".partial");
-        let dir = PathBuf::from(partial);
+        let dir = beside(&opts.dir, ".partial");
         if dir.exists() {
             refuse_foreign_partial(&dir)?;
             fs::remove_dir_all(&dir).map_err(at_path(&dir, "cannot remove the old folder"))?;
@@ -217,9 +215,7 @@ pub fn refuse_foreign_folder(dir: &Path) -> std::io::Result<()> {
 /// a run writes. For a command to check before it starts anything.
 pub fn refuse_replacing_foreign(dir: &Path) -> std::io::Result<()> {
     refuse_foreign_folder(dir)?;
-    let mut partial = dir.as_os_str().to_owned();
-    partial.push(".partial");
-    refuse_foreign_partial(Path::new(&partial))
+    refuse_foreign_partial(&beside(dir, ".partial"))
 }
 
 /// `<dir>.partial`, left by a run that did not finish, is removed only if
@@ -273,6 +269,25 @@ pub fn is_run_entry(name: &str) -> bool {
         )
 }
 
+/// The sibling of folder `dir` named `<its name><suffix>`: `runs/a/` and
+/// `runs/a` give `runs/a.partial` (appending to the path put it inside the
+/// folder, `runs/a/.partial`, for an --out typed with a trailing slash).
+pub fn beside(dir: &Path, suffix: &str) -> PathBuf {
+    match dir.file_name() {
+        Some(name) => {
+            let mut name = name.to_owned();
+            name.push(suffix);
+            dir.with_file_name(name)
+        }
+        // `.`, `..`, `/`: refused by the commands before they write.
+        None => {
+            let mut path = dir.as_os_str().to_owned();
+            path.push(suffix);
+            PathBuf::from(path)
+        }
+    }
+}
+
 fn refused(message: String) -> std::io::Error {
     std::io::Error::new(std::io::ErrorKind::AlreadyExists, message)
 }
@@ -302,4 +317,18 @@ fn append(path: &Path, buffer: &mut Vec<u8>) -> std::io::Result<()> {
 /// not: "File name too long (os error 36)"), of the same kind.
 pub fn at_path<'a>(path: &'a Path, what: &'a str) -> impl FnOnce(std::io::Error) -> std::io::Error + 'a {
     move |e| std::io::Error::new(e.kind(), format!("{}: {what}: {e}", path.display()))
+}
+
+#[cfg(test)]
+mod beside_tests {
+    use super::beside;
+    use std::path::Path;
+
+    #[test]
+    fn a_trailing_slash_still_names_a_sibling() {
+        for dir in ["runs/a", "runs/a/", "runs/a/.", "./runs/a//"] {
+            assert_eq!(beside(Path::new(dir), ".partial").file_name().unwrap(), "a.partial", "{dir}");
+            assert!(beside(Path::new(dir), ".partial").ends_with("runs/a.partial"), "{dir}");
+        }
+    }
 }

@@ -151,14 +151,15 @@ fn cell(v: Option<f64>, prec: usize) -> String {
     v.map_or_else(|| "—".to_string(), |x| format!("{x:.prec$}"))
 }
 
-/// The printed table of metrics under faults of a run of `duration_s`:
-/// the peaks' window and the recovery say where the run ended first.
+/// The printed table of metrics under faults of a run recorded until
+/// `duration_s` (its end, or where an incomplete run's record ends): the
+/// peaks' window and the recovery say where the record ended first.
 pub fn table(faults: &[FaultSummary], duration_s: f64) -> String {
     let mut out = String::new();
     for f in faults {
         let until = f.to + AFTER_S;
         let peaks = if until > duration_s {
-            format!("peaks from {} s to the run's end at {duration_s} s", f.from)
+            format!("peaks from {} s to the record's end at {duration_s} s", f.from)
         } else {
             format!("peaks from {} s to {until} s", f.from)
         };
@@ -212,7 +213,7 @@ mod tests {
             followers: [(3, OutageMetrics::default())].into_iter().collect(),
         };
         let short = table(std::slice::from_ref(&f), 2.0);
-        assert!(short.contains("peaks from 1 s to the run's end at 2 s"), "{short}");
+        assert!(short.contains("peaks from 1 s to the record's end at 2 s"), "{short}");
         assert!(short.contains("recovery: not judged") && !short.contains("not rec."), "{short}");
         let long = table(&[f], 30.0);
         assert!(long.contains("peaks from 1 s to 6.5 s; recovery: estimator error < 0.02 m for 1 s"), "{long}");

@@ -171,8 +171,21 @@ impl Summary {
         if let Some(short) = self.shortfall_text() {
             out += &format!("incomplete run: {short}; — marks a metric whose window was not reached\n");
         }
-        out += &outage::table(&self.faults, self.duration);
+        out += &outage::table(&self.faults, self.recorded_until());
         out
+    }
+}
+
+impl Summary {
+    /// Where the record ends (s): the run's duration, or for an incomplete
+    /// run the last sample of its shortest follower that ended early (one
+    /// with gaps ran to the end).
+    pub fn recorded_until(&self) -> f64 {
+        self.incomplete
+            .values()
+            .filter(|s| s.recorded + s.in_gaps < s.expected)
+            .map(|s| (s.recorded + s.in_gaps).saturating_sub(1) as f64 * self.dt)
+            .fold(self.duration, f64::min)
     }
 }
 

@@ -452,13 +452,18 @@ pub fn compare(run: &Path, replay: &Path, scenario: &Scenario) -> Vec<Difference
     files.push(("summary.json".into(), None));
     let mut out = Vec::new();
     for (name, follower) in files {
-        let a = std::fs::read_to_string(run.join(&name)).ok();
+        let read = std::fs::read_to_string(run.join(&name));
         let b = std::fs::read_to_string(replay.join(&name)).ok();
-        if a == b {
+        if read.as_ref().ok() == b.as_ref() {
             continue;
         }
-        let missing = a.is_none();
-        let (a, b) = (a.unwrap_or_default(), b.unwrap_or_default());
+        // Why the run's file could not be read, if it could not.
+        let unread = read.as_ref().err().map(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => format!("{name} is missing"),
+            std::io::ErrorKind::InvalidData => format!("{name} is not UTF-8 text"),
+            _ => format!("{name} cannot be read ({e})"),
+        });
+        let (a, b) = (read.unwrap_or_default(), b.unwrap_or_default());
         let (la, lb): (Vec<&str>, Vec<&str>) = (a.lines().collect(), b.lines().collect());
         let line = (0..la.len().max(lb.len())).find(|&i| la.get(i) != lb.get(i)).unwrap_or(0);
         let (x, y) = (la.get(line).copied().unwrap_or("(no line)"), lb.get(line).copied().unwrap_or("(no line)"));
@@ -470,7 +475,7 @@ pub fn compare(run: &Path, replay: &Path, scenario: &Scenario) -> Vec<Difference
             column: None,
             run: x.to_string(),
             replay: y.to_string(),
-            damage: damage(&name, missing, &a, &la, &lb, line),
+            damage: damage(&name, unread, &a, &la, &lb, line),
         };
         if name.ends_with(".csv") && line > 0 {
             let header: Vec<&str> = la.first().copied().unwrap_or_default().split(',').collect();
@@ -489,12 +494,19 @@ pub fn compare(run: &Path, replay: &Path, scenario: &Scenario) -> Vec<Difference
 }
 
 /// How the run's file `name` is damaged, if the first difference at
-/// `line` (0-based) is damage: the file missing, ending early, a line cut
-/// short of its header's columns, or summary.json not JSON. A value that
-/// differs in a whole file is not damage.
-fn damage(name: &str, missing: bool, text: &str, run: &[&str], replay: &[&str], line: usize) -> Option<String> {
-    if missing {
-        return Some(format!("{name} is missing"));
+/// `line` (0-based) is damage: the file missing or unreadable (`unread`),
+/// ending early, a line cut short of its header's columns, or summary.json
+/// not JSON. A value that differs in a whole file is not damage.
+fn damage(
+    name: &str,
+    unread: Option<String>,
+    text: &str,
+    run: &[&str],
+    replay: &[&str],
+    line: usize,
+) -> Option<String> {
+    if unread.is_some() {
+        return unread;
     }
     if name.ends_with(".json") {
         return serde_json::from_str::<serde_json::Value>(text).err().map(|e| format!("{name} is not JSON ({e})"));

@@ -588,7 +588,7 @@ pub fn write(out: &Path, faulted: &[&Case], study: Option<&Study>) -> Result<Wri
                 terminal,
                 "\n{}{first}:{}",
                 c.label,
-                formation_record::outage::table(&c.summary().faults, c.summary().duration)
+                formation_record::outage::table(&c.summary().faults, c.summary().recorded_until())
             );
         }
     }

@@ -301,6 +301,26 @@ fn damaged_copies_are_named(run: &Path, scratch: &Path) {
         assert_eq!(stderr.trim().lines().count(), 1, "{tag}: one line, not {stderr}");
         assert!(!stderr.contains("a bug"), "{tag}: the program blamed for a damaged folder: {stderr}");
     }
+    // Not text: named as such (it was called missing).
+    let copy = scratch.join("binary");
+    std::fs::create_dir(&copy).expect("mkdir");
+    for e in std::fs::read_dir(run).expect("run").flatten().filter(|e| e.path().is_file()) {
+        std::fs::copy(e.path(), copy.join(e.file_name())).expect("copy");
+    }
+    let mut bytes = csv.clone().into_bytes();
+    bytes.extend_from_slice(b"\xff\xfe\n");
+    std::fs::write(copy.join("follower_2.csv"), bytes).expect("write");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(&copy).output().expect("replay");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "binary: {stderr}");
+    assert!(stderr.contains("follower_2.csv is not UTF-8 text"), "binary: {stderr}");
+    // Damage beside a whole file that differs: the difference still blames the program, exit 1.
+    std::fs::remove_file(copy.join("follower_1.csv")).expect("rm");
+    std::fs::write(copy.join("follower_2.csv"), csv.replacen("\n0.001,", "\n0.001,9", 1)).expect("write");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(&copy).output().expect("replay");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "mixed: {stderr}");
+    assert!(stderr.contains("a bug") && stderr.contains("follower_1.csv is missing"), "mixed: {stderr}");
 }
 
 /// The model's hearing (every message `network.delay_steps` late, the
