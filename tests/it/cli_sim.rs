@@ -521,7 +521,7 @@ fn an_interrupted_sim_keeps_every_step_before_the_stop_and_says_so() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("long");
     let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_formation"))
+    let child = Command::new(env!("CARGO_BIN_EXE_formation"))
         .args(["sim", scenario.to_str().unwrap(), "--set", "duration=3000", "--every", "100", "-q", "--out"])
         .arg(&out)
         .stderr(std::process::Stdio::piped())

@@ -111,14 +111,13 @@ fn zenohs_own_lines_go_to_the_run_folder_and_name_each_node() {
     assert_eq!(z["transports_closed"], serde_json::json!([]), "{z}");
 }
 
-#[test]
-fn sigint_stops_every_child_and_keeps_the_folder() {
+/// A 300 s launch called `run` (`--run`) into `<tmp>/run`, once its monitor has
+/// written some samples (its folder is `<out>.partial` until it finishes).
+fn launched_and_recording(run: &str) -> (tempfile::TempDir, std::path::PathBuf, Group) {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
     let base = Ports::free(LAUNCH_PORTS).release().to_string();
-    let mut g = Group::launch(&out, &["duration=300"], &["--base-port", &base, "--run", "launch-int"]);
-    // Wait until the monitor has written some samples (its folder is
-    // `<out>.partial` until it finishes).
+    let mut g = Group::launch(&out, &["duration=300"], &["--base-port", &base, "--run", run]);
     let partial = tmp.path().join("run.partial").join("leader.csv");
     let t = Instant::now();
     while std::fs::metadata(&partial).map_or(0, |m| m.len()) < 10_000 {
@@ -126,6 +125,12 @@ fn sigint_stops_every_child_and_keeps_the_folder() {
         assert!(g.0.try_wait().expect("try_wait").is_none(), "launch ended early");
         std::thread::sleep(Duration::from_millis(100));
     }
+    (tmp, out, g)
+}
+
+#[test]
+fn sigint_stops_every_child_and_keeps_the_folder() {
+    let (_tmp, out, mut g) = launched_and_recording("launch-int");
     std::thread::sleep(Duration::from_millis(500));
     let sent = Command::new("kill").args(["-INT", &g.0.id().to_string()]).status().expect("kill");
     assert!(sent.success());
@@ -232,17 +237,7 @@ fn an_agent_refuses_a_repeated_or_unknown_follower() {
 /// it received (they ran on to the end of the run).
 #[test]
 fn a_killed_launch_takes_its_nodes_with_it() {
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let out = tmp.path().join("run");
-    let base = Ports::free(LAUNCH_PORTS).release().to_string();
-    let mut g = Group::launch(&out, &["duration=300"], &["--base-port", &base, "--run", "launch-kill"]);
-    let partial = tmp.path().join("run.partial").join("leader.csv");
-    let t = Instant::now();
-    while std::fs::metadata(&partial).map_or(0, |m| m.len()) < 10_000 {
-        assert!(t.elapsed() < LIMIT, "no samples recorded within {LIMIT:?}");
-        assert!(g.0.try_wait().expect("try_wait").is_none(), "launch ended early");
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    let (_tmp, out, mut g) = launched_and_recording("launch-kill");
     let nodes = g.members().len();
     assert!(nodes >= 6, "the launch and its nodes: {:?}", g.members());
     let sent = Command::new("kill").args(["-KILL", &g.0.id().to_string()]).status().expect("kill");
