@@ -284,16 +284,18 @@ pub fn run_to_folder(
     match result {
         // Ctrl-C: what was recorded is kept, and said (it left a
         // `<out>.partial` without its last rows or a summary, silently).
-        Err(formation_sim::SimError::Kept { source, kept }) if matches!(&*source, formation_sim::SimError::Io(e) if e.kind() == std::io::ErrorKind::Interrupted) => {
-            Err(CliError::Interrupted(
-                format!(
-                    "{source}: {} holds every step before it, and summary.json says `\"complete\": false`",
-                    kept.display()
-                )
-                .replace("writing the run folder: ", ""),
-                interrupt::signal() as u8,
-            ))
-        }
+        Err(formation_sim::SimError::Kept { source, kept }) => match *source {
+            formation_sim::SimError::Io(e) if e.kind() == std::io::ErrorKind::Interrupted => {
+                Err(CliError::Interrupted(
+                    format!(
+                        "{e}: {} holds every step before it, and summary.json says `\"complete\": false`",
+                        kept.display()
+                    ),
+                    interrupt::signal() as u8,
+                ))
+            }
+            source => Err(formation_sim::SimError::Kept { source: Box::new(source), kept }.into()),
+        },
         r => Ok(r?),
     }
 }

@@ -104,23 +104,16 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
     let listed = top.min(e.links.len());
     let shown: f64 = e.links.iter().take(listed).map(|(_, s)| s.share).sum();
     let all: f64 = e.links.iter().map(|(_, s)| s.share).sum();
+    let heard = crate::words::count(e.links.len(), "link");
     t += &match listed {
         n if n == e.links.len() => {
             let they = if n == 1 { "it explains" } else { "one at a time they explain" };
-            format!("{} heard differently; {they} {}\n", crate::words::count(n, "link"), pct(all))
+            format!("{heard} heard differently; {they} {}\n", pct(all))
         }
-        1 => format!(
-            "{} links heard differently; the first explains {}, all of them one at a time {}\n",
-            e.links.len(),
-            pct(shown),
-            pct(all)
-        ),
-        n => format!(
-            "{} links heard differently; the first {n} explain {}, all of them one at a time {}\n",
-            e.links.len(),
-            pct(shown),
-            pct(all)
-        ),
+        n => {
+            let first = if n == 1 { "the first explains".to_string() } else { format!("the first {n} explain") };
+            format!("{heard} heard differently; {first} {}, all of them one at a time {}\n", pct(shown), pct(all))
+        }
     };
     t += &format!(
         "\nwindows of {:.3} s, by what replaying the run with that window as modelled takes away:\n",

@@ -10,6 +10,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use formation_record::at_path;
+use formation_record::folder::names_in;
 
 use crate::error::CliError;
 
@@ -82,10 +83,6 @@ fn run_folder(dir: &Path) -> bool {
             formation_record::folder::is_run_entry(&n) || n == SEEDS_FILE
         })
     })
-}
-
-fn names_in(dir: &Path) -> Option<Vec<OsString>> {
-    Some(fs::read_dir(dir).ok()?.flatten().map(|e| e.file_name()).collect())
 }
 
 /// An output folder being written; removed unless [`Output::finish`]ed.

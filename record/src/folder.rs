@@ -225,7 +225,7 @@ fn refuse_foreign_partial(dir: &Path) -> std::io::Result<()> {
 }
 
 /// The names in folder `dir`; None if it cannot be read (it does not exist).
-fn names_in(dir: &Path) -> Option<Vec<std::ffi::OsString>> {
+pub fn names_in(dir: &Path) -> Option<Vec<std::ffi::OsString>> {
     Some(fs::read_dir(dir).ok()?.flatten().map(|e| e.file_name()).collect())
 }
 
