@@ -97,13 +97,14 @@ impl Endpoints {
     pub fn new(links: Links) -> Result<Self, CliError> {
         let unix = match links {
             Links::Tcp => None,
-            Links::Unix => Some(
+            Links::Unix => Some({
+                sweep_orphaned_sockets(&std::env::temp_dir());
                 tempfile::Builder::new()
-                    .prefix("formation-links-")
+                    .prefix(&format!("{LINKS_PREFIX}{}-", std::process::id()))
                     .permissions(std::os::unix::fs::PermissionsExt::from_mode(0o700))
                     .tempdir()
-                    .map_err(|e| CliError::Run(format!("making a folder for the nodes' unix sockets: {e}")))?,
-            ),
+                    .map_err(|e| CliError::Run(format!("making a folder for the nodes' unix sockets: {e}")))?
+            }),
         };
         Ok(Self { unix })
     }
@@ -123,6 +124,38 @@ impl Endpoints {
             l.push(self.dial(port));
         }
         l
+    }
+}
+
+/// The start of the name of a launch's sockets folder, followed by the
+/// launch's process id.
+const LINKS_PREFIX: &str = "formation-links-";
+
+/// Removes the sockets folders in `tmp` of launches that are gone (killed
+/// with SIGKILL, which leaves no chance to remove them): ours, named for a
+/// process that no longer runs, holding nothing but sockets. Anything else
+/// is left alone.
+fn sweep_orphaned_sockets(tmp: &Path) {
+    use std::os::unix::fs::{FileTypeExt, MetadataExt};
+    let Ok(entries) = std::fs::read_dir(tmp) else { return };
+    // SAFETY: geteuid has no preconditions and cannot fail.
+    let me = unsafe { libc::geteuid() };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let Some(pid) = name.to_str().and_then(|n| n.strip_prefix(LINKS_PREFIX)).and_then(|r| r.split_once('-')) else {
+            continue;
+        };
+        let Ok(pid) = pid.0.parse::<u32>() else { continue };
+        let dir = e.path();
+        let ours = std::fs::symlink_metadata(&dir).is_ok_and(|m| m.is_dir() && m.uid() == me);
+        if !ours || pid == std::process::id() || Path::new(&format!("/proc/{pid}")).exists() {
+            continue;
+        }
+        let Ok(inside) = std::fs::read_dir(&dir) else { continue };
+        let only_sockets = inside.flatten().all(|s| s.file_type().is_ok_and(|t| t.is_socket()));
+        if only_sockets {
+            let _ = std::fs::remove_dir_all(&dir);
+        }
     }
 }
 
@@ -528,7 +561,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
         .build()
         .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
-    let logs = zenoh_log::start(&out);
+    let logs = zenoh_log::start(&out)?;
     let result = runtime.block_on(launch(a, zfile.as_ref(), &scenario, &run, &out, &exe, &mut children));
     drop(children);
     if let Some(said) = zenoh_log::finish(logs, &out) {
@@ -950,6 +983,37 @@ mod tests {
         Cli::try_parse_from(args).expect("parses").l
     }
 
+    /// A killed launch's sockets folder goes at the next launch; a live
+    /// launch's, a folder holding more than sockets, and any other name stay.
+    #[test]
+    fn only_the_sockets_folders_of_gone_launches_are_swept() {
+        let tmp = tempfile::tempdir().expect("tmp");
+        let gone = 3_999_999_999u32; // above any pid_max
+        let make = |name: &str, socket: bool, file: bool| {
+            let d = tmp.path().join(name);
+            std::fs::create_dir(&d).expect("dir");
+            if socket {
+                std::os::unix::net::UnixListener::bind(d.join("24001")).expect("socket");
+            }
+            if file {
+                std::fs::write(d.join("notes.txt"), "mine").expect("file");
+            }
+            d
+        };
+        let swept = make(&format!("{LINKS_PREFIX}{gone}-aB3x"), true, false);
+        let empty = make(&format!("{LINKS_PREFIX}{gone}-Qz9k"), false, false);
+        let live = make(&format!("{LINKS_PREFIX}{}-Zz1q", std::process::id()), true, false);
+        let mixed = make(&format!("{LINKS_PREFIX}{gone}-c4Dd"), true, true);
+        let unnamed = make(&format!("{LINKS_PREFIX}aB3xyz"), true, false);
+        let other = make("formation-linksX-1-a", true, false);
+        sweep_orphaned_sockets(tmp.path());
+        for (d, kept) in
+            [(&swept, false), (&empty, false), (&live, true), (&mixed, true), (&unnamed, true), (&other, true)]
+        {
+            assert_eq!(d.exists(), kept, "{}: expected {}", d.display(), if kept { "kept" } else { "swept" });
+        }
+    }
+
     #[test]
     fn links_are_unix_unless_tls_or_a_foreign_router() {
         let links = |extra: &[&str]| launch_args(extra).links();
@@ -1019,6 +1083,7 @@ mod tests {
 /// `zenoh-log/` and the launch says in one line how many errors and
 /// warnings which nodes logged, with the first error.
 pub(crate) mod zenoh_log {
+    use crate::error::CliError;
     use std::path::{Path, PathBuf};
     use std::process::Command;
     use std::sync::Mutex;
@@ -1027,15 +1092,42 @@ pub(crate) mod zenoh_log {
     static DIR: Mutex<Option<PathBuf>> = Mutex::new(None);
 
     /// The run folder's subfolder that keeps the logs.
-    pub const SUBDIR: &str = "zenoh-log";
+    pub const SUBDIR: &str = formation_net::session::ZENOH_LOG_SUBDIR;
 
-    /// Starts collecting beside the run folder `out` (the monitor replaces `out` itself).
-    pub fn start(out: &Path) -> Option<PathBuf> {
-        let dir = formation_record::folder::beside(out, ".zenoh-log");
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).ok()?;
+    /// Starts collecting beside the run folder `out` (the monitor replaces
+    /// `out` itself), in `<out>.zenoh-log`. One left there by a launch that
+    /// was killed is replaced; a folder there that holds anything but
+    /// zenoh logs is the user's, and refused.
+    pub fn start(out: &Path) -> Result<Option<PathBuf>, CliError> {
+        let dir = formation_record::folder::beside(out, formation_net::session::ZENOH_LOG_BESIDE);
+        if let Ok(m) = std::fs::symlink_metadata(&dir) {
+            let foreign = if m.is_dir() {
+                formation_record::folder::names_in(&dir).unwrap_or_default().into_iter().find(|n| {
+                    let p = dir.join(n);
+                    !(n.to_string_lossy().ends_with(".log") && std::fs::symlink_metadata(p).is_ok_and(|m| m.is_file()))
+                })
+            } else {
+                Some(std::ffi::OsString::new())
+            };
+            if let Some(name) = foreign {
+                let what = if name.is_empty() {
+                    "exists and is not a folder".to_string()
+                } else {
+                    format!("holds {}, which a launch does not write", name.to_string_lossy())
+                };
+                return Err(CliError::Input(format!(
+                    "--out: {} (where a launch keeps zenoh's log lines while it runs) {what}: refusing to replace it \
+                     (move it, or choose another --out)",
+                    dir.display()
+                )));
+            }
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+        if std::fs::create_dir_all(&dir).is_err() {
+            return Ok(None);
+        }
         *DIR.lock().unwrap_or_else(|p| p.into_inner()) = Some(dir.clone());
-        Some(dir)
+        Ok(Some(dir))
     }
 
     /// Tells node `name`'s command where its zenoh lines go.

@@ -490,6 +490,32 @@ pub async fn open(args: &ZenohArgs) -> Result<zenoh::Session, SessionError> {
 /// log lines go to (appended), instead of stderr.
 pub const ZENOH_LOG_ENV: &str = "FORMATION_ZENOH_LOG";
 
+/// What `formation launch` appends to the run folder's name for the folder
+/// its nodes' zenoh logs go to while the run lasts.
+pub const ZENOH_LOG_BESIDE: &str = ".zenoh-log";
+
+/// The run folder's subfolder that keeps them after the run.
+pub const ZENOH_LOG_SUBDIR: &str = "zenoh-log";
+
+/// For a monitor whose `formation launch` is gone (killed with SIGKILL, so
+/// its nodes were sent SIGTERM and it cannot gather their logs): moves the
+/// launch's zenoh-log folder beside run folder `out` into it, as the launch
+/// would have. `launched_by` is the monitor's parent process when it
+/// started. Nothing happens for a node run by hand, or while the launch
+/// lives (it moves them itself).
+pub fn keep_zenoh_logs_of_a_gone_launch(out: &std::path::Path, launched_by: u32) {
+    let Some(file) = std::env::var_os(ZENOH_LOG_ENV) else { return };
+    let Some(dir) = std::path::Path::new(&file).parent() else { return };
+    let kept = out.join(ZENOH_LOG_SUBDIR);
+    if std::os::unix::process::parent_id() == launched_by
+        || dir != formation_record::folder::beside(out, ZENOH_LOG_BESIDE)
+        || kept.exists()
+    {
+        return;
+    }
+    let _ = std::fs::rename(dir, kept);
+}
+
 /// The line a node writes into its zenoh log ([`ZENOH_LOG_ENV`])
 /// when a session opens, so that the launch can name the node behind a zid
 /// in zenoh's own lines ("… to 30e9b3…. Closing transport!").

@@ -18,6 +18,10 @@ use common::{Group, Ports, LAUNCH_PORTS, LIMIT};
 fn short_launch_succeeds_and_leaves_nothing_behind() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
+    // What a launch killed outright left beside its run folder (replaced).
+    let stale = tmp.path().join("run.zenoh-log");
+    std::fs::create_dir(&stale).expect("mkdir");
+    std::fs::write(stale.join("agent-1.log"), "a killed launch's line\n").expect("write");
     let base = Ports::free(LAUNCH_PORTS).release().to_string();
     let mut g = Group::launch(&out, &["duration=0.5"], &["--base-port", &base, "--run", "launch-ok"]);
     let status = g.wait(LIMIT);
@@ -32,6 +36,7 @@ fn short_launch_succeeds_and_leaves_nothing_behind() {
     // Zenoh logged nothing: no zenoh-log/ and no zenoh_log in network.json.
     assert!(!out.join("zenoh-log").exists(), "a zenoh-log/ folder for a run where zenoh said nothing");
     assert!(common::json(&out, "network.json").get("zenoh_log").is_none());
+    assert!(!stale.exists(), "the old {} stays", stale.display());
 }
 
 /// A follower that hears 8 sources (the complete graph of 8 followers,
@@ -255,6 +260,11 @@ fn a_killed_launch_takes_its_nodes_with_it() {
     let network = common::json(&out, "network.json");
     assert_eq!(network["ending"], "interrupted", "{network}");
     assert_eq!(network["signal"], "SIGTERM", "{network}");
+    // The launch could not gather its nodes' zenoh logs; the monitor did.
+    let beside = out.with_file_name("run.zenoh-log");
+    assert!(!beside.exists(), "{} left beside the run folder", beside.display());
+    let logs = formation_record::folder::names_in(&out.join("zenoh-log")).unwrap_or_default();
+    assert!(logs.len() >= nodes - 1, "zenoh-log/ in the run folder holds {logs:?}, for {nodes} processes");
 }
 
 /// SIGTERM ends the monitor with 143 (128 + 15, the convention), Ctrl-C with
@@ -567,4 +577,23 @@ fn an_out_folder_of_the_users_is_refused_up_front() {
     let left: Vec<_> = std::fs::read_dir(tmp.path()).expect("tmp").flatten().map(|e| e.file_name()).collect();
     assert_eq!(left, vec![std::ffi::OsString::from("mine")], "something was written beside it");
     assert_eq!(std::fs::read_to_string(mine.join("keep.txt")).expect("keep.txt"), "mine");
+
+    // The folder beside it where a launch keeps zenoh's lines while it
+    // runs: replaced when a killed launch left it, refused when it holds
+    // anything else.
+    let logs = tmp.path().join("run.zenoh-log");
+    std::fs::create_dir(&logs).expect("mkdir");
+    std::fs::write(logs.join("leader.log"), "a killed launch's").expect("write");
+    std::fs::write(logs.join("keep.txt"), "mine").expect("write");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["launch", common::SCENARIO, "-q", "--base-port", &base, "--out"])
+        .arg(tmp.path().join("run"))
+        .output()
+        .expect("formation launch");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "must be bad input: {:?}; stderr: {stderr}", o.status);
+    assert!(stderr.contains("run.zenoh-log") && stderr.contains("holds keep.txt"), "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "one line, not {stderr}");
+    assert_eq!(std::fs::read_to_string(logs.join("keep.txt")).expect("keep.txt"), "mine");
+    assert!(!tmp.path().join("run").exists() && !tmp.path().join("run.partial").exists());
 }

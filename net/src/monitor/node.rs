@@ -46,6 +46,7 @@ pub async fn run(
     shutdown: impl Future<Output = Signal>,
 ) -> Result<(Ending, Option<Verdict>), Error> {
     let began = Instant::now();
+    let launched_by = std::os::unix::process::parent_id();
     let (scenario, keys) = args.node.load(MONITOR)?;
     check(args)?;
     let web = serve_live_page(args, &scenario, &keys.run).await?;
@@ -72,6 +73,9 @@ pub async fn run(
     let viewers = Viewers { web: web.as_deref(), foxglove: foxglove.as_deref() };
     let result = monitor(&session, &scenario, &keys, recorder, args, began, viewers, shutdown).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+    if let Ok((Ending::Interrupted | Ending::Terminated, _)) = result {
+        crate::session::keep_zenoh_logs_of_a_gone_launch(&run_folder(args, &keys.run), launched_by);
+    }
     result
 }
 
@@ -104,8 +108,13 @@ async fn serve_live_page(args: &MonitorArgs, scenario: &Scenario, run: &str) -> 
 /// The recorder of the run folder (`--out`, or `runs/<run>`), with the
 /// scenario as loaded for its hearing record (`formation replay` checks it
 /// against the run's fingerprint).
+/// The run folder: `--out`, or `runs/<run name>`.
+fn run_folder(args: &MonitorArgs, run: &str) -> PathBuf {
+    args.out.clone().unwrap_or_else(|| PathBuf::from("runs").join(run))
+}
+
 fn start_record(args: &MonitorArgs, scenario: &Scenario, run: &str) -> Result<Recorder, Error> {
-    let dir = args.out.clone().unwrap_or_else(|| PathBuf::from("runs").join(run));
+    let dir = run_folder(args, run);
     let opts = RecordOptions { dir, every: args.every.max(1), csv: true, mcap: args.mcap, rosbag2: args.rosbag2 };
     let mut recorder =
         Recorder::new(scenario, &opts).map_err(|e| Error::Run(format!("creating the run folder: {e}")))?;
