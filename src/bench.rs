@@ -239,3 +239,28 @@ fn parse_threads(s: &str) -> Result<usize, String> {
         },
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        bench: BenchArgs,
+    }
+
+    /// Every follower count `formation bench` measures by default builds its
+    /// ring (the 100,000 was refused by the scenario files' 10,000 limit, so
+    /// the command with no options failed at once).
+    #[test]
+    fn every_default_count_builds() {
+        let a = Cli::parse_from(["bench"]).bench;
+        assert_eq!(a.followers, [4, 100, 10_000, 100_000]);
+        for &n in a.followers.iter().filter(|&&n| n != 4) {
+            let s = scenario_for(n, &a.scenario).unwrap_or_else(|e| panic!("{n} followers: {e:?}"));
+            assert_eq!(s.followers.len(), n as usize);
+        }
+    }
+}

@@ -20,7 +20,9 @@
 //! The search works on ln(value) inside a box of plausible values for a
 //! small differential-drive robot ([`PARAMS`], and the inertia within
 //! m ρ² for a radius of gyration ρ of 0.1–0.5 m): the starting point (the
-//! scenario's values, brought into the box), then `--draws` uniform draws
+//! scenario's own values, evaluated as they are even where they lie
+//! outside the box, as the paper scenario's I = 5 kg m² for m = 10 kg,
+//! ρ = 0.71 m, does), then `--draws` uniform draws
 //! (half the budget by default; ChaCha8 seeded by `--search-seed`), then a
 //! pattern search from the best (each value × e^(±h), h halved when a sweep
 //! improves nothing). At the best point, each entry's sensitivity to each
@@ -359,7 +361,10 @@ pub struct Fit {
 /// The seeded search of the module docs, within `budget` evaluations
 /// (the start included).
 fn search(a: &CalibrateArgs, base: &Scenario, seeds: &[u64], bar: &ProgressBar) -> Result<Fit, CliError> {
-    let start = plausible(&values_of(base));
+    // The scenario's own values, as they are: what the tables call "the
+    // scenario's values" (brought into the box, the paper scenario's
+    // I = 5 kg m² became 2.5, and the table still called it the scenario's).
+    let start = values_of(base);
     let eval = |x: &[f64; 10]| evaluate(&a.scenario, &a.overrides, x, seeds);
     let start_tables = eval(&start)?;
     let (mut best, mut best_tables, mut best_loss) = (start, start_tables, objective(a.target, &start_tables));
@@ -616,14 +621,20 @@ fn write_outputs(
         worst(&fit.at_best),
     );
     let _ = writeln!(md, "## The values\n\n| value | scenario | fitted | allowed | moved | why that range |\n| --- | --- | --- | --- | --- | --- |");
+    let inside = plausible(&fit.start);
     for (j, p) in PARAMS.iter().enumerate() {
         let moved = (fit.best[j] / fit.start[j]).ln().abs() > 0.05;
+        let scenario = if inside[j] == fit.start[j] {
+            sig(fit.start[j])
+        } else {
+            format!("{} (outside the search's range; nearest inside {})", sig(fit.start[j]), sig(inside[j]))
+        };
         let _ = writeln!(
             md,
             "| {} ({}) | {} | {} | {}–{} | {} | {} |",
             p.name,
             p.unit,
-            sig(fit.start[j]),
+            scenario,
             sig(fit.best[j]),
             sig(p.lo),
             sig(p.hi),

@@ -554,6 +554,15 @@ fn calibrate_is_seeded_and_never_worse_than_where_it_starts() {
     let (l0, l1) = (num("score "), num("values, "));
     assert!(l1 <= l0, "the best score {l1} is worse than the start's {l0}: {said}");
     assert!(said.contains("worst condition"), "{said}");
+    // The start is the scenario's own values, the paper scenario's I = 5 kg m²
+    // included though the search's range for m = 10 kg ends at 2.5 (it was
+    // evaluated at 2.5 and called the scenario's).
+    let md = std::fs::read_to_string(a.join("calibration.md")).expect("calibration.md");
+    assert!(
+        md.contains("| robot.inertia (kg m²) | 5 (outside the search's range; nearest inside 2.5) |"),
+        "{}",
+        md.lines().find(|l| l.starts_with("| robot.inertia")).unwrap_or("no inertia row")
+    );
     let rows = read_csv(&a.join("calibration.csv"));
     assert_eq!(rows.len(), 32, "32 table entries");
     assert!(rows.iter().any(|r| r["entry"] == "Table II, F3, KF angular" && r["paper"] == "2.14"));

@@ -75,7 +75,16 @@ const SPACING: f64 = 2.0;
 /// The scenario file's text for `spec` (checked: it loads, and the graph
 /// satisfies Lemma 1, or the error names the unreachable followers).
 pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
-    check(spec)?;
+    sized(spec, crate::scenario::MAX_FOLLOWERS).map(|(t, _)| t)
+}
+
+/// Most followers of a benchmark's ring ([`ring_with_chords`]): about 1 KB
+/// of memory each in the simulator.
+pub const BENCH_MAX_FOLLOWERS: usize = 1_000_000;
+
+/// [`toml`] with up to `most` followers, and the scenario it loads as.
+fn sized(spec: &Spec, most: usize) -> Result<(String, Scenario), ScenarioError> {
+    check(spec, most)?;
     let n = spec.followers;
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
     let side = f64::from(n).sqrt().ceil() as u32;
@@ -92,14 +101,14 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
     let hears: std::collections::BTreeSet<u32> = by_distance.iter().take(spec.leader_links as usize).copied().collect();
 
     let t = text(spec, &edges, radius_used, &offsets, &body_errors, &hears);
-    let scenario = Scenario::from_toml(&t, "generated scenario", "generated", &[])?;
+    let scenario = Scenario::from_toml_sized(&t, "generated scenario", "generated", most)?;
     let line = match scenario.graph.lambda_min_h() {
         Some(l) => format!("# λ_min(H) = {l:.6} (Lemma 1: positive, the leader reaches every follower)."),
         None => format!(
             "# λ_min(H) not computed for {n} followers (dense eigenvalues); Lemma 1 holds: the leader reaches every follower."
         ),
     };
-    Ok(t.replace("#LAMBDA#", &line))
+    Ok((t.replace("#LAMBDA#", &line), scenario))
 }
 
 /// An error in the options of `formation generate`.
@@ -109,16 +118,13 @@ fn bad(message: String) -> ScenarioError {
 
 /// The spec's sizes and options fit together and stay within a scenario's
 /// limits.
-fn check(spec: &Spec) -> Result<(), ScenarioError> {
+fn check(spec: &Spec, most: usize) -> Result<(), ScenarioError> {
     let n = spec.followers;
     if n == 0 {
         return Err(bad("--followers must be at least 1".into()));
     }
-    if n as usize > crate::scenario::MAX_FOLLOWERS {
-        return Err(bad(format!(
-            "--followers {n}: a scenario may have at most {} followers",
-            crate::scenario::MAX_FOLLOWERS
-        )));
+    if n as usize > most {
+        return Err(bad(format!("--followers {n}: a scenario may have at most {most} followers")));
     }
     let edges = match spec.graph {
         GraphKind::Complete => u64::from(n) * u64::from(n - 1) / 2,
@@ -335,13 +341,15 @@ fn round(x: f64) -> f64 {
 
 /// The scenario of `spec`, loaded.
 pub fn scenario(spec: &Spec) -> Result<Scenario, ScenarioError> {
-    Scenario::from_toml(&toml(spec)?, "generated scenario", "generated", &[])
+    sized(spec, crate::scenario::MAX_FOLLOWERS).map(|(_, s)| s)
 }
 
 /// A ring of `n` followers with `chords` extra random edges (seeded): the
 /// benchmarks' scenario.
+/// Up to [`BENCH_MAX_FOLLOWERS`] followers: a file may hold
+/// [`crate::scenario::MAX_FOLLOWERS`].
 pub fn ring_with_chords(n: u32, chords: u32, seed: u64) -> Result<Scenario, ScenarioError> {
-    scenario(&Spec { chords, seed, ..Spec::new(n, GraphKind::Ring) })
+    sized(&Spec { chords, seed, ..Spec::new(n, GraphKind::Ring) }, BENCH_MAX_FOLLOWERS).map(|(_, s)| s)
 }
 
 #[cfg(test)]

@@ -282,12 +282,29 @@ impl Scenario {
         })?;
         let (file, overridden) =
             if overrides.is_empty() { (file, Vec::new()) } else { apply_overrides(text, label, overrides)? };
-        validate(file, label, default_name, Some(text), &overridden)
+        validate(file, label, default_name, Some(text), &overridden, MAX_FOLLOWERS)
+    }
+
+    /// A scenario text built in code with up to `most_followers` followers
+    /// (the benchmarks' rings of 100,000): a file or a `--set` is held to
+    /// [`MAX_FOLLOWERS`].
+    pub fn from_toml_sized(
+        text: &str,
+        label: &str,
+        default_name: &str,
+        most_followers: usize,
+    ) -> Result<Self, ScenarioError> {
+        let file: ScenarioFile = toml::from_str(text).map_err(|e| ScenarioError::Syntax {
+            file: label.to_string(),
+            line: None,
+            message: syntax_message(text, &e),
+        })?;
+        validate(file, label, default_name, Some(text), &[], most_followers)
     }
 
     /// Validates a scenario built in code (no file lines to report).
     pub fn from_file(file: ScenarioFile, name: &str) -> Result<Self, ScenarioError> {
-        validate(file, "", name, None, &[])
+        validate(file, "", name, None, &[], MAX_FOLLOWERS)
     }
 
     /// Number of steps T/Δt; the run has steps + 1 samples (docs/model.md §9).
@@ -693,6 +710,8 @@ struct Check<'a> {
     /// What `--set` gave a value: an error about it names the assignment,
     /// never a line of the file the user did not write.
     overridden: &'a [(String, String)],
+    /// [`MAX_FOLLOWERS`], or more for a scenario built in code ([`Scenario::from_toml_sized`]).
+    most_followers: usize,
 }
 
 impl Check<'_> {
@@ -772,8 +791,9 @@ fn validate(
     default_name: &str,
     source: Option<&str>,
     overridden: &[(String, String)],
+    most_followers: usize,
 ) -> Result<Scenario, ScenarioError> {
-    let c = Check { label, source, overridden };
+    let c = Check { label, source, overridden, most_followers };
     let name = validate_name(&c, file.name.clone().unwrap_or_else(|| default_name.to_string()))?;
     validate_steps(&c, &file)?;
     let estimate_init = match file.estimate_init.as_str() {
@@ -932,10 +952,10 @@ fn validate_table_sizes(c: &Check<'_>, file: &ScenarioFile) -> Result<(), Scenar
     if file.followers.is_empty() {
         return Err(c.fail("followers", "at least one follower is needed"));
     }
-    if file.followers.len() > MAX_FOLLOWERS {
+    if file.followers.len() > c.most_followers {
         return Err(c.fail(
             "followers",
-            format!("{} followers; a scenario may have at most {MAX_FOLLOWERS}", file.followers.len()),
+            format!("{} followers; a scenario may have at most {}", file.followers.len(), c.most_followers),
         ));
     }
     if file.edges.len() > MAX_EDGES {
