@@ -127,6 +127,27 @@ impl Endpoints {
     }
 }
 
+/// Where a ROS 2 node (rmw_zenoh's nodes are clients of a router) sees
+/// the run's topics: the launch's own router, or the monitor (router-less
+/// peers: every node links to the monitor, which passes what they publish
+/// on to a client that asks). With `--router`, that router (the user's,
+/// named in the launch line): nothing to add.
+fn ros2_endpoint_line(scenario: &Scenario, mode: LaunchMode, own_router: bool, port: u16) -> Option<String> {
+    let r = scenario.ros2?;
+    let at = match (mode, own_router) {
+        (LaunchMode::Client, true) => "this launch's router",
+        (LaunchMode::Client, false) => return None,
+        (LaunchMode::Peer, _) => "the monitor, which every node links to",
+    };
+    Some(format!(
+        "ROS 2 (domain {}): connect ROS 2 nodes to {} ({at}), e.g. \
+         ZENOH_CONFIG_OVERRIDE='mode=\"client\";connect/endpoints=[\"{}\"]'",
+        r.domain_id,
+        ep(port),
+        ep(port)
+    ))
+}
+
 /// The start of the name of a launch's sockets folder, followed by the
 /// launch's process id.
 const LINKS_PREFIX: &str = "formation-links-";
@@ -828,6 +849,9 @@ async fn launch(
                 (false, None) => String::new(),
             } + if robots == Robots::StandIn { " and a stand-in robot per follower" } else { "" },
         );
+        if let Some(line) = ros2_endpoint_line(scenario, mode, own_router, p[0]) {
+            eprintln!("{line}");
+        }
         if let Some(hint) = formation_net::node::realtime_hint(scenario) {
             eprintln!("{hint}");
         }
@@ -893,9 +917,10 @@ async fn launch(
                     spawn(children, &format!("robot {id}"), c)?;
                 }
                 Robots::External if !a.opts.quiet => {
+                    // A TCP endpoint: the unix sockets' folder is the launch's own.
                     let at = match listen {
                         Some(port) => ep(port),
-                        None => router_ep.clone(),
+                        None => a.router.clone().unwrap_or_else(|| ep(p[0])),
                     };
                     eprintln!(
                         "waiting for robot {id}: publish /follower_{id}/odom (nav_msgs/msg/Odometry), take \

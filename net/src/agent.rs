@@ -224,9 +224,9 @@ pub async fn run_follower(
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
     let fingerprint = barrier::fingerprint(scenario);
     let writer = opts.checkpoint.map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone()));
-    if let Some(r) = scenario.ros2 {
+    if let Some(node) = &ros_node {
         let driven = opts.odometry.is_some();
-        let t = FollowerTopics::declare(session, scenario, r.domain_id, id, driven, start.epoch_unix_ns).await?;
+        let t = FollowerTopics::declare(node, scenario, id, driven, start.epoch_unix_ns).await?;
         *topics.lock().unwrap_or_else(|p| p.into_inner()) = Some(t);
     }
     shared.lock().start(&start, resume, timebase.now());

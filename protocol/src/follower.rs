@@ -73,8 +73,8 @@ pub trait Body: Send {
         true
     }
     /// Who [`Body::robot_ready`] waits for, for the operator.
-    fn robot_name(&self) -> &str {
-        "the robot"
+    fn robot_name(&self) -> std::borrow::Cow<'_, str> {
+        "the robot".into()
     }
 }
 
@@ -665,7 +665,8 @@ impl Follower {
     }
 
     fn missing(&mut self, k: u64) -> (String, usize) {
-        let mut names: Vec<&str> = self.inbox.missing(k).iter().map(|&s| self.rules.source_names[s].as_str()).collect();
+        let mut names: Vec<std::borrow::Cow<'_, str>> =
+            self.inbox.missing(k).iter().map(|&s| self.rules.source_names[s].as_str().into()).collect();
         if !self.body.robot_ready(k) {
             names.push(self.body.robot_name());
         }

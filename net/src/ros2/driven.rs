@@ -46,12 +46,19 @@ struct Odom {
     arrived: Duration,
 }
 
+/// Lock-step: odometry stamped at most this many steps past the awaited
+/// one is "from the future"; further is "off the run's steps".
+const AHEAD_STEPS: u64 = 1000;
+
 /// Odometry refused, by reason.
 #[derive(Debug, Default)]
 pub struct Refused {
     pub undecodable: AtomicU64,
     pub not_finite: AtomicU64,
     pub future: AtomicU64,
+    /// Lock-step: stamped at no step of the run (k Δt from its start), or
+    /// more than [`AHEAD_STEPS`] past the awaited one.
+    pub off_steps: AtomicU64,
     pub jump: AtomicU64,
 }
 
@@ -60,6 +67,7 @@ impl Refused {
     pub fn summary(&self) -> Option<String> {
         let parts: Vec<String> = [
             (&self.future, "from the future"),
+            (&self.off_steps, "stamped off the run's steps"),
             (&self.not_finite, "not finite"),
             (&self.jump, "jumps"),
             (&self.undecodable, "undecodable"),
@@ -109,10 +117,17 @@ impl OdomInbox {
         let step = if lockstep {
             // Only the step awaited or one before (a repeat) can exist yet;
             // a stamp off the run's steps is not this run's.
+            let awaited = self.awaited.load(Ordering::Relaxed);
             match stamps.step_of(stamp) {
-                Some(k) if k <= self.awaited.load(Ordering::Relaxed) => Some(k),
-                _ => {
+                Some(k) if k <= awaited => Some(k),
+                // A robot a few steps ahead of its commands; further off,
+                // a clock of its own that fell on a step by chance.
+                Some(k) if k - awaited <= AHEAD_STEPS => {
                     self.refused.future.fetch_add(1, Ordering::Relaxed);
+                    return Err(());
+                }
+                Some(_) | None => {
+                    self.refused.off_steps.fetch_add(1, Ordering::Relaxed);
                     return Err(());
                 }
             }
@@ -278,8 +293,19 @@ impl Body for DrivenRobot {
     fn robot_ready(&self, k: u64) -> bool {
         self.inbox.latest().is_some_and(|o| o.step == Some(k))
     }
-    fn robot_name(&self) -> &str {
-        &self.waiting_for
+    fn robot_name(&self) -> std::borrow::Cow<'_, str> {
+        let off = self.inbox.refused.off_steps.load(Ordering::Relaxed);
+        if self.lockstep && off > 0 {
+            // A robot on its own clock: say so while the run waits, not at its end.
+            format!(
+                "{} ({off} received, refused: stamped off the run's steps; in lock-step step k's odometry is \
+                 stamped k Δt, the time /clock gives, and a robot on its own clock needs timing = \"realtime\")",
+                self.waiting_for
+            )
+            .into()
+        } else {
+            self.waiting_for.as_str().into()
+        }
     }
 }
 
@@ -292,8 +318,8 @@ mod tests {
         planar::odometry(&Frames::of("/follower_1"), stamp_ns, (x, y, 0.25), (0.5, 0.1))
     }
 
-    fn counts(r: &Refused) -> [u64; 4] {
-        [&r.future, &r.not_finite, &r.jump, &r.undecodable].map(|n| n.load(Ordering::Relaxed))
+    fn counts(r: &Refused) -> [u64; 5] {
+        [&r.future, &r.not_finite, &r.jump, &r.undecodable, &r.off_steps].map(|n| n.load(Ordering::Relaxed))
     }
 
     #[test]
@@ -311,7 +337,13 @@ mod tests {
             "step 4 before its command"
         );
         assert_eq!(inbox.offer(&odom(stamps.ns(3) + 1, 1.0, 2.0), &stamps, true, None, 0), Err(()), "off the steps");
-        assert_eq!(counts(&inbox.refused), [2, 0, 0, 0]);
+        // A robot on the wall clock (a TurtleBot's, Gazebo's without /clock).
+        let wall = 1_764_200_000_000_000_000;
+        for at in [wall, wall + 123_456] {
+            assert_eq!(inbox.offer(&odom(at, 1.0, 2.0), &stamps, true, None, 0), Err(()), "the wall clock: {at}");
+        }
+        assert_eq!(counts(&inbox.refused), [1, 0, 0, 0, 3]);
+        assert_eq!(inbox.refused.summary().as_deref(), Some("1 from the future, 3 stamped off the run's steps"));
     }
 
     #[test]
@@ -329,7 +361,7 @@ mod tests {
         assert_eq!(inbox.offer(&odom(now + 2 * timeout, 0.1, 0.0), &stamps, false, Some(now), timeout), Err(()));
         assert_eq!(inbox.offer(&odom(now + timeout / 2, 0.5, 0.0), &stamps, false, Some(now), timeout), Ok(None));
         assert_eq!(inbox.latest().map(|o| o.pose.x), Some(0.5));
-        assert_eq!(counts(&inbox.refused), [1, 2, 1, 0]);
+        assert_eq!(counts(&inbox.refused), [1, 2, 1, 0, 0]);
         assert_eq!(inbox.refused.summary().as_deref(), Some("1 from the future, 2 not finite, 1 jumps"));
     }
 }

@@ -87,9 +87,8 @@ fn congestion(scenario: &Scenario) -> CongestionControl {
     crate::node::estimate_congestion(scenario)
 }
 
-/// A follower agent's ROS 2 node and publishers.
+/// A follower agent's ROS 2 publishers (its node is the agent's, held by it).
 pub struct FollowerTopics {
-    _node: RosNode,
     frames: Frames,
     stamps: Stamps,
     /// None when a driven robot publishes its own odometry and transforms.
@@ -102,17 +101,18 @@ pub struct FollowerTopics {
 }
 
 impl FollowerTopics {
-    /// Node `agent` in `/follower_<id>`; `driven`: the robot publishes its own odometry.
+    /// The topics of `node`, the agent's node `/follower_<id>/agent` (one
+    /// node per agent: its odometry subscription and these publishers are
+    /// the same node's, as `ros2 node info` shows them); `driven`: the
+    /// robot publishes its own odometry.
     pub async fn declare(
-        session: &zenoh::Session,
+        node: &RosNode,
         scenario: &Scenario,
-        domain: u32,
         id: u32,
         driven: bool,
         epoch_unix_ns: u64,
     ) -> Result<Self, Error> {
         let namespace = super::follower_namespace(id);
-        let node = RosNode::declare(session, domain, &namespace, "agent").await?;
         let c = congestion(scenario);
         let (odom, tf) = if driven {
             (None, None)
@@ -126,7 +126,6 @@ impl FollowerTopics {
             tf,
             frames: Frames::of(&namespace),
             stamps: Stamps::of(scenario, epoch_unix_ns),
-            _node: node,
             last_command: None,
         })
     }
