@@ -223,6 +223,7 @@ pub async fn run_follower(
     let resume = rejoin(&shared, &start, scenario, index, &timebase, opts.checkpoint.as_deref()).await?;
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
     let fingerprint = barrier::fingerprint(scenario);
+    let checkpoint_path = opts.checkpoint.clone();
     let writer = opts.checkpoint.map(|p| checkpoint::start_writer(p, fingerprint, start.epoch_unix_ns, latest.clone()));
     if let Some(node) = &ros_node {
         let driven = opts.odometry.is_some();
@@ -255,6 +256,11 @@ pub async fn run_follower(
     telemetry::finish_delivery(delivery, &format!("follower {id}")).await;
     if let Some(w) = writer {
         w.stop();
+        // A run that ended has nothing to rejoin: its checkpoint would only
+        // pile up (hundreds of them in $TMPDIR/formation-checkpoints).
+        if let (Ok(_), Some(p)) = (&outcome, &checkpoint_path) {
+            let _ = std::fs::remove_file(p);
+        }
     }
     if let Some(inbox) = &opts.odometry {
         if let Some(line) = inbox.refused.summary() {

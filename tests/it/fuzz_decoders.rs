@@ -898,6 +898,17 @@ fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str) -> Captured 
         .stdout(std::process::Stdio::null())
         .process_group(0);
     let mut g = common::Group(cmd.spawn().expect("spawn formation launch"));
+    // The newest checkpoint of each follower, read while the run lasts (an
+    // agent removes its own when the run is complete).
+    let mut checkpoints: std::collections::BTreeMap<String, Vec<u8>> = Default::default();
+    let read_checkpoints = |into: &mut std::collections::BTreeMap<String, Vec<u8>>| {
+        for e in std::fs::read_dir(tmpdir.join("formation-checkpoints")).into_iter().flatten().flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            if let (Some(stem), Ok(bytes)) = (name.strip_suffix(".json"), std::fs::read(e.path())) {
+                into.insert(stem.to_string(), bytes);
+            }
+        }
+    };
 
     /// Every (key, payload) heard, in order.
     type Heard = Arc<Mutex<Vec<(String, Vec<u8>)>>>;
@@ -942,6 +953,7 @@ fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str) -> Captured 
             if let Some(status) = g.0.try_wait().expect("try_wait") {
                 return status;
             }
+            read_checkpoints(&mut checkpoints);
             assert!(began.elapsed() < Duration::from_secs(90), "the capture run did not end within 90 s");
             if let Ok(rx) = asker.get(format!("formation/{run}/control/time")).timeout(Duration::from_millis(500)).await
             {
@@ -961,13 +973,10 @@ fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str) -> Captured 
     assert!(status.success(), "the capture run {run} failed: {status}");
     let heard = heard.lock().unwrap().clone();
     eprintln!("{run}: heard {} messages, {} clock replies", heard.len(), replies.len());
-    let mut checkpoints = Vec::new();
-    for e in std::fs::read_dir(tmpdir.join("formation-checkpoints")).expect("the run's checkpoints").flatten() {
-        let name = e.file_name().to_string_lossy().to_string();
-        if let Some(stem) = name.strip_suffix(".json") {
-            checkpoints.push((stem.to_string(), std::fs::read(e.path()).expect("checkpoint")));
-        }
-    }
+    let checkpoints: Vec<(String, Vec<u8>)> = checkpoints.into_iter().collect();
+    assert!(!checkpoints.is_empty(), "no checkpoint read during the run {run}");
+    let left = std::fs::read_dir(tmpdir.join("formation-checkpoints")).map_or(0, |d| d.count());
+    assert_eq!(left, 0, "a complete run left {left} checkpoints behind");
     let hearing = std::fs::read(out.join("hearing.bin")).expect("the run's hearing.bin");
     Captured { heard, replies, hearing, checkpoints }
 }

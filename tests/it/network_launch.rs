@@ -37,6 +37,14 @@ fn short_launch_succeeds_and_leaves_nothing_behind() {
     assert!(!out.join("zenoh-log").exists(), "a zenoh-log/ folder for a run where zenoh said nothing");
     assert!(common::json(&out, "network.json").get("zenoh_log").is_none());
     assert!(!stale.exists(), "the old {} stays", stale.display());
+    // A complete run has nothing to rejoin: the agents remove their checkpoints.
+    let checkpoints = std::env::temp_dir().join("formation-checkpoints");
+    let left: Vec<_> = formation_record::folder::names_in(&checkpoints)
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|n| n.to_string_lossy().starts_with("launch-ok-follower-"))
+        .collect();
+    assert!(left.is_empty(), "checkpoints left in {}: {left:?}", checkpoints.display());
 }
 
 /// A follower that hears 8 sources (the complete graph of 8 followers,
