@@ -193,6 +193,11 @@ impl FollowerHearing {
         Self { id, sources, ..Default::default() }
     }
 
+    /// Whether step `k` of this follower is recorded.
+    pub fn covers(&self, k: u64) -> bool {
+        self.segments.iter().any(|s| s.first_k <= k && k < s.end())
+    }
+
     /// Appends step `k` (after the last one recorded).
     pub fn push(&mut self, k: u64, heard: &[Heard]) {
         let slots = self.sources.len();

@@ -694,8 +694,19 @@ impl Recorder {
             density: self.density,
             leader: self.leader_spans.clone(),
             followers: self.followers.iter().map(|f| f.hearing.clone()).collect(),
-            rescued: self.rescued.values().copied().collect(),
+            rescued: self.rescued.values().filter(|r| self.rescue_needed(r)).copied().collect(),
         })
+    }
+
+    /// Whether a replay needs a rescued message: only a follower's, of a
+    /// step its own record lacks (a sender killed before its telemetry got
+    /// out). The leader's messages, and those of a step the sender
+    /// recorded, the replay computes itself; each follower's last batch
+    /// rescues every source's last messages, and kept whole they were
+    /// about 65 KB of the paper's 72 KB `hearing.bin`.
+    fn rescue_needed(&self, r: &Rescued) -> bool {
+        r.source != formation_topology::wire::LEADER_ID
+            && self.followers.iter().find(|f| f.hearing.id == r.source).is_none_or(|f| !f.hearing.covers(r.stamp))
     }
 
     /// Writes `network.json` and `summary.json` (metrics of what was
