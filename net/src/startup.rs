@@ -107,7 +107,13 @@ async fn listen<H: Hears + Send + 'static>(
     };
     subs.push(declare(keys.start(), Box::new(on_start)).await.map_err(|e| zerr("declaring the start subscriber", e))?);
     let w = waiting.clone();
-    let on_abort = move |_: &str, bytes: &[u8]| w.hear(|m| m.on_abort(&String::from_utf8_lossy(bytes)));
+    let on_abort = move |_: &str, bytes: &[u8]| {
+        // Not a refusal (garbage, or a forger's bytes): the monitor counts it
+        // in network.json's control_puts; the node waits on.
+        if let Some(reason) = crate::barrier::abort_reason(bytes) {
+            w.hear(|m| m.on_abort(reason));
+        }
+    };
     subs.push(declare(keys.abort(), Box::new(on_abort)).await.map_err(|e| zerr("declaring the abort subscriber", e))?);
     for key in from.keys(keys.ready_all(), |n| keys.ready(n)) {
         let w = waiting.clone();

@@ -222,6 +222,21 @@ impl Heard {
     }
 }
 
+/// Most bytes of the leader's refusal of a run (`control/abort`).
+pub const MAX_ABORT_BYTES: usize = 4096;
+
+/// The leader's refusal of a run as it is put on `control/abort`: a line of
+/// text. Anything else (empty, not UTF-8, control characters, too long) is
+/// not one, and a node counts it and waits on (random bytes taken as a
+/// refusal stopped every node, with the bytes as its cause).
+pub fn abort_reason(bytes: &[u8]) -> Option<&str> {
+    if bytes.is_empty() || bytes.len() > MAX_ABORT_BYTES {
+        return None;
+    }
+    let text = std::str::from_utf8(bytes).ok()?;
+    (!text.chars().any(char::is_control)).then_some(text)
+}
+
 /// When a waiting node last heard something new, for its tick.
 #[derive(Default)]
 struct Quiet {
@@ -543,6 +558,24 @@ impl Lead {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A refusal is a line of text; random bytes on `control/abort` (which
+    /// stopped every node, with the bytes as the cause) are not one.
+    #[test]
+    fn only_a_line_of_text_is_a_refusal() {
+        let line = "node 1 runs another scenario, differing in dt";
+        assert_eq!(abort_reason(line.as_bytes()), Some(line));
+        assert_eq!(abort_reason("é — ü".as_bytes()), Some("é — ü"));
+        for (bytes, why) in [
+            (&b""[..], "empty"),
+            (&b"I%Se\x00J\xff(\x8f0E"[..], "not UTF-8, a NUL"),
+            (&b"two\nlines"[..], "a newline"),
+            (&b"\x1b[2Jclear"[..], "an escape"),
+            (&[b'a'; MAX_ABORT_BYTES + 1][..], "too long"),
+        ] {
+            assert_eq!(abort_reason(bytes), None, "{why}: {bytes:?}");
+        }
+    }
 
     fn paper(sets: &[&str]) -> Scenario {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");

@@ -253,7 +253,7 @@ fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
         ("hello", [_]) => bytes.is_empty(),
         ("ready", [_]) => decode::<crate::barrier::Ready>(bytes).is_some_and(|r| r.fingerprint == fingerprint),
         ("start", []) => decode::<crate::barrier::Start>(bytes).is_some_and(|s| s.fingerprint == fingerprint),
-        ("abort", []) => bytes.len() <= 4096 && std::str::from_utf8(bytes).is_ok(),
+        ("abort", []) => crate::barrier::abort_reason(bytes).is_some(),
         ("denied", [_]) => bytes.len() <= crate::denials::MAX_REPORT_BYTES,
         // The monitor's own acknowledgements never reach it: another is foreign.
         _ => false,

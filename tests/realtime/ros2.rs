@@ -167,8 +167,7 @@ fn a_foreign_subscriber_hears_follower_1_odom_on_rmw_zenohs_key() {
     // `@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/…`.
     let node_of = |t: &str| t.split('/').skip(2).take(2).collect::<Vec<_>>().join("/");
     for i in 1..=4 {
-        let nodes: Vec<&&str> =
-            tokens.iter().filter(|t| t.contains(&format!("/NN/%/%follower_{i}/agent"))).collect();
+        let nodes: Vec<&&str> = tokens.iter().filter(|t| t.contains(&format!("/NN/%/%follower_{i}/agent"))).collect();
         assert_eq!(nodes.len(), 1, "follower {i}'s ROS 2 nodes: {nodes:?}");
         let publishers = tokens.iter().filter(|t| t.contains(&format!("/MP/%/%follower_{i}/agent/")));
         for p in publishers {
