@@ -190,13 +190,14 @@ pub struct SimArgs {
     #[arg(long, short)]
     pub quiet: bool,
     /// Threads that step the followers: 0 uses every core for formations of
-    /// PARALLEL_FROM followers or more and one thread below. Results are bit
-    /// for bit the same for any number.
+    /// 256 followers or more and one thread below. Results are bit for bit
+    /// the same for any number.
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub threads: usize,
 }
 
-/// From this many followers `--threads 0` steps them on every core.
+/// From this many followers `--threads 0` steps them on every core (the
+/// `--threads` help says the number).
 pub const PARALLEL_FROM: usize = 256;
 /// Most `--threads`.
 pub const MAX_THREADS: usize = 256;

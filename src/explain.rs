@@ -38,10 +38,13 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
     let s = &loaded.scenario;
     let dt = s.dt_s;
     let mut t = format!(
-        "{}: {} followers, {:?} timing, Δt = {} s, network.delay_steps = {}; metric {}\n",
+        "{}: {} followers, {} timing, Δt = {} s, network.delay_steps = {}; metric {}\n",
         loaded.dir.display(),
         s.followers.len(),
-        s.timing,
+        match s.timing {
+            formation_topology::Timing::Lockstep => "lock-step",
+            formation_topology::Timing::Realtime => "real-time",
+        },
         dt,
         s.network.delay_steps,
         e.metric

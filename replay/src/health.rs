@@ -254,7 +254,10 @@ fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
         ("ready", [_]) => decode::<crate::barrier::Ready>(bytes).is_some_and(|r| r.fingerprint == fingerprint),
         ("start", []) => decode::<crate::barrier::Start>(bytes).is_some_and(|s| s.fingerprint == fingerprint),
         ("abort", []) => crate::barrier::abort_reason(bytes).is_some(),
-        ("denied", [_]) => bytes.len() <= crate::denials::MAX_REPORT_BYTES,
+        ("denied", [node]) => {
+            bytes.len() <= crate::denials::MAX_REPORT_BYTES
+                && serde_json::from_slice::<crate::denials::Report>(bytes).is_ok_and(|r| r.node == *node)
+        }
         // The monitor's own acknowledgements never reach it: another is foreign.
         _ => false,
     }
@@ -403,12 +406,21 @@ mod tests {
         w.note("control/hello/3", b"", 7);
         w.note("control/ready/3", &[0xff; 13], 7);
         w.note("control/ack", b"anything", 7);
+        // A refusal is a line of text; a denial report the reporter's JSON.
+        w.note("control/abort", b"node 1 runs another scenario", 7);
+        w.note("control/abort", b"", 7);
+        w.note("control/abort", &[0x49, 0x25, 0x00, 0xff], 7);
+        w.note("control/denied/leader", br#"{"node":"leader","rows":[]}"#, 7);
+        w.note("control/denied/leader", br#"{"node":"agent-2","rows":[]}"#, 7);
+        w.note("control/denied/leader", &[0x37; 40], 7);
         for i in 0..200 {
             w.note(&format!("control/hello/x{i}"), b"", 7);
         }
         assert_eq!(w.keys["control/start"], (2, 1));
         assert_eq!(w.keys["control/ready/3"], (1, 1));
-        assert_eq!(w.refused(), 3);
+        assert_eq!(w.keys["control/abort"], (3, 2));
+        assert_eq!(w.keys["control/denied/leader"], (3, 2));
+        assert_eq!(w.refused(), 7);
         assert!(w.keys.len() <= MAX_KEYS + 1, "{} keys", w.keys.len());
     }
 }

@@ -377,13 +377,35 @@ impl Recorder {
             }
             Err(why) => e.model_skipped = Some(why.clone()),
         }
+        // What the health line says after the count, for 1 and for more.
+        let counted = |n: u64, one: &str, more: &str| (if n == 1 { one } else { more }.to_string(), n);
         e.refused = vec![
-            ("telemetry messages refused (malformed or on another's key)".into(), self.malformed),
-            ("estimate messages refused by followers (malformed, forged or not a neighbour's)".into(), invalid),
-            ("puts refused on control keys".into(), self.control.refused()),
-            ("telemetry messages dropped by the monitor (queue full)".into(), self.queue_dropped),
-            ("followers with a second sender on their key".into(), self.twins().len() as u64),
-            ("messages refused by access control".into(), self.denied.rows().len() as u64),
+            counted(
+                self.malformed,
+                "telemetry message refused (malformed or on another's key)",
+                "telemetry messages refused (malformed or on another's key)",
+            ),
+            counted(
+                invalid,
+                "estimate message refused by followers (malformed, forged or not a neighbour's)",
+                "estimate messages refused by followers (malformed, forged or not a neighbour's)",
+            ),
+            counted(self.control.refused(), "put refused on control keys", "puts refused on control keys"),
+            counted(
+                self.queue_dropped,
+                "telemetry message dropped by the monitor (queue full)",
+                "telemetry messages dropped by the monitor (queue full)",
+            ),
+            counted(
+                self.twins().len() as u64,
+                "follower with a second sender on its key",
+                "followers with a second sender on their key",
+            ),
+            counted(
+                self.denied.rows().len() as u64,
+                "message refused by access control",
+                "messages refused by access control",
+            ),
         ];
         e.restarts = self
             .followers
