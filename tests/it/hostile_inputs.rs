@@ -144,6 +144,18 @@ fn cases() -> Vec<Case> {
             &["followers[0].offset", "expected 2 numbers, got 3"],
         ),
         sim("edge of three ids", edit("edges = [[1, 2]", "edges = [[1, 2, 3]"), &["edges[0]", "got 3"]),
+        // A speed whose square overflows (it ran to an `inf` formation error
+        // with exit status 0), an offset beyond any formation.
+        sim(
+            "an initial speed of 1e300 m/s",
+            edit("offset = [4.0, -4.0]", "offset = [4.0, -4.0]\nvelocity = [1e300, 0.0]"),
+            &["followers[0].velocity", "1e300 is beyond ±1000"],
+        ),
+        sim(
+            "an offset of 1e200 m",
+            edit("offset = [4.0, -4.0]", "offset = [1e200, -4.0]"),
+            &["followers[0].offset", "1e200 is beyond ±1e6 m"],
+        ),
         // Values out of their domain.
         sim(
             "dt is 1e308",
@@ -314,6 +326,13 @@ fn cases() -> Vec<Case> {
         sim_paper("--set an array for a name", &["--set", "kinematic=[1]"], &["`kinematic`", "a name in quotes"]),
         sim_paper("--set a number as a fault row", &["--set", "faults+=3"], &["`faults`:", "fault row"]),
         sim_paper("--set 1e9 steps", &["--set", "duration=1e6"], &["--set duration=1e6", "1e9 steps"]),
+        // Values that ran to an `inf` or a 130 m error with exit status 0.
+        sim_paper("a negative backstepping gain", &["--set", "backstepping.c1=-3"], &["backstepping.c1", "positive"]),
+        sim_paper(
+            "a negative mass factor without a fault time",
+            &["--set", "fault.mass_factor=-1"],
+            &["fault.mass_factor", "positive"],
+        ),
         sim_paper(
             "--set a bad fault row",
             &["--set", "faults+={node=9, from=1, to=2}"],

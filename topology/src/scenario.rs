@@ -95,6 +95,11 @@ pub const MAX_LAG_S: f64 = 10.0;
 
 /// Largest `network.delay_steps` accepted.
 pub const MAX_DELAY_STEPS: u64 = 1000;
+/// Largest distance from the origin a follower's offset, pose or body
+/// error may give, m.
+pub const MAX_DISTANCE_M: f64 = 1e6;
+/// Largest initial speed (m/s) or turn rate (rad/s) of a follower.
+pub const MAX_SPEED: f64 = 1e3;
 /// Most followers in one scenario (a networked run is one process each; the
 /// simulator's memory grows with the edges).
 pub const MAX_FOLLOWERS: usize = 10_000;
@@ -758,6 +763,17 @@ impl Check<'_> {
         }
     }
 
+    /// Finite and at most `limit` in size (a value beyond any robot's, whose
+    /// square overflows the metrics: 1e300 m/s ran to an `inf` formation
+    /// error with exit status 0).
+    fn bounded(&self, field: &str, values: &[f64], limit: f64, unit: &str) -> Result<(), ScenarioError> {
+        self.finite(field, values)?;
+        match values.iter().find(|v| v.abs() > limit) {
+            Some(v) => Err(self.fail(field, format!("{} is beyond ±{} {unit}", num(*v), num(limit)))),
+            None => Ok(()),
+        }
+    }
+
     fn positive(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
         self.finite(field, values)?;
         match values.iter().find(|&&v| v <= 0.0) {
@@ -988,15 +1004,15 @@ fn validate_followers(
         if pos > 0 && file.followers[order[pos - 1]].id == f.id {
             return Err(c.fail(&field("id"), format!("duplicate follower id {}", f.id)));
         }
-        c.finite(&field("offset"), &f.offset)?;
-        c.finite(&field("velocity"), &f.velocity)?;
+        c.bounded(&field("offset"), &f.offset, MAX_DISTANCE_M, "m")?;
+        c.bounded(&field("velocity"), &f.velocity, MAX_SPEED, "(m/s, rad/s)")?;
         let pose = match (f.pose, f.body_error) {
             (Some(p), None) => {
-                c.finite(&field("pose"), &p)?;
+                c.bounded(&field("pose"), &p, MAX_DISTANCE_M, "(m, rad)")?;
                 Pose::new(p[0], p[1], p[2])
             }
             (None, Some(e)) => {
-                c.finite(&field("body_error"), &e)?;
+                c.bounded(&field("body_error"), &e, MAX_DISTANCE_M, "(m, rad)")?;
                 pose_from_body_error(leader_pose, f.offset, e)
             }
             (Some(_), Some(_)) => return Err(c.fail(&field("pose"), "give either `pose` or `body_error`, not both")),
@@ -1062,9 +1078,11 @@ fn validate_gains(c: &Check<'_>, file: &ScenarioFile) -> Result<(), ScenarioErro
     c.non_negative("estimator.ka", &est.ka)?;
     c.non_negative("estimator.kb", &est.kb)?;
     let bs = &file.backstepping;
-    c.finite("backstepping.c1", &[bs.c1])?;
-    c.finite("backstepping.c2", &[bs.c2])?;
-    c.finite("backstepping.c3", &[bs.c3])?;
+    // The paper's C₁, C₂, C₃ are positive (a negative C₁ ran to a 130 m
+    // formation error with exit status 0).
+    c.positive("backstepping.c1", &[bs.c1])?;
+    c.positive("backstepping.c2", &[bs.c2])?;
+    c.positive("backstepping.c3", &[bs.c3])?;
     c.shunting("backstepping.shunting", &bs.shunting)?;
     let sm = &file.sliding_mode;
     c.non_negative("sliding_mode.ca", &[sm.ca])?;
@@ -1087,6 +1105,9 @@ fn validate_gains(c: &Check<'_>, file: &ScenarioFile) -> Result<(), ScenarioErro
 
 /// `[fault]`: the change of mass and inertia at one time, if any.
 fn validate_fault(c: &Check<'_>, file: &ScenarioFile) -> Result<Option<Fault>, ScenarioError> {
+    // Checked with or without a time: a -1 was accepted until one was set.
+    c.positive("fault.mass_factor", &[file.fault.mass_factor])?;
+    c.positive("fault.inertia_factor", &[file.fault.inertia_factor])?;
     let Some(time_s) = file.fault.time else { return Ok(None) };
     c.non_negative("fault.time", &[time_s])?;
     if time_s > file.duration {
