@@ -122,6 +122,10 @@ pub const MISMATCH_GRACE: Duration = Duration::from_secs(5);
 
 /// How long a node waits at the barrier before giving up.
 pub const START_TIMEOUT: Duration = Duration::from_secs(120);
+
+/// After this long at the barrier a node says, once, whom it still waits
+/// for (it waited silently until [`START_TIMEOUT`]).
+pub const SAY_WAITING_AFTER: Duration = Duration::from_secs(10);
 /// How often a waiting node says hello (and ready) and asks its machine
 /// what to do.
 pub const TICK: Duration = Duration::from_millis(50);
@@ -357,6 +361,7 @@ pub struct Join {
     began: Now,
     readies: u64,
     warned: bool,
+    said_waiting: bool,
     quiet: Quiet,
 }
 
@@ -372,6 +377,7 @@ impl Join {
             began: now,
             readies: 0,
             warned: false,
+            said_waiting: false,
             quiet: Quiet { news: 0, since: Some(now) },
         }
     }
@@ -444,6 +450,30 @@ impl Join {
             )
         });
         self.warned |= warning.is_some();
+        // Whom it still waits for, once, after a while (a node not started, or
+        // one that cannot reach this one), rather than silence until it gives up.
+        let warning = match warning {
+            None if !self.said_waiting
+                && foreign_for.is_none()
+                && now.saturating_sub(self.began) >= SAY_WAITING_AFTER =>
+            {
+                self.said_waiting = true;
+                let what = if waiting.is_empty() {
+                    "the leader's start".to_string()
+                } else {
+                    format!("{} {}", if waiting.len() == 1 { "node" } else { "nodes" }, waiting.join(", "))
+                };
+                Some(format!(
+                    "node {}: still waiting for {what} after {} s (run {}; is it started, and can it reach this \
+                     node?); giving up at {} s",
+                    self.me,
+                    SAY_WAITING_AFTER.as_secs(),
+                    self.run,
+                    START_TIMEOUT.as_secs()
+                ))
+            }
+            w => w,
+        };
         // The key digests (a few KB for a large scenario) go with every
         // DIGESTS_EVERY-th ready only; the fingerprint with every one.
         let ready = waiting.is_empty().then(|| {
@@ -478,6 +508,7 @@ pub struct Lead {
     heard: Heard,
     began: Now,
     warned: BTreeSet<String>,
+    said_waiting: bool,
     quiet: Quiet,
 }
 
@@ -490,6 +521,7 @@ impl Lead {
             heard: Heard::new(scenario, expect_ready),
             began: now,
             warned: BTreeSet::new(),
+            said_waiting: false,
             quiet: Quiet { news: 0, since: Some(now) },
         }
     }
@@ -532,13 +564,22 @@ impl Lead {
                 ));
             }
         }
+        let waiting: BTreeSet<String> = hello_missing.into_iter().chain(ready_missing).collect();
+        let waiting = waiting.into_iter().collect::<Vec<_>>().join(", ");
         if now.saturating_sub(self.began) > START_TIMEOUT {
-            let waiting: BTreeSet<String> = hello_missing.into_iter().chain(ready_missing).collect();
             return LeadStep::Failed(Error::Run(format!(
-                "leader: nodes {} of run {run} not ready within {} s",
-                waiting.into_iter().collect::<Vec<_>>().join(", "),
+                "leader: nodes {waiting} of run {run} not ready within {} s",
                 START_TIMEOUT.as_secs()
             )));
+        }
+        if !self.said_waiting && now.saturating_sub(self.began) >= SAY_WAITING_AFTER {
+            self.said_waiting = true;
+            warnings.push(format!(
+                "leader: still waiting for nodes {waiting} after {} s (run {run}; are they started, and can they \
+                 reach this node?); giving up at {} s",
+                SAY_WAITING_AFTER.as_secs(),
+                START_TIMEOUT.as_secs()
+            ));
         }
         LeadStep::Wait { warnings }
     }
@@ -763,6 +804,37 @@ mod tests {
         j.on_ready("2", ready(&other), t0);
         j.on_ready("2", ready(&s), t0 + TICK);
         assert!(matches!(j.poll(t0 + MISMATCH_GRACE * 2), JoinStep::Wait { .. }));
+    }
+
+    /// A node not started: the others say whom they wait for once, after
+    /// 10 s (they waited silently for the 120 s of the time limit).
+    #[test]
+    fn a_waiting_node_names_whom_it_waits_for_once() {
+        let (s, t0) = (paper(&[]), Now::ZERO);
+        let mut j = Join::new("1", "r", &names(&["2", "0"]), &s, t0);
+        j.on_hello("0");
+        assert_eq!(j.poll(t0 + TICK), JoinStep::Wait { ready: None, warning: None });
+        match j.poll(t0 + SAY_WAITING_AFTER) {
+            JoinStep::Wait { warning: Some(w), .. } => {
+                assert!(w.starts_with("node 1: still waiting for node 2 after 10 s (run r;"), "{w}")
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(j.poll(t0 + SAY_WAITING_AFTER + TICK), JoinStep::Wait { ready: None, warning: None }, "once");
+        let mut l = Lead::new("r", &names(&["1", "monitor"]), &names(&["1", "monitor"]), &s, t0);
+        l.on_hello("1");
+        assert_eq!(l.poll(t0 + TICK), LeadStep::Wait { warnings: vec![] });
+        match l.poll(t0 + SAY_WAITING_AFTER) {
+            LeadStep::Wait { warnings } => {
+                assert_eq!(warnings.len(), 1, "{warnings:?}");
+                assert!(
+                    warnings[0].starts_with("leader: still waiting for nodes 1, monitor after 10 s"),
+                    "{warnings:?}"
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(l.poll(t0 + SAY_WAITING_AFTER + TICK), LeadStep::Wait { warnings: vec![] }, "once");
     }
 
     #[test]

@@ -236,7 +236,7 @@ impl Scenario {
         let dt = self.dt_s;
         let at = |k: f64, dt: f64, d: usize| self.graph.estimator_growth(k, dt, d).powf(1.0 / dt);
         let mut changes = vec![
-            (format!("k_i = {}", k / 2.0), at(k / 2.0, dt, d)),
+            (format!("k_i = {} (estimator.k)", k / 2.0), at(k / 2.0, dt, d)),
             (format!("Δt = {} ms", dt * 500.0), at(k, dt / 2.0, d)),
             (format!("network.delay_steps = {}", d + 1), at(k, dt, d + 1)),
         ];

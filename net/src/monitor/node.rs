@@ -475,7 +475,8 @@ fn finish(
             Ok((ending, verdict))
         }
         Ending::Idle => Err(Error::Run(format!(
-            "no telemetry for {} s; still running: {}; wrote the {recorded} steps received to {}",
+            "no telemetry for {} s; never reported their last step: {} (stopped, or cut off from the monitor); \
+             wrote the {recorded} steps received to {}",
             args.idle_timeout,
             unfinished.join(", "),
             dir.display()

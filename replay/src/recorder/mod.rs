@@ -150,6 +150,13 @@ pub struct Recorder {
     /// Leader states of steps `leader_base`.. (None: lost).
     leader: VecDeque<Option<LeaderState>>,
     leader_base: u64,
+    /// The leader as its scenario steps it, at step `model_k`: the state a
+    /// follower's row pairs with where the leader's own is missing (the
+    /// leader killed, a gap in its telemetry). The leader is a trajectory,
+    /// so this is the state it had or would have had; before, those rows
+    /// were dropped though their samples had arrived.
+    model_leader: formation_leader::Leader,
+    model_k: u64,
     nodes: BTreeMap<u32, NodeStats>,
     malformed: u64,
     /// Of those, by the key they came on (`telemetry/<id>`; None: not a number).
@@ -211,6 +218,8 @@ impl Recorder {
             leader_stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
             leader: VecDeque::new(),
             leader_base: 0,
+            model_leader: scenario.leader(),
+            model_k: 0,
             nodes,
             malformed: 0,
             malformed_by_key: BTreeMap::new(),
@@ -258,9 +267,9 @@ impl Recorder {
             }
         }
         while self.leader_base + (self.leader.len() as u64) < k {
-            self.leader.push_back(None);
+            self.push_leader(None);
         }
-        self.leader.push_back(state.copied());
+        self.push_leader(state.copied());
         Ok(())
     }
 
@@ -503,7 +512,34 @@ impl Recorder {
             self.file_leader(k, Some(&s))?;
         }
         while self.leader_base + (self.leader.len() as u64) < self.leader_stream.end {
-            self.leader.push_back(None);
+            self.push_leader(None);
+        }
+        Ok(())
+    }
+
+    /// The next step's leader state for the followers' rows to pair with:
+    /// its own, or where it has none, the scenario's ([`Recorder::model_leader`]).
+    fn push_leader(&mut self, state: Option<LeaderState>) {
+        let k = self.leader_base + self.leader.len() as u64;
+        let dt = self.scenario.dt_s;
+        while self.model_k < k {
+            let s = self.model_leader.state(self.model_k as f64 * dt);
+            self.model_leader.advance(&s, dt);
+            self.model_k += 1;
+        }
+        let state = state.unwrap_or_else(|| self.model_leader.state(k as f64 * dt));
+        self.leader.push_back(Some(state));
+    }
+
+    /// At the end: the followers' samples past the leader's last step (a
+    /// leader that stopped before them) pair with the scenario's leader.
+    fn pair_past_the_leader(&mut self) -> std::io::Result<()> {
+        let last = self.followers.iter().filter_map(|f| f.pending.back().map(|s| s.k)).max();
+        if let Some(last) = last {
+            while self.leader_base + (self.leader.len() as u64) <= last {
+                self.push_leader(None);
+            }
+            self.process()?;
         }
         Ok(())
     }
@@ -738,7 +774,8 @@ impl Recorder {
     }
 
     /// [`Recorder::finish`], with the run's health when a model was set.
-    pub fn finish_judged(self, ending: Ending) -> std::io::Result<(Summary, PathBuf, Option<Health>)> {
+    pub fn finish_judged(mut self, ending: Ending) -> std::io::Result<(Summary, PathBuf, Option<Health>)> {
+        self.pair_past_the_leader()?;
         let metrics = self.followers.iter().map(|f| (f.id, f.metrics.finish())).collect();
         let outages = self.followers.iter().map(|f| (f.id, f.metrics.outages())).collect();
         let summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
@@ -836,6 +873,66 @@ mod tests {
         }
         assert!(r.complete());
         assert_eq!(r.recorded_steps(), steps + 1);
+    }
+
+    /// A leader that stopped at step 4 (killed) while the followers ran to
+    /// the end: their rows are written, paired with the leader the scenario
+    /// steps (they were dropped though they had arrived); its own rows end
+    /// at step 4.
+    #[test]
+    fn followers_rows_past_a_stopped_leader_are_kept() {
+        let (dir, scenario, mut r) = paper_recorder();
+        let steps = scenario.steps();
+        let mut model = scenario.leader();
+        let states: Vec<LeaderState> = (0..5)
+            .map(|k| {
+                let s = model.state(k as f64 * scenario.dt_s);
+                model.advance(&s, scenario.dt_s);
+                s
+            })
+            .collect();
+        let leader = Telemetry::Leader {
+            first_k: 0,
+            states,
+            counters: Counters::default(),
+            done: false,
+            loop_stats: None,
+            delivery: Delivery::default(),
+        };
+        r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
+        for f in &scenario.followers {
+            let slots = scenario.sources_of(scenario.index_of(f.id).expect("a follower")).len();
+            let batch = Telemetry::Follower {
+                id: f.id,
+                first_k: 0,
+                heard: HeardRuns::uniform(slots, steps as u32 + 1, Heard::Age(0)),
+                rescued: Vec::new(),
+                resumed: None,
+                diverged: None,
+                samples: (0..=steps).map(sample).collect(),
+                counters: Counters::default(),
+                done: true,
+                loop_stats: None,
+                delivery: Delivery::default(),
+                events: Vec::new(),
+                clock: None,
+                links: Vec::new(),
+            };
+            r.telemetry(Some(f.id), &codec::encode(&batch), Instant::now()).unwrap();
+        }
+        let (summary, out) = r.finish(Ending::Interrupted).expect("finish");
+        let lines = |name: &str| std::fs::read_to_string(out.join(name)).expect(name).lines().count() as u64;
+        for f in &scenario.followers {
+            assert_eq!(
+                lines(&format!("follower_{}.csv", f.id)),
+                steps + 2,
+                "follower {}: a header and every step",
+                f.id
+            );
+        }
+        assert_eq!(lines("leader.csv"), 1 + 5, "the leader's own rows only");
+        assert!(summary.complete, "every follower's samples are recorded");
+        drop(dir);
     }
 
     #[test]
