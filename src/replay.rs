@@ -252,7 +252,7 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
         .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
     let run = a.run.file_name().map_or("run".to_string(), |n| n.to_string_lossy().into_owned());
     let s = loaded.scenario.clone();
-    runtime.block_on(async move {
+    let result = runtime.block_on(async move {
         let (tx, rx) = std::sync::mpsc::channel::<Control>();
         let live = match a.web {
             Some(addr) => {
@@ -291,7 +291,26 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
                 }
                 Ok(())
             }
-            _ = tokio::signal::ctrl_c() => Ok(()),
+            // The player's thread is left to the process's end (it was
+            // waited for, and Ctrl-C ended the command only when the
+            // playback did, with status 0).
+            _ = tokio::signal::ctrl_c() => Err(CliError::Interrupted("interrupted".into(), 2)),
+            _ = sigterm() => Err(CliError::Interrupted("terminated".into(), 15)),
         }
-    })
+    });
+    runtime.shutdown_background();
+    if result.is_err() {
+        playback::remove_scratch();
+    }
+    result
+}
+
+/// SIGTERM, or never if it cannot be watched.
+async fn sigterm() {
+    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(mut s) => {
+            s.recv().await;
+        }
+        Err(_) => std::future::pending().await,
+    }
 }

@@ -262,14 +262,30 @@ pub fn play(
 }
 
 /// A folder of its own for the recorders' (empty) run folders, removed on
-/// every path.
+/// every path ([`remove_scratch`] when the process ends on a signal).
 struct TempDir(std::path::PathBuf);
+
+/// The start of this process's scratch folders' names.
+fn scratch_prefix() -> String {
+    format!("formation-playback-{}-", std::process::id())
+}
+
+/// Removes this process's scratch folders, for a playback that ends on a
+/// signal while its thread still holds them.
+pub fn remove_scratch() {
+    let prefix = scratch_prefix();
+    for e in std::fs::read_dir(std::env::temp_dir()).into_iter().flatten().flatten() {
+        if e.file_name().to_string_lossy().starts_with(&prefix) {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
 
 impl TempDir {
     fn new() -> Result<Self, Error> {
         static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let dir = std::env::temp_dir().join(format!("formation-playback-{}-{n}", std::process::id()));
+        let dir = std::env::temp_dir().join(format!("{}{n}", scratch_prefix()));
         std::fs::create_dir_all(&dir).map_err(|e| Error::Run(format!("{}: {e}", dir.display())))?;
         Ok(Self(dir))
     }

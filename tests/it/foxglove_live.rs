@@ -233,6 +233,26 @@ async fn plays_again_to_foxglove(out: &Path) {
     }
     assert_eq!(got.last().map(|m| m.1), Some(20_000_000_000), "the final step was not played");
     eprintln!("foxglove playback: {} messages of /follower_1/state, every one the recorded row", got.len());
+
+    // Ctrl-C and SIGTERM end a playback at once, 130 and 143, and leave no
+    // scratch folder (Ctrl-C waited for the playback's end and said 0).
+    for (signal, code) in [("-INT", 130), ("-TERM", 143)] {
+        let addr = format!("127.0.0.1:{}", common::Ports::free(1).release());
+        let mut g = Group::spawn(&["monitor", "--replay", &run, "--foxglove", &addr, "--speed", "0.1"]);
+        let _ws = connect(&addr, &mut g).await;
+        let pid = g.0.id();
+        let sent = std::process::Command::new("kill").args([signal, &pid.to_string()]).status().expect("kill");
+        assert!(sent.success());
+        let status = g.wait(Duration::from_secs(10));
+        assert_eq!(status.code(), Some(code), "playback after kill {signal}: {status}");
+        let left: Vec<_> = std::fs::read_dir(std::env::temp_dir())
+            .expect("tmp")
+            .flatten()
+            .filter(|e| e.file_name().to_string_lossy().starts_with(&format!("formation-playback-{pid}-")))
+            .map(|e| e.file_name())
+            .collect();
+        assert!(left.is_empty(), "playback after kill {signal} left {left:?}");
+    }
 }
 
 #[test]
