@@ -82,8 +82,17 @@ impl Summary {
             steps: s.steps(),
             noise: s.noise,
             kinematic: name(&s.control.kinematic),
-            dynamic: name(&s.control.dynamic),
-            filter: name(&s.control.filter.kind),
+            // A velocity-commanded robot runs neither (docs/model.md §15):
+            // it was written "bio" and "asif", and `formation report` put its
+            // zero filter RMSE beside the paper's Table I.
+            dynamic: match s.control.drive {
+                formation_plant::Drive::Torque => name(&s.control.dynamic),
+                formation_plant::Drive::Velocity { .. } => "none (velocity-commanded robot)".into(),
+            },
+            filter: match s.control.drive {
+                formation_plant::Drive::Torque => name(&s.control.filter.kind),
+                formation_plant::Drive::Velocity { .. } => "none".into(),
+            },
             estimate_init: name(&s.estimate_init),
             fault_time: s.control.fault.map(|f| f.time_s),
             lambda_min_h: s.graph.lambda_min_h(),

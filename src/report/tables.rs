@@ -167,7 +167,10 @@ fn rmse_table(cases: &[Case], ctx: &Context, fault: bool) -> Table {
             [(Role::KfNormal, "KF"), (Role::Proposed, "ASIF")],
         )
     };
-    let cols = columns(cases, ctx, &roles, |c| c.summary().fault_time.is_some() == fault);
+    // A run with no velocity filter (a velocity-commanded robot) has no
+    // velocity RMSE to set beside the paper's.
+    let cols =
+        columns(cases, ctx, &roles, |c| c.summary().fault_time.is_some() == fault && c.summary().filter != "none");
     if cols.is_empty() {
         return Table { file: file.into(), title: title.into(), markdown: String::new(), csv: String::new() };
     }

@@ -571,3 +571,23 @@ fn calibrate_is_seeded_and_never_worse_than_where_it_starts() {
     let svg = std::fs::read_to_string(a.join("sensitivity.svg")).expect("sensitivity.svg");
     assert!(svg.starts_with("<svg") && svg.matches("<rect").count() > 320, "a cell per entry and value");
 }
+
+/// A velocity-commanded robot runs neither the dynamic controller nor a
+/// velocity filter (docs/model.md §15): its summary says so, and the report
+/// sets no zero RMSE of it beside the paper's Table I (it was written
+/// "bio" and "asif", and Table I showed 0 against 0.97).
+#[test]
+fn a_velocity_robots_run_is_no_filter_case() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let run = tmp.path().join("vel");
+    run_ok(bin().args(["sim", "paper-velocity", "-q", "--set", "duration=2", "--out"]).arg(&run));
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).expect("summary")).expect("json");
+    assert_eq!(summary["dynamic"], "none (velocity-commanded robot)", "{summary}");
+    assert_eq!(summary["filter"], "none", "{summary}");
+    let rep = tmp.path().join("rep");
+    run_ok(bin().arg("report").arg(&run).arg("--out").arg(&rep));
+    let md = std::fs::read_to_string(rep.join("report.md")).expect("report.md");
+    assert!(!md.contains("### Table I:"), "Table I of a run with no filter: {md}");
+    assert!(md.contains("dynamic none (velocity-commanded robot), filter none"), "{md}");
+}
