@@ -147,9 +147,15 @@ impl Outputs {
     /// The odometry of `p` (the true pose, its heading as a quaternion, and
     /// the measured velocity z), and its transforms.
     fn publish(&mut self, ns: i64, p: &Plant) -> Result<(), Error> {
-        let pose = p.robot.pose;
-        self.odom.put(&odometry(&self.frames, ns, pose, p.robot.measurement), ns)?;
-        self.tf.put(&super::topics::transforms(&self.frames, ns, pose), ns)
+        self.publish_odometry(ns, p)?;
+        self.tf.put(&super::topics::transforms(&self.frames, ns, p.robot.pose), ns)
+    }
+
+    /// The odometry alone: a lock-step repeat of a step (its transforms
+    /// again with the same stamp would make tf2 listeners warn of repeated
+    /// data, TF_REPEATED_DATA).
+    fn publish_odometry(&mut self, ns: i64, p: &Plant) -> Result<(), Error> {
+        self.odom.put(&odometry(&self.frames, ns, p.robot.pose, p.robot.measurement), ns)
     }
 }
 
@@ -188,7 +194,7 @@ fn lockstep(
                     )));
                 }
                 if now - said >= REPEAT_EVERY {
-                    out.publish(stamps.ns(k), &plant)?;
+                    out.publish_odometry(stamps.ns(k), &plant)?;
                     said = now;
                 }
                 std::thread::sleep(Duration::from_micros(50));
