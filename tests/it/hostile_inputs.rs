@@ -321,6 +321,12 @@ fn cases() -> Vec<Case> {
         sim_paper("--set without =", &["--set", "dt"], &["--set dt", "KEY=VALUE"]),
         sim_paper("--set with an empty key", &["--set", "=3"], &["--set =3", "empty key"]),
         sim_paper("--set unknown key", &["--set", "robot.weight=3"], &["--set robot.weight=3", "unknown key"]),
+        // A key inside the value's table is named (the table itself was).
+        sim_paper(
+            "--set a table with an unknown key",
+            &["--set", "backstepping.shunting={a=4,b=2,d=2,e=1}"],
+            &["`backstepping.shunting`: unknown key `e`"],
+        ),
         sim_paper("--set wrong type", &["--set", "dt=true"], &["--set dt=true", "a number"]),
         sim_paper("--set a table for a name", &["--set", "filter={}"], &["`filter`", "a name in quotes"]),
         sim_paper("--set an array for a name", &["--set", "kinematic=[1]"], &["`kinematic`", "a name in quotes"]),

@@ -647,9 +647,15 @@ fn override_message(key: &str, message: &str) -> String {
     let message = plain_message(message);
     let key = key.trim_end_matches('+').trim();
     if let Some(rest) = message.strip_prefix("unknown key `") {
-        // The message names the last part of the key: name all of it.
-        let after = rest.split_once('`').map_or("", |(_, a)| a);
-        format!("unknown key `{key}`{after}")
+        // The message names the last part of the key: name all of it; or a
+        // key inside the table or array the value gave (`shunting={…, e=1}`:
+        // it named the table, which exists, and listed the table's keys).
+        let (name, after) = rest.split_once('`').unwrap_or((rest, ""));
+        if key.rsplit('.').next() == Some(name) {
+            format!("unknown key `{key}`{after}")
+        } else {
+            format!("`{key}`: unknown key `{name}`{after}")
+        }
     } else if message.starts_with("unknown key") {
         format!("unknown key `{key}` ({message})")
     } else {
