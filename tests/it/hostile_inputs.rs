@@ -321,6 +321,11 @@ fn cases() -> Vec<Case> {
         sim_paper("--set without =", &["--set", "dt"], &["--set dt", "KEY=VALUE"]),
         sim_paper("--set with an empty key", &["--set", "=3"], &["--set =3", "empty key"]),
         sim_paper("--set unknown key", &["--set", "robot.weight=3"], &["--set robot.weight=3", "unknown key"]),
+        sim_paper(
+            "--set a seed beyond 64 bits",
+            &["--set", "seed=9223372036854775808"],
+            &["--set seed=9223372036854775808", "beyond the whole numbers"],
+        ),
         // A key inside the value's table is named (the table itself was).
         sim_paper(
             "--set a table with an unknown key",

@@ -673,6 +673,15 @@ fn parse_value(value: &str) -> Result<toml::Value, String> {
     }
     match toml::from_str::<toml::Table>(&format!("v = {value}")) {
         Ok(mut t) => t.remove("v").ok_or_else(|| format!("`{value}` is not a value")),
+        // Digits TOML cannot hold were taken for a word ("found the string").
+        Err(_)
+            if {
+                let digits = value.trim_start_matches(['-', '+']);
+                !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit())
+            } =>
+        {
+            Err(format!("{value} is beyond the whole numbers a value can hold (±9223372036854775807)"))
+        }
         Err(_) if !value.is_empty() && value.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) => {
             Ok(toml::Value::String(value.to_string()))
         }
