@@ -47,15 +47,16 @@ pub struct FollowerMetrics {
 
 impl FollowerMetrics {
     /// Nulls the metrics whose window `samples` (steps 0, 1, … in order)
-    /// does not reach in a run of `steps` steps of Δt. A no-op for metrics
-    /// from [`MetricsAccumulator`]; older `summary.json` files wrote 0 there.
-    pub fn null_unreached(&mut self, steps: u64, dt_s: f64) {
+    /// does not cover to its end in a run of `steps` steps. Older
+    /// `summary.json` files wrote 0 there.
+    pub fn null_unreached(&mut self, steps: u64) {
         // How far the record reached: its samples and the gaps between them.
         let reached = self.samples + self.gap_steps;
-        if reached <= last10_from_k(steps, dt_s) {
-            self.formation_rms_last10 = None;
-        }
+        // A window the record does not cover to its end has no value: the
+        // last 10 s of a follower that stopped at 5 s of 12 was its RMS
+        // over 2–5 s, called the last 10 s.
         if reached <= steps {
+            self.formation_rms_last10 = None;
             for m in [
                 &mut self.formation_final,
                 &mut self.heading_final,

@@ -112,7 +112,7 @@ impl Summary {
     pub fn mark_unreached(&mut self) {
         let expected = self.steps + 1;
         for m in self.followers.values_mut() {
-            m.null_unreached(self.steps, self.dt);
+            m.null_unreached(self.steps);
         }
         self.incomplete = self
             .followers
