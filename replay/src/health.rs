@@ -118,6 +118,9 @@ pub struct Evidence {
     /// that used a message older than the delay, those that heard nothing,
     /// all link-steps, and the delay.
     pub hearing: Option<HearingEvidence>,
+    /// Followers whose record ends short of the run's end beyond what their
+    /// restarts' gaps explain, each said as the summary says it.
+    pub short: Vec<String>,
 }
 
 /// See [`Evidence::hearing`].
@@ -138,6 +141,11 @@ pub const HEARING_DEPARTURE: f64 = 1e-3;
 pub fn judge(e: &Evidence) -> Health {
     let mut degraded = Vec::new();
     let mut disturbed = Vec::new();
+    // A run that did not complete is never healthy (a follower whose
+    // process was stopped at 5 s of 12 was, its metrics null).
+    for s in &e.short {
+        degraded.push(format!("incomplete: {s}"));
+    }
     for &(id, run, model) in &e.errors {
         if let (Some(r), Some(m)) = (run, model) {
             if r > ERROR_FACTOR * m + ERROR_MARGIN_M {
@@ -315,6 +323,18 @@ fn unsure_clocks(e: &Evidence) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A follower whose record stops short (its process stopped, not
+    /// restarted) makes the run degraded: it was healthy, its metrics null.
+    #[test]
+    fn an_incomplete_run_is_never_healthy() {
+        let mut e = Evidence { steps: 12_000, dt_s: 1e-3, ..Default::default() };
+        assert_eq!(judge(&e).verdict, Verdict::Healthy);
+        e.short = vec!["follower 3 recorded 5150 of 12001 samples (to t = 5.149 s of T = 12 s)".into()];
+        let h = judge(&e);
+        assert_eq!(h.verdict, Verdict::Degraded, "{h:?}");
+        assert_eq!(h.degraded, ["incomplete: follower 3 recorded 5150 of 12001 samples (to t = 5.149 s of T = 12 s)"]);
+    }
 
     #[test]
     fn a_wrecked_formation_is_degraded_and_a_held_attack_disturbed() {

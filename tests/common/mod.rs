@@ -70,13 +70,22 @@ impl Ports {
         let span = high - low;
         let start = low + (std::process::id() % u32::from(span)) as u16;
         let mut base = start;
-        for _ in 0..200 {
+        // The whole range if need be: every call of a test binary starts at
+        // the same place, so the blocks handed out before lie ahead of it
+        // (200 tries ran out once a binary had handed out 200 ports there).
+        let mut bound = 0;
+        for _ in 0..span / count + 1 {
             if let Some(ports) = Self::take_block(base, count, &mut handed_out) {
                 return ports;
             }
+            bound += u32::from(!handed_out.contains(&base));
             base = low + ((base - low + count) % span);
         }
-        panic!("no {count} consecutive free loopback ports below {ephemeral_low} in 200 tries");
+        panic!(
+            "no {count} consecutive free loopback ports in {low}..{ephemeral_low} ({} handed out in this binary, {bound} \
+             blocks tried were in use by others)",
+            handed_out.len()
+        );
     }
 
     /// Holds `count` ports from `base` if none was handed out before and

@@ -452,6 +452,8 @@ fn finish(
     scenario: &Scenario,
     args: &MonitorArgs,
 ) -> Result<(Ending, Option<Verdict>), Error> {
+    // The rows past a leader that stopped first count among those written.
+    recorder.pair_past_the_leader().map_err(written)?;
     let recorded = recorder.recorded_steps();
     let unfinished = recorder.unfinished();
     recorder.set_model(model_errors(scenario));

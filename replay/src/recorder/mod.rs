@@ -322,6 +322,12 @@ impl Recorder {
         let model = self.model.as_ref()?;
         let dt = self.scenario.dt_s;
         let mut e = Evidence { steps: self.scenario.steps(), dt_s: dt, ..Default::default() };
+        e.short = summary
+            .incomplete
+            .iter()
+            .filter(|(_, s)| s.recorded + s.in_gaps < s.expected)
+            .map(|(&id, s)| s.describe(id, dt, self.scenario.duration_s))
+            .collect();
         let delay_steps = self.scenario.network.delay_steps;
         if self.scenario.timing == formation_topology::Timing::Realtime {
             // As each follower judges its own (net's agent).
@@ -532,14 +538,27 @@ impl Recorder {
     }
 
     /// At the end: the followers' samples past the leader's last step (a
-    /// leader that stopped before them) pair with the scenario's leader.
-    fn pair_past_the_leader(&mut self) -> std::io::Result<()> {
-        let last = self.followers.iter().filter_map(|f| f.pending.back().map(|s| s.k)).max();
-        if let Some(last) = last {
-            while self.leader_base + (self.leader.len() as u64) <= last {
+    /// leader that stopped before them) pair with the scenario's leader, a
+    /// bounded number of steps at a time (a long run's leader that died
+    /// early must not hold a state per remaining step at once).
+    pub fn pair_past_the_leader(&mut self) -> std::io::Result<()> {
+        const CHUNK: u64 = 65_536;
+        let Some(last) = self.followers.iter().filter_map(|f| f.pending.back().map(|s| s.k)).max() else {
+            return Ok(());
+        };
+        while self.leader_base + (self.leader.len() as u64) <= last {
+            let to = (self.leader_base + self.leader.len() as u64 + CHUNK).min(last + 1);
+            while self.leader_base + (self.leader.len() as u64) < to {
                 self.push_leader(None);
             }
             self.process()?;
+            // Nothing more arrives: a state no pending sample needs goes
+            // (`process` keeps those a follower that stopped early might).
+            let need = self.followers.iter().filter_map(|f| f.pending.front().map(|s| s.k)).min().unwrap_or(to);
+            while self.leader_base < need && !self.leader.is_empty() {
+                self.leader.pop_front();
+                self.leader_base += 1;
+            }
         }
         Ok(())
     }
@@ -756,15 +775,18 @@ impl Recorder {
         })
     }
 
-    /// Whether a replay needs a rescued message: only a follower's, of a
-    /// step its own record lacks (a sender killed before its telemetry got
-    /// out). The leader's messages, and those of a step the sender
-    /// recorded, the replay computes itself; each follower's last batch
-    /// rescues every source's last messages, and kept whole they were
-    /// about 65 KB of the paper's 72 KB `hearing.bin`.
+    /// Whether a replay needs a rescued message: only a follower's message
+    /// of stamp s > 0 whose sender's step s − 1, which made it, is not in
+    /// the record (a sender killed before its telemetry got out, or the
+    /// message a lock-step restart resumes from). The leader's messages,
+    /// the initial ones and those of a step the sender recorded, the replay
+    /// computes itself; each follower's last batch rescues every source's
+    /// last messages, and kept whole they were about 65 KB of the paper's
+    /// 72 KB `hearing.bin`.
     fn rescue_needed(&self, r: &Rescued) -> bool {
         r.source != formation_topology::wire::LEADER_ID
-            && self.followers.iter().find(|f| f.hearing.id == r.source).is_none_or(|f| !f.hearing.covers(r.stamp))
+            && r.stamp > 0
+            && self.followers.iter().find(|f| f.hearing.id == r.source).is_none_or(|f| !f.hearing.covers(r.stamp - 1))
     }
 
     /// Writes `network.json` and `summary.json` (metrics of what was
