@@ -173,8 +173,12 @@ fn sweep_orphaned_sockets(tmp: &Path) {
             continue;
         }
         let Ok(inside) = std::fs::read_dir(&dir) else { continue };
-        let only_sockets = inside.flatten().all(|s| s.file_type().is_ok_and(|t| t.is_socket()));
-        if only_sockets {
+        let inside: Vec<_> = inside.flatten().collect();
+        let only_sockets = inside.iter().all(|s| s.file_type().is_ok_and(|t| t.is_socket()));
+        // A launch in another pid namespace (a container sharing /tmp)
+        // looks gone by its pid; its nodes still listen on their sockets.
+        let listened = inside.iter().any(|s| std::os::unix::net::UnixStream::connect(s.path()).is_ok());
+        if only_sockets && !listened {
             let _ = std::fs::remove_dir_all(&dir);
         }
     }
@@ -1026,15 +1030,25 @@ mod tests {
             d
         };
         let swept = make(&format!("{LINKS_PREFIX}{gone}-aB3x"), true, false);
+        // Named for a pid that is gone here, but listened on (another pid namespace).
+        let listening = tmp.path().join(format!("{LINKS_PREFIX}{gone}-Lstn"));
+        std::fs::create_dir(&listening).expect("dir");
+        let _held = std::os::unix::net::UnixListener::bind(listening.join("24002")).expect("socket");
         let empty = make(&format!("{LINKS_PREFIX}{gone}-Qz9k"), false, false);
         let live = make(&format!("{LINKS_PREFIX}{}-Zz1q", std::process::id()), true, false);
         let mixed = make(&format!("{LINKS_PREFIX}{gone}-c4Dd"), true, true);
         let unnamed = make(&format!("{LINKS_PREFIX}aB3xyz"), true, false);
         let other = make("formation-linksX-1-a", true, false);
         sweep_orphaned_sockets(tmp.path());
-        for (d, kept) in
-            [(&swept, false), (&empty, false), (&live, true), (&mixed, true), (&unnamed, true), (&other, true)]
-        {
+        for (d, kept) in [
+            (&swept, false),
+            (&empty, false),
+            (&live, true),
+            (&mixed, true),
+            (&unnamed, true),
+            (&other, true),
+            (&listening, true),
+        ] {
             assert_eq!(d.exists(), kept, "{}: expected {}", d.display(), if kept { "kept" } else { "swept" });
         }
     }

@@ -137,7 +137,11 @@ pub async fn wait_for_start(
     needs: &[String],
     scenario: &Scenario,
 ) -> Result<Start, Error> {
-    let waiting = Waiting::new(Join::new(me, &keys.run, needs, scenario, crate::clock::mono()));
+    let mut join = Join::new(me, &keys.run, needs, scenario, crate::clock::mono());
+    if std::env::var_os(crate::node::LAUNCHED_ENV).is_some() {
+        join = join.without_waiting_line();
+    }
+    let waiting = Waiting::new(join);
     let from = if needs.len() <= FEW { Whom::Only(needs) } else { Whom::All };
     let _subs = listen(session, keys, &waiting, from).await?;
     let fingerprint = fingerprint(scenario);
@@ -188,6 +192,9 @@ pub async fn lead_start(
             LeadStep::Go => break,
             LeadStep::Failed(e) => return Err(e),
             LeadStep::Refuse { reason, error } => {
+                // As a refusal must read (key names from another node's ready
+                // may hold anything): else the nodes would ignore it.
+                let reason = crate::barrier::as_abort_reason(&reason);
                 // Tell every node waiting for the start, so none waits it out.
                 for _ in 0..5 {
                     let _ = session.put(keys.abort(), reason.clone().into_bytes()).await;

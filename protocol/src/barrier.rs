@@ -241,6 +241,19 @@ pub fn abort_reason(bytes: &[u8]) -> Option<&str> {
     (!text.chars().any(char::is_control)).then_some(text)
 }
 
+/// `reason` as [`abort_reason`] takes it: control characters left out, cut
+/// (at a character) to [`MAX_ABORT_BYTES`].
+pub fn as_abort_reason(reason: &str) -> String {
+    let mut out = String::new();
+    for c in reason.chars().filter(|c| !c.is_control()) {
+        if out.len() + c.len_utf8() > MAX_ABORT_BYTES {
+            break;
+        }
+        out.push(c);
+    }
+    out
+}
+
 /// When a waiting node last heard something new, for its tick.
 #[derive(Default)]
 struct Quiet {
@@ -361,11 +374,19 @@ pub struct Join {
     began: Now,
     readies: u64,
     warned: bool,
+    /// Whom it waits for is said (or, under a launch, left to the leader's
+    /// one line: hundreds of agents would each say it).
     said_waiting: bool,
     quiet: Quiet,
 }
 
 impl Join {
+    /// Leaves the "still waiting" line to the leader (a launch's nodes).
+    pub fn without_waiting_line(mut self) -> Self {
+        self.said_waiting = true;
+        self
+    }
+
     /// `needs`: the nodes `me` receives from (they count when they say
     /// ready with another scenario); `now`: when it began waiting.
     pub fn new(me: &str, run: &str, needs: &[String], scenario: &Scenario, now: Now) -> Self {
@@ -615,6 +636,11 @@ mod tests {
             (&[b'a'; MAX_ABORT_BYTES + 1][..], "too long"),
         ] {
             assert_eq!(abort_reason(bytes), None, "{why}: {bytes:?}");
+        }
+        // The leader's own refusal always reads as one, whatever key names it quotes.
+        for text in ["keys a\nb and \u{1b}[2J", &"é".repeat(MAX_ABORT_BYTES)] {
+            let r = as_abort_reason(text);
+            assert_eq!(abort_reason(r.as_bytes()), Some(r.as_str()), "{text:?}");
         }
     }
 

@@ -36,6 +36,9 @@ pub struct Table {
 /// action and key).
 pub const MAX_REPORT_BYTES: usize = 64 * 1024;
 
+/// Most rows of one report.
+pub const MAX_REPORT_ROWS: usize = 1000;
+
 impl Table {
     /// Files a report (JSON, from `formation/<run>/control/denied/<node>`);
     /// whether it was one.
@@ -44,7 +47,7 @@ impl Table {
             return false;
         }
         match serde_json::from_slice::<Report>(bytes) {
-            Ok(r) if r.node == key_node && r.rows.len() <= 1000 => {
+            Ok(r) if r.node == key_node && r.rows.len() <= MAX_REPORT_ROWS => {
                 self.by_node.insert(r.node, r.rows);
                 true
             }

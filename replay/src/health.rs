@@ -264,7 +264,8 @@ fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
         ("abort", []) => crate::barrier::abort_reason(bytes).is_some(),
         ("denied", [node]) => {
             bytes.len() <= crate::denials::MAX_REPORT_BYTES
-                && serde_json::from_slice::<crate::denials::Report>(bytes).is_ok_and(|r| r.node == *node)
+                && serde_json::from_slice::<crate::denials::Report>(bytes)
+                    .is_ok_and(|r| r.node == *node && r.rows.len() <= crate::denials::MAX_REPORT_ROWS)
         }
         // The monitor's own acknowledgements never reach it: another is foreign.
         _ => false,

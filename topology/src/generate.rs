@@ -79,8 +79,9 @@ pub fn toml(spec: &Spec) -> Result<String, ScenarioError> {
 }
 
 /// Most followers of a benchmark's ring ([`ring_with_chords`]): about 1 KB
-/// of memory each in the simulator.
-pub const BENCH_MAX_FOLLOWERS: usize = 1_000_000;
+/// of memory each in the simulator, and with n/5 chords 2.2 n edges, within
+/// a scenario's 1,000,000.
+pub const BENCH_MAX_FOLLOWERS: usize = 450_000;
 
 /// [`toml`] with up to `most` followers, and the scenario it loads as.
 fn sized(spec: &Spec, most: usize) -> Result<(String, Scenario), ScenarioError> {
