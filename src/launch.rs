@@ -177,8 +177,8 @@ fn sweep_orphaned_sockets(tmp: &Path) {
         let only_sockets = inside.iter().all(|s| s.file_type().is_ok_and(|t| t.is_socket()));
         // A launch in another pid namespace (a container sharing /tmp)
         // looks gone by its pid; its nodes still listen on their sockets.
-        let listened = inside.iter().any(|s| std::os::unix::net::UnixStream::connect(s.path()).is_ok());
-        if only_sockets && !listened {
+        let listened = || inside.iter().any(|s| std::os::unix::net::UnixStream::connect(s.path()).is_ok());
+        if only_sockets && !listened() {
             let _ = std::fs::remove_dir_all(&dir);
         }
     }

@@ -74,6 +74,13 @@ impl Shortfall {
 
 impl Summary {
     pub fn new(s: &Scenario, followers: BTreeMap<u32, FollowerMetrics>) -> Self {
+        // A velocity-commanded robot runs neither (docs/model.md §15): it was
+        // written "bio" and "asif", and `formation report` put its zero
+        // filter RMSE beside the paper's Table I.
+        let (dynamic, filter) = match s.control.drive {
+            formation_plant::Drive::Torque => (name(&s.control.dynamic), name(&s.control.filter.kind)),
+            formation_plant::Drive::Velocity { .. } => ("none (velocity-commanded robot)".into(), "none".into()),
+        };
         let mut summary = Self {
             scenario: s.name.clone(),
             seed: s.seed,
@@ -82,17 +89,8 @@ impl Summary {
             steps: s.steps(),
             noise: s.noise,
             kinematic: name(&s.control.kinematic),
-            // A velocity-commanded robot runs neither (docs/model.md §15):
-            // it was written "bio" and "asif", and `formation report` put its
-            // zero filter RMSE beside the paper's Table I.
-            dynamic: match s.control.drive {
-                formation_plant::Drive::Torque => name(&s.control.dynamic),
-                formation_plant::Drive::Velocity { .. } => "none (velocity-commanded robot)".into(),
-            },
-            filter: match s.control.drive {
-                formation_plant::Drive::Torque => name(&s.control.filter.kind),
-                formation_plant::Drive::Velocity { .. } => "none".into(),
-            },
+            dynamic,
+            filter,
             estimate_init: name(&s.estimate_init),
             fault_time: s.control.fault.map(|f| f.time_s),
             lambda_min_h: s.graph.lambda_min_h(),

@@ -578,15 +578,20 @@ fn an_out_folder_of_the_users_is_refused_up_front() {
     std::fs::create_dir(&mine).expect("mkdir");
     std::fs::write(mine.join("keep.txt"), "mine").expect("write");
     let base = Ports::free(LAUNCH_PORTS).release().to_string();
-    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["launch", common::SCENARIO, "-q", "--base-port", &base, "--out"])
-        .arg(&mine)
-        .output()
-        .expect("formation launch");
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "must be bad input: {:?}; stderr: {stderr}", o.status);
+    // A launch to `out` refused as bad input in one line: that line.
+    let refused = |out: &std::path::Path| {
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["launch", common::SCENARIO, "-q", "--base-port", &base, "--out"])
+            .arg(out)
+            .output()
+            .expect("formation launch");
+        let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert_eq!(o.status.code(), Some(2), "must be bad input: {:?}; stderr: {stderr}", o.status);
+        assert_eq!(stderr.trim().lines().count(), 1, "one line, not {stderr}");
+        stderr
+    };
+    let stderr = refused(&mine);
     assert!(stderr.contains("--out") && stderr.contains("not a run folder"), "{stderr}");
-    assert_eq!(stderr.trim().lines().count(), 1, "one line, not {stderr}");
     let left: Vec<_> = std::fs::read_dir(tmp.path()).expect("tmp").flatten().map(|e| e.file_name()).collect();
     assert_eq!(left, vec![std::ffi::OsString::from("mine")], "something was written beside it");
     assert_eq!(std::fs::read_to_string(mine.join("keep.txt")).expect("keep.txt"), "mine");
@@ -598,15 +603,8 @@ fn an_out_folder_of_the_users_is_refused_up_front() {
     std::fs::create_dir(&logs).expect("mkdir");
     std::fs::write(logs.join("leader.log"), "a killed launch's").expect("write");
     std::fs::write(logs.join("keep.txt"), "mine").expect("write");
-    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
-        .args(["launch", common::SCENARIO, "-q", "--base-port", &base, "--out"])
-        .arg(tmp.path().join("run"))
-        .output()
-        .expect("formation launch");
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "must be bad input: {:?}; stderr: {stderr}", o.status);
+    let stderr = refused(&tmp.path().join("run"));
     assert!(stderr.contains("run.zenoh-log") && stderr.contains("holds keep.txt"), "{stderr}");
-    assert_eq!(stderr.trim().lines().count(), 1, "one line, not {stderr}");
     assert_eq!(std::fs::read_to_string(logs.join("keep.txt")).expect("keep.txt"), "mine");
     assert!(!tmp.path().join("run").exists() && !tmp.path().join("run.partial").exists());
 }

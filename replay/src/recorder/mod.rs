@@ -786,7 +786,11 @@ impl Recorder {
     fn rescue_needed(&self, r: &Rescued) -> bool {
         r.source != formation_topology::wire::LEADER_ID
             && r.stamp > 0
-            && self.followers.iter().find(|f| f.hearing.id == r.source).is_none_or(|f| !f.hearing.covers(r.stamp - 1))
+            && self
+                .scenario
+                .index_of(r.source)
+                .and_then(|i| self.followers.get(i))
+                .is_none_or(|f| !f.hearing.covers(r.stamp - 1))
     }
 
     /// Writes `network.json` and `summary.json` (metrics of what was
