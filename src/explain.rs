@@ -75,6 +75,13 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
             pct(diff as f64 / steps as f64)
         );
     }
+    for (st, sh) in &e.stalls {
+        t += &format!("stall: {}", st.describe(dt));
+        if e.departure != 0.0 {
+            t += &format!("; it explains {} of the departure", pct(sh.share));
+        }
+        t += "\n";
+    }
     t += &format!("\n{:>9} {:>12} {:>12} {:>12} {:>9}\n", "follower", "run", "model", "run−model", "");
     let (mut sr, mut sm) = (0.0, 0.0);
     for &(id, r, m) in &e.followers {

@@ -18,6 +18,7 @@ pub mod metrics;
 pub mod outage;
 pub mod rosbag2;
 pub mod row;
+pub mod stall;
 pub mod summary;
 
 pub use columns::{read_columns, read_columns_checked, RecordError};

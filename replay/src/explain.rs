@@ -86,6 +86,10 @@ pub struct Explanation {
     /// Windows of steps [from, to), most explaining first.
     pub windows: Vec<((u64, u64), Share)>,
     pub window_steps: u64,
+    /// Spans at which most links heard otherwise than the model at once
+    /// (real time with a delay and no fault table), in step order, with
+    /// what replaying the span as modelled takes away.
+    pub stalls: Vec<(formation_record::stall::Stall, Share)>,
 }
 
 /// The metric `name` of a follower's metrics (a summary.json key).
@@ -199,9 +203,18 @@ pub fn explain(
         (0..steps.div_ceil(window_steps)).map(|w| (w * window_steps, ((w + 1) * window_steps).min(steps))).collect();
     // Only links that heard differently can explain anything.
     let differing: Vec<Link> = hearing.iter().filter(|h| h.differing > 0).map(|h| h.link).collect();
+    let s = &loaded.scenario;
+    let stalls = if s.timing == formation_topology::Timing::Realtime && s.network.delay_steps > 0 && s.faults.is_empty()
+    {
+        let heard: Vec<&formation_record::hearing::FollowerHearing> = loaded.record.followers.iter().collect();
+        formation_record::stall::stalls(&heard, s.network.delay_steps)
+    } else {
+        Vec::new()
+    };
     let mut jobs: Vec<Hearing> = vec![Hearing::Recorded, Hearing::Model];
     jobs.extend(differing.iter().map(|l| Hearing::Link { index: l.index, slot: l.slot }));
     jobs.extend(windows.iter().map(|&(from_k, to_k)| Hearing::Window { from_k, to_k }));
+    jobs.extend(stalls.iter().map(|st| Hearing::Window { from_k: st.from_k, to_k: st.to_k }));
     let total = jobs.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let results: Vec<Result<Vec<Option<f64>>, Error>> = {
@@ -226,6 +239,7 @@ pub fn explain(
         differing.iter().map(|&l| (l, share(&results.next().unwrap_or_default()))).collect();
     let mut wins: Vec<((u64, u64), Share)> =
         windows.iter().map(|&w| (w, share(&results.next().unwrap_or_default()))).collect();
+    let stalls = stalls.into_iter().map(|st| (st, share(&results.next().unwrap_or_default()))).collect();
     let by = |a: &Share, b: &Share| {
         let sign = departure.signum();
         (b.explained * sign).total_cmp(&(a.explained * sign))
@@ -248,5 +262,6 @@ pub fn explain(
         links,
         windows: wins,
         window_steps,
+        stalls,
     })
 }

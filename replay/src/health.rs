@@ -68,6 +68,10 @@ pub struct Health {
     pub model: Option<Vec<AgainstModel>>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub model_skipped: Option<String>,
+    /// Spans at which most links heard otherwise than the model at once
+    /// (real time with a delay and no fault table).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub stalls: Vec<formation_record::stall::Stall>,
 }
 
 impl Health {
@@ -121,6 +125,9 @@ pub struct Evidence {
     /// Followers whose record ends short of the run's end beyond what their
     /// restarts' gaps explain, each said as the summary says it.
     pub short: Vec<String>,
+    /// Where [`Evidence::hearing`] is judged: spans at which most links
+    /// heard otherwise than the model at once (`formation_record::stall`).
+    pub stalls: Vec<formation_record::stall::Stall>,
 }
 
 /// See [`Evidence::hearing`].
@@ -154,6 +161,11 @@ pub fn judge(e: &Evidence) -> Health {
                 ));
             }
         }
+    }
+    // A stall is one event of the path every message shares: said first,
+    // and once, not as a departure of each link.
+    for s in &e.stalls {
+        disturbed.push(s.describe(e.dt_s));
     }
     for (node, steps, second) in &e.clocks {
         if *steps > 0 {
@@ -220,7 +232,15 @@ pub fn judge(e: &Evidence) -> Health {
     let model = e.model_skipped.is_none().then(|| {
         e.errors.iter().map(|&(follower, run_m, model_m)| AgainstModel { follower, run_m, model_m }).collect()
     });
-    Health { verdict, degraded, disturbed, isolated, model, model_skipped: e.model_skipped.clone() }
+    Health {
+        verdict,
+        degraded,
+        disturbed,
+        isolated,
+        model,
+        model_skipped: e.model_skipped.clone(),
+        stalls: e.stalls.clone(),
+    }
 }
 
 /// Distinct keys counted one by one; the rest are counted together.
@@ -380,6 +400,39 @@ mod tests {
         assert!(judge(&e).disturbed[0].contains("1 of 1 followers") && judge(&e).disturbed[0].contains("(±9.000 ms)"));
         e.quarter_step_us = 0.0;
         assert_eq!(judge(&e).verdict, Verdict::Healthy);
+    }
+
+    /// The issue 47 run: 419 of 121,121 link-steps (0.35 %) departed, all
+    /// of them in six steps at which every link of every follower heard
+    /// late or nothing. The run is disturbed, and the stall is said first,
+    /// as one event with its time, before the per-link count.
+    #[test]
+    fn a_stall_of_every_link_at_once_is_named_first_as_one_event() {
+        let stall = formation_record::stall::Stall {
+            from_k: 647,
+            to_k: 653,
+            most_links: 121,
+            links: 121,
+            followers_hit: 50,
+            followers: 50,
+            silent: 114,
+            older: 305,
+        };
+        let h = HearingEvidence { older: 305, silent: 114, link_steps: 121_121, delay_steps: 1 };
+        let e = Evidence { hearing: Some(h), stalls: vec![stall], dt_s: 0.01, ..Default::default() };
+        let got = judge(&e);
+        assert_eq!(got.verdict, Verdict::Disturbed, "{got:?}");
+        let line = &got.disturbed[0];
+        for words in [
+            "a stall of the path every message shares",
+            "from t = 6.470 s to 6.530 s (6 steps)",
+            "121 of 121 links",
+            "50 of 50 followers",
+        ] {
+            assert!(line.contains(words), "'{words}' not in: {line}");
+        }
+        assert!(got.line().contains("a stall of the path"), "{}", got.line());
+        assert_eq!(got.stalls.len(), 1, "network.json's health.stalls: {:?}", got.stalls);
     }
 
     #[test]

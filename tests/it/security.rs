@@ -74,6 +74,44 @@ async fn counter(s: &zenoh::Session, key: &str) -> (zenoh::pubsub::Subscriber<()
     (sub, n)
 }
 
+/// Records the step of every estimate arriving on `key`.
+async fn steps_heard(
+    s: &zenoh::Session,
+    key: &str,
+) -> (zenoh::pubsub::Subscriber<()>, Arc<std::sync::Mutex<Vec<u64>>>) {
+    let v = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let w = v.clone();
+    let sub = s
+        .declare_subscriber(key)
+        .callback(move |sample| {
+            if let Ok(m) = wire::decode(&sample.payload().to_bytes()) {
+                w.lock().unwrap().push(m.header.step);
+            }
+        })
+        .await
+        .expect("subscriber");
+    (sub, v)
+}
+
+/// The steps of 0..n that never arrived, as ranges ("0-135, 700-712").
+fn lost_steps(heard: &std::sync::Mutex<Vec<u64>>, n: u64) -> String {
+    let got: std::collections::BTreeSet<u64> = heard.lock().unwrap().iter().copied().collect();
+    let mut ranges: Vec<(u64, u64)> = Vec::new();
+    for k in (0..n).filter(|k| !got.contains(k)) {
+        match ranges.last_mut() {
+            Some(r) if r.1 + 1 == k => r.1 = k,
+            _ => ranges.push((k, k)),
+        }
+    }
+    let text: Vec<String> =
+        ranges.iter().map(|(a, b)| if a == b { a.to_string() } else { format!("{a}-{b}") }).collect();
+    if text.is_empty() {
+        "none".into()
+    } else {
+        text.join(", ")
+    }
+}
+
 /// Waits up to `limit` for `n` to reach `want`; its last value.
 async fn settle(n: &AtomicU64, want: u64, limit: Duration) -> u64 {
     let t = Instant::now();
@@ -214,21 +252,13 @@ fn tls_same_as_sim(mode: &str, run: &str, forge: bool) {
         for id in ["1", "2", "3", "4"] {
             let node = &n["nodes"][id];
             assert_eq!(node["rejected_invalid"], 0, "follower {id} saw forged messages: {node}");
-            // A duplicate of a step already used counts as late: its sources'
-            // own repeats (a loaded host) may be, 10,000 forgeries would be far more.
-            let repeats: u64 = node["links"]
-                .as_array()
-                .expect("links")
-                .iter()
-                .map(|l| match l["source"].as_u64() {
-                    Some(0) => &n["nodes"]["leader"],
-                    Some(s) => &n["nodes"][s.to_string()],
-                    None => panic!("a link without a source: {l}"),
-                })
-                .map(|s| s["republished"].as_u64().expect("republished"))
-                .sum();
-            let late = node["late"].as_u64().expect("late");
-            assert!(late <= repeats, "follower {id} had {late} late messages, its sources repeated {repeats}: {node}");
+            // Half the forgeries are stamped a million steps ahead: one that
+            // reached a follower is counted there as from the future, and
+            // nothing else is (a duplicate of a step, such as the lock-step
+            // leader's repeats after its last step, is counted late: under
+            // load follower 1 got up to 40 of those with no forger at all).
+            let future = node["rejected"]["future"].as_u64().expect("rejected.future");
+            assert_eq!(future, 0, "follower {id} received {future} of agent 2's forged estimates: {node}");
         }
         // The router's access control refused them, and says so: per subject, action and key.
         let denied = n["access_denied"].as_array().cloned().unwrap_or_default();
@@ -269,9 +299,10 @@ fn tls_lockstep_equals_the_simulator_in_client_mode() {
 }
 
 /// The issue's case: agent 2's own valid certificate, 10,000 estimates on
-/// agent 3's key and 10,000 on the leader's during a run (steps 0–9,999,
-/// which a receiver without access control would take or count as
-/// rejected): none reaches a follower, and the run equals the simulator.
+/// agent 3's key and 10,000 on the leader's during a run (half of them of
+/// the run's steps, which a receiver without access control would take;
+/// half a million steps ahead, which it would count as from the future):
+/// none reaches a follower, and the run equals the simulator.
 #[test]
 fn forged_estimates_from_a_valid_agent_during_a_tls_run_change_nothing() {
     tls_same_as_sim("client", "tls-forged", true);
@@ -287,15 +318,21 @@ async fn flood(dir: &Path, port: u16, run: &str) -> u64 {
     assert!(seen > 0, "the forger never saw the run start");
     let mut sent = 0;
     for k in 0..10_000u64 {
+        // Even puts: the run's own steps (taken, they would change the run);
+        // odd: a million steps ahead (taken or not, counted as from the future).
+        let step = if k % 2 == 0 { k } else { FORGED_AHEAD + k };
         for sender in [3u32, 0] {
             let key = format!("formation/{run}/estimate/{sender}");
-            if forger.put(&key, estimate(sender, k)).await.is_ok() {
+            if forger.put(&key, estimate(sender, step)).await.is_ok() {
                 sent += 1;
             }
         }
     }
     sent
 }
+
+/// How far ahead of the run half the forged estimates are stamped.
+const FORGED_AHEAD: u64 = 1_000_000;
 
 /// A zenoh config file for a rogue: give up after 3 s instead of waiting,
 /// plus `extra` (json5 members).
@@ -306,20 +343,54 @@ fn rogue_config(tmp: &Path, name: &str, extra: &str) -> PathBuf {
     f
 }
 
+/// A publisher on `key` that waits for room rather than drop, once it
+/// knows of a subscriber (at most `limit`; a session that reaches none
+/// never does): the control bursts below measure whether a session's
+/// messages reach a node, not whether a burst outruns its link.
+///
+/// Zenoh's default for a put is `CongestionControl::Drop`: when a link's
+/// queue (2 batches per priority, a TLS batch at most a record of 16 KB,
+/// about 170 estimates) is full for more than `wait_before_drop` (1 ms),
+/// the put is dropped at the source and still returns Ok. A burst of 1,000
+/// puts on a busy 2-core machine, the link's thread descheduled a few
+/// milliseconds, lost 152 that way (CI, issue 47); with the queue at one
+/// batch and no wait it loses every put past the first 460 here, a
+/// contiguous tail. The formation's own real-time estimates are one put a
+/// step (a newer supersedes a dropped one, and the receiver's hearing
+/// record counts what it used); its telemetry is acknowledged and resent,
+/// and lock-step puts block.
+async fn matched_publisher(
+    s: &zenoh::Session,
+    key: &str,
+    limit: Duration,
+) -> (zenoh::pubsub::Publisher<'static>, bool) {
+    let p = s
+        .declare_publisher(key.to_string())
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .expect("publisher");
+    let t = Instant::now();
+    loop {
+        let matched = p.matching_status().await.is_ok_and(|m| m.matching());
+        if matched || t.elapsed() >= limit {
+            return (p, matched);
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
 /// Opens `args`; if it opens, puts 1,000 estimates on agent 2's key.
 /// Returns (opened, puts that returned Ok).
 async fn rogue(args: &ZenohArgs) -> (bool, u64) {
     let Ok(Ok(s)) = tokio::time::timeout(Duration::from_secs(10), session::open(args)).await else {
         return (false, 0);
     };
-    // As for the genuine agent above: a put made before the router has told
-    // this new session of the leader's subscriber is dropped at the source,
-    // so wait for the declarations before counting (the control run lost
-    // its first 136 of 1,000 without this wait once).
-    tokio::time::sleep(Duration::from_millis(500)).await;
+    // A session that reaches the leader's subscriber matches at once; one
+    // refused by the router never does, and its puts go nowhere.
+    let (p, _matched) = matched_publisher(&s, "formation/sec/estimate/2", Duration::from_secs(3)).await;
     let mut sent = 0;
     for k in 0..1000 {
-        if s.put("formation/sec/estimate/2", estimate(2, k)).await.is_ok() {
+        if p.put(estimate(2, k)).await.is_ok() {
             sent += 1;
         }
     }
@@ -344,12 +415,21 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
     let leader = open_as(&dir, "leader", port).await;
     let (_sub, heard) = counter(&leader, "formation/sec/estimate/*").await;
     let agent2 = open_as(&dir, "agent-2", port).await;
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    let (_sub_steps, steps) = steps_heard(&leader, "formation/sec/estimate/2").await;
+    let (p, matched) = matched_publisher(&agent2, "formation/sec/estimate/2", Duration::from_secs(10)).await;
     for k in 0..100 {
-        agent2.put("formation/sec/estimate/2", estimate(2, k)).await.expect("put");
+        p.put(estimate(2, k)).await.expect("put");
     }
     let control = settle(&heard, 100, Duration::from_secs(5)).await;
-    assert_eq!(control, 100, "the genuine agent 2's 100 estimates: {control} reached the leader");
+    assert_eq!(
+        control,
+        100,
+        "the genuine agent 2's 100 estimates: {control} reached the leader (matched its subscriber: {matched}; lost: \
+         {})",
+        lost_steps(&steps, 100)
+    );
+    drop(p);
+    steps.lock().unwrap().clear();
     heard.store(0, Ordering::Relaxed);
 
     let ca = dir.join("ca/ca.pem").display().to_string();
@@ -394,7 +474,9 @@ async fn sessions_without_a_trusted_certificate_or_without_tls_reach_no_node() {
     let got = settle(&heard, 1000, Duration::from_secs(5)).await;
     assert!(
         opened && got == 1000,
-        "the raw TLS configuration with agent 2's valid certificate: opened {opened}, {sent} sent, {got} arrived"
+        "the raw TLS configuration with agent 2's valid certificate: opened {opened}, {sent} sent, {got} arrived \
+         (lost: {})",
+        lost_steps(&steps, 1000)
     );
     heard.store(0, Ordering::Relaxed);
     let expired_cert = raw_tls("expired", &expired.join("agent-2"));
@@ -445,9 +527,9 @@ async fn a_valid_agent_cannot_speak_for_another_node() {
     }
     // A positive control through the same router: the genuine follower 3.
     let f3 = open_as(&dir, "agent-3", port).await;
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    let (p3, _) = matched_publisher(&f3, "formation/sec/estimate/3", Duration::from_secs(10)).await;
     for k in 0..50 {
-        f3.put("formation/sec/estimate/3", estimate(3, k)).await.expect("put");
+        p3.put(estimate(3, k)).await.expect("put");
     }
     let control = settle(&f4_heard, 50, Duration::from_secs(5)).await;
     let (a, b, c) = (f1_heard.load(Ordering::Relaxed), control.saturating_sub(50), mon_heard.load(Ordering::Relaxed));

@@ -349,6 +349,8 @@ impl Recorder {
                     link_steps: sources * (self.scenario.steps() + 1),
                     delay_steps,
                 });
+                let heard: Vec<&FollowerHearing> = self.followers.iter().map(|f| &f.hearing).collect();
+                e.stalls = formation_record::stall::stalls(&heard, delay_steps);
             }
         }
         let mut invalid = 0;
