@@ -604,9 +604,47 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
         if let Some((line, _)) = &health {
             println!("{line}");
         }
+        if let Some(why) = a.opts.rt_priority.and_then(|_| rt_throttling_note(&out, &read_rt_limit())) {
+            println!("{why}");
+        }
         println!("wrote {}", out.display());
     }
     degraded_error(health, &out)
+}
+
+/// The kernel's limit on real-time processes: (runtime, period) in µs from
+/// /proc/sys/kernel/sched_rt_{runtime,period}_us; None where unlimited
+/// (runtime −1) or unreadable.
+pub(crate) fn read_rt_limit() -> Option<(i64, i64)> {
+    let read = |f: &str| std::fs::read_to_string(format!("/proc/sys/kernel/{f}")).ok()?.trim().parse::<i64>().ok();
+    let (runtime, period) = (read("sched_rt_runtime_us")?, read("sched_rt_period_us")?);
+    (runtime >= 0 && runtime < period).then_some((runtime, period))
+}
+
+/// Under `--rt-priority`, a run whose health names stalls of every node at
+/// once, with the kernel throttling real-time processes: what that is and
+/// what helps (issue 47: the 50-agent ring stalled 60 ms at t = 6.47 s on a
+/// quiet CI machine; 100 agents here stalled at t = 5.58 and 6.58 s, the
+/// second both CPUs were throttled, one second apart).
+pub(crate) fn rt_throttling_note(out: &Path, limit: &Option<(i64, i64)>) -> Option<String> {
+    let (runtime, period) = (*limit)?;
+    let text = std::fs::read_to_string(out.join("network.json")).ok()?;
+    let v: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let stalls = v["health"]["stalls"].as_array()?;
+    if stalls.is_empty() {
+        return None;
+    }
+    Some(format!(
+        "why the run stalled: every node ran under real-time scheduling (--rt-priority), and this kernel stops every \
+         real-time process on a CPU for the rest of a {:.0} ms period once they used {:.0} ms of it \
+         (kernel.sched_rt_runtime_us = {runtime}, sched_rt_period_us = {period}; dmesg says 'RT throttling \
+         activated' once a boot): the nodes needed more than {:.0} % of a CPU. Fewer processes (--group N), or no \
+         --rt-priority, avoid it; `sysctl -w kernel.sched_rt_runtime_us=-1` lifts the limit (then a runaway node \
+         can hold a CPU). docs/performance.md, \"Real-time scheduling and the kernel's throttle\"",
+        period as f64 / 1e3,
+        runtime as f64 / 1e3,
+        100.0 * runtime as f64 / period as f64
+    ))
 }
 
 /// network.json's health: its line for the terminal, and whether degraded.
@@ -1010,6 +1048,26 @@ mod tests {
         let mut args = vec!["launch", "scenarios/paper.toml"];
         args.extend_from_slice(extra);
         Cli::try_parse_from(args).expect("parses").l
+    }
+
+    /// A run whose health names a stall, under the kernel's real-time
+    /// throttle, says why; without a stall, or without the throttle, nothing.
+    #[test]
+    fn a_stall_under_the_real_time_throttle_is_explained() {
+        let tmp = tempfile::tempdir().expect("tmp");
+        let write = |stalls: &str| {
+            std::fs::write(tmp.path().join("network.json"), format!("{{\"health\": {{\"stalls\": {stalls}}}}}"))
+                .expect("write")
+        };
+        write(r#"[{"from_k": 647, "to_k": 653}]"#);
+        let limit = Some((950_000, 1_000_000));
+        let said = rt_throttling_note(tmp.path(), &limit).expect("a note");
+        for words in ["kernel.sched_rt_runtime_us = 950000", "950 ms", "1000 ms", "95 % of a CPU", "--group N"] {
+            assert!(said.contains(words), "'{words}' not in: {said}");
+        }
+        assert_eq!(rt_throttling_note(tmp.path(), &None), None, "no throttle (runtime -1): nothing to explain");
+        write("[]");
+        assert_eq!(rt_throttling_note(tmp.path(), &limit), None, "no stall: nothing said");
     }
 
     /// A killed launch's sockets folder goes at the next launch; a live

@@ -457,6 +457,10 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         .build()
         .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
+    // The nodes' zenoh lines into the run folder's zenoh-log/, as under
+    // launch (they reached the terminal: "ERROR zenoh::api::session:
+    // Received Data for unknown expr_id", from nodes whose links were cut).
+    let logs = launch::zenoh_log::start(&out)?;
     let ctx = Ctx {
         a,
         scenario: &scenario,
@@ -471,6 +475,14 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     let result = runtime.block_on(ctx.drive(&mut children, events));
     drop(children);
     drop(lab);
+    if let Some(said) = launch::zenoh_log::finish(logs, &out) {
+        if !a.opts.quiet {
+            eprintln!("{}", said.line);
+        }
+        if let Some(closed) = said.closed {
+            eprintln!("{closed}");
+        }
+    }
     let (summary, performed) = result?;
     let record = lab_record(a, performed, &notes, &clocks, &slow, &sites);
     std::fs::write(out.join("lab.json"), serde_json::to_string_pretty(&record).unwrap_or_default() + "\n")
@@ -480,6 +492,9 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
         print!("{}", summary.table());
         if let Some((line, _)) = &health {
             println!("{line}");
+        }
+        if let Some(why) = a.opts.rt_priority.and_then(|_| launch::rt_throttling_note(&out, &launch::read_rt_limit())) {
+            println!("{why}");
         }
         println!("wrote {}", out.display());
     }

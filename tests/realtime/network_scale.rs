@@ -89,35 +89,46 @@ fn hundred_agents_in_lockstep(launch_args: &[&str], duration: f64) {
 }
 
 /// Issue 12's real-time goal: 50 agents at 100 Hz behave like the
-/// simulator with the same one-step communication delay — each follower's
-/// formation and estimator metrics within 10 %, no source silent after the
-/// first second — judged against the simulator on a quiet machine only (52
-/// processes at 100 Hz on two cores; see [`common::judge_if_quiet`]).
+/// simulator with the same one-step communication delay.
 ///
-/// Torque variation is judged for the formation, not per follower: this
-/// ring is far from converged after 10 s and its torques chatter, so one
-/// follower's torque variation measures how sensitive the chatter is to
-/// the timing of single messages. On 2026-11-24 it sat about 10 % below the
-/// simulator's (median 0.90, follower 11 2.21 against 2.49): the run used
-/// many messages a step older than the model assumes, and a lagging
-/// estimate makes this ring's torques smoother (`formation sim` with the
-/// whole ring at network.delay_steps = 2: median −20 %; see
-/// docs/why-did-my-run-differ.md). Since the run's timebase and the
-/// router-only rate limits, the run hears what the model assumes: on
-/// 2026-11-25 every message one step old, summary.json the simulator's byte
-/// for byte (median ratio 1.000); with two CPU-bound processes beside it,
-/// one link-step of 121,121 late (+0.03 %); but in more runs 2, 50, 2 and
-/// 2 late link-steps (scheduling stalls of 10–27 ms: 52 processes on 2
-/// cores) moved the median to 0.996, 0.927, 0.992 and 0.987, so sensitive
-/// is this ring. Under real-time scheduling (`launch --rt-priority 10`):
-/// 0, 0 and 4 late, medians 1.000, 1.000 and 1.005. As root (CI) the
-/// median must be within 3 % with it; otherwise within 25 %. A failure
-/// prints `formation replay --explain`'s ranking of the links.
+/// Asserted whatever the machine does (issue 47): every step of every
+/// follower recorded, the record complete and not degraded, the run
+/// replayed byte for byte from its hearing record, and its health naming
+/// what `replay --explain` finds: a stall of every node at once as one
+/// event (both count the same stalls), more than 0.1 % of link-steps heard
+/// otherwise than the model said.
+///
+/// The model's figures (each follower's formation and estimator metrics
+/// within 10 %, the formation's median torque variation within 3 % as root
+/// under `--rt-priority 10`, within 25 % otherwise) are judged when the host
+/// kept the period: no stall, no source-step that heard nothing, at most
+/// [`KEPT_THE_PERIOD`] link-steps that used an older message than the model.
+/// Otherwise the test says by how much the host fell behind.
+///
+/// Why not judge every run: 52 processes at 100 Hz load two cores, and under
+/// `--rt-priority` the kernel stops every real-time process on a CPU for the
+/// rest of a second once they used 95 % of it (RT throttling). On a clean
+/// CI machine that stalled every node for 60 ms at t = 6.47 s with the host
+/// otherwise idle: 419 link-steps heard late or nothing, and this ring's
+/// torques moved by up to +112 % (issue 47). The host decides that, not the
+/// network code; the record and its replay say exactly what happened.
+///
+/// The estimator gain is k_i = 0.5: at the scenario's k_i = 1 this ring at
+/// Δt = 10 ms with one step of delay is unstable in the model itself (an
+/// oscillation growing ×1.30 a second; `formation sim` warns), so a single
+/// late message grows without bound instead of fading, and the torque
+/// variation measured how the chatter amplified it (2, 50, 2 and 2 late
+/// link-steps moved the median to 0.996, 0.927, 0.992 and 0.987 on
+/// 2026-11-24). At 0.5 the model is stable.
 #[test]
 fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
     let _alone = common::alone();
-    let run = RingInRealTime::run(50, &[], "rt50");
+    let run = RingInRealTime::run(50, &["estimator.k=[0.5,0.5,0.5]"], "rt50");
+    run.assert_complete_and_replayed();
+    let explained = run.explain();
+    let hearing = Hearing::parse(&explained);
+    run.assert_health_says(&hearing, &explained);
     let mut bad = common::unlike_the_simulator(&run.got, &run.want, &run.network, 0.10, &common::COMPARED_CONVERGING);
     let tv = run.torque_variation();
     // Without real-time scheduling a few messages a run come a step late on
@@ -126,14 +137,20 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     if !((tv.median - 1.0).abs() <= allowed) {
         bad.push(tv.complaint(allowed));
     }
-    let explained = if bad.is_empty() { String::new() } else { run.explain() };
-    common::judge_if_quiet(
-        "50 agents in real time, against the simulator",
-        &bad,
-        run.host,
-        &format!("at 100 Hz\n{explained}"),
-    );
-    eprintln!("50 agents in real time: median torque variation ratio {:.3} (real time over the simulator)", tv.median);
+    let verdict = run.verdict(&hearing, tv.median);
+    if run.kept_the_period(&hearing) {
+        assert!(
+            bad.is_empty(),
+            "50 agents in real time, the host keeping the period ({verdict}): {}\n{explained}",
+            bad.join("; ")
+        );
+    } else {
+        eprintln!(
+            "50 agents in real time: the host fell behind ({verdict}): not judged against the model's figures{}",
+            if bad.is_empty() { String::new() } else { format!(" ({} of them off)", bad.len()) }
+        );
+    }
+    eprintln!("50 agents in real time: {verdict}; the record complete and replayed byte for byte");
 }
 
 /// How many link-steps of a 100-agent real-time run may differ from the
@@ -178,45 +195,17 @@ fn a_hundred_agents_in_real_time_at_100_hz_record_everything_and_follow_the_mode
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
     let _alone = common::alone();
     let run = RingInRealTime::run(100, &["estimator.k=[0.2,0.2,0.2]"], "rt100");
-    let n = &run.network;
-    assert_eq!(
-        n["complete"], true,
-        "100 agents: record not complete: ending {}, lost {}",
-        n["ending"], n["lost_steps"]
-    );
-    let steps = n["steps"].as_u64().expect("steps") + 1;
-    for id in 1..=100 {
-        let csv = std::fs::read_to_string(run.net.join(format!("follower_{id}.csv"))).expect("follower csv");
-        let rows = csv.lines().count().saturating_sub(1) as u64;
-        assert_eq!(rows, steps, "100 agents: follower {id} recorded {rows} steps of {steps}");
-    }
-    assert_ne!(n["health"]["verdict"], "degraded", "100 agents: {}", n["health"]);
-    common::replays_byte_for_byte("100 agents", &run.net);
-
+    run.assert_complete_and_replayed();
     let explained = run.explain();
     let hearing = Hearing::parse(&explained);
+    run.assert_health_says(&hearing, &explained);
     let tv = run.torque_variation();
-    let mut bad = common::unlike_the_simulator(&run.got, &run.want, n, 0.03, &common::COMPARED_CONVERGING);
+    let mut bad = common::unlike_the_simulator(&run.got, &run.want, &run.network, 0.03, &common::COMPARED_CONVERGING);
     if !((tv.median - 1.0).abs() <= TORQUE_TV_MEDIAN) {
         bad.push(tv.complaint(TORQUE_TV_MEDIAN));
     }
-    // The run's health counts what `replay --explain` counts, and says it
-    // past 0.1 % of link-steps.
-    let said = n["health"]["disturbed"].to_string();
-    let over = hearing.differ * 1000 > hearing.link_steps;
-    assert_eq!(
-        said.contains(&format!("{} of {} link-steps", hearing.differ, hearing.link_steps)),
-        over,
-        "100 agents: {} of {} link-steps differ from the model (replay --explain), and the health says: {said}",
-        hearing.differ,
-        hearing.link_steps
-    );
-    let kept = hearing.differ <= KEPT_THE_PERIOD && hearing.silent == 0;
-    let verdict = format!(
-        "{} of {} link-steps differ from the model ({} heard nothing); median torque variation {:.3} of the model's",
-        hearing.differ, hearing.link_steps, hearing.silent, tv.median
-    );
-    if kept {
+    let verdict = run.verdict(&hearing, tv.median);
+    if run.kept_the_period(&hearing) {
         assert!(
             bad.is_empty(),
             "100 agents in real time, the host keeping the period ({verdict}): {}\n{explained}",
@@ -295,6 +284,66 @@ impl RingInRealTime {
             common::json(&net, "network.json"),
         );
         RingInRealTime { _dir: dir, net, got, want, network, host, root }
+    }
+
+    /// What holds whatever the timing: the record complete, every step of
+    /// every follower a row, not degraded, and replayed byte for byte.
+    fn assert_complete_and_replayed(&self) {
+        let (n, agents) = (&self.network, self.want["followers"].as_object().map_or(0, |f| f.len()));
+        let tag = format!("{agents} agents");
+        assert_eq!(n["complete"], true, "{tag}: record not complete: ending {}, lost {}", n["ending"], n["lost_steps"]);
+        let steps = n["steps"].as_u64().expect("steps") + 1;
+        for id in 1..=agents {
+            let csv = std::fs::read_to_string(self.net.join(format!("follower_{id}.csv"))).expect("follower csv");
+            let rows = csv.lines().count().saturating_sub(1) as u64;
+            assert_eq!(rows, steps, "{tag}: follower {id} recorded {rows} steps of {steps}");
+        }
+        assert_ne!(n["health"]["verdict"], "degraded", "{tag}: {}", n["health"]);
+        common::replays_byte_for_byte(&tag, &self.net);
+    }
+
+    /// The run's health says what `replay --explain` counts: the same
+    /// stalls, and the link-steps that heard otherwise past 0.1 %.
+    fn assert_health_says(&self, hearing: &Hearing, explained: &str) {
+        let h = &self.network["health"];
+        let said = h["disturbed"].to_string();
+        let over = hearing.differ * 1000 > hearing.link_steps;
+        assert_eq!(
+            said.contains(&format!("{} of {} link-steps", hearing.differ, hearing.link_steps)),
+            over,
+            "{} of {} link-steps differ from the model (replay --explain), and the health says: {said}",
+            hearing.differ,
+            hearing.link_steps
+        );
+        let stalls = h["stalls"].as_array().map_or(0, Vec::len);
+        let explained_stalls = explained.lines().filter(|l| l.starts_with("stall:")).count();
+        assert_eq!(
+            stalls, explained_stalls,
+            "the health names {stalls} stalls, replay --explain {explained_stalls}:\n{said}\n{explained}"
+        );
+        assert_eq!(
+            said.matches("a stall of the path every message shares").count(),
+            stalls,
+            "network.json's health.stalls holds {stalls}, its lines say: {said}"
+        );
+    }
+
+    /// Whether the run heard what the model assumes closely enough for its
+    /// figures to be judged: no stall, nothing silent, few older messages.
+    fn kept_the_period(&self, hearing: &Hearing) -> bool {
+        let stalls = self.network["health"]["stalls"].as_array().map_or(0, Vec::len);
+        stalls == 0 && hearing.silent == 0 && hearing.differ <= KEPT_THE_PERIOD
+    }
+
+    /// The run's hearing in one line, for the verdict.
+    fn verdict(&self, hearing: &Hearing, median: f64) -> String {
+        let stalls = self.network["health"]["stalls"].as_array().map_or(0, Vec::len);
+        format!(
+            "{} of {} link-steps differ from the model ({} heard nothing), {stalls} stall(s) of every node at once; \
+             median torque variation {median:.3} of the model's; the host stole {:.1} % of the CPU, other processes \
+             used {:.1} %",
+            hearing.differ, hearing.link_steps, hearing.silent, self.host.0, self.host.1
+        )
     }
 
     /// The followers' torque variation, the run's over the model's.
