@@ -640,7 +640,7 @@ pub(crate) fn rt_throttling_note(out: &Path, limit: &Option<(i64, i64)>) -> Opti
          (kernel.sched_rt_runtime_us = {runtime}, sched_rt_period_us = {period}; dmesg says 'RT throttling \
          activated' once a boot): the nodes needed more than {:.0} % of a CPU. Fewer processes (--group N), or no \
          --rt-priority, avoid it; `sysctl -w kernel.sched_rt_runtime_us=-1` lifts the limit (then a runaway node \
-         can hold a CPU). docs/performance.md, \"Real-time scheduling and the kernel's throttle\"",
+         can hold a CPU). docs/why-did-my-run-differ.md, \"Every node at once: a stall\"",
         period as f64 / 1e3,
         runtime as f64 / 1e3,
         100.0 * runtime as f64 / period as f64
