@@ -589,14 +589,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), CliError> {
     let logs = zenoh_log::start(&out)?;
     let result = runtime.block_on(launch(a, zfile.as_ref(), &scenario, &run, &out, &exe, &mut children));
     drop(children);
-    if let Some(said) = zenoh_log::finish(logs, &out) {
-        if !a.opts.quiet {
-            eprintln!("{}", said.line);
-        }
-        if let Some(closed) = said.closed {
-            eprintln!("{closed}");
-        }
-    }
+    zenoh_log::finish_and_say(logs, &out, a.opts.quiet);
     let summary = result?;
     let health = read_health(&out);
     if !a.opts.quiet {
@@ -1232,6 +1225,19 @@ pub(crate) mod zenoh_log {
         if let Some(dir) = DIR.lock().unwrap_or_else(|p| p.into_inner()).as_ref() {
             let file: String = name.chars().map(|ch| if ch.is_ascii_alphanumeric() { ch } else { '-' }).collect();
             c.env(formation_net::node::ZENOH_LOG_ENV, dir.join(format!("{file}.log")));
+        }
+    }
+
+    /// [`finish`], and its lines on stderr: the sum (not with `quiet`) and
+    /// the transports closed (always).
+    pub fn finish_and_say(dir: Option<PathBuf>, out: &Path, quiet: bool) {
+        if let Some(said) = finish(dir, out) {
+            if !quiet {
+                eprintln!("{}", said.line);
+            }
+            if let Some(closed) = said.closed {
+                eprintln!("{closed}");
+            }
         }
     }
 

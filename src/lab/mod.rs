@@ -475,14 +475,7 @@ pub fn run(a: &LabArgs) -> Result<(), Error> {
     let result = runtime.block_on(ctx.drive(&mut children, events));
     drop(children);
     drop(lab);
-    if let Some(said) = launch::zenoh_log::finish(logs, &out) {
-        if !a.opts.quiet {
-            eprintln!("{}", said.line);
-        }
-        if let Some(closed) = said.closed {
-            eprintln!("{closed}");
-        }
-    }
+    launch::zenoh_log::finish_and_say(logs, &out, a.opts.quiet);
     let (summary, performed) = result?;
     let record = lab_record(a, performed, &notes, &clocks, &slow, &sites);
     std::fs::write(out.join("lab.json"), serde_json::to_string_pretty(&record).unwrap_or_default() + "\n")

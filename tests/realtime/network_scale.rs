@@ -125,32 +125,10 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
     let _alone = common::alone();
     let run = RingInRealTime::run(50, &["estimator.k=[0.5,0.5,0.5]"], "rt50");
-    run.assert_complete_and_replayed();
-    let explained = run.explain();
-    let hearing = Hearing::parse(&explained);
-    run.assert_health_says(&hearing, &explained);
-    let mut bad = common::unlike_the_simulator(&run.got, &run.want, &run.network, 0.10, &common::COMPARED_CONVERGING);
-    let tv = run.torque_variation();
     // Without real-time scheduling a few messages a run come a step late on
     // a busy 2-core machine (see above): 25 %, as before.
     let allowed = if run.root { TORQUE_TV_MEDIAN } else { 0.25 };
-    if !((tv.median - 1.0).abs() <= allowed) {
-        bad.push(tv.complaint(allowed));
-    }
-    let verdict = run.verdict(&hearing, tv.median);
-    if run.kept_the_period(&hearing) {
-        assert!(
-            bad.is_empty(),
-            "50 agents in real time, the host keeping the period ({verdict}): {}\n{explained}",
-            bad.join("; ")
-        );
-    } else {
-        eprintln!(
-            "50 agents in real time: the host fell behind ({verdict}): not judged against the model's figures{}",
-            if bad.is_empty() { String::new() } else { format!(" ({} of them off)", bad.len()) }
-        );
-    }
-    eprintln!("50 agents in real time: {verdict}; the record complete and replayed byte for byte");
+    run.judge(0.10, allowed);
 }
 
 /// How many link-steps of a 100-agent real-time run may differ from the
@@ -195,29 +173,7 @@ fn a_hundred_agents_in_real_time_at_100_hz_record_everything_and_follow_the_mode
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
     let _alone = common::alone();
     let run = RingInRealTime::run(100, &["estimator.k=[0.2,0.2,0.2]"], "rt100");
-    run.assert_complete_and_replayed();
-    let explained = run.explain();
-    let hearing = Hearing::parse(&explained);
-    run.assert_health_says(&hearing, &explained);
-    let tv = run.torque_variation();
-    let mut bad = common::unlike_the_simulator(&run.got, &run.want, &run.network, 0.03, &common::COMPARED_CONVERGING);
-    if !((tv.median - 1.0).abs() <= TORQUE_TV_MEDIAN) {
-        bad.push(tv.complaint(TORQUE_TV_MEDIAN));
-    }
-    let verdict = run.verdict(&hearing, tv.median);
-    if run.kept_the_period(&hearing) {
-        assert!(
-            bad.is_empty(),
-            "100 agents in real time, the host keeping the period ({verdict}): {}\n{explained}",
-            bad.join("; ")
-        );
-    } else {
-        eprintln!(
-            "100 agents in real time: the host fell behind ({verdict}): not judged against the model's figures{}",
-            if bad.is_empty() { String::new() } else { format!(" ({} of them off)", bad.len()) }
-        );
-    }
-    eprintln!("100 agents in real time: {verdict}; the record complete and replayed byte for byte");
+    run.judge(0.03, TORQUE_TV_MEDIAN);
 }
 
 /// A generated ring of `followers` (chords: a fifth of them, seed 1) run
@@ -284,6 +240,38 @@ impl RingInRealTime {
             common::json(&net, "network.json"),
         );
         RingInRealTime { _dir: dir, net, got, want, network, host, root }
+    }
+
+    /// Asserts what holds whatever the timing, and, when the host kept the
+    /// period, the model's figures: each follower's converging metrics
+    /// within `rel`, the median torque variation within `tv_allowed`;
+    /// otherwise says by how much the host fell behind.
+    fn judge(&self, rel: f64, tv_allowed: f64) {
+        let agents = self.want["followers"].as_object().map_or(0, |f| f.len());
+        self.assert_complete_and_replayed();
+        let explained = self.explain();
+        let hearing = Hearing::parse(&explained);
+        self.assert_health_says(&hearing, &explained);
+        let mut bad =
+            common::unlike_the_simulator(&self.got, &self.want, &self.network, rel, &common::COMPARED_CONVERGING);
+        let tv = self.torque_variation();
+        if !((tv.median - 1.0).abs() <= tv_allowed) {
+            bad.push(tv.complaint(tv_allowed));
+        }
+        let verdict = self.verdict(&hearing, tv.median);
+        if self.kept_the_period(&hearing) {
+            assert!(
+                bad.is_empty(),
+                "{agents} agents in real time, the host keeping the period ({verdict}): {}\n{explained}",
+                bad.join("; ")
+            );
+        } else {
+            eprintln!(
+                "{agents} agents in real time: the host fell behind ({verdict}): not judged against the model's figures{}",
+                if bad.is_empty() { String::new() } else { format!(" ({} of them off)", bad.len()) }
+            );
+        }
+        eprintln!("{agents} agents in real time: {verdict}; the record complete and replayed byte for byte");
     }
 
     /// What holds whatever the timing: the record complete, every step of
