@@ -10,7 +10,7 @@ use crate::error::CliError;
 /// Scenario selection shared by every command that runs one.
 #[derive(Args, Debug, Clone)]
 pub struct ScenarioArgs {
-    /// Scenario file (TOML), or a built-in one by name (paper, paper-velocity, paper-tables). Every key: docs/scenarios.md.
+    /// Scenario file (TOML), or a built-in one by name (paper, paper-velocity, paper-tables, turtlebot). Every key: docs/scenarios.md.
     pub scenario: PathBuf,
     /// Override a scenario value without editing the file, e.g.
     /// `--set filter=kf --set fault.time=10 --set duration=5`. Repeatable.

@@ -266,6 +266,10 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
         print!("{}", summary.table());
         println!("wrote {}", dir.display());
     }
+    // docs/model.md §16: two robots closer than the safety distance is a degraded run.
+    if let Some(v) = summary.safety.as_ref().and_then(|p| p.violation_text()) {
+        return Err(CliError::Degraded(format!("degraded: {v} ({})", dir.join("summary.json").display())));
+    }
     Ok((summary, dir))
 }
 

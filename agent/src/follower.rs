@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use crate::dynamic::{self, DynamicGains, DynamicKind, DynamicState};
 use crate::estimator::{self, EstimatorGains};
 use crate::filter::{FilterParams, VelocityFilter};
+use crate::guard::{self, Guard, GuardStep, GuardTally, Nearby};
 use crate::kinematic::{self, BodyError, KinematicGains, KinematicKind};
 use crate::links::{self, Message, RejoinPolicy, RejoinRule};
 use formation_leader::LeaderState;
@@ -48,6 +49,9 @@ pub struct ControlParams {
     /// kinematic command itself (docs/model.md §15; the lag is the robot's,
     /// the brain does not use it).
     pub drive: Drive,
+    /// The base's limits and the safety filter between the kinematic
+    /// command and the robot (docs/model.md §16; off in the paper's scenario).
+    pub guard: Guard,
 }
 
 /// One follower's place in the formation and the shared control parameters.
@@ -91,8 +95,11 @@ pub struct StepOutput {
     pub estimate: LeaderState,
     /// (x̂, ŷ, θ̂).
     pub body_error: BodyError,
-    /// (v_c, ω_c).
+    /// (v_c, ω_c), as the robot gets it: after the limits and the safety
+    /// filter (docs/model.md §16) when the scenario has them.
     pub command: Velocity,
+    /// What the limits and the filter did to the controller's command.
+    pub guard: GuardStep,
     /// (v̇_c, ω̇_c), backward differences.
     pub command_rate: Velocity,
     /// (v̂, ω̂), the filter's estimate at k (with a velocity-commanded
@@ -139,6 +146,8 @@ pub struct Follower {
     /// message is not fresh (docs/model.md §14), and under `adopt` it is replaced as
     /// soon as the leader or a fresh neighbour is heard.
     stale: bool,
+    /// What the guard did over the steps so far (docs/model.md §16).
+    tally: GuardTally,
 }
 
 impl Follower {
@@ -160,7 +169,13 @@ impl Follower {
             silent_steps: 0,
             adopt_pending: false,
             stale: false,
+            tally: GuardTally::default(),
         }
+    }
+
+    /// What the limits and the safety filter did over the steps so far.
+    pub fn guard_tally(&self) -> &GuardTally {
+        &self.tally
     }
 
     pub fn id(&self) -> u32 {
@@ -268,6 +283,25 @@ impl Follower {
         I: IntoIterator<Item = &'a Message>,
         I::IntoIter: Clone,
     {
+        self.step_near(pose, heading, z, leader, neighbours, Nearby::NONE)
+    }
+
+    /// [`Follower::step_with_heading`] with the other robots' poses the
+    /// safety filter keeps this robot away from (docs/model.md §16; ignored
+    /// when the scenario has no filter).
+    pub fn step_near<'a, I>(
+        &mut self,
+        pose: &Pose,
+        heading: (f64, f64),
+        z: Velocity,
+        leader: Option<&LeaderState>,
+        neighbours: I,
+        nearby: Nearby<'_>,
+    ) -> StepOutput
+    where
+        I: IntoIterator<Item = &'a Message>,
+        I::IntoIter: Clone,
+    {
         let neighbours = neighbours.into_iter();
         let cfg = &*self.config.control;
         let dt = cfg.dt_s;
@@ -290,8 +324,14 @@ impl Follower {
 
         // Kinematic controller (eq. 29, 35–36).
         let body_error = kinematic::body_error_with(&estimate.pose, self.config.offset, pose, heading);
-        let command =
+        let requested =
             kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, estimate.v, estimate.w);
+        // Limits and safety filter (docs/model.md §16): what the robot gets.
+        let (command, guard) = match cfg.guard.is_off() {
+            true => (requested, GuardStep { requested, ..GuardStep::default() }),
+            false => guard::apply(&cfg.guard, requested, pose, nearby),
+        };
+        self.tally.add(&guard);
         let command_rate = match self.last_command {
             Some(prev) => Velocity::new((command.v - prev.v) / dt, (command.w - prev.w) / dt),
             None => Velocity::default(),
@@ -350,6 +390,7 @@ impl Follower {
             estimate,
             body_error,
             command,
+            guard,
             command_rate,
             velocity_estimate,
             torque,
@@ -402,6 +443,7 @@ mod tests {
             rejoin: RejoinRule::default(),
             dt_s,
             drive: Drive::Torque,
+            guard: Guard::default(),
         }
     }
 

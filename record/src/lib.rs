@@ -16,6 +16,7 @@ pub mod live;
 pub mod mcap;
 pub mod metrics;
 pub mod outage;
+pub mod proximity;
 pub mod rosbag2;
 pub mod row;
 pub mod stall;
@@ -27,6 +28,7 @@ pub use hearing::{FollowerHearing, Heard, HeardRuns, HearingRecord, HEARING_FILE
 pub use live::LiveSink;
 pub use metrics::{last10_from_k, FollowerMetrics, MetricsAccumulator};
 pub use outage::{FaultSummary, OutageMetrics};
+pub use proximity::{PairAt, Proximity};
 pub use row::{FollowerSample, Row, FOLLOWER_HEADER, LEADER_HEADER};
 pub use summary::{name, Shortfall, Summary};
 

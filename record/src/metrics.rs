@@ -43,6 +43,10 @@ pub struct FollowerMetrics {
     /// when not 0.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub gap_steps: u64,
+    /// What the limits and the safety filter did to the commands
+    /// (docs/model.md §16); absent when the scenario has neither.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub guard: Option<formation_agent::GuardTally>,
 }
 
 impl FollowerMetrics {
@@ -216,6 +220,7 @@ impl MetricsAccumulator {
             rmse_w: any.then(|| (self.sum_w_sq / n as f64).sqrt()),
             samples: n,
             gap_steps: self.next_k.saturating_sub(n),
+            guard: None,
         }
     }
 }

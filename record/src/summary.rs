@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::metrics::FollowerMetrics;
 use crate::outage::{self, FaultSummary, OutageMetrics};
+use crate::proximity::Proximity;
 
 /// `summary.json`: the run's settings and every follower's metrics, keyed by id.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -40,6 +41,9 @@ pub struct Summary {
     /// docs/model.md §14's metrics under faults, per fault window and follower.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub faults: Vec<FaultSummary>,
+    /// How close the robots came, with `[safety]` (docs/model.md §16).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub safety: Option<Proximity>,
 }
 
 /// How many samples a follower of an incomplete run recorded, of how many.
@@ -99,6 +103,7 @@ impl Summary {
             followers,
             rejoin: (!s.faults.is_empty()).then(|| name(&s.control.rejoin.policy)),
             faults: Vec::new(),
+            safety: None,
         };
         summary.mark_unreached();
         summary
@@ -179,6 +184,36 @@ impl Summary {
             out += &format!("incomplete run: {short}; — marks a metric whose window was not reached\n");
         }
         out += &outage::table(&self.faults, self.recorded_until());
+        out += &self.guard_lines();
+        out
+    }
+
+    /// The limits' and the filter's figures, and how close the robots came
+    /// (docs/model.md §16); empty without either.
+    pub fn guard_lines(&self) -> String {
+        let mut out = String::new();
+        let tallies: Vec<_> = self.followers.values().filter_map(|m| m.guard).collect();
+        if !tallies.is_empty() {
+            let steps: u64 = tallies.iter().map(|t| t.steps).sum();
+            let saturated: u64 = tallies.iter().map(|t| t.saturated).sum();
+            let filtered: u64 = tallies.iter().map(|t| t.filtered).sum();
+            let infeasible: u64 = tallies.iter().map(|t| t.infeasible).sum();
+            let change_max = tallies.iter().map(|t| t.change_max).fold(0.0, f64::max);
+            let pct = |n: u64| 100.0 * n as f64 / steps.max(1) as f64;
+            out += &format!(
+                "commands: a limit clipped {saturated} of {steps} ({:.1} %); the safety filter changed {filtered} \
+                 ({:.1} %, by up to {change_max:.3} m/s){}\n",
+                pct(saturated),
+                pct(filtered),
+                match infeasible {
+                    0 => String::new(),
+                    n => format!("; {n} had no safe command and stopped the robot"),
+                }
+            );
+        }
+        if let Some(p) = &self.safety {
+            out += &p.line();
+        }
         out
     }
 }

@@ -99,16 +99,17 @@ fn run_folder(
     let result = sim.run(&mut observer, progress);
     match result {
         Ok(metrics) => {
-            let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect())
+            let mut summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect())
                 .with_outages(scenario, &sim.outages());
+            summary.safety = sim.proximity().cloned();
             let dir = writer.finish(&summary)?;
             Ok((summary, dir))
         }
         Err(e) => {
             // Keep what was recorded up to the failure, with the summary of
             // an incomplete run (`complete: false`).
-            let metrics = sim.followers().iter().map(|f| f.metrics.finish());
-            let summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect());
+            let mut summary = Summary::new(scenario, ids.iter().copied().zip(sim.metrics()).collect());
+            summary.safety = sim.proximity().cloned();
             let _ = writer.flush();
             let _ = writer.write_file("summary.json", &summary.to_json());
             Err(SimError::Kept { source: Box::new(e), kept: writer.partial_dir().to_path_buf() })

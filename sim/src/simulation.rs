@@ -2,12 +2,12 @@
 //! stepped in lock-step in docs/model.md §9's order. Deterministic: the same scenario
 //! gives the same numbers, bit for bit.
 
-use formation_agent::{Follower, Hearing, LeaderState, LinkLoss, Message, StepOutput};
+use formation_agent::{Follower, Hearing, LeaderState, LinkLoss, Message, Nearby, StepOutput};
 use formation_leader::Leader;
 use formation_plant::{Drive, NoiseSource, Pose, Robot, Velocity, VelocityRobot};
 use formation_topology::Scenario;
 
-use formation_record::{FollowerMetrics, FollowerSample, MetricsAccumulator, OutageMetrics, Row};
+use formation_record::{FollowerMetrics, FollowerSample, MetricsAccumulator, OutageMetrics, Proximity, Row};
 
 /// A run stopped because a state stopped being finite.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -61,6 +61,14 @@ impl SimRobot {
         }
     }
 
+    /// The pose the brain steps on: the true one, or as odometry reports it.
+    pub fn seen_pose(&self) -> Pose {
+        match self {
+            SimRobot::Torque { robot, .. } => robot.pose,
+            SimRobot::Velocity(robot) => robot.odometry().0,
+        }
+    }
+
     /// The disturbance (d_1, d_2) at t (none on a velocity-commanded robot).
     pub fn disturbance_at(&self, t_s: f64) -> (f64, f64) {
         match self {
@@ -104,13 +112,14 @@ pub fn step_on_odometry<'a, I>(
     odometry: (Pose, Velocity),
     leader: Option<&LeaderState>,
     neighbours: I,
+    nearby: Nearby<'_>,
 ) -> (FollowerSample, StepOutput)
 where
     I: IntoIterator<Item = &'a Message>,
     I::IntoIter: Clone,
 {
     let (pose, z) = odometry;
-    let out = brain.step(&pose, z, leader, neighbours);
+    let out = brain.step_near(&pose, pose.theta.sin_cos(), z, leader, neighbours, nearby);
     (FollowerSample::new(&out, pose, z), out)
 }
 
@@ -161,7 +170,7 @@ impl SimFollower {
         I: IntoIterator<Item = &'a Message>,
         I::IntoIter: Clone,
     {
-        self.step_disturbed(self.robot.disturbance_at(t_s), dt_s, leader, neighbours, last)
+        self.step_disturbed(self.robot.disturbance_at(t_s), dt_s, leader, neighbours, Nearby::NONE, last)
     }
 
     /// [`SimFollower::step`] with the robot's disturbance at t_k given (the
@@ -178,6 +187,7 @@ impl SimFollower {
         dt_s: f64,
         leader: Option<&LeaderState>,
         neighbours: I,
+        nearby: Nearby<'_>,
         last: bool,
     ) -> (FollowerSample, Message)
     where
@@ -188,7 +198,7 @@ impl SimFollower {
             SimRobot::Torque { robot, measurement } => {
                 // sin/cos of θ(k), for the brain's body-frame error and the robot's move.
                 let heading = robot.pose.theta.sin_cos();
-                let out = self.brain.step_with_heading(&robot.pose, heading, *measurement, leader, neighbours);
+                let out = self.brain.step_near(&robot.pose, heading, *measurement, leader, neighbours, nearby);
                 let sample = FollowerSample::new(&out, robot.pose, robot.velocity);
                 if !last {
                     let draw = self.noise.draw();
@@ -197,7 +207,7 @@ impl SimFollower {
                 (sample, out.next_message)
             }
             SimRobot::Velocity(robot) => {
-                let (sample, out) = step_on_odometry(&mut self.brain, robot.odometry(), leader, neighbours);
+                let (sample, out) = step_on_odometry(&mut self.brain, robot.odometry(), leader, neighbours, nearby);
                 if !last {
                     robot.advance(out.command, dt_s, self.noise.draw());
                 }
@@ -305,6 +315,11 @@ pub struct Simulation<'s> {
     samples: Vec<FollowerSample>,
     /// Step the followers of a step on rayon's threads (see [`Simulation::set_parallel`]).
     parallel: bool,
+    /// With `[safety]` (docs/model.md §16): every robot's pose of step
+    /// k − 1 and of step k, and how close they came; empty and `None` without.
+    poses_before: Vec<Pose>,
+    poses_now: Vec<Pose>,
+    proximity: Option<Proximity>,
     k: u64,
 }
 
@@ -333,6 +348,9 @@ struct StepInputs<'a> {
     dt: f64,
     last: bool,
     disturbance: (f64, f64),
+    /// Every robot's pose of step k − 1 (of step 0 at step 0), for the
+    /// safety filter (docs/model.md §16); empty without one.
+    poses: &'a [Pose],
 }
 
 /// Follower `i`'s step k: its inputs (through its reception when the fault
@@ -344,11 +362,12 @@ fn step_follower(
     rx: &mut Option<Box<Reception>>,
 ) -> (FollowerSample, Message) {
     let (s, messages, leader, sent_k) = (x.s, x.messages, x.leader, x.sent_k);
+    let nearby = Nearby { poses: x.poses, own: i };
     match rx {
         None => {
             let heard = s.graph.hears_leader(i).then_some(leader);
             let neighbours = s.graph.neighbours(i).iter().map(|&j| &messages[j]);
-            f.step_disturbed(x.disturbance, x.dt, heard, neighbours, x.last)
+            f.step_disturbed(x.disturbance, x.dt, heard, neighbours, nearby, x.last)
         }
         Some(rx) => {
             // docs/model.md §14: deliver what the table lets through, then
@@ -366,7 +385,7 @@ fn step_follower(
             };
             let hearing = &rx.hearing;
             let neighbours = (0..ns.len()).filter_map(|slot| hearing.heard(slot, sent_k));
-            f.step_disturbed(x.disturbance, x.dt, heard, neighbours, x.last)
+            f.step_disturbed(x.disturbance, x.dt, heard, neighbours, nearby, x.last)
         }
     }
 }
@@ -435,7 +454,15 @@ impl<'s> Simulation<'s> {
             (0..scenario.followers.len()).map(|i| SimFollower::new(scenario, i)).collect();
         let messages: Vec<Message> = followers.iter().map(|f| f.brain.tagged_message()).collect();
         let receptions = (0..followers.len()).map(|i| Reception::new(scenario, i).map(Box::new)).collect();
+        let proximity = scenario.safety_distance.map(|d| Proximity::new(d, scenario.control.guard.safety.is_some()));
+        let poses_before: Vec<Pose> = match proximity.is_some() || scenario.control.guard.safety.is_some() {
+            true => followers.iter().map(|f| f.robot.seen_pose()).collect(),
+            false => Vec::new(),
+        };
         Self {
+            poses_now: poses_before.clone(),
+            poses_before,
+            proximity,
             scenario,
             leader: scenario.leader(),
             next_messages: messages.clone(),
@@ -510,7 +537,22 @@ impl<'s> Simulation<'s> {
                 progress(self.k);
             }
         }
-        Ok(self.followers.iter().map(|f| f.metrics.finish()).collect())
+        Ok(self.metrics())
+    }
+
+    /// Every follower's metrics so far, with what the guard did when the
+    /// scenario has limits or a filter.
+    pub fn metrics(&self) -> Vec<FollowerMetrics> {
+        let guarded = !self.scenario.control.guard.is_off();
+        self.followers
+            .iter()
+            .map(|f| FollowerMetrics { guard: guarded.then(|| *f.brain.guard_tally()), ..f.metrics.finish() })
+            .collect()
+    }
+
+    /// How close the robots came, with `[safety]` (docs/model.md §16).
+    pub fn proximity(&self) -> Option<&Proximity> {
+        self.proximity.as_ref()
     }
 
     /// One step k of docs/model.md §9 for the whole formation.
@@ -534,6 +576,14 @@ impl<'s> Simulation<'s> {
             let then = &self.past[(sent_k % slots) as usize];
             (&then.0, &then.1, sent_k)
         };
+        if !self.poses_now.is_empty() {
+            for (p, f) in self.poses_now.iter_mut().zip(&self.followers) {
+                *p = f.robot.seen_pose();
+            }
+            if k == 0 {
+                self.poses_before.copy_from_slice(&self.poses_now);
+            }
+        }
         let x = StepInputs {
             s,
             messages: inputs,
@@ -542,6 +592,7 @@ impl<'s> Simulation<'s> {
             dt,
             last,
             disturbance: s.disturbance.at(t),
+            poses: &self.poses_before,
         };
         // Metrics, the observer (in index order, as a sequential run) and
         // the first follower that diverged; every follower steps even when
@@ -607,6 +658,10 @@ impl<'s> Simulation<'s> {
             }
         }
         std::mem::swap(&mut self.messages, &mut self.next_messages);
+        if let Some(p) = &mut self.proximity {
+            p.push(t, s.graph.ids(), &self.poses_now);
+        }
+        std::mem::swap(&mut self.poses_before, &mut self.poses_now);
         self.leader.advance(&leader, dt);
         self.k += 1;
         Ok(())
@@ -726,7 +781,7 @@ mod tests {
                 let (want, message) = sim[i].step(t, s.dt_s, heard, neighbours(), last);
                 // The stand-in publishes odometry(k); the agent steps on it and sends the command.
                 let (robot, noise) = &mut robots[i];
-                let (got, out) = step_on_odometry(&mut brains[i], robot.odometry(), heard, neighbours());
+                let (got, out) = step_on_odometry(&mut brains[i], robot.odometry(), heard, neighbours(), Nearby::NONE);
                 if !last {
                     robot.advance(out.command, s.dt_s, noise.draw());
                 }
@@ -741,6 +796,78 @@ mod tests {
             let SimRobot::Velocity(r) = &f.robot else { panic!("velocity robot") };
             assert_eq!(r, robot);
         }
+    }
+
+    /// Closest two robots over a run, the largest |v_c| and |ω_c| any robot
+    /// was sent, each follower's formation RMS over the last 10 s and what
+    /// the guard did.
+    fn turtlebot(filter: bool) -> (formation_record::Proximity, [f64; 2], Vec<f64>, Vec<FollowerMetrics>) {
+        struct Peaks([f64; 2]);
+        impl Observer for Peaks {
+            fn follower(&mut self, _: usize, _: u64, row: &Row, _: bool) -> std::io::Result<()> {
+                self.0 = [self.0[0].max(row.v_c.abs()), self.0[1].max(row.w_c.abs())];
+                Ok(())
+            }
+        }
+        let s = scenario("turtlebot.toml", &[&format!("safety.filter={filter}")]);
+        let mut sim = Simulation::new(&s);
+        let mut peaks = Peaks([0.0; 2]);
+        let metrics = sim.run(&mut peaks, |_| {}).expect("run");
+        let rms = metrics.iter().map(|m| m.formation_rms_last10.expect("rms")).collect();
+        (sim.proximity().expect("[safety]").clone(), peaks.0, rms, metrics)
+    }
+
+    /// docs/model.md §16 on scenarios/turtlebot.toml, whose followers 1 and 2
+    /// cross on the way to their slots. Filter off: they come closer than
+    /// the safety distance (the filter is needed; measured 0.178 m of 0.25).
+    /// On: the closest pair stays at or above it (measured 0.391 m) and each
+    /// follower's formation RMS over the last 10 s is within 0.03 m of the
+    /// filter-off run's (measured: off 0.005–0.017 m, on 0.016–0.032 m; the
+    /// barrier still trims the approach speed of slot neighbours 0.5 m apart).
+    /// Both: no command beyond the TurtleBot's 0.22 m/s and 2.84 rad/s, and
+    /// the limits clipped the converging commands (the bioinspired law asks
+    /// up to C₁B + v_ir).
+    #[test]
+    fn the_safety_filter_keeps_crossing_robots_apart_within_the_limits() {
+        let (off, off_peak, off_rms, off_metrics) = turtlebot(false);
+        assert!(off.violated(), "filter off: closest {:?}, expected below {} m", off.closest, off.distance);
+        let (on, on_peak, on_rms, on_metrics) = turtlebot(true);
+        let closest = on.closest.expect("closest");
+        assert!(
+            !on.violated() && closest.distance >= on.distance,
+            "filter on: {closest:?}, {} steps below",
+            on.steps_below
+        );
+        for (i, (a, b)) in off_rms.iter().zip(&on_rms).enumerate() {
+            assert!(*b <= a + 0.03, "follower {}: RMS last 10 s {b:.4} m with the filter, {a:.4} m without", i + 1);
+            assert!(*a < 0.05, "follower {}: RMS last 10 s without the filter {a:.4} m", i + 1);
+        }
+        for (peak, what) in [(off_peak, "off"), (on_peak, "on")] {
+            assert!(
+                peak[0] <= 0.22 && peak[1] <= 2.84,
+                "filter {what}: |v_c| up to {}, |ω_c| up to {}",
+                peak[0],
+                peak[1]
+            );
+        }
+        for (m, filtered) in off_metrics.iter().map(|m| (m, false)).chain(on_metrics.iter().map(|m| (m, true))) {
+            let g = m.guard.expect("the guard's tally");
+            assert!(g.saturated > 0, "the limits never clipped a command: {g:?}");
+            assert_eq!(g.filtered > 0, filtered, "{g:?}");
+            assert_eq!(g.infeasible, 0, "{g:?}");
+        }
+    }
+
+    /// The paper's scenario has neither limits nor filter: no guard figures,
+    /// no safety section, and its numbers as before (the paper-claims and
+    /// reference tests hold them to 1e-13).
+    #[test]
+    fn the_paper_scenario_has_no_guard() {
+        let s = scenario("paper.toml", &["duration=0.5"]);
+        assert!(s.control.guard.is_off() && s.safety_distance.is_none());
+        let mut sim = Simulation::new(&s);
+        let metrics = sim.run(&mut NoRecord, |_| {}).expect("run");
+        assert!(metrics.iter().all(|m| m.guard.is_none()) && sim.proximity().is_none());
     }
 
     /// A restarted agent's robot is stopped at the checkpointed pose, for

@@ -66,6 +66,9 @@ pub struct ScenarioFile {
     /// The formation on ROS 2's wire (rmw_zenoh; docs/ros2.md).
     #[serde(default, skip_serializing_if = "Ros2File::is_off")]
     pub ros2: Ros2File,
+    /// Robots kept apart (docs/model.md §16).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub safety: Option<SafetyFile>,
 }
 
 /// `[ros2]`: the formation's topics on rmw_zenoh's wire, and robots driven
@@ -227,6 +230,43 @@ pub struct RobotFile {
     pub wheel_radius: f64,
     #[serde(default = "d::half_axle")]
     pub half_axle: f64,
+    /// The base's top speed, m/s: no command beyond it (docs/model.md §16).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub v_max: Option<f64>,
+    /// The base's top turn rate, rad/s (with `v_max`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub w_max: Option<f64>,
+    /// A `formation robot` stand-in stops when no command came for this
+    /// long, s (default [`DEFAULT_CMD_TIMEOUT_S`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cmd_timeout: Option<f64>,
+}
+
+/// `[robot] cmd_timeout` when none is given, s: a driver's usual command time-out.
+pub const DEFAULT_CMD_TIMEOUT_S: f64 = 0.5;
+
+/// `[safety]`: the closest two robots may come, and the filter that keeps
+/// them apart (docs/model.md §16). Absent: no safety figures, no filter.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SafetyFile {
+    /// The closest two robots' centres may come, m: a run that comes closer is degraded.
+    pub distance: f64,
+    /// The barrier-certificate filter on (`true`) or only the figures (`false`).
+    #[serde(default = "d::yes")]
+    pub filter: bool,
+    /// γ of the barrier certificates.
+    #[serde(default = "d::gamma")]
+    pub gamma: f64,
+    /// How far ahead of the axle the filtered point lies, m.
+    #[serde(default = "d::projection")]
+    pub projection: f64,
+    /// Other robots farther than this are left out of a robot's filter, m.
+    #[serde(default = "d::safety_radius")]
+    pub radius: f64,
+    /// [x_min, x_max, y_min, y_max], m: the robots stay inside.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arena: Option<[f64; 4]>,
 }
 
 /// How the robot takes its commands (`[robot] model`).
@@ -436,7 +476,10 @@ default_impl!(RobotFile {
     mass: d::mass(),
     inertia: d::inertia(),
     wheel_radius: d::wheel_radius(),
-    half_axle: d::half_axle()
+    half_axle: d::half_axle(),
+    v_max: None,
+    w_max: None,
+    cmd_timeout: None
 });
 default_impl!(DisturbanceFile { dv: d::dv(), dw: d::dw() });
 default_impl!(CovarianceFile { q: d::cov(), r: d::cov() });
@@ -455,6 +498,15 @@ default_impl!(NetworkFile {
 /// docs/model.md §10's values, the defaults of every key.
 mod d {
     use super::*;
+    pub fn gamma() -> f64 {
+        100.0
+    }
+    pub fn projection() -> f64 {
+        0.05
+    }
+    pub fn safety_radius() -> f64 {
+        1.0
+    }
     pub fn robots() -> String {
         "simulated".into()
     }

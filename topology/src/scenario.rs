@@ -4,15 +4,15 @@ use std::path::Path;
 use std::sync::Arc;
 
 use formation_agent::{
-    ControlParams, DynamicGains, EstimatorGains, Fault, FilterParams, FollowerConfig, KinematicGains, LeaderState,
-    LinkLoss, LossWindow, RejoinPolicy, RejoinRule, Shunting,
+    ControlParams, DynamicGains, EstimatorGains, Fault, FilterParams, FollowerConfig, Guard, KinematicGains,
+    LeaderState, Limits, LinkLoss, LossWindow, RejoinPolicy, RejoinRule, SafetyParams, Shunting,
 };
 use formation_leader::{Leader, Profile, Trajectory};
 use formation_plant::{Disturbance, Drive, NoiseCov, Pose, RobotParams, Velocity};
 use serde::Serialize;
 
 use crate::error::ScenarioError;
-use crate::file::{exact, LeaderFile, RobotModel, ScenarioFile, DEFAULT_LAG_S};
+use crate::file::{exact, LeaderFile, RobotModel, ScenarioFile, DEFAULT_CMD_TIMEOUT_S, DEFAULT_LAG_S};
 use crate::graph::Graph;
 
 /// How followers initialise their leader estimate.
@@ -199,6 +199,11 @@ pub struct Scenario {
     pub faults: Vec<LinkFault>,
     /// The formation on ROS 2's wire (None: off).
     pub ros2: Option<Ros2Settings>,
+    /// `[safety] distance`: the closest two robots may come, m (None: no
+    /// `[safety]`, no proximity figures). The filter itself is `control.guard.safety`.
+    pub safety_distance: Option<f64>,
+    /// A stand-in robot stops when no command came for this long, s (`robot.cmd_timeout`).
+    pub cmd_timeout_s: f64,
     /// The file as it was read and overridden, for the record of a run.
     pub source: ScenarioFile,
 }
@@ -402,10 +407,11 @@ impl Scenario {
 
 /// The scenarios inside the binary: the files of `scenarios/` that the
 /// documentation runs, by name.
-pub const BUILT_IN: [(&str, &str); 3] = [
+pub const BUILT_IN: [(&str, &str); 4] = [
     ("paper", include_str!("../../scenarios/paper.toml")),
     ("paper-velocity", include_str!("../../scenarios/paper-velocity.toml")),
     ("paper-tables", include_str!("../../scenarios/paper-tables.toml")),
+    ("turtlebot", include_str!("../../scenarios/turtlebot.toml")),
 ];
 
 /// The built-in scenario `path` names: `paper`, `paper.toml` or
@@ -870,6 +876,9 @@ fn validate(
     let faults = validate_faults(&c, &file, &followers, &graph)?;
     let (network, rejoin) = validate_network(&c, &file)?;
     let ros2 = validate_ros2(&c, &file, drive)?;
+    let guard = validate_guard(&c, &file, &followers)?;
+    let cmd_timeout_s = file.robot.cmd_timeout.unwrap_or(DEFAULT_CMD_TIMEOUT_S);
+    c.positive("robot.cmd_timeout", &[cmd_timeout_s])?;
     let r = &file.robot;
     let robot = RobotParams {
         mass_kg: r.mass,
@@ -890,14 +899,110 @@ fn validate(
         leader_pose,
         followers,
         graph,
-        control: Arc::new(control_params(&file, robot, fault, rejoin, drive)),
+        control: Arc::new(ControlParams { guard, ..control_params(&file, robot, fault, rejoin, drive) }),
         robot,
         disturbance: Disturbance { linear_n: file.disturbance.dv, angular_nm: file.disturbance.dw },
         network,
         faults,
         ros2,
+        safety_distance: file.safety.as_ref().map(|s| s.distance),
+        cmd_timeout_s,
         source: file,
     })
+}
+
+/// `[robot] v_max`, `w_max` and `[safety]` (docs/model.md §16): limits that
+/// are positive and finite; a safety distance the initial poses keep (the
+/// pair that does not is named); an arena that holds every initial pose.
+fn validate_guard(c: &Check<'_>, file: &ScenarioFile, followers: &[FollowerSpec]) -> Result<Guard, ScenarioError> {
+    let r = &file.robot;
+    for (field, value) in [("robot.v_max", r.v_max), ("robot.w_max", r.w_max)] {
+        if let Some(v) = value {
+            c.positive(field, &[v])?;
+        }
+    }
+    let limits = (r.v_max.is_some() || r.w_max.is_some())
+        .then(|| Limits { v_max: r.v_max.unwrap_or(f64::INFINITY), w_max: r.w_max.unwrap_or(f64::INFINITY) });
+    let Some(sf) = &file.safety else { return Ok(Guard { limits, safety: None }) };
+    c.positive("safety.distance", &[sf.distance])?;
+    if let Some((a, b, d)) = closest_pair(followers) {
+        if d < sf.distance {
+            return Err(c.fail_with(
+                "safety.distance",
+                &["followers"],
+                format!(
+                    "followers {} and {} start {} m apart, closer than the safety distance {} m",
+                    a,
+                    b,
+                    num((d * 1e6).round() / 1e6),
+                    num(sf.distance)
+                ),
+            ));
+        }
+    }
+    c.positive("safety.gamma", &[sf.gamma])?;
+    c.positive("safety.projection", &[sf.projection])?;
+    c.positive("safety.radius", &[sf.radius])?;
+    let params = SafetyParams {
+        distance: sf.distance,
+        gamma: sf.gamma,
+        projection: sf.projection,
+        radius: sf.radius,
+        arena: sf.arena,
+    };
+    if sf.radius <= params.barrier_radius() {
+        return Err(c.fail_with(
+            "safety.radius",
+            &["safety.distance", "safety.projection"],
+            format!(
+                "{} m must exceed the barrier's radius, distance + 2 × projection = {} m, or no robot is ever seen in time",
+                num(sf.radius),
+                num(params.barrier_radius())
+            ),
+        ));
+    }
+    if let Some(a) = sf.arena {
+        c.bounded("safety.arena", &a, MAX_DISTANCE_M, "m")?;
+        if a[0] >= a[1] || a[2] >= a[3] {
+            return Err(c.fail(
+                "safety.arena",
+                format!("[x_min, x_max, y_min, y_max] = {a:?}: each min must be below its max"),
+            ));
+        }
+        if let Some(f) =
+            followers.iter().find(|f| !(a[0]..=a[1]).contains(&f.pose.x) || !(a[2]..=a[3]).contains(&f.pose.y))
+        {
+            return Err(c.fail_with(
+                "safety.arena",
+                &["followers"],
+                format!(
+                    "follower {} starts at ({}, {}), outside the arena x ∈ [{}, {}], y ∈ [{}, {}]",
+                    f.id,
+                    num(f.pose.x),
+                    num(f.pose.y),
+                    num(a[0]),
+                    num(a[1]),
+                    num(a[2]),
+                    num(a[3])
+                ),
+            ));
+        }
+    }
+    Ok(Guard { limits, safety: sf.filter.then_some(params) })
+}
+
+/// The two followers whose initial positions are closest, and how far apart.
+fn closest_pair(followers: &[FollowerSpec]) -> Option<(u32, u32, f64)> {
+    let mut best: Option<(u32, u32, f64)> = None;
+    for (i, a) in followers.iter().enumerate() {
+        for b in &followers[i + 1..] {
+            let d = (a.pose.x - b.pose.x).hypot(a.pose.y - b.pose.y);
+            if best.is_none_or(|(_, _, e)| d < e) {
+                best = Some((a.id, b.id, d));
+            }
+        }
+    }
+    best
 }
 
 /// `[ros2]`: off, or the domain and who moves the robots.
@@ -1283,6 +1388,7 @@ fn control_params(
         rejoin,
         dt_s: file.dt,
         drive,
+        guard: Guard::default(),
     }
 }
 
@@ -1485,6 +1591,7 @@ fn find_line(source: &str, field: &str) -> Option<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::file::DEFAULT_CMD_TIMEOUT_S;
 
     /// The warning names what helps here, measured: on the 50-ring at
     /// 10 ms a delay of one step grows ×1.30 a second, no delay is stable
@@ -1773,6 +1880,54 @@ mod tests {
             message(ARRAYS, &["fault.time=31"]),
             "--set fault.time=31: fault.time: must lie within [0, duration] = [0, 30] s, got 31"
         );
+    }
+
+    #[test]
+    fn limits_and_the_safety_filter_parse_and_default() {
+        let s = load(ARRAYS, &["robot.v_max=0.22", "robot.w_max=2.84"]).unwrap();
+        assert_eq!(s.control.guard.limits, Some(Limits { v_max: 0.22, w_max: 2.84 }));
+        assert!(s.control.guard.safety.is_none() && s.safety_distance.is_none());
+        assert_eq!(s.cmd_timeout_s, DEFAULT_CMD_TIMEOUT_S);
+        let s = load(ARRAYS, &["safety.distance=0.3"]).unwrap();
+        let f = s.control.guard.safety.expect("the filter is on by default");
+        assert_eq!((f.distance, f.gamma, f.projection, f.radius, f.arena), (0.3, 100.0, 0.05, 1.0, None));
+        assert_eq!(s.safety_distance, Some(0.3));
+        let s = load(ARRAYS, &["safety.distance=0.3", "safety.filter=false"]).unwrap();
+        assert!(s.control.guard.is_off() && s.safety_distance == Some(0.3), "figures without the filter");
+    }
+
+    #[test]
+    fn bad_limits_and_safety_settings_are_refused_in_one_line() {
+        for (set, want) in [
+            ("robot.v_max=0", "--set robot.v_max=0: robot.v_max: must be positive, got 0"),
+            ("robot.w_max=-1", "--set robot.w_max=-1: robot.w_max: must be positive, got -1"),
+            ("robot.v_max=inf", "--set robot.v_max=inf: robot.v_max: must be a finite number, got inf"),
+            ("robot.w_max=nan", "--set robot.w_max=nan: robot.w_max: must be a finite number, got NaN"),
+            ("robot.cmd_timeout=0", "--set robot.cmd_timeout=0: robot.cmd_timeout: must be positive, got 0"),
+            ("safety.distance=0", "--set safety.distance=0: safety.distance: must be positive, got 0"),
+            (
+                "safety.distance=4",
+                "--set safety.distance=4: safety.distance: followers 1 and 2 start 3.605551 m apart, closer than \
+                 the safety distance 4 m",
+            ),
+            (
+                "safety={distance=0.3,arena=[-1.0,1.0,-1.0,1.0]}",
+                "--set safety={distance=0.3,arena=[-1.0,1.0,-1.0,1.0]}: safety.arena: follower 2 starts at (2, 3), \
+                 outside the arena x ∈ [-1, 1], y ∈ [-1, 1]",
+            ),
+            (
+                "safety={distance=0.3,arena=[1.0,-1.0,-1.0,1.0]}",
+                "--set safety={distance=0.3,arena=[1.0,-1.0,-1.0,1.0]}: safety.arena: [x_min, x_max, y_min, y_max] = \
+                 [1.0, -1.0, -1.0, 1.0]: each min must be below its max",
+            ),
+            (
+                "safety={distance=0.3,radius=0.35}",
+                "--set safety={distance=0.3,radius=0.35}: safety.radius: 0.35 m must exceed the barrier's radius, \
+                 distance + 2 × projection = 0.4 m, or no robot is ever seen in time",
+            ),
+        ] {
+            assert_eq!(message(ARRAYS, &[set]), want);
+        }
     }
 
     #[test]
