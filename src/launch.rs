@@ -460,10 +460,17 @@ impl Children {
         self.kill_all();
     }
 
-    /// Lets the monitor write what it has (SIGTERM, up to 10 s), then kills every child.
+    /// Lets the monitor write what it has (SIGTERM, up to 10 s) and the
+    /// agents stop their robots (SIGTERM: an agent driving a robot through
+    /// ROS 2 sends it zero velocity first), then kills every child.
     pub(crate) fn wind_down(&mut self) {
-        self.terminate(|n| n == "monitor");
+        self.terminate(|n| n == "monitor" || n.starts_with("agent"));
         let _ = self.wait_for("monitor", Duration::from_secs(10));
+        let agents: Vec<String> = self.list.iter().map(|(n, _)| n.clone()).filter(|n| n.starts_with("agent")).collect();
+        let t = Instant::now();
+        for name in agents {
+            let _ = self.wait_for(&name, Duration::from_secs(2).saturating_sub(t.elapsed()));
+        }
         self.kill_all();
     }
 

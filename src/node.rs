@@ -103,7 +103,13 @@ pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
 /// replay or certificate generator.
 pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
     let name = formation_net::names::agent_name(a.id.first().copied().unwrap_or(0));
-    shell(&a.node.zenoh.clone(), &name, true, async move { agent::run(&a).await.map(|()| ExitCode::SUCCESS) })
+    shell(&a.node.zenoh.clone(), &name, true, async move {
+        agent::run(&a, signalled()).await.map(|signal| match signal {
+            None => ExitCode::SUCCESS,
+            Some(Signal::Interrupt) => ExitCode::from(130),
+            Some(Signal::Terminate) => ExitCode::from(143),
+        })
+    })
 }
 
 /// The `leader` binary.

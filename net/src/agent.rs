@@ -71,7 +71,15 @@ pub struct AgentArgs {
 }
 
 /// Runs the follower(s) of `--id` to the end of the scenario.
-pub async fn run(args: &AgentArgs) -> Result<(), Error> {
+///
+/// `shutdown` (SIGINT or SIGTERM in the binary) is listened to only when
+/// the robots are driven through ROS 2: then every follower's robot is sent
+/// zero velocity before the process ends, however it ends (the run's end, an
+/// error, a refused start, the signal), and the signal is returned.
+pub async fn run(
+    args: &AgentArgs,
+    shutdown: impl std::future::Future<Output = crate::monitor::Signal>,
+) -> Result<Option<crate::monitor::Signal>, Error> {
     let ids = &args.id;
     let first = *ids.first().ok_or_else(|| Error::Input("--id: give at least one follower id".into()))?;
     if let Some(twice) = ids.iter().enumerate().find_map(|(i, id)| ids[..i].contains(id).then_some(id)) {
@@ -99,17 +107,20 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
     tokio::spawn(crate::denials::report(session.clone(), crate::names::agent_name(first), Some(keys.run.clone())));
     let stall = Duration::from_secs_f64(args.stall_timeout);
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
+    let driven = scenario.ros2.is_some_and(|r| r.robots.driven());
+    let brakes: Vec<SharedTopics> = ids.iter().map(|_| Arc::new(Mutex::new(None))).collect();
     let mut followers: futures_util::stream::FuturesUnordered<_> = ids
         .iter()
         .zip(&indices)
-        .map(|(&id, &index)| {
-            let driven = scenario.ros2.is_some_and(|r| r.robots.driven());
+        .zip(&brakes)
+        .map(|((&id, &index), brake)| {
             let odometry = driven.then(|| Arc::new(OdomInbox::default()));
             let opts = FollowerOptions {
                 protocol: follower::Options { stall_timeout: stall, physical_node_faults: args.physical_node_faults },
                 checkpoint: Some(checkpoint::path(&checkpoint_dir, &keys.run, id)),
                 odometry: odometry.clone(),
                 on_zenoh_thread: ids.len() == 1,
+                topics: brake.clone(),
             };
             let body: Box<dyn Body> = match odometry {
                 Some(inbox) => Box::new(DrivenRobot::new(&scenario, index, inbox)),
@@ -120,16 +131,71 @@ pub async fn run(args: &AgentArgs) -> Result<(), Error> {
         .collect();
     // The first failure ends the process (its neighbours in here would only
     // wait for it); the others' ends are not waited for.
-    let mut result = Ok(());
-    while let Some(r) = futures_util::StreamExt::next(&mut followers).await {
-        if r.is_err() {
-            result = r;
-            break;
+    let work = async {
+        while let Some(r) = futures_util::StreamExt::next(&mut followers).await {
+            r?;
+        }
+        Ok(())
+    };
+    let (result, signal) = match driven {
+        false => (work.await, None),
+        true => tokio::select! {
+            r = work => (r, None),
+            s = shutdown => (Ok(()), Some(s)),
+        },
+    };
+    drop(followers);
+    if driven {
+        // docs/ros2.md: an agent that ends stops its robot first.
+        let why = match (&result, signal) {
+            (_, Some(crate::monitor::Signal::Interrupt)) => "Ctrl-C",
+            (_, Some(crate::monitor::Signal::Terminate)) => "SIGTERM",
+            (Ok(()), None) => "the run ended",
+            (Err(_), None) => "the agent stopped on an error",
+        };
+        for (&id, brake) in ids.iter().zip(&brakes) {
+            stop_robot(&session, &scenario, id, brake, why).await;
         }
     }
-    drop(followers);
-    let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
-    result
+    let close = if signal.is_some() { Duration::from_secs(1) } else { Duration::from_secs(5) };
+    let _ = tokio::time::timeout(close, session.close()).await;
+    result.map(|()| signal)
+}
+
+/// Sends follower `id`'s robot zero velocity on its `cmd_vel` and says so:
+/// through the agent's own publisher once the run began, else through one
+/// declared for it (a start refused or interrupted: a robot left moving by
+/// an earlier agent stops too).
+async fn stop_robot(session: &zenoh::Session, scenario: &Scenario, id: u32, topics: &SharedTopics, why: &str) {
+    let sent = {
+        let mut t = topics.lock().unwrap_or_else(|p| p.into_inner());
+        t.as_mut().map(FollowerTopics::stop)
+    };
+    let sent = match sent {
+        Some(r) => r,
+        None => {
+            let domain = scenario.ros2.map_or(0, |r| r.domain_id);
+            let namespace = crate::ros2::follower_namespace(id);
+            match RosNode::declare(session, domain, &namespace, "agent").await {
+                Ok(node) => match node
+                    .publisher::<formation_ros2::msgs::Twist>(
+                        "cmd_vel",
+                        crate::ros2::topics::QOS,
+                        zenoh::qos::CongestionControl::Block,
+                    )
+                    .await
+                {
+                    Ok(mut p) => p.put(&formation_ros2::msgs::Twist::default(), clock::unix_ns() as i64),
+                    Err(e) => Err(e),
+                },
+                Err(e) => Err(e),
+            }
+        }
+    };
+    match sent {
+        Ok(()) => crate::node::say(&format!("follower {id}: {why}: sent its robot zero velocity")),
+        Err(e) => crate::node::say(&format!("follower {id}: {why}: could not send its robot zero velocity: {e}")),
+    }
 }
 
 /// How a follower process runs, beyond its scenario.
@@ -144,6 +210,9 @@ pub struct FollowerOptions {
     /// (one follower in the process), not on a thread of its own (several,
     /// which one thread would serialise).
     pub on_zenoh_thread: bool,
+    /// The follower's ROS 2 publishers once the run began: who ends the
+    /// process sends the robot zero velocity through them.
+    pub topics: SharedTopics,
 }
 
 /// The machine, shared by the subscriber callbacks and the loop's thread.
@@ -192,7 +261,7 @@ pub async fn run_follower(
     let subscribers = subscribe(session, keys, &sources, &shared, &timebase).await?;
     // ROS 2: the topics go out once the run's epoch is known; a driven
     // robot's odometry is heard from now on.
-    let topics: SharedTopics = Arc::new(Mutex::new(None));
+    let topics: SharedTopics = opts.topics.clone();
     let ros_node = match scenario.ros2 {
         Some(r) => Some(RosNode::declare(session, r.domain_id, &crate::ros2::follower_namespace(id), "agent").await?),
         None => None,
@@ -317,7 +386,7 @@ async fn subscribe(
 }
 
 /// The follower's ROS 2 publishers, once the run's epoch is known.
-type SharedTopics = Arc<Mutex<Option<FollowerTopics>>>;
+pub type SharedTopics = Arc<Mutex<Option<FollowerTopics>>>;
 
 /// A driven robot's odometry into `inbox`: a lock-step step's wakes the
 /// loop; a repeat of the step before is answered with its command again.

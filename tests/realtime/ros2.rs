@@ -323,3 +323,132 @@ fn stand_in_robots_in_real_time_behave_like_the_model() {
     let bad = common::unlike_the_simulator(&got, &reference, &network, 0.10, &common::COMPARED_CONVERGING);
     common::judge_if_quiet("stand-in robots in real time against the simulator (10 %)", &bad, host, "");
 }
+
+/// "robot 3: stopped at unix Y ns (…), told to at unix X ns by WHY, …": (X, Y, WHY) of each such line.
+fn stops(log: &str) -> Vec<(u64, u64, String)> {
+    log.lines()
+        .filter_map(|l| {
+            let y = l.split("stopped at unix ").nth(1)?.split(' ').next()?.parse().ok()?;
+            let rest = l.split("told to at unix ").nth(1)?;
+            let x = rest.split(' ').next()?.parse().ok()?;
+            let why = rest.split(" ns by ").nth(1)?.split(',').next()?.to_string();
+            Some((x, y, why))
+        })
+        .collect()
+}
+
+fn unix_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// The pid of `formation node agent … --id <id>` among `group`'s processes.
+fn agent_pid(group: &Group, id: u32) -> Option<u32> {
+    group.members().into_iter().find(|pid| {
+        let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+        let args: Vec<&[u8]> = cmd.split(|&b| b == 0).collect();
+        args.contains(&b"agent".as_slice())
+            && args.windows(2).any(|w| w[0] == b"--id" && w[1] == id.to_string().as_bytes())
+    })
+}
+
+/// Stand-in robots started by hand (the launch does not stop them), in real
+/// time on scenarios/turtlebot.toml, driven by `launch --robots external`
+/// for a few seconds; then `stop(launch)`. Returns each robot's log, the
+/// launch's, and the time of the stop (unix ns).
+fn drive_then(stop: impl Fn(&Group)) -> (Vec<String>, String, u64) {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (_router, ep) = router();
+    let sets = ["timing=\"realtime\"", "safety.filter=false", "duration=60"];
+    let mut robots = Vec::new();
+    for id in 1..=4 {
+        let id = id.to_string();
+        let mut args = vec!["robot", "--scenario", "turtlebot", "--id", &id, "--mode", "client", "--connect", &ep];
+        for s in &sets {
+            args.extend(["--set", s]);
+        }
+        let args: Vec<&std::ffi::OsStr> = args.iter().map(std::ffi::OsStr::new).collect();
+        let bin = std::ffi::OsStr::new(env!("CARGO_BIN_EXE_formation"));
+        robots.push(logged(bin, &args, &tmp.path().join(format!("robot_{id}.log"))));
+    }
+    let o = tmp.path().join("run").display().to_string();
+    let mut args = vec!["launch", "turtlebot", "-q", "--out", &o, "--robots", "external", "--router", &ep];
+    for s in &sets {
+        args.extend(["--set", s]);
+    }
+    let mut run = launch(&args, &tmp.path().join("launch.log"));
+    let log = |id: u32| std::fs::read_to_string(tmp.path().join(format!("robot_{id}.log"))).unwrap_or_default();
+    // Until every robot drives (the run began), then a few seconds more.
+    let began = Instant::now();
+    while !(1..=4).all(|id| log(id).contains("driving")) {
+        assert!(began.elapsed() < common::LIMIT, "the robots never drove: {:?}", run.0.try_wait());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_secs(4));
+    let at = unix_ns();
+    stop(&run);
+    let status = run.wait(common::LIMIT);
+    for r in &mut robots {
+        // A robot ends 3 s after its commands stopped.
+        r.wait(Duration::from_secs(20));
+    }
+    let said = std::fs::read_to_string(tmp.path().join("launch.log")).unwrap_or_default();
+    assert!(!status.success(), "launch after the stop: {status}: {said}");
+    ((1..=4).map(log).collect(), said, at)
+}
+
+/// Robot `id`'s first stop after `from`: (told to, stopped, why), checked
+/// against the limits it says it received.
+fn first_stop(logs: &[String], id: usize, from: u64, launch: &str) -> (f64, f64, String) {
+    let log = &logs[id - 1];
+    assert!(
+        log.contains(&format!("robot {id}: ")) && log.contains("none beyond robot.v_max, w_max"),
+        "robot {id}: a command beyond the limits, or no account of them: {log}"
+    );
+    let Some((told, stopped, why)) = stops(log).into_iter().find(|s| s.0 >= from) else {
+        panic!("robot {id} never said it stopped after {from}: {log}\nlaunch: {launch}")
+    };
+    let s = |ns: u64, from: u64| (ns as f64 - from as f64) * 1e-9;
+    (s(told, from), s(stopped, told), why)
+}
+
+/// docs/ros2.md, "A robot that stops". The launch gets SIGTERM: each agent
+/// sends its robot zero velocity, which arrives well before the robot's
+/// own time-out would fire (under 0.25 s of the signal; `robot.cmd_timeout`
+/// is 0.5 s), and the robot's odometry shows it stopped within the lag's
+/// decay (T = 0.1 s; measured 0.24–0.46 s to below 5 mm/s). Every robot
+/// says, from its side, that no command it received was beyond the
+/// TurtleBot's 0.22 m/s and 2.84 rad/s.
+#[test]
+fn a_robot_stops_when_its_launch_is_stopped() {
+    let _alone = common::alone();
+    let (logs, said, at) = drive_then(|run| {
+        let _ = Command::new("kill").args(["-TERM", &run.0.id().to_string()]).status();
+    });
+    for id in 1..=4 {
+        let (told, decay, why) = first_stop(&logs, id, at, &said);
+        assert_eq!(why, "a zero command", "robot {id}: {}\nlaunch: {said}", logs[id - 1]);
+        assert!((0.0..0.25).contains(&told), "robot {id}: zero velocity {told:.3} s after SIGTERM");
+        assert!(decay <= 1.0, "robot {id}: {decay:.3} s from the zero command to standstill (lag 0.1 s)");
+    }
+}
+
+/// Follower 2's agent killed with SIGKILL sends nothing: its robot stops on
+/// its own `robot.cmd_timeout` (0.5 s), within that and a period (20 ms)
+/// of the kill, with 0.2 s for a loaded host. The launch then stops the
+/// other agents, and they stop their robots with zero velocity.
+#[test]
+fn a_robot_whose_agent_is_killed_stops_on_its_command_timeout() {
+    let _alone = common::alone();
+    let (logs, said, at) = drive_then(|run| {
+        let pid = agent_pid(run, 2).expect("follower 2's agent");
+        let _ = Command::new("kill").args(["-KILL", &pid.to_string()]).status();
+    });
+    let (told, _, why) = first_stop(&logs, 2, at, &said);
+    assert_eq!(why, "the time-out", "robot 2 (its agent killed): {}", logs[1]);
+    assert!((0.4..=0.5 + 0.02 + 0.2).contains(&told), "robot 2: timed out {told:.3} s after the kill");
+    for id in [1, 3, 4] {
+        let (told, _, why) = first_stop(&logs, id, at, &said);
+        assert_eq!(why, "a zero command", "robot {id}: {}\nlaunch: {said}", logs[id - 1]);
+        assert!(told < 0.5, "robot {id}: zero velocity {told:.3} s after agent 2 was killed");
+    }
+}

@@ -11,9 +11,14 @@
 //! source time names the step); then the robot advances one step. It ends
 //! after the last step's command, or gives up after `--stall-timeout`.
 //! Real time: every period the robot advances with the newest command
-//! (zero when none came for `ros2.odom_timeout`) and publishes its
-//! odometry stamped with the wall clock; it ends on Ctrl-C or SIGTERM, or
-//! when commands stop for [`DONE_AFTER`] after they had begun.
+//! (zero when none came for `robot.cmd_timeout`, said when it fires, as a
+//! base's driver does) and publishes its odometry stamped with the wall
+//! clock; it ends on Ctrl-C or SIGTERM, or when commands stop for
+//! [`DONE_AFTER`] after they had begun.
+//!
+//! At its end it says, from its own side, what it was sent: how many
+//! commands, the largest |v| and |ω|, and how many were beyond the
+//! scenario's `robot.v_max` and `w_max`.
 
 use std::future::Future;
 use std::sync::{Arc, Mutex};
@@ -32,6 +37,9 @@ use formation_ros2::planar::Frames;
 
 /// Lock-step: odometry is said again this often while its command is awaited.
 pub const REPEAT_EVERY: Duration = Duration::from_millis(100);
+/// A robot slower than this (m/s, rad/s) has stopped.
+pub const STOPPED_V: f64 = 0.005;
+pub const STOPPED_W: f64 = 0.02;
 /// Real time: commands that stop this long after they began end the run.
 pub const DONE_AFTER: Duration = Duration::from_secs(3);
 
@@ -93,11 +101,14 @@ pub async fn run(args: &RobotArgs, shutdown: impl Future<Output = ()>) -> Result
     };
     let latest: Arc<Mutex<Option<Command>>> = Arc::new(Mutex::new(None));
     let l = latest.clone();
+    let received: Arc<Mutex<Received>> = Arc::default();
+    let r = received.clone();
     let _commands = node
         .subscribe::<Twist, _>("cmd_vel", QOS, move |m, att| {
             let Ok(t) = m else { return };
             let v = Velocity::new(t.linear.x, t.angular.z);
             if v.is_finite() {
+                r.lock().unwrap_or_else(|p| p.into_inner()).add(v);
                 let c = Command { v, source_ns: att.map(|a| a.source_timestamp_ns), arrived: clock::mono() };
                 *l.lock().unwrap_or_else(|p| p.into_inner()) = Some(c);
             }
@@ -105,6 +116,7 @@ pub async fn run(args: &RobotArgs, shutdown: impl Future<Output = ()>) -> Result
         .await?;
     let spec = &scenario.followers[index];
     let plant = Plant {
+        id: spec.id,
         robot: VelocityRobot::new(lag_s, spec.pose, spec.velocity),
         noise: NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id),
     };
@@ -120,12 +132,46 @@ pub async fn run(args: &RobotArgs, shutdown: impl Future<Output = ()>) -> Result
     };
     drop(_commands);
     drop(node);
+    let line = received.lock().unwrap_or_else(|p| p.into_inner()).line(args.id, &scenario);
+    crate::node::say(&line);
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
 
+/// What the robot was sent over the run, as the robot saw it.
+#[derive(Debug, Default)]
+struct Received {
+    commands: u64,
+    v_peak: f64,
+    w_peak: f64,
+}
+
+impl Received {
+    fn add(&mut self, v: Velocity) {
+        self.commands += 1;
+        self.v_peak = self.v_peak.max(v.v.abs());
+        self.w_peak = self.w_peak.max(v.w.abs());
+    }
+
+    /// "robot 3: 3001 commands received, |v| ≤ 0.2200 m/s, |ω| ≤ 2.8400 rad/s; none beyond robot.v_max, w_max".
+    fn line(&self, id: u32, s: &Scenario) -> String {
+        let beyond = match s.control.guard.limits {
+            None => String::new(),
+            Some(l) if self.v_peak <= l.v_max && self.w_peak <= l.w_max => {
+                "; none beyond robot.v_max, w_max".to_string()
+            }
+            Some(l) => format!("; BEYOND robot.v_max = {} m/s or w_max = {} rad/s", l.v_max, l.w_max),
+        };
+        format!(
+            "robot {id}: {} commands received, |v| ≤ {:.4} m/s, |ω| ≤ {:.4} rad/s{beyond}",
+            self.commands, self.v_peak, self.w_peak
+        )
+    }
+}
+
 /// The robot and its noise: what `formation sim` steps for this follower.
 struct Plant {
+    id: u32,
     robot: VelocityRobot,
     noise: NoiseSource,
 }
@@ -205,9 +251,12 @@ fn lockstep(
 
 fn realtime(s: &Scenario, mut plant: Plant, out: &mut Outputs, latest: &Mutex<Option<Command>>) -> Result<(), Error> {
     let period = Duration::from_secs_f64(s.dt_s / crate::barrier::positive_scale(s.network.time_scale));
-    let timeout = Duration::from_secs_f64(s.ros2.map_or(0.5, |r| r.odom_timeout_s));
+    let timeout = Duration::from_secs_f64(s.cmd_timeout_s);
     let began = clock::mono();
     let mut began_driving = false;
+    let mut timed_out = false;
+    // Since when the robot is told to stop (a zero command or the time-out), and why.
+    let mut stopping: Option<(u64, &str)> = None;
     out.publish(clock::unix_ns() as i64, &plant)?;
     for tick in 1u64.. {
         let due = began + period * tick as u32;
@@ -215,11 +264,45 @@ fn realtime(s: &Scenario, mut plant: Plant, out: &mut Outputs, latest: &Mutex<Op
         let now = clock::mono();
         let command = *latest.lock().unwrap_or_else(|p| p.into_inner());
         let fresh = command.filter(|c| now.saturating_sub(c.arrived) <= timeout);
-        began_driving |= fresh.is_some();
+        if !began_driving && fresh.is_some() {
+            began_driving = true;
+            crate::node::say(&format!("robot {}: driving (first command at unix {} ns)", plant.id, clock::unix_ns()));
+        }
+        if began_driving && fresh.is_none() != timed_out {
+            timed_out = fresh.is_none();
+            if timed_out {
+                crate::node::say(&format!(
+                    "robot {}: no command for robot.cmd_timeout = {} s: stopping",
+                    plant.id, s.cmd_timeout_s
+                ));
+            }
+        }
         if began_driving && command.is_some_and(|c| now.saturating_sub(c.arrived) > DONE_AFTER) {
             return Ok(());
         }
-        plant.advance(fresh.map_or(Velocity::default(), |c| c.v), s.dt_s);
+        let u = fresh.map_or(Velocity::default(), |c| c.v);
+        let moving = plant.robot.velocity.v.abs() > STOPPED_V || plant.robot.velocity.w.abs() > STOPPED_W;
+        match (u == Velocity::default(), stopping) {
+            (true, None) if moving => {
+                stopping = Some((clock::unix_ns(), if fresh.is_some() { "a zero command" } else { "the time-out" }))
+            }
+            (false, _) => stopping = None,
+            _ => {}
+        }
+        plant.advance(u, s.dt_s);
+        if let Some((since, why)) = stopping {
+            let v = plant.robot.velocity;
+            if v.v.abs() <= STOPPED_V && v.w.abs() <= STOPPED_W {
+                let now = clock::unix_ns();
+                crate::node::say(&format!(
+                    "robot {}: stopped at unix {now} ns (|v| ≤ {STOPPED_V} m/s, |ω| ≤ {STOPPED_W} rad/s), told to at \
+                     unix {since} ns by {why}, {:.3} s before",
+                    plant.id,
+                    now.saturating_sub(since) as f64 * 1e-9
+                ));
+                stopping = None;
+            }
+        }
         out.publish(clock::unix_ns() as i64, &plant)?;
     }
     Ok(())

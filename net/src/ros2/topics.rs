@@ -147,6 +147,13 @@ impl FollowerTopics {
         Ok(())
     }
 
+    /// Zero velocity on `cmd_vel`, stamped now: the agent is ending
+    /// (docs/ros2.md, "A robot that stops").
+    pub fn stop(&mut self) -> Result<(), Error> {
+        self.last_command = None;
+        self.cmd_vel.put(&Twist::default(), crate::clock::unix_ns() as i64)
+    }
+
     /// Sends step k's command again (a lock-step robot repeated its
     /// odometry of step k: the command may have been lost).
     pub fn repeat_command(&mut self, k: u64) -> Result<(), Error> {
