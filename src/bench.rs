@@ -142,9 +142,52 @@ fn fault_cases(a: &BenchArgs) -> Result<(), CliError> {
     Ok(())
 }
 
+/// `formation bench --guard`: the built-in turtlebot scenario (four small
+/// bases, docs/model.md §16) without a guard, with the limits alone, and
+/// with the limits and the safety filter; follower-steps/s and the cost of
+/// a follower-step, the best of `--repeat` repetitions of at least `work`
+/// follower-steps.
+fn guard_cases(a: &BenchArgs) -> Result<(), CliError> {
+    let full = Scenario::load(std::path::Path::new("turtlebot"), &[]).map_err(|e| CliError::Input(e.to_string()))?;
+    let with = |guard: formation_agent::Guard| {
+        let mut s = full.clone();
+        s.control = std::sync::Arc::new(formation_agent::ControlParams { guard, ..(*full.control).clone() });
+        s
+    };
+    let g = full.control.guard;
+    let cases = [
+        ("no guard", with(formation_agent::Guard::default())),
+        ("limits", with(formation_agent::Guard { safety: None, ..g })),
+        ("limits and safety filter", with(g)),
+    ];
+    println!(
+        "\n{:<36} {:>9} {:>20} {:>14} {:>7}",
+        "turtlebot scenario, guard", "runs", "follower-steps/s", "ns/step", "ratio"
+    );
+    let mut base = None;
+    for (name, s) in &cases {
+        let per_run = s.followers.len() as u64 * (s.steps() + 1);
+        let runs = a.work.div_ceil(per_run).max(1);
+        let mut best = 0.0f64;
+        for _ in 0..a.repeat.max(1) {
+            let started = Instant::now();
+            for _ in 0..runs {
+                Simulation::new(s).run(&mut NoRecord, |_| {})?;
+            }
+            best = best.max((runs * per_run) as f64 / started.elapsed().as_secs_f64());
+        }
+        let ratio = best / *base.get_or_insert(best);
+        println!("{name:<36} {runs:>9} {best:>20.0} {:>14.1} {ratio:>7.3}", 1e9 / best);
+    }
+    Ok(())
+}
+
 pub fn run(a: &BenchArgs) -> Result<(), CliError> {
     if a.faults {
         return fault_cases(a);
+    }
+    if a.guard {
+        return guard_cases(a);
     }
     crate::error::at_least_one("--repeat", a.repeat.into())?;
     let mut threads = a.threads.clone();
@@ -225,8 +268,13 @@ pub struct BenchArgs {
     pub scenario: PathBuf,
     /// Instead: the paper scenario without faults, with follower 3 cut off
     /// for 3 s and with 30 % loss on every link, side by side (docs/model.md §14).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "guard")]
     pub faults: bool,
+    /// Instead: the built-in turtlebot scenario (four small bases) without a
+    /// guard, with the speed limits, and with the limits and the safety
+    /// filter, side by side: the filter's cost per follower-step (docs/model.md §16).
+    #[arg(long)]
+    pub guard: bool,
 }
 
 /// `--threads` of `bench`: a count of at least 1, or `all` for every core.
