@@ -99,6 +99,22 @@ pub fn measure(
     })
 }
 
+/// Whole runs of `s` repeated to at least `--work` follower-steps: how many,
+/// and the best follower-steps/s of `--repeat` repetitions.
+fn best_rate(s: &Scenario, a: &BenchArgs) -> Result<(u64, f64), CliError> {
+    let per_run = s.followers.len() as u64 * (s.steps() + 1);
+    let runs = a.work.div_ceil(per_run).max(1);
+    let mut best = 0.0f64;
+    for _ in 0..a.repeat.max(1) {
+        let started = Instant::now();
+        for _ in 0..runs {
+            Simulation::new(s).run(&mut NoRecord, |_| {})?;
+        }
+        best = best.max((runs * per_run) as f64 / started.elapsed().as_secs_f64());
+    }
+    Ok((runs, best))
+}
+
 /// The fault-table cases of `formation bench --faults`: the paper scenario
 /// without faults, with follower 3 cut off for 3 s, with 30 % loss on every link.
 pub const FAULT_CASES: [(&str, &[&str]); 3] = [
@@ -126,16 +142,7 @@ fn fault_cases(a: &BenchArgs) -> Result<(), CliError> {
     println!("\n{title:<36} {:>9} {:>20} {:>7}", "runs", "follower-steps/s", "ratio");
     let mut base = None;
     for ((name, _), s) in FAULT_CASES.iter().zip(&scenarios) {
-        let per_run = s.followers.len() as u64 * (s.steps() + 1);
-        let runs = a.work.div_ceil(per_run).max(1);
-        let mut best = 0.0f64;
-        for _ in 0..a.repeat.max(1) {
-            let started = Instant::now();
-            for _ in 0..runs {
-                Simulation::new(s).run(&mut NoRecord, |_| {})?;
-            }
-            best = best.max((runs * per_run) as f64 / started.elapsed().as_secs_f64());
-        }
+        let (runs, best) = best_rate(s, a)?;
         let ratio = best / *base.get_or_insert(best);
         println!("{name:<36} {runs:>9} {best:>20.0} {ratio:>7.3}");
     }
@@ -166,16 +173,7 @@ fn guard_cases(a: &BenchArgs) -> Result<(), CliError> {
     );
     let mut base = None;
     for (name, s) in &cases {
-        let per_run = s.followers.len() as u64 * (s.steps() + 1);
-        let runs = a.work.div_ceil(per_run).max(1);
-        let mut best = 0.0f64;
-        for _ in 0..a.repeat.max(1) {
-            let started = Instant::now();
-            for _ in 0..runs {
-                Simulation::new(s).run(&mut NoRecord, |_| {})?;
-            }
-            best = best.max((runs * per_run) as f64 / started.elapsed().as_secs_f64());
-        }
+        let (runs, best) = best_rate(s, a)?;
         let ratio = best / *base.get_or_insert(best);
         println!("{name:<36} {runs:>9} {best:>20.0} {:>14.1} {ratio:>7.3}", 1e9 / best);
     }

@@ -265,30 +265,14 @@ impl Follower {
         I: IntoIterator<Item = &'a Message>,
         I::IntoIter: Clone,
     {
-        self.step_with_heading(pose, pose.theta.sin_cos(), z, leader, neighbours)
+        self.step_near(pose, pose.theta.sin_cos(), z, leader, neighbours, Nearby::NONE)
     }
 
-    /// [`Follower::step`] with `heading = pose.theta.sin_cos()` already
+    /// [`Follower::step`] with the other robots' poses the safety filter
+    /// keeps this robot away from (docs/model.md §16; ignored when the
+    /// scenario has no filter), and `heading = pose.theta.sin_cos()` already
     /// computed (a simulated robot advancing from the same pose needs it
     /// too): the same numbers, one sin/cos fewer.
-    pub fn step_with_heading<'a, I>(
-        &mut self,
-        pose: &Pose,
-        heading: (f64, f64),
-        z: Velocity,
-        leader: Option<&LeaderState>,
-        neighbours: I,
-    ) -> StepOutput
-    where
-        I: IntoIterator<Item = &'a Message>,
-        I::IntoIter: Clone,
-    {
-        self.step_near(pose, heading, z, leader, neighbours, Nearby::NONE)
-    }
-
-    /// [`Follower::step_with_heading`] with the other robots' poses the
-    /// safety filter keeps this robot away from (docs/model.md §16; ignored
-    /// when the scenario has no filter).
     pub fn step_near<'a, I>(
         &mut self,
         pose: &Pose,
