@@ -934,11 +934,12 @@ async fn launch(
         c.arg("--id").arg(ids.join(","));
         let mut connect = vec![mon_port, lead_port];
         if mode == LaunchMode::Peer {
-            // Every earlier process that holds a neighbour, once.
+            // Every earlier process that holds a neighbour (or, with the
+            // safety filter on, any follower: their poses), once.
             let mut dial: Vec<usize> = members
                 .clone()
-                .flat_map(|i| scenario.graph.neighbours(i))
-                .map(|&j| group_of(j))
+                .flat_map(|i| scenario.peers_of(i))
+                .map(|j| group_of(j))
                 .filter(|&h| h < g)
                 .collect();
             dial.sort_unstable();

@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 use crate::dynamic::{self, DynamicGains, DynamicKind, DynamicState};
 use crate::estimator::{self, EstimatorGains};
 use crate::filter::{FilterParams, VelocityFilter};
-use crate::guard::{self, Guard, GuardStep, GuardTally, Nearby};
+use crate::guard::{self, Guard, GuardStep, Nearby};
 use crate::kinematic::{self, BodyError, KinematicGains, KinematicKind};
 use crate::links::{self, Message, RejoinPolicy, RejoinRule};
 use formation_leader::LeaderState;
@@ -98,8 +98,9 @@ pub struct StepOutput {
     /// (v_c, ω_c), as the robot gets it: after the limits and the safety
     /// filter (docs/model.md §16) when the scenario has them.
     pub command: Velocity,
-    /// What the limits and the filter did to the controller's command.
-    pub guard: GuardStep,
+    /// What the limits and the filter did to the controller's command
+    /// (None: the scenario has neither).
+    pub guard: Option<GuardStep>,
     /// (v̇_c, ω̇_c), backward differences.
     pub command_rate: Velocity,
     /// (v̂, ω̂), the filter's estimate at k (with a velocity-commanded
@@ -146,8 +147,6 @@ pub struct Follower {
     /// message is not fresh (docs/model.md §14), and under `adopt` it is replaced as
     /// soon as the leader or a fresh neighbour is heard.
     stale: bool,
-    /// What the guard did over the steps so far (docs/model.md §16).
-    tally: GuardTally,
 }
 
 impl Follower {
@@ -169,14 +168,9 @@ impl Follower {
             silent_steps: 0,
             adopt_pending: false,
             stale: false,
-            tally: GuardTally::default(),
         }
     }
 
-    /// What the limits and the safety filter did over the steps so far.
-    pub fn guard_tally(&self) -> &GuardTally {
-        &self.tally
-    }
 
     pub fn id(&self) -> u32 {
         self.config.id
@@ -312,10 +306,12 @@ impl Follower {
             kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, estimate.v, estimate.w);
         // Limits and safety filter (docs/model.md §16): what the robot gets.
         let (command, guard) = match cfg.guard.is_off() {
-            true => (requested, GuardStep { requested, ..GuardStep::default() }),
-            false => guard::apply(&cfg.guard, requested, pose, nearby),
+            true => (requested, None),
+            false => {
+                let (c, g) = guard::apply(&cfg.guard, requested, pose, nearby);
+                (c, Some(g))
+            }
         };
-        self.tally.add(&guard);
         let command_rate = match self.last_command {
             Some(prev) => Velocity::new((command.v - prev.v) / dt, (command.w - prev.w) / dt),
             None => Velocity::default(),

@@ -89,17 +89,27 @@ impl Guard {
 }
 
 /// The other robots' poses as this follower knows them at step k (the
-/// simulator and the agents alike: each one's pose of step k − 1), by
-/// scenario index; `own` is this follower's index, skipped.
+/// simulator and lock-step agents: each one's pose of step k − 1; real
+/// time: the newest heard), by scenario index; `own` is this follower's
+/// index, skipped. `stale`, by the same index (empty: none), marks a pose
+/// not heard for longer than the scenario's silence time-out: a robot whose
+/// last known point is within `safety.radius` and stale stops this one
+/// (docs/model.md §16).
 #[derive(Clone, Copy, Debug)]
 pub struct Nearby<'a> {
     pub poses: &'a [Pose],
     pub own: usize,
+    pub stale: &'a [bool],
 }
 
-impl Nearby<'_> {
+impl<'a> Nearby<'a> {
     /// No other robot known.
-    pub const NONE: Nearby<'static> = Nearby { poses: &[], own: 0 };
+    pub const NONE: Nearby<'static> = Nearby { poses: &[], own: 0, stale: &[] };
+
+    /// Every pose fresh (the simulator, lock-step).
+    pub fn fresh(poses: &'a [Pose], own: usize) -> Self {
+        Self { poses, own, stale: &[] }
+    }
 }
 
 /// Most other robots one filter takes (the nearest, when more are within
@@ -109,7 +119,7 @@ pub const MAX_NEARBY: usize = 12;
 pub const MAX_CONSTRAINTS: usize = MAX_NEARBY + 4;
 
 /// What the guard did to one step's command.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct GuardStep {
     /// The controller's command before the guard.
     pub requested: Velocity,
@@ -121,6 +131,8 @@ pub struct GuardStep {
     /// The program had no solution (the robots were already closer than the
     /// barrier's radius, or a robot was outside the arena): the robot was stopped.
     pub infeasible: bool,
+    /// A robot within `radius` had a stale pose: the robot was stopped.
+    pub blind: bool,
 }
 
 /// A step's guard counts, summed over a run (the run's safety figures).
@@ -136,6 +148,9 @@ pub struct GuardTally {
     pub change_sum: f64,
     /// Steps whose program had no solution (the robot stopped).
     pub infeasible: u64,
+    /// Steps stopped because a robot within `radius` had a stale pose.
+    #[serde(default)]
+    pub blind: u64,
 }
 
 impl GuardTally {
@@ -147,6 +162,7 @@ impl GuardTally {
         self.change_max = self.change_max.max(g.change);
         self.change_sum += g.change;
         self.infeasible += u64::from(g.infeasible);
+        self.blind += u64::from(g.blind);
     }
 }
 
@@ -161,6 +177,10 @@ pub fn apply(guard: &Guard, requested: Velocity, pose: &Pose, nearby: Nearby<'_>
         step.saturated = command != requested;
     }
     if let Some(s) = &guard.safety {
+        if blind(s, pose, nearby) {
+            step.blind = true;
+            return (Velocity::default(), step);
+        }
         let (filtered, change, feasible) = filter(s, command, pose, nearby);
         command = filtered;
         step.change = change;
@@ -170,6 +190,20 @@ pub fn apply(guard: &Guard, requested: Velocity, pose: &Pose, nearby: Nearby<'_>
         }
     }
     (command, step)
+}
+
+/// Whether a robot whose last known point is within `radius` of this one's
+/// has a stale pose (the real-time rule of docs/model.md §16: stop).
+fn blind(s: &SafetyParams, pose: &Pose, nearby: Nearby<'_>) -> bool {
+    if !nearby.stale.contains(&true) {
+        return false;
+    }
+    let p = s.point(pose);
+    nearby.poses.iter().zip(nearby.stale).enumerate().any(|(j, (other, &stale))| {
+        let q = s.point(other);
+        let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2);
+        stale && j != nearby.own && d2 <= s.radius * s.radius
+    })
 }
 
 /// Eq. G2–G5 for one robot: the unicycle command (v, ω) as the velocity u of
@@ -327,11 +361,11 @@ mod tests {
         let me = Pose::new(0.0, 0.0, 0.0);
         let far = [me, Pose::new(1.5, 0.0, 0.0)];
         let c = Velocity::new(0.2, 0.3);
-        let (out, change, ok) = filter(&SAFETY, c, &me, Nearby { poses: &far, own: 0 });
+        let (out, change, ok) = filter(&SAFETY, c, &me, Nearby::fresh(&far, 0));
         assert_eq!((out, change, ok), (c, 0.0, true));
         // Outside the radius: not considered at all, however it moves.
         let beyond = [me, Pose::new(2.5, 0.0, 0.0)];
-        assert_eq!(filter(&SAFETY, Velocity::new(10.0, 0.0), &me, Nearby { poses: &beyond, own: 0 }).0.v, 10.0);
+        assert_eq!(filter(&SAFETY, Velocity::new(10.0, 0.0), &me, Nearby::fresh(&beyond, 0)).0.v, 10.0);
     }
 
     #[test]
@@ -339,12 +373,12 @@ mod tests {
         // Another robot 0.5 m ahead, facing us: its point is 0.4 m from ours.
         let me = Pose::new(0.0, 0.0, 0.0);
         let poses = [me, Pose::new(0.5, 0.0, std::f64::consts::PI)];
-        let (out, change, ok) = filter(&SAFETY, Velocity::new(0.2, 0.0), &me, Nearby { poses: &poses, own: 0 });
+        let (out, change, ok) = filter(&SAFETY, Velocity::new(0.2, 0.0), &me, Nearby::fresh(&poses, 0));
         assert!(ok);
         // −2 (−0.4) u_x ≤ ½ γ h³, h = 0.16 − 0.16 = 0 at r = 0.4: u_x ≤ 0.
         assert!(out.v <= 1e-12 && change > 0.19, "{out:?}, change {change}");
         // Moving away is never restricted.
-        let (back, change, _) = filter(&SAFETY, Velocity::new(-0.2, 0.0), &me, Nearby { poses: &poses, own: 0 });
+        let (back, change, _) = filter(&SAFETY, Velocity::new(-0.2, 0.0), &me, Nearby::fresh(&poses, 0));
         assert_eq!((back.v, change), (-0.2, 0.0));
     }
 
@@ -359,7 +393,7 @@ mod tests {
         for _ in 0..2000 {
             let before = poses;
             for (i, p) in poses.iter_mut().enumerate() {
-                let (c, _, ok) = filter(&SAFETY, Velocity::new(0.22, 0.0), p, Nearby { poses: &before, own: i });
+                let (c, _, ok) = filter(&SAFETY, Velocity::new(0.22, 0.0), p, Nearby::fresh(&before, i));
                 assert!(ok);
                 p.advance(c, p.theta.sin_cos(), dt);
             }
@@ -395,11 +429,30 @@ mod tests {
     fn the_guard_clips_filters_and_scales_in_that_order() {
         let g = Guard { limits: Some(Limits { v_max: 0.22, w_max: 2.84 }), safety: Some(SAFETY) };
         let me = Pose::new(0.0, 0.0, 0.0);
-        let (c, step) = apply(&g, Velocity::new(4.0, 0.0), &me, Nearby { poses: &[me], own: 0 });
+        let (c, step) = apply(&g, Velocity::new(4.0, 0.0), &me, Nearby::fresh(&[me], 0));
         assert_eq!(c, Velocity::new(0.22, 0.0));
         assert!(step.saturated && step.change == 0.0 && !step.infeasible);
         assert_eq!(step.requested, Velocity::new(4.0, 0.0));
         let off = apply(&Guard::default(), Velocity::new(4.0, 9.0), &me, Nearby::NONE);
         assert_eq!(off.0, Velocity::new(4.0, 9.0));
+    }
+
+    #[test]
+    fn a_stale_pose_within_the_radius_stops_the_robot_and_one_beyond_it_does_not() {
+        let g = Guard { limits: None, safety: Some(SAFETY) };
+        let me = Pose::new(0.0, 0.0, 0.0);
+        let near = Pose::new(SAFETY.radius * 0.5, 0.0, 0.0);
+        let far = Pose::new(SAFETY.radius * 3.0, 0.0, 0.0);
+        let go = Velocity::new(0.1, 0.0);
+        let poses = [me, near, far];
+        let (c, step) = apply(&g, go, &me, Nearby { poses: &poses, own: 0, stale: &[false, true, false] });
+        assert_eq!((c, step.blind), (Velocity::default(), true), "a stale robot at {} m", near.x);
+        let (c, step) = apply(&g, go, &me, Nearby { poses: &poses, own: 0, stale: &[false, false, true] });
+        assert!(!step.blind && c.v > 0.0, "a stale robot at {} m, beyond the radius, stopped it: {c:?}", far.x);
+        let (_, step) = apply(&g, go, &me, Nearby { poses: &poses, own: 0, stale: &[true, false, false] });
+        assert!(!step.blind, "its own entry is not another robot");
+        let mut tally = GuardTally::default();
+        tally.add(&GuardStep { blind: true, ..GuardStep::default() });
+        assert_eq!(tally.blind, 1);
     }
 }

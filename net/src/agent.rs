@@ -259,6 +259,11 @@ pub async fn run_follower(
     let shared = Arc::new(Shared { machine: Mutex::new(machine), woken: Condvar::new(), refused: Default::default() });
     // Subscribers first (the start barrier relies on it), one per source.
     let subscribers = subscribe(session, keys, &sources, &shared, &timebase).await?;
+    let safety = scenario.control.guard.safety.is_some();
+    let pose_sub = match safety {
+        true => Some(subscribe_poses(session, keys, id, &shared, &timebase).await?),
+        false => None,
+    };
     // ROS 2: the topics go out once the run's epoch is known; a driven
     // robot's odometry is heard from now on.
     let topics: SharedTopics = opts.topics.clone();
@@ -279,6 +284,19 @@ pub async fn run_follower(
         .express(crate::node::estimate_express(scenario))
         .await
         .map_err(|e| zerr("declaring the estimate publisher", e))?;
+    // docs/model.md §16: the robot's pose, for the others' safety filters.
+    let pose_pub = match safety {
+        true => Some(
+            session
+                .declare_publisher(keys.pose(id))
+                .congestion_control(estimate_congestion(scenario))
+                .priority(crate::node::priority::ESTIMATE)
+                .express(crate::node::estimate_express(scenario))
+                .await
+                .map_err(|e| zerr("declaring the pose publisher", e))?,
+        ),
+        false => None,
+    };
     let lockstep = scenario.timing == Timing::Lockstep;
     // Lock-step: which neighbours have completed the final step.
     let (done_subs, neighbours_done) = if lockstep {
@@ -286,7 +304,11 @@ pub async fn run_follower(
     } else {
         (Vec::new(), Default::default())
     };
-    let needs: Vec<String> = sources.iter().map(u32::to_string).collect();
+    // The start waits to hear every node this one hears: its sources, and
+    // with the safety filter every follower whose pose it takes.
+    let mut hears: Vec<u32> = sources.clone();
+    hears.extend(scenario.peers_of(index).iter().map(|&j| scenario.graph.id(j)).filter(|j| !sources.contains(j)));
+    let needs: Vec<String> = hears.iter().map(u32::to_string).collect();
     let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
     let resume = rejoin(&shared, &start, scenario, index, &timebase, opts.checkpoint.as_deref()).await?;
@@ -308,6 +330,7 @@ pub async fn run_follower(
     let node = Node {
         shared: shared.clone(),
         publisher: estimate_pub,
+        pose_publisher: pose_pub,
         courier: delivery.courier.clone(),
         timebase: timebase.clone(),
         latest,
@@ -339,7 +362,7 @@ pub async fn run_follower(
             ));
         }
     }
-    drop((acks, sync, subscribers, done_subs, odometry, ros_node));
+    drop((acks, sync, subscribers, pose_sub, done_subs, odometry, ros_node));
     if let Some(w) = watcher {
         w.abort();
     }
@@ -383,6 +406,33 @@ async fn subscribe(
         subscribers.push(sub);
     }
     Ok(subscribers)
+}
+
+/// Every other follower's pose (safety filter on) to the machine; this
+/// follower's own, heard back on the same key expression, is skipped.
+async fn subscribe_poses(
+    session: &zenoh::Session,
+    keys: &Keys,
+    own: u32,
+    shared: &Arc<Shared>,
+    timebase: &Timebase,
+) -> Result<zenoh::pubsub::Subscriber<()>, Error> {
+    let (shared, timebase) = (shared.clone(), timebase.clone());
+    session
+        .declare_subscriber(keys.pose_all())
+        .callback(move |sample| {
+            let key_id = names::last_chunk(sample.key_expr().as_str()).parse::<u32>().ok();
+            if key_id == Some(own) {
+                return;
+            }
+            let bytes = sample.payload().to_bytes();
+            let now = timebase.now();
+            if shared.lock().handle_pose(key_id, &bytes, now).wake {
+                shared.woken.notify_all();
+            }
+        })
+        .await
+        .map_err(|e| zerr("declaring the pose subscriber", e))
 }
 
 /// The follower's ROS 2 publishers, once the run's epoch is known.
@@ -498,6 +548,7 @@ async fn watch_router(
 #[derive(Default)]
 struct Outbox {
     transmit: Vec<Vec<u8>>,
+    poses: Vec<Vec<u8>>,
     batches: Vec<Batch>,
 }
 
@@ -505,6 +556,8 @@ struct Outbox {
 struct Node {
     shared: Arc<Shared>,
     publisher: Publisher<'static>,
+    /// The robot's pose (safety filter on).
+    pose_publisher: Option<Publisher<'static>>,
     courier: Arc<Courier>,
     timebase: Timebase,
     /// The robot's latest pose, for the checkpoint writer.
@@ -565,6 +618,7 @@ impl Node {
         self.tell(&mut m);
         m.handle_timeout(t);
         out.transmit.extend(std::iter::from_fn(|| m.poll_transmit()));
+        out.poses.extend(std::iter::from_fn(|| m.poll_pose()));
         out.batches.extend(std::iter::from_fn(|| m.poll_telemetry()));
         let said: Vec<String> = std::iter::from_fn(|| m.poll_say()).collect();
         let checkpoint = m.checkpoint();
@@ -581,6 +635,11 @@ impl Node {
         for bytes in out.transmit.drain(..) {
             if let Err(e) = self.publisher.put(bytes).wait() {
                 return Some(Err(zerr("publishing", e).to_string()));
+            }
+        }
+        for bytes in out.poses.drain(..) {
+            if let Some(Err(e)) = self.pose_publisher.as_ref().map(|p| p.put(bytes).wait()) {
+                return Some(Err(zerr("publishing the pose", e).to_string()));
             }
         }
         for b in out.batches.drain(..) {

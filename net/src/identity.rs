@@ -89,10 +89,13 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
         receive.push(any_run(&format!("estimate/{id}")));
         receive.push(any_run(&format!("telemetry/{id}")));
         receive.push(control.clone());
+        // Every robot's pose, for the safety filter (docs/model.md §16).
+        receive.push(any_run("pose/*"));
         roles.push(Role {
             name: agent_name(id),
             publish: vec![
                 any_run(&format!("estimate/{id}")),
+                any_run(&format!("pose/{id}")),
                 any_run(&format!("telemetry/{id}")),
                 any_run(&format!("control/hello/{id}")),
                 any_run(&format!("control/ready/{id}")),

@@ -111,7 +111,7 @@ impl Traffic {
             "low_pass_filter",
             json!([
                 { "id": "formation-estimate-size", "flows": ["ingress"], "messages": ["put"],
-                  "key_exprs": ["formation/*/estimate/**"], "size_limit": ESTIMATE_BYTES },
+                  "key_exprs": ["formation/*/estimate/**", "formation/*/pose/**"], "size_limit": ESTIMATE_BYTES },
                 { "id": "formation-telemetry-size", "flows": ["ingress"], "messages": ["put"],
                   "key_exprs": ["formation/*/telemetry/**"], "size_limit": self.telemetry_bytes },
                 { "id": "formation-control-size", "flows": ["ingress"], "messages": ["put", "query", "reply"],

@@ -37,16 +37,6 @@ pub fn networked(scenario: &Scenario) -> Result<(), Error> {
              step's own messages (set timing = \"realtime\", or network.delay_steps = 0)"
         )));
     }
-    if scenario.control.guard.safety.is_some() {
-        // The filter needs the other robots' poses, which the agents do not
-        // yet send each other: run without them, it would keep no robot apart.
-        return Err(Error::Input(
-            "safety.filter = true: the networked agents do not yet send each other their robots' poses, which the \
-             safety filter needs (docs/model.md §16); `formation sim` runs it, or set safety.filter = false (the \
-             limits still apply)"
-                .into(),
-        ));
-    }
     Ok(())
 }
 

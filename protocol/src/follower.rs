@@ -20,11 +20,11 @@
 use std::collections::VecDeque;
 use std::time::Duration;
 
-use formation_agent::{Hearing, LeaderState, Message};
+use formation_agent::{Hearing, LeaderState, Message, Nearby};
 use formation_plant::Pose;
 use formation_record::hearing::{HeardRuns, Rescued, Resume};
 use formation_record::{FollowerSample, Heard};
-use formation_sim::SimFollower;
+use formation_sim::{SimFollower, SimRobot};
 use formation_topology::wire::{self, EstimateMsg, Header, Reject, FORMAT_VERSION};
 use formation_topology::{FaultTarget, Scenario, Timing};
 
@@ -34,6 +34,7 @@ use crate::gate::{self, Kept};
 use crate::hearing::EarLog;
 use crate::inbox::{self, Inbox, Source};
 use crate::loop_timing::{LoopStats, LoopTimer};
+use crate::poses::Poses;
 use crate::telemetry::{ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
 use crate::Now;
 
@@ -44,15 +45,17 @@ use crate::Now;
 /// same brain ([`formation_agent::Follower::step`]) fed by its own pose and
 /// wheel-speed measurement, and applies the torques to the motors.
 pub trait Body: Send {
-    /// Step k at t = k Δt with the leader's state (if heard) and the
-    /// neighbours' messages for k in ascending id; returns the step's
-    /// telemetry sample and this follower's message for k + 1.
+    /// Step k at t = k Δt with the leader's state (if heard), the
+    /// neighbours' messages for k in ascending id and the other robots'
+    /// poses (the safety filter's; [`Nearby::NONE`] without it); returns
+    /// the step's telemetry sample and this follower's message for k + 1.
     fn step(
         &mut self,
         t_s: f64,
         dt_s: f64,
         leader: Option<&LeaderState>,
         neighbours: &[Message],
+        nearby: Nearby<'_>,
         last: bool,
     ) -> (FollowerSample, Message);
     /// The message for step 0.
@@ -85,9 +88,10 @@ impl Body for SimFollower {
         dt_s: f64,
         leader: Option<&LeaderState>,
         neighbours: &[Message],
+        nearby: Nearby<'_>,
         last: bool,
     ) -> (FollowerSample, Message) {
-        SimFollower::step(self, t_s, dt_s, leader, neighbours, last)
+        self.step_disturbed(self.robot.disturbance_at(t_s), dt_s, leader, neighbours, nearby, last)
     }
     fn initial_message(&self) -> Message {
         self.brain.tagged_message()
@@ -290,6 +294,9 @@ pub struct Follower {
     say: VecDeque<String>,
     /// The sample of the last step computed, until taken.
     latest: Option<FollowerSample>,
+    /// The other robots' poses, with the safety filter on.
+    poses: Option<Poses>,
+    pose_transmit: VecDeque<Vec<u8>>,
 }
 
 impl Follower {
@@ -373,6 +380,11 @@ impl Follower {
             telemetry: VecDeque::new(),
             say: VecDeque::new(),
             latest: None,
+            poses: scenario.control.guard.safety.is_some().then(|| {
+                let initial = (0..scenario.followers.len()).map(|j| SimRobot::new(scenario, j).seen_pose()).collect();
+                Poses::new(scenario, index, initial)
+            }),
+            pose_transmit: VecDeque::new(),
             rules,
         };
         f.set_window(scenario.network.time_scale);
@@ -425,6 +437,35 @@ impl Follower {
                 Arrival::default()
             }
         }
+    }
+
+    /// A message on `pose/<key_id>` (the safety filter's, docs/model.md
+    /// §16), received at `now`: kept, or counted as refused. Wakes a
+    /// lock-step loop whose step it completes.
+    pub fn handle_pose(&mut self, key_id: Option<u32>, bytes: &[u8], now: Now) -> Arrival {
+        let step = match self.phase {
+            Phase::Stepping(k) => k,
+            Phase::Waiting => 0,
+            _ => self.rules.steps,
+        };
+        let Some(poses) = self.poses.as_mut() else {
+            self.inbox.reject(Reject::NotNeighbour);
+            return Arrival::default();
+        };
+        if let Err(r) = poses.handle(key_id, bytes, now, step) {
+            self.inbox.reject(r);
+            return Arrival::default();
+        }
+        let wake = self.rules.lockstep
+            && matches!(self.phase, Phase::Stepping(_))
+            && poses.has_all(step)
+            && self.inbox.has_all(step);
+        Arrival { wake, ..Arrival::default() }
+    }
+
+    /// The next pose message to publish on this follower's `pose/<id>`.
+    pub fn poll_pose(&mut self) -> Option<Vec<u8>> {
+        self.pose_transmit.pop_front()
     }
 
     /// The checks every message passes before it reaches the machine
@@ -503,6 +544,9 @@ impl Follower {
             self.period = Duration::from_secs_f64(self.rules.dt_s / scale);
             self.inbox.set_clock(self.epoch, self.period);
             self.timer = Some(LoopTimer::new(self.period.as_secs_f64()));
+            if let Some(p) = self.poses.as_mut() {
+                p.start(self.epoch, scale, self.rules.dt_s);
+            }
         }
         let first_step = resume.map_or(0, |(k, _)| k);
         if let Some((k, pose)) = resume.filter(|&(k, _)| k > 0) {
@@ -537,7 +581,7 @@ impl Follower {
             Phase::Stepping(k) if !self.rules.lockstep => Some(self.due(*k)),
             Phase::Stepping(k) => {
                 let k = *k;
-                if self.inbox.has_all(k) && self.body.robot_ready(k) {
+                if self.inbox.has_all(k) && self.body.robot_ready(k) && self.poses_in(k) {
                     Some(Now::ZERO)
                 } else {
                     Some(self.wait.as_ref().map_or(Now::ZERO, gate::Wait::next_wake))
@@ -603,7 +647,7 @@ impl Follower {
     fn step_if_ready(&mut self, k: u64, now: Now) {
         let leader = if self.rules.lockstep {
             self.inbox.set_step(k);
-            if !self.inbox.has_all(k) || !self.body.robot_ready(k) {
+            if !self.inbox.has_all(k) || !self.body.robot_ready(k) || !self.poses_in(k) {
                 self.wait_for_inputs(k, now);
                 return;
             }
@@ -670,6 +714,9 @@ impl Follower {
         if !self.body.robot_ready(k) {
             names.push(self.body.robot_name());
         }
+        if let Some(p) = &self.poses {
+            names.extend(p.missing(k).map(|id| format!("follower {id}'s pose").into()));
+        }
         (names.join(" and "), names.len())
     }
 
@@ -679,6 +726,20 @@ impl Follower {
             self.transmit.push_back(bytes.clone());
             self.sent += 1;
             self.republished += 1;
+        }
+        self.repeat_poses();
+    }
+
+    /// Lock-step: whether the other robots' poses step k needs are in.
+    fn poses_in(&self, k: u64) -> bool {
+        self.poses.as_ref().is_none_or(|p| p.has_all(k))
+    }
+
+    /// Lock-step: this follower's last poses again (one lost keeps every
+    /// other robot waiting).
+    fn repeat_poses(&mut self) {
+        if let Some(p) = &self.poses {
+            self.pose_transmit.extend(p.repeats().cloned());
         }
     }
 
@@ -748,7 +809,18 @@ impl Follower {
         let last = k == self.rules.steps;
         let t = k as f64 * self.rules.dt_s;
         let was_silent = self.body.silent_steps();
-        let (sample, next) = self.body.step(t, self.rules.dt_s, leader.as_ref(), &self.inputs, last);
+        let nearby = match self.poses.as_mut() {
+            Some(p) => {
+                let own = p.own();
+                let (poses, stale) = p.view(k, now);
+                Nearby { poses, own, stale }
+            }
+            None => Nearby::NONE,
+        };
+        let (sample, next) = self.body.step(t, self.rules.dt_s, leader.as_ref(), &self.inputs, nearby, last);
+        if let (Some(p), false) = (self.poses.as_mut(), last) {
+            self.pose_transmit.push_back(p.publish(k, sample.pose, now, self.rules.dt_s));
+        }
         let rejoin = self.rules.rejoin_after_steps;
         match self.body.silent_steps() {
             s if s == rejoin => self.events.push(NetEvent { k, what: EventKind::Isolated }),
@@ -856,6 +928,7 @@ impl Follower {
                 for bytes in self.recent.follower_repeats(slowest) {
                     self.transmit.push_back(bytes.clone());
                 }
+                self.repeat_poses();
             }
             gate::WaitStep::Wait { .. } => {}
             gate::WaitStep::Over => self.finish(Ok(())),

@@ -15,6 +15,7 @@
 //! | receiving | [`inbox`] (checks, the fault table, freshness), [`latency`], [`hearing`] (what was heard, for the record) |
 //! | lock-step | [`gate`] (look-ahead, repeats, stalls) |
 //! | telemetry | [`telemetry`] (the messages), [`courier`] (what is kept until acknowledged), [`loop_timing`] (how late each step woke) |
+//! | safety | [`poses`] (the other robots' poses, for the safety filter) |
 //! | one follower | [`follower`]: all of the above for one agent, as one machine |
 
 pub mod barrier;
@@ -32,6 +33,7 @@ pub mod inbox;
 pub mod latency;
 pub mod loop_timing;
 pub mod names;
+pub mod poses;
 pub mod telemetry;
 
 pub use error::Error;

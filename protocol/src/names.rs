@@ -4,6 +4,7 @@
 //! | key | who publishes | payload |
 //! | --- | --- | --- |
 //! | `estimate/<id>` | leader (id 0), follower id | `formation_topology::wire::EstimateMsg` (docs/model.md §13) |
+//! | `pose/<id>` | follower id, only with the safety filter on | `formation_topology::wire::PoseMsg` (docs/model.md §16) |
 //! | `telemetry/<id>` | leader (id 0), follower id | `telemetry::Telemetry` |
 //! | `control/hello/<node>` | every node, until the start | empty |
 //! | `control/ready/<node>` | agents and monitor, until the start | `barrier::Ready` |
@@ -78,6 +79,13 @@ impl Keys {
     }
     pub fn estimate(&self, id: u32) -> String {
         key(&self.run, &format!("estimate/{id}"))
+    }
+    /// A follower's robot's pose (safety filter on).
+    pub fn pose(&self, id: u32) -> String {
+        key(&self.run, &format!("pose/{id}"))
+    }
+    pub fn pose_all(&self) -> String {
+        key(&self.run, "pose/*")
     }
     pub fn telemetry(&self, id: u32) -> String {
         key(&self.run, &format!("telemetry/{id}"))

@@ -64,7 +64,7 @@ mod tests {
     fn metrics_of(n: u64) -> FollowerMetrics {
         let mut acc = MetricsAccumulator::new(STEPS, DT);
         for k in 0..n {
-            acc.push(k, &row(k));
+            acc.push(k, &row(k), None);
         }
         acc.finish()
     }

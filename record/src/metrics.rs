@@ -1,7 +1,7 @@
 //! The per-follower metrics of docs/model.md §11, accumulated sample by
 //! sample in O(1) memory (and, per fault window, those of §14).
 
-use formation_agent::LeaderState;
+use formation_agent::{GuardStep, GuardTally, LeaderState};
 use formation_topology::Scenario;
 use serde::{Deserialize, Serialize};
 
@@ -121,6 +121,8 @@ pub struct MetricsAccumulator {
     finals: [f64; 5],
     /// One per fault window of the scenario (docs/model.md §14's metrics under faults).
     outages: Vec<OutageAccumulator>,
+    /// What the guard did, where the scenario has one.
+    guard: Option<GuardTally>,
 }
 
 impl MetricsAccumulator {
@@ -133,6 +135,7 @@ impl MetricsAccumulator {
     /// For a scenario, with its fault windows.
     pub fn for_scenario(s: &Scenario) -> Self {
         let mut a = Self::new(s.steps(), s.dt_s);
+        a.guard = (!s.control.guard.is_off()).then(GuardTally::default);
         a.outages = Window::all(s).into_iter().map(|w| OutageAccumulator::new(w, s.dt_s)).collect();
         a
     }
@@ -142,9 +145,20 @@ impl MetricsAccumulator {
         self.outages.iter().map(|o| o.finish()).collect()
     }
 
-    /// Adds the sample of step k (samples must come in step order).
+    /// What the guard did at a step (docs/model.md §16): the sample's, where
+    /// the scenario has a guard.
     #[inline]
-    pub fn push(&mut self, k: u64, r: &Row) {
+    fn push_guard(&mut self, g: Option<&GuardStep>) {
+        if let (Some(tally), Some(g)) = (self.guard.as_mut(), g) {
+            tally.add(g);
+        }
+    }
+
+    /// Adds the row of step k (rows must come in step order) and what the
+    /// guard did at it (the sample's `guard`).
+    #[inline]
+    pub fn push(&mut self, k: u64, r: &Row, guard: Option<&GuardStep>) {
+        self.push_guard(guard);
         let errors = Errors { formation: r.formation_error, v: [r.v_hat, r.v], w: [r.w_hat, r.w] };
         self.accumulate(k, &errors, r.v_c, r.tau_l, r.tau_r);
         if k == self.steps {
@@ -162,8 +176,9 @@ impl MetricsAccumulator {
     #[inline]
     pub fn push_sample(&mut self, k: u64, s: &FollowerSample, leader: &LeaderState, offset: [f64; 2], dt_s: f64) {
         if k == self.steps || !self.outages.is_empty() {
-            return self.push(k, &Row::new(s, leader, offset, dt_s));
+            return self.push(k, &Row::new(s, leader, offset, dt_s), s.guard.as_ref());
         }
+        self.push_guard(s.guard.as_ref());
         // Row::new's formation error, needed only in the last 10 s.
         let formation = if k >= self.last10_from_k { formation_error(&s.pose, leader, offset) } else { 0.0 };
         let errors =
@@ -220,7 +235,7 @@ impl MetricsAccumulator {
             rmse_w: any.then(|| (self.sum_w_sq / n as f64).sqrt()),
             samples: n,
             gap_steps: self.next_k.saturating_sub(n),
-            guard: None,
+            guard: self.guard,
         }
     }
 }

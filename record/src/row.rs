@@ -19,6 +19,9 @@ pub struct FollowerSample {
     pub command: Velocity,
     pub torque_l: f64,
     pub torque_r: f64,
+    /// What the limits and the safety filter did (docs/model.md §16);
+    /// None where the scenario has neither.
+    pub guard: Option<formation_agent::GuardStep>,
 }
 
 impl FollowerSample {
@@ -33,6 +36,7 @@ impl FollowerSample {
             command: out.command,
             torque_l: out.torque.left,
             torque_r: out.torque.right,
+            guard: out.guard,
         }
     }
 

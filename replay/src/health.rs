@@ -95,6 +95,8 @@ impl Health {
 /// What the monitor gathered, as the verdict needs it.
 #[derive(Clone, Debug, Default)]
 pub struct Evidence {
+    /// Two robots came closer than `safety.distance` (docs/model.md §16): who, when.
+    pub too_close: Option<String>,
     /// (follower, isolated at step, rejoined at step or None: to the end).
     pub isolations: Vec<(u32, u64, Option<u64>)>,
     pub steps: u64,
@@ -148,6 +150,9 @@ pub const HEARING_DEPARTURE: f64 = 1e-3;
 pub fn judge(e: &Evidence) -> Health {
     let mut degraded = Vec::new();
     let mut disturbed = Vec::new();
+    if let Some(what) = &e.too_close {
+        degraded.push(what.clone());
+    }
     // A run that did not complete is never healthy (a follower whose
     // process was stopped at 5 s of 12 was, its metrics null).
     for s in &e.short {

@@ -15,7 +15,7 @@
 
 use std::path::{Path, PathBuf};
 
-use formation_agent::{LeaderState, LinkLoss, Message};
+use formation_agent::{LeaderState, LinkLoss, Message, Nearby};
 use formation_plant::Pose;
 use formation_record::hearing::{Cursor, FollowerHearing, HearingRecord};
 use formation_record::{FollowerSample, Heard, RecordOptions, HEARING_FILE};
@@ -52,6 +52,16 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
     let s = &record.scenario;
     let scenario = Scenario::from_toml(&s.text, &s.label, "run", &s.overrides)
         .map_err(|e| Error::Input(format!("{}: the scenario it carries: {e}", dir.display())))?;
+    if scenario.control.guard.safety.is_some() && scenario.timing == formation_topology::Timing::Realtime {
+        // docs/model.md §16: in real time each filter took the newest pose
+        // it had heard, which hearing.bin does not hold (lock-step's are
+        // every robot's pose of the step before, which it does).
+        return Err(Error::Input(format!(
+            "{}: a real-time run with the safety filter on: which of the other robots' poses each filter used is \
+             not in its record, so it cannot be re-computed (lock-step runs with the filter replay)",
+            dir.display()
+        )));
+    }
     if crate::barrier::fingerprint(&scenario) != record.fingerprint {
         return Err(Error::Input(format!(
             "{}: the scenario it carries does not give the run's fingerprint (a record of another build?)",
@@ -247,6 +257,13 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
     let mut heard: Vec<Heard> = Vec::new();
     let mut model: Vec<Heard> = Vec::new();
     let mut inputs: Vec<Message> = Vec::new();
+    // The safety filter's view: every robot's pose of step k − 1 (step 0: its initial pose), as lock-step's.
+    let safety = s.control.guard.safety.is_some();
+    let mut poses_before: Vec<Pose> = match safety {
+        true => (0..n).map(|i| formation_sim::SimRobot::new(s, i).seen_pose()).collect(),
+        false => Vec::new(),
+    };
+    let mut poses_now = poses_before.clone();
     for k in 0..=steps {
         let t = k as f64 * dt;
         let state = leader.state(t);
@@ -329,10 +346,16 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
                 track[i] = Track::Stopped;
                 continue;
             }
-            let (sample, next) = f.step(t, dt, leader_in.as_ref(), &inputs, last);
+            let nearby = if safety { Nearby::fresh(&poses_before, i) } else { Nearby::NONE };
+            let (sample, next) =
+                f.step_disturbed(f.robot.disturbance_at(t), dt, leader_in.as_ref(), &inputs, nearby, last);
+            if safety {
+                poses_now[i] = sample.pose;
+            }
             sent[i][((k + 1) as usize) % ring] = Some((k + 1, next));
             sink.follower(i, k, &sample, &heard)?;
         }
+        poses_before.copy_from_slice(&poses_now);
         sink.step_done(k)?;
         if sink.stop() {
             break;

@@ -362,7 +362,7 @@ fn step_follower(
     rx: &mut Option<Box<Reception>>,
 ) -> (FollowerSample, Message) {
     let (s, messages, leader, sent_k) = (x.s, x.messages, x.leader, x.sent_k);
-    let nearby = Nearby { poses: x.poses, own: i };
+    let nearby = Nearby::fresh(x.poses, i);
     match rx {
         None => {
             let heard = s.graph.hears_leader(i).then_some(leader);
@@ -407,7 +407,7 @@ fn account(
     let offset = f.brain.config.offset;
     if observer.wants_rows() {
         let row = Row::new(sample, leader, offset, s.dt_s);
-        f.metrics.push(k, &row);
+        f.metrics.push(k, &row, sample.guard.as_ref());
         observer.follower(i, k, &row, last)?;
     } else {
         f.metrics.push_sample(k, sample, leader, offset, s.dt_s);
@@ -543,11 +543,7 @@ impl<'s> Simulation<'s> {
     /// Every follower's metrics so far, with what the guard did when the
     /// scenario has limits or a filter.
     pub fn metrics(&self) -> Vec<FollowerMetrics> {
-        let guarded = !self.scenario.control.guard.is_off();
-        self.followers
-            .iter()
-            .map(|f| FollowerMetrics { guard: guarded.then(|| *f.brain.guard_tally()), ..f.metrics.finish() })
-            .collect()
+        self.followers.iter().map(|f| f.metrics.finish()).collect()
     }
 
     /// How close the robots came, with `[safety]` (docs/model.md §16).

@@ -639,7 +639,8 @@ impl Ctx<'_> {
         }
         c.arg("--listen").arg(self.ep(host));
         // As `formation launch`: the leader dials the monitor; an agent the
-        // monitor, the leader and its lower-id neighbours.
+        // monitor, the leader and its lower-id neighbours (every lower-id
+        // follower with the safety filter on: their poses).
         let mut dial: Vec<String> = Vec::new();
         if host != "monitor" {
             dial.push("monitor".into());
@@ -648,7 +649,7 @@ impl Ctx<'_> {
             dial.push("leader".into());
             if let Some(i) = self.scenario.index_of(id) {
                 let g = &self.scenario.graph;
-                dial.extend(g.neighbours(i).iter().filter(|&&j| j < i).map(|&j| agent_host(g.id(j))));
+                dial.extend(self.scenario.peers_of(i).into_iter().filter(|&j| j < i).map(|j| agent_host(g.id(j))));
             }
         }
         for d in dial {

@@ -944,7 +944,7 @@ mod tests {
         let mut acc = MetricsAccumulator::new(s.steps(), s.dt_s);
         let r = Row { formation_error: 0.05, estimator_error: 1e-3, v_c: 1.0, v_hat: 0.01, ..Default::default() };
         for k in 0..n {
-            acc.push(k, &r);
+            acc.push(k, &r, None);
         }
         acc.finish()
     }

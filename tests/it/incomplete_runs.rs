@@ -85,7 +85,7 @@ fn a_run_cut_short_is_incomplete_and_report_shows_its_claims_as_na_with_the_reas
     let replay = |n: usize| -> FollowerMetrics {
         let mut acc = MetricsAccumulator::new(scenario.steps(), scenario.dt_s);
         for (k, r) in rows[..n].iter().enumerate() {
-            acc.push(k as u64, r);
+            acc.push(k as u64, r, None);
         }
         acc.finish()
     };

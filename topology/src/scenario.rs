@@ -403,6 +403,16 @@ impl Scenario {
         }
         ids
     }
+
+    /// The followers the one at `index` exchanges messages with, by index:
+    /// its neighbours, and with the safety filter on every other follower
+    /// (their robots' poses, docs/model.md §16). Who dials whom follows it.
+    pub fn peers_of(&self, index: usize) -> Vec<usize> {
+        match self.control.guard.safety.is_some() {
+            true => (0..self.followers.len()).filter(|&j| j != index).collect(),
+            false => self.graph.neighbours(index).to_vec(),
+        }
+    }
 }
 
 /// The scenarios inside the binary: the files of `scenarios/` that the

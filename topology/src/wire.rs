@@ -143,6 +143,32 @@ pub fn decode(bytes: &[u8]) -> Result<EstimateMsg, Reject> {
     Ok(msg)
 }
 
+/// A robot's pose message (docs/model.md §16), published only where the
+/// scenario turns the safety filter on: follower `sender`'s robot's pose
+/// [x, y, θ] at step k, the one its step k ran on (odometry for a velocity
+/// robot). Its header's version is [`FORMAT_VERSION`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseMsg {
+    pub header: Header,
+    pub pose: [f64; 3],
+}
+
+pub fn encode_pose(msg: &PoseMsg) -> Vec<u8> {
+    encode_value(msg)
+}
+
+/// Decodes a pose message and checks its version and finiteness.
+pub fn decode_pose(bytes: &[u8]) -> Result<PoseMsg, Reject> {
+    let msg: PoseMsg = decode_bounded(bytes).ok_or(Reject::Malformed)?;
+    if msg.header.version != FORMAT_VERSION {
+        return Err(Reject::Version);
+    }
+    if !msg.header.time_s.is_finite() || !msg.pose.iter().all(|v| v.is_finite()) {
+        return Err(Reject::NonFinite);
+    }
+    Ok(msg)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -159,6 +185,20 @@ mod tests {
     #[test]
     fn round_trip() {
         assert_eq!(decode(&encode(&msg())), Ok(msg()));
+        let pose = PoseMsg { header: msg().header, pose: [1.0, -2.0, 3.0] };
+        assert_eq!(decode_pose(&encode_pose(&pose)), Ok(pose));
+    }
+
+    #[test]
+    fn bad_pose_messages_are_refused() {
+        let pose = PoseMsg { header: msg().header, pose: [1.0, f64::INFINITY, 3.0] };
+        assert_eq!(decode_pose(&encode_pose(&pose)), Err(Reject::NonFinite));
+        let bytes = encode_pose(&PoseMsg { header: msg().header, pose: [0.0; 3] });
+        assert_eq!(decode_pose(&bytes[..bytes.len() - 1]), Err(Reject::Malformed));
+        assert_eq!(decode_pose(&encode(&msg())), Err(Reject::Malformed), "an estimate is not a pose");
+        let mut old = PoseMsg { header: msg().header, pose: [0.0; 3] };
+        old.header.version = 2;
+        assert_eq!(decode_pose(&encode_pose(&old)), Err(Reject::Version));
     }
 
     #[test]

@@ -252,6 +252,7 @@ impl Body for DrivenRobot {
         dt_s: f64,
         leader: Option<&LeaderState>,
         neighbours: &[Message],
+        nearby: formation_agent::Nearby<'_>,
         last: bool,
     ) -> (FollowerSample, Message) {
         let k = (t_s / dt_s).round() as u64;
@@ -269,7 +270,7 @@ impl Body for DrivenRobot {
             (pose, z),
             leader,
             neighbours,
-            formation_agent::Nearby::NONE,
+            nearby,
         );
         if stop {
             sample.command = Velocity::default();

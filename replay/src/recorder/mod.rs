@@ -23,8 +23,14 @@ use std::time::Instant;
 use formation_agent::LeaderState;
 use formation_record::hearing::{Density, End, FollowerHearing, HearingRecord, Rescued, Resume, ScenarioSource};
 use formation_record::{
-    FollowerSample, Heard, LiveSink, MetricsAccumulator, RecordOptions, Row, RunWriter, Summary, HEARING_FILE,
+    FollowerSample, Heard, LiveSink, MetricsAccumulator, Proximity, RecordOptions, Row, RunWriter, Summary,
+    HEARING_FILE,
 };
+use formation_plant::Pose;
+
+/// A step some follower's pose is missing from is measured with the poses
+/// that are in once it is this far behind the newest.
+const PROXIMITY_BEHIND: u64 = 10_000;
 use formation_topology::Scenario;
 use serde_json::json;
 
@@ -183,6 +189,10 @@ pub struct Recorder {
     /// The scenario as the run loaded it: with it, `hearing.bin` is written.
     source: Option<ScenarioSource>,
     density: Density,
+    /// How close the robots came (a scenario with `safety.distance`), and
+    /// each step's poses until every follower's is in.
+    proximity: Option<Proximity>,
+    step_poses: BTreeMap<u64, Vec<Option<Pose>>>,
 }
 
 impl Recorder {
@@ -234,6 +244,10 @@ impl Recorder {
             rescued: BTreeMap::new(),
             source: None,
             density: Density { every: opts.every.max(1), csv: opts.csv, mcap: opts.mcap },
+            proximity: scenario
+                .safety_distance
+                .map(|d| Proximity::new(d, scenario.control.guard.safety.is_some())),
+            step_poses: BTreeMap::new(),
         })
     }
 
@@ -322,6 +336,7 @@ impl Recorder {
         let model = self.model.as_ref()?;
         let dt = self.scenario.dt_s;
         let mut e = Evidence { steps: self.scenario.steps(), dt_s: dt, ..Default::default() };
+        e.too_close = summary.safety.as_ref().and_then(Proximity::violation_text);
         e.short = summary
             .incomplete
             .iter()
@@ -664,7 +679,11 @@ impl Recorder {
                     continue;
                 };
                 let row = Row::new(&sample, &l, f.offset, dt);
-                f.metrics.push(k, &row);
+                f.metrics.push(k, &row, sample.guard.as_ref());
+                if self.proximity.is_some() {
+                    let n = self.scenario.followers.len();
+                    self.step_poses.entry(k).or_insert_with(|| vec![None; n])[index] = Some(sample.pose);
+                }
                 f.formation_error = row.formation_error;
                 f.latest = Some((row, l));
                 if self.writer.wants(k, k == steps) {
@@ -685,7 +704,37 @@ impl Recorder {
             self.leader.pop_front();
             self.leader_base += 1;
         }
+        self.measure_proximity(false);
         Ok(())
+    }
+
+    /// Steps whose every robot's pose is in go to the proximity measure; so
+    /// do, with the poses that are in, steps no follower can still fill
+    /// (each is past it) or [`PROXIMITY_BEHIND`] steps behind the newest,
+    /// and at the end (`all`) every step left.
+    fn measure_proximity(&mut self, all: bool) {
+        let Some(p) = self.proximity.as_mut() else { return };
+        let filled = self.followers.iter().map(|f| f.next_k).min().unwrap_or(0);
+        let newest = self.step_poses.last_key_value().map_or(0, |(&k, _)| k);
+        let ids: Vec<u32> = self.followers.iter().map(|f| f.id).collect();
+        let (mut have_ids, mut have) = (Vec::new(), Vec::new());
+        while let Some(entry) = self.step_poses.first_entry() {
+            let k = *entry.key();
+            let complete = entry.get().iter().all(Option::is_some);
+            if !(all || complete || k < filled || k + PROXIMITY_BEHIND < newest) {
+                break;
+            }
+            let poses = entry.remove();
+            have_ids.clear();
+            have.clear();
+            for (&id, pose) in ids.iter().zip(&poses) {
+                if let Some(pose) = pose {
+                    have_ids.push(id);
+                    have.push(*pose);
+                }
+            }
+            p.push(k as f64 * self.scenario.dt_s, &have_ids, &have);
+        }
     }
 
     /// Per node (0: the leader), the first step the monitor does not hold.
@@ -804,9 +853,11 @@ impl Recorder {
     /// [`Recorder::finish`], with the run's health when a model was set.
     pub fn finish_judged(mut self, ending: Ending) -> std::io::Result<(Summary, PathBuf, Option<Health>)> {
         self.pair_past_the_leader()?;
+        self.measure_proximity(true);
         let metrics = self.followers.iter().map(|f| (f.id, f.metrics.finish())).collect();
         let outages = self.followers.iter().map(|f| (f.id, f.metrics.outages())).collect();
-        let summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
+        let mut summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
+        summary.safety = self.proximity.take();
         let health = self.health(&summary);
         self.writer.write_file("network.json", &self.network_json_with(ending, health.as_ref()))?;
         if let Some(record) = self.hearing_record() {
@@ -832,6 +883,7 @@ mod tests {
             command: Default::default(),
             torque_l: 0.0,
             torque_r: 0.0,
+            guard: None,
         }
     }
 
