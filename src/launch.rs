@@ -936,12 +936,8 @@ async fn launch(
         if mode == LaunchMode::Peer {
             // Every earlier process that holds a neighbour (or, with the
             // safety filter on, any follower: their poses), once.
-            let mut dial: Vec<usize> = members
-                .clone()
-                .flat_map(|i| scenario.peers_of(i))
-                .map(|j| group_of(j))
-                .filter(|&h| h < g)
-                .collect();
+            let mut dial: Vec<usize> =
+                members.clone().flat_map(|i| scenario.peers_of(i)).map(|j| group_of(j)).filter(|&h| h < g).collect();
             dial.sort_unstable();
             dial.dedup();
             connect.extend(dial.into_iter().map(|h| p[2 + h]));

@@ -171,7 +171,6 @@ impl Follower {
         }
     }
 
-
     pub fn id(&self) -> u32 {
         self.config.id
     }

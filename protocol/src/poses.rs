@@ -8,9 +8,12 @@
 //! - lock-step: its pose of step k − 1, waited for as the estimates are
 //!   (step 0: the scenario's initial pose), which is what the simulator
 //!   uses, so a lock-step run equals `formation sim` bit for bit;
-//! - real time: the newest pose heard (or the initial pose before any),
-//!   marked stale once it is older than the scenario's silence time-out; a
-//!   stale robot within `safety.radius` stops this one.
+//! - real time: the newest pose heard of step k − 1 or before, as the
+//!   model has it (one of step k, when the other robot stepped first, is
+//!   kept for the next step; with none that old, the oldest kept), or the
+//!   initial pose before any; marked stale once the newest heard is older
+//!   than the scenario's silence time-out; a stale robot within
+//!   `safety.radius` stops this one.
 //!
 //! The fault table does not act on poses (the model's filter sees every
 //! robot); a network that cuts them makes them stale.
@@ -120,15 +123,20 @@ impl Poses {
 
     /// The robots still missing for step k (lock-step), by id.
     pub fn missing(&self, k: u64) -> impl Iterator<Item = u32> + '_ {
-        (0..self.ring.len()).filter(move |&j| j != self.own && k > 0 && self.at(j, k - 1).is_none()).map(|j| self.ids[j])
+        (0..self.ring.len())
+            .filter(move |&j| j != self.own && k > 0 && self.at(j, k - 1).is_none())
+            .map(|j| self.ids[j])
     }
 
     fn at(&self, j: usize, k: u64) -> Option<Pose> {
         self.ring[j][(k as usize) % RING].filter(|&(s, _)| s == k).map(|(_, p)| p)
     }
 
-    fn newest_pose(&self, j: usize) -> Option<Pose> {
-        self.newest[j].and_then(|(k, _)| self.at(j, k))
+    /// Real time: robot j's newest pose of step `before` or earlier, else its oldest kept.
+    fn pose_for(&self, j: usize, before: u64) -> Option<Pose> {
+        let kept = self.ring[j].iter().flatten();
+        let newest_before = kept.clone().filter(|(s, _)| *s <= before).max_by_key(|(s, _)| *s);
+        newest_before.or_else(|| kept.min_by_key(|(s, _)| *s)).map(|(_, p)| *p)
     }
 
     /// The view of step k at `now`: (poses, stale) by scenario index, this
@@ -142,7 +150,7 @@ impl Poses {
                 self.view[j] = if k == 0 { self.initial[j] } else { self.at(j, k - 1).unwrap_or(self.initial[j]) };
             } else {
                 let heard_at = self.newest[j].map_or(self.epoch, |(_, at)| at);
-                self.view[j] = self.newest_pose(j).unwrap_or(self.initial[j]);
+                self.view[j] = self.pose_for(j, k.saturating_sub(1)).unwrap_or(self.initial[j]);
                 self.stale[j] = now.saturating_sub(heard_at) > self.silence;
             }
         }
@@ -238,6 +246,11 @@ mod tests {
         p.handle(Some(id), &message(id, 5, 0.5), at, 50).unwrap();
         let (view, stale) = p.view(50, at);
         assert_eq!((view[1].x, stale[1]), (1.5, false), "the newest, not the last to arrive");
+        p.handle(Some(id), &message(id, 51, 2.5), at, 50).unwrap();
+        p.handle(Some(id), &message(id, 50, 2.0), at, 50).unwrap();
+        assert_eq!(p.view(51, at).0[1].x, 2.0, "step 51 takes the pose of step 50, as the model");
+        assert_eq!(p.view(49, at).0[1].x, 0.5, "the newest kept of step 48 or before (7 gave its slot to 51)");
+        assert_eq!(p.view(3, at).0[1].x, 0.5, "none of step 2 or before kept: the oldest kept");
         assert!(p.view(60, at + silence + Duration::from_millis(1)).1[1]);
     }
 }

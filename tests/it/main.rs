@@ -33,6 +33,7 @@ mod paper_claims;
 mod paper_report;
 mod replay;
 mod ros2;
+mod safety;
 mod security;
 mod sim_parallel;
 mod web_live;

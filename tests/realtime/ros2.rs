@@ -452,3 +452,73 @@ fn a_robot_whose_agent_is_killed_stops_on_its_command_timeout() {
         assert!(told < 0.5, "robot {id}: zero velocity {told:.3} s after agent 2 was killed");
     }
 }
+
+/// The small-robot scenario in real time, stand-in robots, the safety
+/// filter on (docs/model.md §16): every robot keeps `safety.distance` from
+/// every other and is never sent a command beyond its limits (asserted
+/// always: what the filter promises whatever the timing), and the formation
+/// is the model's within 10 % (judged on a quiet machine).
+#[test]
+fn the_safety_filter_in_real_time_keeps_the_robots_apart_as_the_model_does() {
+    let _alone = common::alone();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let o = out.display().to_string();
+    let scenario = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/turtlebot.toml");
+    let sets = ["timing=\"realtime\"", "network.delay_steps=1"];
+    let before = common::Host::now();
+    let mut args = vec![
+        "launch",
+        scenario,
+        "-q",
+        "--out",
+        &o,
+        "--robots",
+        "stand-in",
+        "--time-scale",
+        "3",
+        "--run",
+        "ros2-safety-rt",
+    ];
+    for s in &sets {
+        args.extend(["--set", s]);
+    }
+    let log = tmp.path().join("launch.log");
+    let mut run = launch(&args, &log);
+    let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
+    sim.args(["sim", scenario, "-q", "--out"]).arg(tmp.path().join("sim"));
+    for s in &sets {
+        sim.args(["--set", s]);
+    }
+    assert!(sim.status().expect("formation sim").success());
+    let status = run.wait(common::LIMIT);
+    let host = common::Host::now().since(&before);
+    let said = std::fs::read_to_string(&log).unwrap_or_default();
+    assert!(status.success(), "launch turtlebot --robots stand-in (real time): {status}: {said}");
+    run.assert_group_empty();
+    let (got, reference, network) =
+        (json(&out, "summary.json"), json(&tmp.path().join("sim"), "summary.json"), json(&out, "network.json"));
+    for id in ["1", "2", "3", "4"] {
+        assert_eq!(got["followers"][id]["samples"], 3001, "follower {id}: every step recorded");
+    }
+    let safety = &got["safety"];
+    let (closest, distance) = (safety["closest"]["distance"].as_f64().unwrap(), safety["distance"].as_f64().unwrap());
+    let model = reference["safety"]["closest"]["distance"].as_f64().unwrap();
+    assert!(
+        closest >= distance,
+        "robots {} came {closest} m apart in real time (safety.distance {distance})",
+        safety["closest"]["pair"]
+    );
+    for id in 1..=4 {
+        let line = said
+            .lines()
+            .find(|l| l.starts_with(&format!("robot {id}: ")) && l.contains("commands received"))
+            .unwrap_or_else(|| panic!("robot {id} did not say what it received:\n{said}"));
+        assert!(line.ends_with("none beyond robot.v_max, w_max"), "robot {id}: {line}");
+    }
+    let mut bad = common::unlike_the_simulator(&got, &reference, &network, 0.10, &common::COMPARED_CONVERGING);
+    if (closest - model).abs() > 0.02 {
+        bad.push(format!("the closest pair {closest:.3} m apart in real time, {model:.3} m in formation sim"));
+    }
+    common::judge_if_quiet("the safety filter in real time against the simulator", &bad, host, "");
+}

@@ -265,13 +265,7 @@ impl Body for DrivenRobot {
         };
         let (pose, z) = odom.map_or((self.initial, Velocity::default()), |o| (o.pose, o.twist));
         // The simulator's own call for a robot seen through its odometry.
-        let (mut sample, out) = formation_sim::step_on_odometry(
-            &mut self.brain,
-            (pose, z),
-            leader,
-            neighbours,
-            nearby,
-        );
+        let (mut sample, out) = formation_sim::step_on_odometry(&mut self.brain, (pose, z), leader, neighbours, nearby);
         if stop {
             sample.command = Velocity::default();
         }

@@ -21,12 +21,12 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use formation_agent::LeaderState;
+use formation_plant::Pose;
 use formation_record::hearing::{Density, End, FollowerHearing, HearingRecord, Rescued, Resume, ScenarioSource};
 use formation_record::{
     FollowerSample, Heard, LiveSink, MetricsAccumulator, Proximity, RecordOptions, Row, RunWriter, Summary,
     HEARING_FILE,
 };
-use formation_plant::Pose;
 
 /// A step some follower's pose is missing from is measured with the poses
 /// that are in once it is this far behind the newest.
@@ -244,9 +244,7 @@ impl Recorder {
             rescued: BTreeMap::new(),
             source: None,
             density: Density { every: opts.every.max(1), csv: opts.csv, mcap: opts.mcap },
-            proximity: scenario
-                .safety_distance
-                .map(|d| Proximity::new(d, scenario.control.guard.safety.is_some())),
+            proximity: scenario.safety_distance.map(|d| Proximity::new(d, scenario.control.guard.safety.is_some())),
             step_poses: BTreeMap::new(),
         })
     }

@@ -1,0 +1,115 @@
+//! The small-robot scenario (`scenarios/turtlebot.toml`, docs/model.md
+//! §16) as networked agents, lock-step: with the safety filter on, stand-in
+//! robots driven through `cmd_vel` and `odom` and the agents exchanging
+//! their robots' poses give `formation sim`'s run byte for byte, no robot
+//! received a command beyond its limits (as the robots themselves count
+//! them), the closest pair stays at or above `safety.distance`, and the run
+//! replays; with it off, two robots whose paths cross come too close, and
+//! the launch says which and exits 3, as `formation sim` does.
+
+use std::os::unix::process::CommandExt;
+use std::path::Path;
+use std::process::{Command, Stdio};
+
+use crate::common::{self, Group, LIMIT};
+
+const TURTLEBOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/turtlebot.toml");
+
+/// `formation ARGS…` in its own process group (killed on every path), its
+/// stderr into `log`.
+fn spawn_logged(args: &[&str], log: &Path) -> Group {
+    let child = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(log).expect("log file"))
+        .process_group(0)
+        .spawn()
+        .expect("spawn formation");
+    Group(child)
+}
+
+fn sim(out: &Path, sets: &[&str]) -> std::process::Output {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+    c.args(["sim", TURTLEBOT, "-q", "--out"]).arg(out);
+    for s in sets {
+        c.args(["--set", s]);
+    }
+    c.output().expect("formation sim")
+}
+
+fn same_files(run: &Path, sim: &Path, what: &str) {
+    for f in ["summary.json", "leader.csv", "follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv"] {
+        let got = std::fs::read(run.join(f)).expect("run file");
+        let want = std::fs::read(sim.join(f)).expect("sim file");
+        let first = got.iter().zip(&want).position(|(a, b)| a != b);
+        assert!(got == want, "{f} of {what} differs from formation sim's (first differing byte {first:?})");
+    }
+}
+
+#[test]
+fn stand_in_robots_with_the_safety_filter_in_lock_step_equal_formation_sim() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (out, log) = (dir.path().join("run"), dir.path().join("launch.log"));
+    let o = out.display().to_string();
+    let mut run = spawn_logged(&["launch", TURTLEBOT, "-q", "--out", &o, "--robots", "stand-in"], &log);
+    let status = run.wait(LIMIT * 2);
+    let said = std::fs::read_to_string(&log).unwrap_or_default();
+    assert!(status.success(), "launch turtlebot --robots stand-in: {status}\n{said}");
+    run.assert_group_empty();
+
+    let sim_dir = dir.path().join("sim");
+    let s = sim(&sim_dir, &[]);
+    assert!(s.status.success(), "formation sim turtlebot: {}", String::from_utf8_lossy(&s.stderr));
+    same_files(&out, &sim_dir, "the stand-in robots' lock-step run");
+
+    // Every command each robot received was within the limits, counted by the robot.
+    let s = common::json(&out, "summary.json");
+    for id in 1..=4 {
+        let line = said
+            .lines()
+            .find(|l| l.starts_with(&format!("robot {id}: ")) && l.contains("commands received"))
+            .unwrap_or_else(|| panic!("robot {id} did not say what it received:\n{said}"));
+        assert!(line.ends_with("none beyond robot.v_max, w_max"), "robot {id}: {line}");
+        let f = &s["followers"][id.to_string()];
+        let n: u64 = line.split(": ").nth(1).and_then(|r| r.split(' ').next()).and_then(|n| n.parse().ok()).unwrap();
+        assert!(n >= f["samples"].as_u64().unwrap() - 1, "robot {id} received {n} commands: {line}");
+    }
+    // The closest pair at or above the distance, and what the guard did.
+    let safety = &s["safety"];
+    let (closest, distance) = (safety["closest"]["distance"].as_f64().unwrap(), safety["distance"].as_f64().unwrap());
+    assert!(
+        closest >= distance,
+        "robots {} came {closest} m apart (safety.distance {distance})",
+        safety["closest"]["pair"]
+    );
+    assert_eq!(safety["steps_below"], 0);
+    let changed: u64 = (1..=4).map(|id| s["followers"][id.to_string()]["guard"]["filtered"].as_u64().unwrap()).sum();
+    assert!(changed > 0, "the filter changed no command on crossing paths");
+    common::replays_byte_for_byte("turtlebot, stand-in robots", &out);
+}
+
+#[test]
+fn without_the_filter_the_crossing_robots_come_too_close_and_the_launch_says_which() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (out, log) = (dir.path().join("run"), dir.path().join("launch.log"));
+    let o = out.display().to_string();
+    let off = "safety.filter=false";
+    let mut run = spawn_logged(&["launch", TURTLEBOT, "-q", "--out", &o, "--set", off], &log);
+    let status = run.wait(LIMIT * 2);
+    let said = std::fs::read_to_string(&log).unwrap_or_default();
+    assert_eq!(status.code(), Some(3), "a run closer than safety.distance is degraded: {status}\n{said}");
+    assert!(said.contains("robots 1 and 2 came"), "the launch names the pair:\n{said}");
+    run.assert_group_empty();
+
+    let sim_dir = dir.path().join("sim");
+    let s = sim(&sim_dir, &[off]);
+    assert_eq!(s.status.code(), Some(3), "formation sim: {}", String::from_utf8_lossy(&s.stderr));
+    same_files(&out, &sim_dir, "the filter-off lock-step run");
+    let safety = &common::json(&out, "summary.json")["safety"];
+    let (closest, distance) = (safety["closest"]["distance"].as_f64().unwrap(), safety["distance"].as_f64().unwrap());
+    assert!(closest < distance, "without the filter the closest pair kept {closest} m (distance {distance})");
+    assert!(safety["steps_below"].as_u64().unwrap() > 0);
+    let degraded = common::json(&out, "network.json")["health"]["degraded"].to_string();
+    assert!(degraded.contains("robots 1 and 2"), "network.json's health: {degraded}");
+}
