@@ -192,22 +192,24 @@ impl Summary {
     /// (docs/model.md §16); empty without either.
     pub fn guard_lines(&self) -> String {
         let mut out = String::new();
-        let tallies: Vec<_> = self.followers.values().filter_map(|m| m.guard).collect();
-        if !tallies.is_empty() {
-            let steps: u64 = tallies.iter().map(|t| t.steps).sum();
-            let saturated: u64 = tallies.iter().map(|t| t.saturated).sum();
-            let filtered: u64 = tallies.iter().map(|t| t.filtered).sum();
-            let infeasible: u64 = tallies.iter().map(|t| t.infeasible).sum();
-            let change_max = tallies.iter().map(|t| t.change_max).fold(0.0, f64::max);
-            let pct = |n: u64| 100.0 * n as f64 / steps.max(1) as f64;
+        if let Some(t) = self.guard_total() {
+            let pct = |n: u64| 100.0 * n as f64 / t.steps.max(1) as f64;
             out += &format!(
-                "commands: a limit clipped {saturated} of {steps} ({:.1} %); the safety filter changed {filtered} \
-                 ({:.1} %, by up to {change_max:.3} m/s){}\n",
-                pct(saturated),
-                pct(filtered),
-                match infeasible {
+                "commands: a limit clipped {} of {} ({:.1} %); the safety filter changed {} ({:.1} %, by up to \
+                 {:.3} m/s){}{}\n",
+                t.saturated,
+                t.steps,
+                pct(t.saturated),
+                t.filtered,
+                pct(t.filtered),
+                t.change_max,
+                match t.infeasible {
                     0 => String::new(),
                     n => format!("; {n} had no safe command and stopped the robot"),
+                },
+                match t.blind {
+                    0 => String::new(),
+                    n => format!("; {n} stopped the robot beside one whose pose was stale"),
                 }
             );
         }
@@ -219,6 +221,23 @@ impl Summary {
 }
 
 impl Summary {
+    /// Every follower's guard tally summed (the largest change the
+    /// largest); None without limits or a filter.
+    pub fn guard_total(&self) -> Option<formation_agent::GuardTally> {
+        let mut tallies = self.followers.values().filter_map(|m| m.guard).peekable();
+        tallies.peek()?;
+        Some(tallies.fold(formation_agent::GuardTally::default(), |mut a, t| {
+            a.steps += t.steps;
+            a.saturated += t.saturated;
+            a.filtered += t.filtered;
+            a.change_max = a.change_max.max(t.change_max);
+            a.change_sum += t.change_sum;
+            a.infeasible += t.infeasible;
+            a.blind += t.blind;
+            a
+        }))
+    }
+
     /// Where the record ends (s): the run's duration, or for an incomplete
     /// run the last sample of its shortest follower that ended early (one
     /// with gaps ran to the end).

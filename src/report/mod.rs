@@ -20,6 +20,7 @@ mod explain;
 pub mod faults;
 mod network;
 pub mod plots;
+mod safety;
 pub mod stats;
 pub mod tables;
 
@@ -120,6 +121,7 @@ pub fn write_report(out: &Path, cases: &[Case], ctx: &Context) -> Result<(PathBu
     let faulted: Vec<&Case> = cases.iter().filter(|c| !c.summary().faults.is_empty()).collect();
     let link_faults = faults::write(out, &faulted, ctx.study.as_ref())?;
     md += &link_faults.markdown;
+    md += &safety::write(out, cases)?;
     let networked: Vec<&Case> = cases.iter().filter(|c| c.networked).collect();
     md += &network::write(out, &networked)?;
     md += &explain::write(out, &networked)?;

@@ -113,3 +113,31 @@ fn without_the_filter_the_crossing_robots_come_too_close_and_the_launch_says_whi
     let degraded = common::json(&out, "network.json")["health"]["degraded"].to_string();
     assert!(degraded.contains("robots 1 and 2"), "network.json's health: {degraded}");
 }
+
+/// `formation report` shows the safety figures of each case: the closest
+/// pair, the steps closer than the distance, what the limits and the
+/// filter did, as a table and `safety.csv`.
+#[test]
+fn the_report_shows_how_close_the_robots_came_with_and_without_the_filter() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (on, off) = (dir.path().join("on"), dir.path().join("off"));
+    assert!(sim(&on, &[]).status.success());
+    assert_eq!(sim(&off, &["safety.filter=false"]).status.code(), Some(3));
+    let rep = dir.path().join("report");
+    common::run_ok(
+        Command::new(env!("CARGO_BIN_EXE_formation")).arg("report").arg(&on).arg(&off).arg("--out").arg(&rep).arg("-q"),
+    );
+    let md = std::fs::read_to_string(rep.join("report.md")).expect("report.md");
+    let section = md.split("## Safety").nth(1).expect("a safety section");
+    let row =
+        |case: &str| section.lines().find(|l| l.starts_with(&format!("| {case} |"))).unwrap_or_default().to_string();
+    assert!(row("on").contains("| on |") && row("on").contains("| 0 |"), "{}", row("on"));
+    assert!(
+        row("off").contains("| off |") && row("off").contains("(1 and 2,") && row("off").contains("**"),
+        "{}",
+        row("off")
+    );
+    let csv = std::fs::read_to_string(rep.join("safety.csv")).expect("safety.csv");
+    let closest: Vec<f64> = csv.lines().skip(1).map(|l| l.split(',').nth(3).unwrap().parse().unwrap()).collect();
+    assert!(closest[0] >= 0.25 && closest[1] < 0.25, "closest with and without the filter: {closest:?}");
+}

@@ -113,6 +113,7 @@ impl Recorder {
             "events": self.nodes.values().map(|n| n.timeline.len()).sum::<usize>(),
             "recent_events": self.recent_events(), "message": message,
             "alerts": self.alerts(),
+            "safety": self.frame_safety(),
         });
         let full = frame.to_string();
         if let Some(f) = frame.as_object_mut() {
@@ -120,6 +121,17 @@ impl Recorder {
             f.insert("recent_events".into(), json!([]));
         }
         (full, frame.to_string())
+    }
+
+    /// How close the robots came so far (docs/model.md §16); null without
+    /// `safety.distance`.
+    fn frame_safety(&self) -> Value {
+        let Some(p) = &self.proximity else { return Value::Null };
+        json!({
+            "distance": p.distance, "filter": p.filter, "steps_below": p.steps_below,
+            "closest": p.closest.map(|c| json!({"d": c.distance, "pair": c.pair, "t": c.t})),
+            "violation": p.violation_text(),
+        })
     }
 
     /// The leader as the least advanced follower saw it (the frame's t).

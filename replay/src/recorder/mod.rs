@@ -191,7 +191,7 @@ pub struct Recorder {
     density: Density,
     /// How close the robots came (a scenario with `safety.distance`), and
     /// each step's poses until every follower's is in.
-    proximity: Option<Proximity>,
+    pub(super) proximity: Option<Proximity>,
     step_poses: BTreeMap<u64, Vec<Option<Pose>>>,
 }
 
@@ -893,6 +893,67 @@ mod tests {
         let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
         let r = Recorder::new(&scenario, &opts).expect("recorder");
         (dir, scenario, r)
+    }
+
+    /// docs/model.md §16: the monitor measures how close the robots came
+    /// from every follower's samples of a step (a step one follower's
+    /// sample is missing from, with the others'), names the pair in the
+    /// summary and on the live page.
+    #[test]
+    fn the_monitor_names_the_closest_pair_and_a_step_below_the_safety_distance() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/turtlebot.toml");
+        let scenario = Scenario::load(&path, &["duration=0.04".to_string()]).expect("scenario");
+        let dir = tempfile::tempdir().expect("tempdir");
+        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
+        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
+        let steps = scenario.steps();
+        let leader = Telemetry::Leader {
+            first_k: 0,
+            states: vec![LeaderState::default(); steps as usize + 1],
+            counters: Counters::default(),
+            done: true,
+            loop_stats: None,
+            delivery: Delivery::default(),
+        };
+        r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
+        let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
+        for (i, &id) in ids.iter().enumerate() {
+            // Robots 1 m apart on a line; at step 1 the second is 0.1 m from the first.
+            let pose = |k: u64| {
+                let x = if i == 1 && k == 1 { 0.1 } else { i as f64 };
+                formation_plant::Pose::new(x, 0.0, 0.0)
+            };
+            // The last follower's last sample is lost.
+            let n = if i == ids.len() - 1 { steps } else { steps + 1 };
+            let samples = (0..n).map(|k| FollowerSample { pose: pose(k), ..sample(k) }).collect();
+            let slots = scenario.sources_of(i).len();
+            let batch = Telemetry::Follower {
+                id,
+                first_k: 0,
+                heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
+                rescued: Vec::new(),
+                resumed: None,
+                diverged: None,
+                samples,
+                counters: Counters::default(),
+                done: true,
+                loop_stats: None,
+                delivery: Delivery::default(),
+                events: Vec::new(),
+                clock: None,
+                links: Vec::new(),
+            };
+            r.telemetry(Some(id), &codec::encode(&batch), Instant::now()).unwrap();
+        }
+        let (frame, _) = r.live_frame(Instant::now(), 1, 0.0, "running", 0);
+        let frame: serde_json::Value = serde_json::from_str(&frame).expect("a JSON frame");
+        let violation = frame["safety"]["violation"].as_str().unwrap_or_default().to_string();
+        assert!(violation.starts_with(&format!("robots {} and {} came 0.100 m apart", ids[0], ids[1])), "{frame}");
+        let (summary, _) = r.finish(Ending::Interrupted).expect("finish");
+        let p = summary.safety.expect("summary.json's safety");
+        let closest = p.closest.expect("a closest pair");
+        assert_eq!((closest.pair, closest.t, p.steps_below), ([ids[0], ids[1]], scenario.dt_s, 1), "{p:?}");
+        drop(dir);
     }
 
     #[test]
