@@ -114,7 +114,7 @@ pub async fn run(
         .zip(&indices)
         .zip(&brakes)
         .map(|((&id, &index), brake)| {
-            let odometry = driven.then(|| Arc::new(OdomInbox::default()));
+            let odometry = driven.then(|| Arc::new(OdomInbox::for_robot(&scenario, index)));
             let opts = FollowerOptions {
                 protocol: follower::Options { stall_timeout: stall, physical_node_faults: args.physical_node_faults },
                 checkpoint: Some(checkpoint::path(&checkpoint_dir, &keys.run, id)),

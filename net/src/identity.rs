@@ -89,22 +89,19 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
         receive.push(any_run(&format!("estimate/{id}")));
         receive.push(any_run(&format!("telemetry/{id}")));
         receive.push(control.clone());
-        // Every robot's pose, for the safety filter (docs/model.md §16).
-        receive.push(any_run("pose/*"));
-        roles.push(Role {
-            name: agent_name(id),
-            publish: vec![
-                any_run(&format!("estimate/{id}")),
-                any_run(&format!("pose/{id}")),
-                any_run(&format!("telemetry/{id}")),
-                any_run(&format!("control/hello/{id}")),
-                any_run(&format!("control/ready/{id}")),
-                any_run(&format!("control/denied/{}", agent_name(id))),
-            ],
-            receive,
-            answer: vec![],
-            ask: vec![any_run("control/time")],
-        });
+        let mut publish = vec![
+            any_run(&format!("estimate/{id}")),
+            any_run(&format!("telemetry/{id}")),
+            any_run(&format!("control/hello/{id}")),
+            any_run(&format!("control/ready/{id}")),
+            any_run(&format!("control/denied/{}", agent_name(id))),
+        ];
+        if scenario.control.guard.safety.is_some() {
+            // Every robot's pose, for the safety filter (docs/model.md §16).
+            receive.push(any_run("pose/*"));
+            publish.insert(1, any_run(&format!("pose/{id}")));
+        }
+        roles.push(Role { name: agent_name(id), publish, receive, answer: vec![], ask: vec![any_run("control/time")] });
     }
     roles
 }

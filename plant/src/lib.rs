@@ -41,6 +41,22 @@ impl Pose {
         self.y += dt_s * v * s;
         self.theta += dt_s * w;
     }
+
+    /// `local`, a pose in the frame whose origin is `self` (a robot's
+    /// odometry frame placed in the world), in the world: the rigid motion
+    /// `self ⊕ local`.
+    pub fn compose(&self, local: &Pose) -> Pose {
+        let (s, c) = self.theta.sin_cos();
+        Pose::new(self.x + c * local.x - s * local.y, self.y + s * local.x + c * local.y, self.theta + local.theta)
+    }
+
+    /// `world` in the frame whose origin is `self`: the inverse of
+    /// [`Pose::compose`] (`self.compose(&self.relative(w))` is `w` up to rounding).
+    pub fn relative(&self, world: &Pose) -> Pose {
+        let (s, c) = self.theta.sin_cos();
+        let (dx, dy) = (world.x - self.x, world.y - self.y);
+        Pose::new(c * dx + s * dy, -s * dx + c * dy, world.theta - self.theta)
+    }
 }
 
 /// Body velocity ξ = (v, ω), m/s and rad/s.
@@ -353,6 +369,17 @@ impl VelocityRobot {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_pose_in_an_offset_frame_maps_to_the_world_and_back() {
+        let origin = Pose::new(1.0, -2.0, std::f64::consts::FRAC_PI_2);
+        let w = origin.compose(&Pose::new(0.5, 0.0, 0.25));
+        assert!((w.x - 1.0).abs() < 1e-15 && (w.y + 1.5).abs() < 1e-15, "{w:?}");
+        assert!((w.theta - (std::f64::consts::FRAC_PI_2 + 0.25)).abs() < 1e-15);
+        assert_eq!(origin.compose(&Pose::default()), origin, "odometry (0, 0, 0) is the origin");
+        let back = origin.compose(&origin.relative(&Pose::new(3.0, 4.0, -1.0)));
+        assert!((back.x - 3.0).abs() < 1e-12 && (back.y - 4.0).abs() < 1e-12 && (back.theta + 1.0).abs() < 1e-12);
+    }
 
     const PAPER: RobotParams = RobotParams { mass_kg: 10.0, inertia_kgm2: 5.0, wheel_radius_m: 0.05, half_axle_m: 0.2 };
 

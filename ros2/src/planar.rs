@@ -62,11 +62,27 @@ pub fn pose_stamped(stamp_ns: i64, (x, y, theta): (f64, f64, f64)) -> PoseStampe
 
 /// The robot's transforms: [`WORLD`] → odom (identity) and odom → base_link (the pose).
 pub fn transforms(frames: &Frames, stamp_ns: i64, (x, y, theta): (f64, f64, f64)) -> TFMessage {
-    let fixed = TransformStamped {
+    transforms_from(frames, stamp_ns, (0.0, 0.0, 0.0), (x, y, theta))
+}
+
+/// The world → odom transform alone, with the odometry frame's origin in the world.
+pub fn odom_in_world(frames: &Frames, stamp_ns: i64, (x, y, theta): (f64, f64, f64)) -> TransformStamped {
+    TransformStamped {
         header: header(WORLD, stamp_ns),
         child_frame_id: frames.odom.clone(),
-        transform: Transform { translation: Vector3::default(), rotation: Quaternion::from_yaw(0.0) },
-    };
+        transform: Transform { translation: Vector3 { x, y, z: 0.0 }, rotation: Quaternion::from_yaw(theta) },
+    }
+}
+
+/// [`transforms`] of a robot whose odometry frame sits at `origin` in the
+/// world: world → odom at `origin`, odom → base_link at the odometry pose.
+pub fn transforms_from(
+    frames: &Frames,
+    stamp_ns: i64,
+    origin: (f64, f64, f64),
+    (x, y, theta): (f64, f64, f64),
+) -> TFMessage {
+    let fixed = odom_in_world(frames, stamp_ns, origin);
     let moving = TransformStamped {
         header: header(&frames.odom, stamp_ns),
         child_frame_id: frames.base_link.clone(),
@@ -93,5 +109,19 @@ mod tests {
         assert_eq!(tf.transforms.len(), 2);
         assert_eq!(tf.transforms[0].header.frame_id, WORLD);
         assert_eq!(tf.transforms[1].child_frame_id, "follower_3/base_link");
+    }
+
+    #[test]
+    fn a_robots_odometry_frame_sits_at_its_origin_in_the_world() {
+        let f = Frames::of("/follower_2");
+        let tf = transforms_from(&f, 0, (1.5, -0.5, 0.25), (0.0, 0.0, 0.0));
+        let fixed = &tf.transforms[0];
+        assert_eq!((fixed.header.frame_id.as_str(), fixed.child_frame_id.as_str()), (WORLD, "follower_2/odom"));
+        let t = &fixed.transform.translation;
+        assert_eq!((t.x, t.y), (1.5, -0.5));
+        assert!((fixed.transform.rotation.yaw() - 0.25).abs() < 1e-15);
+        let moving = &tf.transforms[1];
+        assert_eq!(moving.child_frame_id, "follower_2/base_link");
+        assert_eq!((moving.transform.translation.x, moving.transform.translation.y), (0.0, 0.0));
     }
 }

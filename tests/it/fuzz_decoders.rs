@@ -974,7 +974,8 @@ fn capture_run(tmp: &Path, certs: &Path, run: &str, duration: &str) -> Captured 
     let heard = heard.lock().unwrap().clone();
     eprintln!("{run}: heard {} messages, {} clock replies", heard.len(), replies.len());
     let checkpoints: Vec<(String, Vec<u8>)> = checkpoints.into_iter().collect();
-    assert!(!checkpoints.is_empty(), "no checkpoint read during the run {run}");
+    // A short lock-step run may end before the 50 ms polls read one: the
+    // capture as a whole needs some (asserted by capture_corpus).
     let left = std::fs::read_dir(tmpdir.join("formation-checkpoints")).map_or(0, |d| d.count());
     assert_eq!(left, 0, "a complete run left {left} checkpoints behind");
     let hearing = std::fs::read(out.join("hearing.bin")).expect("the run's hearing.bin");
@@ -1022,6 +1023,7 @@ fn capture_corpus() {
         }
         by.entry("hearing").or_default().insert(format!("{run}-hearing"), vec![c.hearing]);
     }
+    assert!(by.get("checkpoint").is_some_and(|c| !c.is_empty()), "no checkpoint read during any capture run");
 
     for kind in KINDS {
         let dir = corpus_dir().join(kind.name());

@@ -84,3 +84,40 @@ fn stand_in_robots_in_lock_step_equal_formation_sim_and_record_a_readable_bag() 
     let d = (th - cols[3]).rem_euclid(std::f64::consts::TAU);
     assert!(d.min(std::f64::consts::TAU - d) < 1e-12, "heading {th} in the bag vs {} in the CSV", cols[3]);
 }
+
+/// docs/ros2.md, "Odometry in the robot's frame": stand-in robots whose
+/// odometry starts at (0, 0, 0) at their scenario poses, driven with
+/// `robot.odom_origin = "start"`, end where world-frame robots do: the
+/// formation errors of `formation sim` to 1e-9 m (the frame change rounds).
+#[test]
+fn stand_in_robots_with_odometry_from_their_start_end_as_world_frame_robots() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("run");
+    let o = out.display().to_string();
+    let sets = ["duration=3", "robot.odom_origin=\"start\""];
+    let mut args = vec!["launch", VELOCITY_SCENARIO, "-q", "--out", &o, "--robots", "stand-in"];
+    for s in &sets {
+        args.extend(["--set", s]);
+    }
+    let mut run = Group::spawn(&args);
+    let status = run.wait(LIMIT * 2);
+    assert!(status.success(), "launch --robots stand-in with odom_origin = start: {status}");
+    run.assert_group_empty();
+    let sim = dir.path().join("sim");
+    let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+    c.args(["sim", VELOCITY_SCENARIO, "-q", "--out"]).arg(&sim);
+    for s in &sets {
+        c.args(["--set", s]);
+    }
+    common::run_ok(&mut c);
+    let (got, want) = (common::json(&out, "summary.json"), common::json(&sim, "summary.json"));
+    for id in ["1", "2", "3", "4"] {
+        for m in ["formation_final", "formation_rms_last10", "heading_final", "estimator_error_final"] {
+            let (g, w) = (got["followers"][id][m].as_f64().unwrap(), want["followers"][id][m].as_f64().unwrap());
+            assert!(
+                (g - w).abs() < 1e-9,
+                "follower {id} {m}: {g} through odometry from its start, {w} in formation sim"
+            );
+        }
+    }
+}

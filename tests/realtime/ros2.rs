@@ -522,3 +522,102 @@ fn the_safety_filter_in_real_time_keeps_the_robots_apart_as_the_model_does() {
     }
     common::judge_if_quiet("the safety filter in real time against the simulator", &bad, host, "");
 }
+
+/// docs/ros2.md, "Odometry in the robot's frame": robots that are not this
+/// project's (Python unicycles) report odometry from (0, 0, 0) where they
+/// stand, in a bare `odom` frame, as a TurtleBot out of the box does; with
+/// `robot.odom_origin = "start"` and `ros2.odom_frame = "odom"` the agents
+/// place them at their scenario poses and drive them to their slots, as
+/// the model does world-frame robots. One robot says every fifth message in
+/// frame `map`: refused, counted and named.
+#[test]
+fn robots_whose_odometry_starts_at_zero_in_their_own_frame_end_in_their_slots() {
+    let _alone = common::alone();
+    let Some(py) = common::ros2_python() else { return };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (_router, ep) = router();
+    let scenario = formation_topology::Scenario::load(Path::new(VELOCITY_SCENARIO), &[]).expect("scenario");
+    let mut robots = Vec::new();
+    for f in &scenario.followers {
+        let id = f.id.to_string();
+        let out = tmp.path().join(format!("robot_{id}.json")).display().to_string();
+        let wrong = if f.id == 2 { "5" } else { "0" };
+        let args = [
+            "--connect",
+            &ep,
+            "--id",
+            &id,
+            "--pose",
+            "0",
+            "0",
+            "0",
+            "--frame",
+            "odom",
+            "--wrong-frame-every",
+            wrong,
+            "--dt",
+            "0.01",
+            "--seconds",
+            "16",
+            "--out",
+            &out,
+        ];
+        robots.push(python(&py, "unicycle.py", &args, &tmp.path().join(format!("robot_{id}.log"))));
+    }
+    std::thread::sleep(Duration::from_secs(2));
+    let out = tmp.path().join("run");
+    let o = out.display().to_string();
+    let sets = [
+        "timing=\"realtime\"",
+        "dt=0.01",
+        "duration=10",
+        "network.delay_steps=1",
+        "noise=false",
+        "robot.odom_origin=\"start\"",
+        "ros2.odom_frame=\"odom\"",
+    ];
+    let mut args =
+        vec!["launch", VELOCITY_SCENARIO, "--out", &o, "--robots", "external", "--router", &ep, "--run", "ros2-origin"];
+    for s in &sets {
+        args.extend(["--set", s]);
+    }
+    let log = tmp.path().join("launch.log");
+    let began = Instant::now();
+    let mut run = launch(&args, &log);
+    let status = run.wait(common::LIMIT);
+    let said = std::fs::read_to_string(&log).unwrap_or_default();
+    assert!(status.success() || status.code() == Some(3), "launch --robots external: {status}: {said}");
+    for robot in &mut robots {
+        robot.wait(common::LIMIT.saturating_sub(began.elapsed()) + Duration::from_secs(20));
+    }
+    let refused = said
+        .lines()
+        .find(|l| l.starts_with("follower 2: odometry refused on /follower_2/odom: "))
+        .unwrap_or_else(|| panic!("robot 2's odometry in frame `map` is not said to be refused: {said}"));
+    assert!(refused.contains("in frame `map` (expected `odom`: ros2.odom_frame)"), "{refused}");
+    let summary = json(&out, "summary.json");
+    let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
+    sim.args(["sim", VELOCITY_SCENARIO, "-q", "--set", "robot.lag=1e-6", "--out"]).arg(tmp.path().join("sim"));
+    for s in &sets {
+        sim.args(["--set", s]);
+    }
+    common::run_ok(&mut sim);
+    let model = json(&tmp.path().join("sim"), "summary.json");
+    for f in &scenario.followers {
+        let id = f.id.to_string();
+        let e = summary["followers"][&id]["formation_final"].as_f64().unwrap_or(f64::NAN);
+        let m = model["followers"][&id]["formation_final"].as_f64().unwrap_or(f64::NAN);
+        assert!(
+            e < 0.3 && (e - m).abs() <= 0.15 * m,
+            "follower {id} (a unicycle starting at (0, 0, 0) in its own frame) ends {e:.4} m from its slot, the model \
+             {m:.4} m"
+        );
+        // Where the robot says it is, placed at its origin, is where the run recorded it.
+        let local = &json(tmp.path(), &format!("robot_{id}.json"))["pose"];
+        let local = formation_plant::Pose::new(local[0].as_f64().unwrap(), local[1].as_f64().unwrap(), 0.0);
+        let world = f.pose.compose(&local);
+        let last = csv_rows(&out.join(format!("follower_{id}.csv"))).pop().expect("rows");
+        let d = (world.x - last[1]).hypot(world.y - last[2]);
+        assert!(d < 0.1, "robot {id}'s own last odometry {local:?} is {d:.3} m from the run's last pose in the world");
+    }
+}

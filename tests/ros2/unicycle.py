@@ -31,6 +31,9 @@ def main():
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--stop-after", type=float, default=1e9, help="s after the first command")
+    ap.add_argument("--frame", default=None, help="odometry frame_id (default follower_<id>/odom)")
+    ap.add_argument("--wrong-frame-every", type=int, default=0,
+                    help="publish every Nth odometry message in frame `map` (to be refused)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
 
@@ -97,7 +100,10 @@ def main():
         th += a.dt * w
         now = time.time_ns()
         stamp = T["builtin_interfaces/msg/Time"](sec=now // 1_000_000_000, nanosec=now % 1_000_000_000)
-        header = T["std_msgs/msg/Header"](stamp=stamp, frame_id=f"{ns}/odom")
+        frame = a.frame or f"{ns}/odom"
+        if a.wrong_frame_every and (published + 1) % a.wrong_frame_every == 0:
+            frame = "map"
+        header = T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
         P, Q, V3 = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"], T["geometry_msgs/msg/Vector3"]
         pose = T["geometry_msgs/msg/Pose"](position=P(x=x, y=y, z=0.0),
                                            orientation=Q(x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2)))

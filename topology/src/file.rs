@@ -92,11 +92,15 @@ pub struct Ros2File {
     /// A driven robot whose odometry is older than this (s) is sent zero velocity.
     #[serde(default = "d::odom_timeout")]
     pub odom_timeout: f64,
+    /// The `frame_id` a driven robot's odometry must carry; `{id}` is the
+    /// follower's id (default `follower_{id}/odom`; a bare driver's `odom`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub odom_frame: Option<String>,
 }
 
 impl Default for Ros2File {
     fn default() -> Self {
-        Self { enabled: false, domain_id: 0, robots: d::robots(), odom_timeout: d::odom_timeout() }
+        Self { enabled: false, domain_id: 0, robots: d::robots(), odom_timeout: d::odom_timeout(), odom_frame: None }
     }
 }
 
@@ -166,6 +170,11 @@ pub struct FollowerFile {
     /// a_i0.
     #[serde(default)]
     pub leader_link: bool,
+    /// Where this robot's odometry frame sits in the world (x, y, θ): its
+    /// odometry (0, 0, 0) is this pose (docs/ros2.md). Overrides
+    /// `robot.odom_origin`.
+    #[serde(default, deserialize_with = "exact::option", skip_serializing_if = "Option::is_none")]
+    pub odom_origin: Option<[f64; 3]>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -240,6 +249,11 @@ pub struct RobotFile {
     /// long, s (default [`DEFAULT_CMD_TIMEOUT_S`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cmd_timeout: Option<f64>,
+    /// Where a driven robot's odometry starts: `world` (default: it reports
+    /// its pose in the scenario's world frame) or `start` (it reports
+    /// (0, 0, 0) where it was switched on, at its scenario pose).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub odom_origin: Option<String>,
 }
 
 /// `[robot] cmd_timeout` when none is given, s: a driver's usual command time-out.
@@ -479,7 +493,8 @@ default_impl!(RobotFile {
     half_axle: d::half_axle(),
     v_max: None,
     w_max: None,
-    cmd_timeout: None
+    cmd_timeout: None,
+    odom_origin: None
 });
 default_impl!(DisturbanceFile { dv: d::dv(), dw: d::dw() });
 default_impl!(CovarianceFile { q: d::cov(), r: d::cov() });

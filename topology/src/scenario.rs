@@ -43,6 +43,9 @@ pub struct FollowerSpec {
     pub pose: Pose,
     pub velocity: Velocity,
     pub hears_leader: bool,
+    /// Where this robot's odometry frame sits in the world (`robot.odom_origin`
+    /// or the follower's own): None, the world frame itself.
+    pub odom_origin: Option<Pose>,
 }
 
 /// Networked-run settings.
@@ -84,6 +87,9 @@ pub struct Ros2Settings {
     /// A driven robot's odometry older than this is a stopped robot.
     pub odom_timeout_s: f64,
 }
+
+/// `ros2.odom_frame` when none is given: `{id}` is the follower's id.
+pub const DEFAULT_ODOM_FRAME: &str = "follower_{id}/odom";
 
 /// Largest ROS_DOMAIN_ID (ROS 2's own limit: 0–232).
 pub const MAX_DOMAIN_ID: u32 = 232;
@@ -204,6 +210,8 @@ pub struct Scenario {
     pub safety_distance: Option<f64>,
     /// A stand-in robot stops when no command came for this long, s (`robot.cmd_timeout`).
     pub cmd_timeout_s: f64,
+    /// The `frame_id` driven robots' odometry carries (`ros2.odom_frame`), `{id}` for the id.
+    pub odom_frame: String,
     /// The file as it was read and overridden, for the record of a run.
     pub source: ScenarioFile,
 }
@@ -402,6 +410,11 @@ impl Scenario {
             ids.push(0);
         }
         ids
+    }
+
+    /// The `frame_id` follower `id`'s odometry carries (`ros2.odom_frame`).
+    pub fn odom_frame_of(&self, id: u32) -> String {
+        self.odom_frame.replace("{id}", &id.to_string())
     }
 
     /// The followers the one at `index` exchanges messages with, by index:
@@ -889,6 +902,10 @@ fn validate(
     let guard = validate_guard(&c, &file, &followers)?;
     let cmd_timeout_s = file.robot.cmd_timeout.unwrap_or(DEFAULT_CMD_TIMEOUT_S);
     c.positive("robot.cmd_timeout", &[cmd_timeout_s])?;
+    let odom_frame = file.ros2.odom_frame.clone().unwrap_or_else(|| DEFAULT_ODOM_FRAME.to_string());
+    if odom_frame.trim().is_empty() || odom_frame.len() > 256 {
+        return Err(c.fail("ros2.odom_frame", "a frame name of 1 to 256 characters (`{id}` for the follower's id)"));
+    }
     let r = &file.robot;
     let robot = RobotParams {
         mass_kg: r.mass,
@@ -917,6 +934,7 @@ fn validate(
         ros2,
         safety_distance: file.safety.as_ref().map(|s| s.distance),
         cmd_timeout_s,
+        odom_frame,
         source: file,
     })
 }
@@ -1147,6 +1165,12 @@ fn validate_followers(
 ) -> Result<Vec<FollowerSpec>, ScenarioError> {
     let mut order: Vec<usize> = (0..file.followers.len()).collect();
     order.sort_by_key(|&i| file.followers[i].id);
+    if let Some(o) = file.robot.odom_origin.as_deref().filter(|o| !matches!(*o, "world" | "start")) {
+        return Err(c.fail(
+            "robot.odom_origin",
+            format!("`{o}` is not one of: world, start (or give a follower its own odom_origin = [x, y, θ])"),
+        ));
+    }
     let mut followers = Vec::with_capacity(order.len());
     for (pos, &i) in order.iter().enumerate() {
         let f = &file.followers[i];
@@ -1171,12 +1195,21 @@ fn validate_followers(
             (Some(_), Some(_)) => return Err(c.fail(&field("pose"), "give either `pose` or `body_error`, not both")),
             (None, None) => return Err(c.fail(&field("pose"), "missing: give `pose` or `body_error`")),
         };
+        let odom_origin = match (f.odom_origin, file.robot.odom_origin.as_deref()) {
+            (Some(o), _) => {
+                c.bounded(&field("odom_origin"), &o, MAX_DISTANCE_M, "(m, rad)")?;
+                Some(Pose::new(o[0], o[1], o[2]))
+            }
+            (None, Some("start")) => Some(pose),
+            (None, _) => None,
+        };
         followers.push(FollowerSpec {
             id: f.id,
             offset: f.offset,
             pose,
             velocity: Velocity::new(f.velocity[0], f.velocity[1]),
             hears_leader: f.leader_link,
+            odom_origin,
         });
     }
     Ok(followers)
@@ -1938,6 +1971,29 @@ mod tests {
         ] {
             assert_eq!(message(ARRAYS, &[set]), want);
         }
+    }
+
+    /// docs/ros2.md: where each robot's odometry frame sits, and the frame it names.
+    #[test]
+    fn odometry_origins_and_frames_parse_and_bad_ones_are_refused_in_one_line() {
+        let s = load(ARRAYS, &[]).unwrap();
+        assert!(s.followers.iter().all(|f| f.odom_origin.is_none()), "the world frame by default");
+        assert_eq!(s.odom_frame_of(7), "follower_7/odom");
+        let s = load(ARRAYS, &["robot.odom_origin=\"start\"", "ros2.odom_frame=\"odom\""]).unwrap();
+        assert!(s.followers.iter().all(|f| f.odom_origin == Some(f.pose)), "each at its scenario pose");
+        assert_eq!(s.odom_frame_of(7), "odom");
+        let own = ARRAYS.replacen("leader_link = true\n", "leader_link = true\nodom_origin = [1.0, 2.0, 0.5]\n", 1);
+        let s = load(&own, &["robot.odom_origin=\"start\""]).unwrap();
+        assert_eq!(s.followers[0].odom_origin, Some(Pose::new(1.0, 2.0, 0.5)), "a follower's own origin wins");
+        assert_eq!(s.followers[1].odom_origin, Some(s.followers[1].pose));
+        assert_eq!(
+            message(ARRAYS, &["robot.odom_origin=\"here\""]),
+            "--set robot.odom_origin=\"here\": robot.odom_origin: `here` is not one of: world, start (or give a \
+             follower its own odom_origin = [x, y, θ])"
+        );
+        assert!(message(ARRAYS, &["ros2.odom_frame=\"\""]).contains("ros2.odom_frame: a frame name of 1 to 256"));
+        let bad = ARRAYS.replacen("leader_link = true\n", "leader_link = true\nodom_origin = [1.0, inf, 0.0]\n", 1);
+        assert!(load(&bad, &[]).unwrap_err().to_string().contains("followers[0].odom_origin"), "a non-finite origin");
     }
 
     #[test]

@@ -12,8 +12,11 @@
 //! Real time: each step uses the newest odometry; a robot silent for
 //! `ros2.odom_timeout` is sent zero velocity, and the run says so.
 //!
-//! Odometry from the future, with a quantity that is not finite, or a jump
-//! of more than [`JUMP_M`] from the last one taken is counted and refused.
+//! Odometry in another frame than the scenario's `ros2.odom_frame`, from
+//! the future, with a quantity that is not finite, or a jump of more than
+//! [`JUMP_M`] from the last one taken is counted and refused. A robot whose
+//! odometry frame has an origin (`robot.odom_origin`) reports its pose in
+//! that frame; it is mapped into the world before the brain sees it.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -25,7 +28,7 @@ use formation_record::FollowerSample;
 use formation_ros2::msgs::Odometry;
 use formation_topology::{Scenario, Timing};
 
-use super::topics::{Stamps, QOS};
+use super::topics::{OdomFrame, Stamps, QOS};
 use super::wire::{RosNode, RosSubscription};
 use crate::clock::{self, Timebase};
 use crate::error::Error;
@@ -60,24 +63,36 @@ pub struct Refused {
     /// more than [`AHEAD_STEPS`] past the awaited one.
     pub off_steps: AtomicU64,
     pub jump: AtomicU64,
+    pub wrong_frame: AtomicU64,
+    /// The last frame_id refused, and the one expected.
+    pub frames: Mutex<Option<(String, String)>>,
 }
 
 impl Refused {
     /// "3 from the future, 1 not finite", or None when nothing was refused.
     pub fn summary(&self) -> Option<String> {
-        let parts: Vec<String> = [
-            (&self.future, "from the future"),
-            (&self.off_steps, "stamped off the run's steps"),
-            (&self.not_finite, "not finite"),
-            (&self.jump, "jumps"),
-            (&self.undecodable, "undecodable"),
-        ]
-        .iter()
-        .filter_map(|(n, what)| {
-            let n = n.load(Ordering::Relaxed);
-            (n > 0).then(|| format!("{n} {what}"))
-        })
-        .collect();
+        let wrong = self.wrong_frame.load(Ordering::Relaxed);
+        let frames = self.frames.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        let wrong = frames
+            .filter(|_| wrong > 0)
+            .map(|(got, want)| format!("{wrong} in frame `{got}` (expected `{want}`: ros2.odom_frame)"));
+        let parts: Vec<String> = wrong
+            .into_iter()
+            .chain(
+                [
+                    (&self.future, "from the future"),
+                    (&self.off_steps, "stamped off the run's steps"),
+                    (&self.not_finite, "not finite"),
+                    (&self.jump, "jumps"),
+                    (&self.undecodable, "undecodable"),
+                ]
+                .iter()
+                .filter_map(|(n, what)| {
+                    let n = n.load(Ordering::Relaxed);
+                    (n > 0).then(|| format!("{n} {what}"))
+                }),
+            )
+            .collect();
         (!parts.is_empty()).then(|| parts.join(", "))
     }
 }
@@ -89,9 +104,21 @@ pub struct OdomInbox {
     /// Lock-step: the step the body waits for next.
     awaited: AtomicU64,
     pub refused: Refused,
+    /// The frame_id the odometry must carry, and where that frame sits.
+    frame_id: String,
+    frame: OdomFrame,
 }
 
 impl OdomInbox {
+    /// The inbox of follower `index`'s robot.
+    pub fn for_robot(scenario: &Scenario, index: usize) -> Self {
+        Self {
+            frame_id: scenario.odom_frame_of(scenario.graph.id(index)),
+            frame: OdomFrame::of(scenario, index),
+            ..Self::default()
+        }
+    }
+
     fn latest(&self) -> Option<Odom> {
         *self.latest.lock().unwrap_or_else(|p| p.into_inner())
     }
@@ -106,8 +133,14 @@ impl OdomInbox {
         now_ns: Option<i64>,
         future_ns: i64,
     ) -> Result<Option<u64>, ()> {
+        if m.header.frame_id != self.frame_id {
+            self.refused.wrong_frame.fetch_add(1, Ordering::Relaxed);
+            *self.refused.frames.lock().unwrap_or_else(|p| p.into_inner()) =
+                Some((m.header.frame_id.clone(), self.frame_id.clone()));
+            return Err(());
+        }
         let p = &m.pose.pose;
-        let pose = Pose::new(p.position.x, p.position.y, p.orientation.yaw());
+        let pose = self.frame.world(Pose::new(p.position.x, p.position.y, p.orientation.yaw()));
         let twist = Velocity::new(m.twist.twist.linear.x, m.twist.twist.angular.z);
         if !(pose.is_finite() && twist.is_finite()) {
             self.refused.not_finite.fetch_add(1, Ordering::Relaxed);
@@ -319,6 +352,11 @@ mod tests {
         planar::odometry(&Frames::of("/follower_1"), stamp_ns, (x, y, 0.25), (0.5, 0.1))
     }
 
+    /// Follower 1's inbox, its odometry frame at `origin` (None: the world).
+    fn inbox(origin: Option<Pose>) -> OdomInbox {
+        OdomInbox { frame_id: "follower_1/odom".into(), frame: OdomFrame { origin }, ..OdomInbox::default() }
+    }
+
     fn counts(r: &Refused) -> [u64; 5] {
         [&r.future, &r.not_finite, &r.jump, &r.undecodable, &r.off_steps].map(|n| n.load(Ordering::Relaxed))
     }
@@ -326,7 +364,7 @@ mod tests {
     #[test]
     fn lock_step_odometry_is_taken_for_the_awaited_step_or_a_repeat_and_refused_from_the_future() {
         let stamps = Stamps::lockstep(0.01);
-        let inbox = OdomInbox::default();
+        let inbox = inbox(None);
         inbox.awaited.store(3, Ordering::Relaxed);
         assert_eq!(inbox.offer(&odom(stamps.ns(3), 1.0, 2.0), &stamps, true, None, 0), Ok(Some(3)));
         let o = inbox.latest().expect("taken");
@@ -350,7 +388,7 @@ mod tests {
     #[test]
     fn odometry_that_is_not_finite_jumps_or_comes_from_the_future_is_counted_and_refused() {
         let stamps = Stamps::lockstep(0.01);
-        let inbox = OdomInbox::default();
+        let inbox = inbox(None);
         let now = 1_000_000_000_000;
         let timeout = 500_000_000;
         assert_eq!(inbox.offer(&odom(now, 0.0, 0.0), &stamps, false, Some(now), timeout), Ok(None));
@@ -364,5 +402,28 @@ mod tests {
         assert_eq!(inbox.latest().map(|o| o.pose.x), Some(0.5));
         assert_eq!(counts(&inbox.refused), [1, 2, 1, 0, 0]);
         assert_eq!(inbox.refused.summary().as_deref(), Some("1 from the future, 2 not finite, 1 jumps"));
+    }
+
+    /// docs/ros2.md: odometry in another frame is refused, named; a robot
+    /// whose odometry starts at (0, 0, 0) at its origin is placed in the world.
+    #[test]
+    fn odometry_in_another_frame_is_refused_and_a_frame_with_an_origin_is_mapped_into_the_world() {
+        let stamps = Stamps::lockstep(0.01);
+        let origin = Pose::new(2.0, 1.0, std::f64::consts::FRAC_PI_2);
+        let inbox = inbox(Some(origin));
+        let mut bare = odom(0, 0.0, 0.0);
+        bare.header.frame_id = "odom".into();
+        assert_eq!(inbox.offer(&bare, &stamps, false, Some(0), 1), Err(()));
+        assert_eq!(
+            inbox.refused.summary().as_deref(),
+            Some("1 in frame `odom` (expected `follower_1/odom`: ros2.odom_frame)")
+        );
+        assert_eq!(inbox.offer(&odom(0, 0.0, 0.0), &stamps, false, Some(0), 1), Ok(None));
+        let p = inbox.latest().expect("taken").pose;
+        assert!((p.x - 2.0).abs() < 1e-15 && (p.y - 1.0).abs() < 1e-15, "(0, 0) in the odometry frame is {p:?}");
+        assert!((p.theta - (std::f64::consts::FRAC_PI_2 + 0.25)).abs() < 1e-15, "heading {}", p.theta);
+        inbox.offer(&odom(0, 0.5, 0.0), &stamps, false, Some(0), 1).unwrap();
+        let p = inbox.latest().expect("taken").pose;
+        assert!((p.x - 2.0).abs() < 1e-15 && (p.y - 1.5).abs() < 1e-15, "0.5 m ahead of a robot facing +y: {p:?}");
     }
 }

@@ -28,7 +28,7 @@ use formation_plant::{Drive, NoiseSource, Velocity, VelocityRobot};
 use formation_ros2::msgs::{Odometry, TFMessage, Twist};
 use formation_topology::{Scenario, Timing};
 
-use super::topics::{odometry, Stamps, QOS};
+use super::topics::{odometry, OdomFrame, Stamps, QOS};
 use super::wire::{RosNode, RosPublisher};
 use crate::clock;
 use crate::error::Error;
@@ -97,7 +97,8 @@ pub async fn run(args: &RobotArgs, shutdown: impl Future<Output = ()>) -> Result
     let mut out = Outputs {
         odom: node.publisher("odom", QOS, congestion).await?,
         tf: node.publisher("/tf", QOS, congestion).await?,
-        frames: Frames::of(&namespace),
+        frames: super::topics::follower_frames(&scenario, args.id),
+        frame: OdomFrame::of(&scenario, index),
     };
     let latest: Arc<Mutex<Option<Command>>> = Arc::new(Mutex::new(None));
     let l = latest.clone();
@@ -187,6 +188,9 @@ struct Outputs {
     odom: RosPublisher<Odometry>,
     tf: RosPublisher<TFMessage>,
     frames: Frames,
+    /// Where its odometry frame sits (`robot.odom_origin`): the odometry
+    /// reports the pose in it, /tf places it in the world.
+    frame: OdomFrame,
 }
 
 impl Outputs {
@@ -194,14 +198,14 @@ impl Outputs {
     /// the measured velocity z), and its transforms.
     fn publish(&mut self, ns: i64, p: &Plant) -> Result<(), Error> {
         self.publish_odometry(ns, p)?;
-        self.tf.put(&super::topics::transforms(&self.frames, ns, p.robot.pose), ns)
+        self.tf.put(&self.frame.transforms(&self.frames, ns, p.robot.pose), ns)
     }
 
     /// The odometry alone: a lock-step repeat of a step (its transforms
     /// again with the same stamp would make tf2 listeners warn of repeated
     /// data, TF_REPEATED_DATA).
     fn publish_odometry(&mut self, ns: i64, p: &Plant) -> Result<(), Error> {
-        self.odom.put(&odometry(&self.frames, ns, p.robot.pose, p.robot.measurement), ns)
+        self.odom.put(&odometry(&self.frames, ns, self.frame.local(p.robot.pose), p.robot.measurement), ns)
     }
 }
 

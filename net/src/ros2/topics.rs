@@ -79,6 +79,41 @@ pub fn transforms(frames: &Frames, ns: i64, pose: Pose) -> TFMessage {
     planar::transforms(frames, ns, (pose.x, pose.y, pose.theta))
 }
 
+/// A follower's frames: its odometry frame as the scenario names it
+/// (`ros2.odom_frame`), `follower_<id>/base_link`.
+pub fn follower_frames(scenario: &Scenario, id: u32) -> Frames {
+    Frames { odom: scenario.odom_frame_of(id), ..Frames::of(&super::follower_namespace(id)) }
+}
+
+/// Where a follower's robot is in its odometry frame, and that frame's
+/// origin in the world (docs/ros2.md, "Odometry in the robot's frame").
+#[derive(Clone, Copy, Debug, Default)]
+pub struct OdomFrame {
+    pub origin: Option<Pose>,
+}
+
+impl OdomFrame {
+    pub fn of(scenario: &Scenario, index: usize) -> Self {
+        Self { origin: scenario.followers[index].odom_origin }
+    }
+
+    /// A world pose as the robot's odometry reports it.
+    pub fn local(&self, world: Pose) -> Pose {
+        self.origin.map_or(world, |o| o.relative(&world))
+    }
+
+    /// A pose the odometry reports, in the world.
+    pub fn world(&self, local: Pose) -> Pose {
+        self.origin.map_or(local, |o| o.compose(&local))
+    }
+
+    /// The robot's transforms: world → odom at the origin, odom → base_link at its odometry pose.
+    pub fn transforms(&self, frames: &Frames, ns: i64, world: Pose) -> TFMessage {
+        let (o, l) = (self.origin.unwrap_or_default(), self.local(world));
+        planar::transforms_from(frames, ns, (o.x, o.y, o.theta), (l.x, l.y, l.theta))
+    }
+}
+
 fn twist_of(v: Velocity) -> Twist {
     planar::twist(v.v, v.w)
 }
@@ -94,6 +129,10 @@ pub struct FollowerTopics {
     /// None when a driven robot publishes its own odometry and transforms.
     odom: Option<RosPublisher<Odometry>>,
     tf: Option<RosPublisher<TFMessage>>,
+    /// An external robot's world → odom transform, which only the agent
+    /// knows (a robot with `odom_origin`).
+    odom_in_world: Option<RosPublisher<TFMessage>>,
+    frame: OdomFrame,
     cmd_vel: RosPublisher<Twist>,
     estimate: RosPublisher<PoseStamped>,
     /// The last command sent (step, payload), for a lock-step robot that asks again.
@@ -112,19 +151,27 @@ impl FollowerTopics {
         driven: bool,
         epoch_unix_ns: u64,
     ) -> Result<Self, Error> {
-        let namespace = super::follower_namespace(id);
         let c = congestion(scenario);
         let (odom, tf) = if driven {
             (None, None)
         } else {
             (Some(node.publisher("odom", QOS, c).await?), Some(node.publisher("/tf", QOS, c).await?))
         };
+        let index = scenario.index_of(id).ok_or_else(|| Error::Input(format!("no follower {id}")))?;
+        let frame = OdomFrame::of(scenario, index);
+        let external = scenario.ros2.is_some_and(|r| r.robots == formation_topology::RobotSource::External);
+        let odom_in_world = match external && frame.origin.is_some() {
+            true => Some(node.publisher("/tf", QOS, c).await?),
+            false => None,
+        };
         Ok(Self {
             cmd_vel: node.publisher("cmd_vel", QOS, c).await?,
             estimate: node.publisher("leader_estimate", QOS, c).await?,
             odom,
             tf,
-            frames: Frames::of(&namespace),
+            odom_in_world,
+            frame,
+            frames: follower_frames(scenario, id),
             stamps: Stamps::of(scenario, epoch_unix_ns),
             last_command: None,
         })
@@ -139,10 +186,14 @@ impl FollowerTopics {
         let e = s.estimate.pose;
         self.estimate.put(&planar::pose_stamped(ns, (e.x, e.y, e.theta)), ns)?;
         if let Some(p) = &mut self.odom {
-            p.put(&odometry(&self.frames, ns, s.pose, s.velocity), ns)?;
+            p.put(&odometry(&self.frames, ns, self.frame.local(s.pose), s.velocity), ns)?;
         }
         if let Some(p) = &mut self.tf {
-            p.put(&transforms(&self.frames, ns, s.pose), ns)?;
+            p.put(&self.frame.transforms(&self.frames, ns, s.pose), ns)?;
+        }
+        if let (Some(p), Some(o)) = (&mut self.odom_in_world, self.frame.origin) {
+            let fixed = planar::odom_in_world(&self.frames, ns, (o.x, o.y, o.theta));
+            p.put(&TFMessage { transforms: vec![fixed] }, ns)?;
         }
         Ok(())
     }
