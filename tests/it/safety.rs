@@ -141,3 +141,93 @@ fn the_report_shows_how_close_the_robots_came_with_and_without_the_filter() {
     let closest: Vec<f64> = csv.lines().skip(1).map(|l| l.split(',').nth(3).unwrap().parse().unwrap()).collect();
     assert!(closest[0] >= 0.25 && closest[1] < 0.25, "closest with and without the filter: {closest:?}");
 }
+
+/// Hostile messages on the pose keys of a lock-step run with the filter
+/// (client mode, a process on its router): garbage, an estimate, a pose of
+/// another sender than its key, one not finite, one a million steps ahead.
+/// Each follower counts and drops them, and the run is `formation sim`'s
+/// byte for byte.
+#[test]
+fn garbage_and_forged_poses_are_counted_and_dropped_and_change_nothing() {
+    use formation_net::session::{self, ZenohArgs, ZenohMode};
+    use formation_topology::wire::{self, Header, PoseMsg, FORMAT_VERSION};
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use std::sync::Arc;
+    use std::time::{Duration, Instant};
+
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (out, sim_dir) = (tmp.path().join("run"), tmp.path().join("sim"));
+    let sets = ["duration=120"];
+    let run = "pose-attack";
+    let port = common::Ports::free(1).release();
+    let o = out.display().to_string();
+    let p = port.to_string();
+    let mut args = vec!["launch", TURTLEBOT, "-q", "--out", &o, "--mode", "client", "--base-port", &p, "--run", run];
+    for s in sets {
+        args.extend(["--set", s]);
+    }
+    let mut g = Group::spawn(&args);
+    let pose = |sender: u32, step: u64, x: f64| {
+        let header = Header { version: FORMAT_VERSION, sender, step, time_s: 0.0, sent_ns: 0 };
+        wire::encode_pose(&PoseMsg { header, pose: [x, 0.0, 0.0] })
+    };
+    let hostile: Vec<(String, Vec<u8>)> = vec![
+        ("pose/1".into(), b"garbage".to_vec()),
+        ("pose/2".into(), pose(3, 1, 0.0)),
+        ("pose/3".into(), pose(3, 1, f64::NAN)),
+        ("pose/4".into(), pose(4, 1_000_000, 0.0)),
+        (
+            "pose/1".into(),
+            wire::encode(&wire::EstimateMsg {
+                header: Header { version: FORMAT_VERSION, sender: 1, step: 1, time_s: 0.0, sent_ns: 0 },
+                state: Default::default(),
+                fresh: true,
+            }),
+        ),
+    ];
+    let (stop, puts) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicU64::new(0)));
+    let attacker = {
+        let (stop, puts) = (stop.clone(), puts.clone());
+        std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
+            rt.block_on(async move {
+                let args = ZenohArgs {
+                    mode: Some(ZenohMode::Client),
+                    connect: vec![format!("tcp/127.0.0.1:{port}")],
+                    ..Default::default()
+                };
+                let began = Instant::now();
+                let s = loop {
+                    match tokio::time::timeout(Duration::from_secs(5), session::open(&args)).await {
+                        Ok(Ok(s)) => break s,
+                        _ if began.elapsed() > Duration::from_secs(20) => panic!("no session with the run's router"),
+                        _ => tokio::time::sleep(Duration::from_millis(50)).await,
+                    }
+                };
+                while !stop.load(Ordering::Relaxed) && began.elapsed() < Duration::from_secs(60) {
+                    for (k, bytes) in &hostile {
+                        if s.put(format!("formation/{run}/{k}"), bytes.clone()).await.is_ok() {
+                            puts.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                    tokio::time::sleep(Duration::from_millis(2)).await;
+                }
+                let _ = s.close().await;
+            })
+        })
+    };
+    let status = g.wait(LIMIT * 2);
+    stop.store(true, Ordering::Relaxed);
+    attacker.join().expect("attacker");
+    let puts = puts.load(Ordering::Relaxed);
+    assert!(status.success(), "the attacked run ended {status} ({puts} hostile puts)");
+    g.assert_group_empty();
+    let s = sim(&sim_dir, &sets);
+    assert!(s.status.success(), "formation sim: {}", String::from_utf8_lossy(&s.stderr));
+    same_files(&out, &sim_dir, "the lock-step run with hostile poses");
+    let n = common::json(&out, "network.json");
+    let refused: Vec<u64> =
+        (1..=4).map(|id| n["nodes"][id.to_string()]["rejected_invalid"].as_u64().unwrap_or(0)).collect();
+    assert!(puts > 100 && refused.iter().all(|&r| r > 0), "{puts} hostile puts; refused by followers 1–4: {refused:?}");
+    eprintln!("hostile poses: {puts} puts; refused by followers 1–4: {refused:?}");
+}
