@@ -259,10 +259,12 @@ pub async fn run_follower(
     let shared = Arc::new(Shared { machine: Mutex::new(machine), woken: Condvar::new(), refused: Default::default() });
     // Subscribers first (the start barrier relies on it), one per source.
     let subscribers = subscribe(session, keys, &sources, &shared, &timebase).await?;
-    let safety = scenario.control.guard.safety.is_some();
-    let pose_sub = match safety {
-        true => Some(subscribe_poses(session, keys, id, &shared, &timebase).await?),
-        false => None,
+    let (pose_sub, pose_pub) = match scenario.control.guard.safety.is_some() {
+        true => {
+            let (s, p) = pose_channel(session, scenario, keys, id, &shared, &timebase).await?;
+            (Some(s), Some(p))
+        }
+        false => (None, None),
     };
     // ROS 2: the topics go out once the run's epoch is known; a driven
     // robot's odometry is heard from now on.
@@ -284,19 +286,7 @@ pub async fn run_follower(
         .express(crate::node::estimate_express(scenario))
         .await
         .map_err(|e| zerr("declaring the estimate publisher", e))?;
-    // docs/model.md §16: the robot's pose, for the others' safety filters.
-    let pose_pub = match safety {
-        true => Some(
-            session
-                .declare_publisher(keys.pose(id))
-                .congestion_control(estimate_congestion(scenario))
-                .priority(crate::node::priority::ESTIMATE)
-                .express(crate::node::estimate_express(scenario))
-                .await
-                .map_err(|e| zerr("declaring the pose publisher", e))?,
-        ),
-        false => None,
-    };
+
     let lockstep = scenario.timing == Timing::Lockstep;
     // Lock-step: which neighbours have completed the final step.
     let (done_subs, neighbours_done) = if lockstep {
@@ -304,11 +294,7 @@ pub async fn run_follower(
     } else {
         (Vec::new(), Default::default())
     };
-    // The start waits to hear every node this one hears: its sources, and
-    // with the safety filter every follower whose pose it takes.
-    let mut hears: Vec<u32> = sources.clone();
-    hears.extend(scenario.peers_of(index).iter().map(|&j| scenario.graph.id(j)).filter(|j| !sources.contains(j)));
-    let needs: Vec<String> = hears.iter().map(u32::to_string).collect();
+    let needs = start_needs(scenario, index, &sources);
     let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
     let resume = rejoin(&shared, &start, scenario, index, &timebase, opts.checkpoint.as_deref()).await?;
@@ -408,17 +394,27 @@ async fn subscribe(
     Ok(subscribers)
 }
 
-/// Every other follower's pose (safety filter on) to the machine; this
-/// follower's own, heard back on the same key expression, is skipped.
-async fn subscribe_poses(
+/// Who the start waits to hear: every node this follower hears (its
+/// sources, and with the safety filter every follower whose pose it takes).
+fn start_needs(scenario: &Scenario, index: usize, sources: &[u32]) -> Vec<String> {
+    let mut hears = sources.to_vec();
+    hears.extend(scenario.peers_of(index).iter().map(|&j| scenario.graph.id(j)).filter(|j| !sources.contains(j)));
+    hears.iter().map(u32::to_string).collect()
+}
+
+/// docs/model.md §16, the safety filter on: every other follower's pose
+/// to the machine (this follower's own, heard back on the same key
+/// expression, is skipped), and the publisher of its robot's.
+async fn pose_channel(
     session: &zenoh::Session,
+    scenario: &Scenario,
     keys: &Keys,
     own: u32,
     shared: &Arc<Shared>,
     timebase: &Timebase,
-) -> Result<zenoh::pubsub::Subscriber<()>, Error> {
+) -> Result<(zenoh::pubsub::Subscriber<()>, Publisher<'static>), Error> {
     let (shared, timebase) = (shared.clone(), timebase.clone());
-    session
+    let subscriber = session
         .declare_subscriber(keys.pose_all())
         .callback(move |sample| {
             let key_id = names::last_chunk(sample.key_expr().as_str()).parse::<u32>().ok();
@@ -432,7 +428,15 @@ async fn subscribe_poses(
             }
         })
         .await
-        .map_err(|e| zerr("declaring the pose subscriber", e))
+        .map_err(|e| zerr("declaring the pose subscriber", e))?;
+    let publisher = session
+        .declare_publisher(keys.pose(own))
+        .congestion_control(estimate_congestion(scenario))
+        .priority(crate::node::priority::ESTIMATE)
+        .express(crate::node::estimate_express(scenario))
+        .await
+        .map_err(|e| zerr("declaring the pose publisher", e))?;
+    Ok((subscriber, publisher))
 }
 
 /// The follower's ROS 2 publishers, once the run's epoch is known.
