@@ -118,16 +118,15 @@ pub const MAX_NEARBY: usize = 12;
 /// Most constraints of one robot's program.
 pub const MAX_CONSTRAINTS: usize = MAX_NEARBY + 4;
 
-/// What the guard did to one step's command.
+/// What the guard did to one step's command (16 bytes: it rides in every
+/// telemetry sample of a guarded run, and in the simulator's step).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct GuardStep {
-    /// The controller's command before the guard.
-    pub requested: Velocity,
-    /// A limit clipped the controller's command (eq. G1a).
-    pub saturated: bool,
     /// ‖u − û‖ of eq. G4, m/s: how far the filter moved the point's velocity
     /// (0 when the command was already safe or the filter is off).
     pub change: f64,
+    /// A limit clipped the controller's command (eq. G1a).
+    pub saturated: bool,
     /// The program had no solution (the robots were already closer than the
     /// barrier's radius, or a robot was outside the arena): the robot was stopped.
     pub infeasible: bool,
@@ -170,7 +169,7 @@ impl GuardTally {
 /// robot's pose and the others' (docs/model.md §16's order): clip to the
 /// limits (G1a); filter (G2–G5); scale into the limits (G1b).
 pub fn apply(guard: &Guard, requested: Velocity, pose: &Pose, nearby: Nearby<'_>) -> (Velocity, GuardStep) {
-    let mut step = GuardStep { requested, ..GuardStep::default() };
+    let mut step = GuardStep::default();
     let mut command = requested;
     if let Some(l) = &guard.limits {
         command = l.clip(requested);
@@ -342,6 +341,12 @@ impl Program {
 mod tests {
     use super::*;
 
+    #[test]
+    fn a_guard_step_is_small_enough_to_ride_in_every_sample() {
+        assert_eq!(std::mem::size_of::<GuardStep>(), 16);
+        assert_eq!(std::mem::size_of::<Option<GuardStep>>(), 16, "the Option takes a bool's niche");
+    }
+
     const SAFETY: SafetyParams =
         SafetyParams { distance: 0.3, gamma: 100.0, projection: 0.05, radius: 2.0, arena: None };
 
@@ -432,7 +437,6 @@ mod tests {
         let (c, step) = apply(&g, Velocity::new(4.0, 0.0), &me, Nearby::fresh(&[me], 0));
         assert_eq!(c, Velocity::new(0.22, 0.0));
         assert!(step.saturated && step.change == 0.0 && !step.infeasible);
-        assert_eq!(step.requested, Velocity::new(4.0, 0.0));
         let off = apply(&Guard::default(), Velocity::new(4.0, 9.0), &me, Nearby::NONE);
         assert_eq!(off.0, Velocity::new(4.0, 9.0));
     }
