@@ -133,3 +133,48 @@ fn nothing_cites_material_outside_the_project() {
     }
     assert!(hits.is_empty(), "cites material outside the project:\n{}", hits.join("\n"));
 }
+
+/// docs/architecture.md's "The life of an estimate" names real code: every
+/// `file:item` there is a file that defines the item (a function, a type,
+/// or `Type::method`: the type and the method both in the file). A rename
+/// that leaves the page behind fails here, naming what is gone.
+#[test]
+fn the_life_of_an_estimate_names_code_that_exists() {
+    let page = std::fs::read_to_string(root().join("docs/architecture.md")).expect("architecture.md");
+    let section = page.split("## The life of an estimate").nth(1).expect("the section").split("\n## ").next().unwrap();
+    let defines = |text: &str, name: &str| {
+        ["fn ", "struct ", "enum ", "trait ", "type "].iter().any(|kw| {
+            text.match_indices(&format!("{kw}{name}")).any(|(i, m)| {
+                let next = text[i + m.len()..].chars().next().unwrap_or(' ');
+                !(next.is_alphanumeric() || next == '_')
+            })
+        })
+    };
+    let mut named = 0;
+    let mut gone = Vec::new();
+    for chunk in section.split('`').skip(1).step_by(2) {
+        let Some((file, item)) = chunk.split_once(".rs:") else { continue };
+        let path = root().join(format!("{file}.rs"));
+        named += 1;
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            gone.push(format!("{chunk}: no file {}", path.display()));
+            continue;
+        };
+        let found = match item.split("::").collect::<Vec<_>>().as_slice() {
+            [name] => defines(&text, name),
+            // The method in the file, and the type's impl there.
+            [ty, method] => {
+                defines(&text, method)
+                    && [format!("impl {ty} "), format!("impl {ty}<"), format!("> {ty}<"), format!("> {ty} ")]
+                        .iter()
+                        .any(|i| text.contains(i.as_str()) && text.contains("impl"))
+            }
+            _ => false,
+        };
+        if !found {
+            gone.push(chunk.to_string());
+        }
+    }
+    assert!(named >= 30, "only {named} names in the section: is it still there?");
+    assert!(gone.is_empty(), "docs/architecture.md names code that is not there: {gone:?}");
+}
