@@ -75,9 +75,9 @@ fn note_reached(reached: &mut [Option<u64>], slot: usize, key_id: Option<u32>, h
 }
 
 /// Lock-step: whether every hearing follower has reached `need` (0: the
-/// leader is not waiting).
+/// leader is not waiting), by [`gate::window_open`].
 fn window_reached(reached: &[Option<u64>], need: u64) -> bool {
-    need > 0 && reached.iter().all(|x| x.is_some_and(|x| x >= need))
+    need > 0 && gate::window_open(reached, need)
 }
 
 pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
@@ -362,14 +362,13 @@ fn wait_window(
     recent: &Kept,
     counters: &mut Counters,
 ) -> Result<(), Error> {
-    let Some(need) = k.checked_sub(WINDOW) else { return Ok(()) };
+    let Some(need) = gate::leader_needs(k) else { return Ok(()) };
     let mut wait = gate::Wait::new(crate::clock::mono(), gate::LEADER_REPEAT_EVERY, gate::LEADER_STALL);
     let mut reached = progress.reached.lock().unwrap_or_else(|e| e.into_inner());
     // (Set under the lock the callbacks take: none can miss it.)
     progress.need.store(need, std::sync::atomic::Ordering::Release);
     loop {
-        let slowest = reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(u64::MAX);
-        if slowest >= need {
+        if gate::window_open(&reached, need) {
             progress.need.store(0, std::sync::atomic::Ordering::Release);
             return Ok(());
         }

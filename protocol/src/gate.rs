@@ -51,8 +51,22 @@ pub fn leader_from_step(slowest: u64) -> u64 {
     slowest.saturating_sub(LOCKSTEP_AHEAD)
 }
 
+/// Lock-step, the leader's window rule (the one place it is written): the
+/// step every follower that hears the leader must have published before
+/// the leader publishes step `k` (None: no wait, k is within the window).
+pub fn leader_needs(k: u64) -> Option<u64> {
+    k.checked_sub(WINDOW)
+}
+
+/// Lock-step: whether every hearing follower, by the newest step heard from
+/// each (None: not heard yet), has reached `need`. True with no hearing
+/// follower (nobody to wait for).
+pub fn window_open(reached: &[Option<u64>], need: u64) -> bool {
+    reached.iter().all(|r| r.is_some_and(|s| s >= need))
+}
+
 /// The newest step the slowest hearing follower has published (0 for one
-/// not heard yet).
+/// not heard yet), for what the leader says and repeats.
 pub fn slowest_step(reached: &[Option<u64>]) -> u64 {
     reached.iter().map(|r| r.unwrap_or(0)).min().unwrap_or(0)
 }
@@ -194,6 +208,22 @@ impl Wait {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The leader's window: it publishes step k once every follower that
+    /// hears it has published step k − WINDOW; a one-step change of the
+    /// rule either way fails here.
+    #[test]
+    fn the_leader_waits_for_the_followers_exactly_one_window_behind() {
+        assert_eq!(leader_needs(WINDOW - 1), None, "inside the first window: no wait");
+        let k = WINDOW + 7;
+        let need = leader_needs(k).expect("a wait");
+        assert_eq!(need, 7);
+        assert!(window_open(&[Some(k), Some(need)], need), "the slowest exactly one window behind");
+        assert!(!window_open(&[Some(k), Some(need - 1)], need), "one step more behind");
+        assert!(!window_open(&[Some(k), None], need), "one not heard yet");
+        assert!(window_open(&[], need), "nobody hears the leader");
+        assert_eq!(slowest_step(&[Some(9), None]), 0);
+    }
 
     fn steps<'a>(it: impl Iterator<Item = &'a Vec<u8>>) -> Vec<u64> {
         it.map(|b| u64::from(b[0]) + 256 * u64::from(b[1])).collect()
