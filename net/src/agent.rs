@@ -269,16 +269,7 @@ pub async fn run_follower(
     // ROS 2: the topics go out once the run's epoch is known; a driven
     // robot's odometry is heard from now on.
     let topics: SharedTopics = opts.topics.clone();
-    let ros_node = match scenario.ros2 {
-        Some(r) => Some(RosNode::declare(session, r.domain_id, &crate::ros2::follower_namespace(id), "agent").await?),
-        None => None,
-    };
-    let odometry = match (&opts.odometry, &ros_node) {
-        (Some(inbox), Some(node)) => {
-            Some(subscribe_odometry(node, scenario, inbox.clone(), &shared, &topics, &timebase).await?)
-        }
-        _ => None,
-    };
+    let (ros_node, odometry) = ros_side(session, scenario, id, &opts, &shared, &timebase).await?;
     let estimate_pub = session
         .declare_publisher(keys.estimate(id))
         .congestion_control(estimate_congestion(scenario))
@@ -332,27 +323,56 @@ pub async fn run_follower(
     }
     .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
     telemetry::finish_delivery(delivery, &format!("follower {id}")).await;
-    if let Some(w) = writer {
-        w.stop();
-        // A run that ended has nothing to rejoin: its checkpoint would only
-        // pile up (hundreds of them in $TMPDIR/formation-checkpoints).
-        if let (Ok(_), Some(p)) = (&outcome, &checkpoint_path) {
-            let _ = std::fs::remove_file(p);
-        }
-    }
-    if let Some(inbox) = &opts.odometry {
-        if let Some(line) = inbox.refused.summary() {
-            crate::node::say(&format!(
-                "follower {id}: odometry refused on {}/odom: {line}",
-                crate::ros2::follower_namespace(id)
-            ));
-        }
-    }
+    wind_up(id, outcome.is_ok(), writer, checkpoint_path.as_deref(), opts.odometry.as_deref());
     drop((acks, sync, subscribers, pose_sub, done_subs, odometry, ros_node));
     if let Some(w) = watcher {
         w.abort();
     }
     outcome.map_err(|e| Error::Run(format!("follower {id}: {e}")))
+}
+
+/// ROS 2 on: the agent's node `/follower_<id>/agent` and, for a driven
+/// robot, its odometry subscription (heard from now on).
+async fn ros_side(
+    session: &zenoh::Session,
+    scenario: &Scenario,
+    id: u32,
+    opts: &FollowerOptions,
+    shared: &Arc<Shared>,
+    timebase: &Timebase,
+) -> Result<(Option<RosNode>, Option<RosSubscription>), Error> {
+    let Some(r) = scenario.ros2 else { return Ok((None, None)) };
+    let node = RosNode::declare(session, r.domain_id, &crate::ros2::follower_namespace(id), "agent").await?;
+    let odometry = match &opts.odometry {
+        Some(inbox) => Some(subscribe_odometry(&node, scenario, inbox.clone(), shared, &opts.topics, timebase).await?),
+        None => None,
+    };
+    Ok((Some(node), odometry))
+}
+
+/// After the loop: the checkpoint writer stops (a run that ended has
+/// nothing to rejoin: its checkpoint, which would only pile up in
+/// $TMPDIR/formation-checkpoints, goes), and a driven robot's refused
+/// odometry is said.
+fn wind_up(
+    id: u32,
+    ended: bool,
+    writer: Option<checkpoint::Writer>,
+    checkpoint_path: Option<&std::path::Path>,
+    odometry: Option<&OdomInbox>,
+) {
+    if let Some(w) = writer {
+        w.stop();
+        if let (true, Some(p)) = (ended, checkpoint_path) {
+            let _ = std::fs::remove_file(p);
+        }
+    }
+    if let Some(line) = odometry.and_then(|inbox| inbox.refused.summary()) {
+        crate::node::say(&format!(
+            "follower {id}: odometry refused on {}/odom: {line}",
+            crate::ros2::follower_namespace(id)
+        ));
+    }
 }
 
 /// One subscriber per source, each handing what arrives to the machine.
