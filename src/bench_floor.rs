@@ -54,13 +54,15 @@ pub fn ring_file(tmp: &std::path::Path, n: u32) -> Result<std::path::PathBuf, Er
 }
 
 /// Runs one floor process.
-pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
-    let identity = if a.id == 0 { "leader".to_string() } else { formation_net::names::agent_name(a.id) };
+pub async fn node(a: &FloorArgs) -> Result<(), formation_protocol::error::Error> {
+    let identity = if a.id == 0 { "leader".to_string() } else { formation_protocol::names::agent_name(a.id) };
     let (scenario, keys) = a.node.load(&identity)?;
     let session = a.node.open(&identity, &scenario).await?;
     let mut sources: Vec<u32> = Vec::new();
     if a.id != 0 {
-        let i = scenario.index_of(a.id).ok_or_else(|| formation_net::Error::Input(format!("no follower {}", a.id)))?;
+        let i = scenario
+            .index_of(a.id)
+            .ok_or_else(|| formation_protocol::error::Error::Input(format!("no follower {}", a.id)))?;
         sources.extend(scenario.graph.neighbours(i).iter().map(|&j| scenario.graph.id(j)));
         if scenario.graph.hears_leader(i) {
             sources.push(wire::LEADER_ID);
@@ -81,7 +83,7 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
                 r.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             })
             .await
-            .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+            .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
         subs.push(sub);
     }
     let publisher = session
@@ -90,7 +92,7 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
         .priority(formation_net::node::priority::ESTIMATE)
         .express(formation_net::node::estimate_express(&scenario))
         .await
-        .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+        .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
     let period = Duration::from_secs_f64(scenario.dt_s);
     let steps = (a.seconds / scenario.dt_s) as u64;
     // As an agent's real-time loop: a task on zenoh's own thread woken by
@@ -116,7 +118,7 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_net::Error> {
     })
     .await
     .and_then(|r| r)
-    .map_err(formation_net::Error::Run)?;
+    .map_err(formation_protocol::error::Error::Run)?;
     drop(subs);
     let _ = session.close().await;
     Ok(())
@@ -137,10 +139,10 @@ struct Heard {
 async fn lockstep_node(
     a: &FloorArgs,
     session: &zenoh::Session,
-    keys: &formation_net::names::Keys,
+    keys: &formation_protocol::names::Keys,
     scenario: &formation_topology::Scenario,
     sources: Vec<u32>,
-) -> Result<(), formation_net::Error> {
+) -> Result<(), formation_protocol::error::Error> {
     let leader = a.id == 0;
     // The leader waits for the followers that hear it; a follower for its sources.
     let waits: Vec<u32> = if leader {
@@ -170,7 +172,7 @@ async fn lockstep_node(
                 }
             })
             .await
-            .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+            .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
         subs.push(sub);
     }
     let publisher = session
@@ -179,7 +181,7 @@ async fn lockstep_node(
         .priority(formation_net::node::priority::ESTIMATE)
         .express(formation_net::node::estimate_express(scenario))
         .await
-        .map_err(|e| formation_net::Error::Run(e.to_string()))?;
+        .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
     let steps = (a.seconds / scenario.dt_s).round() as u64;
     let dt = scenario.dt_s;
     let rate = tokio::task::spawn_blocking(move || -> Result<f64, String> {
@@ -192,8 +194,11 @@ async fn lockstep_node(
         };
         let (from, to) = (steps / 4, 3 * steps / 4);
         // As often as the agents and the leader repeat theirs (protocol::gate).
-        let every =
-            if leader { formation_net::gate::LEADER_REPEAT_EVERY } else { formation_net::gate::FOLLOWER_REPEAT_EVERY };
+        let every = if leader {
+            formation_protocol::gate::LEADER_REPEAT_EVERY
+        } else {
+            formation_protocol::gate::FOLLOWER_REPEAT_EVERY
+        };
         let mut marks = (Instant::now(), Instant::now());
         for k in 0..=steps {
             // What step k waits for: the sources' k − 1 (a follower); the
@@ -204,7 +209,7 @@ async fn lockstep_node(
                 (false, k) => Some(k - 1),
                 (true, 0) => None,
                 (true, 1) => Some(0),
-                (true, k) => k.checked_sub(formation_net::gate::WINDOW),
+                (true, k) => k.checked_sub(formation_protocol::gate::WINDOW),
             };
             let bytes = msg(k.saturating_sub(1));
             let mut n = heard.newest.lock().unwrap_or_else(|p| p.into_inner());
@@ -239,8 +244,8 @@ async fn lockstep_node(
         Ok((to - from) as f64 / (marks.1 - marks.0).as_secs_f64().max(1e-9))
     })
     .await
-    .map_err(|e| formation_net::Error::Run(e.to_string()))?
-    .map_err(|e| formation_net::Error::Run(format!("{}: {e}", a.id)))?;
+    .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?
+    .map_err(|e| formation_protocol::error::Error::Run(format!("{}: {e}", a.id)))?;
     println!("steps/s {rate:.1}");
     // A while before the session closes, so that the last steps reach the neighbours.
     tokio::time::sleep(Duration::from_millis(300)).await;

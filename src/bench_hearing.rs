@@ -86,12 +86,12 @@ pub fn run(
             let p = worst_period(&network_json(&out, "the real-time run")?);
             if record {
                 on.push(p);
-                let loaded = formation_net::replay::load(&out)?;
+                let loaded = formation_replay::replay::load(&out)?;
                 let steps: u64 = loaded.record.followers.iter().map(|f| f.steps()).sum();
                 let bytes = std::fs::metadata(out.join(formation_record::HEARING_FILE)).map_or(0, |m| m.len());
                 sizes.push((bytes, steps, csv_bytes(&out)));
                 let t = Instant::now();
-                formation_net::replay::replay_to_folder(&loaded, &tmp.join(format!("replay-{r}")))?;
+                formation_replay::replay::replay_to_folder(&loaded, &tmp.join(format!("replay-{r}")))?;
                 replay.push(steps as f64 / t.elapsed().as_secs_f64());
             } else {
                 off.push(p);

@@ -38,10 +38,10 @@ use crate::bench_hearing::{network_json, worst_period};
 use crate::bench_netns::estimate;
 use crate::error::Error;
 use crate::launch::{LaunchArgs, LaunchMode, Links, RunOptions};
-use formation_net::inbox::{self, Inbox, Source};
-use formation_net::loop_timing as timing;
-use formation_net::names;
 use formation_net::session::{self, ZenohArgs};
+use formation_protocol::inbox::{self, Inbox, Source};
+use formation_protocol::loop_timing as timing;
+use formation_protocol::names;
 use formation_sim::{NoRecord, Simulation};
 
 #[derive(Args, Debug, Clone)]
@@ -617,7 +617,7 @@ struct Latencies {
 fn as_agent(id: u32, tls: Option<&std::path::Path>) -> ZenohArgs {
     ZenohArgs {
         tls: tls.map(std::path::Path::to_path_buf),
-        identity: Some(formation_net::names::agent_name(id)),
+        identity: Some(formation_protocol::names::agent_name(id)),
         ..Default::default()
     }
 }
@@ -797,10 +797,10 @@ async fn time_exchange(
     tls: Option<&std::path::Path>,
     n: usize,
 ) -> Result<((f64, f64), f64), Error> {
-    let keys = formation_net::names::Keys { run: "bench-net".into() };
+    let keys = formation_protocol::names::Keys { run: "bench-net".into() };
     let leader = session::open(&ZenohArgs {
         connect: vec![ep.to_string()],
-        identity: Some(formation_net::names::LEADER.to_string()),
+        identity: Some(formation_protocol::names::LEADER.to_string()),
         tls: tls.map(std::path::Path::to_path_buf),
         ..Default::default()
     })

@@ -10,11 +10,12 @@ use std::io::{BufRead, BufReader};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use formation_net::clock::Timebase;
-use formation_net::names::Keys;
+use formation_net::clock_sync;
 use formation_net::session::{self, ZenohArgs};
-use formation_net::{clock_sync, loop_timing as timing};
+use formation_protocol::loop_timing as timing;
+use formation_protocol::names::Keys;
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use zenoh::Wait;
 

@@ -18,7 +18,7 @@ use std::path::PathBuf;
 
 use formation_certs::generate::{self, Node, Request};
 use formation_net::identity::policy;
-use formation_net::names::node_names;
+use formation_protocol::names::node_names;
 
 use crate::error::Error;
 

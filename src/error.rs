@@ -76,18 +76,18 @@ impl From<formation_view::ViewError> for Error {
     }
 }
 
-impl From<formation_net::Error> for Error {
-    fn from(e: formation_net::Error) -> Self {
+impl From<formation_protocol::error::Error> for Error {
+    fn from(e: formation_protocol::error::Error) -> Self {
         match e {
-            formation_net::Error::Input(m) => Error::Input(m),
-            formation_net::Error::Run(m) => Error::Run(m),
+            formation_protocol::error::Error::Input(m) => Error::Input(m),
+            formation_protocol::error::Error::Run(m) => Error::Run(m),
         }
     }
 }
 
 impl From<formation_net::session::SessionError> for Error {
     fn from(e: formation_net::session::SessionError) -> Self {
-        formation_net::Error::from(e).into()
+        formation_protocol::error::Error::from(e).into()
     }
 }
 

@@ -1,8 +1,8 @@
 //! `formation replay RUN_DIR --explain`: the run beside its model, as a
 //! table in the terminal.
 
-use formation_net::explain::{self, Explanation};
-use formation_net::replay::Loaded;
+use formation_replay::explain::{self, Explanation};
+use formation_replay::replay::Loaded;
 
 use crate::error::Error as CliError;
 

@@ -284,7 +284,7 @@ impl RunOptions {
 
         formation_net::node::networked(&scenario)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
-        formation_net::names::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
+        formation_protocol::names::validate_run_name(&run).map_err(|e| CliError::Input(e.to_string()))?;
         if let Some(x) = self.time_scale {
             if !(x.is_finite() && x > 0.0) {
                 return Err(CliError::Input(format!("--time-scale must be a positive number, not {x}")));

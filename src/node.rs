@@ -9,9 +9,9 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::Args;
-use formation_net::monitor::{Ending, Signal};
 use formation_net::session;
 use formation_net::{agent, leader, monitor, router};
+use formation_replay::watch::{Ending, Signal};
 
 use crate::error::Error;
 
@@ -102,7 +102,7 @@ pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
 /// only its node: a headless agent carries no live page, Foxglove server,
 /// replay or certificate generator.
 pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
-    let name = formation_net::names::agent_name(a.id.first().copied().unwrap_or(0));
+    let name = formation_protocol::names::agent_name(a.id.first().copied().unwrap_or(0));
     shell(&a.node.zenoh.clone(), &name, true, async move {
         agent::run(&a, signalled()).await.map(|signal| match signal {
             None => ExitCode::SUCCESS,
@@ -114,14 +114,14 @@ pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
 
 /// The `leader` binary.
 pub fn run_leader(a: leader::LeaderArgs) -> ExitCode {
-    shell(&a.node.zenoh.clone(), formation_net::names::LEADER, true, async move {
+    shell(&a.node.zenoh.clone(), formation_protocol::names::LEADER, true, async move {
         leader::run(&a).await.map(|()| ExitCode::SUCCESS)
     })
 }
 
 /// The `monitor` binary.
 pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
-    shell(&a.node.zenoh.clone(), formation_net::names::MONITOR, true, async move {
+    shell(&a.node.zenoh.clone(), formation_protocol::names::MONITOR, true, async move {
         monitor::run(&a, signalled()).await.map(monitor_status)
     })
 }
@@ -131,7 +131,7 @@ pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
 /// traffic is not dropped), which on one thread would hold the thread that
 /// empties it.
 pub fn run_router(r: router::RouterArgs) -> ExitCode {
-    shell(&r.zenoh.clone(), formation_net::names::ROUTER, false, async move {
+    shell(&r.zenoh.clone(), formation_protocol::names::ROUTER, false, async move {
         router::run(&r, signalled()).await.map(|()| ExitCode::SUCCESS)
     })
 }
@@ -141,7 +141,7 @@ pub fn run_router(r: router::RouterArgs) -> ExitCode {
 /// runtime, and the end as one line and an exit status.
 fn shell<F>(zenoh: &formation_net::session::ZenohArgs, name: &str, shared_runtime: bool, work: F) -> ExitCode
 where
-    F: std::future::Future<Output = Result<ExitCode, formation_net::Error>>,
+    F: std::future::Future<Output = Result<ExitCode, formation_protocol::error::Error>>,
 {
     // Before the runtime's threads start.
     if shared_runtime {
@@ -230,11 +230,11 @@ async fn signalled() -> Signal {
 /// A monitor's exit status: 0 for a run recorded to its end, 3 for one
 /// recorded to its end but degraded (network.json's `health`), 130 after
 /// SIGINT and 143 after SIGTERM (the shell's convention).
-fn monitor_status((ending, verdict): (Ending, Option<formation_net::health::Verdict>)) -> ExitCode {
+fn monitor_status((ending, verdict): (Ending, Option<formation_replay::health::Verdict>)) -> ExitCode {
     match ending {
         Ending::Interrupted => ExitCode::from(130),
         Ending::Terminated => ExitCode::from(143),
-        _ if verdict == Some(formation_net::health::Verdict::Degraded) => ExitCode::from(crate::error::DEGRADED),
+        _ if verdict == Some(formation_replay::health::Verdict::Degraded) => ExitCode::from(crate::error::DEGRADED),
         _ => ExitCode::SUCCESS,
     }
 }

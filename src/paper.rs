@@ -159,7 +159,7 @@ struct PaperObserver<'w> {
 }
 
 impl Observer for PaperObserver<'_> {
-    fn leader(&mut self, k: u64, state: &formation_agent::LeaderState) -> std::io::Result<()> {
+    fn leader(&mut self, k: u64, state: &formation_leader::LeaderState) -> std::io::Result<()> {
         match &mut self.folder {
             Some(f) => f.leader(k, state),
             None => Ok(()),

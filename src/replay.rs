@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use formation_net::replay::{self, Loaded};
+use formation_replay::replay::{self, Loaded};
 
 use crate::error::Error as CliError;
 
@@ -222,7 +222,7 @@ fn number(x: f64) -> String {
 
 /// Plays a finished run on the live page and to Foxglove.
 pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
-    use formation_net::playback::{self, Control, Outputs};
+    use formation_replay::playback::{self, Control, Outputs};
     if a.web.is_none() && a.foxglove.is_none() {
         return Err(CliError::Input(
             "formation monitor --replay: give --web, --foxglove or both (where to play it)".into(),
@@ -257,7 +257,7 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
         let live = match a.web {
             Some(addr) => {
                 let mut scene: serde_json::Value =
-                    serde_json::from_str(&formation_net::recorder::Recorder::scene_json(&s, &run)).unwrap_or_default();
+                    serde_json::from_str(&formation_replay::recorder::Recorder::scene_json(&s, &run)).unwrap_or_default();
                 scene["playback"] =
                     serde_json::json!({"duration": s.steps() as f64 * s.dt_s, "speed": a.speed, "from": a.run.display().to_string()});
                 let live = formation_view::web::Live::new(scene.to_string());

@@ -22,8 +22,6 @@ pub use dynamic::{DynamicGains, DynamicKind};
 pub use estimator::EstimatorGains;
 pub use filter::{FilterKind, FilterParams, VelocityFilter};
 pub use follower::{ControlParams, Fault, Follower, FollowerConfig, NonFinite, StepOutput};
-pub use formation_leader::LeaderState;
-pub use formation_plant::{Drive, Pose, RobotParams, Torque, Velocity};
 pub use guard::{Guard, GuardStep, GuardTally, Limits, Nearby, SafetyParams};
 pub use kinematic::{BodyError, KinematicGains, KinematicKind};
 pub use links::{Hearing, LinkLoss, LossWindow, Message, RejoinPolicy, RejoinRule};

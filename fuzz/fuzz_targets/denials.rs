@@ -5,5 +5,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    formation_fuzz::check(data, |d| formation_net::denials::Table::default().file("router", d));
+    formation_fuzz::check(data, |d| formation_protocol::denied::Table::default().file("router", d));
 });

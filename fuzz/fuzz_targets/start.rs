@@ -4,5 +4,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    formation_fuzz::check(data, |d| formation_net::codec::decode::<formation_net::barrier::Start>(d));
+    formation_fuzz::check(data, |d| formation_protocol::codec::decode::<formation_protocol::barrier::Start>(d));
 });

@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-pub use formation_plant::{Pose, Velocity};
+use formation_plant::{Pose, Velocity};
 
 /// The leader's velocity profile.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

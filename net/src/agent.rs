@@ -13,7 +13,7 @@
 //! step's last input signals. Start-up and shut-down are async.
 
 use std::collections::BTreeSet;
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use formation_plant::Pose;
@@ -23,24 +23,25 @@ use formation_topology::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
 use zenoh::Wait;
 
-use crate::barrier::{self, Start};
 use crate::checkpoint;
 use crate::clock::{self, Timebase};
 use crate::clock_sync;
-use crate::codec;
-use crate::counters::AtomicRejects;
 use crate::courier::Courier;
-use crate::error::{zerr, Error};
-use crate::names::{self, Keys};
 use crate::node::{estimate_congestion, NodeArgs};
 use crate::ros2::driven::{self, DrivenRobot, OdomInbox};
 use crate::ros2::topics::{FollowerTopics, Stamps};
 use crate::ros2::wire::{RosNode, RosSubscription};
 use crate::startup;
-use crate::telemetry::{self, EventKind};
+use crate::telemetry;
+use formation_protocol::barrier::{self, Start};
+use formation_protocol::codec;
+use formation_protocol::counters::AtomicRejects;
+use formation_protocol::error::{zerr, Error};
+use formation_protocol::names::{self, Keys};
+use formation_protocol::telemetry::{Delivery, EventKind};
 use formation_sim::SimFollower;
 
-pub use formation_protocol::follower::Body;
+use formation_protocol::follower::Body;
 
 /// `agent` arguments.
 #[derive(Debug, Clone)]
@@ -78,8 +79,8 @@ pub struct AgentArgs {
 /// error, a refused start, the signal), and the signal is returned.
 pub async fn run(
     args: &AgentArgs,
-    shutdown: impl std::future::Future<Output = crate::monitor::Signal>,
-) -> Result<Option<crate::monitor::Signal>, Error> {
+    shutdown: impl std::future::Future<Output = formation_replay::watch::Signal>,
+) -> Result<Option<formation_replay::watch::Signal>, Error> {
     let ids = &args.id;
     let first = *ids.first().ok_or_else(|| Error::Input("--id: give at least one follower id".into()))?;
     if let Some(twice) = ids.iter().enumerate().find_map(|(i, id)| ids[..i].contains(id).then_some(id)) {
@@ -92,7 +93,7 @@ pub async fn run(
                 .into(),
         ));
     }
-    let (scenario, keys) = args.node.load(&crate::names::agent_name(first))?;
+    let (scenario, keys) = args.node.load(&formation_protocol::names::agent_name(first))?;
     let mut indices = Vec::with_capacity(ids.len());
     for &id in ids {
         indices.push(scenario.index_of(id).ok_or_else(|| {
@@ -103,8 +104,12 @@ pub async fn run(
     if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
         return Err(Error::Input("--stall-timeout must be positive".into()));
     }
-    let session = args.node.open(&crate::names::agent_name(first), &scenario).await?;
-    tokio::spawn(crate::denials::report(session.clone(), crate::names::agent_name(first), Some(keys.run.clone())));
+    let session = args.node.open(&formation_protocol::names::agent_name(first), &scenario).await?;
+    tokio::spawn(crate::denials::report(
+        session.clone(),
+        formation_protocol::names::agent_name(first),
+        Some(keys.run.clone()),
+    ));
     let stall = Duration::from_secs_f64(args.stall_timeout);
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
     let driven = scenario.ros2.is_some_and(|r| r.robots.driven());
@@ -148,8 +153,8 @@ pub async fn run(
     if driven {
         // docs/ros2.md: an agent that ends stops its robot first.
         let why = match (&result, signal) {
-            (_, Some(crate::monitor::Signal::Interrupt)) => "Ctrl-C",
-            (_, Some(crate::monitor::Signal::Terminate)) => "SIGTERM",
+            (_, Some(formation_replay::watch::Signal::Interrupt)) => "Ctrl-C",
+            (_, Some(formation_replay::watch::Signal::Terminate)) => "SIGTERM",
             (Ok(()), None) => "the run ended",
             (Err(_), None) => "the agent stopped on an error",
         };
@@ -217,9 +222,7 @@ pub struct FollowerOptions {
 
 /// The machine, shared by the subscriber callbacks and the loop's thread.
 struct Shared {
-    machine: Mutex<Follower>,
-    /// A lock-step step's inputs are complete.
-    woken: Condvar,
+    machine: crate::node::Shared<Follower>,
     /// Messages refused on arrival, counted without the machine's lock (a
     /// flood of garbage must not hold the loop); handed over each wake-up.
     refused: AtomicRejects,
@@ -227,7 +230,7 @@ struct Shared {
 
 impl Shared {
     fn lock(&self) -> MutexGuard<'_, Follower> {
-        self.machine.lock().unwrap_or_else(|p| p.into_inner())
+        self.machine.lock()
     }
 }
 
@@ -256,7 +259,7 @@ pub async fn run_follower(
     let machine = Follower::new(scenario, index, body, &opts.protocol);
     let sources = machine.source_ids().to_vec();
     let neighbours: Vec<u32> = sources.iter().copied().filter(|&s| s != wire::LEADER_ID).collect();
-    let shared = Arc::new(Shared { machine: Mutex::new(machine), woken: Condvar::new(), refused: Default::default() });
+    let shared = Arc::new(Shared { machine: crate::node::Shared::new(machine), refused: Default::default() });
     // Subscribers first (the start barrier relies on it), one per source.
     let subscribers = subscribe(session, keys, &sources, &shared, &timebase).await?;
     let (pose_sub, pose_pub) = match scenario.control.guard.safety.is_some() {
@@ -404,7 +407,7 @@ async fn subscribe(
                     timebase.leader_sent(sent_ns);
                 }
                 if arrival.wake {
-                    shared.woken.notify_all();
+                    shared.machine.wake();
                 }
             })
             .await
@@ -444,7 +447,7 @@ async fn pose_channel(
             let bytes = sample.payload().to_bytes();
             let now = timebase.now();
             if shared.lock().handle_pose(key_id, &bytes, now).wake {
-                shared.woken.notify_all();
+                shared.machine.wake();
             }
         })
         .await
@@ -476,7 +479,7 @@ async fn subscribe_odometry(
     let wake = Arc::new(move || {
         // Under the lock, so that the loop cannot miss it between its check and its wait.
         drop(s.lock());
-        s.woken.notify_all();
+        s.machine.wake();
     });
     let t = topics.clone();
     let repeat = Arc::new(move |k: u64| {
@@ -698,7 +701,7 @@ impl Node {
     /// node's estimate of the leader's clock.
     fn send(&self, b: Batch) {
         let (first_k, end_k) = (b.first_k, b.end_k);
-        let delivery = telemetry::Delivery {
+        let delivery = Delivery {
             available_from: self.courier.available_from(first_k),
             incarnation: self.incarnation,
             courier: self.courier.stats(),
@@ -717,18 +720,7 @@ impl Node {
     /// Until the machine's next deadline: a precise sleep in real time; in
     /// lock-step a wait that the step's last input ends early.
     fn sleep(&self) {
-        let mut m = self.shared.lock();
-        let Some(at) = m.poll_timeout() else { return };
-        let t = self.timebase.now();
-        if at <= t {
-            return;
-        }
-        if self.lockstep {
-            let _ = self.shared.woken.wait_timeout(m, at - t).unwrap_or_else(|p| p.into_inner());
-        } else {
-            drop(m);
-            self.timebase.sleep_until(at);
-        }
+        self.shared.machine.sleep(&self.timebase, self.lockstep, |m| m.poll_timeout());
     }
 }
 

@@ -3,7 +3,7 @@
 //! The run's timebase is the leader's: its monotonic clock, set at its start
 //! to read its wall clock then (ns since the Unix epoch). The leader's
 //! [`Start`] names the epoch on it. Every other node keeps a
-//! [`crate::clock_estimate::Offset`] between its own monotonic clock and the leader's
+//! [`formation_protocol::clock_estimate::Offset`] between its own monotonic clock and the leader's
 //! timebase, from four-timestamp exchanges ([`crate::clock_sync`]), and turns
 //! the run's times into instants of its own monotonic clock through it. No
 //! decision compares two hosts' wall clocks: a node whose wall clock is off,
@@ -12,7 +12,7 @@
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use crate::clock_estimate::{Estimate, Exchange, Offset};
+use formation_protocol::clock_estimate::{Estimate, Exchange, Offset};
 
 /// Nanoseconds since the Unix epoch on this host's wall clock (0 for a
 /// clock set before 1970). Only the leader's timebase starts from it.
@@ -96,7 +96,7 @@ impl Timebase {
     }
 
     /// What the clock guard saw so far.
-    pub fn guard_report(&self) -> crate::clockguard::GuardReport {
+    pub fn guard_report(&self) -> formation_protocol::clockguard::GuardReport {
         match self {
             Timebase::Own(_) => Default::default(),
             Timebase::Estimated(o) => Self::offset(o).guard().report(),
@@ -130,11 +130,11 @@ impl Timebase {
     }
 
     /// The estimate as `network.json` reports it (None before any exchange).
-    pub fn report(&self) -> Option<crate::clock_estimate::ClockReport> {
+    pub fn report(&self) -> Option<formation_protocol::clock_estimate::ClockReport> {
         let e = self.estimate()?;
         let (mono, wall) = (mono_ns(), unix_ns() as i64);
         let offset_ns = self.at_mono(mono)? - wall;
-        Some(crate::clock_estimate::ClockReport {
+        Some(formation_protocol::clock_estimate::ClockReport {
             offset_ms: offset_ns as f64 * 1e-6,
             uncertainty_us: e.uncertainty_ns * 1e-3,
             drift_ppm: e.drift_ppm,

@@ -2,7 +2,7 @@
 //! timebase when a question arrived and when it answers; every other node
 //! asks every [`EVERY`] (faster at first) and files each answer as a
 //! four-timestamp exchange in its [`Timebase`]. The estimate itself is
-//! [`crate::clock_estimate`]'s.
+//! [`formation_protocol::clock_estimate`]'s.
 
 use std::time::Duration;
 
@@ -10,10 +10,10 @@ use serde::{Deserialize, Serialize};
 use zenoh::Wait;
 
 use crate::clock::{self, Timebase};
-use crate::clock_estimate::Exchange;
-use crate::codec;
-use crate::error::{zerr, Error};
-use crate::names::Keys;
+use formation_protocol::clock_estimate::Exchange;
+use formation_protocol::codec;
+use formation_protocol::error::{zerr, Error};
+use formation_protocol::names::Keys;
 
 /// The leader's answer: its timebase when the question arrived (`t2`) and
 /// when it answered (`t3`), ns.
@@ -43,7 +43,7 @@ pub async fn serve_counted(
     session: &zenoh::Session,
     keys: &Keys,
     timebase: Timebase,
-    count: std::sync::Arc<crate::counters::QueryCount>,
+    count: std::sync::Arc<formation_protocol::counters::QueryCount>,
 ) -> Result<zenoh::query::Queryable<()>, Error> {
     session
         .declare_queryable(keys.time())
@@ -92,7 +92,7 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
         let _floor = session
             .declare_subscriber(start_key)
             .callback(move |s| {
-                if let Some(start) = codec::decode::<crate::barrier::Start>(&s.payload().to_bytes()) {
+                if let Some(start) = codec::decode::<formation_protocol::barrier::Start>(&s.payload().to_bytes()) {
                     stamps.leader_sent(start.sent_ns);
                     wake.notify_one();
                 }
@@ -127,8 +127,9 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
             }
             // Judged once the drift is measured (before, its allowance dominates).
             if !warned {
-                let measured =
-                    |e: &crate::clock_estimate::Estimate| e.periods >= crate::clock_estimate::MIN_SLOPE_PERIODS;
+                let measured = |e: &formation_protocol::clock_estimate::Estimate| {
+                    e.periods >= formation_protocol::clock_estimate::MIN_SLOPE_PERIODS
+                };
                 if let Some(e) = timebase.estimate().filter(|e| measured(e) && e.uncertainty_ns > quarter_step_ns) {
                     warned = true;
                     crate::node::say(&format!(

@@ -2,8 +2,7 @@
 //! loop that hands batches over and a thread of its own that publishes them
 //! (see [`formation_protocol::courier`] for the rules it keeps).
 
-pub use formation_protocol::courier::*;
-
+use formation_protocol::courier::{CourierStats, Store};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Duration;
 

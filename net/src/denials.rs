@@ -13,7 +13,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Mutex;
 use std::time::Duration;
 
-pub use formation_protocol::denied::{Denial, Report, Table, MAX_REPORT_BYTES};
+use formation_protocol::denied::{Denial, Report};
 
 /// The tracing target of zenoh's access control.
 pub const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";

@@ -15,7 +15,7 @@ use serde_json::{json, Value};
 
 use formation_certs::{identity, node_dir, Identity, IdentityError, CRL, POLICY};
 
-use crate::names::{agent_name, node_names, LEADER, MONITOR, ROUTER};
+use formation_protocol::names::{agent_name, node_names, LEADER, MONITOR, ROUTER};
 
 /// The environment variable the TLS link reads the revocation list from.
 pub const CRL_ENV: &str = "ZENOH_TLS_CRL";

@@ -12,7 +12,7 @@
 //!
 //! | part | modules |
 //! | --- | --- |
-//! | the one clock of a node, and the run's timebase | [`clock`] (reads the clocks), [`clock_sync`] (asks and answers the leader's clock on zenoh), [`pacing`] (the leader's real-time loop), [`timer`] (a precise sleep for a loop that is a task) |
+//! | the one clock of a node, and the run's timebase | [`clock`] (reads the clocks), [`clock_sync`] (asks and answers the leader's clock on zenoh), [`timer`] (a precise sleep for a loop that is a task) |
 //! | zenoh session | [`identity`] (the topology's access policy), [`session`], [`limits`], [`node`] |
 //! | shared node parts | [`startup`] (the barrier on zenoh), [`telemetry`] (delivery and acknowledgements), [`courier`] (its thread), [`checkpoint`], [`denials`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`], [`router`] |
@@ -29,20 +29,9 @@ pub mod leader;
 pub mod limits;
 pub mod monitor;
 pub mod node;
-pub mod pacing;
 pub mod ros2;
 pub mod router;
 pub mod session;
 pub mod startup;
 pub mod telemetry;
 pub mod timer;
-
-pub use error::Error;
-
-// A run's record and its replay live in formation-replay.
-pub use formation_replay::{explain, health, playback, recorder, replay, watch};
-
-// The rules the nodes drive, by the names the nodes use.
-pub use formation_protocol::{
-    barrier, clock_estimate, clockguard, codec, counters, error, gate, hearing, inbox, latency, loop_timing, names,
-};

@@ -8,9 +8,9 @@ use std::time::Duration;
 
 use formation_topology::Scenario;
 
-use crate::error::Error;
-use crate::names::Keys;
 use crate::session::{self, ZenohArgs};
+use formation_protocol::error::Error;
+use formation_protocol::names::Keys;
 
 /// Said once at the start of a run without `--tls`.
 pub const UNAUTHENTICATED: &str = "warning: no --tls: this run's traffic is unauthenticated and unencrypted; \
@@ -80,7 +80,7 @@ impl NodeArgs {
         let scenario = Scenario::load(&self.scenario, &self.overrides).map_err(|e| Error::Input(e.to_string()))?;
         networked(&scenario)?;
         let run = self.run.clone().unwrap_or_else(|| scenario.name.clone());
-        crate::names::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
+        formation_protocol::names::validate_run_name(&run).map_err(|e| Error::Input(e.to_string()))?;
         let zenoh = self.zenoh_as(identity);
         zenoh.to_config().map_err(|e| Error::Input(format!("zenoh options: {e}")))?;
         if let Some(dir) = &self.zenoh.tls {
@@ -179,4 +179,45 @@ pub fn say(line: &str) {
     l.push_str(line);
     l.push('\n');
     let _ = std::io::stderr().lock().write_all(l.as_bytes());
+}
+
+/// A protocol machine shared by a node's subscriber callbacks (which feed
+/// it what arrives) and the node's loop (which tells it the time).
+pub struct Shared<M> {
+    machine: std::sync::Mutex<M>,
+    /// Lock-step: what the loop waits for arrived.
+    woken: std::sync::Condvar,
+}
+
+impl<M> Shared<M> {
+    pub fn new(machine: M) -> Self {
+        Self { machine: std::sync::Mutex::new(machine), woken: std::sync::Condvar::new() }
+    }
+
+    pub fn lock(&self) -> std::sync::MutexGuard<'_, M> {
+        self.machine.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Wakes a lock-step loop waiting in [`Shared::sleep`].
+    pub fn wake(&self) {
+        self.woken.notify_all();
+    }
+
+    /// Until the machine's next deadline (`next`, on the run's timebase): a
+    /// precise sleep in real time; in lock-step a wait that [`Shared::wake`]
+    /// ends early.
+    pub fn sleep(&self, timebase: &crate::clock::Timebase, lockstep: bool, next: impl Fn(&mut M) -> Option<Duration>) {
+        let mut m = self.lock();
+        let Some(at) = next(&mut m) else { return };
+        let t = timebase.now();
+        if at <= t {
+            return;
+        }
+        if lockstep {
+            let _ = self.woken.wait_timeout(m, at - t).unwrap_or_else(|p| p.into_inner());
+        } else {
+            drop(m);
+            timebase.sleep_until(at);
+        }
+    }
 }

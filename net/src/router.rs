@@ -4,9 +4,9 @@
 use std::future::Future;
 use std::time::Duration;
 
-use crate::error::Error;
-use crate::names::ROUTER;
 use crate::session::{self, ZenohArgs, ZenohMode};
+use formation_protocol::error::Error;
+use formation_protocol::names::ROUTER;
 
 /// `router` arguments.
 #[derive(Clone, Debug, Default)]

@@ -196,11 +196,11 @@ pub enum SessionError {
     Open(String),
 }
 
-impl From<SessionError> for crate::error::Error {
+impl From<SessionError> for formation_protocol::error::Error {
     fn from(e: SessionError) -> Self {
         match e {
-            SessionError::Config(m) => crate::error::Error::Input(m),
-            SessionError::Open(m) => crate::error::Error::Run(m),
+            SessionError::Config(m) => formation_protocol::error::Error::Input(m),
+            SessionError::Open(m) => formation_protocol::error::Error::Run(m),
         }
     }
 }

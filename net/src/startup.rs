@@ -1,18 +1,20 @@
 //! The start barrier on zenoh: the subscribers that feed
 //! [`barrier::Join`] and [`barrier::Lead`] what a node hears, the puts
 //! they ask for, and the leader's repeated start. The rules are in
-//! [`crate::barrier`]; this module only translates.
+//! [`formation_protocol::barrier`]; this module only translates.
 
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use formation_topology::Scenario;
 
-use crate::barrier::{fingerprint, key_digests, Hears, Join, JoinStep, Lead, LeadStep, Ready, ReadyForm, Start, TICK};
 use crate::clock;
-use crate::codec;
-use crate::error::{zerr, Error};
-use crate::names::{self, Keys};
+use formation_protocol::barrier::{
+    fingerprint, key_digests, Hears, Join, JoinStep, Lead, LeadStep, Ready, ReadyForm, Start, TICK,
+};
+use formation_protocol::codec;
+use formation_protocol::error::{zerr, Error};
+use formation_protocol::names::{self, Keys};
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
@@ -110,7 +112,7 @@ async fn listen<H: Hears + Send + 'static>(
     let on_abort = move |_: &str, bytes: &[u8]| {
         // Not a refusal (garbage, or a forger's bytes): the monitor counts it
         // in network.json's control_puts; the node waits on.
-        if let Some(reason) = crate::barrier::abort_reason(bytes) {
+        if let Some(reason) = formation_protocol::barrier::abort_reason(bytes) {
             w.hear(|m| m.on_abort(reason));
         }
     };
@@ -194,7 +196,7 @@ pub async fn lead_start(
             LeadStep::Refuse { reason, error } => {
                 // As a refusal must read (key names from another node's ready
                 // may hold anything): else the nodes would ignore it.
-                let reason = crate::barrier::as_abort_reason(&reason);
+                let reason = formation_protocol::barrier::as_abort_reason(&reason);
                 // Tell every node waiting for the start, so none waits it out.
                 for _ in 0..5 {
                     let _ = session.put(keys.abort(), reason.clone().into_bytes()).await;

@@ -2,11 +2,10 @@
 //! acknowledgements, and each node's telemetry delivery. The messages
 //! themselves are [`formation_protocol::telemetry`]'s.
 
-pub use formation_protocol::telemetry::*;
-
-use crate::codec::decode;
-use crate::error::Error;
-use crate::names::Keys;
+use formation_protocol::codec::decode;
+use formation_protocol::error::Error;
+use formation_protocol::names::Keys;
+use formation_protocol::telemetry::{Ack, Telemetry};
 
 /// Lock-step end of run: the followers among `ids` that have reported (on
 /// their telemetry key) that they completed the final step. Nodes that feed
@@ -75,11 +74,11 @@ pub async fn start_delivery(
         .priority(crate::node::priority::TELEMETRY)
         .await
         .map_err(|e| Error::Run(format!("declaring the telemetry publisher: {e}")))?;
-    let delivery = crate::courier::Delivery::start(crate::courier::CAPACITY_STEPS, move |bytes| {
+    let delivery = crate::courier::Delivery::start(formation_protocol::courier::CAPACITY_STEPS, move |bytes| {
         // A failed put is like a lost one: the courier sends it again.
         let _ = publisher.put(bytes.to_vec()).wait();
     });
-    let fingerprint = crate::barrier::fingerprint(scenario);
+    let fingerprint = formation_protocol::barrier::fingerprint(scenario);
     let acks = subscribe_acks(session, keys, node, fingerprint, delivery.courier.clone()).await?;
     Ok((delivery, acks))
 }

@@ -20,7 +20,8 @@
 use std::collections::VecDeque;
 use std::time::Duration;
 
-use formation_agent::{Hearing, LeaderState, Message, Nearby};
+use formation_agent::{Hearing, Message, Nearby};
+use formation_leader::LeaderState;
 use formation_plant::Pose;
 use formation_record::hearing::{HeardRuns, Rescued, Resume};
 use formation_record::{FollowerSample, Heard};
@@ -30,7 +31,7 @@ use formation_topology::{FaultTarget, Scenario, Timing};
 
 use crate::barrier::{self, Start};
 use crate::counters::{Counters, RejectCounts};
-use crate::gate::{self, Kept};
+use crate::gate::{self, Kept, Phase};
 use crate::hearing::EarLog;
 use crate::inbox::{self, Inbox, Source};
 use crate::loop_timing::{LoopStats, LoopTimer};
@@ -212,21 +213,6 @@ impl Batch {
             diverged: self.diverged,
         }
     }
-}
-
-/// Where the machine is.
-#[derive(Clone, Debug)]
-enum Phase {
-    /// Before the start: messages are kept, nothing steps.
-    Waiting,
-    /// Computing step k when it is due (real time) or its inputs are in
-    /// (lock-step).
-    Stepping(u64),
-    /// Lock-step, after the last step: repeating the last messages until
-    /// every neighbour reports its final step, for at most [`LINGER`].
-    Lingering(gate::Wait),
-    /// The end: Ok, or why the run failed.
-    Done(Result<(), String>),
 }
 
 /// The rules of the run that the machine keeps.
@@ -614,10 +600,7 @@ impl Follower {
 
     /// The end of the run: None while it runs; Err says why it failed.
     pub fn outcome(&self) -> Option<&Result<(), String>> {
-        match &self.phase {
-            Phase::Done(r) => Some(r),
-            _ => None,
-        }
+        self.phase.outcome()
     }
 
     /// What the inbox counted so far (sent and republished are counted in
@@ -633,10 +616,7 @@ impl Follower {
 
     /// The step this machine computes next (or waits for).
     pub fn step(&self) -> Option<u64> {
-        match self.phase {
-            Phase::Stepping(k) => Some(k),
-            _ => None,
-        }
+        self.phase.step()
     }
 
     /// Real time: when step k is due on the timebase.

@@ -205,6 +205,39 @@ impl Wait {
     }
 }
 
+/// Where a node's machine is (the leader's and a follower's alike).
+#[derive(Clone, Debug)]
+pub enum Phase {
+    /// Before the start: messages are kept, nothing steps.
+    Waiting,
+    /// Doing step k when it is due (real time) or when what it needs is in
+    /// (lock-step).
+    Stepping(u64),
+    /// Lock-step, after the last step: repeating the last messages until
+    /// the others report their final step, for a bounded time.
+    Lingering(Wait),
+    /// The end: Ok, or why the run failed.
+    Done(Result<(), String>),
+}
+
+impl Phase {
+    /// The end of the run: None while it runs; Err says why it failed.
+    pub fn outcome(&self) -> Option<&Result<(), String>> {
+        match self {
+            Phase::Done(r) => Some(r),
+            _ => None,
+        }
+    }
+
+    /// The step being done (or waited for).
+    pub fn step(&self) -> Option<u64> {
+        match self {
+            Phase::Stepping(k) => Some(*k),
+            _ => None,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -111,7 +111,7 @@ impl EarLog {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use formation_agent::LeaderState;
+    use formation_leader::LeaderState;
 
     fn msg(v: f64) -> Message {
         Message::fresh(LeaderState { v, ..Default::default() })

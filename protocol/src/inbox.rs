@@ -381,7 +381,7 @@ mod tests {
     fn msg(sender: u32, step: u64) -> EstimateMsg {
         EstimateMsg {
             header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
-            state: formation_agent::LeaderState { v: step as f64, ..Default::default() },
+            state: formation_leader::LeaderState { v: step as f64, ..Default::default() },
             fresh: true,
         }
     }

@@ -31,10 +31,12 @@ pub mod gate;
 pub mod hearing;
 pub mod inbox;
 pub mod latency;
+pub mod leader;
 pub mod loop_timing;
 pub mod names;
 pub mod poses;
 pub mod telemetry;
+pub mod testing;
 
 pub use error::Error;
 

@@ -1,7 +1,7 @@
 //! Telemetry for the monitor: every step of a node, in batches, on
 //! `telemetry/<id>`. Never feeds control.
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use serde::{Deserialize, Serialize};
 
 use crate::counters::Counters;

@@ -1,10 +1,10 @@
 //! The agents' own follower machine ([`Follower`]) on virtual time: four of
-//! them in the paper's ring, a leader that keeps the lock-step window, and
-//! a network of queues that can lose packets, close a node's links, delay
-//! them or forge one. No sockets, no threads, no clock: a tick is a few
-//! milliseconds of virtual time, and every tick each machine is handed what
-//! arrived and the time, and its answers go back on the network. What the
-//! namespace lab found the hard way, replayed in milliseconds:
+//! them in the paper's ring with the real leader machine, over a network of
+//! queues that can lose packets, close a node's links, delay them or forge
+//! one (`formation_protocol::testing`). No sockets, no threads, no clock:
+//! each machine is handed what arrived and the time, and its answers go
+//! back on the network. What the namespace lab found the hard way,
+//! replayed in milliseconds:
 //!
 //! - lock-step with nothing lost equals the simulator bit for bit;
 //! - a message lost with a closed link is sent again and the run completes;
@@ -14,16 +14,14 @@
 //! - real time: a delay, a silent source, a message from the future, a
 //!   restart's rejoin step, and a step of the leader's clock.
 
-use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Duration;
 
-use formation_agent::LeaderState;
-use formation_leader::Leader;
+use formation_leader::LeaderState;
 use formation_protocol::barrier::Start;
 use formation_protocol::follower::{self, Follower, Options};
-use formation_protocol::gate::WINDOW;
-use formation_protocol::telemetry::{Delivery, EventKind, NetEvent, Telemetry};
+use formation_protocol::telemetry::{EventKind, Telemetry};
+use formation_protocol::testing::{Faults, World, EPOCH};
 use formation_protocol::Now;
 use formation_record::FollowerSample;
 use formation_sim::{Observer, SimFollower, Simulation};
@@ -34,294 +32,6 @@ fn paper(sets: &[&str]) -> Scenario {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
     Scenario::load(&path, &sets).expect("the paper scenario")
-}
-
-/// A deterministic packet-loss draw (xorshift), so a failure replays.
-struct Draws(u64);
-
-impl Draws {
-    fn next(&mut self) -> f64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
-/// What the network does to the packets of one node's links.
-#[derive(Clone, Default)]
-struct Faults {
-    /// Physical loss on every link of `node` while the virtual time is in range.
-    loss: Option<(u32, f64, std::ops::Range<Now>)>,
-    /// Links of `node` closed (their queues dropped) while in range.
-    closed: Option<(u32, std::ops::Range<Now>)>,
-    /// Every packet takes this long.
-    latency: Duration,
-}
-
-/// The network: packets in flight, by (from, to), with their arrival time.
-struct Network {
-    queues: BTreeMap<(u32, u32), Vec<(Now, Vec<u8>)>>,
-    draws: Draws,
-    faults: Faults,
-}
-
-impl Network {
-    fn new(faults: Faults) -> Self {
-        Self { queues: BTreeMap::new(), draws: Draws(0x9e37_79b9_7f4a_7c15), faults }
-    }
-
-    fn touches(node: u32, from: u32, to: u32) -> bool {
-        from == node || to == node
-    }
-
-    fn send(&mut self, now: Now, from: u32, to: u32, bytes: &[u8]) {
-        if let Some((node, p, r)) = &self.faults.loss {
-            if Self::touches(*node, from, to) && r.contains(&now) && self.draws.next() < *p {
-                return;
-            }
-        }
-        if let Some((node, r)) = &self.faults.closed {
-            if Self::touches(*node, from, to) && r.contains(&now) {
-                return;
-            }
-        }
-        self.queues.entry((from, to)).or_default().push((now + self.faults.latency, bytes.to_vec()));
-    }
-
-    /// What reaches `to` by `now`; a closed link drops what it held.
-    fn deliver(&mut self, to: u32, now: Now) -> Vec<(u32, Vec<u8>)> {
-        if let Some((node, r)) = &self.faults.closed {
-            if r.contains(&now) {
-                let node = *node;
-                self.queues.retain(|&(a, b), _| !Self::touches(node, a, b));
-            }
-        }
-        let mut out = Vec::new();
-        for (&(from, dest), q) in self.queues.iter_mut() {
-            if dest == to {
-                let due = q.iter().take_while(|(at, _)| *at <= now).count();
-                out.extend(q.drain(..due).map(|(_, b)| (from, b)));
-            }
-        }
-        out
-    }
-}
-
-/// The virtual leader: the leader node's messages (its state at each step),
-/// in lock-step at most [`WINDOW`] steps ahead of the slowest follower that
-/// hears it, in real time when due; its stamps on its own clock, which a
-/// test may step.
-struct VirtualLeader {
-    leader: Leader,
-    state: LeaderState,
-    /// The next step to publish.
-    k: u64,
-    /// Added to the leader's stamps from `at` on.
-    clock_step: Option<(Now, Duration)>,
-}
-
-impl VirtualLeader {
-    fn message(&self, k: u64, dt_s: f64, now: Now) -> Vec<u8> {
-        let stamp = match self.clock_step {
-            Some((at, by)) if now >= at => now + by,
-            _ => now,
-        };
-        wire::encode(&EstimateMsg {
-            header: Header {
-                version: FORMAT_VERSION,
-                sender: wire::LEADER_ID,
-                step: k,
-                time_s: k as f64 * dt_s,
-                sent_ns: stamp.as_nanos() as i64,
-            },
-            state: self.state,
-            fresh: true,
-        })
-    }
-}
-
-/// Four followers, their leader and the network, on virtual time.
-struct World {
-    scenario: Scenario,
-    followers: Vec<Follower>,
-    leader: VirtualLeader,
-    net: Network,
-    now: Now,
-    start: Start,
-    /// Every follower's telemetry so far, by index.
-    telemetry: Vec<Vec<Telemetry>>,
-}
-
-/// The run's epoch on the virtual timebase.
-const EPOCH: Now = Duration::from_secs(1_000);
-
-impl World {
-    fn new(scenario: Scenario, faults: Faults) -> Self {
-        let opts = Options { stall_timeout: Duration::from_secs(60), physical_node_faults: false };
-        let followers = (0..scenario.followers.len())
-            .map(|i| Follower::new(&scenario, i, Box::new(SimFollower::new(&scenario, i)), &opts))
-            .collect();
-        let leader = scenario.leader();
-        let state = leader.state(0.0);
-        let start = Start { fingerprint: 0, epoch_unix_ns: EPOCH.as_nanos() as u64, time_scale: 1.0, sent_ns: 0 };
-        let telemetry = vec![Vec::new(); scenario.followers.len()];
-        Self {
-            leader: VirtualLeader { leader, state, k: 0, clock_step: None },
-            net: Network::new(faults),
-            now: EPOCH,
-            start,
-            followers,
-            telemetry,
-            scenario,
-        }
-    }
-
-    fn start_all(&mut self) {
-        let now = self.now;
-        for f in &mut self.followers {
-            f.start(&self.start, None, now);
-        }
-        self.flush();
-    }
-
-    fn id(&self, i: usize) -> u32 {
-        self.scenario.graph.id(i)
-    }
-
-    /// Who hears node `from` (0: the leader).
-    fn listeners(&self, from: u32) -> Vec<u32> {
-        (0..self.followers.len())
-            .filter(|&i| self.followers[i].source_ids().contains(&from))
-            .map(|i| self.id(i))
-            .collect()
-    }
-
-    /// Every machine's answers onto the network and into the telemetry.
-    fn flush(&mut self) {
-        for i in 0..self.followers.len() {
-            let from = self.id(i);
-            let listeners = self.listeners(from);
-            while let Some(bytes) = self.followers[i].poll_transmit() {
-                for &to in &listeners {
-                    self.net.send(self.now, from, to, &bytes);
-                }
-            }
-            while let Some(b) = self.followers[i].poll_telemetry() {
-                self.telemetry[i].push(b.into_telemetry(Delivery::default(), None));
-            }
-            while self.followers[i].poll_say().is_some() {}
-        }
-    }
-
-    /// The leader publishes what it may: lock-step, up to WINDOW steps ahead
-    /// of the slowest follower that hears it; real time, what is due.
-    fn lead(&mut self) {
-        let dt = self.scenario.dt_s;
-        let lockstep = self.scenario.timing == formation_topology::Timing::Lockstep;
-        let slowest = (0..self.followers.len())
-            .filter(|&i| self.followers[i].source_ids().contains(&wire::LEADER_ID))
-            .map(|i| self.followers[i].step().unwrap_or(self.scenario.steps() + 1))
-            .min()
-            .unwrap_or(0);
-        let listeners = self.listeners(wire::LEADER_ID);
-        while self.leader.k <= self.scenario.steps() {
-            let k = self.leader.k;
-            let may = if lockstep {
-                k <= slowest + WINDOW
-            } else {
-                EPOCH + Duration::from_secs_f64(k as f64 * dt) <= self.now
-            };
-            if !may {
-                break;
-            }
-            if k > 0 {
-                self.leader.leader.advance(&self.leader.state.clone(), dt);
-                self.leader.state = self.leader.leader.state(k as f64 * dt);
-            }
-            let bytes = self.leader.message(k, dt, self.now);
-            for &to in &listeners {
-                self.net.send(self.now, wire::LEADER_ID, to, &bytes);
-            }
-            self.leader.k += 1;
-        }
-    }
-
-    /// One tick of `tick` virtual time: deliveries, then every machine does
-    /// what is due until it waits.
-    fn tick(&mut self, tick: Duration) {
-        self.now += tick;
-        self.lead();
-        for i in 0..self.followers.len() {
-            let id = self.id(i);
-            for (from, bytes) in self.net.deliver(id, self.now) {
-                self.followers[i].handle_estimate(Some(from), &bytes, Some(self.now));
-            }
-            for _ in 0..10_000 {
-                match self.followers[i].poll_timeout() {
-                    Some(at) if at <= self.now => self.followers[i].handle_timeout(self.now),
-                    _ => break,
-                }
-                self.flush();
-                self.lead();
-            }
-        }
-        // Lock-step: tell each machine which neighbours reported their final step.
-        let finished: Vec<u32> = (0..self.followers.len())
-            .filter(|&i| self.telemetry[i].iter().any(|t| t.reports_final_step(self.id(i), self.scenario.steps())))
-            .map(|i| self.id(i))
-            .collect();
-        for f in &mut self.followers {
-            for &id in &finished {
-                f.handle_done(id);
-            }
-        }
-        self.flush();
-    }
-
-    /// Ticks until every machine is done or `limit` of virtual time passed.
-    fn run(&mut self, tick: Duration, limit: Duration) {
-        let end = self.now + limit;
-        while self.now < end && self.followers.iter().any(|f| f.outcome().is_none()) {
-            self.tick(tick);
-        }
-    }
-
-    fn outcomes(&self) -> Vec<Option<Result<(), String>>> {
-        self.followers.iter().map(|f| f.outcome().cloned()).collect()
-    }
-
-    fn all_ok(&self) -> bool {
-        self.followers.iter().all(|f| matches!(f.outcome(), Some(Ok(()))))
-    }
-
-    /// Follower `i`'s samples, in step order.
-    fn samples(&self, i: usize) -> Vec<FollowerSample> {
-        self.telemetry[i]
-            .iter()
-            .flat_map(|t| match t {
-                Telemetry::Follower { samples, .. } => samples.clone(),
-                _ => Vec::new(),
-            })
-            .collect()
-    }
-
-    fn events(&self, i: usize) -> Vec<NetEvent> {
-        self.telemetry[i]
-            .iter()
-            .flat_map(|t| match t {
-                Telemetry::Follower { events, .. } => events.clone(),
-                _ => Vec::new(),
-            })
-            .collect()
-    }
-
-    fn counters(&self, i: usize) -> formation_protocol::counters::Counters {
-        match self.telemetry[i].last() {
-            Some(Telemetry::Follower { counters, .. }) => *counters,
-            _ => Default::default(),
-        }
-    }
 }
 
 /// The simulator's samples of every follower.
@@ -368,7 +78,7 @@ fn lockstep_machines_equal_the_simulator_bit_for_bit() {
     let sim = simulate(&s);
     let mut w = World::new(s, Faults::default());
     w.start_all();
-    w.run(Duration::from_millis(10), Duration::from_secs(600));
+    w.drive(Duration::from_secs(600));
     assert!(w.all_ok(), "not every follower completed: {:?}", w.outcomes());
     assert_eq!(first_difference(&w, &sim), None);
 }
@@ -381,9 +91,12 @@ fn a_message_lost_with_a_closed_link_is_sent_again() {
     let s = paper(LOCKSTEP);
     let sim = simulate(&s);
     let closed = EPOCH + Duration::from_millis(200)..EPOCH + Duration::from_millis(5_200);
-    let mut w = World::new(s, Faults { closed: Some((3, closed)), ..Faults::default() });
+    // (A packet takes 1 ms: the run lasts long enough in virtual time to
+    // meet the closed link.)
+    let faults = Faults { closed: Some((3, closed)), latency: Duration::from_millis(1), ..Faults::default() };
+    let mut w = World::new(s, faults);
     w.start_all();
-    w.run(Duration::from_millis(10), Duration::from_secs(600));
+    w.drive(Duration::from_secs(600));
     assert!(w.all_ok(), "stalled after the link closed: {:?}", w.outcomes());
     let republished: u64 = (0..4).map(|i| w.counters(i).republished).sum();
     assert!(republished > 0, "nothing was repeated, so nothing was lost: the test tests nothing");
@@ -402,12 +115,12 @@ fn thirty_percent_loss_through_a_fault_window_completes_and_equals_the_simulator
     let s = paper(&sets);
     let sim = simulate(&s);
     let lossy = EPOCH..EPOCH + Duration::from_secs(3_600);
-    let mut w = World::new(s, Faults { loss: Some((2, 0.3, lossy)), ..Faults::default() });
+    let faults = Faults { loss: Some((2, 0.3, lossy)), latency: Duration::from_millis(1), ..Faults::default() };
+    let mut w = World::new(s, faults);
     w.start_all();
     let mut ahead_of_2 = 0;
     let end = w.now + Duration::from_secs(600);
-    while w.now < end && !w.followers.iter().all(|f| f.outcome().is_some()) {
-        w.tick(Duration::from_millis(10));
+    while w.now < end && !w.followers.iter().all(|f| f.outcome().is_some()) && w.step() {
         let at = |i: usize| w.followers[i].step().unwrap_or(w.scenario.steps() + 1);
         let k2 = at(1);
         ahead_of_2 = ahead_of_2.max((0..4).map(|i| at(i).saturating_sub(k2)).max().unwrap_or(0));
@@ -582,8 +295,7 @@ fn realtime_a_restart_rejoins_ahead_of_the_run_and_adopts_before_publishing() {
 #[test]
 fn realtime_a_step_of_the_leaders_clock_changes_nothing() {
     let run = |step: Option<(Now, Duration)>| {
-        let mut w = World::new(paper(REALTIME), Faults::default());
-        w.leader.clock_step = step;
+        let mut w = World::new(paper(REALTIME), Faults { leader_clock_step: step, ..Faults::default() });
         w.start_all();
         w.run(Duration::from_millis(1), Duration::from_secs(10));
         assert!(w.all_ok(), "{:?}", w.outcomes());

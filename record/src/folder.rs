@@ -6,7 +6,7 @@ use std::fs::{self, File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 
 use crate::row::{Row, FOLLOWER_HEADER, LEADER_HEADER};
 use crate::summary::Summary;

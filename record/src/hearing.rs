@@ -9,7 +9,7 @@
 //! times a second, a lock-step run never. The run folder holds it as
 //! `hearing.bin` (bincode 2, standard configuration: varints).
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use serde::{Deserialize, Serialize};
 
 /// What one follower heard of one source at one step.

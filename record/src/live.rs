@@ -2,7 +2,7 @@
 //! viewer of the live run (the Foxglove server) behind the one small trait
 //! [`LiveSink`], so the recorder that writes the folder knows no server.
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 
 use crate::row::Row;
 

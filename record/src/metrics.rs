@@ -1,7 +1,8 @@
 //! The per-follower metrics of docs/model.md §11, accumulated sample by
 //! sample in O(1) memory (and, per fault window, those of §14).
 
-use formation_agent::{GuardStep, GuardTally, LeaderState};
+use formation_agent::{GuardStep, GuardTally};
+use formation_leader::LeaderState;
 use formation_topology::Scenario;
 use serde::{Deserialize, Serialize};
 

@@ -3,7 +3,8 @@
 //! (docs/model.md §11).
 
 use formation_agent::math::wrap;
-use formation_agent::{LeaderState, StepOutput};
+use formation_agent::StepOutput;
+use formation_leader::LeaderState;
 use formation_plant::{Pose, Velocity};
 use serde::{Deserialize, Serialize};
 

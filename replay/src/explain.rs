@@ -12,8 +12,8 @@
 
 use formation_record::{FollowerMetrics, Heard};
 
-use crate::error::Error;
 use crate::replay::{self, Hearing, Loaded, Metrics, ModelEar};
+use formation_protocol::error::Error;
 
 /// One link of the graph: `sender` → follower `receiver` (its slot `slot`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -278,19 +278,23 @@ impl ControlWatch {
 
 /// Whether a put on control key `rel` is what that key carries.
 fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
-    use crate::codec::decode;
+    use formation_protocol::codec::decode;
     let mut parts = rel.split('/');
     let (Some("control"), Some(kind)) = (parts.next(), parts.next()) else { return false };
     let rest: Vec<&str> = parts.collect();
     match (kind, rest.as_slice()) {
         ("hello", [_]) => bytes.is_empty(),
-        ("ready", [_]) => decode::<crate::barrier::Ready>(bytes).is_some_and(|r| r.fingerprint == fingerprint),
-        ("start", []) => decode::<crate::barrier::Start>(bytes).is_some_and(|s| s.fingerprint == fingerprint),
-        ("abort", []) => crate::barrier::abort_reason(bytes).is_some(),
+        ("ready", [_]) => {
+            decode::<formation_protocol::barrier::Ready>(bytes).is_some_and(|r| r.fingerprint == fingerprint)
+        }
+        ("start", []) => {
+            decode::<formation_protocol::barrier::Start>(bytes).is_some_and(|s| s.fingerprint == fingerprint)
+        }
+        ("abort", []) => formation_protocol::barrier::abort_reason(bytes).is_some(),
         ("denied", [node]) => {
-            bytes.len() <= crate::denials::MAX_REPORT_BYTES
-                && serde_json::from_slice::<crate::denials::Report>(bytes)
-                    .is_ok_and(|r| r.node == *node && r.rows.len() <= crate::denials::MAX_REPORT_ROWS)
+            bytes.len() <= formation_protocol::denied::MAX_REPORT_BYTES
+                && serde_json::from_slice::<formation_protocol::denied::Report>(bytes)
+                    .is_ok_and(|r| r.node == *node && r.rows.len() <= formation_protocol::denied::MAX_REPORT_ROWS)
         }
         // The monitor's own acknowledgements never reach it: another is foreign.
         _ => false,
@@ -474,7 +478,7 @@ mod tests {
     #[test]
     fn control_puts_are_counted_per_key_and_foreign_ones_refused() {
         let mut w = ControlWatch::default();
-        let start = crate::codec::encode(&crate::barrier::Start {
+        let start = formation_protocol::codec::encode(&formation_protocol::barrier::Start {
             fingerprint: 7,
             epoch_unix_ns: 1,
             time_scale: 1.0,

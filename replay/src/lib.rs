@@ -15,7 +15,3 @@ pub mod playback;
 pub mod recorder;
 pub mod replay;
 pub mod watch;
-
-pub use formation_protocol::error::{self, Error};
-// The protocol's modules by the names this crate's files use.
-pub(crate) use formation_protocol::{barrier, codec, counters, denied as denials, loop_timing, telemetry};

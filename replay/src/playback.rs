@@ -13,13 +13,13 @@ use std::sync::mpsc;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use formation_record::{FollowerSample, Heard, LiveSink, RecordOptions};
 use formation_view::web::{Live, FRAME_PERIOD};
 
-use crate::error::Error;
 use crate::recorder::Recorder;
 use crate::replay::{self, Hearing, Loaded, Sink};
+use formation_protocol::error::Error;
 
 /// What the page (or a test) asks of a playback.
 #[derive(Clone, Copy, Debug, PartialEq)]

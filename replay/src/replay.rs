@@ -15,15 +15,16 @@
 
 use std::path::{Path, PathBuf};
 
-use formation_agent::{LeaderState, LinkLoss, Message, Nearby};
+use formation_agent::{LinkLoss, Message, Nearby};
+use formation_leader::LeaderState;
 use formation_plant::Pose;
 use formation_record::hearing::{Cursor, FollowerHearing, HearingRecord};
 use formation_record::{FollowerSample, Heard, RecordOptions, HEARING_FILE};
 use formation_sim::SimFollower;
 use formation_topology::Scenario;
 
-use crate::error::Error;
 use crate::recorder::Recorder;
+use formation_protocol::error::Error;
 
 /// A run folder's scenario and hearing record, checked against each other.
 pub struct Loaded {
@@ -62,7 +63,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
             dir.display()
         )));
     }
-    if crate::barrier::fingerprint(&scenario) != record.fingerprint {
+    if formation_protocol::barrier::fingerprint(&scenario) != record.fingerprint {
         return Err(Error::Input(format!(
             "{}: the scenario it carries does not give the run's fingerprint (a record of another build?)",
             dir.display()

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use formation_record::{RecordOptions, Row, RunWriter, Summary};
 use formation_topology::Scenario;
 

@@ -2,8 +2,9 @@
 //! stepped in lock-step in docs/model.md §9's order. Deterministic: the same scenario
 //! gives the same numbers, bit for bit.
 
-use formation_agent::{Follower, Hearing, LeaderState, LinkLoss, Message, Nearby, StepOutput};
+use formation_agent::{Follower, Hearing, LinkLoss, Message, Nearby, StepOutput};
 use formation_leader::Leader;
+use formation_leader::LeaderState;
 use formation_plant::{Drive, NoiseSource, Pose, Robot, Velocity, VelocityRobot};
 use formation_topology::Scenario;
 

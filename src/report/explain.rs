@@ -5,7 +5,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use formation_net::explain::{self, Explanation};
+use formation_replay::explain::{self, Explanation};
 
 use super::case::Case;
 use super::plots::{self, Figure, FigureSpec, Line, Panel};
@@ -98,7 +98,7 @@ pub fn write(out: &Path, cases: &[&Case]) -> Result<String, CliError> {
     let mut explained = Vec::new();
     let mut skipped = Vec::new();
     for c in cases {
-        let loaded = match formation_net::replay::load(&c.dir) {
+        let loaded = match formation_replay::replay::load(&c.dir) {
             Ok(l) => l,
             Err(e) => {
                 skipped.push(format!("- {}: not set beside its model: {e}", c.label));

@@ -220,7 +220,7 @@ fn outage_figure(cases: &[&Case]) -> Result<Option<FigureSpec>, CliError> {
         let mut columns = [Vec::new(), Vec::new()];
         for (k, id) in c.follower_ids().into_iter().enumerate() {
             let path = c.dir.join(format!("follower_{id}.csv"));
-            let t = plots::read_columns(&path, &["t", "estimator_error", "formation_error"])?;
+            let t = formation_record::read_columns(&path, &["t", "estimator_error", "formation_error"])?;
             for (col, lines) in columns.iter_mut().enumerate() {
                 lines.push(Line {
                     label: format!("Follower {id}"),

@@ -15,6 +15,7 @@ use std::fs;
 use std::path::Path;
 use std::sync::Once;
 
+use formation_record::read_columns;
 use plotters::coord::ranged1d::ValueFormatter;
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
@@ -36,9 +37,6 @@ fn register_fonts() {
         let _ = register_font(FAMILY, FontStyle::Bold, FONT);
     });
 }
-
-/// Reads the named columns of a run folder's CSV.
-pub use formation_record::read_columns;
 
 /// A colour per case: by method in paper mode, by position otherwise.
 pub fn colours(cases: &[Case], paper: bool) -> Vec<RGBColor> {

@@ -393,8 +393,8 @@ pub fn exit_matches_health(code: i32, dir: &Path, may_degrade: &[u32], what: &st
 /// Follower `id`'s telemetry batch with nothing in it (no samples, no
 /// events, an empty hearing record): the base the attack and fuzz tests
 /// craft their messages from.
-pub fn empty_follower_batch(id: u32) -> formation_net::telemetry::Telemetry {
-    formation_net::telemetry::Telemetry::Follower {
+pub fn empty_follower_batch(id: u32) -> formation_protocol::telemetry::Telemetry {
+    formation_protocol::telemetry::Telemetry::Follower {
         id,
         first_k: 0,
         samples: vec![],

@@ -32,9 +32,9 @@ use std::panic::AssertUnwindSafe;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use formation_net::barrier::{Ready, Start};
 use formation_net::clock_sync::TimeReply;
-use formation_net::telemetry::{Ack, Telemetry};
+use formation_protocol::barrier::{Ready, Start};
+use formation_protocol::telemetry::{Ack, Telemetry};
 use formation_record::hearing::{HearingError, HearingRecord};
 
 // ---------------------------------------------------------------------------
@@ -483,7 +483,7 @@ impl Context {
 /// Runs `kind`'s decoder on `bytes`: whether it decoded.
 fn decode(kind: Kind, bytes: &[u8], cx: &Context, seed: usize) -> bool {
     let (node, fingerprint, epoch) = &cx.who[seed];
-    use formation_net::codec;
+    use formation_protocol::codec;
     match kind {
         Kind::Estimate => formation_topology::wire::decode(bytes).is_ok(),
         Kind::Telemetry => codec::decode::<Telemetry>(bytes).is_some(),
@@ -492,7 +492,7 @@ fn decode(kind: Kind, bytes: &[u8], cx: &Context, seed: usize) -> bool {
         Kind::Start => codec::decode::<Start>(bytes).is_some(),
         Kind::TimeReply => codec::decode::<TimeReply>(bytes).is_some(),
         Kind::Hearing => HearingRecord::decode(bytes, "fuzz/hearing.bin").is_ok(),
-        Kind::Denials => formation_net::denials::Table::default().file(node, bytes),
+        Kind::Denials => formation_protocol::denied::Table::default().file(node, bytes),
         Kind::Checkpoint => formation_net::checkpoint::read(&cx.checkpoint_path(), *fingerprint, *epoch).is_ok(),
     }
 }
@@ -741,7 +741,7 @@ fn the_issues_attack_inputs_are_refused() {
     if let Telemetry::Follower { diverged, .. } = &mut t {
         *diverged = Some(String::new());
     }
-    let mut bytes = formation_net::codec::encode(&t);
+    let mut bytes = formation_protocol::codec::encode(&t);
     assert_eq!(bytes[bytes.len() - 2..], [1, 0], "Some(\"\") ends the encoding");
     bytes.pop();
     bytes.extend_from_slice(&huge);
@@ -795,7 +795,7 @@ fn the_issues_attack_inputs_are_refused() {
 /// The worst shapes, with as many elements as make the vector's last growth
 /// the longest (serde's first allocation of 1 MiB, doubled, plus one).
 fn empties(kind: &str, n: usize) -> Vec<u8> {
-    use formation_net::codec::encode;
+    use formation_protocol::codec::encode;
     use formation_record::hearing::{Density, HeardRuns, ScenarioSource, HEARING_FORMAT};
     let follower = |slots: usize| {
         let mut t = common::empty_follower_batch(1);

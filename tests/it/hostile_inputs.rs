@@ -964,7 +964,7 @@ fn hearing_folders(d: &Path) {
     let record = HearingRecord {
         format: HEARING_FORMAT,
         scenario: ScenarioSource { label: path.display().to_string(), text: paper(), overrides: vec![] },
-        fingerprint: formation_net::barrier::fingerprint(&scenario),
+        fingerprint: formation_protocol::barrier::fingerprint(&scenario),
         density: Density { every: 1, csv: true, mcap: false },
         leader: vec![],
         followers: vec![],

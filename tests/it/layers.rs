@@ -399,6 +399,36 @@ fn only_the_binary_crate_knows_exit_statuses() {
     assert!(wrong.is_empty(), "below the binary crate:\n{}", wrong.join("\n"));
 }
 
+/// Every name is reached by its own crate's name: no library crate
+/// re-exports another formation crate's items (`pub use formation_…`, nor
+/// `pub use` of a path through one), and no module glob-merges another
+/// crate's module into its own (`use formation_….::*` in a module that also
+/// defines items under that name). A reader who sees `formation_net::x`
+/// knows x needs the network crate.
+#[test]
+fn no_crate_re_exports_another_formation_crate() {
+    let mut wrong = Vec::new();
+    for (name, dir) in members() {
+        for f in sources(&dir) {
+            let text = code(&std::fs::read_to_string(&f).expect("source"));
+            for (n, line) in text.lines().enumerate() {
+                let l = line.trim_start();
+                let reexport = l.starts_with("pub use formation_")
+                    || (l.starts_with("pub use ")
+                        && !l.starts_with("pub use crate::")
+                        && !l.starts_with("pub use self::")
+                        && !l.starts_with("pub use super::")
+                        && l.contains("formation_"));
+                let glob = l.starts_with("use formation_") && l.contains("::*;");
+                if reexport || glob {
+                    wrong.push(format!("{name}: {}:{}: {l}", f.display(), n + 1));
+                }
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "names reached through another crate's name:\n{}", wrong.join("\n"));
+}
+
 /// formation-protocol holds the rules that tests drive on virtual time: its
 /// manifest names no runtime and no network, and no source of it reads a
 /// clock or sleeps (time is an argument).

@@ -12,7 +12,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::{Group, Ports, LAUNCH_PORTS, LIMIT, SCENARIO};
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use formation_net::session::{self, ZenohArgs};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 
@@ -123,12 +123,12 @@ async fn rogue_messages_are_rejected_and_counted() {
         assert!(t.elapsed() < LIMIT, "run did not finish");
         // Start-barrier traffic with a foreign fingerprint, under expected and unexpected names.
         let foreign_ready =
-            formation_net::codec::encode(&formation_net::barrier::Ready { fingerprint: 0xbad, keys: vec![] });
+            formation_protocol::codec::encode(&formation_protocol::barrier::Ready { fingerprint: 0xbad, keys: vec![] });
         for name in ["rogue", "1", "monitor"] {
             let key = format!("formation/rogue/control/ready/{name}");
             let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put(key, foreign_ready.clone())).await;
         }
-        let foreign_start = formation_net::codec::encode(&formation_net::barrier::Start {
+        let foreign_start = formation_protocol::codec::encode(&formation_protocol::barrier::Start {
             fingerprint: 0xbad,
             epoch_unix_ns: 1,
             time_scale: 1.0,

@@ -25,7 +25,7 @@ fn run(overrides: &[&str]) -> (Scenario, Vec<FollowerMetrics>) {
 struct FirstCommand(std::collections::BTreeMap<usize, f64>);
 
 impl Observer for FirstCommand {
-    fn leader(&mut self, _: u64, _: &formation_agent::LeaderState) -> std::io::Result<()> {
+    fn leader(&mut self, _: u64, _: &formation_leader::LeaderState) -> std::io::Result<()> {
         Ok(())
     }
     fn follower(&mut self, index: usize, k: u64, row: &Row, _: bool) -> std::io::Result<()> {

@@ -11,9 +11,9 @@ use std::process::Command;
 use std::time::Duration;
 
 use common::Group;
-use formation_net::replay::{self, Hearing, Loaded};
 use formation_record::hearing::{Density, FollowerHearing, HeardRuns, HearingRecord, ScenarioSource, Segment};
 use formation_record::{Heard, HEARING_FILE};
+use formation_replay::replay::{self, Hearing, Loaded};
 
 fn replay_cli(args: &[&str], dir: &Path) -> (bool, String) {
     let o = Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(dir).args(args).output().expect("replay");
@@ -353,7 +353,7 @@ fn the_models_hearing_replays_into_the_simulators_folder() {
     let record = HearingRecord {
         format: formation_record::hearing::HEARING_FORMAT,
         scenario: ScenarioSource { label: "paper.toml".into(), text, overrides: sets },
-        fingerprint: formation_net::barrier::fingerprint(&scenario),
+        fingerprint: formation_protocol::barrier::fingerprint(&scenario),
         density: Density { every: 1, csv: true, mcap: false },
         leader: vec![(0, steps + 1)],
         followers,

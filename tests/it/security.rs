@@ -12,7 +12,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::{Group, Ports, LAUNCH_PORTS, LIMIT, SCENARIO};
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 

@@ -50,12 +50,12 @@ fn varint_u64(v: u64) -> Vec<u8> {
 /// real batch with `diverged = Some("")`, its last byte (the string's length,
 /// 0) replaced by the varint of 2^62.
 fn telemetry_declaring_2_pow_62() -> Vec<u8> {
-    use formation_net::telemetry::Telemetry;
+    use formation_protocol::telemetry::Telemetry;
     let mut batch = common::empty_follower_batch(1);
     if let Telemetry::Follower { diverged, .. } = &mut batch {
         *diverged = Some(String::new());
     }
-    let mut bytes = formation_net::codec::encode(&batch);
+    let mut bytes = formation_protocol::codec::encode(&batch);
     assert_eq!(bytes.pop(), Some(0), "the batch ends with the empty string's length");
     bytes.extend(varint_u64(1 << 62));
     bytes
@@ -192,7 +192,8 @@ async fn forge_time(
         let epoch = epoch.clone();
         s.declare_subscriber(format!("formation/{run}/control/start"))
             .callback(move |m| {
-                if let Some(st) = formation_net::codec::decode::<formation_net::barrier::Start>(&m.payload().to_bytes())
+                if let Some(st) =
+                    formation_protocol::codec::decode::<formation_protocol::barrier::Start>(&m.payload().to_bytes())
                 {
                     epoch.store(st.epoch_unix_ns, Ordering::Relaxed);
                 }
@@ -206,8 +207,10 @@ async fn forge_time(
         .callback(move |q| {
             use zenoh::Wait;
             let t2 = unix_ns() + ahead_ns;
-            let reply =
-                formation_net::codec::encode(&formation_net::clock_sync::TimeReply { t2, t3: unix_ns() + ahead_ns });
+            let reply = formation_protocol::codec::encode(&formation_net::clock_sync::TimeReply {
+                t2,
+                t3: unix_ns() + ahead_ns,
+            });
             if q.reply(q.key_expr().clone(), reply).wait().is_ok() && answered.fetch_add(1, Ordering::Relaxed) == 0 {
                 first_unix_ns.store(unix_ns() as u64, Ordering::Relaxed);
             }

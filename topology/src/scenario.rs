@@ -4,9 +4,10 @@ use std::path::Path;
 use std::sync::Arc;
 
 use formation_agent::{
-    ControlParams, DynamicGains, EstimatorGains, Fault, FilterParams, FollowerConfig, Guard, KinematicGains,
-    LeaderState, Limits, LinkLoss, LossWindow, RejoinPolicy, RejoinRule, SafetyParams, Shunting,
+    ControlParams, DynamicGains, EstimatorGains, Fault, FilterParams, FollowerConfig, Guard, KinematicGains, Limits,
+    LinkLoss, LossWindow, RejoinPolicy, RejoinRule, SafetyParams, Shunting,
 };
+use formation_leader::LeaderState;
 use formation_leader::{Leader, Profile, Trajectory};
 use formation_plant::{Disturbance, Drive, NoiseCov, Pose, RobotParams, Velocity};
 use serde::Serialize;
@@ -176,7 +177,7 @@ impl LinkFault {
     }
 }
 
-pub use formation_agent::math::step_at;
+use formation_agent::math::step_at;
 
 /// A validated scenario. Followers are in ascending id, indexed like the graph.
 #[derive(Clone, Debug, PartialEq)]

@@ -6,7 +6,7 @@
 //! finite. Whether the sender is a neighbour, matches its key, or is stale
 //! is for the receiving node to decide ([`Reject`] names those too).
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use serde::{Deserialize, Serialize};
 
 /// Bumped on any change of the encoding.

@@ -18,7 +18,7 @@ use crate::error::ViewError;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use formation_topology::Scenario;
 use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHandle};
 use serde_json::json;

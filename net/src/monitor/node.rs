@@ -21,14 +21,14 @@ use formation_view::web::{self, Live};
 use tokio::sync::mpsc;
 
 use super::args::MonitorArgs;
-use crate::barrier::{self, Start};
-use crate::codec;
-use crate::error::Error;
-use crate::health::{ControlWatch, Verdict};
-use crate::names::{self, Keys, MONITOR};
-use crate::recorder::Recorder;
 use crate::startup;
-use crate::watch::{Ending, Signal, Watch};
+use formation_protocol::barrier::{self, Start};
+use formation_protocol::codec;
+use formation_protocol::error::Error;
+use formation_protocol::names::{self, Keys, MONITOR};
+use formation_replay::health::{ControlWatch, Verdict};
+use formation_replay::recorder::Recorder;
+use formation_replay::watch::{Ending, Signal, Watch};
 
 /// How often the monitor acknowledges what it holds.
 const ACK_PERIOD: Duration = Duration::from_millis(100);

@@ -22,7 +22,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use formation_agent::{Follower, LeaderState, Message};
+use formation_agent::{Follower, Message};
+use formation_leader::LeaderState;
 use formation_plant::{Pose, Velocity};
 use formation_record::FollowerSample;
 use formation_ros2::msgs::Odometry;
@@ -31,7 +32,7 @@ use formation_topology::{Scenario, Timing};
 use super::topics::{OdomFrame, Stamps, QOS};
 use super::wire::{RosNode, RosSubscription};
 use crate::clock::{self, Timebase};
-use crate::error::Error;
+use formation_protocol::error::Error;
 use formation_protocol::follower::Body;
 
 /// A move between two odometry messages longer than this (m) is a jump

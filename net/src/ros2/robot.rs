@@ -31,8 +31,8 @@ use formation_topology::{Scenario, Timing};
 use super::topics::{odometry, OdomFrame, Stamps, QOS};
 use super::wire::{RosNode, RosPublisher};
 use crate::clock;
-use crate::error::Error;
 use crate::node::NodeArgs;
+use formation_protocol::error::Error;
 use formation_ros2::planar::Frames;
 
 /// Lock-step: odometry is said again this often while its command is awaited.
@@ -254,7 +254,7 @@ fn lockstep(
 }
 
 fn realtime(s: &Scenario, mut plant: Plant, out: &mut Outputs, latest: &Mutex<Option<Command>>) -> Result<(), Error> {
-    let period = Duration::from_secs_f64(s.dt_s / crate::barrier::positive_scale(s.network.time_scale));
+    let period = Duration::from_secs_f64(s.dt_s / formation_protocol::barrier::positive_scale(s.network.time_scale));
     let timeout = Duration::from_secs_f64(s.cmd_timeout_s);
     let began = clock::mono();
     let mut began_driving = false;

@@ -24,7 +24,7 @@ use formation_topology::{Scenario, Timing};
 use zenoh::qos::CongestionControl;
 
 use super::wire::{RosNode, RosPublisher};
-use crate::error::Error;
+use formation_protocol::error::Error;
 
 /// The QoS of the formation's topics: reliable, volatile, the last 10.
 pub const QOS: Qos = Qos { reliable: true, transient_local: false, depth: 10 };
@@ -47,7 +47,8 @@ impl Stamps {
             Timing::Lockstep => Self { origin_ns: 0, period_ns: scenario.dt_s * 1e9 },
             Timing::Realtime => Self {
                 origin_ns: epoch_unix_ns as i64,
-                period_ns: scenario.dt_s / crate::barrier::positive_scale(scenario.network.time_scale) * 1e9,
+                period_ns: scenario.dt_s / formation_protocol::barrier::positive_scale(scenario.network.time_scale)
+                    * 1e9,
             },
         }
     }

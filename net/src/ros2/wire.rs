@@ -17,7 +17,7 @@ use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
-use crate::error::{zerr, Error};
+use formation_protocol::error::{zerr, Error};
 
 /// Node and entity ids, unique in this process (its zenoh session id
 /// tells processes apart), as rmw_zenoh's context counts them.

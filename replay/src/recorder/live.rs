@@ -9,7 +9,7 @@ use formation_topology::Scenario;
 use serde_json::{json, Value};
 
 use super::{NodeStats, Recorder};
-use crate::telemetry::EventKind;
+use formation_protocol::telemetry::EventKind;
 
 /// The live page names a node whose telemetry stopped this long ago (s).
 const SILENT_NODE_S: f64 = 2.0;

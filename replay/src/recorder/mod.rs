@@ -20,7 +20,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use formation_agent::LeaderState;
+use formation_leader::LeaderState;
 use formation_plant::Pose;
 use formation_record::hearing::{Density, End, FollowerHearing, HearingRecord, Rescued, Resume, ScenarioSource};
 use formation_record::{
@@ -34,13 +34,13 @@ const PROXIMITY_BEHIND: u64 = 10_000;
 use formation_topology::Scenario;
 use serde_json::json;
 
-use crate::barrier;
-use crate::codec;
-use crate::counters::Counters;
 use crate::health::{ControlWatch, Evidence, Health, HearingEvidence};
-use crate::loop_timing::LoopStats;
-use crate::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
 use crate::watch::Ending;
+use formation_protocol::barrier;
+use formation_protocol::codec;
+use formation_protocol::counters::Counters;
+use formation_protocol::loop_timing::LoopStats;
+use formation_protocol::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
 use stream::{check_batch, Stream};
 
 mod live;
@@ -174,8 +174,8 @@ pub struct Recorder {
     model: Option<Result<BTreeMap<u32, Option<f64>>, String>>,
     /// Telemetry messages dropped on arrival (the queue was full).
     pub queue_dropped: u64,
-    /// What every node's access control refused (crate::denials).
-    pub denied: crate::denials::Table,
+    /// What every node's access control refused (formation_protocol::denied).
+    pub denied: formation_protocol::denied::Table,
     /// Wall clock: the monitor's start to the leader's start, and the start
     /// to the end of the record (network.json's `wall`).
     startup_s: Option<f64>,

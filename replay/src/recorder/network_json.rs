@@ -7,9 +7,9 @@ use serde_json::{json, Map, Value};
 
 use super::stream::Stream;
 use super::{NodeStats, Recorder};
-use crate::barrier;
 use crate::health::Health;
 use crate::watch::Ending;
+use formation_protocol::barrier;
 
 impl Recorder {
     /// `network.json`: per-node message counts and loop timing.

@@ -1,0 +1,546 @@
+//! The leader of the formation as one machine, with the follower's surface
+//! ([`crate::follower::Follower`]): it owns the virtual leader's trajectory,
+//! the lock-step window, the real-time pacing on the run's timebase, the
+//! stamping of its messages, what it repeats and for how long it lingers,
+//! and its telemetry batches. It is fed what arrives from the followers
+//! that hear it ([`Leader::handle_estimate`], [`Leader::handle_done`]) and
+//! the time ([`Leader::handle_timeout`]); it answers what to publish
+//! ([`Leader::poll_transmit`]), what to send to the monitor
+//! ([`Leader::poll_telemetry`]), what to say ([`Leader::poll_say`]) and when
+//! to be woken ([`Leader::poll_timeout`]). No socket, no clock, no thread.
+//!
+//! The leader's rules (docs/model.md §13):
+//!
+//! - it publishes (k, t, P_r, Ṗ_r, v_r, ω_r) for step k + 1 once step k is
+//!   done; in real time step k is due at epoch + k Δt / time_scale; in
+//!   lock-step it publishes step k only once every follower that hears it
+//!   has published step k − [`WINDOW`] ([`gate::leader_needs`]), and repeats
+//!   what the slowest may lack while it waits;
+//! - a follower counts only on its own key and for a step it can have
+//!   reached: at most one past the leader's newest ([`note_reached`]);
+//! - after its last step, in lock-step, it repeats its last messages until
+//!   every hearing follower reports its final step, for at most [`LINGER`].
+
+use std::collections::{BTreeSet, VecDeque};
+use std::time::Duration;
+
+use formation_leader::{Leader as Trajectory, LeaderState};
+use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_topology::{Scenario, Timing};
+
+use crate::barrier::Start;
+use crate::counters::Counters;
+use crate::gate::{self, Kept, Phase, WINDOW};
+use crate::loop_timing::{LoopStats, LoopTimer};
+use crate::telemetry::{Delivery, Telemetry};
+use crate::Now;
+
+/// Lock-step: how long the leader keeps repeating after its last step.
+pub const LINGER: Duration = Duration::from_secs(2);
+
+/// While lingering, how often the machine looks whether every hearing
+/// follower is done (the node learns it from telemetry, not from a message
+/// to the machine that could wake it).
+const LINGER_LOOK_EVERY: Duration = Duration::from_millis(10);
+
+/// A telemetry batch as the machine knows it; the node adds how its
+/// delivery goes and its clock server's count ([`LeaderBatch::into_telemetry`]).
+#[derive(Clone, Debug)]
+pub struct LeaderBatch {
+    pub first_k: u64,
+    /// One past the batch's last step.
+    pub end_k: u64,
+    states: Vec<LeaderState>,
+    counters: Counters,
+    done: bool,
+    loop_stats: Option<LoopStats>,
+}
+
+impl LeaderBatch {
+    /// The message for the monitor, with the clock server's (questions
+    /// answered, peak per second).
+    pub fn into_telemetry(self, delivery: Delivery, time_queries: (u64, u64)) -> Telemetry {
+        let mut counters = self.counters;
+        (counters.time_queries, counters.time_queries_peak_per_s) = time_queries;
+        Telemetry::Leader {
+            first_k: self.first_k,
+            states: self.states,
+            counters,
+            done: self.done,
+            loop_stats: self.loop_stats,
+            delivery,
+        }
+    }
+}
+
+/// The leader: see the module documentation.
+pub struct Leader {
+    steps: u64,
+    dt_s: f64,
+    batch_len: usize,
+    lockstep: bool,
+    /// The followers that hear the leader, ascending: `reached`'s slots.
+    hearing: Vec<u32>,
+    trajectory: Trajectory,
+    /// The leader's state at the step being done.
+    state: LeaderState,
+    phase: Phase,
+    /// Real time: the run's epoch and step period on the timebase.
+    epoch: Now,
+    period: Duration,
+    timer: Option<LoopTimer>,
+    /// Lock-step: the newest step each hearing follower has published.
+    reached: Vec<Option<u64>>,
+    /// The newest step the leader has published.
+    published: u64,
+    /// Lock-step: the wait for the window, once it waits.
+    wait: Option<gate::Wait>,
+    /// Lock-step: the messages the slowest follower may still lack.
+    recent: Kept,
+    /// Hearing followers that reported their final step.
+    done: BTreeSet<u32>,
+    counters: Counters,
+    states: Vec<LeaderState>,
+    first_k: u64,
+    last_now: Now,
+    transmit: VecDeque<Vec<u8>>,
+    telemetry: VecDeque<LeaderBatch>,
+    say: VecDeque<String>,
+    /// The state of the last step done, until taken.
+    latest: Option<(u64, LeaderState)>,
+}
+
+impl Leader {
+    /// The leader of `scenario`; it steps once [`Leader::start`] is called.
+    pub fn new(scenario: &Scenario) -> Self {
+        let g = &scenario.graph;
+        let hearing: Vec<u32> = (0..g.len()).filter(|&i| g.hears_leader(i)).map(|i| g.id(i)).collect();
+        let trajectory = scenario.leader();
+        let state = trajectory.state(0.0);
+        let batch_len = scenario.network.telemetry_batch.max(1) as usize;
+        Self {
+            steps: scenario.steps(),
+            dt_s: scenario.dt_s,
+            batch_len,
+            lockstep: scenario.timing == Timing::Lockstep,
+            reached: vec![None; hearing.len()],
+            hearing,
+            trajectory,
+            state,
+            phase: Phase::Waiting,
+            epoch: Now::ZERO,
+            period: Duration::ZERO,
+            timer: None,
+            published: 0,
+            wait: None,
+            recent: Kept::new(gate::LEADER_KEPT),
+            done: BTreeSet::new(),
+            counters: Counters::default(),
+            states: Vec::with_capacity(batch_len),
+            first_k: 0,
+            last_now: Now::ZERO,
+            transmit: VecDeque::new(),
+            telemetry: VecDeque::new(),
+            say: VecDeque::new(),
+            latest: None,
+        }
+    }
+
+    /// The followers that hear the leader, ascending.
+    pub fn hearing(&self) -> &[u32] {
+        &self.hearing
+    }
+
+    /// The run begins: `start` as announced, at `now`. Publishes step 0.
+    pub fn start(&mut self, start: &Start, now: Now) {
+        self.last_now = now;
+        if !self.lockstep {
+            self.epoch = Duration::from_nanos(start.epoch_unix_ns);
+            self.period = Duration::from_secs_f64(self.dt_s / start.scale());
+            self.timer = Some(LoopTimer::new(self.period.as_secs_f64()));
+        }
+        self.publish(0, now);
+        self.phase = Phase::Stepping(0);
+    }
+
+    /// A message on the estimate key of follower `key_id`: how far it has
+    /// reached, counted by [`note_reached`]. Whether the step the machine
+    /// waits for may now go (wake the loop).
+    pub fn handle_estimate(&mut self, key_id: Option<u32>, bytes: &[u8]) -> bool {
+        let Some(slot) = key_id.and_then(|id| self.hearing.iter().position(|&h| h == id)) else { return false };
+        let Ok(m) = wire::decode(bytes) else { return false };
+        note_reached(&mut self.reached, slot, key_id, &m.header, self.published) && self.may_step()
+    }
+
+    /// Hearing follower `id` reported its final step (lock-step).
+    pub fn handle_done(&mut self, id: u32) {
+        if self.hearing.contains(&id) {
+            self.done.insert(id);
+        }
+    }
+
+    /// Does what is due at `now`: at most one step, or a wait's repeat,
+    /// warning or end.
+    pub fn handle_timeout(&mut self, now: Now) {
+        self.last_now = now;
+        match self.phase {
+            Phase::Waiting | Phase::Done(_) => {}
+            Phase::Stepping(k) => self.step_if_due(k, now),
+            Phase::Lingering(_) => self.linger(now),
+        }
+    }
+
+    /// When the machine next wants [`Leader::handle_timeout`]: None before
+    /// the start and after the end; `Now::ZERO` (at once) when a lock-step
+    /// step may go.
+    pub fn poll_timeout(&self) -> Option<Now> {
+        match &self.phase {
+            Phase::Waiting | Phase::Done(_) => None,
+            Phase::Stepping(k) if !self.lockstep => Some(self.due(*k)),
+            Phase::Stepping(_) if self.may_step() => Some(Now::ZERO),
+            Phase::Stepping(_) => Some(self.wait.as_ref().map_or(Now::ZERO, gate::Wait::next_wake)),
+            Phase::Lingering(w) => Some(w.next_wake().min(self.last_now + LINGER_LOOK_EVERY)),
+        }
+    }
+
+    /// The next estimate message to publish (encoded, stamped).
+    pub fn poll_transmit(&mut self) -> Option<Vec<u8>> {
+        self.transmit.pop_front()
+    }
+
+    /// The next telemetry batch for the monitor.
+    pub fn poll_telemetry(&mut self) -> Option<LeaderBatch> {
+        self.telemetry.pop_front()
+    }
+
+    /// The next line for the operator (stderr).
+    pub fn poll_say(&mut self) -> Option<String> {
+        self.say.pop_front()
+    }
+
+    /// The step and state of the last step done, once (for a node that
+    /// publishes each step as it happens, such as its ROS 2 topics).
+    pub fn take_state(&mut self) -> Option<(u64, LeaderState)> {
+        self.latest.take()
+    }
+
+    /// The end of the run: None while it runs; Err says why it failed.
+    pub fn outcome(&self) -> Option<&Result<(), String>> {
+        self.phase.outcome()
+    }
+
+    /// The step the machine does next (or waits for).
+    pub fn step(&self) -> Option<u64> {
+        self.phase.step()
+    }
+
+    /// What the leader sent and repeated so far.
+    pub fn counters(&self) -> Counters {
+        self.counters
+    }
+
+    /// Real time: when step k is due on the timebase.
+    fn due(&self, k: u64) -> Now {
+        self.epoch + self.period.saturating_mul(u32::try_from(k).unwrap_or(u32::MAX))
+    }
+
+    /// Lock-step: whether the current step may publish its successor (the
+    /// window rule, [`gate::leader_needs`]); the last step always may.
+    fn may_step(&self) -> bool {
+        match self.phase {
+            Phase::Stepping(k) if k < self.steps => {
+                gate::leader_needs(k + 1).is_none_or(|need| gate::window_open(&self.reached, need))
+            }
+            Phase::Stepping(_) => true,
+            _ => false,
+        }
+    }
+
+    fn step_if_due(&mut self, k: u64, now: Now) {
+        if self.lockstep {
+            if !self.may_step() {
+                return self.wait_for_window(k, now);
+            }
+            self.wait = None;
+        } else {
+            let due = self.due(k);
+            if now < due {
+                return;
+            }
+            // Lateness against the step's own due time.
+            if let Some(t) = self.timer.as_mut() {
+                t.push(k, k as f64 * self.period.as_secs_f64() + (now - due).as_secs_f64());
+            }
+        }
+        let last = k == self.steps;
+        self.states.push(self.state);
+        self.latest = Some((k, self.state));
+        if !last {
+            self.trajectory.advance(&self.state, self.dt_s);
+            self.state = self.trajectory.state((k + 1) as f64 * self.dt_s);
+            self.publish(k + 1, now);
+        }
+        if self.states.len() >= self.batch_len || last {
+            self.batch(k + 1, last);
+        }
+        self.phase = match last {
+            false => Phase::Stepping(k + 1),
+            true if self.lockstep => Phase::Lingering(gate::Wait::new(now, gate::LINGER_REPEAT_EVERY, LINGER)),
+            true => Phase::Done(Ok(())),
+        };
+    }
+
+    /// Step k's message (the current state), stamped `now`, to publish; kept
+    /// for repeats in lock-step.
+    fn publish(&mut self, k: u64, now: Now) {
+        let bytes = wire::encode(&EstimateMsg {
+            header: Header {
+                version: FORMAT_VERSION,
+                sender: wire::LEADER_ID,
+                step: k,
+                time_s: k as f64 * self.dt_s,
+                sent_ns: i64::try_from(now.as_nanos()).unwrap_or(i64::MAX),
+            },
+            state: self.state,
+            fresh: true,
+        });
+        self.published = k;
+        self.counters.sent += 1;
+        if self.lockstep {
+            self.recent.push(k, bytes.clone());
+        }
+        self.transmit.push_back(bytes);
+    }
+
+    /// The states since the last batch, up to `end_k`, for the monitor.
+    fn batch(&mut self, end_k: u64, last: bool) {
+        self.telemetry.push_back(LeaderBatch {
+            first_k: self.first_k,
+            end_k,
+            states: std::mem::take(&mut self.states),
+            counters: self.counters,
+            done: last,
+            loop_stats: if last { self.timer.as_ref().map(LoopTimer::stats) } else { None },
+        });
+        self.first_k = end_k;
+    }
+
+    /// Lock-step: the window is shut; repeat what the slowest hearing
+    /// follower may lack, warn once, or give up after [`gate::LEADER_STALL`].
+    fn wait_for_window(&mut self, k: u64, now: Now) {
+        let need = gate::leader_needs(k + 1).unwrap_or(0);
+        let wait = self.wait.get_or_insert_with(|| gate::Wait::new(now, gate::LEADER_REPEAT_EVERY, gate::LEADER_STALL));
+        let waited = wait.waited(now);
+        let gate::WaitStep::Wait { repeat, warn } = wait.poll(now) else {
+            let why =
+                format!("followers stopped before step {need} (no progress for {} s)", gate::LEADER_STALL.as_secs());
+            self.phase = Phase::Done(Err(why));
+            return;
+        };
+        let slowest = gate::slowest_step(&self.reached);
+        if warn {
+            self.say.push_back(format!(
+                "leader: waiting {:.0} s at step {} for the followers that hear it (slowest at step {slowest}, \
+                 {WINDOW} steps behind allowed); repeating steps {} on",
+                waited.as_secs_f64(),
+                k + 1,
+                gate::leader_from_step(slowest)
+            ));
+        }
+        if repeat {
+            let n = self.repeat(slowest);
+            self.counters.republished += n;
+        }
+    }
+
+    /// Lock-step, after the last step: a follower may still wait for one of
+    /// the last messages (lost?): repeat what the slowest may have missed
+    /// until every hearing follower is done, for at most [`LINGER`].
+    fn linger(&mut self, now: Now) {
+        let Phase::Lingering(wait) = &mut self.phase else { return };
+        let step = wait.poll(now);
+        match step {
+            _ if self.done.len() >= self.hearing.len() => self.phase = Phase::Done(Ok(())),
+            gate::WaitStep::Over => self.phase = Phase::Done(Ok(())),
+            gate::WaitStep::Wait { repeat, .. } => {
+                if repeat {
+                    self.repeat(gate::slowest_step(&self.reached));
+                }
+            }
+        }
+    }
+
+    /// Repeats the kept messages the slowest hearing follower may lack; how many.
+    fn repeat(&mut self, slowest: u64) -> u64 {
+        let before = self.transmit.len();
+        self.transmit.extend(self.recent.leader_repeats(slowest).cloned());
+        let n = (self.transmit.len() - before) as u64;
+        self.counters.sent += n;
+        n
+    }
+}
+
+/// Lock-step: files a hearing follower's message (`slot`, received on the
+/// key of `key_id`) in how far each has reached. Counted only from the
+/// follower itself and for a step it can have reached: at most one past the
+/// leader's newest (`published`). Whether it was counted.
+pub fn note_reached(reached: &mut [Option<u64>], slot: usize, key_id: Option<u32>, h: &Header, published: u64) -> bool {
+    if key_id != Some(h.sender) || h.step > published.saturating_add(1) || slot >= reached.len() {
+        return false;
+    }
+    reached[slot] = Some(reached[slot].map_or(h.step, |x| x.max(h.step)));
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    fn header(sender: u32, step: u64) -> Header {
+        Header { version: FORMAT_VERSION, sender, step, time_s: 0.0, sent_ns: 0 }
+    }
+
+    fn paper(sets: &[&str]) -> Scenario {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        Scenario::load(&path, &sets).expect("the paper scenario")
+    }
+
+    const START: Start = Start { fingerprint: 0, epoch_unix_ns: 1_000_000_000_000, time_scale: 1.0, sent_ns: 0 };
+
+    /// A follower's message for `step`.
+    fn from(id: u32, step: u64) -> Vec<u8> {
+        wire::encode(&EstimateMsg { header: header(id, step), state: LeaderState::default(), fresh: true })
+    }
+
+    /// Hands the machine `now` as long as something is due at once.
+    fn run_while_due(l: &mut Leader, now: Now) {
+        for _ in 0..100_000 {
+            l.handle_timeout(now);
+            if l.poll_timeout() != Some(Now::ZERO) {
+                return;
+            }
+        }
+    }
+
+    /// Every message the leader publishes, by step.
+    fn steps_sent(l: &mut Leader) -> Vec<u64> {
+        std::iter::from_fn(|| l.poll_transmit())
+            .map(|b| wire::decode(&b).expect("the leader's own").header.step)
+            .collect()
+    }
+
+    #[test]
+    fn a_follower_counts_only_on_its_own_key_and_never_beyond_the_leader() {
+        let mut r = vec![None, None];
+        assert!(note_reached(&mut r, 0, Some(1), &header(1, 5), 10));
+        assert!(!note_reached(&mut r, 0, Some(2), &header(1, 7), 10), "forged: on another follower's key");
+        assert!(!note_reached(&mut r, 0, None, &header(1, 7), 10), "a key that is no id");
+        assert!(!note_reached(&mut r, 0, Some(1), &header(1, 12), 10), "beyond the leader's newest + 1");
+        assert!(note_reached(&mut r, 0, Some(1), &header(1, 11), 10), "one past the leader's newest");
+        assert!(note_reached(&mut r, 0, Some(1), &header(1, 3), 10), "an old repeat");
+        assert_eq!(r, [Some(11), None], "the furthest step counts");
+        assert!(!note_reached(&mut r, 5, Some(1), &header(1, 3), 10), "a slot out of range");
+    }
+
+    /// The window rule in the machine, to the step: with its hearing
+    /// follower silent the leader publishes steps 0..WINDOW and no more;
+    /// each step the follower publishes lets exactly one more go. Moving
+    /// the rule by one step either way fails here.
+    #[test]
+    fn in_lockstep_the_leader_runs_exactly_its_window_ahead_of_the_slowest() {
+        let mut l = Leader::new(&paper(&["duration=2", "timing=lockstep"]));
+        assert_eq!(l.hearing(), [1], "in the paper's graph only follower 1 hears the leader");
+        let t0 = Duration::from_secs(1);
+        l.start(&START, t0);
+        run_while_due(&mut l, t0);
+        let sent = steps_sent(&mut l);
+        assert_eq!(sent.last(), Some(&(WINDOW - 1)), "published without a word from follower 1: {} steps", sent.len());
+        assert_eq!(l.step(), Some(WINDOW - 1), "waits to publish step {WINDOW}");
+        assert_ne!(l.poll_timeout(), Some(Now::ZERO), "nothing is due");
+        // Follower 1's step 0 lets step WINDOW go, its step 1 step WINDOW + 1.
+        for k in 0..2 {
+            assert!(l.handle_estimate(Some(1), &from(1, k)), "the step the leader waits for wakes it");
+            run_while_due(&mut l, t0);
+            assert_eq!(steps_sent(&mut l), [WINDOW + k], "after follower 1's step {k}");
+        }
+        // A forged claim (on follower 2's key, or beyond the leader) opens nothing.
+        assert!(!l.handle_estimate(Some(2), &from(1, 50)), "follower 2 does not hear the leader");
+        assert!(!l.handle_estimate(Some(1), &from(1, 10_000)), "beyond the leader's newest + 1");
+        run_while_due(&mut l, t0);
+        assert_eq!(steps_sent(&mut l), Vec::<u64>::new());
+    }
+
+    /// While the window is shut the leader repeats what the slowest may
+    /// lack every 200 ms, warns once after 5 s and gives up after 60 s,
+    /// naming the step.
+    #[test]
+    fn a_shut_window_repeats_warns_and_gives_up() {
+        let mut l = Leader::new(&paper(&["duration=2", "timing=lockstep"]));
+        let t0 = Duration::from_secs(1);
+        l.start(&START, t0);
+        l.handle_estimate(Some(1), &from(1, 0));
+        run_while_due(&mut l, t0);
+        assert_eq!(steps_sent(&mut l).last(), Some(&WINDOW));
+        let mut t = t0;
+        while l.outcome().is_none() && t < t0 + Duration::from_secs(120) {
+            t = l.poll_timeout().expect("waiting").max(t);
+            l.handle_timeout(t);
+        }
+        let c = l.counters();
+        // Every 200 ms for 60 s, every kept step from slowest − 2 on (0..=WINDOW).
+        let each = WINDOW + 1;
+        assert!((299 * each..=301 * each).contains(&c.republished), "repeats over 60 s: {}", c.republished);
+        let said: Vec<String> = std::iter::from_fn(|| l.poll_say()).collect();
+        assert_eq!(said.len(), 1, "one warning: {said:?}");
+        let why = l.outcome().cloned().expect("done").expect_err("a stall fails");
+        assert!(why.contains("before step 1 (") && (t - t0).as_secs() == 60, "{why} after {:?}", t - t0);
+    }
+
+    /// Real time: a step is done when due on the timebase, not before;
+    /// every message is stamped with the time it was published.
+    #[test]
+    fn in_real_time_a_step_goes_when_due_and_is_stamped_then() {
+        let mut l = Leader::new(&paper(&["duration=1", "timing=realtime"]));
+        let epoch = Duration::from_nanos(START.epoch_unix_ns);
+        l.start(&START, epoch - Duration::from_millis(500));
+        assert_eq!(steps_sent(&mut l), [0], "step 0's message goes at the start");
+        assert_eq!(l.poll_timeout(), Some(epoch));
+        l.handle_timeout(epoch - Duration::from_micros(1));
+        assert_eq!(l.poll_transmit(), None, "not due yet");
+        let at = epoch + Duration::from_micros(300);
+        l.handle_timeout(at);
+        let m = wire::decode(&l.poll_transmit().expect("step 1")).expect("decodes");
+        assert_eq!((m.header.step, m.header.sent_ns), (1, at.as_nanos() as i64));
+        assert_eq!(l.poll_timeout(), Some(epoch + Duration::from_millis(1)), "step 1 is due 1 ms later");
+        let mut t = at;
+        while l.outcome().is_none() {
+            t = l.poll_timeout().expect("running").max(t);
+            l.handle_timeout(t);
+        }
+        let batches: Vec<LeaderBatch> = std::iter::from_fn(|| l.poll_telemetry()).collect();
+        let states: usize = batches.iter().map(|b| b.states.len()).sum();
+        assert_eq!(states as u64, 1_001, "every step's state reaches the monitor");
+        assert!(batches.last().is_some_and(|b| b.done && b.loop_stats.is_some()));
+    }
+
+    /// Lock-step: after the last step the leader lingers until every
+    /// hearing follower is done, then ends.
+    #[test]
+    fn in_lockstep_the_leader_lingers_until_its_followers_are_done() {
+        let s = paper(&["duration=0.01", "timing=lockstep"]);
+        let mut l = Leader::new(&s);
+        let t0 = Duration::from_secs(1);
+        l.start(&START, t0);
+        for _ in 0..=s.steps() {
+            l.handle_timeout(t0);
+        }
+        assert!(l.outcome().is_none() && l.step().is_none(), "lingers after the last step");
+        l.handle_timeout(t0 + Duration::from_millis(300));
+        assert!(l.counters().sent > s.steps() + 1, "repeats while lingering");
+        l.handle_done(1);
+        l.handle_timeout(t0 + Duration::from_millis(310));
+        assert_eq!(l.outcome(), Some(&Ok(())));
+    }
+}
