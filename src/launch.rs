@@ -820,6 +820,167 @@ pub(crate) fn start_router_named(children: &mut Children, name: &str, mut c: Com
     }
 }
 
+/// How every node of a launch reaches the others: its mode, its links'
+/// endpoints and the zenoh settings it shares.
+struct Wiring<'a> {
+    mode: LaunchMode,
+    links: Links,
+    eps: Endpoints,
+    router_ep: String,
+    lease: Option<u64>,
+    zfile: Option<&'a session::SharedFile>,
+}
+
+impl Wiring<'_> {
+    /// A node's zenoh arguments: a client of the router, or a peer that
+    /// listens on `listen` and dials `connect`.
+    fn apply(&self, c: &mut Command, listen: Option<u16>, connect: &[u16]) {
+        if let Some(ms) = self.lease {
+            c.arg("--lease-ms").arg(ms.to_string());
+        }
+        zenoh_file_arg(c, self.zfile);
+        if self.mode == LaunchMode::Client {
+            c.args(["--mode", "client", "--connect", &self.router_ep]);
+            return;
+        }
+        c.args(["--mode", "peer"]);
+        for l in listen.map(|l| self.eps.listen(l)).unwrap_or_default() {
+            c.arg("--listen").arg(l);
+        }
+        // The links below are every pair that talks (agent–neighbour,
+        // agent–leader, node–monitor): no full mesh by gossip.
+        c.arg("--no-gossip");
+        for &q in connect {
+            c.arg("--connect").arg(self.eps.dial(q));
+        }
+    }
+}
+
+/// What a launch starts, said before it starts it.
+#[allow(clippy::too_many_arguments)]
+fn announce(
+    a: &LaunchArgs,
+    scenario: &Scenario,
+    run: &str,
+    groups: usize,
+    own_router: bool,
+    robots: Robots,
+    wiring: &Wiring,
+    router_port: u16,
+) {
+    let (n, mode) = (scenario.followers.len(), wiring.mode);
+    eprintln!(
+        "launching {} processes ({} mode, {} links, run {run}): leader, {n} agents{}, monitor{}",
+        groups + 2 + usize::from(own_router) + if robots == Robots::StandIn { n } else { 0 },
+        if mode == LaunchMode::Peer { "peer" } else { "client" },
+        wiring.links.label(),
+        if groups < n { format!(" in {groups} processes of up to {}", a.group) } else { String::new() },
+        match (own_router, &a.router) {
+            (true, _) => ", router".to_string(),
+            (false, Some(r)) => format!(", all clients of the router at {r}"),
+            (false, None) => String::new(),
+        } + if robots == Robots::StandIn { " and a stand-in robot per follower" } else { "" },
+    );
+    if let Some(line) = ros2_endpoint_line(scenario, mode, own_router, router_port) {
+        eprintln!("{line}");
+    }
+    if let Some(hint) = formation_net::node::realtime_hint(scenario) {
+        eprintln!("{hint}");
+    }
+    if let Some(w) = scenario.estimator_stability_warning() {
+        eprintln!("{w}");
+    }
+}
+
+/// The monitor and the leader, listening on their ports (peer mode).
+fn spawn_monitor_and_leader(
+    a: &LaunchArgs,
+    run: &str,
+    out: &Path,
+    exe: &Path,
+    wiring: &Wiring,
+    (mon_port, lead_port): (u16, u16),
+    children: &mut Children,
+) -> Result<(), CliError> {
+    let mut c = node_command(exe, "monitor", a, run);
+    c.arg("--out").arg(out).stdout(Stdio::null());
+    for (on, flag) in [(a.opts.quiet, "--quiet"), (a.opts.mcap, "--mcap"), (a.opts.rosbag2, "--rosbag2")] {
+        if on {
+            c.arg(flag);
+        }
+    }
+    c.args(a.opts.web.to_args());
+    wiring.apply(&mut c, Some(mon_port), &[]);
+    spawn(children, "monitor", c)?;
+    let mut c = node_command(exe, "leader", a, run);
+    if let Some(x) = a.opts.time_scale {
+        c.arg("--time-scale").arg(x.to_string());
+    }
+    wiring.apply(&mut c, Some(lead_port), &[mon_port]);
+    spawn(children, "leader", c)
+}
+
+/// One agent process per group of followers (peer mode: each dials every
+/// earlier process that holds a neighbour, or with the safety filter any
+/// follower), and each follower's robot as the scenario says.
+#[allow(clippy::too_many_arguments)]
+fn spawn_agents(
+    a: &LaunchArgs,
+    scenario: &Scenario,
+    run: &str,
+    exe: &Path,
+    wiring: &Wiring,
+    groups: &[std::ops::Range<usize>],
+    p: &[u16],
+    robots: Robots,
+    children: &mut Children,
+) -> Result<(), CliError> {
+    let peer = wiring.mode == LaunchMode::Peer;
+    let (mon_port, lead_port) = if peer { (p[0], p[1]) } else { (0, 0) };
+    for (g, members) in groups.iter().enumerate() {
+        let ids: Vec<String> = members.clone().map(|i| scenario.graph.id(i).to_string()).collect();
+        let mut c = node_command(exe, "agent", a, run);
+        c.arg("--id").arg(ids.join(","));
+        let mut connect = vec![mon_port, lead_port];
+        if peer {
+            let mut dial: Vec<usize> =
+                members.clone().flat_map(|i| scenario.peers_of(i)).map(|j| j / a.group).filter(|&h| h < g).collect();
+            dial.sort_unstable();
+            dial.dedup();
+            connect.extend(dial.into_iter().map(|h| p[2 + h]));
+        }
+        let listen = peer.then(|| p.get(2 + g).copied().unwrap_or(0));
+        wiring.apply(&mut c, listen, &connect);
+        let name = if ids.len() == 1 { format!("agent {}", ids[0]) } else { format!("agents {}", ids.join(",")) };
+        spawn(children, &name, c)?;
+        // A robot talks to its own agent only (peer), or through the router.
+        for id in &ids {
+            match robots {
+                Robots::StandIn => {
+                    let mut c = node_command(exe, "robot", a, run);
+                    c.arg("--id").arg(id);
+                    wiring.apply(&mut c, None, &listen.into_iter().collect::<Vec<_>>());
+                    spawn(children, &format!("robot {id}"), c)?;
+                }
+                Robots::External if !a.opts.quiet => {
+                    // A TCP endpoint: the unix sockets' folder is the launch's own.
+                    let at = match listen {
+                        Some(port) => ep(port),
+                        None => a.router.clone().unwrap_or_else(|| ep(p[0])),
+                    };
+                    let domain = scenario.ros2.map_or(0, |r| r.domain_id);
+                    eprintln!(
+                        "waiting for robot {id}: publish /follower_{id}/odom (nav_msgs/msg/Odometry), take \
+                         /follower_{id}/cmd_vel (geometry_msgs/msg/Twist), ROS domain {domain}, zenoh at {at}"
+                    );
+                }
+                _ => {}
+            }
+        }
+    }
+    Ok(())
+}
+
 async fn launch(
     a: &LaunchArgs,
     zfile: Option<&session::SharedFile>,
@@ -840,10 +1001,8 @@ async fn launch(
         Some(formation_topology::RobotSource::External) => Robots::External,
         _ => Robots::Simulated,
     };
-    let domain = scenario.ros2.map_or(0, |r| r.domain_id);
     // Agent processes: followers by index, `group` consecutive ones each.
     let groups: Vec<std::ops::Range<usize>> = (0..n).step_by(a.group).map(|i| i..(i + a.group).min(n)).collect();
-    let group_of = |i: usize| i / a.group;
     // Ports: monitor, leader, agent processes (peer); or the router (client).
     // --router: every node a client of a router this launch does not own.
     let mode = if a.router.is_some() { LaunchMode::Client } else { a.mode };
@@ -853,124 +1012,16 @@ async fn launch(
     let links = a.links()?;
     let eps = Endpoints::new(links)?;
     let router_ep = a.router.clone().unwrap_or_else(|| eps.dial(p[0]));
-    let lease = one_host_lease(a, zfile);
-    let endpoints = |c: &mut Command, listen: Option<u16>, connect: &[u16]| {
-        if let Some(ms) = lease {
-            c.arg("--lease-ms").arg(ms.to_string());
-        }
-        zenoh_file_arg(c, zfile);
-        if mode == LaunchMode::Client {
-            c.args(["--mode", "client", "--connect", &router_ep]);
-            return;
-        }
-        c.args(["--mode", "peer"]);
-        for l in listen.map(|l| eps.listen(l)).unwrap_or_default() {
-            c.arg("--listen").arg(l);
-        }
-        // The links below are every pair that talks (agent–neighbour,
-        // agent–leader, node–monitor): no full mesh by gossip.
-        c.arg("--no-gossip");
-        for &q in connect {
-            c.arg("--connect").arg(eps.dial(q));
-        }
-    };
+    let wiring = Wiring { mode, links, eps, router_ep, lease: one_host_lease(a, zfile), zfile };
     if !a.opts.quiet {
-        eprintln!(
-            "launching {} processes ({} mode, {} links, run {run}): leader, {n} agents{}, monitor{}",
-            groups.len() + 2 + usize::from(own_router) + if robots == Robots::StandIn { n } else { 0 },
-            if mode == LaunchMode::Peer { "peer" } else { "client" },
-            links.label(),
-            if groups.len() < n {
-                format!(" in {} processes of up to {}", groups.len(), a.group)
-            } else {
-                String::new()
-            },
-            match (own_router, &a.router) {
-                (true, _) => ", router".to_string(),
-                (false, Some(r)) => format!(", all clients of the router at {r}"),
-                (false, None) => String::new(),
-            } + if robots == Robots::StandIn { " and a stand-in robot per follower" } else { "" },
-        );
-        if let Some(line) = ros2_endpoint_line(scenario, mode, own_router, p[0]) {
-            eprintln!("{line}");
-        }
-        if let Some(hint) = formation_net::node::realtime_hint(scenario) {
-            eprintln!("{hint}");
-        }
-        if let Some(w) = scenario.estimator_stability_warning() {
-            eprintln!("{w}");
-        }
+        announce(a, scenario, run, groups.len(), own_router, robots, &wiring, p[0]);
     }
     if own_router {
-        start_router(children, exe, &eps.listen(p[0]), &a.opts, scenario.timing, lease, zfile)?;
+        start_router(children, exe, &wiring.eps.listen(p[0]), &a.opts, scenario.timing, wiring.lease, zfile)?;
     }
-    let (mon_port, lead_port) = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
-
-    let mut c = node_command(exe, "monitor", a, run);
-    c.arg("--out").arg(out).stdout(Stdio::null());
-    if a.opts.quiet {
-        c.arg("--quiet");
-    }
-    if a.opts.mcap {
-        c.arg("--mcap");
-    }
-    if a.opts.rosbag2 {
-        c.arg("--rosbag2");
-    }
-    c.args(a.opts.web.to_args());
-    endpoints(&mut c, Some(mon_port), &[]);
-    spawn(children, "monitor", c)?;
-
-    let mut c = node_command(exe, "leader", a, run);
-    if let Some(x) = a.opts.time_scale {
-        c.arg("--time-scale").arg(x.to_string());
-    }
-    endpoints(&mut c, Some(lead_port), &[mon_port]);
-    spawn(children, "leader", c)?;
-
-    for (g, members) in groups.iter().enumerate() {
-        let ids: Vec<String> = members.clone().map(|i| scenario.graph.id(i).to_string()).collect();
-        let mut c = node_command(exe, "agent", a, run);
-        c.arg("--id").arg(ids.join(","));
-        let mut connect = vec![mon_port, lead_port];
-        if mode == LaunchMode::Peer {
-            // Every earlier process that holds a neighbour (or, with the
-            // safety filter on, any follower: their poses), once.
-            let mut dial: Vec<usize> =
-                members.clone().flat_map(|i| scenario.peers_of(i)).map(|j| group_of(j)).filter(|&h| h < g).collect();
-            dial.sort_unstable();
-            dial.dedup();
-            connect.extend(dial.into_iter().map(|h| p[2 + h]));
-        }
-        let listen = mode.eq(&LaunchMode::Peer).then(|| p.get(2 + g).copied().unwrap_or(0));
-        endpoints(&mut c, listen, &connect);
-        let name = if ids.len() == 1 { format!("agent {}", ids[0]) } else { format!("agents {}", ids.join(",")) };
-        spawn(children, &name, c)?;
-        // A robot talks to its own agent only (peer), or through the router.
-        for id in &ids {
-            match robots {
-                Robots::StandIn => {
-                    let mut c = node_command(exe, "robot", a, run);
-                    c.arg("--id").arg(id);
-                    endpoints(&mut c, None, &listen.into_iter().collect::<Vec<_>>());
-                    spawn(children, &format!("robot {id}"), c)?;
-                }
-                Robots::External if !a.opts.quiet => {
-                    // A TCP endpoint: the unix sockets' folder is the launch's own.
-                    let at = match listen {
-                        Some(port) => ep(port),
-                        None => a.router.clone().unwrap_or_else(|| ep(p[0])),
-                    };
-                    eprintln!(
-                        "waiting for robot {id}: publish /follower_{id}/odom (nav_msgs/msg/Odometry), take \
-                         /follower_{id}/cmd_vel (geometry_msgs/msg/Twist), ROS domain {domain}, zenoh at {at}"
-                    );
-                }
-                _ => {}
-            }
-        }
-    }
-
+    let node_ports = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
+    spawn_monitor_and_leader(a, run, out, exe, &wiring, node_ports, children)?;
+    spawn_agents(a, scenario, run, exe, &wiring, &groups, &p, robots, children)?;
     let mut tick = tokio::time::interval(Duration::from_millis(50));
     loop {
         tokio::select! {
