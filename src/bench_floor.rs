@@ -106,7 +106,10 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_protocol::error::Error>
         let wall = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
         let began = Instant::now() + (Duration::from_secs(wall.as_secs() + 1) - wall);
         for k in 0..steps {
-            timer.sleep_until(began + period * k as u32).await.map_err(|e| format!("the timer: {e}"))?;
+            timer
+                .sleep_until(began + period * k as u32, &formation_net::clock::Clock::real())
+                .await
+                .map_err(|e| format!("the timer: {e}"))?;
             let msg = EstimateMsg {
                 header: Header { version: FORMAT_VERSION, sender: 0, step: k, time_s: k as f64 * 1e-3, sent_ns: 0 },
                 state: Default::default(),

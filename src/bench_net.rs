@@ -805,11 +805,13 @@ async fn time_exchange(
         ..Default::default()
     })
     .await?;
-    let _answers = formation_net::clock_sync::serve(&leader, &keys, formation_net::clock::Timebase::leader()).await?;
+    let clock = formation_net::clock::Clock::real();
+    let _answers =
+        formation_net::clock_sync::serve(&leader, &keys, formation_net::clock::Timebase::leader(&clock)).await?;
     let time_key = keys.time();
     let mut warm = 0;
     for _ in 0..200 {
-        if formation_net::clock_sync::ask(a, &time_key).await.is_some() {
+        if formation_net::clock_sync::ask(a, &time_key, &clock).await.is_some() {
             warm += 1;
             if warm == 20 {
                 break;
@@ -825,7 +827,7 @@ async fn time_exchange(
     let mut rtts = Vec::with_capacity(n);
     for _ in 0..n {
         let t = Instant::now();
-        if formation_net::clock_sync::ask(a, &time_key).await.is_none() {
+        if formation_net::clock_sync::ask(a, &time_key, &clock).await.is_none() {
             return Err(Error::Run("a time query went unanswered".into()));
         }
         rtts.push(t.elapsed().as_secs_f64() * 1e6);

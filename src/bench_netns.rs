@@ -66,7 +66,12 @@ pub async fn echo(listen: &str) -> Result<(), Error> {
         })
         .await
         .map_err(zerr("declaring"))?;
-    let _t = clock_sync::serve(&s, &Keys { run: "bench-net".into() }, Timebase::leader()).await?;
+    let _t = clock_sync::serve(
+        &s,
+        &Keys { run: "bench-net".into() },
+        Timebase::leader(&formation_net::clock::Clock::real()),
+    )
+    .await?;
     println!("echo ready");
     tokio::signal::ctrl_c().await.map_err(|e| Error::Run(e.to_string()))?;
     Ok(())
@@ -126,7 +131,7 @@ pub async fn ping(connect: &str, n: usize) -> Result<(), Error> {
     let mut t = Vec::with_capacity(n);
     for _ in 0..n {
         let at = Instant::now();
-        if clock_sync::ask(&s, &key).await.is_some() {
+        if clock_sync::ask(&s, &key, &formation_net::clock::Clock::real()).await.is_some() {
             t.push(at.elapsed().as_secs_f64() * 1e6);
         }
     }

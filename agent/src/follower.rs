@@ -318,26 +318,8 @@ impl Follower {
 
         let (velocity_estimate, torque) = match cfg.drive {
             Drive::Torque => {
-                // The filter folds in z(k) (section III-E).
-                if k > 0 {
-                    let model = cfg.filter_model_at(self.last_k);
-                    self.filter.update(&cfg.filter, &model, self.last_torque, dt, z);
-                } else if cfg.filter.kind == crate::filter::FilterKind::None {
-                    self.filter.estimate = [z.v, z.w];
-                }
-                // Dynamic controller (eq. 37–43) on the filtered velocity;
-                // its state advances to k+1.
-                let velocity_estimate = self.filter.estimate();
-                let e_eta = [command.v - velocity_estimate.v, command.w - velocity_estimate.w];
-                let [a_v, a_w] = dynamic::accelerations(
-                    cfg.dynamic,
-                    &cfg.dynamic_gains,
-                    &self.dynamic,
-                    e_eta,
-                    [command_rate.v, command_rate.w],
-                );
-                dynamic::advance(cfg.dynamic, &cfg.dynamic_gains, &mut self.dynamic, e_eta, dt);
-                (velocity_estimate, cfg.model.acceleration_to_torque(a_v, a_w))
+                let last = (self.last_k, self.last_torque);
+                torque_step(cfg, &mut self.filter, &mut self.dynamic, k, last, z, command, command_rate)
             }
             // docs/model.md §15: the robot follows (v_c, ω_c) itself.
             Drive::Velocity { .. } => (z, Torque::default()),
@@ -393,6 +375,38 @@ impl Follower {
             None => Ok(()),
         }
     }
+}
+
+/// A torque-driven robot's step k (section III-E, eq. 37–43): the filter
+/// folds in z(k) (at k = 0 without a filter the estimate is z itself), the
+/// dynamic controller turns the command's error on the filtered velocity
+/// into torques, and its state advances to k + 1. The filtered velocity and
+/// the torques. (`last`: the previous step and its torques.)
+#[inline]
+#[allow(clippy::too_many_arguments)]
+fn torque_step(
+    cfg: &ControlParams,
+    filter: &mut VelocityFilter,
+    dynamic: &mut DynamicState,
+    k: u64,
+    (last_k, last_torque): (u64, Torque),
+    z: Velocity,
+    command: Velocity,
+    command_rate: Velocity,
+) -> (Velocity, Torque) {
+    let dt = cfg.dt_s;
+    if k > 0 {
+        let model = cfg.filter_model_at(last_k);
+        filter.update(&cfg.filter, &model, last_torque, dt, z);
+    } else if cfg.filter.kind == crate::filter::FilterKind::None {
+        filter.estimate = [z.v, z.w];
+    }
+    let velocity_estimate = filter.estimate();
+    let e_eta = [command.v - velocity_estimate.v, command.w - velocity_estimate.w];
+    let [a_v, a_w] =
+        dynamic::accelerations(cfg.dynamic, &cfg.dynamic_gains, dynamic, e_eta, [command_rate.v, command_rate.w]);
+    dynamic::advance(cfg.dynamic, &cfg.dynamic_gains, dynamic, e_eta, dt);
+    (velocity_estimate, cfg.model.acceleration_to_torque(a_v, a_w))
 }
 
 #[cfg(test)]

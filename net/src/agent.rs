@@ -24,7 +24,7 @@ use zenoh::pubsub::Publisher;
 use zenoh::Wait;
 
 use crate::checkpoint;
-use crate::clock::{self, Timebase};
+use crate::clock::{Clock, Timebase};
 use crate::clock_sync;
 use crate::courier::Courier;
 use crate::node::{estimate_congestion, NodeArgs};
@@ -119,13 +119,14 @@ pub async fn run(
         .zip(&indices)
         .zip(&brakes)
         .map(|((&id, &index), brake)| {
-            let odometry = driven.then(|| Arc::new(OdomInbox::for_robot(&scenario, index)));
+            let odometry = driven.then(|| Arc::new(OdomInbox::for_robot(&scenario, index, &args.node.clock)));
             let opts = FollowerOptions {
                 protocol: follower::Options { stall_timeout: stall, physical_node_faults: args.physical_node_faults },
                 checkpoint: Some(checkpoint::path(&checkpoint_dir, &keys.run, id)),
                 odometry: odometry.clone(),
                 on_zenoh_thread: ids.len() == 1,
                 topics: brake.clone(),
+                clock: args.node.clock.clone(),
             };
             let body: Box<dyn Body> = match odometry {
                 Some(inbox) => Box::new(DrivenRobot::new(&scenario, index, inbox)),
@@ -159,7 +160,7 @@ pub async fn run(
             (Err(_), None) => "the agent stopped on an error",
         };
         for (&id, brake) in ids.iter().zip(&brakes) {
-            stop_robot(&session, &scenario, id, brake, why).await;
+            stop_robot(&session, &scenario, id, brake, why, &args.node.clock).await;
         }
     }
     let close = if signal.is_some() { Duration::from_secs(1) } else { Duration::from_secs(5) };
@@ -171,10 +172,18 @@ pub async fn run(
 /// through the agent's own publisher once the run began, else through one
 /// declared for it (a start refused or interrupted: a robot left moving by
 /// an earlier agent stops too).
-async fn stop_robot(session: &zenoh::Session, scenario: &Scenario, id: u32, topics: &SharedTopics, why: &str) {
+async fn stop_robot(
+    session: &zenoh::Session,
+    scenario: &Scenario,
+    id: u32,
+    topics: &SharedTopics,
+    why: &str,
+    clock: &Clock,
+) {
+    let now_ns = clock.unix_ns() as i64;
     let sent = {
         let mut t = topics.lock().unwrap_or_else(|p| p.into_inner());
-        t.as_mut().map(FollowerTopics::stop)
+        t.as_mut().map(|t| t.stop(now_ns))
     };
     let sent = match sent {
         Some(r) => r,
@@ -190,7 +199,7 @@ async fn stop_robot(session: &zenoh::Session, scenario: &Scenario, id: u32, topi
                     )
                     .await
                 {
-                    Ok(mut p) => p.put(&formation_ros2::msgs::Twist::default(), clock::unix_ns() as i64),
+                    Ok(mut p) => p.put(&formation_ros2::msgs::Twist::default(), now_ns),
                     Err(e) => Err(e),
                 },
                 Err(e) => Err(e),
@@ -218,6 +227,8 @@ pub struct FollowerOptions {
     /// The follower's ROS 2 publishers once the run began: who ends the
     /// process sends the robot zero velocity through them.
     pub topics: SharedTopics,
+    /// The node's clock.
+    pub clock: Clock,
 }
 
 /// The machine, shared by the subscriber callbacks and the loop's thread.
@@ -247,7 +258,7 @@ pub async fn run_follower(
     // Nothing of this process goes out before it knows it has no twin.
     startup::refuse_twin(session, keys, id, scenario.steps()).await?;
     // The run's timebase is the leader's: ask it from now on.
-    let timebase = Timebase::estimated();
+    let timebase = Timebase::estimated(&opts.clock);
     // A clock known worse than a quarter step is said on stderr; in a
     // `launch`, the run's health sums up every follower's in one line
     // instead (a hundred agents on a busy host said it a hundred times).
@@ -289,7 +300,7 @@ pub async fn run_follower(
         (Vec::new(), Default::default())
     };
     let needs = start_needs(scenario, index, &sources);
-    let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario).await?;
+    let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock).await?;
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
     let resume = rejoin(&shared, &start, scenario, index, &timebase, opts.checkpoint.as_deref()).await?;
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));
@@ -306,7 +317,7 @@ pub async fn run_follower(
     // Telemetry leaves the loop through a bounded store and a thread of its
     // own, so a slow or dead link to the monitor never holds a step; it is
     // kept until the monitor acknowledges it.
-    let (delivery, acks) = telemetry::start_delivery(session, keys, id, scenario).await?;
+    let (delivery, acks) = telemetry::start_delivery(session, keys, id, scenario, &opts.clock).await?;
     let node = Node {
         shared: shared.clone(),
         publisher: estimate_pub,
@@ -316,7 +327,7 @@ pub async fn run_follower(
         latest,
         neighbours_done,
         lockstep,
-        incarnation: clock::unix_ns(),
+        incarnation: opts.clock.unix_ns(),
         topics: topics.clone(),
     };
     let outcome = if lockstep || !opts.on_zenoh_thread {
@@ -629,7 +640,9 @@ impl Node {
                 return r;
             }
             match self.deadline() {
-                Some(at) => timer.sleep_until(at).await.map_err(|e| format!("the loop's timer: {e}"))?,
+                Some(at) => {
+                    timer.sleep_until(at, self.timebase.clock()).await.map_err(|e| format!("the loop's timer: {e}"))?
+                }
                 // Due already: let zenoh's tasks run before the next turn.
                 None => tokio::task::yield_now().await,
             }

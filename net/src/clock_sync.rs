@@ -9,7 +9,7 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 use zenoh::Wait;
 
-use crate::clock::{self, Timebase};
+use crate::clock::{Clock, Timebase};
 use formation_protocol::clock_estimate::Exchange;
 use formation_protocol::codec;
 use formation_protocol::error::{zerr, Error};
@@ -99,17 +99,18 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
             })
             .await;
         let mut asked = 0u32;
-        let (began, mut answered) = (std::time::Instant::now(), false);
+        let clock = timebase.clock().clone();
+        let (began, mut answered) = (clock.mono(), false);
         let mut warned = false;
         let mut named = false;
         loop {
-            let answers = ask_all(&session, &key).await;
+            let answers = ask_all(&session, &key, &clock).await;
             timebase.add_answers(&answers);
             // Never answered for UNANSWERED_AFTER (no leader yet, long after
             // a launch's nodes have met): one question a second, so that a
             // node waiting idle costs next to nothing.
             answered |= !answers.is_empty();
-            if !answered && began.elapsed() > UNANSWERED_AFTER {
+            if !answered && clock.mono().saturating_sub(began) > UNANSWERED_AFTER {
                 tokio::select! {
                     _ = tokio::time::sleep(UNANSWERED_EVERY) => {}
                     _ = heard_start.notified() => {}
@@ -146,8 +147,8 @@ pub fn follow(session: zenoh::Session, keys: &Keys, timebase: Timebase, me: Stri
 }
 
 /// One exchange: None if unanswered (within [`TIMEOUT`]) or garbled.
-pub async fn ask(session: &zenoh::Session, key: &str) -> Option<Exchange> {
-    ask_all(session, key).await.into_iter().next()
+pub async fn ask(session: &zenoh::Session, key: &str, clock: &Clock) -> Option<Exchange> {
+    ask_all(session, key, clock).await.into_iter().next()
 }
 
 /// Answers to one question beyond this many are not read (a flood of
@@ -167,8 +168,8 @@ const MAX_ANSWERS: usize = 8;
 /// estimates included; a config file doing that is now refused) stalled
 /// the paper's lock-step run that way in 21 of 25 runs. A dropped question
 /// is one unanswered, asked again at the next turn.
-pub async fn ask_all(session: &zenoh::Session, key: &str) -> Vec<Exchange> {
-    let t1 = clock::mono_ns();
+pub async fn ask_all(session: &zenoh::Session, key: &str, clock: &Clock) -> Vec<Exchange> {
+    let t1 = clock.mono_ns();
     let mut answers = Vec::new();
     let Ok(replies) = session
         .get(key)
@@ -180,7 +181,7 @@ pub async fn ask_all(session: &zenoh::Session, key: &str) -> Vec<Exchange> {
         return answers;
     };
     while let Ok(reply) = replies.recv_async().await {
-        let t4 = clock::mono_ns();
+        let t4 = clock.mono_ns();
         if let Ok(sample) = reply.result() {
             if let Some(r) = codec::decode::<TimeReply>(&sample.payload().to_bytes()) {
                 answers.push(Exchange { t1, t2: r.t2, t3: r.t3, t4 });
@@ -196,9 +197,9 @@ pub async fn ask_all(session: &zenoh::Session, key: &str) -> Vec<Exchange> {
 /// A node after the start: waits (up to `limit`) until its timebase has an
 /// estimate; otherwise the error names what it could not reach.
 pub async fn wait_for_estimate(timebase: &Timebase, keys: &Keys, me: &str, limit: Duration) -> Result<(), Error> {
-    let began = std::time::Instant::now();
+    let began = timebase.clock().mono();
     while timebase.estimate().is_none() {
-        if began.elapsed() > limit {
+        if timebase.clock().mono().saturating_sub(began) > limit {
             return Err(Error::Input(format!(
                 "{me}: cannot estimate the leader's clock: no answer on {} within {} s (is the leader reachable \
                  from this host, and of this build?)",
@@ -219,7 +220,8 @@ mod tests {
     fn a_node_that_hears_no_time_gives_up_naming_the_key() {
         let rt = tokio::runtime::Builder::new_current_thread().enable_time().build().expect("runtime");
         let keys = Keys { run: "r".into() };
-        let tb = Timebase::estimated();
+        let clock = Clock::real();
+        let tb = Timebase::estimated(&clock);
         match rt.block_on(wait_for_estimate(&tb, &keys, "follower 3", Duration::ZERO)) {
             Err(Error::Input(m)) => assert!(
                 m.starts_with("follower 3: cannot estimate the leader's clock: no answer on formation/r/control/time"),
@@ -228,7 +230,7 @@ mod tests {
             other => panic!("{other:?}"),
         }
         // One exchange is enough to go on.
-        let t1 = clock::mono_ns();
+        let t1 = clock.mono_ns();
         tb.add(Exchange { t1, t2: 10, t3: 20, t4: t1 + 1_000 });
         assert_eq!(rt.block_on(wait_for_estimate(&tb, &keys, "follower 3", Duration::ZERO)), Ok(()));
     }

@@ -6,7 +6,7 @@ use formation_protocol::courier::{CourierStats, Store};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Duration;
 
-use crate::clock;
+use crate::clock::Clock;
 
 /// The longest the sending thread sleeps with nothing in flight; it is
 /// woken at once by a batch handed over, an acknowledgement that frees the
@@ -26,11 +26,13 @@ struct State {
 pub struct Courier {
     state: Mutex<State>,
     changed: Condvar,
+    clock: Clock,
 }
 
 impl Courier {
-    pub fn new(capacity_steps: u64) -> Self {
-        Self { state: Mutex::new(State { store: Store::new(capacity_steps), closed: false }), changed: Condvar::new() }
+    pub fn new(capacity_steps: u64, clock: Clock) -> Self {
+        let state = Mutex::new(State { store: Store::new(capacity_steps), closed: false });
+        Self { state, changed: Condvar::new(), clock }
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -77,11 +79,11 @@ impl Courier {
     /// hands one over. None once closed and empty.
     fn due(&self) -> Option<Vec<Arc<Vec<u8>>>> {
         let mut s = self.lock();
-        let mut out = s.store.due(clock::mono());
+        let mut out = s.store.due(self.clock.mono());
         if out.is_empty() && !(s.closed && s.store.is_empty()) {
-            let wait = s.store.next_resend().map_or(IDLE, |at| at.saturating_sub(clock::mono()).min(IDLE));
+            let wait = s.store.next_resend().map_or(IDLE, |at| at.saturating_sub(self.clock.mono()).min(IDLE));
             s = self.changed.wait_timeout(s, wait).unwrap_or_else(|p| p.into_inner()).0;
-            out = s.store.due(clock::mono());
+            out = s.store.due(self.clock.mono());
         }
         if s.closed && s.store.is_empty() {
             return None;
@@ -92,15 +94,16 @@ impl Courier {
     /// Waits until the monitor has acknowledged everything handed over, at
     /// most `limit`; true if so.
     pub fn drain(&self, limit: Duration) -> bool {
-        let began = std::time::Instant::now();
+        let began = self.clock.mono();
         loop {
             if self.lock().store.is_empty() {
                 return true;
             }
-            if began.elapsed() >= limit {
+            let now = self.clock.mono();
+            if now.saturating_sub(began) >= limit {
                 return false;
             }
-            std::thread::sleep(Duration::from_millis(5));
+            self.clock.sleep_until_mono(now + Duration::from_millis(5));
         }
     }
 }
@@ -115,8 +118,8 @@ pub struct Delivery {
 }
 
 impl Delivery {
-    pub fn start(capacity_steps: u64, publish: impl FnMut(&[u8]) + Send + 'static) -> Self {
-        let courier = Arc::new(Courier::new(capacity_steps));
+    pub fn start(capacity_steps: u64, clock: Clock, publish: impl FnMut(&[u8]) + Send + 'static) -> Self {
+        let courier = Arc::new(Courier::new(capacity_steps, clock));
         let c = courier.clone();
         let mut publish = publish;
         let thread = std::thread::spawn(move || {
@@ -157,7 +160,7 @@ mod tests {
     /// reported.
     #[test]
     fn a_publisher_stuck_for_good_does_not_hold_the_end_of_the_run() {
-        let d = Delivery::start(1000, |_| loop {
+        let d = Delivery::start(1000, Clock::real(), |_| loop {
             std::thread::sleep(Duration::from_secs(60));
         });
         for i in 0..10u64 {
@@ -165,5 +168,20 @@ mod tests {
         }
         let lost = d.finish(Duration::from_millis(200));
         assert_eq!(lost, 50, "ten batches of five steps never acknowledged");
+    }
+
+    /// On a mock clock a node's ten-second wait for the monitor's
+    /// acknowledgements passes in the clock's own sleeps: no wall time.
+    #[test]
+    fn on_a_mock_clock_the_wait_for_acknowledgements_takes_no_wall_time() {
+        let clock = Clock::mock(0);
+        let d = Delivery::start(1000, clock.clone(), |_| {});
+        d.courier.push(0, 5, vec![0; 8]);
+        let began = std::time::Instant::now();
+        let lost = d.finish(Duration::from_secs(10));
+        assert_eq!(lost, 5, "five steps never acknowledged");
+        assert!(began.elapsed() < Duration::from_secs(2), "waited {:?} of wall time", began.elapsed());
+        let waited = clock.mono();
+        assert!(waited >= Duration::from_secs(10) && waited < Duration::from_millis(10_010), "{waited:?} on the mock");
     }
 }

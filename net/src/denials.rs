@@ -137,15 +137,19 @@ fn plain_key(key: &str) -> &str {
 pub fn note(line: &str) {
     if let Some(rest) = line.split_once("caching permissions for `").map(|(_, r)| r) {
         let key = rest.split('`').next().unwrap_or("").to_string();
-        CACHING.with(|c| *c.borrow_mut() = Some((key, std::time::Instant::now())));
+        // (A log hook of the whole process, no node's: this host's clock.)
+        let now = crate::clock::Clock::real().instant();
+        CACHING.with(|c| *c.borrow_mut() = Some((key, now)));
         return;
     }
     let from_cache = line.contains("Using cached result: ");
     let key = decided_key(line);
+    let now = crate::clock::Clock::real().instant();
     let caching = CACHING.with(|c| {
         let mut c = c.borrow_mut();
-        let in_burst =
-            c.as_ref().is_some_and(|(k, at)| !from_cache && key == Some(k.as_str()) && at.elapsed() < CACHING_BURST);
+        let in_burst = c.as_ref().is_some_and(|(k, at)| {
+            !from_cache && key == Some(k.as_str()) && now.saturating_duration_since(*at) < CACHING_BURST
+        });
         if !in_burst {
             *c = None;
         }

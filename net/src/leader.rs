@@ -61,7 +61,7 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     let session = args.node.open(names::LEADER, &scenario).await?;
     tokio::spawn(crate::denials::report(session.clone(), names::LEADER.to_string(), Some(keys.run.clone())));
     let lead = Duration::from_secs_f64(args.start_lead);
-    let result = run_leader(&session, &scenario, &keys, time_scale, lead, args.print_start).await;
+    let result = run_leader(&session, &scenario, &keys, time_scale, lead, args.print_start, &args.node.clock).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -73,11 +73,12 @@ pub async fn run_leader(
     time_scale: f64,
     start_lead: Duration,
     print_start: bool,
+    clock: &clock::Clock,
 ) -> Result<(), Error> {
     // A second formation with this run name: refuse before saying anything.
     startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps()).await?;
     // The run's timebase is this leader's clock; the others ask it from now on.
-    let timebase = clock::Timebase::leader();
+    let timebase = clock::Timebase::leader(clock);
     let queries = Arc::new(QueryCount::default());
     let time_server = clock_sync::serve_counted(session, keys, timebase.clone(), queries.clone()).await?;
     let machine = Machine::new(scenario);
@@ -114,7 +115,7 @@ pub async fn run_leader(
         None => None,
     };
     // Telemetry through a bounded store and its own thread (see agent.rs).
-    let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, scenario).await?;
+    let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, scenario, clock).await?;
     shared.lock().start(&start, timebase.now());
     let node = Node {
         shared: shared.clone(),
@@ -125,7 +126,7 @@ pub async fn run_leader(
         queries,
         topics,
         lockstep,
-        incarnation: clock::unix_ns(),
+        incarnation: clock.unix_ns(),
     };
     let outcome = tokio::task::spawn_blocking(move || node.drive())
         .await

@@ -12,7 +12,7 @@
 //!
 //! | part | modules |
 //! | --- | --- |
-//! | the one clock of a node, and the run's timebase | [`clock`] (reads the clocks), [`clock_sync`] (asks and answers the leader's clock on zenoh), [`timer`] (a precise sleep for a loop that is a task) |
+//! | the one clock of a node, and the run's timebase | [`clock`] (the node's clock, which a test can mock, and the timebase), [`clock_sync`] (asks and answers the leader's clock on zenoh), [`timer`] (a precise sleep for a loop that is a task) |
 //! | zenoh session | [`identity`] (the topology's access policy), [`session`], [`limits`], [`node`] |
 //! | shared node parts | [`startup`] (the barrier on zenoh), [`telemetry`] (delivery and acknowledgements), [`courier`] (its thread), [`checkpoint`], [`denials`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`], [`router`] |

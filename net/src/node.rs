@@ -68,6 +68,10 @@ pub struct NodeArgs {
     /// Give up when no router or peer answers at start-up within this long (s).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 10.0, value_name = "SECONDS"))]
     pub open_timeout: f64,
+    /// The node's clock: every reading of the time it makes (this host's
+    /// clocks; a test may give it a mock).
+    #[cfg_attr(feature = "clap", arg(skip))]
+    pub clock: crate::clock::Clock,
 }
 
 impl NodeArgs {
@@ -106,13 +110,14 @@ impl NodeArgs {
             return Err(Error::Input(format!("--open-timeout must be positive, not {}", self.open_timeout)));
         }
         let limit = Duration::from_secs_f64(self.open_timeout);
-        let began = std::time::Instant::now();
+        let began = self.clock.mono();
+        let waited = || self.clock.mono().saturating_sub(began);
         let mut said = false;
         loop {
-            let wait = Duration::from_secs(3).min(limit.saturating_sub(began.elapsed()).max(Duration::from_millis(10)));
+            let wait = Duration::from_secs(3).min(limit.saturating_sub(waited()).max(Duration::from_millis(10)));
             match tokio::time::timeout(wait, &mut opening).await {
                 Ok(result) => return result.map_err(|e| Error::Run(e.to_string())),
-                Err(_) if began.elapsed() >= limit => {
+                Err(_) if waited() >= limit => {
                     return Err(Error::Run(format!(
                         "no zenoh router or peer answered at {} within {} s (is the router running?)",
                         self.endpoints(),

@@ -323,24 +323,7 @@ impl ZenohArgs {
             set(&mut config, "transport/link/tx/lease", &Value::from(LEASE_MS))?;
         }
 
-        // Connect: wait for the other side and retry fast.
-        set_if_unset(&mut config, "connect/timeout_ms", Value::from(-1))?;
-        set_if_unset(&mut config, "connect/exit_on_failure", Value::Bool(false))?;
-        let mut retry = match get(&config, "connect/retry")? {
-            Value::Object(m) => m,
-            _ => Default::default(),
-        };
-        for (k, v) in [
-            ("period_init_ms", Value::from(50)),
-            ("period_max_ms", Value::from(50)),
-            ("period_increase_factor", Value::from(2.0)),
-        ] {
-            if retry.get(k).is_none_or(Value::is_null) {
-                retry.insert(k.to_string(), v);
-            }
-        }
-        set(&mut config, "connect/retry", &Value::Object(retry))?;
-
+        connect_fast(&mut config)?;
         if !self.connect.is_empty() {
             set(&mut config, "connect/endpoints", &Value::from(self.connect.clone()))?;
         }
@@ -367,11 +350,21 @@ impl ZenohArgs {
             set(&mut config, "connect/endpoints", &tls_endpoints(&connect, "connect")?)?;
         }
 
-        // Listen: never zenoh's all-interfaces default.
+        self.set_listen(&mut config, mode)?;
+        if self.tls.is_some() {
+            let listen = get(&config, "listen/endpoints")?;
+            set(&mut config, "listen/endpoints", &tls_endpoints(&listen, "listen")?)?;
+        }
+        Ok(config)
+    }
+
+    /// Listen: the node's own endpoints; else the file's, if it chose any;
+    /// else the mode's default, never zenoh's all-interfaces one.
+    fn set_listen(&self, config: &mut zenoh::Config, mode: ZenohMode) -> Result<(), SessionError> {
         let builtin_listen = get(&zenoh::Config::default(), "listen/endpoints")?;
         let listen: Option<Vec<String>> = if !self.listen.is_empty() {
             Some(self.listen.clone())
-        } else if get(&config, "listen/endpoints")? != builtin_listen {
+        } else if get(config, "listen/endpoints")? != builtin_listen {
             None // the file chose its own listeners: keep them
         } else {
             Some(match mode {
@@ -381,14 +374,32 @@ impl ZenohArgs {
             })
         };
         if let Some(listen) = listen {
-            set(&mut config, "listen/endpoints", &Value::from(listen))?;
+            set(config, "listen/endpoints", &Value::from(listen))?;
         }
-        if self.tls.is_some() {
-            let listen = get(&config, "listen/endpoints")?;
-            set(&mut config, "listen/endpoints", &tls_endpoints(&listen, "listen")?)?;
-        }
-        Ok(config)
+        Ok(())
     }
+}
+
+/// Connect: wait for the other side and retry fast (where the file set
+/// nothing else).
+fn connect_fast(config: &mut zenoh::Config) -> Result<(), SessionError> {
+    set_if_unset(config, "connect/timeout_ms", Value::from(-1))?;
+    set_if_unset(config, "connect/exit_on_failure", Value::Bool(false))?;
+    let mut retry = match get(config, "connect/retry")? {
+        Value::Object(m) => m,
+        _ => Default::default(),
+    };
+    for (k, v) in [
+        ("period_init_ms", Value::from(50)),
+        ("period_max_ms", Value::from(50)),
+        ("period_increase_factor", Value::from(2.0)),
+    ] {
+        if retry.get(k).is_none_or(Value::is_null) {
+            retry.insert(k.to_string(), v);
+        }
+    }
+    set(config, "connect/retry", &Value::Object(retry))?;
+    Ok(())
 }
 
 /// `--tls`: every `tcp/` endpoint of a list becomes `tls/`; any other

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use formation_topology::Scenario;
 
-use crate::clock;
+use crate::clock::{self, Clock};
 use formation_protocol::barrier::{
     fingerprint, key_digests, Hears, Join, JoinStep, Lead, LeadStep, Ready, ReadyForm, Start, TICK,
 };
@@ -48,11 +48,17 @@ const FEW: usize = 32;
 struct Waiting<H> {
     machine: Mutex<H>,
     wake: tokio::sync::Notify,
+    clock: Clock,
 }
 
 impl<H: Hears> Waiting<H> {
-    fn new(machine: H) -> Arc<Self> {
-        Arc::new(Self { machine: Mutex::new(machine), wake: tokio::sync::Notify::new() })
+    fn new(machine: H, clock: &Clock) -> Arc<Self> {
+        Arc::new(Self { machine: Mutex::new(machine), wake: tokio::sync::Notify::new(), clock: clock.clone() })
+    }
+
+    /// The node's monotonic clock now.
+    fn now(&self) -> Duration {
+        self.clock.mono()
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, H> {
@@ -73,7 +79,7 @@ impl<H: Hears> Waiting<H> {
 
     /// Until the next tick, or at once on news.
     async fn pause(&self) {
-        let next = self.lock().next_tick(crate::clock::mono());
+        let next = self.lock().next_tick(self.now());
         tokio::select! {
             _ = tokio::time::sleep(next) => {}
             _ = self.wake.notified() => {}
@@ -104,7 +110,8 @@ async fn listen<H: Hears + Send + 'static>(
     let w = waiting.clone();
     let on_start = move |_: &str, bytes: &[u8]| {
         if let Some(start) = codec::decode::<Start>(bytes) {
-            w.hear(|m| m.on_start(start, crate::clock::mono()));
+            let now = w.now();
+            w.hear(|m| m.on_start(start, now));
         }
     };
     subs.push(declare(keys.start(), Box::new(on_start)).await.map_err(|e| zerr("declaring the start subscriber", e))?);
@@ -121,7 +128,8 @@ async fn listen<H: Hears + Send + 'static>(
         let w = waiting.clone();
         let on_ready = move |from: &str, bytes: &[u8]| {
             if let Some(r) = codec::decode::<Ready>(bytes) {
-                w.hear(|m| m.on_ready(from, r, crate::clock::mono()));
+                let now = w.now();
+                w.hear(|m| m.on_ready(from, r, now));
             }
         };
         subs.push(declare(key, Box::new(on_ready)).await.map_err(|e| zerr("declaring the ready subscriber", e))?);
@@ -138,19 +146,20 @@ pub async fn wait_for_start(
     me: &str,
     needs: &[String],
     scenario: &Scenario,
+    clock: &Clock,
 ) -> Result<Start, Error> {
-    let mut join = Join::new(me, &keys.run, needs, scenario, crate::clock::mono());
+    let mut join = Join::new(me, &keys.run, needs, scenario, clock.mono());
     if std::env::var_os(crate::node::LAUNCHED_ENV).is_some() {
         join = join.without_waiting_line();
     }
-    let waiting = Waiting::new(join);
+    let waiting = Waiting::new(join, clock);
     let from = if needs.len() <= FEW { Whom::Only(needs) } else { Whom::All };
     let _subs = listen(session, keys, &waiting, from).await?;
     let fingerprint = fingerprint(scenario);
     let ready_full = codec::encode(&Ready { fingerprint, keys: key_digests(scenario) });
     let ready_short = codec::encode(&Ready { fingerprint, keys: Vec::new() });
     loop {
-        let step = waiting.lock().poll(crate::clock::mono());
+        let step = waiting.lock().poll(waiting.now());
         let ready = match step {
             JoinStep::Started(start) => return Ok(start),
             JoinStep::Failed(e) => return Err(e),
@@ -186,10 +195,11 @@ pub async fn lead_start(
     time_scale: f64,
     lead: Duration,
 ) -> Result<(Start, tokio::task::JoinHandle<()>), Error> {
-    let waiting = Waiting::new(Lead::new(&keys.run, needs_hello, expect_ready, scenario, crate::clock::mono()));
+    let clock = timebase.clock();
+    let waiting = Waiting::new(Lead::new(&keys.run, needs_hello, expect_ready, scenario, clock.mono()), clock);
     let subs = listen(session, keys, &waiting, Whom::All).await?;
     loop {
-        let step = waiting.lock().poll(crate::clock::mono());
+        let step = waiting.lock().poll(waiting.now());
         match step {
             LeadStep::Go => break,
             LeadStep::Failed(e) => return Err(e),

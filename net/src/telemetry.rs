@@ -66,6 +66,7 @@ pub async fn start_delivery(
     keys: &Keys,
     node: u32,
     scenario: &formation_topology::Scenario,
+    clock: &crate::clock::Clock,
 ) -> Result<(crate::courier::Delivery, zenoh::pubsub::Subscriber<()>), Error> {
     use zenoh::Wait;
     let publisher = session
@@ -74,7 +75,8 @@ pub async fn start_delivery(
         .priority(crate::node::priority::TELEMETRY)
         .await
         .map_err(|e| Error::Run(format!("declaring the telemetry publisher: {e}")))?;
-    let delivery = crate::courier::Delivery::start(formation_protocol::courier::CAPACITY_STEPS, move |bytes| {
+    let capacity = formation_protocol::courier::CAPACITY_STEPS;
+    let delivery = crate::courier::Delivery::start(capacity, clock.clone(), move |bytes| {
         // A failed put is like a lost one: the courier sends it again.
         let _ = publisher.put(bytes.to_vec()).wait();
     });

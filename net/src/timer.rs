@@ -12,6 +12,8 @@ use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
 use std::time::Instant;
 
+use crate::clock::Clock;
+
 use tokio::io::unix::AsyncFd;
 use tokio::io::Interest;
 
@@ -35,11 +37,15 @@ impl Timer {
         Ok(Self { fd: unsafe { AsyncFd::register_with_interest(fd, Interest::READABLE)? } })
     }
 
-    /// Until `at` (at once if it has passed). `Instant` is CLOCK_MONOTONIC,
-    /// the timer's clock.
-    pub async fn sleep_until(&self, at: Instant) -> io::Result<()> {
-        let d = at.saturating_duration_since(Instant::now());
+    /// Until `at` on `clock` (at once if it has passed). `Instant` is
+    /// CLOCK_MONOTONIC, the timer's clock; a mock clock moves to `at` at once.
+    pub async fn sleep_until(&self, at: Instant, clock: &Clock) -> io::Result<()> {
+        let d = at.saturating_duration_since(clock.instant());
         if d.is_zero() {
+            return Ok(());
+        }
+        if clock.is_mock() {
+            clock.sleep_until(at);
             return Ok(());
         }
         let spec = libc::itimerspec {
@@ -95,7 +101,7 @@ mod tests {
         let mut late = Vec::new();
         for _ in 0..50 {
             let at = Instant::now() + Duration::from_micros(300);
-            t.sleep_until(at).await.expect("sleep");
+            t.sleep_until(at, &Clock::real()).await.expect("sleep");
             let now = Instant::now();
             assert!(now >= at, "woke {:?} early", at - now);
             late.push(now - at);
@@ -104,7 +110,7 @@ mod tests {
         let median = late[late.len() / 2];
         assert!(median < Duration::from_micros(500), "median lateness {median:?} (tokio's timer would be ~1 ms)");
         let began = Instant::now();
-        t.sleep_until(began - Duration::from_millis(5)).await.expect("past");
+        t.sleep_until(began - Duration::from_millis(5), &Clock::real()).await.expect("past");
         assert!(began.elapsed() < Duration::from_millis(1), "an instant passed: at once");
     }
 }

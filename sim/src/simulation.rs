@@ -417,6 +417,40 @@ fn account(
     Ok(())
 }
 
+/// The parallel step without rows: every follower steps and adds its
+/// sample to its own metrics on its thread; the first (by index) follower
+/// that diverged, and what diverged.
+fn par_step_metrics(
+    x: &StepInputs,
+    followers: &mut [SimFollower],
+    receptions: &mut [Option<Box<Reception>>],
+    next_messages: &mut [Message],
+    leader: &LeaderState,
+    k: u64,
+) -> Option<(usize, &'static str)> {
+    use rayon::prelude::*;
+    followers
+        .par_chunks_mut(CHUNK)
+        .zip(receptions.par_chunks_mut(CHUNK))
+        .zip(next_messages.par_chunks_mut(CHUNK))
+        .enumerate()
+        .filter_map(|(c, ((fs, rxs), nexts))| {
+            let mut first = None;
+            for j in 0..fs.len() {
+                prefetch(x, c * CHUNK + j + AHEAD, fs.get(j + AHEAD));
+                let (i, f) = (c * CHUNK + j, &mut fs[j]);
+                let sample;
+                (sample, nexts[j]) = step_follower(x, i, f, &mut rxs[j]);
+                f.metrics.push_sample(k, &sample, leader, f.brain.config.offset, x.dt);
+                if first.is_none() {
+                    first = f.check_finite().err().map(|quantity| (i, quantity));
+                }
+            }
+            first
+        })
+        .min_by_key(|&(i, _)| i)
+}
+
 /// Asks the cache for the lines of follower `i`, `f`, and of its
 /// neighbours' messages a few followers ahead of its step: large
 /// formations stream their followers from memory, and a chord's message
@@ -628,28 +662,8 @@ impl<'s> Simulation<'s> {
             }
         } else {
             // Metrics only: each follower's own, on its thread.
-            use rayon::prelude::*;
-            let first_diverged = self
-                .followers
-                .par_chunks_mut(CHUNK)
-                .zip(self.receptions.par_chunks_mut(CHUNK))
-                .zip(self.next_messages.par_chunks_mut(CHUNK))
-                .enumerate()
-                .filter_map(|(c, ((fs, rxs), nexts))| {
-                    let mut first = None;
-                    for j in 0..fs.len() {
-                        prefetch(&x, c * CHUNK + j + AHEAD, fs.get(j + AHEAD));
-                        let (i, f) = (c * CHUNK + j, &mut fs[j]);
-                        let sample;
-                        (sample, nexts[j]) = step_follower(&x, i, f, &mut rxs[j]);
-                        f.metrics.push_sample(k, &sample, &leader, f.brain.config.offset, dt);
-                        if first.is_none() {
-                            first = f.check_finite().err().map(|quantity| (i, quantity));
-                        }
-                    }
-                    first
-                })
-                .min_by_key(|&(i, _)| i);
+            let first_diverged =
+                par_step_metrics(&x, &mut self.followers, &mut self.receptions, &mut self.next_messages, &leader, k);
             if let Some((i, quantity)) = first_diverged {
                 return Err(diverged(s, i, k, quantity));
             }

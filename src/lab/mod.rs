@@ -708,6 +708,68 @@ impl Ctx<'_> {
 
     /// Starts every node, performs the plan on the run's clock, and returns
     /// the monitor's summary and what was done when.
+    /// The monitor; with the live page, the Unix socket it serves it on
+    /// (a path, which no network namespace hides; the lab forwards a port of
+    /// the machine's own loopback to it), removed when dropped.
+    async fn spawn_monitor(&self, children: &mut Children) -> Result<Option<RemoveOnDrop>, Error> {
+        let mut c = self.node("monitor", "monitor");
+        c.arg("--out").arg(self.out).stdout(Stdio::null());
+        let socket = match self.a.opts.web.web {
+            Some(addr) => {
+                let socket =
+                    RemoveOnDrop(std::env::temp_dir().join(format!("formation-lab-{}-web.sock", std::process::id())));
+                let bound = formation_view::web::forward(addr, socket.0.clone()).await?;
+                c.arg("--web-unix").arg(&socket.0).arg("--web-linger").arg(self.a.opts.web.web_linger.to_string());
+                eprintln!("live page: http://{bound}/");
+                Some(socket)
+            }
+            None => None,
+        };
+        for (on, flag) in
+            [(self.a.opts.mcap, "--mcap"), (self.a.opts.rosbag2, "--rosbag2"), (self.a.opts.quiet, "--quiet")]
+        {
+            if on {
+                c.arg(flag);
+            }
+        }
+        launch::spawn(children, "monitor", c)?;
+        Ok(socket)
+    }
+
+    /// The leader, whose `start EPOCH SCALE AHEAD` line (on stdout) gives the
+    /// run's epoch on this host's clock and its time scale, sent on the
+    /// channel returned.
+    fn spawn_leader(&self, children: &mut Children) -> Result<std::sync::mpsc::Receiver<(u64, f64)>, Error> {
+        let mut c = self.node("leader", "leader");
+        c.arg("--print-start").stdout(Stdio::piped());
+        if let Some(x) = self.a.opts.time_scale {
+            c.arg("--time-scale").arg(x.to_string());
+        }
+        launch::dies_with_launch(&mut c);
+        let mut leader = c.spawn().map_err(|e| Error::Run(format!("starting the leader: {e}")))?;
+        let (tx, rx) = std::sync::mpsc::channel::<(u64, f64)>();
+        if let Some(stdout) = leader.stdout.take() {
+            std::thread::spawn(move || {
+                for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                    let mut w = line.split_whitespace();
+                    // The epoch is on the leader's clock, which need not be
+                    // this host's (a lab node's clock can be shifted); AHEAD
+                    // (ns) is how far ahead of the leader's now it is, which
+                    // holds on any clock.
+                    if let (Some("start"), Some(_), Some(x), Some(ahead)) = (w.next(), w.next(), w.next(), w.next()) {
+                        if let (Ok(x), Ok(ahead)) = (x.parse(), ahead.parse::<i64>()) {
+                            let now = formation_net::clock::Clock::real().unix_ns() as i64;
+                            let epoch = now.saturating_add(ahead).max(0);
+                            let _ = tx.send((epoch as u64, x));
+                        }
+                    }
+                }
+            });
+        }
+        children.push("leader".into(), leader);
+        Ok(rx)
+    }
+
     async fn drive(
         &self,
         children: &mut Children,
@@ -725,64 +787,14 @@ impl Ctx<'_> {
                 launch::start_router_named(children, r, self.router_on(r))?;
             }
         }
-        let mut c = self.node("monitor", "monitor");
-        c.arg("--out").arg(self.out).stdout(Stdio::null());
-        // The live page: the monitor serves it on a Unix socket (a path,
-        // which no network namespace hides) and the lab forwards a port of
-        // the machine's own loopback to it.
-        let _socket = match self.a.opts.web.web {
-            Some(addr) => {
-                let socket =
-                    RemoveOnDrop(std::env::temp_dir().join(format!("formation-lab-{}-web.sock", std::process::id())));
-                let bound = formation_view::web::forward(addr, socket.0.clone()).await?;
-                c.arg("--web-unix").arg(&socket.0).arg("--web-linger").arg(self.a.opts.web.web_linger.to_string());
-                eprintln!("live page: http://{bound}/");
-                Some(socket)
-            }
-            None => None,
-        };
-        if self.a.opts.mcap {
-            c.arg("--mcap");
-        }
-        if self.a.opts.rosbag2 {
-            c.arg("--rosbag2");
-        }
-        if self.a.opts.quiet {
-            c.arg("--quiet");
-        }
-        launch::spawn(children, "monitor", c)?;
-
-        let mut c = self.node("leader", "leader");
-        c.arg("--print-start").stdout(Stdio::piped());
-        if let Some(x) = self.a.opts.time_scale {
-            c.arg("--time-scale").arg(x.to_string());
-        }
-        launch::dies_with_launch(&mut c);
-        let mut leader = c.spawn().map_err(|e| Error::Run(format!("starting the leader: {e}")))?;
-        let (tx, rx) = std::sync::mpsc::channel::<(u64, f64)>();
-        if let Some(stdout) = leader.stdout.take() {
-            std::thread::spawn(move || {
-                for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                    let mut w = line.split_whitespace();
-                    // `start EPOCH SCALE AHEAD`: the epoch is on the leader's
-                    // clock, which need not be this host's (a lab node's clock
-                    // can be shifted); AHEAD (ns) is how far ahead of the
-                    // leader's now it is, which holds on any clock.
-                    if let (Some("start"), Some(_), Some(x), Some(ahead)) = (w.next(), w.next(), w.next(), w.next()) {
-                        if let (Ok(x), Ok(ahead)) = (x.parse(), ahead.parse::<i64>()) {
-                            let epoch = (formation_net::clock::unix_ns() as i64).saturating_add(ahead).max(0);
-                            let _ = tx.send((epoch as u64, x));
-                        }
-                    }
-                }
-            });
-        }
-        children.push("leader".into(), leader);
+        let _socket = self.spawn_monitor(children).await?;
+        let rx = self.spawn_leader(children)?;
         for &id in self.scenario.graph.ids() {
             launch::spawn(children, &format!("agent {id}"), self.agent(id))?;
         }
 
         // Run time t happens at epoch + t / time_scale (wall clock).
+        let wall = formation_net::clock::Clock::real();
         let mut clock: Option<(u64, f64)> = None;
         let mut next = 0;
         let mut performed = Vec::new();
@@ -804,14 +816,14 @@ impl Ctx<'_> {
                 }
             }
             if let Some((epoch_ns, scale)) = clock {
-                let now_s = (formation_net::clock::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+                let now_s = (wall.unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
                 while next < events.len() && events[next].at_s <= now_s {
                     let e = &events[next];
                     if let Err(err) = self.act(children, &e.action) {
                         children.wind_down();
                         return Err(Error::Run(format!("performing '{}' at t = {} s: {err}", e.what, e.at_s)));
                     }
-                    let done_s = (formation_net::clock::unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+                    let done_s = (wall.unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
                     if !self.a.opts.quiet {
                         eprintln!("lab: t = {done_s:.3} s: {}", e.what);
                     }

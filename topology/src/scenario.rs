@@ -1481,21 +1481,7 @@ fn validate_faults(
                     return Err(c.fail(&field("link"), format!("{a}–{b} is not a link: both ends are node {a}")));
                 }
                 if !is_link(graph, a, b) {
-                    let end = if a == 0 { b } else { a };
-                    let links = graph.index_of(end).map(|i| {
-                        let mut l: Vec<String> = graph.neighbours(i).iter().map(|&j| graph.id(j).to_string()).collect();
-                        if graph.hears_leader(i) {
-                            l.insert(0, "0".into());
-                        }
-                        l.join(", ")
-                    });
-                    return Err(c.fail(
-                        &field("link"),
-                        format!(
-                            "{a}–{b} is not a link of the scenario's graph (node {end} talks to: {})",
-                            links.unwrap_or_default()
-                        ),
-                    ));
+                    return Err(c.fail(&field("link"), not_a_link(graph, a, b)));
                 }
                 FaultTarget::Link(a, b)
             }
@@ -1539,6 +1525,19 @@ fn validate_faults(
         out.push(LinkFault { target, from_s: f.from, to_s: f.to, loss: f.loss });
     }
     Ok(out)
+}
+
+/// Why a–b is not a fault table's link: whom its follower end talks to.
+fn not_a_link(graph: &Graph, a: u32, b: u32) -> String {
+    let end = if a == 0 { b } else { a };
+    let links = graph.index_of(end).map(|i| {
+        let mut l: Vec<String> = graph.neighbours(i).iter().map(|&j| graph.id(j).to_string()).collect();
+        if graph.hears_leader(i) {
+            l.insert(0, "0".into());
+        }
+        l.join(", ")
+    });
+    format!("{a}–{b} is not a link of the scenario's graph (node {end} talks to: {})", links.unwrap_or_default())
 }
 
 /// Whether a and b (0 = the leader) talk to each other in the graph.

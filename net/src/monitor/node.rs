@@ -45,7 +45,7 @@ pub async fn run(
     args: &MonitorArgs,
     shutdown: impl Future<Output = Signal>,
 ) -> Result<(Ending, Option<Verdict>), Error> {
-    let began = Instant::now();
+    let began = args.node.clock.instant();
     let launched_by = std::os::unix::process::parent_id();
     let (scenario, keys) = args.node.load(MONITOR)?;
     check(args)?;
@@ -258,10 +258,10 @@ struct Frames<'a> {
 }
 
 impl Frames<'_> {
-    fn publish(&mut self, recorder: &Recorder, watch: &Watch, state: &str) {
+    fn publish(&mut self, recorder: &Recorder, watch: &Watch, state: &str, now: Instant) {
         if let Some(w) = self.web {
             self.seq += 1;
-            let now = Instant::now();
+
             let (frame, past) = recorder.live_frame(now, self.seq, watch.wall_s(now), state, w.viewers());
             w.publish(frame, past);
         }
@@ -313,7 +313,7 @@ impl Monitor<'_> {
                     if let Err(e) = r {
                         return Ok(Stopped::NotStarted(e));
                     }
-                    let startup = self.watch.on_start(Instant::now());
+                    let startup = self.watch.on_start(self.args.node.clock.instant());
                     if live {
                         crate::node::say(&format!(
                             "started: all {nodes} nodes ready {startup:.1} s after the monitor's start"
@@ -334,11 +334,11 @@ impl Monitor<'_> {
                 }
                 _ = frames.tick(), if self.frames.web.is_some() => {
                     let state = if self.watch.started() { "running" } else { "waiting" };
-                    self.frames.publish(&self.recorder, &self.watch, state);
+                    self.frames.publish(&self.recorder, &self.watch, state, self.args.node.clock.instant());
                 }
                 signal = &mut shutdown => break Ending::from(signal),
                 _ = status.tick() => {
-                    if let Some(end) = self.watch.on_tick(Instant::now()) {
+                    if let Some(end) = self.watch.on_tick(self.args.node.clock.instant()) {
                         break end;
                     }
                     self.recorder.flush().map_err(written)?;
@@ -355,7 +355,7 @@ impl Monitor<'_> {
     fn file(&mut self, id: Option<u32>, bytes: &[u8]) -> Result<Option<Ending>, Error> {
         self.ears.queue.release(bytes.len());
         self.recorder.queue_dropped = self.ears.queue.dropped();
-        let now = Instant::now();
+        let now = self.args.node.clock.instant();
         self.recorder.telemetry(id, bytes, now).map_err(written)?;
         Ok(self.watch.on_telemetry(now, self.recorder.complete()))
     }
@@ -375,7 +375,7 @@ impl Monitor<'_> {
             // Stop listening first, so this ends.
             self.ears.telemetry_sub = None;
             while let Ok((id, bytes)) = self.ears.telemetry.try_recv() {
-                self.recorder.telemetry(id, &bytes, Instant::now()).map_err(written)?;
+                self.recorder.telemetry(id, &bytes, self.args.node.clock.instant()).map_err(written)?;
             }
         }
         if ending == Ending::Complete {
@@ -410,9 +410,9 @@ async fn monitor(
     tokio::spawn(crate::denials::report(session.clone(), MONITOR.to_string(), Some(keys.run.clone())));
     let mut needs: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     needs.push(names::LEADER_NODE.to_string());
-    let barrier = startup::wait_for_start(session, keys, MONITOR, &needs, scenario);
+    let barrier = startup::wait_for_start(session, keys, MONITOR, &needs, scenario, &args.node.clock);
     tokio::pin!(barrier);
-    let watch = Watch::new(began, Instant::now(), Duration::from_secs_f64(args.idle_timeout));
+    let watch = Watch::new(began, args.node.clock.instant(), Duration::from_secs_f64(args.idle_timeout));
     let tty = std::io::stderr().is_terminal();
     let mut m = Monitor { args, recorder, watch, ears, frames: Frames { web: viewers.web, seq: 0 }, tty };
     tokio::pin!(shutdown);
@@ -424,8 +424,8 @@ async fn monitor(
             return Err(e);
         }
     };
-    let run_s = m.watch.run_s(Instant::now());
-    m.frames.publish(&m.recorder, &m.watch, ending.name());
+    let run_s = m.watch.run_s(args.node.clock.instant());
+    m.frames.publish(&m.recorder, &m.watch, ending.name(), args.node.clock.instant());
     m.wind_down(ending).await?;
     if !args.quiet && tty {
         eprintln!();

@@ -31,7 +31,7 @@ use formation_topology::{Scenario, Timing};
 
 use super::topics::{OdomFrame, Stamps, QOS};
 use super::wire::{RosNode, RosSubscription};
-use crate::clock::{self, Timebase};
+use crate::clock::{Clock, Timebase};
 use formation_protocol::error::Error;
 use formation_protocol::follower::Body;
 
@@ -108,14 +108,17 @@ pub struct OdomInbox {
     /// The frame_id the odometry must carry, and where that frame sits.
     frame_id: String,
     frame: OdomFrame,
+    /// The node's clock: when each odometry message arrived.
+    clock: Clock,
 }
 
 impl OdomInbox {
-    /// The inbox of follower `index`'s robot.
-    pub fn for_robot(scenario: &Scenario, index: usize) -> Self {
+    /// The inbox of follower `index`'s robot, on the node's clock.
+    pub fn for_robot(scenario: &Scenario, index: usize, clock: &Clock) -> Self {
         Self {
             frame_id: scenario.odom_frame_of(scenario.graph.id(index)),
             frame: OdomFrame::of(scenario, index),
+            clock: clock.clone(),
             ..Self::default()
         }
     }
@@ -179,7 +182,7 @@ impl OdomInbox {
                 return Err(());
             }
         }
-        *latest = Some(Odom { step, pose, twist, arrived: clock::mono() });
+        *latest = Some(Odom { step, pose, twist, arrived: self.clock.mono() });
         Ok(step)
     }
 }
@@ -252,7 +255,7 @@ impl DrivenRobot {
     /// timeout (or never came); says when that starts and ends.
     fn fresh_odometry(&mut self) -> (Option<Odom>, Option<Odom>) {
         let latest = self.inbox.latest();
-        let now = clock::mono();
+        let now = self.inbox.clock.mono();
         let fresh = latest.filter(|o| now.saturating_sub(o.arrived) <= self.timeout);
         match (fresh.is_some(), self.stopped_since) {
             (false, None) => {

@@ -30,7 +30,7 @@ use formation_topology::{Scenario, Timing};
 
 use super::topics::{odometry, OdomFrame, Stamps, QOS};
 use super::wire::{RosNode, RosPublisher};
-use crate::clock;
+use crate::clock::Clock;
 use crate::node::NodeArgs;
 use formation_protocol::error::Error;
 use formation_ros2::planar::Frames;
@@ -102,6 +102,8 @@ pub async fn run(args: &RobotArgs, shutdown: impl Future<Output = ()>) -> Result
     };
     let latest: Arc<Mutex<Option<Command>>> = Arc::new(Mutex::new(None));
     let l = latest.clone();
+    let clock = args.node.clock.clone();
+    let c = clock.clone();
     let received: Arc<Mutex<Received>> = Arc::default();
     let r = received.clone();
     let _commands = node
@@ -110,7 +112,7 @@ pub async fn run(args: &RobotArgs, shutdown: impl Future<Output = ()>) -> Result
             let v = Velocity::new(t.linear.x, t.angular.z);
             if v.is_finite() {
                 r.lock().unwrap_or_else(|p| p.into_inner()).add(v);
-                let c = Command { v, source_ns: att.map(|a| a.source_timestamp_ns), arrived: clock::mono() };
+                let c = Command { v, source_ns: att.map(|a| a.source_timestamp_ns), arrived: c.mono() };
                 *l.lock().unwrap_or_else(|p| p.into_inner()) = Some(c);
             }
         })
@@ -124,8 +126,8 @@ pub async fn run(args: &RobotArgs, shutdown: impl Future<Output = ()>) -> Result
     let stall = Duration::from_secs_f64(args.stall_timeout);
     let scenario2 = scenario.clone();
     let work = tokio::task::spawn_blocking(move || match scenario2.timing {
-        Timing::Lockstep => lockstep(&scenario2, plant, &mut out, &latest, stall),
-        Timing::Realtime => realtime(&scenario2, plant, &mut out, &latest),
+        Timing::Lockstep => lockstep(&scenario2, plant, &mut out, &latest, stall, &clock),
+        Timing::Realtime => realtime(&scenario2, plant, &mut out, &latest, &clock),
     });
     let result = tokio::select! {
         r = work => r.map_err(|e| Error::Run(format!("robot {}: loop panicked: {e}", args.id)))?,
@@ -215,13 +217,14 @@ fn lockstep(
     out: &mut Outputs,
     latest: &Mutex<Option<Command>>,
     stall: Duration,
+    clock: &Clock,
 ) -> Result<(), Error> {
     let stamps = Stamps::of(s, 0);
     let steps = s.steps();
     let mut k = 0u64;
     out.publish(stamps.ns(0), &plant)?;
-    let mut said = clock::mono();
-    let mut heard = clock::mono();
+    let mut said = clock.mono();
+    let mut heard = clock.mono();
     loop {
         let command = *latest.lock().unwrap_or_else(|p| p.into_inner());
         match command {
@@ -232,11 +235,11 @@ fn lockstep(
                 plant.advance(c.v, s.dt_s);
                 k += 1;
                 out.publish(stamps.ns(k), &plant)?;
-                said = clock::mono();
+                said = clock.mono();
                 heard = said;
             }
             _ => {
-                let now = clock::mono();
+                let now = clock.mono();
                 if now - heard > stall {
                     return Err(Error::Run(format!(
                         "no command for step {k} on cmd_vel for {:.0} s (stall timeout): is the agent running?",
@@ -247,30 +250,36 @@ fn lockstep(
                     out.publish_odometry(stamps.ns(k), &plant)?;
                     said = now;
                 }
-                std::thread::sleep(Duration::from_micros(50));
+                clock.sleep_until_mono(now + Duration::from_micros(50));
             }
         }
     }
 }
 
-fn realtime(s: &Scenario, mut plant: Plant, out: &mut Outputs, latest: &Mutex<Option<Command>>) -> Result<(), Error> {
+fn realtime(
+    s: &Scenario,
+    mut plant: Plant,
+    out: &mut Outputs,
+    latest: &Mutex<Option<Command>>,
+    clock: &Clock,
+) -> Result<(), Error> {
     let period = Duration::from_secs_f64(s.dt_s / formation_protocol::barrier::positive_scale(s.network.time_scale));
     let timeout = Duration::from_secs_f64(s.cmd_timeout_s);
-    let began = clock::mono();
+    let began = clock.mono();
     let mut began_driving = false;
     let mut timed_out = false;
     // Since when the robot is told to stop (a zero command or the time-out), and why.
     let mut stopping: Option<(u64, &str)> = None;
-    out.publish(clock::unix_ns() as i64, &plant)?;
+    out.publish(clock.unix_ns() as i64, &plant)?;
     for tick in 1u64.. {
         let due = began + period * tick as u32;
-        clock::sleep_until_mono(due);
-        let now = clock::mono();
+        clock.sleep_until_mono(due);
+        let now = clock.mono();
         let command = *latest.lock().unwrap_or_else(|p| p.into_inner());
         let fresh = command.filter(|c| now.saturating_sub(c.arrived) <= timeout);
         if !began_driving && fresh.is_some() {
             began_driving = true;
-            crate::node::say(&format!("robot {}: driving (first command at unix {} ns)", plant.id, clock::unix_ns()));
+            crate::node::say(&format!("robot {}: driving (first command at unix {} ns)", plant.id, clock.unix_ns()));
         }
         if began_driving && fresh.is_none() != timed_out {
             timed_out = fresh.is_none();
@@ -288,7 +297,7 @@ fn realtime(s: &Scenario, mut plant: Plant, out: &mut Outputs, latest: &Mutex<Op
         let moving = plant.robot.velocity.v.abs() > STOPPED_V || plant.robot.velocity.w.abs() > STOPPED_W;
         match (u == Velocity::default(), stopping) {
             (true, None) if moving => {
-                stopping = Some((clock::unix_ns(), if fresh.is_some() { "a zero command" } else { "the time-out" }))
+                stopping = Some((clock.unix_ns(), if fresh.is_some() { "a zero command" } else { "the time-out" }))
             }
             (false, _) => stopping = None,
             _ => {}
@@ -297,7 +306,7 @@ fn realtime(s: &Scenario, mut plant: Plant, out: &mut Outputs, latest: &Mutex<Op
         if let Some((since, why)) = stopping {
             let v = plant.robot.velocity;
             if v.v.abs() <= STOPPED_V && v.w.abs() <= STOPPED_W {
-                let now = clock::unix_ns();
+                let now = clock.unix_ns();
                 crate::node::say(&format!(
                     "robot {}: stopped at unix {now} ns (|v| ≤ {STOPPED_V} m/s, |ω| ≤ {STOPPED_W} rad/s), told to at \
                      unix {since} ns by {why}, {:.3} s before",
@@ -307,7 +316,7 @@ fn realtime(s: &Scenario, mut plant: Plant, out: &mut Outputs, latest: &Mutex<Op
                 stopping = None;
             }
         }
-        out.publish(clock::unix_ns() as i64, &plant)?;
+        out.publish(clock.unix_ns() as i64, &plant)?;
     }
     Ok(())
 }

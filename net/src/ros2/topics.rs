@@ -199,11 +199,11 @@ impl FollowerTopics {
         Ok(())
     }
 
-    /// Zero velocity on `cmd_vel`, stamped now: the agent is ending
-    /// (docs/ros2.md, "A robot that stops").
-    pub fn stop(&mut self) -> Result<(), Error> {
+    /// Zero velocity on `cmd_vel`, stamped `now_ns` (the wall clock now):
+    /// the agent is ending (docs/ros2.md, "A robot that stops").
+    pub fn stop(&mut self, now_ns: i64) -> Result<(), Error> {
         self.last_command = None;
-        self.cmd_vel.put(&Twist::default(), crate::clock::unix_ns() as i64)
+        self.cmd_vel.put(&Twist::default(), now_ns)
     }
 
     /// Sends step k's command again (a lock-step robot repeated its
