@@ -73,7 +73,7 @@ pub async fn echo(listen: &str) -> Result<(), Error> {
     )
     .await?;
     println!("echo ready");
-    tokio::signal::ctrl_c().await.map_err(|e| Error::Run(e.to_string()))?;
+    crate::shutdown::signalled().await;
     Ok(())
 }
 

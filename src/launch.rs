@@ -991,10 +991,7 @@ async fn launch(
     children: &mut Children,
 ) -> Result<Summary, CliError> {
     // Signals first: from here on Ctrl-C must reach the children's cleanup.
-    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| CliError::Run(format!("installing the SIGTERM handler: {e}")))?;
-    let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
-        .map_err(|e| CliError::Run(format!("installing the SIGINT handler: {e}")))?;
+    let shutdown = crate::shutdown::from_now();
     let n = scenario.followers.len();
     let robots = match scenario.ros2.map(|r| r.robots) {
         Some(formation_topology::RobotSource::StandIn) => Robots::StandIn,
@@ -1022,13 +1019,28 @@ async fn launch(
     let node_ports = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
     spawn_monitor_and_leader(a, run, out, exe, &wiring, node_ports, children)?;
     spawn_agents(a, scenario, run, exe, &wiring, &groups, &p, robots, children)?;
-    let mut tick = tokio::time::interval(Duration::from_millis(50));
+    supervise(children, out, Duration::from_millis(50), shutdown, |_| Ok(())).await
+}
+
+/// The one supervision loop of `launch` and `lab`: every `every`, `each`
+/// (the lab's fault events; an error ends the run with it), then whether the
+/// run is over ([`settle`]); `shutdown` (a signal) stops every child
+/// ([`interrupt`]).
+pub(crate) async fn supervise(
+    children: &mut Children,
+    out: &Path,
+    every: Duration,
+    shutdown: impl std::future::Future<Output = formation_replay::watch::Signal>,
+    mut each: impl FnMut(&mut Children) -> Result<(), CliError>,
+) -> Result<Summary, CliError> {
+    tokio::pin!(shutdown);
+    let mut tick = tokio::time::interval(every);
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            _ = sigint.recv() => return Err(interrupt(children, out, libc::SIGINT)),
-            _ = sigterm.recv() => return Err(interrupt(children, out, libc::SIGTERM)),
+            s = &mut shutdown => return Err(interrupt(children, out, crate::shutdown::number(s))),
         }
+        each(children)?;
         if let Some(ended) = settle(children, out) {
             return ended;
         }

@@ -25,5 +25,6 @@ pub mod progress;
 pub mod replay;
 pub mod report;
 pub mod runsize;
+pub mod shutdown;
 pub mod study;
 pub mod words;

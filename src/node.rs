@@ -91,7 +91,7 @@ pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
     let name = format!("robot-{}", r.id);
     shell(&r.node.zenoh.clone(), &name, true, async move {
         formation_net::ros2::robot::run(&r, async {
-            signalled().await;
+            crate::shutdown::signalled().await;
         })
         .await
         .map(|()| ExitCode::SUCCESS)
@@ -104,7 +104,7 @@ pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
 pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
     let name = formation_protocol::names::agent_name(a.id.first().copied().unwrap_or(0));
     shell(&a.node.zenoh.clone(), &name, true, async move {
-        agent::run(&a, signalled()).await.map(|signal| match signal {
+        agent::run(&a, crate::shutdown::signalled()).await.map(|signal| match signal {
             None => ExitCode::SUCCESS,
             Some(Signal::Interrupt) => ExitCode::from(130),
             Some(Signal::Terminate) => ExitCode::from(143),
@@ -122,7 +122,7 @@ pub fn run_leader(a: leader::LeaderArgs) -> ExitCode {
 /// The `monitor` binary.
 pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
     shell(&a.node.zenoh.clone(), formation_protocol::names::MONITOR, true, async move {
-        monitor::run(&a, signalled()).await.map(monitor_status)
+        monitor::run(&a, crate::shutdown::signalled()).await.map(monitor_status)
     })
 }
 
@@ -132,7 +132,7 @@ pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
 /// empties it.
 pub fn run_router(r: router::RouterArgs) -> ExitCode {
     shell(&r.zenoh.clone(), formation_protocol::names::ROUTER, false, async move {
-        router::run(&r, signalled()).await.map(|()| ExitCode::SUCCESS)
+        router::run(&r, crate::shutdown::signalled()).await.map(|()| ExitCode::SUCCESS)
     })
 }
 
@@ -200,29 +200,6 @@ where
         Err(e) => {
             formation_net::node::say(&format!("error: {e}"));
             e.exit_code()
-        }
-    }
-}
-
-/// The shutdown the monitor and the router are given: resolves on the
-/// first SIGINT or SIGTERM, saying which. The handlers are installed when
-/// it is first polled (where the node starts waiting for a signal, as
-/// before the libraries took a shutdown future): a signal before that ends
-/// the process as the system does. If they cannot be installed it says so
-/// and never resolves.
-async fn signalled() -> Signal {
-    use tokio::signal::unix::{signal, SignalKind};
-    // Streams created once, so that a signal arriving between two polls is not lost.
-    match (signal(SignalKind::terminate()), signal(SignalKind::interrupt())) {
-        (Ok(mut term), Ok(mut int)) => tokio::select! {
-            _ = int.recv() => Signal::Interrupt,
-            _ = term.recv() => Signal::Terminate,
-        },
-        (Err(e), _) | (_, Err(e)) => {
-            formation_net::node::say(&format!(
-                "warning: cannot install the SIGINT and SIGTERM handlers ({e}): a signal ends the node unrecorded"
-            ));
-            std::future::pending().await
         }
     }
 }

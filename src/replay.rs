@@ -7,6 +7,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 use formation_replay::replay::{self, Loaded};
+use formation_replay::watch::Signal;
 
 use crate::error::Error as CliError;
 
@@ -294,8 +295,10 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
             // The player's thread is left to the process's end (it was
             // waited for, and Ctrl-C ended the command only when the
             // playback did, with status 0).
-            _ = tokio::signal::ctrl_c() => Err(CliError::Interrupted("interrupted".into(), 2)),
-            _ = sigterm() => Err(CliError::Interrupted("terminated".into(), 15)),
+            s = crate::shutdown::signalled() => match s {
+                Signal::Interrupt => Err(CliError::Interrupted("interrupted".into(), 2)),
+                Signal::Terminate => Err(CliError::Interrupted("terminated".into(), 15)),
+            },
         }
     });
     runtime.shutdown_background();
@@ -303,14 +306,4 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
         playback::remove_scratch();
     }
     result
-}
-
-/// SIGTERM, or never if it cannot be watched.
-async fn sigterm() {
-    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-        Ok(mut s) => {
-            s.recv().await;
-        }
-        Err(_) => std::future::pending().await,
-    }
 }

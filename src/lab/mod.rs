@@ -23,7 +23,7 @@ pub mod netns;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use clap::Args;
 use formation_topology::{FaultTarget, Scenario};
@@ -775,10 +775,8 @@ impl Ctx<'_> {
         children: &mut Children,
         events: Vec<Event>,
     ) -> Result<(Summary, Vec<serde_json::Value>), Error> {
-        let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-            .map_err(|e| Error::Run(format!("installing the SIGTERM handler: {e}")))?;
-        let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
-            .map_err(|e| Error::Run(format!("installing the SIGINT handler: {e}")))?;
+        // Signals first: from here on Ctrl-C must reach the children's cleanup.
+        let shutdown = crate::shutdown::from_now();
         if self.a.mode == LaunchMode::Client {
             launch::start_router_with(children, self.router())?;
         }
@@ -798,46 +796,39 @@ impl Ctx<'_> {
         let mut clock: Option<(u64, f64)> = None;
         let mut next = 0;
         let mut performed = Vec::new();
-        let mut tick = tokio::time::interval(Duration::from_millis(5));
-        let began = Instant::now();
-        loop {
-            tokio::select! {
-                _ = tick.tick() => {}
-                _ = sigint.recv() => return Err(launch::interrupt(children, self.out, libc::SIGINT)),
-                _ = sigterm.recv() => return Err(launch::interrupt(children, self.out, libc::SIGTERM)),
-            }
+        let began = wall.mono();
+        let each = |children: &mut Children| {
             if clock.is_none() {
                 clock = rx.try_recv().ok();
-                if clock.is_none() && began.elapsed() > Duration::from_secs(180) {
+                if clock.is_none() && wall.mono().saturating_sub(began) > Duration::from_secs(180) {
                     children.kill_all();
                     return Err(Error::Run(
                         "the run did not start within 180 s (see the nodes' messages above)".into(),
                     ));
                 }
             }
-            if let Some((epoch_ns, scale)) = clock {
-                let now_s = (wall.unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
-                while next < events.len() && events[next].at_s <= now_s {
-                    let e = &events[next];
-                    if let Err(err) = self.act(children, &e.action) {
-                        children.wind_down();
-                        return Err(Error::Run(format!("performing '{}' at t = {} s: {err}", e.what, e.at_s)));
-                    }
-                    let done_s = (wall.unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
-                    if !self.a.opts.quiet {
-                        eprintln!("lab: t = {done_s:.3} s: {}", e.what);
-                    }
-                    performed.push(json!({ "planned_s": e.at_s, "performed_s": done_s, "what": e.what }));
-                    next += 1;
+            let Some((epoch_ns, scale)) = clock else { return Ok(()) };
+            let run_s = || (wall.unix_ns() as f64 - epoch_ns as f64) * 1e-9 * scale;
+            while next < events.len() && events[next].at_s <= run_s() {
+                let e = &events[next];
+                if let Err(err) = self.act(children, &e.action) {
+                    children.wind_down();
+                    return Err(Error::Run(format!("performing '{}' at t = {} s: {err}", e.what, e.at_s)));
                 }
-            }
-            if let Some(ended) = launch::settle(children, self.out) {
-                if ended.is_ok() && next < events.len() {
-                    eprintln!("lab: the run ended before {} planned events", events.len() - next);
+                let done_s = run_s();
+                if !self.a.opts.quiet {
+                    eprintln!("lab: t = {done_s:.3} s: {}", e.what);
                 }
-                return ended.map(|summary| (summary, performed));
+                performed.push(json!({ "planned_s": e.at_s, "performed_s": done_s, "what": e.what }));
+                next += 1;
             }
+            Ok(())
+        };
+        let ended = launch::supervise(children, self.out, Duration::from_millis(5), shutdown, each).await;
+        if ended.is_ok() && next < events.len() {
+            eprintln!("lab: the run ended before {} planned events", events.len() - next);
         }
+        ended.map(|summary| (summary, performed))
     }
 }
 
