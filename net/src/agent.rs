@@ -17,7 +17,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use formation_plant::Pose;
-use formation_protocol::follower::{self, Batch, Follower, LATE};
+use formation_protocol::follower::{self, Batch, Follower, Joining};
 use formation_topology::wire;
 use formation_topology::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
@@ -516,17 +516,13 @@ async fn rejoin(
 ) -> Result<Option<(u64, Pose)>, Error> {
     let id = scenario.graph.id(index);
     let since_s = timebase.since_s(start.epoch_unix_ns as i64).unwrap_or(0.0);
-    let first_step = if scenario.timing == Timing::Lockstep {
-        // A run that began a while ago: this process is a restart. Its
-        // neighbours' repeats say where they wait.
-        if since_s > LATE.as_secs_f64() && !scenario.graph.neighbours(index).is_empty() {
-            tokio::time::sleep(LATE + Duration::from_millis(100)).await;
+    let first_step = match follower::joining(start, since_s, scenario, index).map_err(Error::Run)? {
+        Joining::Fresh => 0,
+        Joining::At(k) => k,
+        Joining::ListenFirst(listen) => {
+            tokio::time::sleep(listen).await;
             shared.lock().lockstep_resume_step()
-        } else {
-            0
         }
-    } else {
-        follower::rejoin_step(start, since_s, scenario).map_err(Error::Run)?
     };
     if first_step == 0 {
         return Ok(None);

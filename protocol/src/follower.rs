@@ -920,6 +920,36 @@ impl Follower {
     }
 }
 
+/// How a follower's process that hears the start joins the run: the one
+/// rule for both timings (docs/model.md §14).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Joining {
+    /// From step 0: the run has not begun (or began less than [`LATE`] ago).
+    Fresh,
+    /// Real time, a restart: at this step ([`rejoin_step`]).
+    At(u64),
+    /// Lock-step, a restart: listen this long to the neighbours' repeats,
+    /// then resume where they wait ([`Follower::lockstep_resume_step`]).
+    ListenFirst(Duration),
+}
+
+/// How follower `index` of `scenario`, hearing `start` `since_s` seconds
+/// (on the timebase) after its epoch, joins. Real time: [`rejoin_step`].
+/// Lock-step: a run that began more than [`LATE`] ago is under way, and a
+/// follower with neighbours learns where from their repeats (every 100 ms:
+/// it listens [`LATE`] + 0.1 s); one without neighbours starts afresh.
+/// Err: the run is over.
+pub fn joining(start: &Start, since_s: f64, scenario: &Scenario, index: usize) -> Result<Joining, String> {
+    if scenario.timing == Timing::Lockstep {
+        let under_way = since_s > LATE.as_secs_f64() && !scenario.graph.neighbours(index).is_empty();
+        return Ok(if under_way { Joining::ListenFirst(LATE + Duration::from_millis(100)) } else { Joining::Fresh });
+    }
+    Ok(match rejoin_step(start, since_s, scenario)? {
+        0 => Joining::Fresh,
+        k => Joining::At(k),
+    })
+}
+
 /// Real time: the step a process that hears the start `start` at
 /// `since_s` seconds (on the timebase) after its epoch should begin at. 0
 /// for a run that has not begun (or began less than [`LATE`] ago);

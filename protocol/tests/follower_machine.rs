@@ -289,6 +289,26 @@ fn realtime_a_restart_rejoins_ahead_of_the_run_and_adopts_before_publishing() {
     assert!(w.counters(i4).sent > 0, "the restart never published");
 }
 
+/// How a process that hears the start joins, one rule for both timings: a
+/// start less than 0.2 s old is a fresh start; a real-time restart resumes
+/// 0.2 s ahead of the run; a lock-step restart listens 0.3 s to its
+/// neighbours' repeats first (a follower with none starts afresh).
+#[test]
+fn a_late_process_joins_by_one_rule_in_both_timings() {
+    let start = Start { fingerprint: 0, epoch_unix_ns: EPOCH.as_nanos() as u64, time_scale: 1.0, sent_ns: 0 };
+    let rt = paper(REALTIME);
+    assert_eq!(follower::joining(&start, 0.1, &rt, 0), Ok(follower::Joining::Fresh));
+    assert_eq!(follower::joining(&start, 1.5, &rt, 0), Ok(follower::Joining::At(1_700)));
+    let ls = paper(LOCKSTEP);
+    assert_eq!(follower::joining(&start, 0.1, &ls, 0), Ok(follower::Joining::Fresh));
+    let listen = follower::joining(&start, 1.5, &ls, 0);
+    assert_eq!(listen, Ok(follower::Joining::ListenFirst(Duration::from_millis(300))));
+    let mut alone = paper(LOCKSTEP);
+    alone.graph = formation_topology::Graph::new(vec![1, 2, 3, 4], &[], vec![true; 4]);
+    assert_eq!(follower::joining(&start, 1.5, &alone, 0), Ok(follower::Joining::Fresh), "no neighbour to listen to");
+    assert!(follower::joining(&start, 5.0, &rt, 0).is_err(), "a 3 s run is over after 5 s");
+}
+
 /// Real time: the leader's clock steps 1 s ahead at t = 1 s (its stamps
 /// jump). No decision of the follower compares clocks: every sample is the
 /// one of the same run without the step, bit for bit.
