@@ -187,74 +187,85 @@ async fn lockstep_node(
         .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
     let steps = (a.seconds / scenario.dt_s).round() as u64;
     let dt = scenario.dt_s;
-    let rate = tokio::task::spawn_blocking(move || -> Result<f64, String> {
-        let msg = |k: u64| {
-            wire::encode(&EstimateMsg {
-                header: Header { version: FORMAT_VERSION, sender: 0, step: k, time_s: k as f64 * dt, sent_ns: 0 },
-                state: Default::default(),
-                fresh: true,
-            })
-        };
-        let (from, to) = (steps / 4, 3 * steps / 4);
-        // As often as the agents and the leader repeat theirs (protocol::gate).
-        let every = if leader {
-            formation_protocol::gate::LEADER_REPEAT_EVERY
-        } else {
-            formation_protocol::gate::FOLLOWER_REPEAT_EVERY
-        };
-        let mut marks = (Instant::now(), Instant::now());
-        for k in 0..=steps {
-            // What step k waits for: the sources' k − 1 (a follower); the
-            // slowest hearing follower within the window, and at the start
-            // every one of them (the leader).
-            let need = match (leader, k) {
-                (false, 0) => None,
-                (false, k) => Some(k - 1),
-                (true, 0) => None,
-                (true, 1) => Some(0),
-                (true, k) => k.checked_sub(formation_protocol::gate::WINDOW),
-            };
-            let bytes = msg(k.saturating_sub(1));
-            let mut n = heard.newest.lock().unwrap_or_else(|p| p.into_inner());
-            let began = Instant::now();
-            while let Some(need) = need {
-                if n.iter().all(|h| h.is_some_and(|s| s >= need)) {
-                    break;
-                }
-                let (g, t) = heard.moved.wait_timeout(n, every).unwrap_or_else(|p| p.into_inner());
-                n = g;
-                if t.timed_out() {
-                    if began.elapsed() > Duration::from_secs(30) {
-                        return Err(format!("no step {need} from every source for 30 s"));
-                    }
-                    if k > 0 {
-                        // Not under the lock the callbacks take.
-                        drop(n);
-                        let _ = publisher.put(bytes.clone()).wait();
-                        n = heard.newest.lock().unwrap_or_else(|p| p.into_inner());
-                    }
-                }
-            }
-            drop(n);
-            if k == from {
-                marks.0 = Instant::now();
-            }
-            if k == to {
-                marks.1 = Instant::now();
-            }
-            let _ = publisher.put(msg(k)).wait();
-        }
-        Ok((to - from) as f64 / (marks.1 - marks.0).as_secs_f64().max(1e-9))
-    })
-    .await
-    .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?
-    .map_err(|e| formation_protocol::error::Error::Run(format!("{}: {e}", a.id)))?;
+    let rate = tokio::task::spawn_blocking(move || floor_loop(leader, steps, dt, &heard, &publisher))
+        .await
+        .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?
+        .map_err(|e| formation_protocol::error::Error::Run(format!("{}: {e}", a.id)))?;
     println!("steps/s {rate:.1}");
     // A while before the session closes, so that the last steps reach the neighbours.
     tokio::time::sleep(Duration::from_millis(300)).await;
     drop(subs);
     let _ = session.close().await;
     Ok(())
+}
+
+/// The floor's lock-step loop: each step waits for what the agent or the
+/// leader would wait for, repeating its last message while it waits, then
+/// publishes; the steps per second over the run's middle half.
+fn floor_loop(
+    leader: bool,
+    steps: u64,
+    dt: f64,
+    heard: &Heard,
+    publisher: &zenoh::pubsub::Publisher<'_>,
+) -> Result<f64, String> {
+    let msg = |k: u64| {
+        wire::encode(&EstimateMsg {
+            header: Header { version: FORMAT_VERSION, sender: 0, step: k, time_s: k as f64 * dt, sent_ns: 0 },
+            state: Default::default(),
+            fresh: true,
+        })
+    };
+    let (from, to) = (steps / 4, 3 * steps / 4);
+    // As often as the agents and the leader repeat theirs (protocol::gate).
+    let every = if leader {
+        formation_protocol::gate::LEADER_REPEAT_EVERY
+    } else {
+        formation_protocol::gate::FOLLOWER_REPEAT_EVERY
+    };
+    let mut marks = (Instant::now(), Instant::now());
+    for k in 0..=steps {
+        // What step k waits for: the sources' k − 1 (a follower); the
+        // slowest hearing follower within the window, and at the start
+        // every one of them (the leader).
+        let need = match (leader, k) {
+            (false, 0) => None,
+            (false, k) => Some(k - 1),
+            (true, 0) => None,
+            (true, 1) => Some(0),
+            (true, k) => k.checked_sub(formation_protocol::gate::WINDOW),
+        };
+        let bytes = msg(k.saturating_sub(1));
+        let mut n = heard.newest.lock().unwrap_or_else(|p| p.into_inner());
+        let began = Instant::now();
+        while let Some(need) = need {
+            if n.iter().all(|h| h.is_some_and(|s| s >= need)) {
+                break;
+            }
+            let (g, t) = heard.moved.wait_timeout(n, every).unwrap_or_else(|p| p.into_inner());
+            n = g;
+            if t.timed_out() {
+                if began.elapsed() > Duration::from_secs(30) {
+                    return Err(format!("no step {need} from every source for 30 s"));
+                }
+                if k > 0 {
+                    // Not under the lock the callbacks take.
+                    drop(n);
+                    let _ = publisher.put(bytes.clone()).wait();
+                    n = heard.newest.lock().unwrap_or_else(|p| p.into_inner());
+                }
+            }
+        }
+        drop(n);
+        if k == from {
+            marks.0 = Instant::now();
+        }
+        if k == to {
+            marks.1 = Instant::now();
+        }
+        let _ = publisher.put(msg(k)).wait();
+    }
+    Ok((to - from) as f64 / (marks.1 - marks.0).as_secs_f64().max(1e-9))
 }
 
 /// Starts the floor's processes (a router first for `Clients`, then the

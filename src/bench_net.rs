@@ -205,22 +205,7 @@ fn agent_list(s: &str) -> Result<AgentList, String> {
 const SHORT_LOCKSTEP_S: f64 = 2.0;
 
 pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
-    crate::error::at_least_one("--round-trips", a.round_trips as u64)?;
-    // The lock-step rate is the difference between the short run and this one.
-    if !(a.lockstep_duration.is_finite() && a.lockstep_duration > SHORT_LOCKSTEP_S) {
-        return Err(Error::Input(format!(
-            "--lockstep-duration {}: the long lock-step run must be longer than the short one ({SHORT_LOCKSTEP_S} \
-             s); the rate is their difference (e.g. 20)",
-            a.lockstep_duration
-        )));
-    }
-    for (flag, d) in
-        [("--realtime-duration", a.realtime_duration), ("--scale-realtime-duration", a.scale_realtime_duration)]
-    {
-        if !(d.is_finite() && d > 0.0) {
-            return Err(Error::Input(format!("{flag} {d}: give a positive number of seconds")));
-        }
-    }
+    check_args(a)?;
     if a.echo.is_some() || a.ping.is_some() {
         return crate::bench_netns::run_side(a.echo.as_deref(), a.ping.as_deref(), a.round_trips);
     }
@@ -257,9 +242,57 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         (Some(t), Some(d)) => latencies(a, &mut [(&mut tcp, None), (t, Some(d))])?,
         _ => latencies(a, &mut [(&mut tcp, None)])?,
     }
+    print_figures(a, n, &tcp, tls.as_ref());
+    println!("in-process simulator, same scenario: {sim_rate:.0} steps/s");
+    if a.namespaces {
+        eprintln!("bench-net: latency between two network namespaces …");
+        let ((e50, e99), (p50, p99), (t50, t99)) = crate::bench_netns::measure(a.round_trips)?;
+        println!("between two network namespaces on a bridge (plain TCP, peers)");
+        println!("  {:<50}{:>18}", "one-hop estimate latency p50/p99 µs", format!("{e50:.1} / {e99:.1}"));
+        println!("  {:<50}{:>18}", "one-hop plain zenoh latency p50/p99 µs", format!("{p50:.1} / {p99:.1}"));
+        println!("  {:<50}{:>18}", "clock offset exchange round trip p50/p99 µs", format!("{t50:.1} / {t99:.1}"));
+    }
+    if !a.agents.0.is_empty() {
+        print_scale(a)?;
+    }
+    if let Some(t) = &tls {
+        println!(
+            "tls / tcp: latency p50 {:.2}, p99 {:.2}; lock-step rate {:.2}; session open {:.1}x",
+            t.estimate.0 / tcp.estimate.0,
+            t.estimate.1 / tcp.estimate.1,
+            t.net_rate / tcp.net_rate,
+            t.open_ms / tcp.open_ms
+        );
+    }
+    Ok(())
+}
+
+/// The lengths and counts `bench-net` cannot run with, in one line each.
+fn check_args(a: &BenchNetArgs) -> Result<(), Error> {
+    crate::error::at_least_one("--round-trips", a.round_trips as u64)?;
+    // The lock-step rate is the difference between the short run and this one.
+    if !(a.lockstep_duration.is_finite() && a.lockstep_duration > SHORT_LOCKSTEP_S) {
+        return Err(Error::Input(format!(
+            "--lockstep-duration {}: the long lock-step run must be longer than the short one ({SHORT_LOCKSTEP_S} \
+             s); the rate is their difference (e.g. 20)",
+            a.lockstep_duration
+        )));
+    }
+    for (flag, d) in
+        [("--realtime-duration", a.realtime_duration), ("--scale-realtime-duration", a.scale_realtime_duration)]
+    {
+        if !(d.is_finite() && d > 0.0) {
+            return Err(Error::Input(format!("{flag} {d}: give a positive number of seconds")));
+        }
+    }
+    Ok(())
+}
+
+/// The table of the paper scenario's figures: plain links, and TLS beside them when measured.
+fn print_figures(a: &BenchNetArgs, n: usize, tcp: &Figures, tls: Option<&Figures>) {
     let row = |what: &str, f: &dyn Fn(&Figures) -> String| {
-        let t = tls.as_ref().map_or(String::new(), |x| format!("{:>18}", f(x)));
-        println!("  {what:<50}{:>18}{t}", f(&tcp));
+        let t = tls.map_or(String::new(), |x| format!("{:>18}", f(x)));
+        println!("  {what:<50}{:>18}{t}", f(tcp));
     };
     println!(
         "{n} followers + leader, peer processes on this machine{}",
@@ -292,68 +325,53 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     row("clock offset exchange round trip p50/p99 µs", &|f| format!("{:.1} / {:.1}", f.time_rtt.0, f.time_rtt.1));
     // An agent asks 4 times a second: its share of a core, both sides counted.
     row("clock offset exchange CPU, % of a core per agent", &|f| format!("{:.4}", f.time_cpu_us * 4.0 / 1e6 * 100.0));
-    println!("in-process simulator, same scenario: {sim_rate:.0} steps/s");
-    if a.namespaces {
-        eprintln!("bench-net: latency between two network namespaces …");
-        let ((e50, e99), (p50, p99), (t50, t99)) = crate::bench_netns::measure(a.round_trips)?;
-        println!("between two network namespaces on a bridge (plain TCP, peers)");
-        println!("  {:<50}{:>18}", "one-hop estimate latency p50/p99 µs", format!("{e50:.1} / {e99:.1}"));
-        println!("  {:<50}{:>18}", "one-hop plain zenoh latency p50/p99 µs", format!("{p50:.1} / {p99:.1}"));
-        println!("  {:<50}{:>18}", "clock offset exchange round trip p50/p99 µs", format!("{t50:.1} / {t99:.1}"));
-    }
-    if !a.agents.0.is_empty() {
-        let mut rows: Vec<Scale> = Vec::new();
-        for (i, &n) in a.agents.0.iter().enumerate() {
-            let port = a.base_port + 100 + 40 * i as u16;
-            rows.push(scale(a, n, 1, port)?);
-            let g = group_size(a, n as usize);
-            if g > 1 {
-                rows.push(scale(a, n, g, port + 20)?);
-            }
+}
+
+/// `--agents`: the table of start-up, lock-step and real-time cost of the
+/// generated rings of each size (one agent per process, and grouped).
+fn print_scale(a: &BenchNetArgs) -> Result<(), Error> {
+    let mut rows: Vec<Scale> = Vec::new();
+    for (i, &n) in a.agents.0.iter().enumerate() {
+        let port = a.base_port + 100 + 40 * i as u16;
+        rows.push(scale(a, n, 1, port)?);
+        let g = group_size(a, n as usize);
+        if g > 1 {
+            rows.push(scale(a, n, g, port + 20)?);
         }
-        println!("scale: generated rings (n/5 chords), clients of one router, plain TCP, on this machine");
+    }
+    println!("scale: generated rings (n/5 chords), clients of one router, plain TCP, on this machine");
+    println!(
+        "  {:>6} {:>12} {:>12} {:>18} {:>16} {:>16} {:>26} {:>8}",
+        "agents",
+        "per process",
+        "start-up s",
+        "lock-step steps/s",
+        "(wall s, runs)",
+        "floor (ratio)",
+        "real time 100 Hz: CPU s",
+        "silent"
+    );
+    for r in rows {
         println!(
-            "  {:>6} {:>12} {:>12} {:>18} {:>16} {:>16} {:>26} {:>8}",
-            "agents",
-            "per process",
-            "start-up s",
-            "lock-step steps/s",
-            "(wall s, runs)",
-            "floor (ratio)",
-            "real time 100 Hz: CPU s",
-            "silent"
-        );
-        for r in rows {
-            println!(
-                "  {:>6} {:>12} {:>12.2} {:>18.0} {:>16} {:>16} {:>26} {:>8}",
-                r.agents,
-                r.group,
-                r.startup_s,
-                r.rate,
-                format!("{:.1} / {:.1}", r.t_short, r.t_long),
-                if r.floor_rate.is_nan() {
-                    "—".into()
-                } else {
-                    format!("{:.0} ({:.2})", r.floor_rate, r.rate / r.floor_rate)
-                },
-                format!("{:.4} per agent and run-s", r.cpu_per_agent_s),
-                r.silent
-            );
-        }
-        println!(
-            "  (CPU: every process of the run — agents, leader, monitor, router — over the agents and the run \
-             seconds; silent: source-steps counted silent)"
+            "  {:>6} {:>12} {:>12.2} {:>18.0} {:>16} {:>16} {:>26} {:>8}",
+            r.agents,
+            r.group,
+            r.startup_s,
+            r.rate,
+            format!("{:.1} / {:.1}", r.t_short, r.t_long),
+            if r.floor_rate.is_nan() {
+                "—".into()
+            } else {
+                format!("{:.0} ({:.2})", r.floor_rate, r.rate / r.floor_rate)
+            },
+            format!("{:.4} per agent and run-s", r.cpu_per_agent_s),
+            r.silent
         );
     }
-    if let Some(t) = &tls {
-        println!(
-            "tls / tcp: latency p50 {:.2}, p99 {:.2}; lock-step rate {:.2}; session open {:.1}x",
-            t.estimate.0 / tcp.estimate.0,
-            t.estimate.1 / tcp.estimate.1,
-            t.net_rate / tcp.net_rate,
-            t.open_ms / tcp.open_ms
-        );
-    }
+    println!(
+        "  (CPU: every process of the run — agents, leader, monitor, router — over the agents and the run \
+         seconds; silent: source-steps counted silent)"
+    );
     Ok(())
 }
 

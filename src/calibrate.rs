@@ -549,34 +549,8 @@ fn write_outputs(
     let names = entry_names();
     let paper: Vec<f64> = flat(&[PAPER_TABLE_I, PAPER_TABLE_II]);
     let (before, after) = (flat(&fit.at_start.tables), flat(&fit.at_best.tables));
-    // calibration.csv: every entry.
-    let mut csv = String::from("entry,paper,scenario_values,fitted,scenario_rel_err,fitted_rel_err\n");
-    for e in 0..32 {
-        let _ = writeln!(
-            csv,
-            "\"{}\",{},{},{},{},{}",
-            names[e],
-            paper[e],
-            before[e],
-            after[e],
-            before[e] / paper[e] - 1.0,
-            after[e] / paper[e] - 1.0
-        );
-    }
-    write("calibration.csv", &csv)?;
-    let mut s = String::from("entry");
-    for p in &PARAMS {
-        s += &format!(",\"{}\"", p.name);
-    }
-    s.push('\n');
-    for (e, row) in sens.iter().enumerate() {
-        s += &format!("\"{}\"", names[e]);
-        for v in row {
-            s += &format!(",{v}");
-        }
-        s.push('\n');
-    }
-    write("sensitivity.csv", &s)?;
+    write("calibration.csv", &calibration_csv(&names, &paper, &before, &after))?;
+    write("sensitivity.csv", &sensitivity_csv(&names, sens))?;
     write("sensitivity.svg", &heatmap(&names, sens))?;
     write("fitted.txt", &(sets(&fit.best).join("\n") + "\n"))?;
 
@@ -620,28 +594,7 @@ fn write_outputs(
         fit.at_best.formation_m,
         worst(&fit.at_best),
     );
-    let _ = writeln!(md, "## The values\n\n| value | scenario | fitted | allowed | moved | why that range |\n| --- | --- | --- | --- | --- | --- |");
-    let inside = plausible(&fit.start);
-    for (j, p) in PARAMS.iter().enumerate() {
-        let moved = (fit.best[j] / fit.start[j]).ln().abs() > 0.05;
-        let scenario = if inside[j] == fit.start[j] {
-            sig(fit.start[j])
-        } else {
-            format!("{} (outside the search's range; nearest inside {})", sig(fit.start[j]), sig(inside[j]))
-        };
-        let _ = writeln!(
-            md,
-            "| {} ({}) | {} | {} | {}–{} | {} | {} |",
-            p.name,
-            p.unit,
-            scenario,
-            sig(fit.best[j]),
-            sig(p.lo),
-            sig(p.hi),
-            if moved { format!("×{:.2}", fit.best[j] / fit.start[j]) } else { "no".into() },
-            p.why
-        );
-    }
+    values_table(&mut md, fit);
     let _ = writeln!(
         md,
         "\n## The fit (×10⁻², ✗ outside its tolerance)\n\n| entry | paper | scenario's values | fitted |\n| --- | --- | --- | --- |"
@@ -667,6 +620,67 @@ fn write_outputs(
     );
     write("calibration.md", &md)?;
     Ok(())
+}
+
+/// calibration.csv: every entry of Tables I and II, the paper's, at the scenario's values and fitted, with the relative errors.
+fn calibration_csv(names: &[String], paper: &[f64], before: &[f64], after: &[f64]) -> String {
+    let mut csv = String::from("entry,paper,scenario_values,fitted,scenario_rel_err,fitted_rel_err\n");
+    for e in 0..32 {
+        let _ = writeln!(
+            csv,
+            "\"{}\",{},{},{},{},{}",
+            names[e],
+            paper[e],
+            before[e],
+            after[e],
+            before[e] / paper[e] - 1.0,
+            after[e] / paper[e] - 1.0
+        );
+    }
+    csv
+}
+
+/// sensitivity.csv: each entry's elasticity to each value.
+fn sensitivity_csv(names: &[String], sens: &[[f64; 10]]) -> String {
+    let mut s = String::from("entry");
+    for p in &PARAMS {
+        s += &format!(",\"{}\"", p.name);
+    }
+    s.push('\n');
+    for (e, row) in sens.iter().enumerate() {
+        s += &format!("\"{}\"", names[e]);
+        for v in row {
+            s += &format!(",{v}");
+        }
+        s.push('\n');
+    }
+    s
+}
+
+/// calibration.md's table of the values: the scenario's, fitted, the range allowed, whether the fit moved it, and why that range.
+fn values_table(md: &mut String, fit: &Fit) {
+    let _ = writeln!(md, "## The values\n\n| value | scenario | fitted | allowed | moved | why that range |\n| --- | --- | --- | --- | --- | --- |");
+    let inside = plausible(&fit.start);
+    for (j, p) in PARAMS.iter().enumerate() {
+        let moved = (fit.best[j] / fit.start[j]).ln().abs() > 0.05;
+        let scenario = if inside[j] == fit.start[j] {
+            sig(fit.start[j])
+        } else {
+            format!("{} (outside the search's range; nearest inside {})", sig(fit.start[j]), sig(inside[j]))
+        };
+        let _ = writeln!(
+            md,
+            "| {} ({}) | {} | {} | {}–{} | {} | {} |",
+            p.name,
+            p.unit,
+            scenario,
+            sig(fit.best[j]),
+            sig(p.lo),
+            sig(p.hi),
+            if moved { format!("×{:.2}", fit.best[j] / fit.start[j]) } else { "no".into() },
+            p.why
+        );
+    }
 }
 
 fn sig(x: f64) -> String {

@@ -82,20 +82,7 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
         }
         t += "\n";
     }
-    t += &format!("\n{:>9} {:>12} {:>12} {:>12} {:>9}\n", "follower", "run", "model", "run−model", "");
-    let (mut sr, mut sm) = (0.0, 0.0);
-    for &(id, r, m) in &e.followers {
-        let d = r.zip(m).map(|(r, m)| r - m);
-        sr += r.unwrap_or(0.0);
-        sm += m.unwrap_or(0.0);
-        let rel = r
-            .zip(m)
-            .filter(|(_, m)| *m != 0.0)
-            .map_or(String::new(), |(r, m)| format!("{:+.1} %", 100.0 * (r / m - 1.0)));
-        t += &format!("{id:>9} {:>12} {:>12} {:>12} {rel:>9}\n", num(r), num(m), num(d));
-    }
-    let rel = if sm != 0.0 { format!("{:+.1} %", 100.0 * (sr / sm - 1.0)) } else { String::new() };
-    t += &format!("{:>9} {:>12.4} {:>12.4} {:>12.4} {rel:>9}\n", "all", sr, sm, e.departure);
+    t += &followers_table(e);
     if e.departure == 0.0 {
         return t;
     }
@@ -134,5 +121,25 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
         let span = format!("{:.3}–{:.3}", *a as f64 * dt, *b as f64 * dt);
         t += &format!("{:>5}  {:<20} {:>12.4} {:>9}\n", rank + 1, span, sh.explained, pct(sh.share));
     }
+    t
+}
+
+/// Each follower's metric in the run and in the model, their difference, and the sum over all.
+fn followers_table(e: &Explanation) -> String {
+    let mut t = String::new();
+    t += &format!("\n{:>9} {:>12} {:>12} {:>12} {:>9}\n", "follower", "run", "model", "run−model", "");
+    let (mut sr, mut sm) = (0.0, 0.0);
+    for &(id, r, m) in &e.followers {
+        let d = r.zip(m).map(|(r, m)| r - m);
+        sr += r.unwrap_or(0.0);
+        sm += m.unwrap_or(0.0);
+        let rel = r
+            .zip(m)
+            .filter(|(_, m)| *m != 0.0)
+            .map_or(String::new(), |(r, m)| format!("{:+.1} %", 100.0 * (r / m - 1.0)));
+        t += &format!("{id:>9} {:>12} {:>12} {:>12} {rel:>9}\n", num(r), num(m), num(d));
+    }
+    let rel = if sm != 0.0 { format!("{:+.1} %", 100.0 * (sr / sm - 1.0)) } else { String::new() };
+    t += &format!("{:>9} {:>12.4} {:>12.4} {:>12.4} {rel:>9}\n", "all", sr, sm, e.departure);
     t
 }

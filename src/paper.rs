@@ -237,31 +237,7 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
     let output = crate::outdir::Output::begin(&a.out, crate::outdir::Kind::Paper)?;
 
     let jobs: Vec<(usize, usize)> = (0..runs.len()).flat_map(|c| (0..seeds.len()).map(move |s| (c, s))).collect();
-    let bar = ProgressBar::with_draw_target(
-        Some(jobs.len() as u64),
-        if a.quiet { ProgressDrawTarget::hidden() } else { ProgressDrawTarget::stderr() },
-    );
-    bar.set_style(
-        ProgressStyle::with_template("runs [{bar:30}] {pos}/{len} {elapsed} (eta {eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    let results: Vec<Result<SeedRecord, CliError>> = jobs
-        .par_iter()
-        .map(|&(c, s)| {
-            let record = (s == 0).then(|| RecordOptions {
-                dir: output.dir().join(&runs[c].0),
-                every: a.every,
-                csv: true,
-                mcap: false,
-                rosbag2: false,
-            });
-            let r = run_seed(&runs[c].1, seeds[s], record.as_ref());
-            bar.inc(1);
-            r
-        })
-        .collect();
-    bar.finish_and_clear();
+    let results = run_all(a, &runs, &seeds, &jobs, output.dir());
     let run_time = started.elapsed();
 
     let mut per_case: Vec<Vec<SeedRecord>> = vec![Vec::new(); runs.len()];
@@ -293,14 +269,7 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
         study::study(kinds.into_iter().zip(study_cases).collect(), p)
     });
 
-    let mut command = format!("formation paper --scenario {} --seeds {}", a.scenario.display(), a.seeds);
-    for o in &a.overrides {
-        command += &format!(" --set {o}");
-    }
-    command += &format!(" --out {} --every {}", a.out.display(), a.every);
-    if a.no_study {
-        command += " --no-study";
-    }
+    let command = command_line(a);
     let threads = rayon::current_num_threads();
     let study_count = runs.len() - CASES.len();
     let notes = vec![
@@ -334,4 +303,53 @@ pub fn run(a: &PaperArgs) -> Result<(), CliError> {
         println!("wrote {}", path.display());
     }
     Ok(())
+}
+
+/// Every (case, seed) job on rayon's threads, with a progress bar; the first seed of each case records its folder under `dir`.
+fn run_all(
+    a: &PaperArgs,
+    runs: &[(String, Scenario)],
+    seeds: &[u64],
+    jobs: &[(usize, usize)],
+    dir: &Path,
+) -> Vec<Result<SeedRecord, CliError>> {
+    let bar = ProgressBar::with_draw_target(
+        Some(jobs.len() as u64),
+        if a.quiet { ProgressDrawTarget::hidden() } else { ProgressDrawTarget::stderr() },
+    );
+    bar.set_style(
+        ProgressStyle::with_template("runs [{bar:30}] {pos}/{len} {elapsed} (eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let results: Vec<Result<SeedRecord, CliError>> = jobs
+        .par_iter()
+        .map(|&(c, s)| {
+            let record = (s == 0).then(|| RecordOptions {
+                dir: dir.join(&runs[c].0),
+                every: a.every,
+                csv: true,
+                mcap: false,
+                rosbag2: false,
+            });
+            let r = run_seed(&runs[c].1, seeds[s], record.as_ref());
+            bar.inc(1);
+            r
+        })
+        .collect();
+    bar.finish_and_clear();
+    results
+}
+
+/// The command that made the report, as the report quotes it.
+fn command_line(a: &PaperArgs) -> String {
+    let mut command = format!("formation paper --scenario {} --seeds {}", a.scenario.display(), a.seeds);
+    for o in &a.overrides {
+        command += &format!(" --set {o}");
+    }
+    command += &format!(" --out {} --every {}", a.out.display(), a.every);
+    if a.no_study {
+        command += " --no-study";
+    }
+    command
 }

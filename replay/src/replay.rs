@@ -254,6 +254,7 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
         (0..n).map(|i| s.sources_of(i).iter().map(|&id| s.index_of(id)).collect()).collect();
     let rescued: std::collections::HashMap<(u32, u64), Message> =
         rec.rescued.iter().map(|r| ((r.source, r.stamp), Message { state: r.state, fresh: r.fresh })).collect();
+    let ids: Vec<u32> = rec.followers.iter().map(|f| f.id).collect();
     let mut leader = s.leader();
     let mut heard: Vec<Heard> = Vec::new();
     let mut model: Vec<Heard> = Vec::new();
@@ -285,19 +286,8 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
             model.resize(slots, Heard::Silent);
             ears[i].hear(k, &mut model);
             let Some(rec_heard) = recorded[i].at(k) else {
-                // A gap that ends in a restart is the restart's: nothing is lost to the replay.
-                let next = next_start(&rec.followers[i], k);
-                let restarted = next.is_some_and(|n| rec.followers[i].resumes.iter().any(|r| r.k == n));
-                if let (Track::Running, Some(n), false) = (track[i], next, restarted) {
-                    problems.push(Problem {
-                        follower: id,
-                        k,
-                        what: format!(
-                            "steps {k}–{} are not in the record (telemetry lost for good) and no restart follows: \
-                             not replayed from here",
-                            n - 1
-                        ),
-                    });
+                if track[i] == Track::Running {
+                    problems.extend(lost_for_good(&rec.followers[i], k));
                 }
                 track[i] = Track::Stopped;
                 continue;
@@ -313,37 +303,15 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
                     .map(|(slot, &h)| if hearing.model_at(i, slot, k) { model[slot] } else { h }),
             );
             // The messages the step uses, neighbours in ascending id, then the leader.
-            inputs.clear();
-            let mut leader_in = None;
-            let mut missing = None;
-            for (slot, h) in heard.iter().enumerate() {
-                let Some(stamp) = h.stamp(k) else { continue };
-                match sources[i][slot] {
-                    Some(j) => match sent[j][(stamp as usize) % ring] {
-                        Some((st, m)) if st == stamp => inputs.push(m),
-                        // A sender killed before its last telemetry got out:
-                        // its receivers rescued what they used.
-                        _ => match rescued.get(&(rec.followers[j].id, stamp)) {
-                            Some(m) => inputs.push(*m),
-                            None => missing = Some((rec.followers[j].id, stamp)),
-                        },
-                    },
-                    None => match leader_sent[(stamp as usize) % ring] {
-                        Some((st, l)) if st == stamp => leader_in = Some(l),
-                        _ => missing = Some((0, stamp)),
-                    },
-                }
-            }
+            let from = Sent { sent: &sent, leader: &leader_sent, rescued: &rescued, ids: &ids, ring };
+            let (leader_in, missing) = from.inputs(k, &heard, &sources[i], &mut inputs);
             if let Some((src, stamp)) = missing {
                 let who = if src == 0 { "the leader".to_string() } else { format!("follower {src}") };
-                problems.push(Problem {
-                    follower: id,
-                    k,
-                    what: format!(
-                        "used {who}'s message of step {stamp}, which the record cannot rebuild (its sender's steps \
-                         before it are not all recorded); not replayed from here"
-                    ),
-                });
+                let what = format!(
+                    "used {who}'s message of step {stamp}, which the record cannot rebuild (its sender's steps \
+                     before it are not all recorded); not replayed from here"
+                );
+                problems.push(Problem { follower: id, k, what });
                 track[i] = Track::Stopped;
                 continue;
             }
@@ -364,6 +332,67 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
         leader.advance(&state, dt);
     }
     Ok(problems)
+}
+
+/// A follower's steps from `k` missing from the record: a problem unless a
+/// restart ends the gap (the gap is the restart's: nothing is lost to the
+/// replay) or the record ends with it.
+fn lost_for_good(f: &FollowerHearing, k: u64) -> Option<Problem> {
+    let next = next_start(f, k)?;
+    if f.resumes.iter().any(|r| r.k == next) {
+        return None;
+    }
+    let what = format!(
+        "steps {k}–{} are not in the record (telemetry lost for good) and no restart follows: not replayed from here",
+        next - 1
+    );
+    Some(Problem { follower: f.id, k, what })
+}
+
+/// The messages a replayed step can use: each follower's and the leader's
+/// of the last `ring` steps, and those a killed sender's receivers rescued.
+struct Sent<'a> {
+    sent: &'a [Vec<Option<(u64, Message)>>],
+    leader: &'a [Option<(u64, LeaderState)>],
+    rescued: &'a std::collections::HashMap<(u32, u64), Message>,
+    /// Each follower's id, by index.
+    ids: &'a [u32],
+    ring: usize,
+}
+
+impl Sent<'_> {
+    /// Step `k`'s inputs as `heard` names them (into `inputs`, neighbours in
+    /// ascending id), and the leader's; the (sender, step) of one that the
+    /// record cannot rebuild, if any.
+    fn inputs(
+        &self,
+        k: u64,
+        heard: &[Heard],
+        sources: &[Option<usize>],
+        inputs: &mut Vec<Message>,
+    ) -> (Option<LeaderState>, Option<(u32, u64)>) {
+        inputs.clear();
+        let (mut leader_in, mut missing) = (None, None);
+        for (slot, h) in heard.iter().enumerate() {
+            let Some(stamp) = h.stamp(k) else { continue };
+            match sources[slot] {
+                Some(j) => match self.sent[j][(stamp as usize) % self.ring] {
+                    Some((st, m)) if st == stamp => inputs.push(m),
+                    // A sender killed before its last telemetry got out:
+                    // its receivers rescued what they used.
+                    _ => match self.rescued.get(&(self.ids[j], stamp)) {
+                        Some(m) => inputs.push(*m),
+                        None => missing = Some((self.ids[j], stamp)),
+                    },
+                },
+                None => match self.leader[(stamp as usize) % self.ring] {
+                    Some((st, l)) if st == stamp => leader_in = Some(l),
+                    _ => missing = Some((0, stamp)),
+                },
+            }
+        }
+        (leader_in, missing)
+    }
 }
 
 /// The first recorded step of `f` after k, if any.

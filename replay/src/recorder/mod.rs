@@ -341,31 +341,7 @@ impl Recorder {
             .filter(|(_, s)| s.recorded + s.in_gaps < s.expected)
             .map(|(&id, s)| s.describe(id, dt, self.scenario.duration_s))
             .collect();
-        let delay_steps = self.scenario.network.delay_steps;
-        if self.scenario.timing == formation_topology::Timing::Realtime {
-            // As each follower judges its own (net's agent).
-            let scale = formation_protocol::barrier::positive_scale(self.scenario.network.time_scale);
-            e.quarter_step_us = dt / scale * 1e6 / 4.0;
-            // Without a delay, real time mixes a neighbour's message of the
-            // step and of the one before, which no model does (docs/lab.md).
-            // With a fault table the followers' counts include what the
-            // model loses too (`replay --explain` tells them apart).
-            if delay_steps > 0 && self.scenario.faults.is_empty() {
-                let g = &self.scenario.graph;
-                let sources: u64 =
-                    (0..g.len()).map(|i| g.neighbours(i).len() as u64 + u64::from(g.hears_leader(i))).sum();
-                let followers = self.nodes.iter().filter(|(&id, _)| id != 0).map(|(_, n)| n.counters);
-                let (older, silent) = followers.fold((0, 0), |(o, s), c| (o + c.older, s + c.silent));
-                e.hearing = Some(HearingEvidence {
-                    older,
-                    silent,
-                    link_steps: sources * (self.scenario.steps() + 1),
-                    delay_steps,
-                });
-                let heard: Vec<&FollowerHearing> = self.followers.iter().map(|f| &f.hearing).collect();
-                e.stalls = formation_record::stall::stalls(&heard, delay_steps);
-            }
-        }
+        self.realtime_evidence(&mut e);
         let mut invalid = 0;
         for (&id, n) in &self.nodes {
             invalid += n.counters.rejected.invalid();
@@ -408,8 +384,55 @@ impl Recorder {
             Err(why) => e.model_skipped = Some(why.clone()),
         }
         // What the health line says after the count, for 1 and for more.
+        e.refused = self.refused_counts(invalid);
+        e.restarts = self
+            .followers
+            .iter()
+            .filter(|f| !f.stream.restarts.is_empty())
+            .map(|f| (format!("follower {}", f.id), f.stream.restarts.clone()))
+            .collect();
+        if !self.leader_stream.restarts.is_empty() {
+            e.restarts.push(("the leader".into(), self.leader_stream.restarts.clone()));
+        }
+        let leader = self.nodes.get(&0).map(|n| n.counters).unwrap_or_default();
+        e.time_queries = (leader.time_queries, leader.time_queries_peak_per_s, self.scenario.followers.len() as u64);
+        Some(crate::health::judge(&e))
+    }
+
+    /// Real time: a quarter step (the clocks' allowance) and, with a delay
+    /// and no fault table, how the followers' hearing departed from the model.
+    fn realtime_evidence(&self, e: &mut Evidence) {
+        let (dt, delay_steps) = (self.scenario.dt_s, self.scenario.network.delay_steps);
+        if self.scenario.timing == formation_topology::Timing::Realtime {
+            // As each follower judges its own (net's agent).
+            let scale = formation_protocol::barrier::positive_scale(self.scenario.network.time_scale);
+            e.quarter_step_us = dt / scale * 1e6 / 4.0;
+            // Without a delay, real time mixes a neighbour's message of the
+            // step and of the one before, which no model does (docs/lab.md).
+            // With a fault table the followers' counts include what the
+            // model loses too (`replay --explain` tells them apart).
+            if delay_steps > 0 && self.scenario.faults.is_empty() {
+                let g = &self.scenario.graph;
+                let sources: u64 =
+                    (0..g.len()).map(|i| g.neighbours(i).len() as u64 + u64::from(g.hears_leader(i))).sum();
+                let followers = self.nodes.iter().filter(|(&id, _)| id != 0).map(|(_, n)| n.counters);
+                let (older, silent) = followers.fold((0, 0), |(o, s), c| (o + c.older, s + c.silent));
+                e.hearing = Some(HearingEvidence {
+                    older,
+                    silent,
+                    link_steps: sources * (self.scenario.steps() + 1),
+                    delay_steps,
+                });
+                let heard: Vec<&FollowerHearing> = self.followers.iter().map(|f| &f.hearing).collect();
+                e.stalls = formation_record::stall::stalls(&heard, delay_steps);
+            }
+        }
+    }
+
+    /// The counts of what was refused or dropped on the way, as the health line names them.
+    fn refused_counts(&self, invalid: u64) -> Vec<(String, u64)> {
         let counted = |n: u64, one: &str, more: &str| (if n == 1 { one } else { more }.to_string(), n);
-        e.refused = vec![
+        vec![
             counted(
                 self.malformed,
                 "telemetry message refused (malformed or on another's key)",
@@ -436,19 +459,7 @@ impl Recorder {
                 "message refused by access control",
                 "messages refused by access control",
             ),
-        ];
-        e.restarts = self
-            .followers
-            .iter()
-            .filter(|f| !f.stream.restarts.is_empty())
-            .map(|f| (format!("follower {}", f.id), f.stream.restarts.clone()))
-            .collect();
-        if !self.leader_stream.restarts.is_empty() {
-            e.restarts.push(("the leader".into(), self.leader_stream.restarts.clone()));
-        }
-        let leader = self.nodes.get(&0).map(|n| n.counters).unwrap_or_default();
-        e.time_queries = (leader.time_queries, leader.time_queries_peak_per_s, self.scenario.followers.len() as u64);
-        Some(crate::health::judge(&e))
+        ]
     }
 
     /// Files one telemetry message received on `telemetry/<key_id>` at `now`.
