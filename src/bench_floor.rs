@@ -200,7 +200,8 @@ async fn lockstep_node(
 }
 
 /// The floor's lock-step loop: each step waits for what the agent or the
-/// leader would wait for, repeating its last message while it waits, then
+/// leader would wait for (the leader by the window rule,
+/// `gate::leader_needs`), repeating its last message while it waits, then
 /// publishes; the steps per second over the run's middle half.
 fn floor_loop(
     leader: bool,
@@ -233,7 +234,7 @@ fn floor_loop(
             (false, k) => Some(k - 1),
             (true, 0) => None,
             (true, 1) => Some(0),
-            (true, k) => k.checked_sub(formation_protocol::gate::WINDOW),
+            (true, k) => formation_protocol::gate::leader_needs(k),
         };
         let bytes = msg(k.saturating_sub(1));
         let mut n = heard.newest.lock().unwrap_or_else(|p| p.into_inner());

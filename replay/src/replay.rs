@@ -306,12 +306,7 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
             let from = Sent { sent: &sent, leader: &leader_sent, rescued: &rescued, ids: &ids, ring };
             let (leader_in, missing) = from.inputs(k, &heard, &sources[i], &mut inputs);
             if let Some((src, stamp)) = missing {
-                let who = if src == 0 { "the leader".to_string() } else { format!("follower {src}") };
-                let what = format!(
-                    "used {who}'s message of step {stamp}, which the record cannot rebuild (its sender's steps \
-                     before it are not all recorded); not replayed from here"
-                );
-                problems.push(Problem { follower: id, k, what });
+                problems.push(cannot_rebuild(id, k, src, stamp));
                 track[i] = Track::Stopped;
                 continue;
             }
@@ -347,6 +342,17 @@ fn lost_for_good(f: &FollowerHearing, k: u64) -> Option<Problem> {
         next - 1
     );
     Some(Problem { follower: f.id, k, what })
+}
+
+/// Follower `follower`'s step `k` used `src`'s (0: the leader's) message of
+/// step `stamp`, which the record cannot rebuild: the problem that says so.
+fn cannot_rebuild(follower: u32, k: u64, src: u32, stamp: u64) -> Problem {
+    let who = if src == 0 { "the leader".to_string() } else { format!("follower {src}") };
+    let what = format!(
+        "used {who}'s message of step {stamp}, which the record cannot rebuild (its sender's steps \
+         before it are not all recorded); not replayed from here"
+    );
+    Problem { follower, k, what }
 }
 
 /// The messages a replayed step can use: each follower's and the leader's
