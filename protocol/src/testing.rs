@@ -56,9 +56,12 @@ pub struct Faults {
     pub leader_clock_step: Option<(Now, Duration)>,
 }
 
-/// The network: packets in flight, by (from, to), with their arrival time.
+/// Packets in flight, by (from, to), with their arrival time.
+type Queues = BTreeMap<(u32, u32), Vec<(Now, Vec<u8>)>>;
+
+/// The network: what is in flight, and what it does to it.
 struct Network {
-    queues: BTreeMap<(u32, u32), Vec<(Now, Vec<u8>)>>,
+    queues: Queues,
     draws: Draws,
     faults: Faults,
 }
