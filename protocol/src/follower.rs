@@ -141,10 +141,6 @@ pub fn most_rescued_bytes(sources: usize, batch: u32) -> u64 {
 /// after its last step, waiting for its neighbours to report theirs.
 pub const LINGER: Duration = Duration::from_secs(1);
 
-/// Lock-step linger: how often the node looks whether its neighbours have
-/// reported their final step.
-pub const LINGER_LOOK_EVERY: Duration = Duration::from_millis(10);
-
 /// A process that hears a start older than this is a restart.
 pub const LATE: Duration = Duration::from_millis(200);
 
@@ -573,7 +569,7 @@ impl Follower {
                     Some(self.wait.as_ref().map_or(Now::ZERO, gate::Wait::next_wake))
                 }
             }
-            Phase::Lingering(w) => Some(w.next_wake().min(self.last_now + LINGER_LOOK_EVERY)),
+            Phase::Lingering(w) => Some(w.next_wake().min(self.last_now + gate::LINGER_LOOK_EVERY)),
         }
     }
 
@@ -621,7 +617,7 @@ impl Follower {
 
     /// Real time: when step k is due on the timebase.
     fn due(&self, k: u64) -> Now {
-        self.epoch + Duration::from_nanos((self.period.as_nanos() as u64).saturating_mul(k))
+        gate::due(self.epoch, self.period, k)
     }
 
     fn step_if_ready(&mut self, k: u64, now: Now) {

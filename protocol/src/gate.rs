@@ -149,6 +149,16 @@ pub const LEADER_STALL: Duration = Duration::from_secs(60);
 /// wait for.
 pub const LINGER_REPEAT_EVERY: Duration = Duration::from_millis(200);
 
+/// Lock-step linger: how often a node looks whether the others have
+/// reported their final step (it learns it from telemetry, which does not
+/// wake its machine).
+pub const LINGER_LOOK_EVERY: Duration = Duration::from_millis(10);
+
+/// Real time: when step `k` is due on the run's timebase, `epoch + k × period`.
+pub fn due(epoch: Now, period: Duration, k: u64) -> Now {
+    epoch + Duration::from_nanos((period.as_nanos() as u64).saturating_mul(k))
+}
+
 /// What a waiting node does at a moment of its wait.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WaitStep {

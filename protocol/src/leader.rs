@@ -38,11 +38,6 @@ use crate::Now;
 /// Lock-step: how long the leader keeps repeating after its last step.
 pub const LINGER: Duration = Duration::from_secs(2);
 
-/// While lingering, how often the machine looks whether every hearing
-/// follower is done (the node learns it from telemetry, not from a message
-/// to the machine that could wake it).
-const LINGER_LOOK_EVERY: Duration = Duration::from_millis(10);
-
 /// A telemetry batch as the machine knows it; the node adds how its
 /// delivery goes and its clock server's count ([`LeaderBatch::into_telemetry`]).
 #[derive(Clone, Debug)]
@@ -199,7 +194,7 @@ impl Leader {
             Phase::Stepping(k) if !self.lockstep => Some(self.due(*k)),
             Phase::Stepping(_) if self.may_step() => Some(Now::ZERO),
             Phase::Stepping(_) => Some(self.wait.as_ref().map_or(Now::ZERO, gate::Wait::next_wake)),
-            Phase::Lingering(w) => Some(w.next_wake().min(self.last_now + LINGER_LOOK_EVERY)),
+            Phase::Lingering(w) => Some(w.next_wake().min(self.last_now + gate::LINGER_LOOK_EVERY)),
         }
     }
 
@@ -241,7 +236,7 @@ impl Leader {
 
     /// Real time: when step k is due on the timebase.
     fn due(&self, k: u64) -> Now {
-        self.epoch + self.period.saturating_mul(u32::try_from(k).unwrap_or(u32::MAX))
+        gate::due(self.epoch, self.period, k)
     }
 
     /// Lock-step: whether the current step may publish its successor (the
