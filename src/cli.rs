@@ -8,10 +8,10 @@ use clap::{Args, Parser, Subcommand};
 use formation_record::{RecordOptions, Summary};
 use formation_topology::Scenario;
 
-use crate::args::ScenarioArgs;
-use crate::bench::BenchArgs;
 use crate::error::{at_least_one, CliError};
-use crate::progress::Progress;
+use formation_bench::sim::BenchArgs;
+use formation_report::progress::Progress;
+use formation_topology::args::ScenarioArgs;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -39,28 +39,28 @@ pub enum Command {
     Bench(BenchArgs),
     /// Run every case the paper compares and write its figures, tables and claims.
     #[command(allow_negative_numbers = true)]
-    Paper(crate::paper::PaperArgs),
+    Paper(formation_report::paper::PaperArgs),
     /// Fit the values the paper leaves open (the robot's m and I, the
     /// disturbance, the noise covariances, the ASIF's limit) jointly against
     /// its Tables I and II by a seeded search, with each entry's sensitivity.
     #[command(allow_negative_numbers = true)]
-    Calibrate(crate::calibrate::CalibrateArgs),
+    Calibrate(formation_report::calibrate::CalibrateArgs),
     /// The paper's figures and tables for any run folders, side by side.
     #[command(allow_negative_numbers = true)]
-    Report(crate::report::ReportArgs),
+    Report(formation_report::ReportArgs),
     /// Run the formation as separate processes over zenoh on this machine
     /// (leader, one agent per follower, monitor) and print the summary.
     #[command(allow_negative_numbers = true)]
-    Launch(crate::launch::LaunchArgs),
+    Launch(formation_launch::options::LaunchArgs),
     /// Run the formation as on several machines: every node in a network
     /// namespace of its own on a virtual bridge, the fault table performed
     /// by the network (links down, packet loss), router and agent restarts.
     /// Needs root or unprivileged user namespaces.
     #[command(allow_negative_numbers = true)]
-    Lab(crate::lab::LabArgs),
+    Lab(formation_launch::lab::LabArgs),
     /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
     #[command(allow_negative_numbers = true)]
-    BenchNet(crate::bench_net::BenchNetArgs),
+    BenchNet(formation_bench::net::BenchNetArgs),
     /// A stand-in robot that speaks ROS 2: follower ID's velocity-commanded
     /// robot (robot.model = "velocity"), driven on /follower_ID/cmd_vel,
     /// publishing /follower_ID/odom and /tf over zenoh as rmw_zenoh does
@@ -71,7 +71,7 @@ pub enum Command {
     /// access-control policy of a scenario, for `--tls DIR` (mutual TLS on
     /// every link, each node allowed to speak only for itself).
     #[command(allow_negative_numbers = true)]
-    Certs(crate::certs::CertsArgs),
+    Certs(formation_launch::certs::CertsArgs),
     /// Write a scenario of any size: N followers on formation slots, a graph
     /// of the given kind checked against Lemma 1, λ_min(H) in its header.
     #[command(allow_negative_numbers = true)]
@@ -89,6 +89,9 @@ pub enum Command {
     /// A single node of a networked run (used by `launch`).
     #[command(hide = true)]
     Node(crate::node::NodeCommand),
+    /// One of `bench-net --floor`'s plain-zenoh processes (used by `bench-net`).
+    #[command(hide = true)]
+    BenchFloor(formation_bench::floor::FloorArgs),
 }
 
 #[derive(Args, Debug)]
@@ -131,7 +134,8 @@ fn generate(a: &GenerateArgs) -> Result<(), CliError> {
         seed: a.seed,
         ..Spec::new(a.followers, graph)
     };
-    crate::args::check_out_path("--out", &a.out, crate::args::MAX_NAME_BYTES)?;
+    formation_record::out_path::check_out_path("--out", &a.out, formation_record::out_path::MAX_NAME_BYTES)
+        .map_err(CliError::Input)?;
     let text = generate::toml(&spec).map_err(|e| {
         let hint = match (&e, graph) {
             (formation_topology::ScenarioError::GraphNotConnected { .. }, GraphKind::RandomGeometric) => {
@@ -154,9 +158,9 @@ fn generate(a: &GenerateArgs) -> Result<(), CliError> {
     println!(
         "wrote {}: {}, {} graph with {}, {} hearing the leader, λ_min(H) = {lambda}",
         a.out.display(),
-        crate::words::count(s.followers.len(), "follower"),
+        formation_report::words::count(s.followers.len(), "follower"),
         graph.name(),
-        crate::words::count(s.graph.edge_count(), "edge"),
+        formation_report::words::count(s.graph.edge_count(), "edge"),
         (0..s.graph.len()).filter(|&i| s.graph.hears_leader(i)).count(),
     );
     Ok(())
@@ -217,23 +221,24 @@ pub fn main() -> ExitCode {
     let cli: Cli = crate::args::parse_or_exit();
     let result = match cli.command {
         Command::Sim(a) => sim(&a).map(|_| ()),
-        Command::Bench(a) => crate::bench::run(&a),
-        Command::Paper(a) => crate::paper::run(&a),
-        Command::Calibrate(a) => crate::calibrate::run(&a),
-        Command::Report(a) => crate::report::run(&a),
-        Command::Launch(a) => crate::launch::run(&a),
-        Command::Lab(a) => crate::lab::run(&a),
+        Command::Bench(a) => formation_bench::sim::run(&a).map_err(Into::into),
+        Command::Paper(a) => formation_report::paper::run(&a).map_err(Into::into),
+        Command::Calibrate(a) => formation_report::calibrate::run(&a).map_err(Into::into),
+        Command::Report(a) => formation_report::run(&a).map_err(Into::into),
+        Command::Launch(a) => formation_launch::launch::run(&a).map_err(Into::into),
+        Command::Lab(a) => formation_launch::lab::run(&a).map_err(Into::into),
         Command::BenchNet(a) => {
             // Its latency sessions run in this process: as in the nodes.
             formation_net::session::default_runtime();
-            crate::bench_net::run(&a)
+            formation_bench::net::run(&a).map_err(Into::into)
         }
-        Command::Certs(a) => crate::certs::run(&a),
+        Command::Certs(a) => formation_launch::certs::run(&a).map_err(Into::into),
         Command::Generate(a) => generate(&a),
         Command::Replay(a) => crate::replay::run(&a),
         Command::Monitor(a) => crate::replay::playback(&a),
         Command::Node(a) => return crate::node::run(a.node),
         Command::Robot(a) => return crate::node::run_robot(a),
+        Command::BenchFloor(f) => return crate::node::run_floor(f),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -250,8 +255,16 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
     check_threads(a.threads)?;
     let scenario = a.scenario.load()?;
     let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
-    crate::args::check_out_path("--out", &dir, crate::args::MAX_OUT_NAME_BYTES)?;
-    crate::runsize::check(&scenario, a.every, !a.no_csv, a.mcap, &dir, "--every N, --no-csv or a shorter duration")?;
+    formation_record::out_path::check_out_path("--out", &dir, formation_record::out_path::MAX_OUT_NAME_BYTES)
+        .map_err(CliError::Input)?;
+    formation_launch::runsize::check(
+        &scenario,
+        a.every,
+        !a.no_csv,
+        a.mcap,
+        &dir,
+        "--every N, --no-csv or a shorter duration",
+    )?;
     if let Some(w) = scenario.estimator_stability_warning() {
         eprintln!("{w}");
     }

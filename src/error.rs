@@ -21,10 +21,8 @@ pub enum Error {
     Interrupted(String, u8),
 }
 
-/// The exit status of a run recorded to its end whose health is degraded:
-/// the formation did far worse than its model (network.json's `health`
-/// says which follower, and what else happened).
-pub const DEGRADED: u8 = 3;
+/// The exit status of a run recorded to its end whose health is degraded.
+use formation_launch::error::DEGRADED;
 
 /// The name the command modules use.
 pub use self::Error as CliError;
@@ -40,69 +38,41 @@ impl Error {
     }
 }
 
-impl From<formation_sim::SimError> for Error {
-    fn from(e: formation_sim::SimError) -> Self {
+impl From<formation_report::error::Error> for Error {
+    fn from(e: formation_report::error::Error) -> Self {
         match e {
-            formation_sim::SimError::Io(e) => e.into(),
-            e => Error::Run(e.to_string()),
+            formation_report::error::Error::Input(m) => Error::Input(m),
+            formation_report::error::Error::Run(m) => Error::Run(m),
         }
     }
 }
 
-impl From<formation_record::RecordError> for Error {
-    fn from(e: formation_record::RecordError) -> Self {
+impl From<formation_launch::error::Error> for Error {
+    fn from(e: formation_launch::error::Error) -> Self {
+        use formation_launch::error::Error as E;
         match e {
-            formation_record::RecordError::Malformed { .. } => Error::Input(e.to_string()),
-            formation_record::RecordError::Io { .. } => Error::Input(e.to_string()),
+            E::Input(m) => Error::Input(m),
+            E::Run(m) => Error::Run(m),
+            E::Degraded(m) => Error::Degraded(m),
+            E::Interrupted(m, signal) => Error::Interrupted(m, signal),
         }
     }
 }
 
-impl From<formation_certs::generate::GenerateError> for Error {
-    fn from(e: formation_certs::generate::GenerateError) -> Self {
-        match e {
-            formation_certs::generate::GenerateError::Input(m) => Error::Input(m),
-            formation_certs::generate::GenerateError::Run(m) => Error::Run(m),
+/// The libraries' errors the commands meet directly, through the crate
+/// that already says what each of them means.
+macro_rules! through {
+    ($via:ty: $($from:ty),*) => {$(
+        impl From<$from> for Error {
+            fn from(e: $from) -> Self {
+                <$via>::from(e).into()
+            }
         }
-    }
+    )*};
 }
 
-impl From<formation_view::ViewError> for Error {
-    fn from(e: formation_view::ViewError) -> Self {
-        match e {
-            formation_view::ViewError::Input(m) => Error::Input(m),
-            formation_view::ViewError::Run(m) => Error::Run(m),
-        }
-    }
-}
-
-impl From<formation_protocol::error::Error> for Error {
-    fn from(e: formation_protocol::error::Error) -> Self {
-        match e {
-            formation_protocol::error::Error::Input(m) => Error::Input(m),
-            formation_protocol::error::Error::Run(m) => Error::Run(m),
-        }
-    }
-}
-
-impl From<formation_net::session::SessionError> for Error {
-    fn from(e: formation_net::session::SessionError) -> Self {
-        formation_protocol::error::Error::from(e).into()
-    }
-}
-
-impl From<std::io::Error> for Error {
-    fn from(e: std::io::Error) -> Self {
-        use std::io::ErrorKind;
-        match e.kind() {
-            // An --out that names a file or a folder which is not a run
-            // folder, or a path through a file. (An over-long name,
-            // `InvalidFilename`, needs Rust 1.87, past the MSRV.)
-            ErrorKind::AlreadyExists | ErrorKind::NotADirectory => Error::Input(e.to_string()),
-            _ => Error::Run(e.to_string()),
-        }
-    }
-}
+through!(formation_report::error::Error: formation_sim::SimError, formation_record::RecordError, formation_topology::ScenarioError);
+through!(formation_launch::error::Error: formation_certs::generate::GenerateError, formation_view::ViewError, formation_protocol::error::Error, formation_net::session::SessionError, std::io::Error);
 
 /// Refuses 0 for a count option that must be at least 1.
 pub fn at_least_one(flag: &str, value: u64) -> Result<(), Error> {

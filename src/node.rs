@@ -36,9 +36,6 @@ pub enum Node {
     Router(router::RouterArgs),
     /// A stand-in robot speaking ROS 2 (as `formation robot`).
     Robot(formation_net::ros2::robot::RobotArgs),
-    /// `bench-net --floor`'s plain-zenoh process with an agent's message pattern.
-    #[command(hide = true)]
-    Floor(crate::bench_floor::FloorArgs),
 }
 
 /// A log line of zenoh's own (its crates' targets), not the formation's.
@@ -77,13 +74,16 @@ pub fn run(node: Node) -> ExitCode {
         Node::Monitor(a) => run_monitor(a),
         Node::Router(r) => run_router(r),
         Node::Robot(r) => run_robot(r),
-        Node::Floor(f) => {
-            let name = format!("floor-{}", f.id);
-            shell(&f.node.zenoh.clone(), &name, true, async move {
-                crate::bench_floor::node(&f).await.map(|()| ExitCode::SUCCESS)
-            })
-        }
     }
+}
+
+/// `formation bench-floor` (hidden): one of `bench-net --floor`'s
+/// plain-zenoh processes with an agent's message pattern, in the node shell.
+pub fn run_floor(f: formation_bench::floor::FloorArgs) -> ExitCode {
+    let name = format!("floor-{}", f.id);
+    shell(&f.node.zenoh.clone(), &name, true, async move {
+        formation_bench::floor::node(&f).await.map(|()| ExitCode::SUCCESS)
+    })
 }
 
 /// `formation robot`: a stand-in robot on ROS 2's wire until the run ends or a signal.
@@ -91,7 +91,7 @@ pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
     let name = format!("robot-{}", r.id);
     shell(&r.node.zenoh.clone(), &name, true, async move {
         formation_net::ros2::robot::run(&r, async {
-            crate::shutdown::signalled().await;
+            formation_launch::shutdown::signalled().await;
         })
         .await
         .map(|()| ExitCode::SUCCESS)
@@ -104,7 +104,7 @@ pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
 pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
     let name = formation_protocol::names::agent_name(a.id.first().copied().unwrap_or(0));
     shell(&a.node.zenoh.clone(), &name, true, async move {
-        agent::run(&a, crate::shutdown::signalled()).await.map(|signal| match signal {
+        agent::run(&a, formation_launch::shutdown::signalled()).await.map(|signal| match signal {
             None => ExitCode::SUCCESS,
             Some(Signal::Interrupt) => ExitCode::from(130),
             Some(Signal::Terminate) => ExitCode::from(143),
@@ -122,7 +122,7 @@ pub fn run_leader(a: leader::LeaderArgs) -> ExitCode {
 /// The `monitor` binary.
 pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
     shell(&a.node.zenoh.clone(), formation_protocol::names::MONITOR, true, async move {
-        monitor::run(&a, crate::shutdown::signalled()).await.map(monitor_status)
+        monitor::run(&a, formation_launch::shutdown::signalled()).await.map(monitor_status)
     })
 }
 
@@ -132,7 +132,7 @@ pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
 /// empties it.
 pub fn run_router(r: router::RouterArgs) -> ExitCode {
     shell(&r.zenoh.clone(), formation_protocol::names::ROUTER, false, async move {
-        router::run(&r, crate::shutdown::signalled()).await.map(|()| ExitCode::SUCCESS)
+        router::run(&r, formation_launch::shutdown::signalled()).await.map(|()| ExitCode::SUCCESS)
     })
 }
 
@@ -211,7 +211,9 @@ fn monitor_status((ending, verdict): (Ending, Option<formation_replay::health::V
     match ending {
         Ending::Interrupted => ExitCode::from(130),
         Ending::Terminated => ExitCode::from(143),
-        _ if verdict == Some(formation_replay::health::Verdict::Degraded) => ExitCode::from(crate::error::DEGRADED),
+        _ if verdict == Some(formation_replay::health::Verdict::Degraded) => {
+            ExitCode::from(formation_launch::error::DEGRADED)
+        }
         _ => ExitCode::SUCCESS,
     }
 }

@@ -58,7 +58,8 @@ pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
     let loaded = replay::load(&a.run)?;
     if a.explain {
         let metric = a.metric.as_deref().unwrap_or("torque_tv");
-        return crate::explain::run(&loaded, metric, a.window.unwrap_or(1.0), a.top.unwrap_or(10));
+        return formation_report::explain::run(&loaded, metric, a.window.unwrap_or(1.0), a.top.unwrap_or(10))
+            .map_err(Into::into);
     }
     let (verdict, text) = check(&loaded, a.out.as_deref())?;
     print!("{text}");
@@ -109,7 +110,7 @@ pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(Verdict,
     };
     let began = std::time::Instant::now();
     let s = &loaded.scenario;
-    let mut bar = crate::progress::Progress::new(s.steps() + 1, "replay", false);
+    let mut bar = formation_report::progress::Progress::new(s.steps() + 1, "replay", false);
     let problems = replay::replay_to_folder_with(loaded, replay::Hearing::Recorded, &dir, &mut |k| bar.set(k))?;
     bar.finish();
     let secs = began.elapsed().as_secs_f64();
@@ -295,7 +296,7 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
             // The player's thread is left to the process's end (it was
             // waited for, and Ctrl-C ended the command only when the
             // playback did, with status 0).
-            s = crate::shutdown::signalled() => match s {
+            s = formation_launch::shutdown::signalled() => match s {
                 Signal::Interrupt => Err(CliError::Interrupted("interrupted".into(), 2)),
                 Signal::Terminate => Err(CliError::Interrupted("terminated".into(), 15)),
             },

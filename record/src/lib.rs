@@ -15,6 +15,7 @@ pub mod hearing;
 pub mod live;
 pub mod mcap;
 pub mod metrics;
+pub mod out_path;
 pub mod outage;
 pub mod proximity;
 pub mod rosbag2;

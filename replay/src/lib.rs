@@ -11,6 +11,7 @@
 
 pub mod explain;
 pub mod health;
+#[cfg(feature = "playback")]
 pub mod playback;
 pub mod recorder;
 pub mod replay;

@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 13] = [
+const LAYERS: [&str; 16] = [
     // ROS 2's wire and bags: uses no other formation crate.
     "formation-ros2",
     "formation-plant",
@@ -21,7 +21,12 @@ const LAYERS: [&str; 13] = [
     "formation-certs",
     "formation-view",
     "formation-replay",
+    // Reports, the paper's tables, calibration: no network, no runtime.
+    "formation-report",
     "formation-net",
+    // Nodes as processes: launch, the lab, their supervisor.
+    "formation-launch",
+    "formation-bench",
     "formation",
 ];
 
@@ -427,6 +432,32 @@ fn no_crate_re_exports_another_formation_crate() {
         }
     }
     assert!(wrong.is_empty(), "names reached through another crate's name:\n{}", wrong.join("\n"));
+}
+
+/// formation-report reads run folders and runs the simulator: with the
+/// features it asks for (as Cargo resolves them, not as its manifest
+/// reads), it builds without the network, an async runtime or a web
+/// server, so that a user of the reports (or of Python) does not wait for
+/// zenoh.
+#[test]
+fn the_report_crate_needs_no_network_and_no_runtime() {
+    let out = std::process::Command::new(env!("CARGO"))
+        .args(["tree", "--offline", "-p", "formation-report", "-e", "normal", "--prefix", "none", "--format", "{p}"])
+        .current_dir(root())
+        .output()
+        .expect("cargo tree");
+    assert!(out.status.success(), "cargo tree: {}", String::from_utf8_lossy(&out.stderr));
+    let tree = String::from_utf8_lossy(&out.stdout);
+    let names: BTreeSet<&str> = tree.lines().filter_map(|l| l.split_whitespace().next()).collect();
+    assert!(
+        names.contains("formation-replay") && names.contains("plotters"),
+        "the tree is not the report's: {names:?}"
+    );
+    let banned: Vec<&&str> = ["zenoh", "tokio", "axum", "formation-net", "formation-view", "formation-launch"]
+        .iter()
+        .filter(|b| names.contains(**b))
+        .collect();
+    assert!(banned.is_empty(), "formation-report builds with {banned:?}");
 }
 
 /// formation-protocol holds the rules that tests drive on virtual time: its

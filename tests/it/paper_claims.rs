@@ -185,7 +185,7 @@ fn initial_body_errors_match_the_spec() {
 /// --scenario paper-tables --seeds 20` gives the same.)
 #[test]
 fn the_fitted_values_reproduce_both_tables_at_the_formations_expense() {
-    use formation::report::tables::{PAPER_TABLE_I, PAPER_TABLE_II};
+    use formation_report::tables::{PAPER_TABLE_I, PAPER_TABLE_II};
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper-tables.toml");
     let run = |sets: &[&str]| {
         let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();

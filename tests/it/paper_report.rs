@@ -9,8 +9,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use formation::report::SeedRecord;
 use formation_record::{FollowerMetrics, Summary};
+use formation_report::SeedRecord;
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_formation"))

@@ -21,10 +21,10 @@ const BASE: [&str; 2] = ["timing=realtime", "duration=20"];
 fn lab_available() -> bool {
     let nft = Command::new("nft").arg("--version").output().is_ok_and(|o| o.status.success());
     // Root is asked for here: the unshare fallback is for `formation lab` by hand.
-    let why = match formation::lab::netns::privilege() {
-        Ok(formation::lab::netns::Privilege::Root) if nft => None,
-        Ok(formation::lab::netns::Privilege::Root) => Some("`nft` (nftables) is missing".to_string()),
-        Ok(formation::lab::netns::Privilege::Unshare) => Some("not root".to_string()),
+    let why = match formation_launch::lab::netns::privilege() {
+        Ok(formation_launch::lab::netns::Privilege::Root) if nft => None,
+        Ok(formation_launch::lab::netns::Privilege::Root) => Some("`nft` (nftables) is missing".to_string()),
+        Ok(formation_launch::lab::netns::Privilege::Unshare) => Some("not root".to_string()),
         Err(e) => Some(e.0),
     };
     match why {

@@ -6,6 +6,7 @@
 //! neighbours, L, H = L + diag(a_i0) and λ_min(H), and enforces Lemma 1.
 //! [`wire`] is the format of the messages of docs/model.md §13.
 
+pub mod args;
 pub mod error;
 pub mod file;
 pub mod generate;

@@ -1,0 +1,24 @@
+//! The formation's benchmarks, a crate of their own so that the shipped
+//! nodes carry none of them: the simulator's speed ([`sim`], `formation
+//! bench`) and the network's ([`net`], `formation bench-net`), with the
+//! floor of plain zenoh ([`floor`]: its processes are the command line's
+//! hidden `formation bench-floor`), the hearing record's cost ([`hearing`]),
+//! the stand-in robots' ([`ros2`]) and round trips between namespaces
+//! ([`netns`]). Every figure is measured here, never by timing a test.
+
+pub mod floor;
+pub mod hearing;
+pub mod net;
+pub mod netns;
+pub mod ros2;
+pub mod sim;
+
+use formation_launch::error::Error;
+
+/// Refuses 0 for a count option that must be at least 1.
+fn at_least_one(flag: &str, value: u64) -> Result<(), Error> {
+    match value {
+        0 => Err(Error::Input(format!("{flag} must be at least 1, not 0"))),
+        _ => Ok(()),
+    }
+}
