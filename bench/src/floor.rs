@@ -456,7 +456,7 @@ fn case(
     let extra = ["--seconds".to_string(), seconds.to_string()];
     let eps = formation_launch::plan::Endpoints::new(kind)?;
     let mut children = floor_processes(exe, scenario, ids, links, port, &sets, &run, &extra, false, &eps)?;
-    let floor = sample(&["floor", &run], after, window, hz);
+    let floor = sample(&["bench-floor", &run], after, window, hz);
     // The router's last: it outlives the floor processes.
     let router_child = if links == Links::Clients { Some(children.remove(0)) } else { None };
     for mut c in children {
