@@ -256,7 +256,7 @@ pub async fn run_follower(
 ) -> Result<(), Error> {
     let id = scenario.graph.id(index);
     // Nothing of this process goes out before it knows it has no twin.
-    startup::refuse_twin(session, keys, id, scenario.steps()).await?;
+    let claiming = startup::refuse_twin(session, keys, id, scenario.steps(), &opts.clock).await?;
     // The run's timebase is the leader's: ask it from now on.
     let timebase = Timebase::estimated(&opts.clock);
     // A clock known worse than a quarter step is said on stderr; in a
@@ -301,6 +301,8 @@ pub async fn run_follower(
     };
     let needs = start_needs(scenario, index, &sources);
     let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock).await?;
+    // Started: a later twin hears this follower's estimates from now on.
+    drop(claiming);
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
     let resume = rejoin(&shared, &start, scenario, index, &timebase, opts.checkpoint.as_deref()).await?;
     let latest: checkpoint::Latest = Arc::new(Mutex::new(None));

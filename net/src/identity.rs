@@ -55,6 +55,7 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
                 any_run("estimate/0"),
                 any_run("telemetry/0"),
                 any_run("control/hello/0"),
+                any_run("control/claim/0"),
                 any_run("control/start"),
                 any_run("control/abort"),
                 any_run("control/denied/leader"),
@@ -94,6 +95,7 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
             any_run(&format!("telemetry/{id}")),
             any_run(&format!("control/hello/{id}")),
             any_run(&format!("control/ready/{id}")),
+            any_run(&format!("control/claim/{id}")),
             any_run(&format!("control/denied/{}", agent_name(id))),
         ];
         if scenario.control.guard.safety.is_some() {

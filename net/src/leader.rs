@@ -76,7 +76,7 @@ pub async fn run_leader(
     clock: &clock::Clock,
 ) -> Result<(), Error> {
     // A second formation with this run name: refuse before saying anything.
-    startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps()).await?;
+    let claiming = startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps(), clock).await?;
     // The run's timebase is this leader's clock; the others ask it from now on.
     let timebase = clock::Timebase::leader(clock);
     let queries = Arc::new(QueryCount::default());
@@ -106,6 +106,7 @@ pub async fn run_leader(
     let lead = if lockstep { Duration::ZERO } else { start_lead };
     let (start, announcer) =
         startup::lead_start(session, keys, &timebase, &hellos, &ready, scenario, time_scale, lead).await?;
+    drop(claiming);
     if print_start {
         print_start_line(&start, &timebase);
     }

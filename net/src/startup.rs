@@ -242,13 +242,52 @@ pub async fn lead_start(
 /// How long a node listens for a twin before it joins a run.
 pub const TWIN_LISTEN: Duration = Duration::from_millis(300);
 
-/// Refuses to take part in a run where a process with this node's identity
-/// (`id`: 0 the leader, else a follower) already publishes estimates: a
-/// second formation started with the same run name, or a second process
-/// for one follower. Called before the node publishes anything; listens to
-/// its own estimate key for [`TWIN_LISTEN`]. (A forged message can still
-/// make a node refuse: traffic is not authenticated yet.)
-pub async fn refuse_twin(session: &zenoh::Session, keys: &Keys, id: u32, steps: u64) -> Result<(), Error> {
+/// How often a node says its claim to its identity ([`formation_protocol::claim`])
+/// from before it publishes anything until its run starts.
+pub const CLAIM_EVERY: Duration = Duration::from_millis(100);
+
+/// A node's claim to its identity, said every [`CLAIM_EVERY`] until this is
+/// dropped (when the node's run has started: from then on its estimates
+/// on its own key tell a later twin).
+pub struct Claiming(tokio::task::JoinHandle<()>);
+
+impl Drop for Claiming {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// A number no other process draws: std's per-process random hash keys.
+fn nonce(id: u32) -> u64 {
+    use std::hash::BuildHasher;
+    std::collections::hash_map::RandomState::new().hash_one((id, std::process::id()))
+}
+
+/// This host's name, for the line that names a twin.
+fn host() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname").map_or_else(|_| "?".into(), |h| h.trim().to_string())
+}
+
+/// Refuses to take part in a run where another process has this node's
+/// identity (`id`: 0 the leader, else a follower): a second formation
+/// started with the same run name, or a second process for one follower,
+/// whether it began earlier or at the same moment. Called before the node
+/// publishes anything; for [`TWIN_LISTEN`] it says its claim on
+/// `control/claim/<id>` and listens there and on its own estimate key. A
+/// process that hears a claim made before its own
+/// ([`formation_protocol::claim::Claim::yields_to`]), or an estimate of its
+/// own id, gives way; the one that keeps the identity goes on saying its
+/// claim until the run starts (drop the [`Claiming`]). (A forged message
+/// can still make a node refuse where traffic is not authenticated.)
+pub async fn refuse_twin(
+    session: &zenoh::Session,
+    keys: &Keys,
+    id: u32,
+    steps: u64,
+    clock: &Clock,
+) -> Result<Claiming, Error> {
+    use formation_protocol::claim::{self, Claim};
+    let mine = Claim::new(id, clock.unix_ns(), nonce(id), std::process::id(), &host());
     let heard = Arc::new(std::sync::atomic::AtomicU64::new(0));
     let h = heard.clone();
     let sub = session
@@ -263,18 +302,53 @@ pub async fn refuse_twin(session: &zenoh::Session, keys: &Keys, id: u32, steps: 
         })
         .await
         .map_err(|e| zerr("listening for a twin", e))?;
-    tokio::time::sleep(TWIN_LISTEN).await;
-    drop(sub);
-    let n = heard.load(std::sync::atomic::Ordering::Relaxed);
-    if n == 0 {
-        return Ok(());
+    let claims: Arc<Mutex<Vec<Claim>>> = Arc::default();
+    let (c, own) = (claims.clone(), mine.nonce);
+    let claim_sub = session
+        .declare_subscriber(keys.claim(id))
+        .callback(move |sample| {
+            let Some(other) = codec::decode::<Claim>(&sample.payload().to_bytes()) else { return };
+            let mut c = c.lock().unwrap_or_else(|p| p.into_inner());
+            // A few distinct claims are all a decision needs.
+            if other.id == id && other.nonce != own && c.len() < 16 && !c.contains(&other) {
+                c.push(other);
+            }
+        })
+        .await
+        .map_err(|e| zerr("listening for a twin's claim", e))?;
+    let publisher =
+        session.declare_publisher(keys.claim(id)).await.map_err(|e| zerr("declaring this node's claim", e))?;
+    let bytes = codec::encode(&mine);
+    let until = tokio::time::Instant::now() + TWIN_LISTEN;
+    while tokio::time::Instant::now() < until {
+        publisher.put(bytes.clone()).await.map_err(|e| zerr("saying this node's claim", e))?;
+        tokio::time::sleep(CLAIM_EVERY.min(until.saturating_duration_since(tokio::time::Instant::now()))).await;
     }
+    drop((sub, claim_sub));
     let who = if id == 0 { "the leader".to_string() } else { format!("follower {id}") };
-    Err(Error::Input(format!(
-        "run {}: {who} is already running on this network ({n} of its estimates in {} ms): another formation \
-         with the same run name, or a second process for {who}. Give this formation another name with --run \
-         NAME, or stop the other process",
-        keys.run,
-        TWIN_LISTEN.as_millis()
-    )))
+    let n = heard.load(std::sync::atomic::Ordering::Relaxed);
+    if n > 0 {
+        return Err(Error::Input(format!(
+            "run {}: {who} is already running on this network ({n} of its estimates in {} ms): another formation \
+             with the same run name, or a second process for {who}. Give this formation another name with --run \
+             NAME, or stop the other process",
+            keys.run,
+            TWIN_LISTEN.as_millis()
+        )));
+    }
+    if let Some(first) = claim::winner(&mine, claims.lock().unwrap_or_else(|p| p.into_inner()).iter()) {
+        return Err(Error::Input(format!(
+            "run {}: {who} was started twice at once; the other ({}) keeps it, this one (process {}) gives way. \
+             Stop one of them, or give this formation another name with --run NAME",
+            keys.run,
+            first.describe(&mine),
+            mine.pid
+        )));
+    }
+    Ok(Claiming(tokio::spawn(async move {
+        loop {
+            let _ = publisher.put(bytes.clone()).await;
+            tokio::time::sleep(CLAIM_EVERY).await;
+        }
+    })))
 }

@@ -11,7 +11,7 @@
 //! | part | modules |
 //! | --- | --- |
 //! | names and encodings | [`names`], [`codec`], [`counters`], [`error`], [`denied`] (access-control reports) |
-//! | start-up | [`barrier`] (the start barrier), [`clock_estimate`] (the leader's clock as another node estimates it) and [`clockguard`] (which answers are the leader's) |
+//! | start-up | [`barrier`] (the start barrier), [`claim`] (which of two processes started for one node keeps it), [`clock_estimate`] (the leader's clock as another node estimates it) and [`clockguard`] (which answers are the leader's) |
 //! | receiving | [`inbox`] (checks, the fault table, freshness), [`latency`], [`hearing`] (what was heard, for the record) |
 //! | lock-step | [`gate`] (look-ahead, repeats, stalls) |
 //! | telemetry | [`telemetry`] (the messages), [`courier`] (what is kept until acknowledged), [`loop_timing`] (how late each step woke) |
@@ -19,6 +19,7 @@
 //! | one follower | [`follower`]: all of the above for one agent, as one machine |
 
 pub mod barrier;
+pub mod claim;
 pub mod clock_estimate;
 pub mod clockguard;
 pub mod codec;

@@ -116,6 +116,10 @@ impl Keys {
     pub fn denied_all(&self) -> String {
         key(&self.run, "control/denied/*")
     }
+    /// A process's claim to node `id`'s identity (0: the leader; crate::claim).
+    pub fn claim(&self, id: u32) -> String {
+        key(&self.run, &format!("control/claim/{id}"))
+    }
     /// The leader refuses the run before its start (the reason, UTF-8).
     pub fn abort(&self) -> String {
         key(&self.run, "control/abort")

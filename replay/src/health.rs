@@ -291,6 +291,7 @@ fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
             decode::<formation_protocol::barrier::Start>(bytes).is_some_and(|s| s.fingerprint == fingerprint)
         }
         ("abort", []) => formation_protocol::barrier::abort_reason(bytes).is_some(),
+        ("claim", [id]) => decode::<formation_protocol::claim::Claim>(bytes).is_some_and(|c| c.id.to_string() == *id),
         ("denied", [node]) => {
             bytes.len() <= formation_protocol::denied::MAX_REPORT_BYTES
                 && serde_json::from_slice::<formation_protocol::denied::Report>(bytes)

@@ -608,3 +608,56 @@ fn an_out_folder_of_the_users_is_refused_up_front() {
     assert_eq!(std::fs::read_to_string(logs.join("keep.txt")).expect("keep.txt"), "mine");
     assert!(!tmp.path().join("run").exists() && !tmp.path().join("run.partial").exists());
 }
+
+/// Two agents for one follower started at the same moment (issue 50): each
+/// says its claim before it publishes anything and hears the other's, so
+/// exactly one goes on (to the start barrier) and the other exits 2 within
+/// seconds, naming the process that keeps the follower by its pid.
+#[test]
+fn of_two_twins_started_at_once_exactly_one_runs() {
+    use std::os::unix::process::CommandExt;
+    let port = Ports::free(1).release();
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let spawn = |args: &[&str]| {
+        let child = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(args)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .process_group(0)
+            .spawn()
+            .expect("spawn formation");
+        Group(child)
+    };
+    let _router = spawn(&["node", "router", "--listen", &ep]);
+    let agent = ["node", "agent", "--scenario", common::SCENARIO, "--id", "3", "--run", "twins-at-once"];
+    let client = ["--mode", "client", "--connect", &ep, "--open-timeout", "10"];
+    let mut twins: Vec<Group> = (0..2).map(|_| spawn(&[&agent[..], &client[..]].concat())).collect();
+    let pids: Vec<u32> = twins.iter().map(|t| t.0.id()).collect();
+    let began = Instant::now();
+    let ended = loop {
+        let done: Vec<usize> = (0..2).filter(|&i| twins[i].0.try_wait().expect("try_wait").is_some()).collect();
+        if !done.is_empty() || began.elapsed() > Duration::from_secs(15) {
+            break done;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    // The one that keeps the follower waits at the barrier for the rest of
+    // the formation (never started here): still running a second later.
+    std::thread::sleep(Duration::from_secs(1));
+    let still: Vec<usize> = (0..2).filter(|&i| twins[i].0.try_wait().expect("try_wait").is_none()).collect();
+    assert_eq!((ended.len(), still.len()), (1, 1), "ended {ended:?}, running {still:?} after {:?}", began.elapsed());
+    let (loser, keeper) = (ended[0], still[0]);
+    let mut stderr = String::new();
+    let pipe = twins[loser].0.stderr.as_mut().expect("loser's stderr");
+    std::io::Read::read_to_string(pipe, &mut stderr).expect("loser's stderr");
+    let status = twins[loser].0.wait().expect("loser's status");
+    assert_eq!(status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("run twins-at-once: follower 3 was started twice at once")
+            && stderr.contains(&format!("process {} on host", pids[keeper]))
+            && stderr.contains(&format!("this one (process {}) gives way", pids[loser])),
+        "{stderr}"
+    );
+    assert_eq!(stderr.lines().filter(|l| l.starts_with("error")).count(), 1, "one error line: {stderr}");
+}

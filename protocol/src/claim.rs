@@ -1,0 +1,116 @@
+//! Who keeps a node's identity when two processes are started for it.
+//!
+//! Before a node publishes anything, and for as long as it runs, it says
+//! its [`Claim`] on `control/claim/<id>` (0: the leader) and listens there.
+//! Two processes started for one identity at the same moment hear each
+//! other's claims, and both apply the same rule ([`Claim::yields_to`]): the
+//! claim made first keeps the identity, the other process ends naming it.
+//! The rule is a total order, so of any number of twins exactly one runs
+//! (whatever the hosts' clocks say, each twin sees the same two claims).
+//! A twin started after the run began is refused by the estimates it hears
+//! on its own key as well (`formation_net::startup::refuse_twin`).
+
+use serde::{Deserialize, Serialize};
+
+/// The longest host name a claim carries (longer ones are cut).
+pub const MAX_HOST_CHARS: usize = 64;
+
+/// One process's claim to a node's identity.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Claim {
+    /// The node: 0 the leader, else a follower's id.
+    pub id: u32,
+    /// When the process began to claim (its wall clock, ns since the Unix epoch).
+    pub since_unix_ns: u64,
+    /// A number drawn at random by the process: two claims made in the
+    /// same nanosecond still differ, and a process knows its own.
+    pub nonce: u64,
+    /// Where the process runs, for the line that names it.
+    pub pid: u32,
+    pub host: String,
+}
+
+impl Claim {
+    pub fn new(id: u32, since_unix_ns: u64, nonce: u64, pid: u32, host: &str) -> Self {
+        Self { id, since_unix_ns, nonce, pid, host: host.chars().take(MAX_HOST_CHARS).collect() }
+    }
+
+    /// Whether this process gives way to `other`, a claim heard on this
+    /// identity's key: another process's (another nonce) for the same id,
+    /// made earlier, or in the same nanosecond with a lower nonce.
+    pub fn yields_to(&self, other: &Claim) -> bool {
+        other.id == self.id
+            && other.nonce != self.nonce
+            && (other.since_unix_ns, other.nonce) < (self.since_unix_ns, self.nonce)
+    }
+
+    /// "process 4242 on host lab-3, claiming since 0.120 s before this one".
+    pub fn describe(&self, relative_to: &Claim) -> String {
+        let ahead = relative_to.since_unix_ns as f64 - self.since_unix_ns as f64;
+        let when = match ahead {
+            a if a >= 0.0 => format!("{:.3} s before this one", a / 1e9),
+            a => format!("{:.3} s after this one", -a / 1e9),
+        };
+        format!("process {} on host {}, claiming since {when}", self.pid, self.host)
+    }
+}
+
+/// Of the claims heard, the one this process (`mine`) gives way to: the
+/// first of them all. None: this process keeps the identity.
+pub fn winner<'a>(mine: &Claim, heard: impl IntoIterator<Item = &'a Claim>) -> Option<&'a Claim> {
+    heard.into_iter().filter(|c| mine.yields_to(c)).min_by_key(|c| (c.since_unix_ns, c.nonce))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn claim(id: u32, since: u64, nonce: u64) -> Claim {
+        Claim::new(id, since, nonce, 100 + nonce as u32, "h")
+    }
+
+    /// Of any set of twins, each applying the rule to the claims of the
+    /// others, exactly one keeps the identity: the first claim, and of two
+    /// made in the same nanosecond, the lower nonce.
+    #[test]
+    fn of_any_twins_exactly_one_keeps_the_identity() {
+        let sets: [&[(u64, u64)]; 5] = [
+            &[(10, 7), (20, 3)],
+            &[(20, 3), (10, 7)],
+            &[(10, 7), (10, 3)],
+            &[(5, 1), (5, 2), (4, 9), (6, 0)],
+            &[(1, 1)],
+        ];
+        for set in sets {
+            let claims: Vec<Claim> = set.iter().map(|&(s, n)| claim(3, s, n)).collect();
+            let keep: Vec<&Claim> = claims.iter().filter(|c| winner(c, &claims).is_none()).collect();
+            assert_eq!(keep.len(), 1, "{set:?}: {keep:?} keep the identity");
+            let first = claims.iter().min_by_key(|c| (c.since_unix_ns, c.nonce)).expect("one");
+            assert_eq!(keep[0], first, "{set:?}");
+            for c in claims.iter().filter(|c| *c != first) {
+                assert_eq!(winner(c, &claims), Some(first), "{set:?}: {c:?} names the first");
+            }
+        }
+    }
+
+    /// A process's own claim heard back, and claims to other ids, are not twins.
+    #[test]
+    fn its_own_claim_and_other_ids_are_no_twins() {
+        let mine = claim(3, 10, 7);
+        assert!(!mine.yields_to(&mine.clone()));
+        assert!(!mine.yields_to(&claim(4, 1, 1)));
+        assert!(mine.yields_to(&claim(3, 9, 8)));
+    }
+
+    #[test]
+    fn a_claim_is_said_in_words_with_a_cut_host_name() {
+        let long = "x".repeat(500);
+        let c = Claim::new(3, 1_000_000_000, 1, 42, &long);
+        assert_eq!(c.host.chars().count(), MAX_HOST_CHARS);
+        let me = Claim::new(3, 1_120_000_000, 2, 43, "b");
+        assert_eq!(c.describe(&me), format!("process 42 on host {}, claiming since 0.120 s before this one", c.host));
+        let bytes = crate::codec::encode(&c);
+        assert_eq!(crate::codec::decode::<Claim>(&bytes), Some(c));
+        assert_eq!(crate::codec::decode::<Claim>(&bytes[..bytes.len() - 1]), None);
+    }
+}
