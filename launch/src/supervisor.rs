@@ -238,7 +238,9 @@ pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summa
             let summary = read.and_then(|text| serde_json::from_str(&text).map_err(|e| e.to_string()));
             return Some(summary.map_err(|e| Error::Run(format!("reading {}: {e}", path.display()))));
         }
-        if status.success() {
+        // An agent stopped by SIGTERM or Ctrl-C (`kill`, `formation leave`)
+        // left the run and told the monitor: the run goes on without it.
+        if status.success() || (name.starts_with("agent") && matches!(status.code(), Some(130 | 143))) {
             children.remove(&name);
             continue;
         }

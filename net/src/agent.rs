@@ -73,10 +73,13 @@ pub struct AgentArgs {
 
 /// Runs the follower(s) of `--id` to the end of the scenario.
 ///
-/// `shutdown` (SIGINT or SIGTERM in the binary) is listened to only when
-/// the robots are driven through ROS 2: then every follower's robot is sent
-/// zero velocity before the process ends, however it ends (the run's end, an
-/// error, a refused start, the signal), and the signal is returned.
+/// `shutdown` (SIGINT or SIGTERM in the binary) makes every follower leave
+/// the run at its next step ([`Follower::handle_leave`]: its last telemetry
+/// says so, and the monitor waits for nothing more from it), within
+/// [`LEAVE_WITHIN`]; the signal is returned. With robots driven through
+/// ROS 2, every follower's robot is sent zero velocity before the process
+/// ends, however it ends (the run's end, an error, a refused start, the
+/// signal).
 pub async fn run(
     args: &AgentArgs,
     shutdown: impl std::future::Future<Output = formation_replay::watch::Signal>,
@@ -113,6 +116,7 @@ pub async fn run(
     let stall = Duration::from_secs_f64(args.stall_timeout);
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
     let driven = scenario.ros2.is_some_and(|r| r.robots.driven());
+    let leave: Leave = Arc::default();
     let brakes: Vec<SharedTopics> = ids.iter().map(|_| Arc::new(Mutex::new(None))).collect();
     let mut followers: futures_util::stream::FuturesUnordered<_> = ids
         .iter()
@@ -127,6 +131,7 @@ pub async fn run(
                 on_zenoh_thread: ids.len() == 1,
                 topics: brake.clone(),
                 clock: args.node.clock.clone(),
+                leave: leave.clone(),
             };
             let body: Box<dyn Body> = match odometry {
                 Some(inbox) => Box::new(DrivenRobot::new(&scenario, index, inbox)),
@@ -143,12 +148,19 @@ pub async fn run(
         }
         Ok(())
     };
-    let (result, signal) = match driven {
-        false => (work.await, None),
-        true => tokio::select! {
-            r = work => (r, None),
-            s = shutdown => (Ok(()), Some(s)),
-        },
+    tokio::pin!(work);
+    let (result, signal) = tokio::select! {
+        r = &mut work => (r, None),
+        s = shutdown => {
+            // Told to stop: each follower leaves at its next step, tells the
+            // monitor in its last batch, and ends (a bounded wait).
+            let _ = leave.set(match s {
+                formation_replay::watch::Signal::Interrupt => "Ctrl-C",
+                formation_replay::watch::Signal::Terminate => "SIGTERM",
+            });
+            let r = tokio::time::timeout(LEAVE_WITHIN, &mut work).await.unwrap_or(Ok(()));
+            (r, Some(s))
+        }
     };
     drop(followers);
     if driven {
@@ -229,7 +241,18 @@ pub struct FollowerOptions {
     pub topics: SharedTopics,
     /// The node's clock.
     pub clock: Clock,
+    /// Set when the process is told to stop (why: "SIGTERM", "Ctrl-C"):
+    /// the follower leaves the run at its next step ([`Follower::handle_leave`]).
+    pub leave: Leave,
 }
+
+/// A process's request that its followers leave the run, and why.
+pub type Leave = Arc<std::sync::OnceLock<&'static str>>;
+
+/// How long a process told to stop waits for its followers to leave: their
+/// last telemetry out and acknowledged (the monitor acknowledges every
+/// 100 ms), and the robots stopped.
+pub const LEAVE_WITHIN: Duration = Duration::from_secs(3);
 
 /// The machine, shared by the subscriber callbacks and the loop's thread.
 struct Shared {
@@ -331,6 +354,7 @@ pub async fn run_follower(
         lockstep,
         incarnation: opts.clock.unix_ns(),
         topics: topics.clone(),
+        leave: opts.leave.clone(),
     };
     let outcome = if lockstep || !opts.on_zenoh_thread {
         tokio::task::spawn_blocking(move || node.drive()).await.map_err(|e| e.to_string())
@@ -605,6 +629,7 @@ struct Node {
     incarnation: u64,
     /// ROS 2 on: each step's topics.
     topics: SharedTopics,
+    leave: Leave,
 }
 
 impl Node {
@@ -705,6 +730,9 @@ impl Node {
             for &id in self.neighbours_done.lock().unwrap_or_else(|p| p.into_inner()).iter() {
                 m.handle_done(id);
             }
+        }
+        if let Some(why) = self.leave.get() {
+            m.handle_leave(why);
         }
     }
 

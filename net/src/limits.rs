@@ -213,6 +213,7 @@ mod tests {
             rescued: vec![worst; sources * keep],
             resumed: None,
             diverged: None,
+            left: None,
         };
         let bytes = formation_protocol::codec::encode(&last).len() as u64;
         let limit = telemetry_limit(batch, sources);

@@ -36,7 +36,7 @@ use crate::hearing::EarLog;
 use crate::inbox::{self, Inbox, Source};
 use crate::loop_timing::{LoopStats, LoopTimer};
 use crate::poses::Poses;
-use crate::telemetry::{ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
+use crate::telemetry::{ClockReport, Delivery, EventKind, Left, LinkStats, NetEvent, Telemetry, MAX_LEFT_WHY};
 use crate::Now;
 
 /// The seam between the protocol and the robot: one follower's step.
@@ -187,6 +187,7 @@ pub struct Batch {
     rescued: Vec<Rescued>,
     resumed: Option<Resume>,
     diverged: Option<String>,
+    left: Option<Left>,
 }
 
 impl Batch {
@@ -207,6 +208,7 @@ impl Batch {
             rescued: self.rescued,
             resumed: self.resumed,
             diverged: self.diverged,
+            left: self.left,
         }
     }
 }
@@ -279,6 +281,8 @@ pub struct Follower {
     /// The other robots' poses, with the safety filter on.
     poses: Option<Poses>,
     pose_transmit: VecDeque<Vec<u8>>,
+    /// This follower left the run for good ([`Follower::handle_leave`]).
+    left: Option<Left>,
 }
 
 impl Follower {
@@ -367,6 +371,7 @@ impl Follower {
                 Poses::new(scenario, index, initial)
             }),
             pose_transmit: VecDeque::new(),
+            left: None,
             rules,
         };
         f.set_window(scenario.network.time_scale);
@@ -497,6 +502,31 @@ impl Follower {
     }
 
     /// Lock-step: neighbour `id` reported its final step.
+    /// This follower leaves the run for good, before the step it would
+    /// take next: its process was told to stop (`why`: "SIGTERM", "Ctrl-C").
+    /// What it computed goes out in a last batch marked done and
+    /// [`Left`] (the monitor then waits for nothing more from it, and its
+    /// model loses the follower's links from then on, as docs/model.md
+    /// §14's node fault), and the machine ends well. Nothing more is
+    /// published. Before the start, or after the end, there is nothing to
+    /// leave: the machine ends as it is.
+    pub fn handle_leave(&mut self, why: &str) {
+        let next = match self.phase {
+            Phase::Stepping(k) => k,
+            Phase::Lingering(_) | Phase::Done(_) => return,
+            Phase::Waiting => {
+                self.finish(Ok(()));
+                return;
+            }
+        };
+        self.left = Some(Left { at_k: next, why: why.chars().take(MAX_LEFT_WHY).collect() });
+        self.transmit.clear();
+        self.pose_transmit.clear();
+        self.close_batch(next.saturating_sub(1), true, None);
+        self.say.push_back(format!("follower {}: leaves the run at step {next} ({why})", self.rules.id));
+        self.finish(Ok(()));
+    }
+
     pub fn handle_done(&mut self, id: u32) {
         if !self.done_neighbours.contains(&id) {
             self.done_neighbours.push(id);
@@ -888,6 +918,7 @@ impl Follower {
             rescued,
             resumed: self.resumed,
             diverged: diverged.map(str::to_string),
+            left: self.left.clone().filter(|_| done),
         });
         self.first_k = k + 1;
     }

@@ -37,6 +37,8 @@ pub enum Telemetry {
         resumed: Option<Resume>,
         /// The run diverged at the batch's last step: which quantity.
         diverged: Option<String>,
+        /// The follower left the run for good with this batch (its last).
+        left: Option<Left>,
     },
     Leader {
         first_k: u64,
@@ -48,6 +50,17 @@ pub enum Telemetry {
         delivery: Delivery,
     },
 }
+
+/// A follower that left the run for good (its process was told to stop:
+/// SIGTERM, Ctrl-C): the first step it did not take, and why, in a few words.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Left {
+    pub at_k: u64,
+    pub why: String,
+}
+
+/// The most characters of [`Left::why`] a monitor keeps.
+pub const MAX_LEFT_WHY: usize = 40;
 
 /// How the sender's telemetry gets through (see [`crate::courier`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -145,6 +158,7 @@ mod tests {
             rescued: Vec::new(),
             resumed: None,
             diverged: None,
+            left: None,
             counters: Counters::default(),
             done,
             loop_stats: None,

@@ -332,3 +332,37 @@ fn realtime_a_step_of_the_leaders_clock_changes_nothing() {
         assert!(same, "follower {}: the leader's clock step changed its run", i + 1);
     }
 }
+
+/// Real time: follower 3 told to leave at 1 s (its process got SIGTERM)
+/// sends its last batch marked done and left before the step it would
+/// take next, with every step it took; it publishes nothing after; its
+/// machine ends well, and the others run on to the end, naming it silent
+/// (as docs/model.md §14's node fault from then on).
+#[test]
+fn realtime_a_follower_that_leaves_says_so_in_its_last_batch_and_the_others_run_on() {
+    let mut w = World::new(paper(REALTIME), Faults::default());
+    w.start_all();
+    w.run(Duration::from_millis(1), Duration::from_secs(1));
+    let i3 = w.scenario.index_of(3).unwrap();
+    w.followers[i3].handle_leave("SIGTERM");
+    assert!(w.followers[i3].poll_transmit().is_none(), "nothing is published after the leave");
+    w.run(Duration::from_millis(1), Duration::from_secs(10));
+    assert!(matches!(w.followers[i3].outcome(), Some(Ok(()))), "{:?}", w.followers[i3].outcome());
+    let last = w.telemetry[i3].last().expect("a last batch").clone();
+    let Telemetry::Follower { done, left, .. } = last else { panic!("not a follower batch") };
+    let samples = w.samples(i3);
+    let at_k = left.as_ref().map(|l| l.at_k).expect("the last batch says the follower left");
+    assert!(done, "the last batch is done");
+    assert_eq!(left.map(|l| l.why), Some("SIGTERM".to_string()));
+    assert!((990..=1_010).contains(&at_k), "left before step {at_k}, not at 1 s");
+    assert_eq!(samples.len() as u64, at_k, "every step taken before the leave is in its telemetry");
+    assert!(samples.iter().enumerate().all(|(n, s)| s.k == n as u64), "its samples are steps 0..{at_k}");
+    let steps = w.scenario.steps();
+    for (i, f) in w.followers.iter().enumerate().filter(|&(i, _)| i != i3) {
+        assert!(matches!(f.outcome(), Some(Ok(()))), "follower {}: {:?}", w.id(i), f.outcome());
+        assert_eq!(w.samples(i).len() as u64, steps + 1, "follower {} ran to the end", w.id(i));
+    }
+    let i1 = w.scenario.index_of(1).unwrap();
+    let silent = w.events(i1).iter().find(|e| e.what == EventKind::Silent(3)).map(|e| e.k);
+    assert!(silent.is_some_and(|k| k > at_k), "follower 1 names 3 silent after it left: {silent:?}");
+}

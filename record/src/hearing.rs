@@ -174,6 +174,8 @@ pub enum End {
     /// Its last process never said (killed, cut off, or the run was interrupted).
     #[default]
     Unknown,
+    /// It left the run for good before step `k` (its process was told to stop).
+    Left { k: u64, why: String },
 }
 
 /// One follower's part of the record.

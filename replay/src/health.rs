@@ -127,6 +127,8 @@ pub struct Evidence {
     /// Followers whose record ends short of the run's end beyond what their
     /// restarts' gaps explain, each said as the summary says it.
     pub short: Vec<String>,
+    /// Followers that left the run for good: (id, at run time s, why).
+    pub left: Vec<(u32, f64, String)>,
     /// Where [`Evidence::hearing`] is judged: spans at which most links
     /// heard otherwise than the model at once (`formation_record::stall`).
     pub stalls: Vec<formation_record::stall::Stall>,
@@ -157,6 +159,11 @@ pub fn judge(e: &Evidence) -> Health {
     // process was stopped at 5 s of 12 was, its metrics null).
     for s in &e.short {
         degraded.push(format!("incomplete: {s}"));
+    }
+    // A follower that left said so: the others ran on without it, as its
+    // model does (a node fault from then on), and its record ends there.
+    for (id, t, why) in &e.left {
+        disturbed.push(format!("follower {id} left the run at t = {t:.3} s ({why})"));
     }
     for &(id, run, model) in &e.errors {
         if let (Some(r), Some(m)) = (run, model) {

@@ -409,6 +409,7 @@ pub fn empty_follower_batch(id: u32) -> formation_protocol::telemetry::Telemetry
         rescued: vec![],
         resumed: None,
         diverged: None,
+        left: None,
     }
 }
 

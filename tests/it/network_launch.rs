@@ -661,3 +661,61 @@ fn of_two_twins_started_at_once_exactly_one_runs() {
     );
     assert_eq!(stderr.lines().filter(|l| l.starts_with("error")).count(), 1, "one error line: {stderr}");
 }
+
+/// The pids of `formation node agent … --id <id>` processes of run `run`.
+fn agent_pids(run: &str, id: &str) -> Vec<u32> {
+    let mut found = Vec::new();
+    for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+        let Ok(cmd) = std::fs::read(format!("/proc/{pid}/cmdline")) else { continue };
+        let args: Vec<String> = cmd.split(|&b| b == 0).map(|a| String::from_utf8_lossy(a).into_owned()).collect();
+        let has = |a: &str, b: &str| args.windows(2).any(|w| w[0] == a && w[1] == b);
+        if has("node", "agent") && has("--id", id) && has("--run", run) {
+            found.push(pid);
+        }
+    }
+    found
+}
+
+/// A follower whose agent gets SIGTERM mid-run leaves it (issue 50): it
+/// tells the monitor in its last telemetry, the launch goes on without it
+/// and ends with the run (not after the monitor's 60 s idle wait), and the
+/// run folder names the leave (network.json `left`, the health's line) and
+/// judges the others against a model in which follower 3 is cut off from
+/// then on.
+#[test]
+fn a_follower_stopped_with_sigterm_leaves_and_the_run_ends_on_time() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("leave");
+    let base = Ports::free(common::LAUNCH_PORTS).release().to_string();
+    let sets = ["timing=realtime", "duration=8"];
+    let began = Instant::now();
+    let mut launch = Group::launch(&out, &sets, &["--base-port", &base, "--run", "leave-sigterm"]);
+    let pid = loop {
+        match agent_pids("leave-sigterm", "3").as_slice() {
+            [pid] => break *pid,
+            _ if began.elapsed() > Duration::from_secs(20) => panic!("no agent 3 process after 20 s"),
+            _ => std::thread::sleep(Duration::from_millis(50)),
+        }
+    };
+    // Into the run (the start takes a second or two), then SIGTERM.
+    std::thread::sleep(Duration::from_secs(4));
+    assert!(Command::new("kill").args(["-TERM", &pid.to_string()]).status().expect("kill").success());
+    let status = launch.wait(common::LIMIT);
+    let took = began.elapsed();
+    let network = common::json(&out, "network.json");
+    assert!(status.success(), "{status}: {}", network["health"]);
+    assert!(took < Duration::from_secs(30), "the launch ended {took:?} after it began (an 8 s run)");
+    let left = &network["left"][0];
+    assert_eq!((left["follower"].as_u64(), left["why"].as_str()), (Some(3), Some("SIGTERM")), "{}", network["left"]);
+    let t = left["t_s"].as_f64().expect("t_s");
+    assert!((0.5..7.0).contains(&t), "left at t = {t} s");
+    let health = &network["health"];
+    assert_eq!(health["verdict"], "disturbed", "{health}");
+    let said = health["disturbed"].as_array().expect("disturbed").iter().filter_map(|r| r.as_str());
+    assert_eq!(said.filter(|r| r.starts_with("follower 3 left the run at t =")).count(), 1, "{health}");
+    let summary = common::json(&out, "summary.json");
+    let short: Vec<&String> = summary["incomplete"].as_object().map(|m| m.keys().collect()).unwrap_or_default();
+    assert_eq!(short, vec!["3"], "only follower 3's record ends early: {}", summary["incomplete"]);
+    launch.assert_group_empty();
+}

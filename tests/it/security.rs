@@ -203,6 +203,7 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
             "formation/*/telemetry/3",
             "formation/*/control/hello/3",
             "formation/*/control/ready/3",
+            "formation/*/control/claim/3",
             "formation/*/control/denied/agent-3"
         ])
     );

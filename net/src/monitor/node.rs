@@ -433,7 +433,7 @@ async fn monitor(
     let Monitor { mut recorder, watch, ears, .. } = m;
     recorder.set_wall(watch.startup_s(), run_s);
     recorder.control = ears.control.lock().unwrap_or_else(|p| p.into_inner()).clone();
-    let result = finish(recorder, ending, scenario, args);
+    let result = finish(recorder, ending, args);
     if viewers.watched() && matches!(ending, Ending::Complete | Ending::Idle) {
         // Open pages get the final frame before the server ends with the process.
         tokio::time::sleep(Duration::from_secs_f64(args.web.web_linger)).await;
@@ -446,17 +446,13 @@ async fn monitor(
 
 /// Judges the run against its model, writes the run folder and says how
 /// the run ended (a summary table, or one line on stderr).
-fn finish(
-    mut recorder: Recorder,
-    ending: Ending,
-    scenario: &Scenario,
-    args: &MonitorArgs,
-) -> Result<(Ending, Option<Verdict>), Error> {
+fn finish(mut recorder: Recorder, ending: Ending, args: &MonitorArgs) -> Result<(Ending, Option<Verdict>), Error> {
     // The rows past a leader that stopped first count among those written.
     recorder.pair_past_the_leader().map_err(written)?;
     let recorded = recorder.recorded_steps();
     let unfinished = recorder.unfinished();
-    recorder.set_model(model_errors(scenario));
+    // The model of what happened: a follower that left is cut off from then on.
+    recorder.set_model(model_errors(&recorder.model_scenario()));
     let (summary, dir, health) = recorder.finish_judged(ending).map_err(written)?;
     let verdict = health.as_ref().map(|h| h.verdict);
     match ending {

@@ -40,7 +40,9 @@ use formation_protocol::barrier;
 use formation_protocol::codec;
 use formation_protocol::counters::Counters;
 use formation_protocol::loop_timing::LoopStats;
-use formation_protocol::telemetry::{Ack, ClockReport, Delivery, EventKind, LinkStats, NetEvent, Telemetry};
+use formation_protocol::telemetry::{
+    Ack, ClockReport, Delivery, EventKind, Left, LinkStats, NetEvent, Telemetry, MAX_LEFT_WHY,
+};
 use stream::{check_batch, Stream};
 
 mod live;
@@ -143,6 +145,15 @@ struct FollowerTrack {
     formation_error: f64,
     /// The newest row and the leader state it was measured against (the live page).
     latest: Option<(Row, LeaderState)>,
+    /// It left the run for good before this step, and why (its last batch said).
+    left: Option<Left>,
+}
+
+impl FollowerTrack {
+    /// One past the last step it takes: the run's, or the one it left before.
+    fn end_k(&self, steps: u64) -> u64 {
+        self.left.as_ref().map_or(steps + 1, |l| l.at_k.min(steps + 1))
+    }
 }
 
 /// The monitor's bookkeeping, independent of zenoh (fed with telemetry payloads).
@@ -214,6 +225,7 @@ impl Recorder {
                 metrics: MetricsAccumulator::for_scenario(scenario),
                 formation_error: f64::NAN,
                 latest: None,
+                left: None,
             })
             .collect();
         let mut nodes = BTreeMap::new();
@@ -335,12 +347,18 @@ impl Recorder {
         let dt = self.scenario.dt_s;
         let mut e = Evidence { steps: self.scenario.steps(), dt_s: dt, ..Default::default() };
         e.too_close = summary.safety.as_ref().and_then(Proximity::violation_text);
+        let left = self.left();
+        // A follower that left is short only of what it took before leaving.
+        let expected = |id: u32, s: &formation_record::Shortfall| {
+            left.iter().find(|l| l.0 == id).map_or(s.expected, |l| l.1.min(s.expected))
+        };
         e.short = summary
             .incomplete
             .iter()
-            .filter(|(_, s)| s.recorded + s.in_gaps < s.expected)
+            .filter(|(&id, s)| s.recorded + s.in_gaps < expected(id, s))
             .map(|(&id, s)| s.describe(id, dt, self.scenario.duration_s))
             .collect();
+        e.left = left.into_iter().map(|(id, k, why)| (id, k as f64 * dt, why)).collect();
         self.realtime_evidence(&mut e);
         let mut invalid = 0;
         for (&id, n) in &self.nodes {
@@ -489,6 +507,7 @@ impl Recorder {
                 rescued,
                 resumed,
                 diverged,
+                left,
             } => {
                 let Some(index) = self.scenario.index_of(id).filter(|_| key_id == Some(id)) else {
                     self.refuse(key_id, 1);
@@ -510,8 +529,14 @@ impl Recorder {
                 if let Some(r) = resumed.filter(|r| r.pose.iter().all(|x| x.is_finite()) && r.k <= steps) {
                     f.hearing.resumed(r);
                 }
+                // A leave is said once, with the last batch: its step within the run.
+                let left = left.filter(|l| done && l.at_k <= steps && f.left.is_none());
                 if let Some(quantity) = diverged {
                     f.hearing.end = End::Diverged { k: last_k, quantity: quantity.chars().take(100).collect() };
+                } else if let Some(l) = left {
+                    let why: String = l.why.chars().filter(|c| !c.is_control()).take(MAX_LEFT_WHY).collect();
+                    f.hearing.end = End::Left { k: l.at_k, why: why.clone() };
+                    f.left = Some(Left { at_k: l.at_k, why });
                 } else if done {
                     f.hearing.end = End::Completed;
                 }
@@ -775,7 +800,29 @@ impl Recorder {
         let steps = self.scenario.steps();
         self.nodes.values().all(|n| n.done)
             && self.leader_stream.end == steps + 1
-            && self.followers.iter().all(|f| f.next_k == steps + 1 && f.pending.is_empty())
+            && self.followers.iter().all(|f| f.next_k >= f.end_k(steps) && f.pending.is_empty())
+    }
+
+    /// The followers that left the run for good: id, the first step not
+    /// taken, and why.
+    pub fn left(&self) -> Vec<(u32, u64, String)> {
+        self.followers.iter().filter_map(|f| f.left.as_ref().map(|l| (f.id, l.at_k, l.why.clone()))).collect()
+    }
+
+    /// The scenario the run's model runs: the scenario, with each follower
+    /// that left cut off from then on (docs/model.md §14's node fault), as
+    /// its neighbours lived it.
+    pub fn model_scenario(&self) -> Scenario {
+        let mut s = self.scenario.clone();
+        for (id, at_k, _) in self.left() {
+            s.faults.push(formation_topology::LinkFault {
+                target: formation_topology::FaultTarget::Node(id),
+                from_s: at_k as f64 * s.dt_s,
+                to_s: s.duration_s + s.dt_s,
+                loss: 1.0,
+            });
+        }
+        s
     }
 
     /// Steps recorded by every follower.
@@ -945,6 +992,7 @@ mod tests {
                 rescued: Vec::new(),
                 resumed: None,
                 diverged: None,
+                left: None,
                 samples,
                 counters: Counters::default(),
                 done: true,
@@ -990,6 +1038,7 @@ mod tests {
                 rescued: Vec::new(),
                 resumed: None,
                 diverged: None,
+                left: None,
                 samples,
                 counters: Counters::default(),
                 done,
@@ -1059,6 +1108,7 @@ mod tests {
                 rescued: Vec::new(),
                 resumed: None,
                 diverged: None,
+                left: None,
                 samples: (0..=steps).map(sample).collect(),
                 counters: Counters::default(),
                 done: true,
@@ -1083,6 +1133,65 @@ mod tests {
         assert_eq!(lines("leader.csv"), 1 + 5, "the leader's own rows only");
         assert!(summary.complete, "every follower's samples are recorded");
         drop(dir);
+    }
+
+    /// A follower that left the run (its last batch says so, done) is not
+    /// waited for: the run completes when the others have; network.json
+    /// names it with the step and why, its record is short only of the
+    /// steps it did not take, and the run's model cuts it off from then on.
+    #[test]
+    fn a_follower_that_left_is_not_waited_for_and_is_named() {
+        let (_dir, scenario, mut r) = paper_recorder();
+        let steps = scenario.steps();
+        let leader = Telemetry::Leader {
+            first_k: 0,
+            states: vec![LeaderState::default(); steps as usize + 1],
+            counters: Counters::default(),
+            done: true,
+            loop_stats: None,
+            delivery: Delivery::default(),
+        };
+        r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
+        let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
+        let batch = |id: u32, n: u64, left: Option<Left>| {
+            let slots = scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
+            Telemetry::Follower {
+                id,
+                first_k: 0,
+                heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
+                rescued: Vec::new(),
+                resumed: None,
+                diverged: None,
+                left,
+                samples: (0..n).map(sample).collect(),
+                counters: Counters::default(),
+                done: true,
+                loop_stats: None,
+                delivery: Delivery::default(),
+                events: Vec::new(),
+                clock: None,
+                links: Vec::new(),
+            }
+        };
+        for &id in &ids[1..] {
+            r.telemetry(Some(id), &codec::encode(&batch(id, steps + 1, None)), Instant::now()).unwrap();
+        }
+        assert!(!r.complete(), "follower {} has said nothing yet", ids[0]);
+        let left = Left { at_k: 4, why: "SIGTERM".into() };
+        r.telemetry(Some(ids[0]), &codec::encode(&batch(ids[0], 4, Some(left))), Instant::now()).unwrap();
+        assert!(r.complete(), "a follower that left is not waited for");
+        assert_eq!(r.left(), vec![(ids[0], 4, "SIGTERM".to_string())]);
+        let model = r.model_scenario();
+        let cut = model.faults.last().expect("a fault");
+        assert_eq!((cut.target, cut.from_s), (formation_topology::FaultTarget::Node(ids[0]), 4.0 * scenario.dt_s));
+        let json: serde_json::Value = serde_json::from_str(&r.network_json(Ending::Complete)).expect("json");
+        assert_eq!(json["left"][0]["follower"], ids[0], "{}", json["left"]);
+        assert_eq!((json["left"][0]["step"].as_u64(), json["left"][0]["why"].as_str()), (Some(4), Some("SIGTERM")));
+        r.set_model(Ok(BTreeMap::new()));
+        let summary = formation_record::Summary::new(&scenario, BTreeMap::new());
+        let health = r.health(&summary).expect("judged");
+        let line = health.line();
+        assert!(line.contains(&format!("follower {} left the run at t = 0.004 s (SIGTERM)", ids[0])), "{line}");
     }
 
     #[test]
@@ -1112,6 +1221,7 @@ mod tests {
                 rescued: Vec::new(),
                 resumed: None,
                 diverged: None,
+                left: None,
                 samples,
                 counters: Counters::default(),
                 done: false,

@@ -67,6 +67,11 @@ impl Recorder {
             // Followers whose key carried a second sender (another process
             // with the same identity), as their neighbours saw it.
             "twins": self.twins(),
+            // Followers that left the run for good: the first step each did
+            // not take, its time, and why (its process was told to stop).
+            "left": self.left().iter().map(|(id, k, why)| json!({
+                "follower": id, "step": k, "t_s": *k as f64 * self.scenario.dt_s, "why": why,
+            })).collect::<Vec<_>>(),
             // Messages zenoh's access control refused, by the node that refused them.
             "access_denied": self.denied.rows(),
             // Start-up (every node ready, from the monitor's start) and the
