@@ -141,6 +141,7 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
             rt_priority: None,
             ros2: false,
             robots: None,
+            leave: Vec::new(),
         },
         mode: LaunchMode::Peer,
         base_port: Some(port),

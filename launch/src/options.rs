@@ -106,6 +106,12 @@ pub struct RunOptions {
     /// "velocity" and turn --ros2 on.
     #[cfg_attr(feature = "clap", arg(long, value_enum, value_name = "WHO"))]
     pub robots: Option<Robots>,
+    /// Follower ID leaves the run for good at run time SECONDS
+    /// (repeatable): it takes no step from then on, tells its neighbours
+    /// and the monitor, and its robot stops; the others run on. The model
+    /// of it is the fault row `node = ID, from = SECONDS` to the end.
+    #[cfg_attr(feature = "clap", arg(long = "leave", value_name = "ID@SECONDS"))]
+    pub leave: Vec<String>,
 }
 
 /// `--robots`.
@@ -213,6 +219,8 @@ impl RunOptions {
     /// a run that would write more than a few GB; a run larger than its
     /// disk's free space is refused.
     pub fn warnings(&self, scenario: &Scenario, out: &Path) -> Result<(), Error> {
+        // Checked here, in the agents' own words, before anything starts.
+        formation_net::agent::leave_steps(&self.leave, scenario.graph.ids(), scenario)?;
         let less = if self.mcap { "a shorter duration or no --mcap" } else { "a shorter duration" };
         crate::runsize::check(scenario, 1, true, self.mcap, out, less)?;
         if self.tls.is_none() && !self.quiet {

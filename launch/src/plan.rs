@@ -296,6 +296,14 @@ pub(crate) fn agents(
         let ids = group_ids(scenario, members);
         let mut c = node_command(exe, "agent", a, run);
         c.arg("--id").arg(ids.join(","));
+        for l in a
+            .opts
+            .leave
+            .iter()
+            .filter(|l| l.split_once('@').is_some_and(|(id, _)| ids.contains(&id.trim().to_string())))
+        {
+            c.arg("--leave").arg(l);
+        }
         let mut connect = vec![mon_port, lead_port];
         if peer {
             let mut dial: Vec<usize> =

@@ -12,7 +12,6 @@
 //! it runs on its own thread, waiting on a condition variable that the
 //! step's last input signals. Start-up and shut-down are async.
 
-use std::collections::BTreeSet;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
@@ -69,6 +68,38 @@ pub struct AgentArgs {
     /// the system's temporary folder).
     #[cfg_attr(feature = "clap", arg(long, value_name = "DIR"))]
     pub checkpoint_dir: Option<std::path::PathBuf>,
+    /// A follower of this process leaves the run for good at run time
+    /// SECONDS (repeatable): it takes no step from then on and tells its
+    /// neighbours and the monitor, as SIGTERM would make it do, but at an
+    /// exact step, so a lock-step run equals `formation sim` with the fault
+    /// row `node = ID, from = SECONDS` to the end.
+    #[cfg_attr(feature = "clap", arg(long = "leave", value_name = "ID@SECONDS"))]
+    pub leave: Vec<String>,
+}
+
+/// `--leave ID@SECONDS` of a process holding `ids`: per follower, the step
+/// before which it leaves; one line naming the flag for a bad one.
+pub fn leave_steps(leave: &[String], ids: &[u32], scenario: &Scenario) -> Result<Vec<(u32, u64)>, Error> {
+    let mut out = Vec::new();
+    for l in leave {
+        let bad = || Error::Input(format!("--leave {l}: give ID@SECONDS, e.g. --leave 3@12.5"));
+        let (id, t) = l.split_once('@').ok_or_else(bad)?;
+        let (id, t): (u32, f64) = (id.trim().parse().map_err(|_| bad())?, t.trim().parse().map_err(|_| bad())?);
+        if !ids.contains(&id) {
+            return Err(Error::Input(format!("--leave {l}: follower {id} is not one of this process's (--id)")));
+        }
+        if !(t > 0.0 && t < scenario.duration_s) {
+            return Err(Error::Input(format!(
+                "--leave {l}: the time must be within the run, after 0 and before its end at {} s",
+                scenario.duration_s
+            )));
+        }
+        if out.iter().any(|&(i, _)| i == id) {
+            return Err(Error::Input(format!("--leave: follower {id} is given twice")));
+        }
+        out.push((id, formation_agent::math::step_at(t, scenario.dt_s)));
+    }
+    Ok(out)
 }
 
 /// Runs the follower(s) of `--id` to the end of the scenario.
@@ -104,6 +135,7 @@ pub async fn run(
             Error::Input(format!("scenario {} has no follower {id} (ids: {})", scenario.name, all.join(", ")))
         })?);
     }
+    let leave_at = leave_steps(&args.leave, ids, &scenario)?;
     if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
         return Err(Error::Input("--stall-timeout must be positive".into()));
     }
@@ -132,6 +164,7 @@ pub async fn run(
                 topics: brake.clone(),
                 clock: args.node.clock.clone(),
                 leave: leave.clone(),
+                leave_at: leave_at.iter().find(|l| l.0 == id).map(|l| l.1),
             };
             let body: Box<dyn Body> = match odometry {
                 Some(inbox) => Box::new(DrivenRobot::new(&scenario, index, inbox)),
@@ -244,6 +277,8 @@ pub struct FollowerOptions {
     /// Set when the process is told to stop (why: "SIGTERM", "Ctrl-C"):
     /// the follower leaves the run at its next step ([`Follower::handle_leave`]).
     pub leave: Leave,
+    /// `--leave`: the step before which this follower leaves the run.
+    pub leave_at: Option<u64>,
 }
 
 /// A process's request that its followers leave the run, and why.
@@ -290,7 +325,10 @@ pub async fn run_follower(
         None => scenario.dt_s / barrier::positive_scale(scenario.network.time_scale) * 1e9 / 4.0,
     };
     let sync = clock_sync::follow(session.clone(), keys, timebase.clone(), format!("follower {id}"), quarter_step_ns);
-    let machine = Follower::new(scenario, index, body, &opts.protocol);
+    let mut machine = Follower::new(scenario, index, body, &opts.protocol);
+    if let Some(k) = opts.leave_at {
+        machine.schedule_leave(k);
+    }
     let sources = machine.source_ids().to_vec();
     let neighbours: Vec<u32> = sources.iter().copied().filter(|&s| s != wire::LEADER_ID).collect();
     let shared = Arc::new(Shared { machine: crate::node::Shared::new(machine), refused: Default::default() });
@@ -623,7 +661,7 @@ struct Node {
     /// The robot's latest pose, for the checkpoint writer.
     latest: checkpoint::Latest,
     /// Lock-step: neighbours that reported their final step.
-    neighbours_done: Arc<Mutex<BTreeSet<u32>>>,
+    neighbours_done: telemetry::Ends,
     lockstep: bool,
     /// This process's start (ns since the Unix epoch), sent with telemetry.
     incarnation: u64,
@@ -727,8 +765,11 @@ impl Node {
             m.handle_event(EventKind::SecondClock);
         }
         if self.lockstep {
-            for &id in self.neighbours_done.lock().unwrap_or_else(|p| p.into_inner()).iter() {
-                m.handle_done(id);
+            for (&id, &end) in self.neighbours_done.lock().unwrap_or_else(|p| p.into_inner()).iter() {
+                match end {
+                    None => m.handle_done(id),
+                    Some(k) => m.handle_gone(id, k),
+                }
             }
         }
         if let Some(why) = self.leave.get() {

@@ -7,8 +7,7 @@
 //! telemetry to the courier and sleeps until its next deadline. The node
 //! also serves the run's timebase (its clock) and leads the start barrier.
 
-use std::collections::BTreeSet;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 use formation_topology::wire;
@@ -184,7 +183,7 @@ struct Node {
     courier: Arc<Courier>,
     timebase: clock::Timebase,
     /// Lock-step: hearing followers that reported their final step.
-    followers_done: Arc<Mutex<BTreeSet<u32>>>,
+    followers_done: telemetry::Ends,
     queries: Arc<QueryCount>,
     topics: Option<LeaderTopics>,
     lockstep: bool,
@@ -209,8 +208,11 @@ impl Node {
     /// answers goes out with its lock released. Some(outcome) once done.
     fn turn(&mut self) -> Option<Result<(), String>> {
         let mut m = self.shared.lock();
-        for &id in self.followers_done.lock().unwrap_or_else(|p| p.into_inner()).iter() {
-            m.handle_done(id);
+        for (&id, &end) in self.followers_done.lock().unwrap_or_else(|p| p.into_inner()).iter() {
+            match end {
+                None => m.handle_done(id),
+                Some(_) => m.handle_gone(id),
+            }
         }
         m.handle_timeout(self.timebase.now());
         let transmit: Vec<Vec<u8>> = std::iter::from_fn(|| m.poll_transmit()).collect();

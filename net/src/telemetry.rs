@@ -16,27 +16,34 @@ pub async fn watch_done(
     keys: &Keys,
     ids: &[u32],
     steps: u64,
-) -> Result<
-    (Vec<zenoh::pubsub::Subscriber<()>>, std::sync::Arc<std::sync::Mutex<std::collections::BTreeSet<u32>>>),
-    Error,
-> {
-    let done = std::sync::Arc::new(std::sync::Mutex::new(std::collections::BTreeSet::new()));
+) -> Result<(Vec<zenoh::pubsub::Subscriber<()>>, Ends), Error> {
+    let ends: Ends = Default::default();
     let mut subs = Vec::new();
     for &id in ids {
-        let d = done.clone();
+        let e = ends.clone();
         let sub = session
             .declare_subscriber(keys.telemetry(id))
             .callback(move |s| {
-                if decode::<Telemetry>(&s.payload().to_bytes()).is_some_and(|t| t.reports_final_step(id, steps)) {
-                    d.lock().unwrap_or_else(|p| p.into_inner()).insert(id);
+                let Some(t) = decode::<Telemetry>(&s.payload().to_bytes()) else { return };
+                let end = match t.left_at(id) {
+                    Some(k) => Some(Some(k)),
+                    None => t.reports_final_step(id, steps).then_some(None),
+                };
+                if let Some(end) = end {
+                    e.lock().unwrap_or_else(|p| p.into_inner()).entry(id).or_insert(end);
                 }
             })
             .await
             .map_err(|e| Error::Run(format!("declaring a telemetry subscriber: {e}")))?;
         subs.push(sub);
     }
-    Ok((subs, done))
+    Ok((subs, ends))
 }
+
+/// Lock-step: the followers watched by [`watch_done`] that are through, as
+/// their telemetry said: None, done with the final step; Some(k), left the
+/// run before step k.
+pub type Ends = std::sync::Arc<std::sync::Mutex<std::collections::BTreeMap<u32, Option<u64>>>>;
 
 /// Feeds the monitor's acknowledgements for `node` (0: the leader) to its
 /// courier. Acknowledgements from a monitor of another scenario are ignored.

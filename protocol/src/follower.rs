@@ -20,7 +20,7 @@
 use std::collections::VecDeque;
 use std::time::Duration;
 
-use formation_agent::{Hearing, Message, Nearby};
+use formation_agent::{Hearing, LinkLoss, LossWindow, Message, Nearby};
 use formation_leader::LeaderState;
 use formation_plant::Pose;
 use formation_record::hearing::{HeardRuns, Rescued, Resume};
@@ -237,6 +237,10 @@ struct Rules {
     /// The fault table's longest window (steps, plus one per hop), for the
     /// lock-step look-ahead.
     faulted_ahead: Option<u64>,
+    /// The fault table's seed and, per slot, its windows for the link
+    /// (a neighbour that leaves adds one: [`Follower::handle_gone`]).
+    seed: u64,
+    fault_windows: Vec<Vec<LossWindow>>,
 }
 
 /// One follower: see the module documentation.
@@ -283,6 +287,9 @@ pub struct Follower {
     pose_transmit: VecDeque<Vec<u8>>,
     /// This follower left the run for good ([`Follower::handle_leave`]).
     left: Option<Left>,
+    /// It leaves before this step ([`Follower::schedule_leave`]), and why.
+    leave_at: Option<u64>,
+    leave_why: &'static str,
 }
 
 impl Follower {
@@ -306,6 +313,7 @@ impl Follower {
         }
         let mut inbox = Inbox::new(slots, lockstep);
         inbox.set_links(scenario.sources_of(index).iter().map(|&src| table.link_loss(src, id)).collect());
+        let fault_windows = scenario.sources_of(index).iter().map(|&src| table.link_windows(src, id)).collect();
         let faulted_ahead = scenario
             .faults
             .iter()
@@ -332,6 +340,8 @@ impl Follower {
             source_ids,
             neighbours,
             faulted_ahead,
+            seed: scenario.seed,
+            fault_windows,
         };
         let ear = if scenario.network.hearing_record {
             EarLog::new(rules.source_ids.clone(), RESCUE_BATCHES * rules.batch)
@@ -366,6 +376,8 @@ impl Follower {
             telemetry: VecDeque::new(),
             say: VecDeque::new(),
             latest: None,
+            leave_at: None,
+            leave_why: "",
             poses: scenario.control.guard.safety.is_some().then(|| {
                 let initial = (0..scenario.followers.len()).map(|j| SimRobot::new(scenario, j).seen_pose()).collect();
                 Poses::new(scenario, index, initial)
@@ -501,32 +513,65 @@ impl Follower {
         self.events.push(NetEvent { k, what });
     }
 
-    /// Lock-step: neighbour `id` reported its final step.
-    /// This follower leaves the run for good, before the step it would
-    /// take next: its process was told to stop (`why`: "SIGTERM", "Ctrl-C").
-    /// What it computed goes out in a last batch marked done and
-    /// [`Left`] (the monitor then waits for nothing more from it, and its
-    /// model loses the follower's links from then on, as docs/model.md
-    /// §14's node fault), and the machine ends well. Nothing more is
-    /// published. Before the start, or after the end, there is nothing to
-    /// leave: the machine ends as it is.
-    pub fn handle_leave(&mut self, why: &str) {
-        let next = match self.phase {
-            Phase::Stepping(k) => k,
-            Phase::Lingering(_) | Phase::Done(_) => return,
-            Phase::Waiting => {
-                self.finish(Ok(()));
-                return;
+    /// This follower leaves the run before step `at_k` (`agent --leave
+    /// ID@SECONDS`): it takes step `at_k` − 1 but sends no message for
+    /// step `at_k`, then leaves as [`Follower::handle_leave`] says. So a
+    /// leave is as repeatable as the fault table: lock-step runs with it
+    /// equal the simulator with the follower's node cut off from `at_k` on.
+    pub fn schedule_leave(&mut self, at_k: u64) {
+        self.leave_at = Some(at_k.max(1));
+        self.leave_why = "as scheduled (--leave)";
+    }
+
+    /// Neighbour `id` left the run before step `at_k` (lock-step: its last
+    /// telemetry said so): from then on its link is cut, as a fault-table
+    /// row `node = id` from that step to the end would cut it, so this
+    /// follower does not wait for its messages; and it is not waited for
+    /// at the end.
+    pub fn handle_gone(&mut self, id: u32, at_k: u64) {
+        let Some(slot) = self.rules.source_ids.iter().position(|&s| s == id && s != wire::LEADER_ID) else { return };
+        if self.done_neighbours.contains(&id) {
+            return;
+        }
+        self.done_neighbours.push(id);
+        let windows = &mut self.rules.fault_windows[slot];
+        windows.push(LossWindow { from_k: at_k, to_k: self.rules.steps + 1, loss: 1.0 });
+        let link = LinkLoss::new(self.rules.seed, id, self.rules.id, windows);
+        self.inbox.set_link(slot, link);
+    }
+
+    /// This follower leaves the run for good: its process was told to stop
+    /// (`why`: "SIGTERM", "Ctrl-C"). Its message for the step it takes next
+    /// is already out, so it takes that step, sends nothing for the one
+    /// after, and leaves before it ([`Follower::schedule_leave`]'s rule):
+    /// what it computed goes out in a last batch marked done and [`Left`]
+    /// (the monitor then waits for nothing more from it; its neighbours in
+    /// lock-step and the run's model cut its links from that step on, as
+    /// docs/model.md §14's node fault), and the machine ends well. Before
+    /// the start there is nothing to leave: the machine ends as it is.
+    pub fn handle_leave(&mut self, why: &'static str) {
+        match self.phase {
+            Phase::Stepping(k) => {
+                if self.leave_at.is_none_or(|at| at > k + 1) {
+                    self.leave_at = Some(k + 1);
+                    self.leave_why = why;
+                }
             }
-        };
-        self.left = Some(Left { at_k: next, why: why.chars().take(MAX_LEFT_WHY).collect() });
-        self.transmit.clear();
-        self.pose_transmit.clear();
-        self.close_batch(next.saturating_sub(1), true, None);
-        self.say.push_back(format!("follower {}: leaves the run at step {next} ({why})", self.rules.id));
+            Phase::Waiting => self.finish(Ok(())),
+            Phase::Lingering(_) | Phase::Done(_) => {}
+        }
+    }
+
+    /// Leaves before step `at_k`, having taken every step before it.
+    fn leave_now(&mut self, at_k: u64) {
+        let why = self.leave_why;
+        self.left = Some(Left { at_k, why: why.chars().take(MAX_LEFT_WHY).collect() });
+        self.close_batch(at_k - 1, true, None);
+        self.say.push_back(format!("follower {}: leaves the run before step {at_k} ({why})", self.rules.id));
         self.finish(Ok(()));
     }
 
+    /// Lock-step: neighbour `id` reported its final step.
     pub fn handle_done(&mut self, id: u32) {
         if !self.done_neighbours.contains(&id) {
             self.done_neighbours.push(id);
@@ -839,8 +884,13 @@ impl Follower {
         if k % 10 == 0 {
             self.checkpoint = Some((k, sample.pose));
         }
-        if !last && diverged.is_none() && self.publishes() {
+        // A follower that leaves after this step sends no message for the next.
+        let leaving = !last && diverged.is_none() && self.leave_at.is_some_and(|at| k + 1 >= at);
+        if !last && !leaving && diverged.is_none() && self.publishes() {
             self.publish(k + 1, next, now);
+        }
+        if leaving {
+            return self.leave_now(k + 1);
         }
         if self.samples.len() >= self.rules.batch || last || diverged.is_some() {
             self.close_batch(k, last || diverged.is_some(), diverged);

@@ -293,6 +293,12 @@ impl Inbox {
             .collect()
     }
 
+    /// One source's loss decisions anew (a neighbour that left: its link cut from then on).
+    pub fn set_link(&mut self, slot: usize, link: LinkLoss) {
+        if let Some(l) = self.links.get_mut(slot) {
+            *l = link;
+        }
+    }
     pub fn reject(&mut self, r: Reject) {
         self.counters.rejected.add(r);
     }

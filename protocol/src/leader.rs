@@ -174,6 +174,14 @@ impl Leader {
         }
     }
 
+    /// Hearing follower `id` left the run (lock-step: its last telemetry
+    /// said so): the window no longer waits for it, nor does the end.
+    pub fn handle_gone(&mut self, id: u32) {
+        let Some(slot) = self.hearing.iter().position(|&h| h == id) else { return };
+        self.reached[slot] = Some(u64::MAX);
+        self.done.insert(id);
+    }
+
     /// Does what is due at `now`: at most one step, or a wait's repeat,
     /// warning or end.
     pub fn handle_timeout(&mut self, now: Now) {

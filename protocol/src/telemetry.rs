@@ -127,6 +127,15 @@ pub struct Ack {
 }
 
 impl Telemetry {
+    /// Follower `id`'s report, on its own key, that it left the run: the
+    /// first step it did not take.
+    pub fn left_at(&self, id: u32) -> Option<u64> {
+        match self {
+            Telemetry::Follower { id: sender, done: true, left: Some(l), .. } if *sender == id => Some(l.at_k),
+            _ => None,
+        }
+    }
+
     /// Whether this is follower `id`'s report, on its own key, of its final
     /// step of a run of `steps` + 1 steps (a batch that ends there).
     pub fn reports_final_step(&self, id: u32, steps: u64) -> bool {

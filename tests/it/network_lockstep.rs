@@ -184,3 +184,37 @@ async fn rogue_messages_are_rejected_and_counted() {
         total("future")
     );
 }
+
+/// A follower that leaves at 1 s (issue 50, `launch --leave 3@1`) in
+/// lock-step: its neighbours and the leader learn it from its last
+/// telemetry and stop waiting for it, and every other follower's record
+/// and the leader's equal `formation sim` byte for byte with the fault
+/// row `node = 3` from 1 s to the end (the model of a leave); its own
+/// record ends before step 1000, and the run names the leave.
+#[test]
+fn lockstep_a_follower_that_leaves_equals_sim_with_its_node_cut_off() {
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (net, simd) = (dir.path().join("net"), dir.path().join("sim"));
+    let sets = ["duration=2"];
+    let mut g = Group::launch(&net, &sets, &["--base-port", &base, "--run", "ls-leave", "--leave", "3@1"]);
+    sim(&simd, &["duration=2", "faults+={node=3, from=1, to=2.001}"]);
+    let status = g.wait(LIMIT);
+    let n = network(&net);
+    assert!(status.success(), "formation launch: {status}: {}", n["health"]);
+    for f in ["follower_1.csv", "follower_2.csv", "follower_4.csv", "leader.csv"] {
+        let a = std::fs::read(net.join(f)).expect("net csv");
+        let b = std::fs::read(simd.join(f)).expect("sim csv");
+        assert!(a == b, "{f} differs from formation sim's with follower 3 cut off from 1 s");
+    }
+    let rows3 = std::fs::read_to_string(net.join("follower_3.csv")).expect("follower_3.csv").lines().count();
+    assert_eq!(rows3, 1 + 1000, "follower 3: a header and steps 0..1000");
+    assert_eq!(
+        (n["left"][0]["follower"].as_u64(), n["left"][0]["step"].as_u64()),
+        (Some(3), Some(1000)),
+        "{}",
+        n["left"]
+    );
+    assert_eq!(n["left"][0]["why"], "as scheduled (--leave)");
+    assert_eq!(n["health"]["verdict"], "disturbed", "{}", n["health"]);
+}

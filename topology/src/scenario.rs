@@ -1509,12 +1509,17 @@ fn validate_faults(
                 ),
             ));
         }
-        if f.to > file.duration {
+        // The last step is at t = T: a window that covers it ends one step
+        // later (the model of a follower that leaves for good).
+        if to_k > formation_agent::math::step_at(file.duration, file.dt) + 1 {
             return Err(c.fail(
                 &field("to"),
                 format!(
-                    "{} s is after the end of the run (T = {} s); use to = {} for the rest of the run",
-                    f.to, file.duration, file.duration
+                    "{} s is after the end of the run (T = {} s); use to = {} for the rest of the run, its last \
+                     step (t = T) included",
+                    f.to,
+                    file.duration,
+                    num(file.duration + file.dt)
                 ),
             ));
         }
@@ -1689,6 +1694,18 @@ mod tests {
         assert_eq!(s.sources_of(0), vec![2, 3, 0]);
         assert_eq!(s.silence_steps(), 50);
         assert_eq!(s.control.rejoin, RejoinRule { policy: RejoinPolicy::Consensus, after_steps: 100 });
+    }
+
+    /// A window may end one step after the run's end, T + Δt, and then
+    /// covers its last step (t = T): the model of a follower that leaves
+    /// for good; a step further is refused with that end named.
+    #[test]
+    fn a_window_may_cover_the_last_step_and_no_further() {
+        let set = |to: &str| vec![format!("faults=[{{node=3, from=1, to={to}}}]"), "duration=2".to_string()];
+        let s = Scenario::from_toml(PAPER, "t.toml", "t", &set("2.001")).expect("T + dt");
+        assert_eq!(s.faults[0].steps(s.dt_s), (1000, 2001), "the window covers steps 1000..=2000");
+        let e = Scenario::from_toml(PAPER, "t.toml", "t", &set("2.002")).expect_err("T + 2 dt").to_string();
+        assert!(e.contains("use to = 2.001 for the rest of the run, its last step (t = T) included"), "{e}");
     }
 
     #[test]
