@@ -220,7 +220,7 @@ impl RunOptions {
     /// disk's free space is refused.
     pub fn warnings(&self, scenario: &Scenario, out: &Path) -> Result<(), Error> {
         // Checked here, in the agents' own words, before anything starts.
-        formation_net::agent::leave_steps(&self.leave, scenario.graph.ids(), scenario)?;
+        formation_net::agent::check_leaves(&self.leave, scenario)?;
         let less = if self.mcap { "a shorter duration or no --mcap" } else { "a shorter duration" };
         crate::runsize::check(scenario, 1, true, self.mcap, out, less)?;
         if self.tls.is_none() && !self.quiet {

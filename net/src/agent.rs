@@ -85,6 +85,14 @@ pub fn leave_steps(leave: &[String], ids: &[u32], scenario: &Scenario) -> Result
         let bad = || Error::Input(format!("--leave {l}: give ID@SECONDS, e.g. --leave 3@12.5"));
         let (id, t) = l.split_once('@').ok_or_else(bad)?;
         let (id, t): (u32, f64) = (id.trim().parse().map_err(|_| bad())?, t.trim().parse().map_err(|_| bad())?);
+        if scenario.index_of(id).is_none() {
+            let all: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
+            return Err(Error::Input(format!(
+                "--leave {l}: scenario {} has no follower {id} (ids: {})",
+                scenario.name,
+                all.join(", ")
+            )));
+        }
         if !ids.contains(&id) {
             return Err(Error::Input(format!("--leave {l}: follower {id} is not one of this process's (--id)")));
         }
@@ -100,6 +108,26 @@ pub fn leave_steps(leave: &[String], ids: &[u32], scenario: &Scenario) -> Result
         out.push((id, formation_agent::math::step_at(t, scenario.dt_s)));
     }
     Ok(out)
+}
+
+/// Lemma 1 once the followers of `--leave` (every one of the formation's)
+/// have left: refused in one line naming the followers they would cut off
+/// from the leader (their estimates would drift on dead reckoning).
+pub fn check_leaves(leave: &[String], scenario: &Scenario) -> Result<(), Error> {
+    let gone: Vec<u32> = leave_steps(leave, scenario.graph.ids(), scenario)?.into_iter().map(|(id, _)| id).collect();
+    let cut = scenario.graph.unreachable_without(&gone);
+    if cut.is_empty() {
+        return Ok(());
+    }
+    let names = |ids: &[u32]| ids.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    Err(Error::Input(format!(
+        "--leave: without follower{} {} no path leads from the leader to follower{} {} (Lemma 1): their estimates \
+         of the leader would drift; leave another follower, or fewer",
+        if gone.len() == 1 { "" } else { "s" },
+        names(&gone),
+        if cut.len() == 1 { "" } else { "s" },
+        names(&cut)
+    )))
 }
 
 /// Runs the follower(s) of `--id` to the end of the scenario.

@@ -129,6 +129,9 @@ pub struct Evidence {
     pub short: Vec<String>,
     /// Followers that left the run for good: (id, at run time s, why).
     pub left: Vec<(u32, f64, String)>,
+    /// The followers those who left cut off from the leader (Lemma 1 on
+    /// the graph without them).
+    pub cut_off: Vec<u32>,
     /// Where [`Evidence::hearing`] is judged: spans at which most links
     /// heard otherwise than the model at once (`formation_record::stall`).
     pub stalls: Vec<formation_record::stall::Stall>,
@@ -164,6 +167,14 @@ pub fn judge(e: &Evidence) -> Health {
     // model does (a node fault from then on), and its record ends there.
     for (id, t, why) in &e.left {
         disturbed.push(format!("follower {id} left the run at t = {t:.3} s ({why})"));
+    }
+    if !e.cut_off.is_empty() {
+        let ids: Vec<String> = e.cut_off.iter().map(u32::to_string).collect();
+        disturbed.push(format!(
+            "without the followers that left, no path leads from the leader to follower{} {} (Lemma 1)",
+            if ids.len() == 1 { "" } else { "s" },
+            ids.join(", ")
+        ));
     }
     for &(id, run, model) in &e.errors {
         if let (Some(r), Some(m)) = (run, model) {

@@ -719,3 +719,39 @@ fn a_follower_stopped_with_sigterm_leaves_and_the_run_ends_on_time() {
     assert_eq!(short, vec!["3"], "only follower 3's record ends early: {}", summary["incomplete"]);
     launch.assert_group_empty();
 }
+
+/// Bad `--leave` values (issue 50) are refused before anything starts, in
+/// one line naming the flag, exit 2: no time, a follower not in the
+/// scenario, a time outside the run, a follower twice, and a leave that
+/// would cut the others off from the leader (Lemma 1 on the graph without
+/// it: follower 1 is the paper's only follower that hears the leader).
+#[test]
+fn a_bad_leave_is_refused_up_front() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let cases: [(&[&str], &str); 6] = [
+        (&["--leave", "2"], "--leave 2: give ID@SECONDS, e.g. --leave 3@12.5"),
+        (&["--leave", "9@1"], "--leave 9@1: scenario paper has no follower 9 (ids: 1, 2, 3, 4)"),
+        (&["--leave", "2@40"], "--leave 2@40: the time must be within the run, after 0 and before its end at 30 s"),
+        (&["--leave", "2@0"], "--leave 2@0: the time must be within the run"),
+        (&["--leave", "2@1", "--leave", "2@3"], "--leave: follower 2 is given twice"),
+        (
+            &["--leave", "1@5"],
+            "--leave: without follower 1 no path leads from the leader to followers 2, 3, 4 (Lemma 1)",
+        ),
+    ];
+    for (extra, want) in cases {
+        let out = tmp.path().join("never");
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["launch", common::SCENARIO, "-q", "--out"])
+            .arg(&out)
+            .args(extra)
+            .stdin(std::process::Stdio::null())
+            .output()
+            .expect("launch");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(err.contains(want), "{extra:?}: {err}");
+        assert_eq!(err.lines().filter(|l| l.starts_with("error")).count(), 1, "{extra:?}: one line: {err}");
+        assert!(!out.exists(), "{extra:?}: a folder was written");
+    }
+}

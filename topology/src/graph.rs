@@ -110,6 +110,26 @@ impl Graph {
         (0..n).filter(|&i| !seen[i]).map(|i| self.ids[i]).collect()
     }
 
+    /// Lemma 1 on the graph without the followers `gone` (by id: absent,
+    /// or left for good): the others that no path through the rest connects
+    /// to a follower hearing the leader, by id. Empty when every remaining
+    /// follower still reaches the leader.
+    pub fn unreachable_without(&self, gone: &[u32]) -> Vec<u32> {
+        let n = self.len();
+        let out = |i: usize| gone.contains(&self.ids[i]);
+        let mut seen: Vec<bool> = (0..n).map(|i| self.leader_links[i] && !out(i)).collect();
+        let mut stack: Vec<usize> = (0..n).filter(|&i| seen[i]).collect();
+        while let Some(i) = stack.pop() {
+            for &j in self.neighbours(i) {
+                if !seen[j] && !out(j) {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+        (0..n).filter(|&i| !seen[i] && !out(i)).map(|i| self.ids[i]).collect()
+    }
+
     /// The Laplacian L (eq. 1), dense.
     pub fn laplacian(&self) -> DMatrix<f64> {
         let n = self.len();
@@ -293,5 +313,17 @@ mod tests {
             let got = paper().estimator_growth(1.0, 0.01, d);
             assert!(got < 1.0, "paper graph, Δt = 10 ms, d = {d}: {got:.5}");
         }
+    }
+
+    /// Lemma 1 without some followers: a path of four (leader → 1 – 2 – 3
+    /// – 4) loses 3 and 4 when 2 goes, nothing when 4 goes, everyone when 1
+    /// goes; the whole graph's answer is the empty removal's.
+    #[test]
+    fn followers_cut_off_by_others_leaving_are_named() {
+        let g = Graph::new(vec![1, 2, 3, 4], &[(0, 1), (1, 2), (2, 3)], vec![true, false, false, false]);
+        assert_eq!(g.unreachable_without(&[]), g.unreachable());
+        assert_eq!(g.unreachable_without(&[4]), Vec::<u32>::new());
+        assert_eq!(g.unreachable_without(&[2]), vec![3, 4]);
+        assert_eq!(g.unreachable_without(&[1]), vec![2, 3, 4]);
     }
 }

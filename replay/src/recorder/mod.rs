@@ -358,6 +358,8 @@ impl Recorder {
             .filter(|(&id, s)| s.recorded + s.in_gaps < expected(id, s))
             .map(|(&id, s)| s.describe(id, dt, self.scenario.duration_s))
             .collect();
+        let gone: Vec<u32> = left.iter().map(|l| l.0).collect();
+        e.cut_off = if gone.is_empty() { Vec::new() } else { self.scenario.graph.unreachable_without(&gone) };
         e.left = left.into_iter().map(|(id, k, why)| (id, k as f64 * dt, why)).collect();
         self.realtime_evidence(&mut e);
         let mut invalid = 0;
