@@ -26,7 +26,7 @@ use crate::checkpoint;
 use crate::clock::{Clock, Timebase};
 use crate::clock_sync;
 use crate::courier::Courier;
-use crate::node::{estimate_congestion, NodeArgs};
+use crate::node::NodeArgs;
 use crate::ros2::driven::{self, DrivenRobot, OdomInbox};
 use crate::ros2::topics::{FollowerTopics, Stamps};
 use crate::ros2::wire::{RosNode, RosSubscription};
@@ -75,6 +75,24 @@ pub struct AgentArgs {
     /// row `node = ID, from = SECONDS` to the end.
     #[cfg_attr(feature = "clap", arg(long = "leave", value_name = "ID@SECONDS"))]
     pub leave: Vec<String>,
+}
+
+/// `--id`'s first follower (the process's name), or one line for ids
+/// given twice, none, or several with `--tls`.
+fn first_id(args: &AgentArgs) -> Result<u32, Error> {
+    let ids = &args.id;
+    let first = *ids.first().ok_or_else(|| Error::Input("--id: give at least one follower id".into()))?;
+    if let Some(twice) = ids.iter().enumerate().find_map(|(i, id)| ids[..i].contains(id).then_some(id)) {
+        return Err(Error::Input(format!("--id: follower {twice} is given twice")));
+    }
+    if ids.len() > 1 && args.node.zenoh.tls.is_some() {
+        return Err(Error::Input(
+            "--id with several followers and --tls: each follower has its own certificate and access rights, so \
+             each needs a process of its own"
+                .into(),
+        ));
+    }
+    Ok(first)
 }
 
 /// `--leave ID@SECONDS` of a process holding `ids`: per follower, the step
@@ -144,17 +162,7 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = formation_replay::watch::Signal>,
 ) -> Result<Option<formation_replay::watch::Signal>, Error> {
     let ids = &args.id;
-    let first = *ids.first().ok_or_else(|| Error::Input("--id: give at least one follower id".into()))?;
-    if let Some(twice) = ids.iter().enumerate().find_map(|(i, id)| ids[..i].contains(id).then_some(id)) {
-        return Err(Error::Input(format!("--id: follower {twice} is given twice")));
-    }
-    if ids.len() > 1 && args.node.zenoh.tls.is_some() {
-        return Err(Error::Input(
-            "--id with several followers and --tls: each follower has its own certificate and access rights, so \
-             each needs a process of its own"
-                .into(),
-        ));
-    }
+    let first = first_id(args)?;
     let (scenario, keys) = args.node.load(&formation_protocol::names::agent_name(first))?;
     let mut indices = Vec::with_capacity(ids.len());
     for &id in ids {
@@ -373,13 +381,7 @@ pub async fn run_follower(
     // robot's odometry is heard from now on.
     let topics: SharedTopics = opts.topics.clone();
     let (ros_node, odometry) = ros_side(session, scenario, id, &opts, &shared, &timebase).await?;
-    let estimate_pub = session
-        .declare_publisher(keys.estimate(id))
-        .congestion_control(estimate_congestion(scenario))
-        .priority(crate::node::priority::ESTIMATE)
-        .express(crate::node::estimate_express(scenario))
-        .await
-        .map_err(|e| zerr("declaring the estimate publisher", e))?;
+    let estimate_pub = crate::node::control_publisher(session, keys.estimate(id), scenario, "estimate").await?;
 
     let lockstep = scenario.timing == Timing::Lockstep;
     // Lock-step: which neighbours have completed the final step.
@@ -555,13 +557,7 @@ async fn pose_channel(
         })
         .await
         .map_err(|e| zerr("declaring the pose subscriber", e))?;
-    let publisher = session
-        .declare_publisher(keys.pose(own))
-        .congestion_control(estimate_congestion(scenario))
-        .priority(crate::node::priority::ESTIMATE)
-        .express(crate::node::estimate_express(scenario))
-        .await
-        .map_err(|e| zerr("declaring the pose publisher", e))?;
+    let publisher = crate::node::control_publisher(session, keys.pose(own), scenario, "pose").await?;
     Ok((subscriber, publisher))
 }
 

@@ -18,7 +18,7 @@ use zenoh::Wait;
 use crate::clock;
 use crate::clock_sync;
 use crate::courier::Courier;
-use crate::node::{estimate_congestion, NodeArgs, Shared};
+use crate::node::{NodeArgs, Shared};
 use crate::ros2::topics::LeaderTopics;
 use crate::startup;
 use crate::telemetry;
@@ -84,13 +84,8 @@ pub async fn run_leader(
     let hearing = machine.hearing().to_vec();
     let shared = Arc::new(Shared::new(machine));
     let subs = watch_reached(session, keys, &hearing, &shared).await?;
-    let estimate_pub = session
-        .declare_publisher(keys.estimate(wire::LEADER_ID))
-        .congestion_control(estimate_congestion(scenario))
-        .priority(crate::node::priority::ESTIMATE)
-        .express(crate::node::estimate_express(scenario))
-        .await
-        .map_err(|e| zerr("declaring the estimate publisher", e))?;
+    let estimate_pub =
+        crate::node::control_publisher(session, keys.estimate(wire::LEADER_ID), scenario, "estimate").await?;
 
     let lockstep = scenario.timing == Timing::Lockstep;
     // Lock-step: which hearing followers have completed the final step.

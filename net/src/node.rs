@@ -165,6 +165,24 @@ pub fn estimate_express(scenario: &Scenario) -> bool {
     scenario.timing == formation_topology::Timing::Lockstep
 }
 
+/// A publisher of control traffic on `key` (estimates, poses): the
+/// estimates' congestion control ([`estimate_congestion`]), priority and
+/// batching ([`estimate_express`]); `what` names it in an error.
+pub async fn control_publisher(
+    session: &zenoh::Session,
+    key: String,
+    scenario: &Scenario,
+    what: &str,
+) -> Result<zenoh::pubsub::Publisher<'static>, formation_protocol::error::Error> {
+    session
+        .declare_publisher(key)
+        .congestion_control(estimate_congestion(scenario))
+        .priority(priority::ESTIMATE)
+        .express(estimate_express(scenario))
+        .await
+        .map_err(|e| formation_protocol::error::zerr(&format!("declaring the {what} publisher"), e))
+}
+
 /// Zenoh priorities of a run's traffic. Each priority has a queue of its own
 /// in every transport (and the router's), served highest first: estimates
 /// never wait behind telemetry, not even behind the burst a node sends

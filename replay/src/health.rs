@@ -151,13 +151,10 @@ pub struct HearingEvidence {
 /// 2-core host: 0–50 of 121,121, 0.04 %; 100 agents on it: 0.2–2 %).
 pub const HEARING_DEPARTURE: f64 = 1e-3;
 
-/// The verdict from the evidence.
-pub fn judge(e: &Evidence) -> Health {
-    let mut degraded = Vec::new();
-    let mut disturbed = Vec::new();
-    if let Some(what) = &e.too_close {
-        degraded.push(what.clone());
-    }
+/// What the evidence says of who ran the whole run: a follower's record
+/// that ends short (degraded), and the followers that left (disturbed), with
+/// those their leaving cut off from the leader.
+fn who_ran(e: &Evidence, degraded: &mut Vec<String>, disturbed: &mut Vec<String>) {
     // A run that did not complete is never healthy (a follower whose
     // process was stopped at 5 s of 12 was, its metrics null).
     for s in &e.short {
@@ -176,6 +173,16 @@ pub fn judge(e: &Evidence) -> Health {
             ids.join(", ")
         ));
     }
+}
+
+/// The verdict from the evidence.
+pub fn judge(e: &Evidence) -> Health {
+    let mut degraded = Vec::new();
+    let mut disturbed = Vec::new();
+    if let Some(what) = &e.too_close {
+        degraded.push(what.clone());
+    }
+    who_ran(e, &mut degraded, &mut disturbed);
     for &(id, run, model) in &e.errors {
         if let (Some(r), Some(m)) = (run, model) {
             if r > ERROR_FACTOR * m + ERROR_MARGIN_M {
