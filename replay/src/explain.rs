@@ -128,7 +128,7 @@ pub fn links(loaded: &Loaded) -> Vec<Link> {
 
 /// How each link's recorded hearing compares with the model's, and the first departure.
 pub fn compare_hearing(loaded: &Loaded) -> (Vec<LinkHearing>, Option<Departure>) {
-    let s = &loaded.scenario;
+    let s = &loaded.model_scenario();
     let all = links(loaded);
     let mut out: Vec<LinkHearing> = all
         .iter()

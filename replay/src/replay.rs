@@ -33,6 +33,23 @@ pub struct Loaded {
     pub record: HearingRecord,
 }
 
+impl Loaded {
+    /// The scenario of the run's model: the run's, with each follower that
+    /// left for good (its hearing record ends `Left`) cut off from then on.
+    pub fn model_scenario(&self) -> Scenario {
+        let leaves: Vec<(u32, u64)> = self
+            .record
+            .followers
+            .iter()
+            .filter_map(|f| match f.end {
+                formation_record::hearing::End::Left { k, .. } => Some((f.id, k)),
+                _ => None,
+            })
+            .collect();
+        self.scenario.with_leaves(&leaves)
+    }
+}
+
 /// Reads a run folder's hearing record and the scenario it carries.
 pub fn load(dir: &Path) -> Result<Loaded, Error> {
     if !dir.is_dir() {
@@ -247,7 +264,8 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
     }
     let mut leader_sent: Vec<Option<(u64, LeaderState)>> = vec![None; ring];
     let mut recorded: Vec<Cursor> = rec.followers.iter().map(Cursor::new).collect();
-    let mut ears: Vec<ModelEar> = (0..n).map(|i| ModelEar::new(s, i)).collect();
+    let model = loaded.model_scenario();
+    let mut ears: Vec<ModelEar> = (0..n).map(|i| ModelEar::new(&model, i)).collect();
     let mut track = vec![Track::Running; n];
     let mut problems = Vec::new();
     let sources: Vec<Vec<Option<usize>>> =

@@ -217,4 +217,11 @@ fn lockstep_a_follower_that_leaves_equals_sim_with_its_node_cut_off() {
     );
     assert_eq!(n["left"][0]["why"], "as scheduled (--leave)");
     assert_eq!(n["health"]["verdict"], "disturbed", "{}", n["health"]);
+    // The run again from its record, and beside its model (the leave as
+    // the model's node fault): the same bytes, and no departure.
+    common::replays_byte_for_byte("lock-step leave", &net);
+    let explained =
+        common::run_ok(Command::new(env!("CARGO_BIN_EXE_formation")).args(["replay", "--explain"]).arg(&net));
+    let text = String::from_utf8_lossy(&explained.stdout);
+    assert!(text.contains("the run heard exactly what the model assumes: no departure"), "{text}");
 }

@@ -393,6 +393,23 @@ impl Scenario {
             .collect()
     }
 
+    /// This scenario with the followers that left the run for good cut off
+    /// from then on: (id, the first step whose message it did not send).
+    /// The model of a leave (docs/model.md §14): the fault row `node = id`
+    /// from that step to T + Δt, which covers the last step.
+    pub fn with_leaves(&self, leaves: &[(u32, u64)]) -> Scenario {
+        let mut s = self.clone();
+        for &(id, at_k) in leaves {
+            s.faults.push(LinkFault {
+                target: FaultTarget::Node(id),
+                from_s: at_k as f64 * s.dt_s,
+                to_s: s.duration_s + s.dt_s,
+                loss: 1.0,
+            });
+        }
+        s
+    }
+
     /// The receiver's loss decisions for the link sender → receiver.
     pub fn link_loss(&self, sender: u32, receiver: u32) -> LinkLoss {
         let windows = self.link_windows(sender, receiver);

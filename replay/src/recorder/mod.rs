@@ -815,16 +815,8 @@ impl Recorder {
     /// that left cut off from then on (docs/model.md §14's node fault), as
     /// its neighbours lived it.
     pub fn model_scenario(&self) -> Scenario {
-        let mut s = self.scenario.clone();
-        for (id, at_k, _) in self.left() {
-            s.faults.push(formation_topology::LinkFault {
-                target: formation_topology::FaultTarget::Node(id),
-                from_s: at_k as f64 * s.dt_s,
-                to_s: s.duration_s + s.dt_s,
-                loss: 1.0,
-            });
-        }
-        s
+        let leaves: Vec<(u32, u64)> = self.left().iter().map(|&(id, k, _)| (id, k)).collect();
+        self.scenario.with_leaves(&leaves)
     }
 
     /// Steps recorded by every follower.
