@@ -221,25 +221,30 @@ pub async fn run(
     let (result, signal) = tokio::select! {
         r = &mut work => (r, None),
         s = shutdown => {
-            // Told to stop: each follower leaves at its next step, tells the
-            // monitor in its last batch, and ends (a bounded wait).
-            let _ = leave.set(match s {
+            let why = match s {
                 formation_replay::watch::Signal::Interrupt => "Ctrl-C",
                 formation_replay::watch::Signal::Terminate => "SIGTERM",
-            });
+            };
+            // docs/ros2.md: a driven robot stops at once, not after the
+            // leave below (a step and the last telemetry's acknowledgement);
+            // its topics are taken, so no later step commands it again.
+            if driven {
+                for (&id, brake) in ids.iter().zip(&brakes) {
+                    stop_robot(&session, &scenario, id, brake, why, &args.node.clock).await;
+                    brake.lock().unwrap_or_else(|p| p.into_inner()).take();
+                }
+            }
+            // Each follower leaves at its next step, tells the monitor in
+            // its last batch, and ends (a bounded wait).
+            let _ = leave.set(why);
             let r = tokio::time::timeout(LEAVE_WITHIN, &mut work).await.unwrap_or(Ok(()));
             (r, Some(s))
         }
     };
     drop(followers);
-    if driven {
+    if driven && signal.is_none() {
         // docs/ros2.md: an agent that ends stops its robot first.
-        let why = match (&result, signal) {
-            (_, Some(formation_replay::watch::Signal::Interrupt)) => "Ctrl-C",
-            (_, Some(formation_replay::watch::Signal::Terminate)) => "SIGTERM",
-            (Ok(()), None) => "the run ended",
-            (Err(_), None) => "the agent stopped on an error",
-        };
+        let why = if result.is_ok() { "the run ended" } else { "the agent stopped on an error" };
         for (&id, brake) in ids.iter().zip(&brakes) {
             stop_robot(&session, &scenario, id, brake, why, &args.node.clock).await;
         }
