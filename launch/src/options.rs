@@ -218,6 +218,12 @@ impl RunOptions {
     /// that its traffic is unauthenticated (without --tls), and the size of
     /// a run that would write more than a few GB; a run larger than its
     /// disk's free space is refused.
+    /// The `--leave ID@SECONDS` values of follower `id`, for its agent's
+    /// command line (checked by [`RunOptions::warnings`]).
+    pub fn leaves_of(&self, id: u32) -> impl Iterator<Item = &String> {
+        self.leave.iter().filter(move |l| l.split_once('@').is_some_and(|(i, _)| i.trim().parse() == Ok(id)))
+    }
+
     pub fn warnings(&self, scenario: &Scenario, out: &Path) -> Result<(), Error> {
         // Checked here, in the agents' own words, before anything starts.
         formation_net::agent::check_leaves(&self.leave, scenario)?;

@@ -296,12 +296,7 @@ pub(crate) fn agents(
         let ids = group_ids(scenario, members);
         let mut c = node_command(exe, "agent", a, run);
         c.arg("--id").arg(ids.join(","));
-        for l in a
-            .opts
-            .leave
-            .iter()
-            .filter(|l| l.split_once('@').is_some_and(|(id, _)| ids.contains(&id.trim().to_string())))
-        {
+        for l in members.clone().flat_map(|i| a.opts.leaves_of(scenario.graph.id(i))) {
             c.arg("--leave").arg(l);
         }
         let mut connect = vec![mon_port, lead_port];

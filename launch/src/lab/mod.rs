@@ -664,8 +664,7 @@ impl Ctx<'_> {
     fn agent(&self, id: u32) -> Command {
         let mut c = self.node(&agent_host(id), "agent");
         c.arg("--id").arg(id.to_string());
-        for l in self.a.opts.leave.iter().filter(|l| l.split_once('@').is_some_and(|(i, _)| i.trim() == id.to_string()))
-        {
+        for l in self.a.opts.leaves_of(id) {
             c.arg("--leave").arg(l);
         }
         // Real time: the network performs the node rows. Lock-step keeps the
