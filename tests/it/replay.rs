@@ -48,14 +48,22 @@ fn a_real_time_run_replays_byte_for_byte() {
     assert!(share < 0.02, "the hearing record is {record} B, {:.2} % of the CSVs (2 % at most)", 100.0 * share);
     let (ok, text) = replay_cli(&["--explain", "--top", "2"], &out);
     assert!(ok, "--explain failed:\n{text}");
-    // What it says of the links it lists is of those it lists (it said "the top five" of two).
-    let said = text.lines().find(|l| l.contains("links heard differently")).unwrap_or_default();
-    assert!(
-        said.contains("the first 2 explain")
-            || said.contains("one at a time they explain")
-            || said.contains("it explains"),
-        "--top 2: {said}"
-    );
+    // What it says of the links it lists is of those it lists (it said "the
+    // top five" of two). A real-time run may hear exactly what the model
+    // assumes (no links table then) or differ on one link only ("1 link
+    // heard differently"): this test once failed a clean run that read so.
+    match text.lines().find(|l| l.contains("heard differently")) {
+        None => assert!(
+            !text.contains("links, by what"),
+            "--top 2: a links table without its line on the links heard differently:\n{text}"
+        ),
+        Some(said) => assert!(
+            said.contains("the first 2 explain")
+                || said.contains("one at a time they explain")
+                || said.starts_with("1 link heard differently; it explains"),
+            "--top 2: {said}"
+        ),
+    }
     for id in 1..=4 {
         assert!(
             text.lines().any(|l| l.split_whitespace().next() == Some(&id.to_string())),
