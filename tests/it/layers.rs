@@ -486,3 +486,39 @@ fn the_protocol_crate_has_no_runtime_no_network_and_reads_no_clock() {
     }
     assert!(readings.is_empty(), "the protocol reads a clock:\n{}", readings.join("\n"));
 }
+
+/// Cargo.toml builds the crates that run only inside the compiler
+/// (proc-macros, their parsers, build scripts' helpers) at opt-level 0: a
+/// clean test build 574 s → 434 s here (docs/performance.md). The list is
+/// by name, so it must follow the dependencies: every crate it names is
+/// still host-only (an optimised crate of the nodes' must not become an
+/// unoptimised one), and every host-only crate is named (or its time at
+/// opt-level 2 quietly comes back).
+#[test]
+fn the_crates_built_unoptimised_are_exactly_the_host_only_ones() {
+    let names = |edges: &str| -> BTreeSet<String> {
+        let out = std::process::Command::new(env!("CARGO"))
+            .args(["tree", "--offline", "--workspace", "-e", edges, "--prefix", "none", "--format", "{p}"])
+            .current_dir(root())
+            .output()
+            .expect("cargo tree");
+        assert!(out.status.success(), "cargo tree -e {edges}: {}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.split_whitespace().next()).map(String::from).collect()
+    };
+    let (all, target) = (names("all"), names("normal,dev,no-proc-macro"));
+    let host_only: BTreeSet<String> = all.difference(&target).cloned().collect();
+    let text = std::fs::read_to_string(root().join("Cargo.toml")).expect("Cargo.toml");
+    let listed: BTreeSet<String> = text
+        .lines()
+        .filter_map(|l| l.strip_suffix(" = { opt-level = 0 }"))
+        .map(|n| n.trim().to_string())
+        .collect();
+    assert!(listed.len() > 40, "Cargo.toml lists only {} crates at opt-level 0: the list's form changed?", listed.len());
+    let not_host: Vec<&String> = listed.difference(&host_only).collect();
+    assert!(not_host.is_empty(), "Cargo.toml builds {not_host:?} at opt-level 0, but a node links them (cargo tree)");
+    let unlisted: Vec<&String> = host_only.difference(&listed).collect();
+    assert!(
+        unlisted.is_empty(),
+        "{unlisted:?} run only inside the compiler: add them to Cargo.toml's [profile.dev.package] at opt-level 0"
+    );
+}
