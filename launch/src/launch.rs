@@ -98,6 +98,9 @@ pub fn run(a: &LaunchArgs) -> Result<(), Error> {
     }
     let (scenario, run, out) = a.opts.resolve()?;
     a.opts.warnings(&scenario, &out)?;
+    if !a.opts.absent.is_empty() && a.group > 1 {
+        return Err(Error::Input("--absent leaves out one follower's agent: it needs --group 1".into()));
+    }
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
@@ -203,7 +206,8 @@ fn announce(
     wiring: &Wiring,
     router_port: u16,
 ) {
-    let (n, mode) = (scenario.followers.len(), wiring.mode);
+    let (n, mode) = (scenario.followers.len() - a.opts.absent.len(), wiring.mode);
+    let groups = groups - a.opts.absent.len();
     eprintln!(
         "launching {} processes ({} mode, {} links, run {run}): leader, {n} agents{}, monitor{}",
         groups + 2 + usize::from(own_router) + if robots == Robots::StandIn { n } else { 0 },
@@ -214,7 +218,8 @@ fn announce(
             (true, _) => ", router".to_string(),
             (false, Some(r)) => format!(", all clients of the router at {r}"),
             (false, None) => String::new(),
-        } + if robots == Robots::StandIn { " and a stand-in robot per follower" } else { "" },
+        } + if robots == Robots::StandIn { " and a stand-in robot per follower" } else { "" }
+            + &absent_words(&a.opts.absent),
     );
     if let Some(line) = ros2_endpoint_line(scenario, mode, own_router, router_port) {
         eprintln!("{line}");
@@ -417,5 +422,15 @@ mod tests {
         assert!(matches!(ports(Some(0), 3), Err(Error::Input(_))));
         assert_eq!(ports(Some(65533), 3).ok(), Some(vec![65533, 65534, 65535]));
         assert!(matches!(ports(Some(65534), 3), Err(Error::Input(_))));
+    }
+}
+
+/// "; follower 3 absent (--absent)", or nothing.
+fn absent_words(absent: &[u32]) -> String {
+    let list = absent.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    match absent.len() {
+        0 => String::new(),
+        1 => format!("; follower {list} absent (--absent)"),
+        _ => format!("; followers {list} absent (--absent)"),
     }
 }

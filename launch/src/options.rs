@@ -5,7 +5,9 @@
 use std::path::{Path, PathBuf};
 
 use formation_topology::args::ScenarioArgs;
+use formation_protocol::barrier::{Quorum, START_TIMEOUT};
 use formation_topology::Scenario;
+use std::time::Duration;
 
 use crate::error::Error;
 
@@ -112,6 +114,24 @@ pub struct RunOptions {
     /// of it is the fault row `node = ID, from = SECONDS` to the end.
     #[cfg_attr(feature = "clap", arg(long = "leave", value_name = "ID@SECONDS"))]
     pub leave: Vec<String>,
+    /// Start with those present: once --quorum-wait has passed, the run
+    /// starts when N followers (and the monitor) are ready; the others are
+    /// absent, named in one line and in network.json, and cut off from the
+    /// start in the run and its model [default: every follower].
+    #[cfg_attr(feature = "clap", arg(long, value_name = "N"))]
+    pub quorum: Option<usize>,
+    /// With --quorum: how long every node waits for the others before the
+    /// leader starts with those present (s) [default: 10].
+    #[cfg_attr(feature = "clap", arg(long, value_name = "SECONDS", requires = "quorum"))]
+    pub quorum_wait: Option<f64>,
+    /// With --quorum: start even if, without the absent, some present
+    /// followers no longer reach the leader (else refused, naming them).
+    #[cfg_attr(feature = "clap", arg(long, requires = "quorum"))]
+    pub even_if_cut_off: bool,
+    /// Do not start follower ID's agent (repeatable; with --quorum): a
+    /// fleet with a robot missing.
+    #[cfg_attr(feature = "clap", arg(long, value_name = "ID", requires = "quorum"))]
+    pub absent: Vec<u32>,
 }
 
 /// `--robots`.
@@ -224,9 +244,50 @@ impl RunOptions {
         self.leave.iter().filter(move |l| l.split_once('@').is_some_and(|(i, _)| i.trim().parse() == Ok(id)))
     }
 
+    /// `--quorum`, `--quorum-wait` and `--absent`, in the leader's words.
+    fn check_quorum(&self, scenario: &Scenario) -> Result<(), Error> {
+        let Some(followers) = self.quorum else { return Ok(()) };
+        let wait = self.quorum_wait();
+        let limit = START_TIMEOUT.as_secs_f64();
+        if !(wait > 0.0 && wait <= limit) {
+            return Err(Error::Input(format!(
+                "--quorum-wait {wait}: give 0 < seconds <= {limit} (the start's time limit)"
+            )));
+        }
+        let q = Quorum { followers, wait: Duration::from_secs_f64(wait), even_if_cut_off: self.even_if_cut_off };
+        q.check(scenario.graph.len()).map_err(Error::Input)?;
+        if let Some(id) = self.absent.iter().find(|id| !scenario.graph.ids().contains(id)) {
+            return Err(Error::Input(format!("--absent {id}: no follower {id} in this scenario")));
+        }
+        let list = |v: &[u32]| v.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+        let present = scenario.graph.len() - self.absent.len();
+        if present < followers {
+            return Err(Error::Input(format!(
+                "--quorum {followers} with followers {} absent: only {present} can be ready",
+                list(&self.absent)
+            )));
+        }
+        let cut = scenario.graph.unreachable_without(&self.absent);
+        if !cut.is_empty() && !self.even_if_cut_off {
+            return Err(Error::Input(format!(
+                "--absent {}: without them, followers {} no longer reach the leader (Lemma 1); not started \
+                 (--even-if-cut-off starts anyway)",
+                list(&self.absent),
+                list(&cut)
+            )));
+        }
+        Ok(())
+    }
+
+    /// The quorum wait every node is given (s).
+    pub fn quorum_wait(&self) -> f64 {
+        self.quorum_wait.unwrap_or(formation_net::leader::QUORUM_WAIT.as_secs_f64())
+    }
+
     pub fn warnings(&self, scenario: &Scenario, out: &Path) -> Result<(), Error> {
         // Checked here, in the agents' own words, before anything starts.
         formation_net::agent::check_leaves(&self.leave, scenario)?;
+        self.check_quorum(scenario)?;
         let less = if self.mcap { "a shorter duration or no --mcap" } else { "a shorter duration" };
         crate::runsize::check(scenario, 1, true, self.mcap, out, less)?;
         if self.tls.is_none() && !self.quiet {

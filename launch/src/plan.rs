@@ -147,7 +147,22 @@ pub(crate) fn node_args(c: &mut Command, node: &str, opts: &RunOptions, run: &st
     c.args(["node", node]).arg("--run").arg(run);
     scenario_args(c, opts);
     tls_arg(c, opts);
+    quorum_args(c, node, opts);
     c.stdin(Stdio::null());
+}
+
+/// A quorum start: every node waits as long, and the leader decides.
+fn quorum_args(c: &mut Command, node: &str, opts: &RunOptions) {
+    let Some(n) = opts.quorum else { return };
+    if matches!(node, "leader" | "agent" | "monitor") {
+        c.arg("--quorum-wait").arg(opts.quorum_wait().to_string());
+    }
+    if node == "leader" {
+        c.arg("--quorum").arg(n.to_string());
+        if opts.even_if_cut_off {
+            c.arg("--even-if-cut-off");
+        }
+    }
 }
 
 /// `--scenario FILE --set …` of a run.
@@ -292,7 +307,12 @@ pub(crate) fn agents(
     let peer = wiring.mode == LaunchMode::Peer;
     let (mon_port, lead_port) = if peer { (p[0], p[1]) } else { (0, 0) };
     let mut planned = Vec::new();
+    // Agents left out (--absent): nobody dials them.
+    let absent = |h: usize| groups[h].clone().all(|i| a.opts.absent.contains(&scenario.graph.id(i)));
     for (g, members) in groups.iter().enumerate() {
+        if absent(g) {
+            continue;
+        }
         let ids = group_ids(scenario, members);
         let mut c = node_command(exe, "agent", a, run);
         c.arg("--id").arg(ids.join(","));
@@ -301,8 +321,12 @@ pub(crate) fn agents(
         }
         let mut connect = vec![mon_port, lead_port];
         if peer {
-            let mut dial: Vec<usize> =
-                members.clone().flat_map(|i| scenario.peers_of(i)).map(|j| j / a.group).filter(|&h| h < g).collect();
+            let mut dial: Vec<usize> = members
+                .clone()
+                .flat_map(|i| scenario.peers_of(i))
+                .map(|j| j / a.group)
+                .filter(|&h| h < g && !absent(h))
+                .collect();
             dial.sort_unstable();
             dial.dedup();
             connect.extend(dial.into_iter().map(|h| p[2 + h]));

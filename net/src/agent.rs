@@ -182,6 +182,7 @@ pub async fn run(
         Some(keys.run.clone()),
     ));
     let stall = Duration::from_secs_f64(args.stall_timeout);
+    let quorum_wait = args.node.quorum_wait()?;
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
     let driven = scenario.ros2.is_some_and(|r| r.robots.driven());
     let leave: Leave = Arc::default();
@@ -201,6 +202,7 @@ pub async fn run(
                 clock: args.node.clock.clone(),
                 leave: leave.clone(),
                 leave_at: leave_at.iter().find(|l| l.0 == id).map(|l| l.1),
+                quorum_wait,
             };
             let body: Box<dyn Body> = match odometry {
                 Some(inbox) => Box::new(DrivenRobot::new(&scenario, index, inbox)),
@@ -320,6 +322,8 @@ pub struct FollowerOptions {
     pub leave: Leave,
     /// `--leave`: the step before which this follower leaves the run.
     pub leave_at: Option<u64>,
+    /// `--quorum-wait`: ready from then on without the neighbours not heard.
+    pub quorum_wait: Option<Duration>,
 }
 
 /// A process's request that its followers leave the run, and why.
@@ -396,7 +400,16 @@ pub async fn run_follower(
         (Vec::new(), Default::default())
     };
     let needs = start_needs(scenario, index, &sources);
-    let start = startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock).await?;
+    let start =
+        startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock, opts.quorum_wait)
+            .await?;
+    if start.absent.contains(&id) {
+        return Err(Error::Run(format!(
+            "follower {id}: run {} started without it (not ready within the leader's quorum wait); a follower \
+             absent at the start does not join later",
+            keys.run
+        )));
+    }
     // Started: a later twin hears this follower's estimates from now on.
     drop(claiming);
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
@@ -410,7 +423,15 @@ pub async fn run_follower(
         let t = FollowerTopics::declare(node, scenario, id, driven, start.epoch_unix_ns).await?;
         *topics.lock().unwrap_or_else(|p| p.into_inner()) = Some(t);
     }
-    shared.lock().start(&start, resume, timebase.now());
+    {
+        let mut m = shared.lock();
+        m.start(&start, resume, timebase.now());
+        // Absent from the start: their links cut from step 0, as the model's
+        // node fault (docs/model.md §14).
+        for &gone in &start.absent {
+            m.handle_gone(gone, 0);
+        }
+    }
     let watcher = watch_router(session, &shared, lockstep).await;
     // Telemetry leaves the loop through a bounded store and a thread of its
     // own, so a slow or dead link to the monitor never holds a step; it is

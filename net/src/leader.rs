@@ -22,7 +22,7 @@ use crate::node::{NodeArgs, Shared};
 use crate::ros2::topics::LeaderTopics;
 use crate::startup;
 use crate::telemetry;
-use formation_protocol::barrier::Start;
+use formation_protocol::barrier::{Quorum, Start};
 use formation_protocol::codec;
 use formation_protocol::counters::QueryCount;
 use formation_protocol::error::{zerr, Error};
@@ -46,6 +46,30 @@ pub struct LeaderArgs {
     /// once the run starts (for `formation lab`, which times faults by it).
     #[cfg_attr(feature = "clap", arg(long, hide = true))]
     pub print_start: bool,
+    /// Start with those present: once --quorum-wait has passed (10 s if not
+    /// given), start when N followers (and the monitor) are ready; the
+    /// others are absent from the run, named in one line and in
+    /// network.json [default: every follower].
+    #[cfg_attr(feature = "clap", arg(long, value_name = "N"))]
+    pub quorum: Option<usize>,
+    /// With --quorum: start even if, without the absent followers, some
+    /// present ones no longer reach the leader (else refused, naming them).
+    #[cfg_attr(feature = "clap", arg(long, requires = "quorum"))]
+    pub even_if_cut_off: bool,
+}
+
+/// How long a leader with --quorum but no --quorum-wait waits for everyone.
+pub const QUORUM_WAIT: Duration = Duration::from_secs(10);
+
+impl LeaderArgs {
+    /// The quorum asked for, checked against the formation (exit 2).
+    pub fn quorum(&self, scenario: &Scenario) -> Result<Option<Quorum>, Error> {
+        let Some(followers) = self.quorum else { return Ok(None) };
+        let wait = self.node.quorum_wait()?.unwrap_or(QUORUM_WAIT);
+        let q = Quorum { followers, wait, even_if_cut_off: self.even_if_cut_off };
+        q.check(scenario.graph.len()).map_err(Error::Input)?;
+        Ok(Some(q))
+    }
 }
 
 pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
@@ -57,23 +81,34 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     if !(args.start_lead.is_finite() && args.start_lead >= 0.0) {
         return Err(Error::Input("--start-lead must be ≥ 0".into()));
     }
+    let quorum = args.quorum(&scenario)?;
     let session = args.node.open(names::LEADER, &scenario).await?;
     tokio::spawn(crate::denials::report(session.clone(), names::LEADER.to_string(), Some(keys.run.clone())));
     let lead = Duration::from_secs_f64(args.start_lead);
-    let result = run_leader(&session, &scenario, &keys, time_scale, lead, args.print_start, &args.node.clock).await;
+    let start = StartAs { time_scale, lead, print: args.print_start, quorum };
+    let result = run_leader(&session, &scenario, &keys, start, &args.node.clock).await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
+}
+
+/// How the leader starts its run: the time scale, how long before step 0
+/// the epoch is announced (real time), whether the start is printed (for
+/// `formation lab`), and a quorum start if asked.
+pub struct StartAs {
+    pub time_scale: f64,
+    pub lead: Duration,
+    pub print: bool,
+    pub quorum: Option<Quorum>,
 }
 
 pub async fn run_leader(
     session: &zenoh::Session,
     scenario: &Scenario,
     keys: &Keys,
-    time_scale: f64,
-    start_lead: Duration,
-    print_start: bool,
+    start_as: StartAs,
     clock: &clock::Clock,
 ) -> Result<(), Error> {
+    let StartAs { time_scale, lead: start_lead, print: print_start, quorum } = start_as;
     // A second formation with this run name: refuse before saying anything.
     let claiming = startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps(), clock).await?;
     // The run's timebase is this leader's clock; the others ask it from now on.
@@ -99,8 +134,11 @@ pub async fn run_leader(
     ready.push(MONITOR.to_string());
     let lead = if lockstep { Duration::ZERO } else { start_lead };
     let (start, announcer) =
-        startup::lead_start(session, keys, &timebase, &hellos, &ready, scenario, time_scale, lead).await?;
+        startup::lead_start(session, keys, &timebase, &hellos, &ready, scenario, time_scale, lead, quorum).await?;
     drop(claiming);
+    if !start.absent.is_empty() {
+        crate::node::say(&absent_line(&start.absent, scenario));
+    }
     if print_start {
         print_start_line(&start, &timebase);
     }
@@ -111,7 +149,13 @@ pub async fn run_leader(
     };
     // Telemetry through a bounded store and its own thread (see agent.rs).
     let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, scenario, clock).await?;
-    shared.lock().start(&start, timebase.now());
+    {
+        let mut m = shared.lock();
+        m.start(&start, timebase.now());
+        for &id in &start.absent {
+            m.handle_gone(id);
+        }
+    }
     let node = Node {
         shared: shared.clone(),
         publisher: estimate_pub,
@@ -133,6 +177,23 @@ pub async fn run_leader(
     drop(subs);
     drop(done_subs);
     outcome.map_err(|e| Error::Run(format!("leader: {e}")))
+}
+
+/// The leader's one line on a quorum start: who is absent, and whether the
+/// others still reach the leader (Lemma 1).
+fn absent_line(absent: &[u32], scenario: &Scenario) -> String {
+    let list = |v: &[u32]| v.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    let cut = scenario.graph.unreachable_without(absent);
+    let reach = if cut.is_empty() {
+        "every present follower reaches the leader".to_string()
+    } else {
+        format!("followers {} do not reach the leader (--even-if-cut-off)", list(&cut))
+    };
+    format!(
+        "leader: started without {} {} (absent: not ready within the quorum wait); {reach}",
+        if absent.len() == 1 { "follower" } else { "followers" },
+        list(absent)
+    )
 }
 
 /// One subscriber per hearing follower's estimate key: the machine files

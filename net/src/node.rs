@@ -68,6 +68,12 @@ pub struct NodeArgs {
     /// Give up when no router or peer answers at start-up within this long (s).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 10.0, value_name = "SECONDS"))]
     pub open_timeout: f64,
+    /// Start with those present: from this long after it began waiting
+    /// (s), the node is ready without the neighbours it has not heard, and
+    /// a leader with --quorum starts without the followers not ready
+    /// [default: everyone waits for everyone].
+    #[cfg_attr(feature = "clap", arg(long, value_name = "SECONDS"))]
+    pub quorum_wait: Option<f64>,
     /// The node's clock: every reading of the time it makes (this host's
     /// clocks; a test may give it a mock).
     #[cfg_attr(feature = "clap", arg(skip))]
@@ -91,6 +97,20 @@ impl NodeArgs {
             crate::identity::identity_for(dir, identity, &scenario).map_err(|e| Error::Input(e.0))?;
         }
         Ok((scenario, Keys::new(&run)))
+    }
+
+    /// `--quorum-wait`, checked (bad input: exit 2).
+    pub fn quorum_wait(&self) -> Result<Option<Duration>, Error> {
+        match self.quorum_wait {
+            None => Ok(None),
+            Some(w) if w > 0.0 && w <= formation_protocol::barrier::START_TIMEOUT.as_secs_f64() => {
+                Ok(Some(Duration::from_secs_f64(w)))
+            }
+            Some(w) => Err(Error::Input(format!(
+                "--quorum-wait {w}: give 0 < seconds <= {} (the start's time limit)",
+                formation_protocol::barrier::START_TIMEOUT.as_secs()
+            ))),
+        }
     }
 
     fn zenoh_as(&self, identity: &str) -> ZenohArgs {

@@ -10,7 +10,7 @@ use formation_topology::Scenario;
 
 use crate::clock::{self, Clock};
 use formation_protocol::barrier::{
-    fingerprint, key_digests, Hears, Join, JoinStep, Lead, LeadStep, Ready, ReadyForm, Start, TICK,
+    fingerprint, key_digests, Hears, Join, JoinStep, Lead, Quorum, LeadStep, Ready, ReadyForm, Start, TICK,
 };
 use formation_protocol::codec;
 use formation_protocol::error::{zerr, Error};
@@ -147,8 +147,12 @@ pub async fn wait_for_start(
     needs: &[String],
     scenario: &Scenario,
     clock: &Clock,
+    quorum_wait: Option<Duration>,
 ) -> Result<Start, Error> {
     let mut join = Join::new(me, &keys.run, needs, scenario, clock.mono());
+    if let Some(wait) = quorum_wait {
+        join = join.with_quorum_wait(wait);
+    }
     if std::env::var_os(crate::node::LAUNCHED_ENV).is_some() {
         join = join.without_waiting_line();
     }
@@ -194,9 +198,14 @@ pub async fn lead_start(
     scenario: &Scenario,
     time_scale: f64,
     lead: Duration,
+    quorum: Option<Quorum>,
 ) -> Result<(Start, tokio::task::JoinHandle<()>), Error> {
     let clock = timebase.clock();
-    let waiting = Waiting::new(Lead::new(&keys.run, needs_hello, expect_ready, scenario, clock.mono()), clock);
+    let mut machine = Lead::new(&keys.run, needs_hello, expect_ready, scenario, clock.mono());
+    if let Some(q) = quorum {
+        machine = machine.with_quorum(q, scenario.graph.clone());
+    }
+    let waiting = Waiting::new(machine, clock);
     let subs = listen(session, keys, &waiting, Whom::All).await?;
     loop {
         let step = waiting.lock().poll(waiting.now());
@@ -225,12 +234,13 @@ pub async fn lead_start(
     let session = session.clone();
     let key = keys.start();
     let timebase = timebase.clone();
+    let announced = start.clone();
     let task = tokio::spawn(async move {
         loop {
             // Each announcement stamped when it leaves: a floor for every
             // node's estimate of the leader's clock.
             let sent_ns = timebase.now_ns().unwrap_or(0);
-            if session.put(&key, codec::encode(&Start { sent_ns, ..start })).await.is_err() {
+            if session.put(&key, codec::encode(&Start { sent_ns, ..announced.clone() })).await.is_err() {
                 return;
             }
             tokio::time::sleep(Duration::from_millis(100)).await;

@@ -25,7 +25,7 @@ use std::time::Duration;
 
 use crate::Now;
 
-use formation_topology::Scenario;
+use formation_topology::{Graph, Scenario};
 use serde::{Deserialize, Serialize};
 
 use crate::error::Error;
@@ -42,7 +42,7 @@ pub struct Ready {
 
 /// The leader's go: the run's epoch (wall clock, ns since the Unix epoch:
 /// step k is due at epoch + k Δt / time_scale in real time) and time scale.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Start {
     pub fingerprint: u64,
     pub epoch_unix_ns: u64,
@@ -50,6 +50,9 @@ pub struct Start {
     /// The leader's timebase when this announcement left it (ns): a floor
     /// for every node's estimate of the leader's clock (`clockguard`).
     pub sent_ns: i64,
+    /// The followers the run starts without (a quorum start, [`Quorum`]),
+    /// by id, ascending: every node treats them as gone before step 0.
+    pub absent: Vec<u32>,
 }
 
 impl Start {
@@ -378,9 +381,20 @@ pub struct Join {
     /// one line: hundreds of agents would each say it).
     said_waiting: bool,
     quiet: Quiet,
+    /// A start with those present ([`Quorum`]): from this long after it
+    /// began, it says ready without the needed nodes it has not heard
+    /// (they may be absent from the run).
+    quorum_wait: Option<Duration>,
 }
 
 impl Join {
+    /// Says ready from `wait` on even without every needed node heard: the
+    /// leader may start with those present ([`Quorum`]).
+    pub fn with_quorum_wait(mut self, wait: Duration) -> Self {
+        self.quorum_wait = Some(wait);
+        self
+    }
+
     /// Leaves the "still waiting" line to the leader (a launch's nodes).
     pub fn without_waiting_line(mut self) -> Self {
         self.said_waiting = true;
@@ -400,6 +414,7 @@ impl Join {
             warned: false,
             said_waiting: false,
             quiet: Quiet { news: 0, since: Some(now) },
+            quorum_wait: None,
         }
     }
 
@@ -411,8 +426,8 @@ impl Join {
     /// What to do at `now` (called every tick, [`Hears::next_tick`]).
     pub fn poll(&mut self, now: Now) -> JoinStep {
         let (me, run, h) = (&self.me, &self.run, &self.heard);
-        if let Some(start) = h.start {
-            return JoinStep::Started(start);
+        if let Some(start) = &h.start {
+            return JoinStep::Started(start.clone());
         }
         if let Some(reason) = &h.abort {
             return JoinStep::Failed(Error::Input(format!("node {me}: the leader refused run {run}: {reason}")));
@@ -497,7 +512,8 @@ impl Join {
         };
         // The key digests (a few KB for a large scenario) go with every
         // DIGESTS_EVERY-th ready only; the fingerprint with every one.
-        let ready = waiting.is_empty().then(|| {
+        let quorum_over = self.quorum_wait.is_some_and(|w| now.saturating_sub(self.began) >= w);
+        let ready = (waiting.is_empty() || quorum_over).then(|| {
             let form = if self.readies % DIGESTS_EVERY == 0 { ReadyForm::Full } else { ReadyForm::Short };
             self.readies += 1;
             form
@@ -531,6 +547,51 @@ pub struct Lead {
     warned: BTreeSet<String>,
     said_waiting: bool,
     quiet: Quiet,
+    /// A start with those present, and the graph its Lemma-1 check reads.
+    quorum: Option<(Quorum, Graph)>,
+    /// The followers the start goes without (set when it goes).
+    absent: Vec<u32>,
+}
+
+/// How long after its quorum wait the leader decides who is absent: the
+/// followers' own waits (the same `--quorum-wait`) end about when the
+/// leader's does, and a follower that waited for an absent neighbour says
+/// ready only then.
+pub const QUORUM_GRACE: Duration = Duration::from_secs(1);
+
+/// A start with those present (docs/model.md §14): from `wait` (and
+/// [`QUORUM_GRACE`]) after the leader began waiting, it starts as soon as at least `followers`
+/// followers are ready (and every other node it expects, the monitor);
+/// the followers not ready then are absent from the run. Before `wait`
+/// only a complete formation starts.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Quorum {
+    pub followers: usize,
+    pub wait: Duration,
+    /// Start even if, without the absent, a present follower no longer
+    /// reaches the leader (Lemma 1); else the leader refuses, naming them.
+    pub even_if_cut_off: bool,
+}
+
+impl Quorum {
+    /// The quorum checked against a formation of `n` followers: one line
+    /// if it cannot be met or means nothing.
+    pub fn check(&self, n: usize) -> Result<(), String> {
+        if self.followers < 1 || self.followers > n {
+            return Err(format!(
+                "--quorum {}: a quorum is 1 to {n} followers (this formation has {n})",
+                self.followers
+            ));
+        }
+        if !(self.wait.as_secs_f64() > 0.0 && self.wait <= START_TIMEOUT) {
+            return Err(format!(
+                "--quorum-wait {} s: give 0 < seconds <= {} (the start's time limit)",
+                self.wait.as_secs_f64(),
+                START_TIMEOUT.as_secs()
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl Lead {
@@ -544,7 +605,21 @@ impl Lead {
             warned: BTreeSet::new(),
             said_waiting: false,
             quiet: Quiet { news: 0, since: Some(now) },
+            quorum: None,
+            absent: Vec::new(),
         }
+    }
+
+    /// Starts with those present ([`Quorum`]) on `graph`, the scenario's.
+    pub fn with_quorum(mut self, quorum: Quorum, graph: Graph) -> Self {
+        self.quorum = Some((quorum, graph));
+        self
+    }
+
+    /// The followers the start went without (empty until it goes, and for
+    /// a complete formation).
+    pub fn absent(&self) -> &[u32] {
+        &self.absent
     }
 
     /// Start and Ready messages ignored (another scenario, or an unexpected sender).
@@ -552,14 +627,48 @@ impl Lead {
         self.heard.ignored
     }
 
+    /// With a [`Quorum`] whose wait is over: go without the followers
+    /// missing if enough are ready and nothing else is missing; refuse if
+    /// the graph without them breaks Lemma 1 (unless told to go on).
+    fn quorum_step(&mut self, missing: &BTreeSet<String>, now: Now) -> Option<LeadStep> {
+        let (q, graph) = self.quorum.as_ref()?;
+        if now.saturating_sub(self.began) < q.wait + QUORUM_GRACE {
+            return None;
+        }
+        let absent: Vec<u32> = graph.ids().iter().copied().filter(|id| missing.contains(&id.to_string())).collect();
+        let others_missing = missing.iter().any(|n| n.parse::<u32>().map_or(true, |id| !graph.ids().contains(&id)));
+        if others_missing || graph.len() - absent.len() < q.followers {
+            return None;
+        }
+        let cut = graph.unreachable_without(&absent);
+        if !cut.is_empty() && !q.even_if_cut_off {
+            let list = |v: &[u32]| v.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+            let reason = format!(
+                "without the absent followers {}, followers {} no longer reach the leader (Lemma 1): not started \
+                 (--even-if-cut-off starts anyway)",
+                list(&absent),
+                list(&cut)
+            );
+            let error = Error::Input(format!("leader: {reason} (run {})", self.run));
+            return Some(LeadStep::Refuse { reason, error });
+        }
+        self.absent = absent;
+        Some(LeadStep::Go)
+    }
+
     /// What to do at `now` (called every tick, [`Hears::next_tick`]).
     pub fn poll(&mut self, now: Now) -> LeadStep {
-        let (run, h) = (&self.run, &self.heard);
+        let h = &self.heard;
         let hello_missing = h.missing(&h.hello, &self.needs_hello);
         let ready_missing = h.missing(&h.ready, &self.expect_ready);
         if hello_missing.is_empty() && ready_missing.is_empty() {
             return LeadStep::Go;
         }
+        let missing: BTreeSet<String> = hello_missing.iter().chain(&ready_missing).cloned().collect();
+        if let Some(step) = self.quorum_step(&missing, now) {
+            return step;
+        }
+        let (run, h) = (&self.run, &self.heard);
         let differs = |keys: &[String]| {
             if keys.is_empty() {
                 "(the keys that differ are not known: an older build?)".to_string()
@@ -613,6 +722,7 @@ impl Lead {
             epoch_unix_ns: now_unix_ns + lead.as_nanos() as u64,
             time_scale,
             sent_ns: now_unix_ns as i64,
+            absent: self.absent.clone(),
         }
     }
 }
@@ -658,7 +768,7 @@ mod tests {
     }
 
     fn start(s: &Scenario) -> Start {
-        Start { fingerprint: fingerprint(s), epoch_unix_ns: 1, time_scale: 1.0, sent_ns: 0 }
+        Start { fingerprint: fingerprint(s), epoch_unix_ns: 1, time_scale: 1.0, sent_ns: 0, absent: Vec::new() }
     }
 
     /// Polls every tick from `from` to `to` (virtual time), returning every step.
@@ -715,7 +825,7 @@ mod tests {
         assert_eq!(h.start, None);
         h.on_start(start(&s), t);
         h.on_start(start(&paper(&["dt=0.005"])), t);
-        assert_eq!(h.start.map(|x| x.fingerprint), Some(fingerprint(&s)));
+        assert_eq!(h.start.as_ref().map(|x| x.fingerprint), Some(fingerprint(&s)));
         // Ready from names outside the expected set, or with another fingerprint, does not count.
         h.on_ready("rogue", ready(&other), t);
         h.on_ready("rogue", ready(&s), t);
@@ -863,6 +973,91 @@ mod tests {
         assert_eq!(l.poll(t0 + SAY_WAITING_AFTER + TICK), LeadStep::Wait { warnings: vec![] }, "once");
     }
 
+    fn quorum(followers: usize, even_if_cut_off: bool) -> Quorum {
+        Quorum { followers, wait: Duration::from_secs(5), even_if_cut_off }
+    }
+
+    /// The paper's ring 1–2–4–3–1, the leader heard by follower 1: with
+    /// `ready` ready (and hellos from them), a leader with `q`.
+    fn leader_with(q: Quorum, ready_ones: &[&str]) -> Lead {
+        let s = paper(&[]);
+        let mut l = Lead::new("r", &names(&["1"]), &names(&["1", "2", "3", "4", "monitor"]), &s, Now::ZERO)
+            .with_quorum(q, s.graph.clone());
+        for n in ready_ones {
+            l.on_hello(n);
+            l.on_ready(n, ready(&s), Now::ZERO);
+        }
+        l
+    }
+
+    /// Issue 50: a quorum start goes without the followers not ready once
+    /// its wait is over, not before, and the start names them.
+    #[test]
+    fn a_quorum_starts_without_the_absent_after_its_wait_and_names_them() {
+        let mut l = leader_with(quorum(3, false), &["1", "2", "4", "monitor"]);
+        let wait = Duration::from_secs(5) + QUORUM_GRACE;
+        assert!(matches!(l.poll(Now::ZERO + wait - TICK), LeadStep::Wait { .. }), "not before the wait");
+        assert_eq!(l.poll(Now::ZERO + wait), LeadStep::Go);
+        assert_eq!(l.absent(), &[3]);
+        assert_eq!(l.start(1_000, Duration::ZERO, 1.0).absent, vec![3]);
+        // Everyone ready: a complete start at once, nobody absent.
+        let mut all = leader_with(quorum(3, false), &["1", "2", "3", "4", "monitor"]);
+        assert_eq!(all.poll(Now::ZERO), LeadStep::Go);
+        assert!(all.start(1_000, Duration::ZERO, 1.0).absent.is_empty());
+        // Too few followers, or the monitor missing: it waits on.
+        for (ready_ones, why) in [(&["1", "2", "monitor"][..], "two of four"), (&["1", "2", "3", "4"][..], "no monitor")] {
+            let mut l = leader_with(quorum(3, false), ready_ones);
+            assert!(matches!(l.poll(Now::ZERO + wait * 2), LeadStep::Wait { .. }), "{why}");
+        }
+    }
+
+    /// Without follower 1 (the one that hears the leader) the others no
+    /// longer reach it (Lemma 1): refused in one line naming them, unless
+    /// told to go on.
+    #[test]
+    fn a_quorum_that_cuts_followers_off_the_leader_is_refused_naming_them() {
+        let at = Now::ZERO + Duration::from_secs(5) + QUORUM_GRACE;
+        let mut l = leader_with(quorum(3, false), &["2", "3", "4", "monitor"]);
+        match l.poll(at) {
+            LeadStep::Refuse { reason, .. } => assert!(
+                reason.starts_with("without the absent followers 1, followers 2, 3, 4 no longer reach the leader")
+                    && !reason.contains('\n'),
+                "{reason}"
+            ),
+            other => panic!("{other:?}"),
+        }
+        let mut l = leader_with(quorum(3, true), &["2", "3", "4", "monitor"]);
+        assert_eq!(l.poll(at), LeadStep::Go);
+        assert_eq!(l.absent(), &[1]);
+    }
+
+    #[test]
+    fn a_quorum_outside_the_formation_or_a_wait_out_of_range_is_refused() {
+        for (n, ok) in [(0, false), (1, true), (4, true), (5, false)] {
+            assert_eq!(quorum(n, false).check(4).is_ok(), ok, "quorum {n}: {:?}", quorum(n, false).check(4));
+        }
+        assert_eq!(quorum(0, false).check(4).unwrap_err(), "--quorum 0: a quorum is 1 to 4 followers (this formation has 4)");
+        for w in [0.0, 121.0] {
+            let q = Quorum { wait: Duration::from_secs_f64(w), ..quorum(2, false) };
+            assert!(q.check(4).is_err(), "wait {w} s");
+        }
+    }
+
+    /// A follower whose neighbour may be absent says ready from the quorum
+    /// wait on, without having heard it.
+    #[test]
+    fn with_a_quorum_wait_a_node_says_ready_without_an_absent_neighbour() {
+        let (s, t0) = (paper(&[]), Now::ZERO);
+        let wait = Duration::from_secs(5);
+        let mut j = Join::new("1", "r", &names(&["2", "0"]), &s, t0).with_quorum_wait(wait);
+        j.on_hello("0");
+        assert!(matches!(j.poll(t0 + wait - TICK), JoinStep::Wait { ready: None, .. }), "not before the wait");
+        assert!(matches!(j.poll(t0 + wait), JoinStep::Wait { ready: Some(_), .. }));
+        let mut plain = Join::new("1", "r", &names(&["2", "0"]), &s, t0);
+        plain.on_hello("0");
+        assert!(matches!(plain.poll(t0 + wait * 4), JoinStep::Wait { ready: None, .. }), "no quorum: waits");
+    }
+
     #[test]
     fn the_leaders_refusal_ends_every_wait_with_its_reason() {
         let (s, t0) = (paper(&[]), Now::ZERO);
@@ -896,7 +1091,7 @@ mod tests {
         let go = l.start(1_000, Duration::from_millis(300), 2.0);
         assert_eq!(
             go,
-            Start { fingerprint: fingerprint(&s), epoch_unix_ns: 300_001_000, time_scale: 2.0, sent_ns: 1_000 }
+            Start { fingerprint: fingerprint(&s), epoch_unix_ns: 300_001_000, time_scale: 2.0, sent_ns: 1_000, absent: Vec::new() }
         );
     }
 

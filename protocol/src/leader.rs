@@ -410,7 +410,7 @@ mod tests {
         Scenario::load(&path, &sets).expect("the paper scenario")
     }
 
-    const START: Start = Start { fingerprint: 0, epoch_unix_ns: 1_000_000_000_000, time_scale: 1.0, sent_ns: 0 };
+    fn start0() -> Start { Start { fingerprint: 0, epoch_unix_ns: 1_000_000_000_000, time_scale: 1.0, sent_ns: 0, absent: Vec::new() } }
 
     /// A follower's message for `step`.
     fn from(id: u32, step: u64) -> Vec<u8> {
@@ -456,7 +456,7 @@ mod tests {
         let mut l = Leader::new(&paper(&["duration=2", "timing=lockstep"]));
         assert_eq!(l.hearing(), [1], "in the paper's graph only follower 1 hears the leader");
         let t0 = Duration::from_secs(1);
-        l.start(&START, t0);
+        l.start(&start0(), t0);
         run_while_due(&mut l, t0);
         let sent = steps_sent(&mut l);
         assert_eq!(sent.last(), Some(&(WINDOW - 1)), "published without a word from follower 1: {} steps", sent.len());
@@ -482,7 +482,7 @@ mod tests {
     fn a_shut_window_repeats_warns_and_gives_up() {
         let mut l = Leader::new(&paper(&["duration=2", "timing=lockstep"]));
         let t0 = Duration::from_secs(1);
-        l.start(&START, t0);
+        l.start(&start0(), t0);
         l.handle_estimate(Some(1), &from(1, 0));
         run_while_due(&mut l, t0);
         assert_eq!(steps_sent(&mut l).last(), Some(&WINDOW));
@@ -506,8 +506,8 @@ mod tests {
     #[test]
     fn in_real_time_a_step_goes_when_due_and_is_stamped_then() {
         let mut l = Leader::new(&paper(&["duration=1", "timing=realtime"]));
-        let epoch = Duration::from_nanos(START.epoch_unix_ns);
-        l.start(&START, epoch - Duration::from_millis(500));
+        let epoch = Duration::from_nanos(start0().epoch_unix_ns);
+        l.start(&start0(), epoch - Duration::from_millis(500));
         assert_eq!(steps_sent(&mut l), [0], "step 0's message goes at the start");
         assert_eq!(l.poll_timeout(), Some(epoch));
         l.handle_timeout(epoch - Duration::from_micros(1));
@@ -535,7 +535,7 @@ mod tests {
         let s = paper(&["duration=0.01", "timing=lockstep"]);
         let mut l = Leader::new(&s);
         let t0 = Duration::from_secs(1);
-        l.start(&START, t0);
+        l.start(&start0(), t0);
         for _ in 0..=s.steps() {
             l.handle_timeout(t0);
         }

@@ -509,6 +509,7 @@ mod tests {
             epoch_unix_ns: 1,
             time_scale: 1.0,
             sent_ns: 1,
+            absent: Vec::new(),
         });
         w.note("control/start", &start, 7);
         w.note("control/start", &start, 8);

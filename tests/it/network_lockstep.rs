@@ -133,6 +133,7 @@ async fn rogue_messages_are_rejected_and_counted() {
             epoch_unix_ns: 1,
             time_scale: 1.0,
             sent_ns: 0,
+            absent: Vec::new(),
         });
         let _ = tokio::time::timeout(Duration::from_secs(1), rogue.put("formation/rogue/control/start", foreign_start))
             .await;

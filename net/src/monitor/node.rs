@@ -310,14 +310,14 @@ impl Monitor<'_> {
         let ending = loop {
             tokio::select! {
                 r = &mut barrier, if !self.watch.started() => {
-                    if let Err(e) = r {
-                        return Ok(Stopped::NotStarted(e));
-                    }
+                    let start = match r {
+                        Ok(start) => start,
+                        Err(e) => return Ok(Stopped::NotStarted(e)),
+                    };
                     let startup = self.watch.on_start(self.args.node.clock.instant());
+                    self.recorder.absent(&start.absent);
                     if live {
-                        crate::node::say(&format!(
-                            "started: all {nodes} nodes ready {startup:.1} s after the monitor's start"
-                        ));
+                        crate::node::say(&started_line(nodes, &start.absent, startup));
                     }
                 }
                 m = self.ears.telemetry.recv() => {
@@ -410,7 +410,8 @@ async fn monitor(
     tokio::spawn(crate::denials::report(session.clone(), MONITOR.to_string(), Some(keys.run.clone())));
     let mut needs: Vec<String> = scenario.graph.ids().iter().map(u32::to_string).collect();
     needs.push(names::LEADER_NODE.to_string());
-    let barrier = startup::wait_for_start(session, keys, MONITOR, &needs, scenario, &args.node.clock);
+    let barrier =
+        startup::wait_for_start(session, keys, MONITOR, &needs, scenario, &args.node.clock, args.node.quorum_wait()?);
     tokio::pin!(barrier);
     let watch = Watch::new(began, args.node.clock.instant(), Duration::from_secs_f64(args.idle_timeout));
     let tty = std::io::stderr().is_terminal();
@@ -442,6 +443,20 @@ async fn monitor(
         f.stop().await;
     }
     result
+}
+
+/// The monitor's line at the start: everyone, or who is absent.
+fn started_line(nodes: usize, absent: &[u32], startup: f64) -> String {
+    if absent.is_empty() {
+        return format!("started: all {nodes} nodes ready {startup:.1} s after the monitor's start");
+    }
+    let list = absent.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    format!(
+        "started: {} of {nodes} nodes ready {startup:.1} s after the monitor's start; absent: {} {list} (a quorum \
+         start: cut off from the start in the run and in its model)",
+        nodes - absent.len(),
+        if absent.len() == 1 { "follower" } else { "followers" }
+    )
 }
 
 /// Judges the run against its model, writes the run folder and says how

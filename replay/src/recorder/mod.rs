@@ -149,6 +149,9 @@ struct FollowerTrack {
     left: Option<Left>,
 }
 
+/// Why a follower absent from a quorum start "left" (before step 0).
+pub const ABSENT: &str = "absent at the start";
+
 impl FollowerTrack {
     /// One past the last step it takes: the run's, or the one it left before.
     fn end_k(&self, steps: u64) -> u64 {
@@ -803,6 +806,18 @@ impl Recorder {
         self.nodes.values().all(|n| n.done)
             && self.leader_stream.end == steps + 1
             && self.followers.iter().all(|f| f.next_k >= f.end_k(steps) && f.pending.is_empty())
+    }
+
+    /// The followers the run started without (a quorum start): each as if
+    /// it left before step 0 (no rows; its neighbours and the model cut its
+    /// links from the start), and done: nothing more is waited for from it.
+    pub fn absent(&mut self, ids: &[u32]) {
+        for f in self.followers.iter_mut().filter(|f| ids.contains(&f.id) && f.next_k == 0) {
+            let why = ABSENT.to_string();
+            f.hearing.end = End::Left { k: 0, why: why.clone() };
+            f.left = Some(Left { at_k: 0, why });
+            self.nodes.entry(f.id).or_default().done = true;
+        }
     }
 
     /// The followers that left the run for good: id, the first step not

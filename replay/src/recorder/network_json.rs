@@ -67,6 +67,8 @@ impl Recorder {
             // Followers whose key carried a second sender (another process
             // with the same identity), as their neighbours saw it.
             "twins": self.twins(),
+            // Followers a quorum start went without (also in "left", at step 0).
+            "absent": self.left().iter().filter(|l| l.1 == 0 && l.2 == super::ABSENT).map(|l| l.0).collect::<Vec<_>>(),
             // Followers that left the run for good: the first step each did
             // not take, its time, and why (its process was told to stop).
             "left": self.left().iter().map(|(id, k, why)| json!({
