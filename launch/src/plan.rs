@@ -427,5 +427,23 @@ mod tests {
             links += want.len() - 2;
         }
         assert_eq!(links, s.graph.edge_count(), "agent-to-agent links against the graph's edges");
+        // A quorum start without follower 3 (index 2): no agent 3, nobody
+        // dials its port, every node waits as long, the leader decides.
+        let q = Cli::try_parse_from([
+            "launch", path, "--links", "tcp", "--base-port", "41000", "--quorum", "3", "--absent", "3",
+        ])
+        .expect("parses")
+        .l;
+        let without_3 = super::agents(&q, &s, "r", exe, &wiring, &groups, &p, Robots::Simulated);
+        let names: Vec<&str> = without_3.iter().map(|a| a.name.as_str()).collect();
+        assert_eq!(names, ["agent 1", "agent 2", "agent 4"]);
+        assert!(without_3.iter().all(|a| !dials(&a.command).contains(&ep(p[2 + 2]))), "agent 3's port dialled");
+        let args = |c: &Command| c.get_args().map(|a| a.to_string_lossy().into_owned()).collect::<Vec<_>>();
+        let [monitor, leader] = monitor_and_leader(&q, "r", Path::new("/tmp/out"), exe, &wiring, (p[0], p[1]));
+        for c in [&monitor.command, &leader.command, &without_3[0].command] {
+            assert!(args(c).windows(2).any(|w| w == ["--quorum-wait", "10"]), "{:?}", args(c));
+        }
+        assert!(args(&leader.command).windows(2).any(|w| w == ["--quorum", "3"]), "{:?}", args(&leader.command));
+        assert!(!args(&monitor.command).contains(&"--quorum".to_string()), "only the leader decides");
     }
 }

@@ -123,8 +123,11 @@ pub struct LinkFaultFile {
     pub link: Option<[u32; 2]>,
     /// Start, s of run time (inclusive).
     pub from: f64,
-    /// End, s of run time (exclusive).
-    pub to: f64,
+    /// End, s of run time (exclusive); left out: to the end of the run,
+    /// its last step included (a follower absent from the start, or one
+    /// that leaves for good: docs/model.md §14).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub to: Option<f64>,
     /// Probability that a message is lost (1: the link is down).
     #[serde(default = "d::loss")]
     pub loss: f64,

@@ -1504,24 +1504,26 @@ fn validate_faults(
             }
         };
         c.finite(&field("from"), &[f.from])?;
-        c.finite(&field("to"), &[f.to])?;
+        // No `to`: the rest of the run, its last step (t = T) included.
+        let to = f.to.unwrap_or(file.duration + file.dt);
+        c.finite(&field("to"), &[to])?;
         if f.from < 0.0 {
             return Err(c.fail(&field("from"), format!("{} s is before the run starts (t = 0)", f.from)));
         }
-        if f.from >= f.to {
+        if f.from >= to {
             return Err(c.fail(
                 &field("to"),
-                format!("the window [{}, {}) s is empty: `to` must be after `from`", f.from, f.to),
+                format!("the window [{}, {}) s is empty: `to` must be after `from`", f.from, to),
             ));
         }
-        let (from_k, to_k) = LinkFault { target, from_s: f.from, to_s: f.to, loss: f.loss }.steps(file.dt);
+        let (from_k, to_k) = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss }.steps(file.dt);
         if from_k >= to_k {
             return Err(c.fail(
                 &field("to"),
                 format!(
                     "the window [{}, {}) s covers no step of Δt = {} s (both ends round to step {from_k}): widen it",
                     f.from,
-                    f.to,
+                    to,
                     num(file.dt)
                 ),
             ));
@@ -1532,11 +1534,10 @@ fn validate_faults(
             return Err(c.fail(
                 &field("to"),
                 format!(
-                    "{} s is after the end of the run (T = {} s); use to = {} for the rest of the run, its last \
-                     step (t = T) included",
-                    f.to,
-                    file.duration,
-                    num(file.duration + file.dt)
+                    "{} s is after the end of the run (T = {} s); leave `to` out for the rest of the run, its \
+                     last step (t = T) included",
+                    to,
+                    file.duration
                 ),
             ));
         }
@@ -1544,7 +1545,7 @@ fn validate_faults(
         if !(0.0..=1.0).contains(&f.loss) {
             return Err(c.fail(&field("loss"), format!("{} is not a probability in [0, 1]", f.loss)));
         }
-        out.push(LinkFault { target, from_s: f.from, to_s: f.to, loss: f.loss });
+        out.push(LinkFault { target, from_s: f.from, to_s: to, loss: f.loss });
     }
     Ok(out)
 }
@@ -1722,7 +1723,14 @@ mod tests {
         let s = Scenario::from_toml(PAPER, "t.toml", "t", &set("2.001")).expect("T + dt");
         assert_eq!(s.faults[0].steps(s.dt_s), (1000, 2001), "the window covers steps 1000..=2000");
         let e = Scenario::from_toml(PAPER, "t.toml", "t", &set("2.002")).expect_err("T + 2 dt").to_string();
-        assert!(e.contains("use to = 2.001 for the rest of the run, its last step (t = T) included"), "{e}");
+        assert!(e.contains("leave `to` out for the rest of the run, its last step (t = T) included"), "{e}");
+        // Without `to`: the rest of the run (a follower absent from the
+        // start, from = 0, or one that leaves for good).
+        for (from, first) in [("0", 0), ("1", 1000)] {
+            let rest = vec![format!("faults=[{{node=3, from={from}}}]"), "duration=2".to_string()];
+            let s = Scenario::from_toml(PAPER, "t.toml", "t", &rest).expect("no to");
+            assert_eq!(s.faults[0].steps(s.dt_s), (first, 2001), "from = {from}: to the last step");
+        }
     }
 
     #[test]

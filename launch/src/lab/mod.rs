@@ -652,7 +652,10 @@ impl Ctx<'_> {
             dial.push("leader".into());
             if let Some(i) = self.scenario.index_of(id) {
                 let g = &self.scenario.graph;
-                dial.extend(self.scenario.peers_of(i).into_iter().filter(|&j| j < i).map(|j| agent_host(g.id(j))));
+                let absent = |j: usize| self.a.opts.absent.contains(&g.id(j));
+                dial.extend(
+                    self.scenario.peers_of(i).into_iter().filter(|&j| j < i && !absent(j)).map(|j| agent_host(g.id(j))),
+                );
             }
         }
         for d in dial {
@@ -793,7 +796,8 @@ impl Ctx<'_> {
         }
         let _socket = self.spawn_monitor(children).await?;
         let rx = self.spawn_leader(children)?;
-        for &id in self.scenario.graph.ids() {
+        // A quorum start's absent followers (--absent): their hosts stay empty.
+        for &id in self.scenario.graph.ids().iter().filter(|id| !self.a.opts.absent.contains(id)) {
             supervisor::spawn(children, &format!("agent {id}"), self.agent(id))?;
         }
 
