@@ -47,7 +47,7 @@ pub struct Summary {
 }
 
 /// How many samples a follower of an incomplete run recorded, of how many.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Shortfall {
     pub recorded: u64,
     /// steps + 1.
@@ -55,6 +55,10 @@ pub struct Shortfall {
     /// Of the missing ones, steps missing between recorded ones.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub in_gaps: u64,
+    /// It left the run for good (or was absent from a quorum start), and
+    /// why: its samples end there by design, not by loss.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub left: Option<String>,
 }
 
 impl Shortfall {
@@ -65,6 +69,11 @@ impl Shortfall {
             // To the microsecond: 1499 × 0.001 prints as 1.499, not 1.4990000000000001.
             n => format!(" (to t = {} s of T = {duration_s} s)", ((n - 1) as f64 * dt_s * 1e6).round() / 1e6),
         };
+        match (&self.left, self.recorded) {
+            (Some(why), 0) => return format!("follower {id} took no step ({why})"),
+            (Some(why), n) => return format!("follower {id} left after {n} of {} steps{reached} ({why})", self.expected),
+            (None, _) => {}
+        }
         if self.in_gaps > 0 && self.recorded + self.in_gaps == self.expected {
             return format!(
                 "follower {id} recorded {} of {} samples ({} missing in gaps: an agent that was down or telemetry \
@@ -117,13 +126,25 @@ impl Summary {
         for m in self.followers.values_mut() {
             m.null_unreached(self.steps);
         }
+        let was = std::mem::take(&mut self.incomplete);
         self.incomplete = self
             .followers
             .iter()
             .filter(|(_, m)| m.samples < expected)
-            .map(|(&id, m)| (id, Shortfall { recorded: m.samples, expected, in_gaps: m.gap_steps }))
+            .map(|(&id, m)| {
+                let left = was.get(&id).and_then(|s| s.left.clone());
+                (id, Shortfall { recorded: m.samples, expected, in_gaps: m.gap_steps, left })
+            })
             .collect();
         self.complete = self.incomplete.is_empty();
+    }
+
+    /// Follower `id` left the run for good before it ended (`why`: "SIGTERM",
+    /// "absent at the start", …): its shortfall says so.
+    pub fn mark_left(&mut self, id: u32, why: &str) {
+        if let Some(s) = self.incomplete.get_mut(&id) {
+            s.left = Some(why.to_string());
+        }
     }
 
     /// What the run is missing, a clause for each of the first three short

@@ -257,6 +257,9 @@ fn lockstep_a_quorum_start_without_follower_3_equals_sim_with_its_node_cut_off()
     assert_eq!(n["absent"], serde_json::json!([3]), "{}", n["absent"]);
     assert_eq!(n["left"][0]["why"], "absent at the start", "{}", n["left"]);
     assert_eq!(n["health"]["verdict"], "disturbed", "{}", n["health"]);
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(net.join("summary.json")).expect("summary.json")).expect("JSON");
+    assert_eq!(summary["incomplete"]["3"]["left"], "absent at the start", "{}", summary["incomplete"]);
     common::replays_byte_for_byte("lock-step quorum start", &net);
 }
 

@@ -310,11 +310,15 @@ impl Recorder {
 
     /// A replay: follower `index`'s restarts and end, as the run recorded them.
     pub fn replayed_hearing(&mut self, index: usize, resumes: &[Resume], end: End) {
-        let h = &mut self.followers[index].hearing;
+        let f = &mut self.followers[index];
         for r in resumes {
-            h.resumed(*r);
+            f.hearing.resumed(*r);
         }
-        h.end = end;
+        // A follower that left (or was absent) is one in the replay too.
+        if let End::Left { k, why } = &end {
+            f.left = Some(Left { at_k: *k, why: why.clone() });
+        }
+        f.hearing.end = end;
     }
 
     /// A replay: rows for every sample whose leader state is known.
@@ -923,6 +927,9 @@ impl Recorder {
         let outages = self.followers.iter().map(|f| (f.id, f.metrics.outages())).collect();
         let mut summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
         summary.safety = self.proximity.take();
+        for (id, _, why) in self.left() {
+            summary.mark_left(id, &why);
+        }
         let health = self.health(&summary);
         self.writer.write_file("network.json", &self.network_json_with(ending, health.as_ref()))?;
         if let Some(record) = self.hearing_record() {
