@@ -348,6 +348,28 @@ impl Shared {
     }
 }
 
+/// A follower the run started without (a quorum start) ends here: it does
+/// not join later.
+fn not_absent(id: u32, start: &Start, keys: &Keys) -> Result<(), Error> {
+    if !start.absent.contains(&id) {
+        return Ok(());
+    }
+    Err(Error::Run(format!(
+        "follower {id}: run {} started without it (not ready within the leader's quorum wait); a follower absent \
+         at the start does not join later",
+        keys.run
+    )))
+}
+
+/// Starts the machine; the followers absent from the start have their
+/// links cut from step 0, as the model's node fault (docs/model.md §14).
+fn start_machine(m: &mut Follower, start: &Start, resume: Option<(u64, Pose)>, now: formation_protocol::Now) {
+    m.start(start, resume, now);
+    for &gone in &start.absent {
+        m.handle_gone(gone, 0);
+    }
+}
+
 /// Runs the follower at `index` with `body` on an open session.
 pub async fn run_follower(
     session: &zenoh::Session,
@@ -371,9 +393,7 @@ pub async fn run_follower(
     };
     let sync = clock_sync::follow(session.clone(), keys, timebase.clone(), format!("follower {id}"), quarter_step_ns);
     let mut machine = Follower::new(scenario, index, body, &opts.protocol);
-    if let Some(k) = opts.leave_at {
-        machine.schedule_leave(k);
-    }
+    opts.leave_at.inspect(|&k| machine.schedule_leave(k));
     let sources = machine.source_ids().to_vec();
     let neighbours: Vec<u32> = sources.iter().copied().filter(|&s| s != wire::LEADER_ID).collect();
     let shared = Arc::new(Shared { machine: crate::node::Shared::new(machine), refused: Default::default() });
@@ -403,13 +423,7 @@ pub async fn run_follower(
     let start =
         startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock, opts.quorum_wait)
             .await?;
-    if start.absent.contains(&id) {
-        return Err(Error::Run(format!(
-            "follower {id}: run {} started without it (not ready within the leader's quorum wait); a follower \
-             absent at the start does not join later",
-            keys.run
-        )));
-    }
+    not_absent(id, &start, keys)?;
     // Started: a later twin hears this follower's estimates from now on.
     drop(claiming);
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
@@ -423,15 +437,7 @@ pub async fn run_follower(
         let t = FollowerTopics::declare(node, scenario, id, driven, start.epoch_unix_ns).await?;
         *topics.lock().unwrap_or_else(|p| p.into_inner()) = Some(t);
     }
-    {
-        let mut m = shared.lock();
-        m.start(&start, resume, timebase.now());
-        // Absent from the start: their links cut from step 0, as the model's
-        // node fault (docs/model.md §14).
-        for &gone in &start.absent {
-            m.handle_gone(gone, 0);
-        }
-    }
+    start_machine(&mut shared.lock(), &start, resume, timebase.now());
     let watcher = watch_router(session, &shared, lockstep).await;
     // Telemetry leaves the loop through a bounded store and a thread of its
     // own, so a slow or dead link to the monitor never holds a step; it is
