@@ -194,20 +194,9 @@ async fn rogue_messages_are_rejected_and_counted() {
 /// record ends before step 1000, and the run names the leave.
 #[test]
 fn lockstep_a_follower_that_leaves_equals_sim_with_its_node_cut_off() {
-    let base = Ports::free(LAUNCH_PORTS).release().to_string();
     let dir = tempfile::tempdir().expect("tempdir");
-    let (net, simd) = (dir.path().join("net"), dir.path().join("sim"));
-    let sets = ["duration=2"];
-    let mut g = Group::launch(&net, &sets, &["--base-port", &base, "--run", "ls-leave", "--leave", "3@1"]);
-    sim(&simd, &["duration=2", "faults+={node=3, from=1, to=2.001}"]);
-    let status = g.wait(LIMIT);
-    let n = network(&net);
-    assert!(status.success(), "formation launch: {status}: {}", n["health"]);
-    for f in ["follower_1.csv", "follower_2.csv", "follower_4.csv", "leader.csv"] {
-        let a = std::fs::read(net.join(f)).expect("net csv");
-        let b = std::fs::read(simd.join(f)).expect("sim csv");
-        assert!(a == b, "{f} differs from formation sim's with follower 3 cut off from 1 s");
-    }
+    let net = dir.path().join("net");
+    let n = without_follower_3(&net, &["--run", "ls-leave", "--leave", "3@1"], "faults+={node=3, from=1, to=2.001}");
     let rows3 = std::fs::read_to_string(net.join("follower_3.csv")).expect("follower_3.csv").lines().count();
     assert_eq!(rows3, 1 + 1000, "follower 3: a header and steps 0..1000");
     assert_eq!(
@@ -227,6 +216,28 @@ fn lockstep_a_follower_that_leaves_equals_sim_with_its_node_cut_off() {
     assert!(text.contains("the run heard exactly what the model assumes: no departure"), "{text}");
 }
 
+/// A 2 s lock-step launch of the paper with `flags` into `net`, in which
+/// follower 3 takes fewer steps than the run: every other follower's
+/// record and the leader's equal `formation sim` with the fault row `row`
+/// byte for byte. Its network.json.
+fn without_follower_3(net: &Path, flags: &[&str], row: &str) -> serde_json::Value {
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let simd = net.with_file_name("sim");
+    let mut args = vec!["--base-port", &base];
+    args.extend(flags);
+    let mut g = Group::launch(net, &["duration=2"], &args);
+    sim(&simd, &["duration=2", row]);
+    let status = g.wait(LIMIT);
+    let n = network(net);
+    assert!(status.success(), "formation launch {flags:?}: {status}: {}", n["health"]);
+    for f in ["follower_1.csv", "follower_2.csv", "follower_4.csv", "leader.csv"] {
+        let a = std::fs::read(net.join(f)).expect("net csv");
+        let b = std::fs::read(simd.join(f)).expect("sim csv");
+        assert!(a == b, "{flags:?}: {f} differs from formation sim's with {row}");
+    }
+    n
+}
+
 /// Issue 50's quorum start: follower 3's agent never started (`--absent
 /// 3`), the run starts with the three present once the quorum wait is
 /// over, names follower 3 absent (network.json, the leader's and the
@@ -235,23 +246,10 @@ fn lockstep_a_follower_that_leaves_equals_sim_with_its_node_cut_off() {
 /// the whole run (the model of an absent follower); follower 3 has no row.
 #[test]
 fn lockstep_a_quorum_start_without_follower_3_equals_sim_with_its_node_cut_off() {
-    let base = Ports::free(LAUNCH_PORTS).release().to_string();
     let dir = tempfile::tempdir().expect("tempdir");
-    let (net, simd) = (dir.path().join("net"), dir.path().join("sim"));
-    let sets = ["duration=2"];
-    let quorum = ["--quorum", "3", "--quorum-wait", "1", "--absent", "3"];
-    let mut args = vec!["--base-port", &base, "--run", "ls-quorum"];
-    args.extend(quorum);
-    let mut g = Group::launch(&net, &sets, &args);
-    sim(&simd, &["duration=2", "faults+={node=3, from=0}"]);
-    let status = g.wait(LIMIT);
-    let n = network(&net);
-    assert!(status.success(), "formation launch: {status}: {}", n["health"]);
-    for f in ["follower_1.csv", "follower_2.csv", "follower_4.csv", "leader.csv"] {
-        let a = std::fs::read(net.join(f)).expect("net csv");
-        let b = std::fs::read(simd.join(f)).expect("sim csv");
-        assert!(a == b, "{f} differs from formation sim's with follower 3 cut off throughout");
-    }
+    let net = dir.path().join("net");
+    let quorum = ["--run", "ls-quorum", "--quorum", "3", "--quorum-wait", "1", "--absent", "3"];
+    let n = without_follower_3(&net, &quorum, "faults+={node=3, from=0}");
     let rows3 = std::fs::read_to_string(net.join("follower_3.csv")).expect("follower_3.csv").lines().count();
     assert_eq!(rows3, 1, "follower 3: a header and no row");
     assert_eq!(n["absent"], serde_json::json!([3]), "{}", n["absent"]);
