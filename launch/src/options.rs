@@ -4,8 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
-use formation_topology::args::ScenarioArgs;
 use formation_protocol::barrier::{Quorum, START_TIMEOUT};
+use formation_topology::args::ScenarioArgs;
 use formation_topology::Scenario;
 use std::time::Duration;
 

@@ -430,7 +430,16 @@ mod tests {
         // A quorum start without follower 3 (index 2): no agent 3, nobody
         // dials its port, every node waits as long, the leader decides.
         let q = Cli::try_parse_from([
-            "launch", path, "--links", "tcp", "--base-port", "41000", "--quorum", "3", "--absent", "3",
+            "launch",
+            path,
+            "--links",
+            "tcp",
+            "--base-port",
+            "41000",
+            "--quorum",
+            "3",
+            "--absent",
+            "3",
         ])
         .expect("parses")
         .l;

@@ -10,7 +10,7 @@ use formation_topology::Scenario;
 
 use crate::clock::{self, Clock};
 use formation_protocol::barrier::{
-    fingerprint, key_digests, Hears, Join, JoinStep, Lead, Quorum, LeadStep, Ready, ReadyForm, Start, TICK,
+    fingerprint, key_digests, Hears, Join, JoinStep, Lead, LeadStep, Quorum, Ready, ReadyForm, Start, TICK,
 };
 use formation_protocol::codec;
 use formation_protocol::error::{zerr, Error};

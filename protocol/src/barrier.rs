@@ -1005,7 +1005,9 @@ mod tests {
         assert_eq!(all.poll(Now::ZERO), LeadStep::Go);
         assert!(all.start(1_000, Duration::ZERO, 1.0).absent.is_empty());
         // Too few followers, or the monitor missing: it waits on.
-        for (ready_ones, why) in [(&["1", "2", "monitor"][..], "two of four"), (&["1", "2", "3", "4"][..], "no monitor")] {
+        for (ready_ones, why) in
+            [(&["1", "2", "monitor"][..], "two of four"), (&["1", "2", "3", "4"][..], "no monitor")]
+        {
             let mut l = leader_with(quorum(3, false), ready_ones);
             assert!(matches!(l.poll(Now::ZERO + wait * 2), LeadStep::Wait { .. }), "{why}");
         }
@@ -1036,7 +1038,10 @@ mod tests {
         for (n, ok) in [(0, false), (1, true), (4, true), (5, false)] {
             assert_eq!(quorum(n, false).check(4).is_ok(), ok, "quorum {n}: {:?}", quorum(n, false).check(4));
         }
-        assert_eq!(quorum(0, false).check(4).unwrap_err(), "--quorum 0: a quorum is 1 to 4 followers (this formation has 4)");
+        assert_eq!(
+            quorum(0, false).check(4).unwrap_err(),
+            "--quorum 0: a quorum is 1 to 4 followers (this formation has 4)"
+        );
         for w in [0.0, 121.0] {
             let q = Quorum { wait: Duration::from_secs_f64(w), ..quorum(2, false) };
             assert!(q.check(4).is_err(), "wait {w} s");
@@ -1091,7 +1096,13 @@ mod tests {
         let go = l.start(1_000, Duration::from_millis(300), 2.0);
         assert_eq!(
             go,
-            Start { fingerprint: fingerprint(&s), epoch_unix_ns: 300_001_000, time_scale: 2.0, sent_ns: 1_000, absent: Vec::new() }
+            Start {
+                fingerprint: fingerprint(&s),
+                epoch_unix_ns: 300_001_000,
+                time_scale: 2.0,
+                sent_ns: 1_000,
+                absent: Vec::new()
+            }
         );
     }
 

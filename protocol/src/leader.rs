@@ -410,7 +410,9 @@ mod tests {
         Scenario::load(&path, &sets).expect("the paper scenario")
     }
 
-    fn start0() -> Start { Start { fingerprint: 0, epoch_unix_ns: 1_000_000_000_000, time_scale: 1.0, sent_ns: 0, absent: Vec::new() } }
+    fn start0() -> Start {
+        Start { fingerprint: 0, epoch_unix_ns: 1_000_000_000_000, time_scale: 1.0, sent_ns: 0, absent: Vec::new() }
+    }
 
     /// A follower's message for `step`.
     fn from(id: u32, step: u64) -> Vec<u8> {

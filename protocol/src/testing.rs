@@ -144,7 +144,13 @@ impl World {
         let followers = (0..scenario.followers.len())
             .map(|i| Follower::new(&scenario, i, Box::new(SimFollower::new(&scenario, i)), &opts))
             .collect();
-        let start = Start { fingerprint: 0, epoch_unix_ns: EPOCH.as_nanos() as u64, time_scale: 1.0, sent_ns: 0, absent: Vec::new() };
+        let start = Start {
+            fingerprint: 0,
+            epoch_unix_ns: EPOCH.as_nanos() as u64,
+            time_scale: 1.0,
+            sent_ns: 0,
+            absent: Vec::new(),
+        };
         Self {
             leader: Leader::new(&scenario),
             net: Network { queues: BTreeMap::new(), draws: Draws(0x9e37_79b9_7f4a_7c15), faults },

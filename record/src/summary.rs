@@ -71,7 +71,9 @@ impl Shortfall {
         };
         match (&self.left, self.recorded) {
             (Some(why), 0) => return format!("follower {id} took no step ({why})"),
-            (Some(why), n) => return format!("follower {id} left after {n} of {} steps{reached} ({why})", self.expected),
+            (Some(why), n) => {
+                return format!("follower {id} left after {n} of {} steps{reached} ({why})", self.expected)
+            }
             (None, _) => {}
         }
         if self.in_gaps > 0 && self.recorded + self.in_gaps == self.expected {

@@ -503,17 +503,22 @@ fn the_crates_built_unoptimised_are_exactly_the_host_only_ones() {
             .output()
             .expect("cargo tree");
         assert!(out.status.success(), "cargo tree -e {edges}: {}", String::from_utf8_lossy(&out.stderr));
-        String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.split_whitespace().next()).map(String::from).collect()
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .filter_map(|l| l.split_whitespace().next())
+            .map(String::from)
+            .collect()
     };
     let (all, target) = (names("all"), names("normal,dev,no-proc-macro"));
     let host_only: BTreeSet<String> = all.difference(&target).cloned().collect();
     let text = std::fs::read_to_string(root().join("Cargo.toml")).expect("Cargo.toml");
-    let listed: BTreeSet<String> = text
-        .lines()
-        .filter_map(|l| l.strip_suffix(" = { opt-level = 0 }"))
-        .map(|n| n.trim().to_string())
-        .collect();
-    assert!(listed.len() > 40, "Cargo.toml lists only {} crates at opt-level 0: the list's form changed?", listed.len());
+    let listed: BTreeSet<String> =
+        text.lines().filter_map(|l| l.strip_suffix(" = { opt-level = 0 }")).map(|n| n.trim().to_string()).collect();
+    assert!(
+        listed.len() > 40,
+        "Cargo.toml lists only {} crates at opt-level 0: the list's form changed?",
+        listed.len()
+    );
     let not_host: Vec<&String> = listed.difference(&host_only).collect();
     assert!(not_host.is_empty(), "Cargo.toml builds {not_host:?} at opt-level 0, but a node links them (cargo tree)");
     let unlisted: Vec<&String> = host_only.difference(&listed).collect();

@@ -1511,10 +1511,9 @@ fn validate_faults(
             return Err(c.fail(&field("from"), format!("{} s is before the run starts (t = 0)", f.from)));
         }
         if f.from >= to {
-            return Err(c.fail(
-                &field("to"),
-                format!("the window [{}, {}) s is empty: `to` must be after `from`", f.from, to),
-            ));
+            return Err(
+                c.fail(&field("to"), format!("the window [{}, {}) s is empty: `to` must be after `from`", f.from, to))
+            );
         }
         let (from_k, to_k) = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss }.steps(file.dt);
         if from_k >= to_k {
@@ -1536,8 +1535,7 @@ fn validate_faults(
                 format!(
                     "{} s is after the end of the run (T = {} s); leave `to` out for the rest of the run, its \
                      last step (t = T) included",
-                    to,
-                    file.duration
+                    to, file.duration
                 ),
             ));
         }
