@@ -4,10 +4,9 @@
 
 use std::path::{Path, PathBuf};
 
-use formation_protocol::barrier::{Quorum, START_TIMEOUT};
+use formation_protocol::barrier::{quorum_wait, Quorum};
 use formation_topology::args::ScenarioArgs;
 use formation_topology::Scenario;
-use std::time::Duration;
 
 use crate::error::Error;
 
@@ -247,14 +246,8 @@ impl RunOptions {
     /// `--quorum`, `--quorum-wait` and `--absent`, in the leader's words.
     fn check_quorum(&self, scenario: &Scenario) -> Result<(), Error> {
         let Some(followers) = self.quorum else { return Ok(()) };
-        let wait = self.quorum_wait();
-        let limit = START_TIMEOUT.as_secs_f64();
-        if !(wait > 0.0 && wait <= limit) {
-            return Err(Error::Input(format!(
-                "--quorum-wait {wait}: give 0 < seconds <= {limit} (the start's time limit)"
-            )));
-        }
-        let q = Quorum { followers, wait: Duration::from_secs_f64(wait), even_if_cut_off: self.even_if_cut_off };
+        let wait = quorum_wait(self.quorum_wait()).map_err(Error::Input)?;
+        let q = Quorum { followers, wait, even_if_cut_off: self.even_if_cut_off };
         q.check(scenario.graph.len()).map_err(Error::Input)?;
         if let Some(id) = self.absent.iter().find(|id| !scenario.graph.ids().contains(id)) {
             return Err(Error::Input(format!("--absent {id}: no follower {id} in this scenario")));

@@ -101,16 +101,7 @@ impl NodeArgs {
 
     /// `--quorum-wait`, checked (bad input: exit 2).
     pub fn quorum_wait(&self) -> Result<Option<Duration>, Error> {
-        match self.quorum_wait {
-            None => Ok(None),
-            Some(w) if w > 0.0 && w <= formation_protocol::barrier::START_TIMEOUT.as_secs_f64() => {
-                Ok(Some(Duration::from_secs_f64(w)))
-            }
-            Some(w) => Err(Error::Input(format!(
-                "--quorum-wait {w}: give 0 < seconds <= {} (the start's time limit)",
-                formation_protocol::barrier::START_TIMEOUT.as_secs()
-            ))),
-        }
+        self.quorum_wait.map(formation_protocol::barrier::quorum_wait).transpose().map_err(Error::Input)
     }
 
     fn zenoh_as(&self, identity: &str) -> ZenohArgs {

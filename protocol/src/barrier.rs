@@ -573,6 +573,23 @@ pub struct Quorum {
     pub even_if_cut_off: bool,
 }
 
+/// `--quorum-wait SECONDS` checked: more than 0, and short enough that the
+/// leader's decision ([`QUORUM_GRACE`] later) comes before the start's
+/// time limit ([`START_TIMEOUT`]). One line if not.
+pub fn quorum_wait(seconds: f64) -> Result<Duration, String> {
+    let most = (START_TIMEOUT - QUORUM_GRACE).as_secs_f64();
+    if seconds > 0.0 && seconds < most {
+        Ok(Duration::from_secs_f64(seconds))
+    } else {
+        Err(format!(
+            "--quorum-wait {seconds}: give 0 < seconds < {most} (the start's time limit, {} s, less the leader's \
+             {} s to decide)",
+            START_TIMEOUT.as_secs(),
+            QUORUM_GRACE.as_secs()
+        ))
+    }
+}
+
 impl Quorum {
     /// The quorum checked against a formation of `n` followers: one line
     /// if it cannot be met or means nothing.
@@ -583,13 +600,7 @@ impl Quorum {
                 self.followers
             ));
         }
-        if !(self.wait.as_secs_f64() > 0.0 && self.wait <= START_TIMEOUT) {
-            return Err(format!(
-                "--quorum-wait {} s: give 0 < seconds <= {} (the start's time limit)",
-                self.wait.as_secs_f64(),
-                START_TIMEOUT.as_secs()
-            ));
-        }
+        quorum_wait(self.wait.as_secs_f64())?;
         Ok(())
     }
 }
@@ -1042,7 +1053,7 @@ mod tests {
             quorum(0, false).check(4).unwrap_err(),
             "--quorum 0: a quorum is 1 to 4 followers (this formation has 4)"
         );
-        for w in [0.0, 121.0] {
+        for w in [0.0, 119.0, 121.0] {
             let q = Quorum { wait: Duration::from_secs_f64(w), ..quorum(2, false) };
             assert!(q.check(4).is_err(), "wait {w} s");
         }

@@ -137,6 +137,11 @@ pub struct World {
     pub leader_telemetry: Vec<Telemetry>,
 }
 
+/// The leader's start of a complete run at [`EPOCH`], time scale 1.
+pub fn start_at_epoch() -> Start {
+    Start { fingerprint: 0, epoch_unix_ns: EPOCH.as_nanos() as u64, time_scale: 1.0, sent_ns: 0, absent: Vec::new() }
+}
+
 impl World {
     /// The scenario's machines at [`EPOCH`], not started.
     pub fn new(scenario: Scenario, faults: Faults) -> Self {
@@ -144,13 +149,7 @@ impl World {
         let followers = (0..scenario.followers.len())
             .map(|i| Follower::new(&scenario, i, Box::new(SimFollower::new(&scenario, i)), &opts))
             .collect();
-        let start = Start {
-            fingerprint: 0,
-            epoch_unix_ns: EPOCH.as_nanos() as u64,
-            time_scale: 1.0,
-            sent_ns: 0,
-            absent: Vec::new(),
-        };
+        let start = start_at_epoch();
         Self {
             leader: Leader::new(&scenario),
             net: Network { queues: BTreeMap::new(), draws: Draws(0x9e37_79b9_7f4a_7c15), faults },

@@ -18,10 +18,9 @@ use std::path::Path;
 use std::time::Duration;
 
 use formation_leader::LeaderState;
-use formation_protocol::barrier::Start;
 use formation_protocol::follower::{self, Follower, Options};
 use formation_protocol::telemetry::{EventKind, Telemetry};
-use formation_protocol::testing::{Faults, World, EPOCH};
+use formation_protocol::testing::{start_at_epoch, Faults, World, EPOCH};
 use formation_protocol::Now;
 use formation_record::FollowerSample;
 use formation_sim::{Observer, SimFollower, Simulation};
@@ -258,13 +257,7 @@ fn realtime_a_message_from_the_future_is_refused() {
 #[test]
 fn realtime_a_restart_rejoins_ahead_of_the_run_and_adopts_before_publishing() {
     let s = paper(REALTIME);
-    let start = Start {
-        fingerprint: 0,
-        epoch_unix_ns: EPOCH.as_nanos() as u64,
-        time_scale: 1.0,
-        sent_ns: 0,
-        absent: Vec::new(),
-    };
+    let start = start_at_epoch();
     assert_eq!(follower::rejoin_step(&start, 0.1, &s), Ok(0), "a start 0.1 s old is not a restart");
     let k = follower::rejoin_step(&start, 1.5, &s).expect("the run is on");
     assert_eq!(k, 1_700, "1.5 s into the run plus 0.2 s to set up, at 1 ms a step");
@@ -301,13 +294,7 @@ fn realtime_a_restart_rejoins_ahead_of_the_run_and_adopts_before_publishing() {
 /// neighbours' repeats first (a follower with none starts afresh).
 #[test]
 fn a_late_process_joins_by_one_rule_in_both_timings() {
-    let start = Start {
-        fingerprint: 0,
-        epoch_unix_ns: EPOCH.as_nanos() as u64,
-        time_scale: 1.0,
-        sent_ns: 0,
-        absent: Vec::new(),
-    };
+    let start = start_at_epoch();
     let rt = paper(REALTIME);
     assert_eq!(follower::joining(&start, 0.1, &rt, 0), Ok(follower::Joining::Fresh));
     assert_eq!(follower::joining(&start, 1.5, &rt, 0), Ok(follower::Joining::At(1_700)));

@@ -271,7 +271,10 @@ fn a_bad_quorum_is_refused_up_front_in_one_line() {
     let cases: [(&[&str], &str); 6] = [
         (&["--quorum", "0"], "--quorum 0: a quorum is 1 to 4 followers (this formation has 4)"),
         (&["--quorum", "5"], "--quorum 5: a quorum is 1 to 4 followers"),
-        (&["--quorum", "3", "--quorum-wait", "0"], "--quorum-wait 0: give 0 < seconds <= 120"),
+        (
+            &["--quorum", "3", "--quorum-wait", "0"],
+            "--quorum-wait 0: give 0 < seconds < 119 (the start's time limit, 120 s",
+        ),
         (&["--quorum", "3", "--absent", "9"], "--absent 9: no follower 9 in this scenario"),
         (&["--quorum", "4", "--absent", "3"], "--quorum 4 with followers 3 absent: only 3 can be ready"),
         (&["--quorum", "3", "--absent", "1"], "--absent 1: without them, followers 2, 3, 4 no longer reach the leader"),
