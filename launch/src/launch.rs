@@ -427,7 +427,7 @@ mod tests {
 
 /// "; follower 3 absent (--absent)", or nothing.
 fn absent_words(absent: &[u32]) -> String {
-    let list = absent.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    let list = formation_topology::graph::id_list(absent);
     match absent.len() {
         0 => String::new(),
         1 => format!("; follower {list} absent (--absent)"),

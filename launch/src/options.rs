@@ -252,7 +252,7 @@ impl RunOptions {
         if let Some(id) = self.absent.iter().find(|id| !scenario.graph.ids().contains(id)) {
             return Err(Error::Input(format!("--absent {id}: no follower {id} in this scenario")));
         }
-        let list = |v: &[u32]| v.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+        let list = formation_topology::graph::id_list;
         let present = scenario.graph.len() - self.absent.len();
         if present < followers {
             return Err(Error::Input(format!(

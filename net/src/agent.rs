@@ -137,7 +137,7 @@ pub fn check_leaves(leave: &[String], scenario: &Scenario) -> Result<(), Error> 
     if cut.is_empty() {
         return Ok(());
     }
-    let names = |ids: &[u32]| ids.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    let names = formation_topology::graph::id_list;
     Err(Error::Input(format!(
         "--leave: without follower{} {} no path leads from the leader to follower{} {} (Lemma 1): their estimates \
          of the leader would drift; leave another follower, or fewer",

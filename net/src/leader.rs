@@ -182,7 +182,7 @@ pub async fn run_leader(
 /// The leader's one line on a quorum start: who is absent, and whether the
 /// others still reach the leader (Lemma 1).
 fn absent_line(absent: &[u32], scenario: &Scenario) -> String {
-    let list = |v: &[u32]| v.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    let list = formation_topology::graph::id_list;
     let cut = scenario.graph.unreachable_without(absent);
     let reach = if cut.is_empty() {
         "every present follower reaches the leader".to_string()

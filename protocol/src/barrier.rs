@@ -653,7 +653,7 @@ impl Lead {
         }
         let cut = graph.unreachable_without(&absent);
         if !cut.is_empty() && !q.even_if_cut_off {
-            let list = |v: &[u32]| v.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+            let list = formation_topology::graph::id_list;
             let reason = format!(
                 "without the absent followers {}, followers {} no longer reach the leader (Lemma 1): not started \
                  (--even-if-cut-off starts anyway)",

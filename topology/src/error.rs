@@ -35,6 +35,4 @@ fn location(file: &str, line: Option<usize>) -> String {
     }
 }
 
-fn list(ids: &[u32]) -> String {
-    ids.iter().map(|i| i.to_string()).collect::<Vec<_>>().join(", ")
-}
+use crate::graph::id_list as list;

@@ -13,6 +13,11 @@ pub const DENSE_EIGEN_LIMIT: usize = 1500;
 /// Steps of the recursion [`Graph::estimator_growth`] iterates.
 pub const GROWTH_STEPS: usize = 4000;
 
+/// Follower ids as people read them in a line: "2, 3, 4".
+pub fn id_list(ids: &[u32]) -> String {
+    ids.iter().map(u32::to_string).collect::<Vec<_>>().join(", ")
+}
+
 /// An undirected follower graph with leader links.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Graph {

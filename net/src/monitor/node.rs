@@ -450,7 +450,7 @@ fn started_line(nodes: usize, absent: &[u32], startup: f64) -> String {
     if absent.is_empty() {
         return format!("started: all {nodes} nodes ready {startup:.1} s after the monitor's start");
     }
-    let list = absent.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    let list = formation_topology::graph::id_list(absent);
     format!(
         "started: {} of {nodes} nodes ready {startup:.1} s after the monitor's start; absent: {} {list} (a quorum \
          start: cut off from the start in the run and in its model)",
