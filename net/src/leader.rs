@@ -56,6 +56,15 @@ pub struct LeaderArgs {
     /// present ones no longer reach the leader (else refused, naming them).
     #[cfg_attr(feature = "clap", arg(long, requires = "quorum"))]
     pub even_if_cut_off: bool,
+    /// Stand by for the leader of a run (another process, on this host or
+    /// another): take the run over, on its timebase and trajectory, once
+    /// the leader has been silent for --take-over-after (docs/model.md §14).
+    #[cfg_attr(feature = "clap", arg(long, conflicts_with_all = ["quorum", "print_start"]))]
+    pub standby: bool,
+    /// With --standby: how long the leader's silence lasts before this
+    /// process takes over (s).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.5, value_name = "SECONDS", requires = "standby"))]
+    pub take_over_after: f64,
 }
 
 /// How long a leader with --quorum but no --quorum-wait waits for everyone.
@@ -82,11 +91,19 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
         return Err(Error::Input("--start-lead must be ≥ 0".into()));
     }
     let quorum = args.quorum(&scenario)?;
+    let after = args.take_over_after;
+    if !(after.is_finite() && after > 0.0) {
+        return Err(Error::Input(format!("--take-over-after must be a positive number of seconds, not {after}")));
+    }
     let session = args.node.open(names::LEADER, &scenario).await?;
     tokio::spawn(crate::denials::report(session.clone(), names::LEADER.to_string(), Some(keys.run.clone())));
     let lead = Duration::from_secs_f64(args.start_lead);
     let start = StartAs { time_scale, lead, print: args.print_start, quorum };
-    let result = run_leader(&session, &scenario, &keys, start, &args.node.clock).await;
+    let clock = &args.node.clock;
+    let result = match args.standby {
+        true => crate::standby::run(&session, &scenario, &keys, Duration::from_secs_f64(after), clock).await,
+        false => run_leader(&session, &scenario, &keys, start, clock).await,
+    };
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
 }
@@ -135,7 +152,6 @@ pub async fn run_leader(
     let lead = if lockstep { Duration::ZERO } else { start_lead };
     let (start, announcer) =
         startup::lead_start(session, keys, &timebase, &hellos, &ready, scenario, time_scale, lead, quorum).await?;
-    drop(claiming);
     if !start.absent.is_empty() {
         crate::node::say(&absent_line(&start.absent, scenario));
     }
@@ -166,6 +182,7 @@ pub async fn run_leader(
         topics,
         lockstep,
         incarnation: clock.unix_ns(),
+        on_take_over: None,
     };
     let outcome = tokio::task::spawn_blocking(move || node.drive())
         .await
@@ -173,6 +190,9 @@ pub async fn run_leader(
     telemetry::finish_delivery(delivery, "leader").await;
     drop(acks);
     announcer.abort();
+    // Said through the run: a standby that took over while this leader was
+    // cut off hears it, and defers.
+    drop(claiming);
     drop(time_server);
     drop(subs);
     drop(done_subs);
@@ -198,7 +218,7 @@ fn absent_line(absent: &[u32], scenario: &Scenario) -> String {
 
 /// One subscriber per hearing follower's estimate key: the machine files
 /// how far each has reached, and the loop wakes when the window opens.
-async fn watch_reached(
+pub(crate) async fn watch_reached(
     session: &zenoh::Session,
     keys: &Keys,
     hearing: &[u32],
@@ -233,25 +253,27 @@ fn print_start_line(start: &Start, timebase: &clock::Timebase) {
 }
 
 /// The loop's side of the node: the machine, and where its answers go.
-struct Node {
-    shared: Arc<Shared<Machine>>,
-    publisher: Publisher<'static>,
-    courier: Arc<Courier>,
-    timebase: clock::Timebase,
+pub(crate) struct Node {
+    pub shared: Arc<Shared<Machine>>,
+    pub publisher: Publisher<'static>,
+    pub courier: Arc<Courier>,
+    pub timebase: clock::Timebase,
     /// Lock-step: hearing followers that reported their final step.
-    followers_done: telemetry::Ends,
-    queries: Arc<QueryCount>,
-    topics: Option<LeaderTopics>,
-    lockstep: bool,
+    pub followers_done: telemetry::Ends,
+    pub queries: Arc<QueryCount>,
+    pub topics: Option<LeaderTopics>,
+    pub lockstep: bool,
     /// This process's start (ns since the Unix epoch), sent with telemetry.
-    incarnation: u64,
+    pub incarnation: u64,
+    /// A standby: told the step once the machine has taken the run over.
+    pub on_take_over: Option<tokio::sync::oneshot::Sender<u64>>,
 }
 
 impl Node {
     /// Feeds the machine the time until it is done, sleeping between turns
     /// until its next deadline (real time) or until the window opens
     /// (lock-step), on a thread of its own.
-    fn drive(mut self) -> Result<(), String> {
+    pub fn drive(mut self) -> Result<(), String> {
         loop {
             if let Some(r) = self.turn() {
                 return r;
@@ -276,6 +298,11 @@ impl Node {
         let said: Vec<String> = std::iter::from_fn(|| m.poll_say()).collect();
         let state = m.take_state();
         let outcome = m.outcome().cloned();
+        if let Some(k) = m.took_over() {
+            if let Some(tell) = self.on_take_over.take() {
+                let _ = tell.send(k);
+            }
+        }
         drop(m);
         if let (Some(t), Some((k, state))) = (self.topics.as_mut(), state) {
             if let Err(e) = t.publish(k, &state) {

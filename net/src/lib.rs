@@ -32,6 +32,7 @@ pub mod node;
 pub mod ros2;
 pub mod router;
 pub mod session;
+pub mod standby;
 pub mod startup;
 pub mod telemetry;
 pub mod timer;

@@ -231,22 +231,85 @@ pub async fn lead_start(
     drop(subs);
     let now = timebase.now_ns().unwrap_or(0).max(0) as u64;
     let start = waiting.lock().start(now, lead, time_scale);
-    let session = session.clone();
-    let key = keys.start();
-    let timebase = timebase.clone();
-    let announced = start.clone();
-    let task = tokio::spawn(async move {
+    let task = announce(session, keys, timebase, start.clone());
+    Ok((start, task))
+}
+
+/// Announces `start` every 100 ms until the returned task is aborted (the
+/// leader through its run, and a standby once it has taken the run over),
+/// each announcement stamped on `timebase` when it leaves: a floor for
+/// every node's estimate of the leader's clock.
+pub fn announce(
+    session: &zenoh::Session,
+    keys: &Keys,
+    timebase: &clock::Timebase,
+    start: Start,
+) -> tokio::task::JoinHandle<()> {
+    let (session, key, timebase) = (session.clone(), keys.start(), timebase.clone());
+    tokio::spawn(async move {
         loop {
-            // Each announcement stamped when it leaves: a floor for every
-            // node's estimate of the leader's clock.
             let sent_ns = timebase.now_ns().unwrap_or(0);
-            if session.put(&key, codec::encode(&Start { sent_ns, ..announced.clone() })).await.is_err() {
+            if session.put(&key, codec::encode(&Start { sent_ns, ..start.clone() })).await.is_err() {
                 return;
             }
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
-    });
-    Ok((start, task))
+    })
+}
+
+/// A claim to lead said through the run (a standby that took over): the
+/// claims of other processes it hears, and its own.
+pub struct Leading {
+    _saying: Claiming,
+    _listening: zenoh::pubsub::Subscriber<()>,
+    heard: Arc<Mutex<Vec<formation_protocol::claim::Claim>>>,
+    mine: formation_protocol::claim::Claim,
+}
+
+impl Leading {
+    /// Says this process's claim to lead on `control/claim/0`, made now,
+    /// every [`CLAIM_EVERY`], and listens there for the others'.
+    pub async fn claim(session: &zenoh::Session, keys: &Keys, clock: &Clock) -> Result<Self, Error> {
+        use formation_protocol::claim::Claim;
+        let id = formation_topology::wire::LEADER_ID;
+        let mine = Claim::new(id, clock.unix_ns(), nonce(id), std::process::id(), &host());
+        let heard: Arc<Mutex<Vec<Claim>>> = Arc::default();
+        let (h, own) = (heard.clone(), mine.nonce);
+        let listening = session
+            .declare_subscriber(keys.claim(id))
+            .callback(move |sample| {
+                let Some(other) = codec::decode::<Claim>(&sample.payload().to_bytes()) else { return };
+                let mut h = lock(&h);
+                if other.id == id && other.nonce != own && h.len() < 16 && !h.contains(&other) {
+                    h.push(other);
+                }
+            })
+            .await
+            .map_err(|e| zerr("listening for another leader's claim", e))?;
+        let publisher =
+            session.declare_publisher(keys.claim(id)).await.map_err(|e| zerr("declaring the claim to lead", e))?;
+        let bytes = codec::encode(&mine);
+        let saying = Claiming(tokio::spawn(async move {
+            loop {
+                let _ = publisher.put(bytes.clone()).await;
+                tokio::time::sleep(CLAIM_EVERY).await;
+            }
+        }));
+        Ok(Self { _saying: saying, _listening: listening, heard, mine })
+    }
+
+    /// The line this process ends with if another, leading since before it
+    /// took over, is heard: the later one defers.
+    pub fn deferral(&self, run: &str) -> Option<String> {
+        let heard = lock(&self.heard);
+        let first = formation_protocol::claim::winner(&self.mine, heard.iter())?;
+        Some(format!(
+            "run {run}: two leaders: another ({}) leads; this one (process {}, which took the run over later) \
+             defers and ends",
+            first.describe(&self.mine),
+            self.mine.pid
+        ))
+    }
 }
 
 /// How long a node listens for a twin before it joins a run.

@@ -32,11 +32,31 @@ use crate::barrier::Start;
 use crate::counters::Counters;
 use crate::gate::{self, Kept, Phase, WINDOW};
 use crate::loop_timing::{LoopStats, LoopTimer};
-use crate::telemetry::{Delivery, Telemetry};
+use crate::telemetry::{Delivery, Handover, Telemetry};
 use crate::Now;
 
 /// Lock-step: how long the leader keeps repeating after its last step.
 pub const LINGER: Duration = Duration::from_secs(2);
+
+/// How long a standby hears nothing from the leader before it takes the
+/// run over, by default: 200 steps in real time at 1 kHz; in lock-step the
+/// leader, even while it waits, repeats every [`gate::LEADER_REPEAT_EVERY`].
+pub const TAKE_OVER_AFTER: Duration = Duration::from_millis(500);
+
+/// How far back of the newest step heard from the leader a standby sends
+/// the leader's states to the monitor when it takes over (the steps the
+/// leader that is gone may not have delivered), besides two batches.
+const RECORD_BACK: Duration = Duration::from_secs(1);
+
+/// A standby leader before it takes over: what it heard of the leader.
+struct Standby {
+    after: Duration,
+    start: Option<Start>,
+    /// The newest step heard from the leader.
+    heard: Option<u64>,
+    /// When the leader was last heard (or the start, before that).
+    heard_at: Now,
+}
 
 /// A telemetry batch as the machine knows it; the node adds how its
 /// delivery goes and its clock server's count ([`LeaderBatch::into_telemetry`]).
@@ -49,6 +69,7 @@ pub struct LeaderBatch {
     counters: Counters,
     done: bool,
     loop_stats: Option<LoopStats>,
+    handover: Option<Handover>,
 }
 
 impl LeaderBatch {
@@ -64,6 +85,7 @@ impl LeaderBatch {
             done: self.done,
             loop_stats: self.loop_stats,
             delivery,
+            handover: self.handover,
         }
     }
 }
@@ -103,6 +125,10 @@ pub struct Leader {
     say: VecDeque<String>,
     /// The state of the last step done, until taken.
     latest: Option<(u64, LeaderState)>,
+    /// A standby, until it takes over.
+    standby: Option<Standby>,
+    /// A standby that took the run over: when.
+    took_over: Option<Handover>,
 }
 
 impl Leader {
@@ -138,7 +164,52 @@ impl Leader {
             telemetry: VecDeque::new(),
             say: VecDeque::new(),
             latest: None,
+            standby: None,
+            took_over: None,
         }
+    }
+
+    /// A standby leader of `scenario` (docs/model.md §14): it publishes
+    /// nothing until the leader of the run has been silent for `after`
+    /// ([`Leader::handle_start`], [`Leader::handle_leader`]); then it takes
+    /// the run over at the step due, with the leader's own trajectory.
+    pub fn standby(scenario: &Scenario, after: Duration) -> Self {
+        let mut l = Self::new(scenario);
+        l.standby = Some(Standby { after, start: None, heard: None, heard_at: Now::ZERO });
+        l
+    }
+
+    /// A standby heard the run's start at `now`: from then on the leader's
+    /// silence counts.
+    pub fn handle_start(&mut self, start: &Start, now: Now) {
+        if let Some(s) = self.standby.as_mut().filter(|s| s.start.is_none()) {
+            s.start = Some(start.clone());
+            s.heard_at = s.heard_at.max(now);
+        }
+    }
+
+    /// A standby heard a message on the leader's key at `now`: the leader
+    /// is alive, and has published that step (a step of the run).
+    pub fn handle_leader(&mut self, bytes: &[u8], now: Now) {
+        let Some(s) = self.standby.as_mut() else { return };
+        let Ok(m) = wire::decode(bytes) else { return };
+        if m.header.sender != wire::LEADER_ID || m.header.step > self.steps {
+            return;
+        }
+        let k = s.heard.map_or(m.header.step, |h| h.max(m.header.step));
+        (s.heard, s.heard_at, self.published) = (Some(k), now, k);
+    }
+
+    /// The step at which this standby took the run over, once it has.
+    pub fn took_over(&self) -> Option<u64> {
+        self.took_over.map(|h| h.at_k)
+    }
+
+    /// Another process leads (this one took over later): this one ends,
+    /// saying `why`.
+    pub fn defer(&mut self, why: String) {
+        self.say.push_back(why);
+        self.phase = Phase::Done(Ok(()));
     }
 
     /// The followers that hear the leader, ascending.
@@ -149,13 +220,75 @@ impl Leader {
     /// The run begins: `start` as announced, at `now`. Publishes step 0.
     pub fn start(&mut self, start: &Start, now: Now) {
         self.last_now = now;
+        self.pace(start);
+        self.publish(0, now);
+        self.phase = Phase::Stepping(0);
+    }
+
+    /// Real time: the run's epoch and step period on the timebase.
+    fn pace(&mut self, start: &Start) {
         if !self.lockstep {
             self.epoch = Duration::from_nanos(start.epoch_unix_ns);
             self.period = Duration::from_secs_f64(self.dt_s / start.scale());
             self.timer = Some(LoopTimer::new(self.period.as_secs_f64()));
         }
-        self.publish(0, now);
-        self.phase = Phase::Stepping(0);
+    }
+
+    /// A standby whose leader has been silent long enough: the run is over
+    /// (nothing to take over), or this machine takes it over.
+    fn standby_timeout(&mut self, now: Now) {
+        let Some(s) = self.standby.as_ref() else { return };
+        let Some(start) = s.start.clone().filter(|_| now >= s.heard_at + s.after) else { return };
+        let (heard, silent) = (s.heard, now - s.heard_at);
+        self.standby = None;
+        self.pace(&start);
+        let k = match self.lockstep {
+            true => heard.unwrap_or(0),
+            false if now < self.epoch => 0,
+            false => self.steps.min(((now - self.epoch).as_nanos() / self.period.as_nanos().max(1)) as u64 + 1),
+        };
+        let heard_s = heard.map_or("nothing heard from it".to_string(), |h| format!("the newest heard: step {h}"));
+        if heard == Some(self.steps) || (!self.lockstep && now >= self.due(self.steps)) {
+            self.say.push_back(format!(
+                "leader (standby): the run ended with its leader ({heard_s}); nothing to take over"
+            ));
+            self.phase = Phase::Done(Ok(()));
+            return;
+        }
+        self.say.push_back(format!(
+            "leader (standby): the leader silent for {:.3} s ({heard_s}): taking the run over at step {k} (t = {} s)",
+            silent.as_secs_f64(),
+            k as f64 * self.dt_s
+        ));
+        let back = (RECORD_BACK.as_secs_f64() / self.dt_s).round() as u64 + 2 * self.batch_len as u64;
+        self.took_over = Some(Handover { heard, at_k: k });
+        self.take_over(k, heard.map_or(0, |h| h.saturating_sub(back)), now);
+    }
+
+    /// Takes the run over at step k: the trajectory replayed from step 0
+    /// (the state the leader that is gone had at k, bit for bit), step k
+    /// published, the states from `record_from` on queued for the monitor
+    /// and, in lock-step, the messages before k kept for repeats.
+    fn take_over(&mut self, k: u64, record_from: u64, now: Now) {
+        self.first_k = record_from;
+        for j in 0..k {
+            if j >= record_from {
+                self.states.push(self.state);
+                if self.states.len() >= self.batch_len {
+                    self.batch(j + 1, false);
+                }
+            }
+            if self.lockstep && j + gate::LEADER_KEPT as u64 >= k {
+                self.publish(j, now);
+                self.transmit.clear();
+            }
+            self.trajectory.advance(&self.state, self.dt_s);
+            self.state = self.trajectory.state((j + 1) as f64 * self.dt_s);
+        }
+        self.counters = Counters::default();
+        self.publish(k, now);
+        self.last_now = now;
+        self.phase = Phase::Stepping(k);
     }
 
     /// A message on the estimate key of follower `key_id`: how far it has
@@ -187,7 +320,8 @@ impl Leader {
     pub fn handle_timeout(&mut self, now: Now) {
         self.last_now = now;
         match self.phase {
-            Phase::Waiting | Phase::Done(_) => {}
+            Phase::Waiting => self.standby_timeout(now),
+            Phase::Done(_) => {}
             Phase::Stepping(k) => self.step_if_due(k, now),
             Phase::Lingering(_) => self.linger(now),
         }
@@ -198,7 +332,8 @@ impl Leader {
     /// step may go.
     pub fn poll_timeout(&self) -> Option<Now> {
         match &self.phase {
-            Phase::Waiting | Phase::Done(_) => None,
+            Phase::Waiting => self.standby.as_ref().and_then(|s| s.start.as_ref().map(|_| s.heard_at + s.after)),
+            Phase::Done(_) => None,
             Phase::Stepping(k) if !self.lockstep => Some(self.due(*k)),
             Phase::Stepping(_) if self.may_step() => Some(Now::ZERO),
             Phase::Stepping(_) => Some(self.wait.as_ref().map_or(Now::ZERO, gate::Wait::next_wake)),
@@ -324,6 +459,7 @@ impl Leader {
             counters: self.counters,
             done: last,
             loop_stats: if last { self.timer.as_ref().map(LoopTimer::stats) } else { None },
+            handover: self.took_over,
         });
         self.first_k = end_k;
     }
@@ -528,6 +664,146 @@ mod tests {
         let states: usize = batches.iter().map(|b| b.states.len()).sum();
         assert_eq!(states as u64, 1_001, "every step's state reaches the monitor");
         assert!(batches.last().is_some_and(|b| b.done && b.loop_stats.is_some()));
+    }
+
+    /// The states of every message in `sent`, by step.
+    fn states_of(sent: &[Vec<u8>]) -> Vec<(u64, LeaderState)> {
+        sent.iter().map(|b| wire::decode(b).expect("the leader's own")).map(|m| (m.header.step, m.state)).collect()
+    }
+
+    /// Runs a real-time leader machine from `t` until `until` (or its end),
+    /// feeding `standby` what it publishes; every message and batch.
+    fn run_rt(l: &mut Leader, mut t: Now, until: Now, mut standby: Option<&mut Leader>) -> (Vec<Vec<u8>>, Now) {
+        let mut sent = Vec::new();
+        while l.outcome().is_none() && t <= until {
+            l.handle_timeout(t);
+            for b in std::iter::from_fn(|| l.poll_transmit()) {
+                if let Some(s) = standby.as_deref_mut() {
+                    s.handle_leader(&b, t);
+                }
+                sent.push(b);
+            }
+            t = l.poll_timeout().map_or(t, |n| n.max(t));
+            if let Some(s) = standby.as_deref_mut() {
+                s.handle_timeout(t);
+            }
+        }
+        (sent, t)
+    }
+
+    /// A standby takes a real-time run over when the leader has been silent
+    /// for its wait, at the step then due, and continues the leader's
+    /// trajectory bit for bit: every message and every state it sends the
+    /// monitor equals what the leader itself would have sent (a leader run
+    /// without fault is the reference). It sends the monitor the states from
+    /// 1 s and two batches before the newest step it heard.
+    #[test]
+    fn a_standby_takes_a_real_time_run_over_with_the_leaders_own_trajectory() {
+        let s = paper(&["duration=3", "timing=realtime"]);
+        let epoch = Duration::from_nanos(start0().epoch_unix_ns);
+        let mut whole = Leader::new(&s);
+        whole.start(&start0(), epoch);
+        let (reference, _) = run_rt(&mut whole, epoch, epoch + Duration::from_secs(10), None);
+        let reference_states: Vec<LeaderState> =
+            std::iter::from_fn(|| whole.poll_telemetry()).flat_map(|b| b.states).collect();
+
+        let after = Duration::from_millis(200);
+        let mut standby = Leader::standby(&s, after);
+        let mut leader = Leader::new(&s);
+        leader.start(&start0(), epoch);
+        standby.handle_start(&start0(), epoch);
+        assert_eq!(standby.poll_timeout(), Some(epoch + after), "the leader's silence counts from the start");
+        // The leader dies during step 1,500 (t = 1.5 s).
+        let (_, died) = run_rt(&mut leader, epoch, epoch + Duration::from_millis(1500), Some(&mut standby));
+        assert!(standby.took_over().is_none() && steps_sent(&mut standby).is_empty(), "silent while the leader runs");
+        let wake = standby.poll_timeout().expect("watching");
+        assert_eq!(wake, died + after - Duration::from_millis(1), "the last message was heard 1 ms before");
+        let (sent, _) = run_rt(&mut standby, wake, epoch + Duration::from_secs(10), None);
+        let k = standby.took_over().expect("took over");
+        // Step 1,500 done at 1.5 s published step 1,501, the newest heard;
+        // at 1.7 s step 1,700 is done and step 1,701 published.
+        assert_eq!(k, 1_701, "the message due 200 ms after the newest heard (1,501)");
+        let said: Vec<String> = std::iter::from_fn(|| standby.poll_say()).collect();
+        assert!(said[0].contains("taking the run over at step 1701") && said[0].contains("step 1501"), "{said:?}");
+        let ours = states_of(&sent);
+        assert_eq!(ours.first().map(|m| m.0), Some(k));
+        assert_eq!(ours.last().map(|m| m.0), Some(s.steps()));
+        let theirs = states_of(&reference);
+        for (step, state) in &ours {
+            assert_eq!(Some(state), theirs.iter().find(|m| m.0 == *step).map(|m| &m.1), "step {step}");
+        }
+        let batches: Vec<LeaderBatch> = std::iter::from_fn(|| standby.poll_telemetry()).collect();
+        let from = batches[0].first_k;
+        assert_eq!(from, 1_501 - 1_000 - 2 * s.network.telemetry_batch.max(1) as u64);
+        let states: Vec<LeaderState> = batches.into_iter().flat_map(|b| b.states).collect();
+        assert_eq!(&states[..], &reference_states[from as usize..], "the states sent the monitor");
+    }
+
+    /// A standby whose leader ends the run does not take it over; one whose
+    /// leader is silent before the start waits for the start.
+    #[test]
+    fn a_standby_does_not_take_over_a_run_that_ended_or_has_not_started() {
+        let s = paper(&["duration=0.5", "timing=realtime"]);
+        let epoch = Duration::from_nanos(start0().epoch_unix_ns);
+        let mut standby = Leader::standby(&s, Duration::from_millis(200));
+        assert_eq!(standby.poll_timeout(), None, "no start heard: nothing to watch");
+        standby.handle_timeout(epoch + Duration::from_secs(100));
+        assert!(standby.took_over().is_none() && standby.outcome().is_none());
+        let mut leader = Leader::new(&s);
+        leader.start(&start0(), epoch);
+        standby.handle_start(&start0(), epoch);
+        let (_, t) = run_rt(&mut leader, epoch, epoch + Duration::from_secs(10), Some(&mut standby));
+        assert_eq!(leader.outcome(), Some(&Ok(())));
+        standby.handle_timeout(t + Duration::from_secs(1));
+        assert_eq!((standby.took_over(), standby.outcome()), (None, Some(&Ok(()))));
+        assert!(steps_sent(&mut standby).is_empty());
+        let said = standby.poll_say().expect("a line");
+        assert!(said.contains("the run ended with its leader"), "{said}");
+    }
+
+    /// Lock-step: a standby takes over at the newest step it heard, keeps
+    /// the window's messages for repeats, and from there obeys the window
+    /// rule like the leader.
+    #[test]
+    fn in_lockstep_a_standby_takes_over_at_the_newest_step_heard_and_keeps_the_window() {
+        let s = paper(&["duration=2", "timing=lockstep"]);
+        let t0 = Duration::from_secs(1);
+        let mut leader = Leader::new(&s);
+        let mut standby = Leader::standby(&s, Duration::from_millis(500));
+        leader.start(&start0(), t0);
+        standby.handle_start(&start0(), t0);
+        // Follower 1 reaches step 99; the standby hears both.
+        let mut sent: Vec<Vec<u8>> = Vec::new();
+        for k in 0..=100 {
+            run_while_due(&mut leader, t0);
+            for b in std::iter::from_fn(|| leader.poll_transmit()) {
+                standby.handle_leader(&b, t0);
+                sent.push(b);
+            }
+            if k < 100 {
+                leader.handle_estimate(Some(1), &from(1, k));
+                standby.handle_estimate(Some(1), &from(1, k));
+            }
+        }
+        let newest = states_of(&sent).last().expect("sent").0;
+        assert_eq!(newest, 100 + WINDOW - 1, "the leader ran its window ahead of follower 1's step 99");
+        standby.handle_timeout(t0 + Duration::from_millis(499));
+        assert!(standby.took_over().is_none(), "not before its wait");
+        standby.handle_timeout(t0 + Duration::from_millis(500));
+        assert_eq!(standby.took_over(), Some(newest));
+        let t1 = t0 + Duration::from_millis(500);
+        run_while_due(&mut standby, t1);
+        let ours = states_of(&std::iter::from_fn(|| standby.poll_transmit()).collect::<Vec<_>>());
+        assert_eq!(ours.iter().map(|m| m.0).collect::<Vec<_>>(), [newest], "the window is shut: step {newest} again");
+        assert_eq!(ours[0].1, states_of(&sent).last().expect("sent").1, "the leader's own state");
+        // Follower 1's next step opens the window by one, as for the leader.
+        standby.handle_estimate(Some(1), &from(1, 100));
+        run_while_due(&mut standby, t1);
+        assert_eq!(steps_sent(&mut standby), [newest + 1]);
+        // While shut, it repeats what the slowest may lack: the kept messages.
+        standby.handle_timeout(t1 + Duration::from_millis(250));
+        let repeated = steps_sent(&mut standby);
+        assert_eq!(repeated.first(), Some(&98), "from the slowest's step (100) − 2 on: {repeated:?}");
     }
 
     /// Lock-step: after the last step the leader lingers until every

@@ -48,7 +48,26 @@ pub enum Telemetry {
         done: bool,
         loop_stats: Option<LoopStats>,
         delivery: Delivery,
+        /// Sent by a standby that took the run over: when.
+        handover: Option<Handover>,
     },
+}
+
+/// A standby leader took the run over (docs/model.md §14): the newest step
+/// it had heard from the leader, and the first it published itself. In
+/// between, in real time, no leader message went out: the handover's gap.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Handover {
+    pub heard: Option<u64>,
+    pub at_k: u64,
+}
+
+impl Handover {
+    /// The steps whose leader message never went out, [from, to): after the
+    /// newest heard, before the standby's first (None: none, or unknown).
+    pub fn gap(&self) -> Option<(u64, u64)> {
+        self.heard.map(|h| (h + 1, self.at_k)).filter(|g| g.0 < g.1)
+    }
 }
 
 /// A follower that left the run for good (its process was told to stop:
@@ -210,6 +229,7 @@ mod tests {
             done: true,
             loop_stats: None,
             delivery: Delivery::default(),
+            handover: None,
         };
         assert!(!leader.reports_final_step(0, steps));
     }

@@ -112,6 +112,9 @@ pub struct Evidence {
     pub time_queries: (u64, u64, u64),
     /// (node, the steps its restarted processes resumed from).
     pub restarts: Vec<(String, Vec<u64>)>,
+    /// Standby leaders that took the run over: (the newest step heard from
+    /// the leader before, the first step the standby published).
+    pub handovers: Vec<(Option<u64>, u64)>,
     /// Per follower in real time: how far its estimate of the leader's
     /// clock may be off at its last report, µs.
     pub clock_uncertainty_us: Vec<(u32, f64)>,
@@ -215,6 +218,9 @@ pub fn judge(e: &Evidence) -> Health {
                 *first as f64 * e.dt_s
             ));
         }
+    }
+    for &(heard, at) in &e.handovers {
+        disturbed.push(handover_line(heard, at, e.dt_s));
     }
     if let Some(line) = unsure_clocks(e) {
         disturbed.push(line);
@@ -353,6 +359,18 @@ fn heard_otherwise(e: &Evidence) -> Option<String> {
 /// quarter step at the end (each follower's own warning, when it runs by
 /// itself; in a `launch` they are summed up here, not 100 lines on the
 /// terminal).
+/// "the leader handed over: a standby took the run over at t = 10.505 s;
+/// no leader message from t = 10.006 s (0.499 s)".
+pub fn handover_line(heard: Option<u64>, at: u64, dt_s: f64) -> String {
+    let gap = match heard {
+        Some(h) if h + 1 < at => {
+            format!("; no leader message from t = {:.3} s ({:.3} s)", (h + 1) as f64 * dt_s, (at - h - 1) as f64 * dt_s)
+        }
+        _ => String::new(),
+    };
+    format!("the leader handed over: a standby took the run over at t = {:.3} s{gap}", at as f64 * dt_s)
+}
+
 fn unsure_clocks(e: &Evidence) -> Option<String> {
     if e.quarter_step_us <= 0.0 {
         return None;

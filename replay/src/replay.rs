@@ -31,6 +31,9 @@ pub struct Loaded {
     pub dir: PathBuf,
     pub scenario: Scenario,
     pub record: HearingRecord,
+    /// The handovers' gaps as network.json records them: steps [from, to)
+    /// with no leader message (docs/model.md §14).
+    pub handover_gaps: Vec<(u64, u64)>,
 }
 
 impl Loaded {
@@ -46,8 +49,18 @@ impl Loaded {
                 _ => None,
             })
             .collect();
-        self.scenario.with_leaves(&leaves)
+        self.scenario.with_leaves(&leaves).with_handovers(&self.handover_gaps)
     }
+}
+
+/// network.json's handovers as gaps: [the step after the newest heard, the
+/// standby's first step).
+fn handover_gaps(network: &serde_json::Value, steps: u64) -> Vec<(u64, u64)> {
+    let rows = network["handovers"].as_array().map_or(&[][..], Vec::as_slice);
+    rows.iter()
+        .filter_map(|h| Some((h["heard_step"].as_u64()? + 1, h["step"].as_u64()?)))
+        .filter(|&(from, to)| from < to && to <= steps + 1)
+        .collect()
 }
 
 /// Reads a run folder's hearing record and the scenario it carries.
@@ -94,6 +107,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
         Err(e) => return Err(Error::Input(format!("{}: network.json: {e}", dir.display()))),
     };
+    let handover_gaps = network.as_ref().map_or_else(Vec::new, |n| handover_gaps(n, scenario.steps()));
     if let Some(net) = network {
         let theirs = format!("{:016x}", record.fingerprint);
         let named = net["fingerprint"].as_str().map(|f| f == theirs).unwrap_or(true)
@@ -139,7 +153,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
             end = seg.end();
         }
     }
-    Ok(Loaded { dir: dir.to_path_buf(), scenario, record })
+    Ok(Loaded { dir: dir.to_path_buf(), scenario, record, handover_gaps })
 }
 
 /// Which hearing a replay uses: the record's, except where the model's

@@ -930,3 +930,91 @@ fn a_quorum_start_without_follower_3_runs_as_the_model_predicts() {
     }
     common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
 }
+
+/// The leader killed (SIGKILL) at 10 s of a 30 s real-time run, with a
+/// standby leader on a host of its own (docs/model.md §14): the standby
+/// takes the run over once the leader has been silent for its 0.5 s, on the
+/// leader's timebase and trajectory; every step is recorded, the run is
+/// "disturbed", not "degraded", and names the handover; the followers'
+/// estimates do not jump; every follower's estimator error is back under
+/// 0.05 m within 2 s of the takeover (the model: 0.8 s); and the run agrees
+/// with `formation sim` given the handover's gap as the row
+/// `{ node = 0, from, to }`: each follower's peak estimator error within
+/// 25 % and its return under 0.05 m within 0.5 s of the model's (judged on
+/// a quiet machine).
+#[test]
+fn the_leader_killed_at_10_s_a_standby_takes_the_run_over_as_the_model_predicts() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    let tag = "lab-handover";
+    let base = ["timing=realtime", "duration=30"];
+    let r = lab_on(&base, tag, &[], &["--kill-leader", "10"]);
+    steps_recorded(tag, &r, 30001);
+    common::replays_byte_for_byte(tag, &r.out);
+    let h = &r.network["health"];
+    assert_eq!(h["verdict"], "disturbed", "{tag}: {h}");
+    assert!(h["disturbed"].to_string().contains("the leader handed over"), "{tag}: the handover unnamed: {h}");
+    let handovers = r.network["handovers"].as_array().expect("handovers");
+    assert_eq!(handovers.len(), 1, "{tag}: {handovers:?}");
+    let (heard, at) = (handovers[0]["heard_step"].as_u64().expect("heard"), handovers[0]["step"].as_u64().expect("at"));
+    let (from_s, to_s) = ((heard + 1) as f64 * 0.001, at as f64 * 0.001);
+    eprintln!("{tag}: {}", handovers[0]["said"]);
+    assert!(
+        (9.9..10.3).contains(&from_s) && at - heard >= 500,
+        "{tag}: the leader's messages stop at {from_s} s (killed at 10 s) and the standby's begin at {to_s} s (0.5 s \
+         of silence after the newest heard before it takes over)"
+    );
+    // No jump: the consensus law moves each estimate continuously (the
+    // leader moves about 1 mm a step; a jump would be the distance to a
+    // wrong state).
+    for id in IDS {
+        let (x, y) = (column(&r, id, "x_ir"), column(&r, id, "y_ir"));
+        let most = x
+            .windows(2)
+            .zip(y.windows(2))
+            .filter(|(a, _)| a[0].0 >= 5.0)
+            .map(|(a, b)| (a[1].1 - a[0].1).hypot(b[1].1 - b[0].1))
+            .fold(0.0, f64::max);
+        assert!(most < 0.005, "{tag}: follower {id}'s estimate moved {most:.4} m in one step");
+    }
+    let sets = [format!("faults+={{node=0, from={from_s}, to={to_s}}}")];
+    let sets: Vec<&str> = sets.iter().map(String::as_str).collect();
+    let (_dir, sim_dir) = sim_on(&base, &sets);
+    // The first time from `t0` on at which the error is below 0.05 m for good.
+    let back_under = |e: &[(f64, f64)], t0: f64| {
+        e.iter().filter(|(t, _)| *t >= t0).rev().find(|(_, x)| *x >= 0.05).map_or(t0, |(t, _)| *t)
+    };
+    let mut wrong = Vec::new();
+    for id in IDS {
+        let (run, model) = (estimator_error(&r, id), csv_column(&sim_dir, id, "estimator_error"));
+        let (peak, sim_peak) = (peak_from_5_s(&run), peak_from_5_s(&model));
+        let (back, sim_back) = (back_under(&run, to_s), back_under(&model, to_s));
+        eprintln!(
+            "{tag}: follower {id}: peak estimator error {:.4} m at {:.3} s (model {:.4} m at {:.3} s), under 0.05 m \
+             from {back:.3} s (model {sim_back:.3} s)",
+            peak.0, peak.1, sim_peak.0, sim_peak.1
+        );
+        assert!(
+            back - to_s <= 2.0,
+            "{tag}: follower {id}'s estimator error is back under 0.05 m only {:.3} s after the takeover at {to_s} s",
+            back - to_s
+        );
+        if (peak.0 / sim_peak.0 - 1.0).abs() > 0.25 {
+            wrong.push(format!("follower {id}: peak estimator error {:.4} m, model {:.4} m", peak.0, sim_peak.0));
+        }
+        if back > sim_back + 0.5 {
+            wrong.push(format!("follower {id}: under 0.05 m from {back:.3} s, model {sim_back:.3} s"));
+        }
+    }
+    common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
+}
+
+/// Lock-step with the leader killed at 4 s of wall time and a standby: the
+/// followers wait for the standby, which takes over at the newest step it
+/// heard; the run is the fault-free simulator's byte for byte.
+#[test]
+fn lockstep_with_the_leader_killed_a_standby_takes_over_and_equals_the_simulator() {
+    lockstep_equals_sim("lab-ls-handover", &[], &["--kill-leader", "4"]);
+}

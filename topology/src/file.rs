@@ -116,7 +116,8 @@ impl Ros2File {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LinkFaultFile {
-    /// Every link of this follower.
+    /// Every link of this node: a follower, or 0, the leader (silent on
+    /// every link: a handover's gap, or without `to` a leader gone).
     pub node: Option<u32>,
     /// One link, by node ids (0 = the leader).
     #[serde(default, deserialize_with = "exact::option")]

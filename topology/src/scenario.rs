@@ -134,7 +134,8 @@ pub fn num(x: f64) -> String {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum FaultTarget {
-    /// Every link of this follower, both directions.
+    /// Every link of this node, both directions: a follower, or 0, the
+    /// leader (silent on every link: a handover's gap).
     Node(u32),
     /// One link between two nodes (0 = the leader), both directions.
     Link(u32, u32),
@@ -166,6 +167,7 @@ impl LinkFault {
     /// "follower 3" or "link 0–1", for tables and messages.
     pub fn label(&self) -> String {
         let what = match self.target {
+            FaultTarget::Node(0) => "the leader".to_string(),
             FaultTarget::Node(n) => format!("follower {n}"),
             FaultTarget::Link(a, b) => format!("link {a}–{b}"),
         };
@@ -408,6 +410,26 @@ impl Scenario {
             });
         }
         s
+    }
+
+    /// The model of handovers (docs/model.md §14): for each, the leader
+    /// silent on every link over steps [from_k, to_k), the row `node = 0`
+    /// (real time; in lock-step the followers wait for the standby and the
+    /// model has no gap).
+    pub fn with_handovers(mut self, gaps: &[(u64, u64)]) -> Scenario {
+        if self.timing == Timing::Lockstep {
+            return self;
+        }
+        for &(from_k, to_k) in gaps.iter().filter(|g| g.0 < g.1) {
+            let to_s = (to_k as f64 * self.dt_s).min(self.duration_s + self.dt_s);
+            self.faults.push(LinkFault {
+                target: FaultTarget::Node(0),
+                from_s: from_k as f64 * self.dt_s,
+                to_s,
+                loss: 1.0,
+            });
+        }
+        self
     }
 
     /// The receiver's loss decisions for the link sender → receiver.
@@ -1473,12 +1495,9 @@ fn validate_faults(
                     "missing: give `node = ID` (every link of a follower) or `link = [A, B]` (0 = the leader)",
                 ))
             }
-            (Some(0), None) => {
-                return Err(c.fail(
-                    &field("node"),
-                    "0 is the leader; cut the leader's links with `link = [0, ID]` for a follower that hears it",
-                ))
-            }
+            // The leader silent on every link: a handover's gap, or, without
+            // `to`, a leader gone for good (docs/model.md §14).
+            (Some(0), None) => FaultTarget::Node(0),
             (Some(n), None) => {
                 if graph.index_of(n).is_none() {
                     return Err(c.fail(&field("node"), format!("follower {n} is not in the scenario (ids: {})", ids())));
@@ -1712,6 +1731,20 @@ mod tests {
         assert_eq!(s.control.rejoin, RejoinRule { policy: RejoinPolicy::Consensus, after_steps: 100 });
     }
 
+    /// `node = 0` is the leader silent on every link (a handover's gap):
+    /// it covers the leader's link to each follower that hears it, and no
+    /// link between followers.
+    #[test]
+    fn node_0_is_the_leader_silent_on_every_link() {
+        let s = with_faults("[[faults]]\nnode = 0\nfrom = 10\nto = 10.3\n").expect("the leader's row");
+        assert_eq!(s.faults[0].target, FaultTarget::Node(0));
+        assert_eq!(s.faults[0].label(), "the leader down 10–10.3 s");
+        assert_eq!(s.link_windows(0, 1), vec![LossWindow { from_k: 10_000, to_k: 10_300, loss: 1.0 }]);
+        for (a, b) in [(1, 2), (1, 3), (3, 4)] {
+            assert!(s.link_windows(a, b).is_empty(), "{a}–{b} is no link of the leader");
+        }
+    }
+
     /// A window may end one step after the run's end, T + Δt, and then
     /// covers its last step (t = T): the model of a follower that leaves
     /// for good; a step further is refused with that end named.
@@ -1735,7 +1768,6 @@ mod tests {
     fn bad_fault_rows_are_refused_naming_the_field() {
         let cases = [
             ("node = 9\nfrom = 1\nto = 2", "faults[0].node", "follower 9 is not in the scenario"),
-            ("node = 0\nfrom = 1\nto = 2", "faults[0].node", "0 is the leader"),
             ("link = [1, 4]\nfrom = 1\nto = 2", "faults[0].link", "1–4 is not a link"),
             ("link = [0, 2]\nfrom = 1\nto = 2", "faults[0].link", "0–2 is not a link"),
             ("link = [1, 7]\nfrom = 1\nto = 2", "faults[0].link", "node 7 is not in the scenario"),

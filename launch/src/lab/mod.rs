@@ -54,6 +54,14 @@ pub struct LabArgs {
     /// e.g. `3@8:2`. Repeatable.
     #[cfg_attr(feature = "clap", arg(long = "restart-agent", value_name = "ID@AT:FOR"))]
     pub restart_agent: Vec<String>,
+    /// Kill the leader (SIGKILL) at run time AT (s): a standby leader,
+    /// started with the others on a host of its own, takes the run over
+    /// after --take-over-after s of silence (client mode).
+    #[cfg_attr(feature = "clap", arg(long, value_name = "AT"))]
+    pub kill_leader: Option<f64>,
+    /// With --kill-leader: the standby's wait (s) before it takes over.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.5, value_name = "SECONDS", requires = "kill_leader"))]
+    pub take_over_after: f64,
     /// Shift one node's wall clock by SECONDS (e.g. `3=+0.05`,
     /// `leader=-1`), as on a host without a time service: the node runs
     /// under libfaketime (`apt-get install faketime`) with its monotonic
@@ -291,6 +299,7 @@ enum Action {
     StartRouter,
     KillAgent(u32),
     StartAgent(u32),
+    KillLeader,
     /// The routers of two sites cut apart (`cut`) or joined again.
     Cut {
         host: String,
@@ -306,6 +315,9 @@ struct Event {
     action: Action,
     what: String,
 }
+
+/// The standby leader's host (`--kill-leader`).
+const STANDBY: &str = "standby";
 
 fn agent_host(id: u32) -> String {
     format!("agent-{id}")
@@ -400,6 +412,23 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
             action: Action::StartAgent(id),
             what: format!("agent {id} started again"),
         });
+    }
+    if let Some(at) = a.kill_leader {
+        if a.mode != LaunchMode::Client {
+            return Err(Error::Input(
+                "--kill-leader needs --mode client (the standby reaches every node through the router)".into(),
+            ));
+        }
+        if !(at.is_finite() && at >= 0.0 && at < t_end) {
+            return Err(Error::Input(format!(
+                "--kill-leader {at}: expected a run time from 0 to the run's end ({t_end} s)"
+            )));
+        }
+        let after = a.take_over_after;
+        if !(after.is_finite() && after > 0.0) {
+            return Err(Error::Input(format!("--take-over-after {after}: expected a positive number of seconds")));
+        }
+        events.push(Event { at_s: at, action: Action::KillLeader, what: "leader killed (SIGKILL)".into() });
     }
     events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
     Ok((events, notes))
@@ -561,6 +590,9 @@ fn lab_hosts(a: &LabArgs, scenario: &Scenario, sites: &Option<Sites>) -> Vec<Str
         hosts.extend(sites.routers[1..].iter().cloned());
     }
     hosts.extend(["monitor".to_string(), "leader".to_string()]);
+    if a.kill_leader.is_some() {
+        hosts.push(STANDBY.into());
+    }
     hosts.extend(scenario.graph.ids().iter().map(|&id| agent_host(id)));
     hosts
 }
@@ -711,6 +743,10 @@ impl Ctx<'_> {
                 Ok(())
             }
             Action::StartAgent(id) => supervisor::spawn(children, &format!("agent {id}"), self.agent(*id)),
+            Action::KillLeader => {
+                children.kill("leader");
+                Ok(())
+            }
             Action::Cut { host, peer, cut } => self.lab.set_cut(host, peer, *cut).map_err(Error::from),
         }
     }
@@ -796,6 +832,11 @@ impl Ctx<'_> {
         }
         let _socket = self.spawn_monitor(children).await?;
         let rx = self.spawn_leader(children)?;
+        if self.a.kill_leader.is_some() {
+            let mut c = self.node(STANDBY, "leader");
+            c.arg("--standby").arg("--take-over-after").arg(self.a.take_over_after.to_string());
+            supervisor::spawn(children, STANDBY, c)?;
+        }
         // A quorum start's absent followers (--absent): their hosts stay empty.
         for &id in self.scenario.graph.ids().iter().filter(|id| !self.a.opts.absent.contains(id)) {
             supervisor::spawn(children, &format!("agent {id}"), self.agent(id))?;

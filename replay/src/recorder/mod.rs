@@ -41,7 +41,7 @@ use formation_protocol::codec;
 use formation_protocol::counters::Counters;
 use formation_protocol::loop_timing::LoopStats;
 use formation_protocol::telemetry::{
-    Ack, ClockReport, Delivery, EventKind, Left, LinkStats, NetEvent, Telemetry, MAX_LEFT_WHY,
+    Ack, ClockReport, Delivery, EventKind, Handover, Left, LinkStats, NetEvent, Telemetry, MAX_LEFT_WHY,
 };
 use stream::{check_batch, Stream};
 
@@ -81,6 +81,8 @@ const MAX_RESCUED: usize = 1 << 20;
 
 /// Events taken from one batch (a forged batch cannot fill the monitor's memory).
 const MAX_EVENTS_PER_BATCH: usize = 256;
+/// The most handovers a monitor keeps (a forger's flood of them is cut).
+const MAX_HANDOVERS: usize = 16;
 
 /// A checked batch's bookkeeping: what every node's telemetry carries
 /// besides its steps.
@@ -167,6 +169,8 @@ pub struct Recorder {
     writer: RunWriter,
     followers: Vec<FollowerTrack>,
     leader_stream: Stream<LeaderState>,
+    /// Standby leaders that took the run over (docs/model.md §14).
+    pub(crate) handovers: Vec<Handover>,
     /// Leader states of steps `leader_base`.. (None: lost).
     leader: VecDeque<Option<LeaderState>>,
     leader_base: u64,
@@ -241,6 +245,7 @@ impl Recorder {
             writer,
             followers,
             leader_stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
+            handovers: Vec::new(),
             leader: VecDeque::new(),
             leader_base: 0,
             model_leader: scenario.leader(),
@@ -418,9 +423,11 @@ impl Recorder {
             .filter(|f| !f.stream.restarts.is_empty())
             .map(|f| (format!("follower {}", f.id), f.stream.restarts.clone()))
             .collect();
-        if !self.leader_stream.restarts.is_empty() {
+        // A handover is a new leader process too: said once, as a handover.
+        if self.leader_stream.restarts.len() > self.handovers.len() {
             e.restarts.push(("the leader".into(), self.leader_stream.restarts.clone()));
         }
+        e.handovers = self.handovers.iter().map(|h| (h.heard, h.at_k)).collect();
         let leader = self.nodes.get(&0).map(|n| n.counters).unwrap_or_default();
         e.time_queries = (leader.time_queries, leader.time_queries_peak_per_s, self.scenario.followers.len() as u64);
         Some(crate::health::judge(&e))
@@ -497,7 +504,12 @@ impl Recorder {
         };
         let bytes = bytes.len();
         match t {
-            Telemetry::Leader { first_k, states, counters, done, loop_stats, delivery } => {
+            Telemetry::Leader { first_k, states, counters, done, loop_stats, delivery, handover } => {
+                if let Some(h) = handover.filter(|h| key_id == Some(0) && h.at_k <= self.scenario.steps()) {
+                    if !self.handovers.iter().any(|x| x.at_k == h.at_k) && self.handovers.len() < MAX_HANDOVERS {
+                        self.handovers.push(h);
+                    }
+                }
                 let batch = Batch { now, bytes, first_k, counters, done, loop_stats, delivery };
                 self.leader_batch(key_id, batch, states)?;
             }
@@ -835,7 +847,8 @@ impl Recorder {
     /// its neighbours lived it.
     pub fn model_scenario(&self) -> Scenario {
         let leaves: Vec<(u32, u64)> = self.left().iter().map(|&(id, k, _)| (id, k)).collect();
-        self.scenario.with_leaves(&leaves)
+        let gaps: Vec<(u64, u64)> = self.handovers.iter().filter_map(Handover::gap).collect();
+        self.scenario.with_leaves(&leaves).with_handovers(&gaps)
     }
 
     /// Steps recorded by every follower.
@@ -988,6 +1001,7 @@ mod tests {
             done: true,
             loop_stats: None,
             delivery: Delivery::default(),
+            handover: None,
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
@@ -1043,6 +1057,7 @@ mod tests {
                 done,
                 loop_stats: None,
                 delivery: Delivery::default(),
+                handover: None,
             })
         };
         let slots = |id: u32| scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
@@ -1113,6 +1128,7 @@ mod tests {
             done: false,
             loop_stats: None,
             delivery: Delivery::default(),
+            handover: None,
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         for f in &scenario.followers {
@@ -1166,6 +1182,7 @@ mod tests {
             done: true,
             loop_stats: None,
             delivery: Delivery::default(),
+            handover: None,
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
@@ -1222,6 +1239,7 @@ mod tests {
             done: true,
             loop_stats: None,
             delivery: Delivery::default(),
+            handover: None,
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();

@@ -74,6 +74,12 @@ impl Recorder {
             "left": self.left().iter().map(|(id, k, why)| json!({
                 "follower": id, "step": k, "t_s": *k as f64 * self.scenario.dt_s, "why": why,
             })).collect::<Vec<_>>(),
+            // Standby leaders that took the run over: the newest step heard
+            // from the leader before, and the first the standby published.
+            "handovers": self.handovers.iter().map(|h| json!({
+                "heard_step": h.heard, "step": h.at_k, "t_s": h.at_k as f64 * self.scenario.dt_s,
+                "said": crate::health::handover_line(h.heard, h.at_k, self.scenario.dt_s),
+            })).collect::<Vec<_>>(),
             // Messages zenoh's access control refused, by the node that refused them.
             "access_denied": self.denied.rows(),
             // Start-up (every node ready, from the monitor's start) and the
@@ -93,8 +99,12 @@ impl Recorder {
         let c = &n.counters;
         let follower = self.scenario.index_of(id).filter(|_| id != 0).map(|i| &self.followers[i]);
         let (stream, timeline) = match follower {
-            Some(f) => (Figures::of(&f.stream), self.timeline(n, &f.stream)),
-            None => (Figures::of(&self.leader_stream), self.timeline(n, &self.leader_stream)),
+            Some(f) => (Figures::of(&f.stream), self.timeline(n, &f.stream, Vec::new())),
+            None => {
+                let took = "a standby leader took the run over";
+                let handovers = self.handovers.iter().map(|h| (h.at_k, took.to_string())).collect();
+                (Figures::of(&self.leader_stream), self.timeline(n, &self.leader_stream, handovers))
+            }
         };
         let d = &n.delivery;
         json!({
@@ -134,7 +144,7 @@ impl Recorder {
     /// A node's timeline: its own events, and the monitor's (telemetry
     /// that came late and filled a hole, steps lost for good, restarts), in
     /// step order.
-    fn timeline<T>(&self, n: &NodeStats, stream: &Stream<T>) -> Vec<Value> {
+    fn timeline<T>(&self, n: &NodeStats, stream: &Stream<T>, extra: Vec<(u64, String)>) -> Vec<Value> {
         let dt = self.scenario.dt_s;
         let span = |a: u64, b: u64| format!("t = {:.3}–{:.3} s", a as f64 * dt, b as f64 * dt);
         let mut timeline: Vec<(u64, String)> = n.timeline.iter().map(|e| (e.k, e.what.describe())).collect();
@@ -144,6 +154,7 @@ impl Recorder {
             stream.gaps.iter().map(|g| (g.from, format!("telemetry for {} lost ({})", span(g.from, g.to), g.why))),
         );
         timeline.extend(stream.restarts.iter().map(|&k| (k, "a new process took over (restarted)".to_string())));
+        timeline.extend(extra);
         timeline.sort_by_key(|e| e.0);
         timeline.iter().map(|(k, what)| json!({"t": *k as f64 * dt, "event": what})).collect()
     }

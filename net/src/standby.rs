@@ -1,0 +1,182 @@
+//! A standby leader (`leader --standby`; docs/model.md §14): a second
+//! leader process, on this host or another, that takes the run over when
+//! the leader is gone. It is [`formation_protocol::leader::Leader`] made
+//! with [`Machine::standby`], translated to zenoh as the leader is
+//! ([`crate::leader`]), with what changes hands at the takeover:
+//!
+//! - **How it learns the leader is gone:** from the leader's silence on its
+//!   estimate key (real time: a message every step; lock-step: at least a
+//!   repeat every 200 ms while it waits), for `--take-over-after` seconds.
+//!   Silence covers a killed process, a dead host and a cut cable alike, on
+//!   every transport; a liveliness token would tell a closed session sooner,
+//!   but not a host that stopped answering before the session's lease ends.
+//! - **The timebase:** until it takes over it estimates the leader's clock
+//!   as every node does; at the takeover it stops asking and answers
+//!   `control/time` with that estimate, carried on by its own clock, and
+//!   announces the run's start as the leader did.
+//! - **Two leaders:** once it leads it says a claim on `control/claim/0`
+//!   and listens there; the leader says its claim through its run. Of two
+//!   processes that both lead (a leader cut off from the standby only, then
+//!   back), the one that began leading later defers: it ends, naming the
+//!   other in one line.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use formation_topology::{wire, Scenario, Timing};
+
+use crate::clock::{self, Clock};
+use crate::leader::{watch_reached, Node};
+use crate::node::Shared;
+use crate::{clock_sync, startup, telemetry};
+use formation_protocol::barrier::Start;
+use formation_protocol::codec;
+use formation_protocol::counters::QueryCount;
+use formation_protocol::error::{zerr, Error};
+use formation_protocol::leader::Leader as Machine;
+use formation_protocol::names::Keys;
+
+/// How long a standby waits to hear the run's start.
+const START_LIMIT: Duration = Duration::from_secs(120);
+
+/// Stands by for the leader of the run `keys` names; takes the run over
+/// once the leader has been silent for `after`; returns at the run's end.
+pub async fn run(
+    session: &zenoh::Session,
+    scenario: &Scenario,
+    keys: &Keys,
+    after: Duration,
+    clock: &Clock,
+) -> Result<(), Error> {
+    let me = "leader (standby)".to_string();
+    let timebase = clock::Timebase::estimated(clock);
+    let quarter_step_ns = scenario.dt_s * 1e9 / 4.0;
+    let following = clock_sync::follow(session.clone(), keys, timebase.clone(), me.clone(), quarter_step_ns);
+    let shared = Arc::new(Shared::new(Machine::standby(scenario, after)));
+    let hearing = shared.lock().hearing().to_vec();
+    let (start_tx, start_rx) = tokio::sync::watch::channel(None::<Start>);
+    let start_sub = session
+        .declare_subscriber(keys.start())
+        .callback(move |s| {
+            if let Some(start) = codec::decode::<Start>(&s.payload().to_bytes()) {
+                start_tx.send_if_modified(|held| held.is_none() && held.replace(start).is_none());
+            }
+        })
+        .await
+        .map_err(|e| zerr("declaring the start subscriber", e))?;
+    let (sh, tb) = (shared.clone(), timebase.clone());
+    let leader_sub = session
+        .declare_subscriber(keys.estimate(wire::LEADER_ID))
+        .allowed_origin(zenoh::sample::Locality::Remote)
+        .callback(move |s| sh.lock().handle_leader(&s.payload().to_bytes(), tb.now()))
+        .await
+        .map_err(|e| zerr("declaring the leader's subscriber", e))?;
+    let reached = watch_reached(session, keys, &hearing, &shared).await?;
+    crate::node::say(&format!(
+        "{me}: standing by for run {} (taking over after {} s of silence)",
+        keys.run,
+        after.as_secs_f64()
+    ));
+    let start = wait_for_start(start_rx, &me).await?;
+    clock_sync::wait_for_estimate(&timebase, keys, &me, START_LIMIT).await?;
+    shared.lock().handle_start(&start, timebase.now());
+    drop(start_sub);
+
+    let lockstep = scenario.timing == Timing::Lockstep;
+    let (done_subs, followers_done) = match lockstep {
+        true => telemetry::watch_done(session, keys, &hearing, scenario.steps()).await?,
+        false => (Vec::new(), Default::default()),
+    };
+    let estimate_pub =
+        crate::node::control_publisher(session, keys.estimate(wire::LEADER_ID), scenario, "estimate").await?;
+    let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, scenario, clock).await?;
+    let queries = Arc::new(QueryCount::default());
+    let (tell, took_over) = tokio::sync::oneshot::channel();
+    let node = Node {
+        shared: shared.clone(),
+        publisher: estimate_pub,
+        courier: delivery.courier.clone(),
+        timebase: timebase.clone(),
+        followers_done,
+        queries: queries.clone(),
+        topics: None,
+        lockstep,
+        incarnation: clock.unix_ns(),
+        on_take_over: Some(tell),
+    };
+    let driving = tokio::task::spawn_blocking(move || node.drive());
+    let leading = Takeover { session, keys, timebase: &timebase, start, queries, shared: &shared };
+    // Until the machine takes over (or the run ends without it).
+    let held = match took_over.await {
+        Ok(_) => Some(leading.lead(following).await?),
+        Err(_) => None,
+    };
+    let outcome = driving.await.map_err(|e| Error::Run(format!("{me}: loop panicked: {e}")))?;
+    telemetry::finish_delivery(delivery, "leader").await;
+    drop((acks, held, leader_sub, reached, done_subs));
+    outcome.map_err(|e| Error::Run(format!("{me}: {e}")))
+}
+
+/// The run's start, as the leader announces it (every 100 ms).
+async fn wait_for_start(mut rx: tokio::sync::watch::Receiver<Option<Start>>, me: &str) -> Result<Start, Error> {
+    match tokio::time::timeout(START_LIMIT, rx.wait_for(Option::is_some)).await {
+        Ok(Ok(start)) => Ok(start.clone().expect("waited for one")),
+        _ => Err(Error::Input(format!(
+            "{me}: no start heard within {} s: is the leader of this run (same --run, same scenario) running and \
+             reachable?",
+            START_LIMIT.as_secs()
+        ))),
+    }
+}
+
+/// What a standby takes on when it takes the run over.
+struct Takeover<'a> {
+    session: &'a zenoh::Session,
+    keys: &'a Keys,
+    timebase: &'a clock::Timebase,
+    start: Start,
+    queries: Arc<QueryCount>,
+    shared: &'a Arc<Shared<Machine>>,
+}
+
+/// What the standby holds while it leads: the time server, the start's
+/// announcer and its claim, watched for an earlier leader's.
+struct Held {
+    _time: zenoh::query::Queryable<()>,
+    announcer: tokio::task::JoinHandle<()>,
+    watcher: tokio::task::JoinHandle<()>,
+}
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        self.announcer.abort();
+        self.watcher.abort();
+    }
+}
+
+impl Takeover<'_> {
+    /// Stops estimating the leader's clock and serves that estimate as the
+    /// run's timebase; announces the start; claims the lead and defers to
+    /// an earlier claim.
+    async fn lead(self, following: clock_sync::Following) -> Result<Held, Error> {
+        drop(following);
+        let time = clock_sync::serve_counted(self.session, self.keys, self.timebase.clone(), self.queries).await?;
+        let announcer = startup::announce(self.session, self.keys, self.timebase, self.start);
+        let claim = startup::Leading::claim(self.session, self.keys, self.timebase.clock()).await?;
+        let (shared, run) = (self.shared.clone(), self.keys.run.clone());
+        let watcher = tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(startup::CLAIM_EVERY).await;
+                if let Some(line) = claim.deferral(&run) {
+                    shared.lock().defer(line);
+                    shared.wake();
+                    return;
+                }
+                if shared.lock().outcome().is_some() {
+                    return;
+                }
+            }
+        });
+        Ok(Held { _time: time, announcer, watcher })
+    }
+}
