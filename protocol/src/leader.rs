@@ -225,6 +225,17 @@ impl Leader {
         self.phase = Phase::Stepping(0);
     }
 
+    /// A standby: when the leader's silence will have lasted its wait. In
+    /// real time the silence counts from the epoch at the earliest (the
+    /// leader publishes step 0 at the start, step 1 at the epoch).
+    fn standby_wake(&self) -> Option<Now> {
+        let s = self.standby.as_ref()?;
+        let start = s.start.as_ref()?;
+        let epoch = Duration::from_nanos(start.epoch_unix_ns);
+        let since = if self.lockstep { s.heard_at } else { s.heard_at.max(epoch) };
+        Some(since + s.after)
+    }
+
     /// Real time: the run's epoch and step period on the timebase.
     fn pace(&mut self, start: &Start) {
         if !self.lockstep {
@@ -238,7 +249,8 @@ impl Leader {
     /// (nothing to take over), or this machine takes it over.
     fn standby_timeout(&mut self, now: Now) {
         let Some(s) = self.standby.as_ref() else { return };
-        let Some(start) = s.start.clone().filter(|_| now >= s.heard_at + s.after) else { return };
+        let Some(wake) = self.standby_wake() else { return };
+        let Some(start) = s.start.clone().filter(|_| now >= wake) else { return };
         let (heard, silent) = (s.heard, now - s.heard_at);
         self.standby = None;
         self.pace(&start);
@@ -332,7 +344,7 @@ impl Leader {
     /// step may go.
     pub fn poll_timeout(&self) -> Option<Now> {
         match &self.phase {
-            Phase::Waiting => self.standby.as_ref().and_then(|s| s.start.as_ref().map(|_| s.heard_at + s.after)),
+            Phase::Waiting => self.standby_wake(),
             Phase::Done(_) => None,
             Phase::Stepping(k) if !self.lockstep => Some(self.due(*k)),
             Phase::Stepping(_) if self.may_step() => Some(Now::ZERO),
@@ -751,7 +763,12 @@ mod tests {
         assert!(standby.took_over().is_none() && standby.outcome().is_none());
         let mut leader = Leader::new(&s);
         leader.start(&start0(), epoch);
-        standby.handle_start(&start0(), epoch);
+        // Heard 0.5 s before the epoch (the leader's step 0 then, its step 1
+        // at the epoch): the silence counts from the epoch.
+        standby.handle_start(&start0(), epoch - Duration::from_millis(500));
+        assert_eq!(standby.poll_timeout(), Some(epoch + Duration::from_millis(200)));
+        standby.handle_timeout(epoch - Duration::from_millis(1));
+        assert!(standby.took_over().is_none(), "no takeover before the epoch");
         let (_, t) = run_rt(&mut leader, epoch, epoch + Duration::from_secs(10), Some(&mut standby));
         assert_eq!(leader.outcome(), Some(&Ok(())));
         standby.handle_timeout(t + Duration::from_secs(1));

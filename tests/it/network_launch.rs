@@ -408,6 +408,47 @@ fn a_twin_of_a_running_node_is_refused_and_the_run_goes_on() {
     first.assert_group_empty();
 }
 
+/// Two leaders: a standby that takes the run over while the leader still
+/// leads (its wait of 0.5 ms is shorter than the leader's step) hears the
+/// leader's claim, defers and ends in one line naming the leader; the run
+/// completes and network.json counts the takeover.
+#[test]
+fn a_standby_that_took_over_beside_a_live_leader_defers_and_the_run_completes() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("two-leaders");
+    let sets = ["timing=realtime", "duration=6"];
+    let port = Ports::free(1).release();
+    let connect = format!("tcp/127.0.0.1:{port}");
+    let base = port.to_string();
+    let mut first = Group::launch(&out, &sets, &["--mode", "client", "--base-port", &base, "--run", "two-leaders"]);
+    // Into the run: the standby then sends the monitor the steps it took on.
+    std::thread::sleep(Duration::from_secs(2));
+    let began = Instant::now();
+    let standby = Command::new(env!("CARGO_BIN_EXE_leader"))
+        .args(["--scenario", common::SCENARIO, "--run", "two-leaders", "--mode", "client"])
+        .args(["--connect", &connect, "--set", sets[0], "--set", sets[1]])
+        .args(["--standby", "--take-over-after", "0.0005"])
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("run the standby");
+    let stderr = String::from_utf8_lossy(&standby.stderr);
+    assert_eq!(standby.status.code(), Some(0), "the standby: {stderr}");
+    assert!(
+        stderr.contains("taking the run over")
+            && stderr.contains("run two-leaders: two leaders: another (process")
+            && stderr.contains("defers and ends"),
+        "the standby: {stderr}"
+    );
+    assert!(began.elapsed() < Duration::from_secs(4), "the standby deferred only after {:?}", began.elapsed());
+    let status = first.wait(common::LIMIT);
+    assert!(status.success(), "the formation: {status}");
+    let network = common::json(&out, "network.json");
+    assert_eq!(network["complete"], true, "the record: {}", network["ending"]);
+    let handovers = network["handovers"].as_array().map_or(0, Vec::len);
+    assert_eq!(handovers, 1, "network.json's handovers: {}", network["handovers"]);
+    first.assert_group_empty();
+}
+
 /// One agent with another robot mass: every node ends within seconds,
 /// naming the node and the key that differs (exit 2); the leader tells the
 /// nodes that cannot see the odd one; the monitor leaves no folder.
