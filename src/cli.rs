@@ -81,6 +81,11 @@ pub enum Command {
     /// where and why the run departed from its model.
     #[command(allow_negative_numbers = true)]
     Replay(crate::replay::ReplayArgs),
+    /// Ask follower ID of a running formation to leave the run for good (as
+    /// SIGTERM to its agent would): it tells its neighbours and the monitor,
+    /// its robot stops; refused if the others would lose the leader (Lemma 1).
+    #[command(allow_negative_numbers = true)]
+    Leave(formation_net::leave::LeaveArgs),
     /// Play a finished networked run again on the live page (--web) or to
     /// Foxglove (--foxglove): --replay RUN_DIR, at --speed, with pause and
     /// seek on the page.
@@ -237,6 +242,7 @@ pub fn main() -> ExitCode {
         Command::Replay(a) => crate::replay::run(&a),
         Command::Monitor(a) => crate::replay::playback(&a),
         Command::Node(a) => return crate::node::run(a.node),
+        Command::Leave(a) => return crate::node::run_leave(a),
         Command::Robot(a) => return crate::node::run_robot(a),
         Command::BenchFloor(f) => return crate::node::run_floor(f),
     };

@@ -112,6 +112,15 @@ pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
     })
 }
 
+/// `formation leave`: the line that says when the follower left, on stdout.
+pub fn run_leave(a: formation_net::leave::LeaveArgs) -> ExitCode {
+    shell(&a.node.zenoh.clone(), "leave", true, async move {
+        let line = formation_net::leave::run(&a).await?;
+        println!("{line}");
+        Ok(ExitCode::SUCCESS)
+    })
+}
+
 /// The `leader` binary.
 pub fn run_leader(a: leader::LeaderArgs) -> ExitCode {
     shell(&a.node.zenoh.clone(), formation_protocol::names::LEADER, true, async move {

@@ -185,13 +185,16 @@ pub async fn run(
     let quorum_wait = args.node.quorum_wait()?;
     let checkpoint_dir = args.checkpoint_dir.clone().unwrap_or_else(checkpoint::default_dir);
     let driven = scenario.ros2.is_some_and(|r| r.robots.driven());
-    let leave: Leave = Arc::default();
+    // One per follower: a signal sets them all, `formation leave` one.
+    let leaves: Vec<Leave> = ids.iter().map(|_| Leave::default()).collect();
     let brakes: Vec<SharedTopics> = ids.iter().map(|_| Arc::new(Mutex::new(None))).collect();
+    let _asked = listen_for_leave(&session, &scenario, &keys, ids, &leaves, &brakes, &args.node.clock).await?;
     let mut followers: futures_util::stream::FuturesUnordered<_> = ids
         .iter()
         .zip(&indices)
         .zip(&brakes)
-        .map(|((&id, &index), brake)| {
+        .zip(&leaves)
+        .map(|(((&id, &index), brake), leave)| {
             let odometry = driven.then(|| Arc::new(OdomInbox::for_robot(&scenario, index, &args.node.clock)));
             let opts = FollowerOptions {
                 protocol: follower::Options { stall_timeout: stall, physical_node_faults: args.physical_node_faults },
@@ -238,7 +241,9 @@ pub async fn run(
             }
             // Each follower leaves at its next step, tells the monitor in
             // its last batch, and ends (a bounded wait).
-            let _ = leave.set(why);
+            for leave in &leaves {
+                let _ = leave.set(why);
+            }
             let r = tokio::time::timeout(LEAVE_WITHIN, &mut work).await.unwrap_or(Ok(()));
             (r, Some(s))
         }
@@ -254,6 +259,43 @@ pub async fn run(
     let close = if signal.is_some() { Duration::from_secs(1) } else { Duration::from_secs(5) };
     let _ = tokio::time::timeout(close, session.close()).await;
     result.map(|()| signal)
+}
+
+/// Why a follower asked by `formation leave` leaves (its telemetry says so).
+pub const ASKED_TO_LEAVE: &str = "formation leave";
+
+/// `formation leave --id ID` for a follower of this process: it leaves the
+/// run at its next step ([`Follower::handle_leave`]), and a robot driven
+/// through ROS 2 is sent zero velocity at once.
+async fn listen_for_leave(
+    session: &zenoh::Session,
+    scenario: &Scenario,
+    keys: &Keys,
+    ids: &[u32],
+    leaves: &[Leave],
+    brakes: &[SharedTopics],
+    clock: &crate::clock::Clock,
+) -> Result<Vec<zenoh::pubsub::Subscriber<()>>, Error> {
+    let driven = scenario.ros2.is_some_and(|r| r.robots.driven());
+    let mut subs = Vec::with_capacity(ids.len());
+    for ((&id, leave), brake) in ids.iter().zip(leaves).zip(brakes) {
+        let (leave, brake, s, sc, c) = (leave.clone(), brake.clone(), session.clone(), scenario.clone(), clock.clone());
+        let sub = session
+            .declare_subscriber(keys.leave(id))
+            .callback(move |_| {
+                if leave.set(ASKED_TO_LEAVE).is_ok() && driven {
+                    let (s, sc, brake, c) = (s.clone(), sc.clone(), brake.clone(), c.clone());
+                    tokio::spawn(async move {
+                        stop_robot(&s, &sc, id, &brake, ASKED_TO_LEAVE, &c).await;
+                        brake.lock().unwrap_or_else(|p| p.into_inner()).take();
+                    });
+                }
+            })
+            .await
+            .map_err(|e| zerr("listening for formation leave", e))?;
+        subs.push(sub);
+    }
+    Ok(subs)
 }
 
 /// Sends follower `id`'s robot zero velocity on its `cmd_vel` and says so:

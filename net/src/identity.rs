@@ -62,9 +62,10 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
             ],
             // Every estimate (lock-step pacing, and its own for twins) and telemetry (who finished).
             receive: vec![any_run("estimate/*"), any_run("telemetry/*"), control.clone()],
-            // The run's timebase (crate::clock_sync).
+            // The run's timebase (crate::clock_sync); a standby leader
+            // (crate::standby) asks it until it takes over.
             answer: vec![any_run("control/time")],
-            ask: vec![],
+            ask: vec![any_run("control/time")],
         },
         Role {
             name: MONITOR.into(),
@@ -73,6 +74,8 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
                 any_run("control/ready/monitor"),
                 any_run("control/ack"),
                 any_run("control/denied/monitor"),
+                // `formation leave`, an operator's command, speaks as the monitor.
+                any_run("control/leave/*"),
             ],
             receive: vec![any_run("telemetry/*"), control.clone()],
             answer: vec![],

@@ -26,6 +26,7 @@ pub mod courier;
 pub mod denials;
 pub mod identity;
 pub mod leader;
+pub mod leave;
 pub mod limits;
 pub mod monitor;
 pub mod node;

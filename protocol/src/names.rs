@@ -120,6 +120,10 @@ impl Keys {
     pub fn claim(&self, id: u32) -> String {
         key(&self.run, &format!("control/claim/{id}"))
     }
+    /// `formation leave --id ID`: follower ID is asked to leave the run.
+    pub fn leave(&self, id: u32) -> String {
+        key(&self.run, &format!("control/leave/{id}"))
+    }
     /// The leader refuses the run before its start (the reason, UTF-8).
     pub fn abort(&self) -> String {
         key(&self.run, "control/abort")

@@ -323,6 +323,8 @@ fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
         }
         ("abort", []) => formation_protocol::barrier::abort_reason(bytes).is_some(),
         ("claim", [id]) => decode::<formation_protocol::claim::Claim>(bytes).is_some_and(|c| c.id.to_string() == *id),
+        // `formation leave --id ID`: empty, to a follower's id.
+        ("leave", [id]) => bytes.is_empty() && id.parse::<u32>().is_ok_and(|i| i > 0),
         ("denied", [node]) => {
             bytes.len() <= formation_protocol::denied::MAX_REPORT_BYTES
                 && serde_json::from_slice::<formation_protocol::denied::Report>(bytes)
@@ -541,14 +543,20 @@ mod tests {
         w.note("control/denied/leader", br#"{"node":"leader","rows":[]}"#, 7);
         w.note("control/denied/leader", br#"{"node":"agent-2","rows":[]}"#, 7);
         w.note("control/denied/leader", &[0x37; 40], 7);
+        // `formation leave`: empty, to a follower.
+        w.note("control/leave/3", b"", 7);
+        w.note("control/leave/3", b"x", 7);
+        w.note("control/leave/0", b"", 7);
         for i in 0..200 {
             w.note(&format!("control/hello/x{i}"), b"", 7);
         }
+        assert_eq!(w.keys["control/leave/3"], (2, 1));
+        assert_eq!(w.keys["control/leave/0"], (1, 1));
         assert_eq!(w.keys["control/start"], (2, 1));
         assert_eq!(w.keys["control/ready/3"], (1, 1));
         assert_eq!(w.keys["control/abort"], (3, 2));
         assert_eq!(w.keys["control/denied/leader"], (3, 2));
-        assert_eq!(w.refused(), 7);
+        assert_eq!(w.refused(), 9);
         assert!(w.keys.len() <= MAX_KEYS + 1, "{} keys", w.keys.len());
     }
 }

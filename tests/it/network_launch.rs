@@ -408,6 +408,63 @@ fn a_twin_of_a_running_node_is_refused_and_the_run_goes_on() {
     first.assert_group_empty();
 }
 
+/// `formation leave --id 3` from another process: follower 3 leaves the
+/// running formation, the command says when (exit 0), the run completes
+/// and network.json names the leave; a leave that would cut followers off
+/// from the leader, an unknown follower and a bad timeout are refused in
+/// one line (exit 2), and a follower that never answers is named (exit 1).
+#[test]
+fn formation_leave_makes_a_running_follower_leave_and_bad_requests_are_refused() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("leave");
+    let sets = ["timing=realtime", "duration=6"];
+    let port = Ports::free(1).release();
+    let connect = format!("tcp/127.0.0.1:{port}");
+    let base = port.to_string();
+    let leave_from = |run: &str, extra: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["leave", "--scenario", common::SCENARIO, "--run", run, "--mode", "client"])
+            .args(["--connect", &connect, "--set", sets[0], "--set", sets[1]])
+            .args(extra)
+            .stdin(std::process::Stdio::null())
+            .output()
+            .expect("formation leave")
+    };
+    let leave = |extra: &[&str]| leave_from("leave-cmd", extra);
+    for (extra, says) in [
+        (&["--id", "1"][..], "without follower 1 no path leads from the leader to followers 2, 3, 4 (Lemma 1)"),
+        (&["--id", "9"][..], "has no follower 9 (ids: 1, 2, 3, 4)"),
+        (&["--id", "3", "--timeout", "0"][..], "--timeout must be a positive number"),
+    ] {
+        let o = leave(extra);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {stderr}");
+        assert!(stderr.contains(says) && stderr.lines().filter(|l| l.starts_with("error")).count() == 1, "{stderr}");
+    }
+    let mut run = Group::launch(&out, &sets, &["--mode", "client", "--base-port", &base, "--run", "leave-cmd"]);
+    std::thread::sleep(Duration::from_secs(3));
+    // Another run's name: nobody answers, and the command says so.
+    let o = leave_from("no-such-run", &["--id", "3", "--timeout", "0.5"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("follower 3 of run no-such-run did not say it left within 0.5 s"), "{stderr}");
+    let o = leave(&["--id", "3"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{stdout}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        stdout.starts_with("follower 3 left run leave-cmd at t = ") && stdout.contains("(formation leave)"),
+        "{stdout}"
+    );
+    let status = run.wait(common::LIMIT);
+    assert!(status.success(), "the formation: {status}");
+    let network = common::json(&out, "network.json");
+    assert_eq!(network["complete"], true, "the record: {}", network["ending"]);
+    let left = &network["left"];
+    assert_eq!((left[0]["follower"].as_u64(), left[0]["why"].as_str()), (Some(3), Some("formation leave")), "{left}");
+    assert_eq!(network["control_puts"]["control/leave/3"]["refused"], 0, "{}", network["control_puts"]);
+    run.assert_group_empty();
+}
+
 /// Two leaders: a standby that takes the run over while the leader still
 /// leads (its wait of 0.5 ms is shorter than the leader's step) hears the
 /// leader's claim, defers and ends in one line naming the leader; the run
