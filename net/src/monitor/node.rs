@@ -357,6 +357,14 @@ impl Monitor<'_> {
         self.recorder.queue_dropped = self.ears.queue.dropped();
         let now = self.args.node.clock.instant();
         self.recorder.telemetry(id, bytes, now).map_err(written)?;
+        for line in self.recorder.take_news() {
+            if !self.args.quiet {
+                if self.tty {
+                    eprint!("\r\x1b[K");
+                }
+                crate::node::say(&line);
+            }
+        }
         Ok(self.watch.on_telemetry(now, self.recorder.complete()))
     }
 

@@ -171,6 +171,8 @@ pub struct Recorder {
     leader_stream: Stream<LeaderState>,
     /// Standby leaders that took the run over (docs/model.md §14).
     pub(crate) handovers: Vec<Handover>,
+    /// Who came and went, as it was learnt: one line each, until taken.
+    news: Vec<String>,
     /// Leader states of steps `leader_base`.. (None: lost).
     leader: VecDeque<Option<LeaderState>>,
     leader_base: u64,
@@ -246,6 +248,7 @@ impl Recorder {
             followers,
             leader_stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
             handovers: Vec::new(),
+            news: Vec::new(),
             leader: VecDeque::new(),
             leader_base: 0,
             model_leader: scenario.leader(),
@@ -508,6 +511,7 @@ impl Recorder {
                 if let Some(h) = handover.filter(|h| key_id == Some(0) && h.at_k <= self.scenario.steps()) {
                     if !self.handovers.iter().any(|x| x.at_k == h.at_k) && self.handovers.len() < MAX_HANDOVERS {
                         self.handovers.push(h);
+                        self.news.push(crate::health::handover_line(h.heard, h.at_k, self.scenario.dt_s));
                     }
                 }
                 let batch = Batch { now, bytes, first_k, counters, done, loop_stats, delivery };
@@ -552,14 +556,20 @@ impl Recorder {
                 }
                 // A leave is said once, with the last batch: its step within the run.
                 let left = left.filter(|l| done && l.at_k <= steps && f.left.is_none());
+                let mut said = None;
                 if let Some(quantity) = diverged {
                     f.hearing.end = End::Diverged { k: last_k, quantity: quantity.chars().take(100).collect() };
                 } else if let Some(l) = left {
                     let why: String = l.why.chars().filter(|c| !c.is_control()).take(MAX_LEFT_WHY).collect();
                     f.hearing.end = End::Left { k: l.at_k, why: why.clone() };
-                    f.left = Some(Left { at_k: l.at_k, why });
+                    f.left = Some(Left { at_k: l.at_k, why: why.clone() });
+                    said = Some((l.at_k, why));
                 } else if done {
                     f.hearing.end = End::Completed;
+                }
+                if let Some((at_k, why)) = said {
+                    let line = self.leave_line(id, at_k, &why);
+                    self.news.push(line);
                 }
                 self.file_samples(index, &batch, samples);
             }
@@ -834,6 +844,34 @@ impl Recorder {
             f.left = Some(Left { at_k: 0, why });
             self.nodes.entry(f.id).or_default().done = true;
         }
+    }
+
+    /// "follower 3 left the run at t = 2.179 s (formation leave); every
+    /// remaining follower still reaches the leader": Lemma 1 checked again
+    /// on the graph without every follower gone so far.
+    fn leave_line(&self, id: u32, at_k: u64, why: &str) -> String {
+        let mut gone: Vec<u32> = self.left().iter().map(|l| l.0).collect();
+        if !gone.contains(&id) {
+            gone.push(id);
+        }
+        let cut: Vec<u32> =
+            self.scenario.graph.unreachable_without(&gone).into_iter().filter(|c| !gone.contains(c)).collect();
+        let reach = match cut.len() {
+            0 => "every remaining follower still reaches the leader".to_string(),
+            n => format!(
+                "{} {} no longer {} the leader (Lemma 1): {} estimates drift",
+                if n == 1 { "follower" } else { "followers" },
+                formation_topology::graph::id_list(&cut),
+                if n == 1 { "reaches" } else { "reach" },
+                if n == 1 { "its" } else { "their" }
+            ),
+        };
+        format!("follower {id} left the run at t = {:.3} s ({why}); {reach}", at_k as f64 * self.scenario.dt_s)
+    }
+
+    /// Who came and went since the last call, a line each (leaves, handovers).
+    pub fn take_news(&mut self) -> Vec<String> {
+        std::mem::take(&mut self.news)
     }
 
     /// The followers that left the run for good: id, the first step not
@@ -1167,6 +1205,54 @@ mod tests {
         drop(dir);
     }
 
+    /// A standby's batches say when it took the run over: said once as
+    /// news, in network.json's handovers and the leader's timeline, and its
+    /// gap is the model's row `{ node = 0, from, to }` (real time).
+    #[test]
+    fn a_handover_is_said_recorded_and_modelled() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+        let sets = ["duration=0.01".to_string(), "timing=realtime".to_string()];
+        let scenario = Scenario::load(&path, &sets).expect("scenario");
+        let dir = tempfile::tempdir().expect("tempdir");
+        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
+        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
+        let handover = Some(formation_protocol::telemetry::Handover { heard: Some(4), at_k: 7 });
+        for (first_k, incarnation) in [(0, 1), (5, 2)] {
+            let b = Telemetry::Leader {
+                first_k,
+                states: vec![LeaderState::default(); 5],
+                counters: Counters::default(),
+                done: false,
+                loop_stats: None,
+                delivery: Delivery { incarnation, available_from: first_k.min(5), ..Delivery::default() },
+                handover: if incarnation == 2 { handover } else { None },
+            };
+            r.telemetry(Some(0), &codec::encode(&b), Instant::now()).unwrap();
+        }
+        assert_eq!(
+            r.take_news(),
+            ["the leader handed over: a standby took the run over at t = 0.007 s; no leader message from t = 0.005 s \
+              (0.002 s)"]
+        );
+        let model = r.model_scenario();
+        let row = model.faults.last().expect("the gap's row");
+        let dt = scenario.dt_s;
+        assert_eq!((row.target, row.from_s, row.to_s), (formation_topology::FaultTarget::Node(0), 5.0 * dt, 7.0 * dt));
+        let json: serde_json::Value = serde_json::from_str(&r.network_json(Ending::Complete)).expect("json");
+        assert_eq!(
+            (json["handovers"][0]["heard_step"].as_u64(), json["handovers"][0]["step"].as_u64()),
+            (Some(4), Some(7))
+        );
+        let timeline = json["nodes"]["leader"]["timeline"].to_string();
+        assert!(timeline.contains("a standby leader took the run over"), "{timeline}");
+        // In lock-step the followers wait for the standby: no gap to model.
+        let lockstep = scenario.clone().with_handovers(&[]);
+        assert_eq!(lockstep.faults.len(), scenario.faults.len());
+        let mut ls = scenario.clone();
+        ls.timing = formation_topology::Timing::Lockstep;
+        assert_eq!(ls.with_handovers(&[(5, 7)]).faults.len(), scenario.faults.len());
+    }
+
     /// A follower that left the run (its last batch says so, done) is not
     /// waited for: the run completes when the others have; network.json
     /// names it with the step and why, its record is short only of the
@@ -1214,6 +1300,14 @@ mod tests {
         r.telemetry(Some(ids[0]), &codec::encode(&batch(ids[0], 4, Some(left))), Instant::now()).unwrap();
         assert!(r.complete(), "a follower that left is not waited for");
         assert_eq!(r.left(), vec![(ids[0], 4, "SIGTERM".to_string())]);
+        // Said as it is learnt, with Lemma 1 checked again: in the paper's
+        // graph follower 1 is the only one that hears the leader.
+        assert_eq!(
+            r.take_news(),
+            ["follower 1 left the run at t = 0.004 s (SIGTERM); followers 2, 3, 4 no longer reach the leader (Lemma \
+              1): their estimates drift"]
+        );
+        assert!(r.take_news().is_empty(), "said once");
         let model = r.model_scenario();
         let cut = model.faults.last().expect("a fault");
         assert_eq!((cut.target, cut.from_s), (formation_topology::FaultTarget::Node(ids[0]), 4.0 * scenario.dt_s));
