@@ -81,6 +81,11 @@ impl Watch {
         complete.then_some(Ending::Complete)
     }
 
+    /// Complete without new telemetry (a follower no longer waited for).
+    pub fn on_telemetry_check(&self, complete: bool) -> Option<Ending> {
+        complete.then_some(Ending::Complete)
+    }
+
     /// The periodic check at `now`: over once nothing was heard for the
     /// idle timeout (before the start as after it).
     pub fn on_tick(&self, now: Instant) -> Option<Ending> {

@@ -1018,3 +1018,34 @@ fn the_leader_killed_at_10_s_a_standby_takes_the_run_over_as_the_model_predicts(
 fn lockstep_with_the_leader_killed_a_standby_takes_over_and_equals_the_simulator() {
     lockstep_equals_sim("lab-ls-handover", &[], &["--kill-leader", "4"]);
 }
+
+/// A follower that dies without a word (agent 3 killed for good at 5 s of a
+/// 12 s real-time run) with `network.gone_after = 1`: the monitor takes it
+/// for gone after 1 s of silence, records it as having left where its record
+/// ends and does not wait for it; the run completes, the others' records
+/// are whole, and they are judged against the model with follower 3 cut off
+/// from then on (the run is not degraded: the lab exits 0).
+#[test]
+fn a_follower_killed_for_good_is_taken_for_gone_after_the_scenarios_timeout() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    let tag = "lab-gone";
+    let base = ["timing=realtime", "duration=12", "network.gone_after=1"];
+    let r = lab_on(&base, tag, &[], &["--kill-agent", "3@5"]);
+    assert_eq!(r.network["complete"], true, "{tag}: ending {}, lost {}", r.network["ending"], r.network["lost_steps"]);
+    let left = &r.network["left"][0];
+    let at = left["t_s"].as_f64().unwrap_or(f64::NAN);
+    assert!(
+        left["follower"] == 3 && left["why"] == "silent for 1 s" && (4.9..5.2).contains(&at),
+        "{tag}: follower 3 killed at 5 s: {}",
+        r.network["left"]
+    );
+    for id in ["1", "2", "4"] {
+        let rows = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count() - 1;
+        assert_eq!(rows, 12001, "{tag}: follower {id} has {rows} rows");
+    }
+    let said = r.network["health"]["disturbed"].to_string();
+    assert!(said.contains("follower 3 left the run at t = "), "{tag}: {said}");
+}

@@ -376,6 +376,12 @@ pub struct NetworkFile {
     /// period to arrive, and `formation sim` with 1 predicts it.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub delay_steps: u64,
+    /// A follower whose telemetry has been silent this long (s, wall clock)
+    /// is taken for gone: the monitor records it as having left the run
+    /// where its record ends, and no longer waits for it (docs/model.md
+    /// §14). Not given: it is waited for until the monitor's idle timeout.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gone_after: Option<f64>,
 }
 
 fn is_zero(x: &u64) -> bool {
@@ -511,7 +517,8 @@ default_impl!(NetworkFile {
     hearing_record: d::hearing_record(),
     rejoin: d::rejoin(),
     rejoin_after: d::rejoin_after(),
-    delay_steps: 0
+    delay_steps: 0,
+    gone_after: None
 });
 
 /// docs/model.md §10's values, the defaults of every key.

@@ -59,6 +59,8 @@ pub struct NetworkSettings {
     pub hearing_record: bool,
     /// At step k a follower uses its sources' messages of step k − d.
     pub delay_steps: u64,
+    /// A follower whose telemetry is silent this long (s) is taken for gone.
+    pub gone_after_s: Option<f64>,
 }
 
 /// Who moves the followers' robots when ROS 2 is on.
@@ -1427,12 +1429,16 @@ fn validate_network(c: &Check<'_>, file: &ScenarioFile) -> Result<(NetworkSettin
     if n.delay_steps > MAX_DELAY_STEPS {
         return Err(c.fail("network.delay_steps", format!("{} is more than {MAX_DELAY_STEPS}", n.delay_steps)));
     }
+    if let Some(g) = n.gone_after {
+        c.positive("network.gone_after", &[g])?;
+    }
     let settings = NetworkSettings {
         silence_timeout_s: n.silence_timeout,
         time_scale: n.time_scale,
         telemetry_batch: n.telemetry_batch,
         hearing_record: n.hearing_record,
         delay_steps: n.delay_steps,
+        gone_after_s: n.gone_after,
     };
     Ok((settings, RejoinRule { policy, after_steps }))
 }

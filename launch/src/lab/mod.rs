@@ -54,6 +54,11 @@ pub struct LabArgs {
     /// e.g. `3@8:2`. Repeatable.
     #[cfg_attr(feature = "clap", arg(long = "restart-agent", value_name = "ID@AT:FOR"))]
     pub restart_agent: Vec<String>,
+    /// Kill agent ID (SIGKILL) at run time AT (s) for good, e.g. `3@8`: a
+    /// follower that dies without a word (with `network.gone_after` the
+    /// monitor takes it for gone). Repeatable.
+    #[cfg_attr(feature = "clap", arg(long = "kill-agent", value_name = "ID@AT"))]
+    pub kill_agent: Vec<String>,
     /// Kill the leader (SIGKILL) at run time AT (s): a standby leader,
     /// started with the others on a host of its own, takes the run over
     /// after --take-over-after s of silence (client mode).
@@ -412,6 +417,19 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
             action: Action::StartAgent(id),
             what: format!("agent {id} started again"),
         });
+    }
+    for r in &a.kill_agent {
+        let bad = || Error::Input(format!("--kill-agent {r}: expected ID@AT, e.g. 3@8"));
+        let (id, at) = r.split_once('@').ok_or_else(bad)?;
+        let (id, at): (u32, f64) = (id.trim().parse().map_err(|_| bad())?, at.trim().parse().map_err(|_| bad())?);
+        if s.index_of(id).is_none() {
+            let ids = formation_topology::graph::id_list(s.graph.ids());
+            return Err(Error::Input(format!("--kill-agent {r}: no follower {id} (ids: {ids})")));
+        }
+        if !(at.is_finite() && at >= 0.0 && at < t_end) {
+            return Err(Error::Input(format!("--kill-agent {r}: {at} s is not within the run (0 to {t_end} s)")));
+        }
+        events.push(Event { at_s: at, action: Action::KillAgent(id), what: format!("agent {id} killed for good") });
     }
     if let Some(at) = a.kill_leader {
         if a.mode != LaunchMode::Client {

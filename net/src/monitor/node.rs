@@ -338,7 +338,16 @@ impl Monitor<'_> {
                 }
                 signal = &mut shutdown => break Ending::from(signal),
                 _ = status.tick() => {
-                    if let Some(end) = self.watch.on_tick(self.args.node.clock.instant()) {
+                    let now = self.args.node.clock.instant();
+                    if self.watch.started() {
+                        // network.gone_after: a silent follower no longer waited for.
+                        self.recorder.check_gone(now);
+                        self.say_news();
+                        if let Some(end) = self.watch.on_telemetry_check(self.recorder.complete()) {
+                            break end;
+                        }
+                    }
+                    if let Some(end) = self.watch.on_tick(now) {
                         break end;
                     }
                     self.recorder.flush().map_err(written)?;
@@ -357,6 +366,12 @@ impl Monitor<'_> {
         self.recorder.queue_dropped = self.ears.queue.dropped();
         let now = self.args.node.clock.instant();
         self.recorder.telemetry(id, bytes, now).map_err(written)?;
+        self.say_news();
+        Ok(self.watch.on_telemetry(now, self.recorder.complete()))
+    }
+
+    /// Who came and went, a line each (not with --quiet).
+    fn say_news(&mut self) {
         for line in self.recorder.take_news() {
             if !self.args.quiet {
                 if self.tty {
@@ -365,7 +380,6 @@ impl Monitor<'_> {
                 crate::node::say(&line);
             }
         }
-        Ok(self.watch.on_telemetry(now, self.recorder.complete()))
     }
 
     /// The live line on stderr: rewritten in place on a terminal.

@@ -173,6 +173,8 @@ pub struct Recorder {
     pub(crate) handovers: Vec<Handover>,
     /// Who came and went, as it was learnt: one line each, until taken.
     news: Vec<String>,
+    /// Followers taken for gone after `network.gone_after` of silence.
+    gone: BTreeSet<u32>,
     /// Leader states of steps `leader_base`.. (None: lost).
     leader: VecDeque<Option<LeaderState>>,
     leader_base: u64,
@@ -249,6 +251,7 @@ impl Recorder {
             leader_stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
             handovers: Vec::new(),
             news: Vec::new(),
+            gone: BTreeSet::new(),
             leader: VecDeque::new(),
             leader_base: 0,
             model_leader: scenario.leader(),
@@ -545,6 +548,7 @@ impl Recorder {
                     return Ok(());
                 };
                 self.refuse(key_id, u64::from(cut));
+                self.back_from_gone(index);
                 let batch = Batch { now, bytes, first_k, counters, done, loop_stats, delivery };
                 self.note_follower(index, &batch, clock, links);
                 self.file_events(id, events);
@@ -867,6 +871,46 @@ impl Recorder {
             ),
         };
         format!("follower {id} left the run at t = {:.3} s ({why}); {reach}", at_k as f64 * self.scenario.dt_s)
+    }
+
+    /// `network.gone_after` (docs/model.md §14): a follower whose telemetry
+    /// has been silent that long at `now` is taken for gone: it left the
+    /// run where its record ends, and nothing more is waited for from it.
+    /// Telemetry from it later takes that back ([`Recorder::telemetry`]).
+    pub fn check_gone(&mut self, now: Instant) {
+        let Some(after) = self.scenario.network.gone_after_s else { return };
+        let steps = self.scenario.steps();
+        let mut newly = Vec::new();
+        for f in self.followers.iter_mut().filter(|f| f.left.is_none()) {
+            let Some(n) = self.nodes.get_mut(&f.id).filter(|n| !n.done) else { continue };
+            let Some(heard) = n.heard else { continue };
+            if now.saturating_duration_since(heard).as_secs_f64() < after {
+                continue;
+            }
+            let (at_k, why) = (f.stream.end.min(steps + 1), format!("silent for {after} s"));
+            let why: String = why.chars().take(MAX_LEFT_WHY).collect();
+            f.hearing.end = End::Left { k: at_k, why: why.clone() };
+            f.left = Some(Left { at_k, why: why.clone() });
+            n.done = true;
+            newly.push((f.id, at_k, why));
+        }
+        for (id, at_k, why) in newly {
+            self.gone.insert(id);
+            let line = self.leave_line(id, at_k, &why);
+            self.news.push(format!("{line} (taken for gone: network.gone_after)"));
+        }
+    }
+
+    /// Telemetry from follower `index`, taken for gone: it is back.
+    fn back_from_gone(&mut self, index: usize) {
+        let f = &mut self.followers[index];
+        if !self.gone.remove(&f.id) {
+            return;
+        }
+        f.left = None;
+        f.hearing.end = End::Unknown;
+        self.nodes.entry(f.id).or_default().done = false;
+        self.news.push(format!("follower {} is heard again: no longer taken for gone", f.id));
     }
 
     /// Who came and went since the last call, a line each (leaves, handovers).
@@ -1203,6 +1247,55 @@ mod tests {
         assert_eq!(lines("leader.csv"), 1 + 5, "the leader's own rows only");
         assert!(summary.complete, "every follower's samples are recorded");
         drop(dir);
+    }
+
+    /// `network.gone_after`: a follower silent that long is taken for gone
+    /// where its record ends (said once, not waited for); its telemetry
+    /// later takes that back.
+    #[test]
+    fn a_silent_follower_is_taken_for_gone_and_back_when_heard() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+        let sets = ["duration=0.01".to_string(), "network.gone_after=2".to_string()];
+        let scenario = Scenario::load(&path, &sets).expect("scenario");
+        let dir = tempfile::tempdir().expect("tempdir");
+        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
+        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
+        let batch = |id: u32, first_k: u64, n: u64| {
+            let slots = scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
+            codec::encode(&Telemetry::Follower {
+                id,
+                first_k,
+                heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
+                rescued: Vec::new(),
+                resumed: None,
+                diverged: None,
+                left: None,
+                samples: (first_k..first_k + n).map(sample).collect(),
+                counters: Counters::default(),
+                done: false,
+                loop_stats: None,
+                delivery: Delivery::default(),
+                events: Vec::new(),
+                clock: None,
+                links: Vec::new(),
+            })
+        };
+        let t0 = Instant::now();
+        r.telemetry(Some(3), &batch(3, 0, 4), t0).unwrap();
+        r.check_gone(t0 + std::time::Duration::from_millis(1999));
+        assert!(r.left().is_empty() && r.take_news().is_empty(), "not before 2 s");
+        r.check_gone(t0 + std::time::Duration::from_secs(2));
+        assert_eq!(r.left(), vec![(3, 4, "silent for 2 s".to_string())]);
+        let news = r.take_news();
+        assert!(
+            news.len() == 1 && news[0].starts_with("follower 3 left the run at t = 0.004 s (silent for 2 s)"),
+            "{news:?}"
+        );
+        r.check_gone(t0 + std::time::Duration::from_secs(5));
+        assert!(r.take_news().is_empty(), "said once");
+        r.telemetry(Some(3), &batch(3, 4, 2), t0 + std::time::Duration::from_secs(6)).unwrap();
+        assert!(r.left().is_empty(), "heard again: no longer gone");
+        assert_eq!(r.take_news(), ["follower 3 is heard again: no longer taken for gone"]);
     }
 
     /// A standby's batches say when it took the run over: said once as
