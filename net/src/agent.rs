@@ -392,23 +392,27 @@ impl Shared {
 
 /// A follower the run started without (a quorum start) ends here: it does
 /// not join later.
-fn not_absent(id: u32, start: &Start, keys: &Keys) -> Result<(), Error> {
-    if !start.absent.contains(&id) {
+fn not_absent(id: u32, start: &Start, keys: &Keys, scenario: &Scenario) -> Result<(), Error> {
+    if !start.absent.contains(&id) || scenario.timing == Timing::Realtime {
         return Ok(());
     }
+    // docs/model.md §14: in lock-step every neighbour would have to agree,
+    // before any of them passes it, on the step from which it waits for
+    // the newcomer; real time needs no agreement.
     Err(Error::Run(format!(
-        "follower {id}: run {} started without it (not ready within the leader's quorum wait); a follower absent \
-         at the start does not join later",
+        "follower {id}: run {} started without it (not ready within the leader's quorum wait); in lock-step a \
+         follower absent at the start does not join later (in real time it joins at the step due)",
         keys.run
     )))
 }
 
-/// Starts the machine; the followers absent from the start have their
-/// links cut from step 0, as the model's node fault (docs/model.md §14).
-fn start_machine(m: &mut Follower, start: &Start, resume: Option<(u64, Pose)>, now: formation_protocol::Now) {
+/// Starts the machine; the other followers absent from the start have
+/// their links cut from step 0, as the model's node fault (docs/model.md
+/// §14), until (real time) they join.
+fn start_machine(m: &mut Follower, start: &Start, resume: Option<(u64, Pose)>, now: formation_protocol::Now, me: u32) {
     m.start(start, resume, now);
-    for &gone in &start.absent {
-        m.handle_gone(gone, 0);
+    for &gone in start.absent.iter().filter(|&&g| g != me) {
+        m.handle_absent(gone);
     }
 }
 
@@ -465,7 +469,7 @@ pub async fn run_follower(
     let start =
         startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock, opts.quorum_wait)
             .await?;
-    not_absent(id, &start, keys)?;
+    not_absent(id, &start, keys, scenario)?;
     // Started: a later twin hears this follower's estimates from now on.
     drop(claiming);
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
@@ -479,7 +483,7 @@ pub async fn run_follower(
         let t = FollowerTopics::declare(node, scenario, id, driven, start.epoch_unix_ns).await?;
         *topics.lock().unwrap_or_else(|p| p.into_inner()) = Some(t);
     }
-    start_machine(&mut shared.lock(), &start, resume, timebase.now());
+    start_machine(&mut shared.lock(), &start, resume, timebase.now(), id);
     let watcher = watch_router(session, &shared, lockstep).await;
     // Telemetry leaves the loop through a bounded store and a thread of its
     // own, so a slow or dead link to the monitor never holds a step; it is
@@ -690,6 +694,15 @@ async fn rejoin(
         return Ok(None);
     }
     let at = |k: u64| k as f64 * scenario.dt_s;
+    if start.absent.contains(&id) {
+        // docs/model.md §14: a join, its robot where the scenario puts it.
+        crate::node::say(&format!(
+            "follower {id}: joining the running formation at t = {:.3} s (step {first_step}; absent at the start), \
+             the robot at its initial pose",
+            at(first_step)
+        ));
+        return Ok(Some((first_step, scenario.followers[index].pose)));
+    }
     let found = checkpoint_path.map(|p| checkpoint::read(p, barrier::fingerprint(scenario), start.epoch_unix_ns));
     let pose = match found {
         Some(Ok(c)) => {

@@ -266,6 +266,9 @@ pub struct Follower {
     second_clock_named: bool,
     /// Lock-step: the neighbours that reported their final step.
     done_neighbours: Vec<u32>,
+    /// Real time: neighbours absent at the start, whose first message
+    /// opens their links from its step on (a join, docs/model.md §14).
+    joinable: Vec<u32>,
     samples: Vec<FollowerSample>,
     first_k: u64,
     resumed: Option<Resume>,
@@ -366,6 +369,7 @@ impl Follower {
             events: Vec::new(),
             second_clock_named: false,
             done_neighbours: Vec::new(),
+            joinable: Vec::new(),
             first_k: 0,
             resumed: None,
             sent: 0,
@@ -480,6 +484,16 @@ impl Follower {
         let mut arrival = Arrival::default();
         self.inbox.set_time(now);
         let slot = if let Source::Neighbour(slot) = source { slot } else { n };
+        if slot < n && !self.joinable.is_empty() {
+            self.handle_joined(msg.header.sender, msg.header.step);
+        }
+        // Real time, before this follower's start: a joining or restarted
+        // process hears the running formation's messages, far ahead of its
+        // step 0; they are early for it, not forged (its first step is the
+        // one then due, and it takes what it hears from then on).
+        if !self.rules.lockstep && matches!(self.phase, Phase::Waiting) && self.inbox.beyond(slot, msg.header.step) {
+            return arrival;
+        }
         if slot == n {
             arrival.leader_sent_ns = Some(msg.header.sent_ns);
         }
@@ -536,6 +550,34 @@ impl Follower {
         self.done_neighbours.push(id);
         let windows = &mut self.rules.fault_windows[slot];
         windows.push(LossWindow { from_k: at_k, to_k: self.rules.steps + 1, loss: 1.0 });
+        let link = LinkLoss::new(self.rules.seed, id, self.rules.id, windows);
+        self.inbox.set_link(slot, link);
+    }
+
+    /// Follower `id` was absent at the start (a quorum start): its links
+    /// are cut from step 0, as the row `{ node = id, from = 0 }`; in real
+    /// time its first message, if it joins later, opens them again from
+    /// that message's step ([`Follower::handle_checked`]).
+    pub fn handle_absent(&mut self, id: u32) {
+        self.handle_gone(id, 0);
+        if !self.rules.lockstep && self.rules.neighbours.contains(&id) && !self.joinable.contains(&id) {
+            self.joinable.push(id);
+        }
+    }
+
+    /// Real time: absent neighbour `id` joined the run with its message of
+    /// step `k`: its links are cut over [0, k) only, the row
+    /// `{ node = id, from = 0, to = k Δt }`.
+    fn handle_joined(&mut self, id: u32, k: u64) {
+        let Some(i) = self.joinable.iter().position(|&j| j == id) else { return };
+        let Some(slot) = self.rules.source_ids.iter().position(|&s| s == id) else { return };
+        self.joinable.swap_remove(i);
+        self.done_neighbours.retain(|&d| d != id);
+        let end = self.rules.steps + 1;
+        let windows = &mut self.rules.fault_windows[slot];
+        if let Some(w) = windows.iter_mut().find(|w| w.from_k == 0 && w.to_k == end && w.loss >= 1.0) {
+            w.to_k = k.clamp(1, end);
+        }
         let link = LinkLoss::new(self.rules.seed, id, self.rules.id, windows);
         self.inbox.set_link(slot, link);
     }

@@ -201,6 +201,12 @@ impl Inbox {
         self.pace().saturating_add(self.ahead[slot])
     }
 
+    /// Whether a message of `slot` for `step` is further ahead than the
+    /// receiver's step allows.
+    pub fn beyond(&self, slot: usize, step: u64) -> bool {
+        step > self.limit(slot)
+    }
+
     /// Real time: whether `step` of `slot` shows (or, once flagged, comes
     /// from) a second sender on the source's key; see [`Twin`].
     fn twinned(&mut self, slot: usize, step: u64, sent_ns: i64, m: &Message) -> bool {

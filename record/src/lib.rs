@@ -142,7 +142,10 @@ mod tests {
         let cut = Summary::new(&s, followers);
         assert!(!cut.complete);
         assert_eq!(cut.incomplete.len(), 1, "{:?}", cut.incomplete);
-        assert_eq!(cut.incomplete[&3], Shortfall { recorded: 800, expected: 2001, in_gaps: 0, left: None });
+        assert_eq!(
+            cut.incomplete[&3],
+            Shortfall { recorded: 800, expected: 2001, in_gaps: 0, left: None, joined_at_k: None }
+        );
         let v: serde_json::Value = serde_json::from_str(&cut.to_json()).unwrap();
         assert_eq!(v["complete"], false);
         assert_eq!(v["incomplete"]["3"], serde_json::json!({ "recorded": 800, "expected": 2001 }));

@@ -59,6 +59,10 @@ pub struct Shortfall {
     /// why: its samples end there by design, not by loss.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub left: Option<String>,
+    /// Absent at the start, it joined the run at this step: its samples
+    /// begin there by design.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub joined_at_k: Option<u64>,
 }
 
 impl Shortfall {
@@ -69,6 +73,14 @@ impl Shortfall {
             // To the microsecond: 1499 × 0.001 prints as 1.499, not 1.4990000000000001.
             n => format!(" (to t = {} s of T = {duration_s} s)", ((n - 1) as f64 * dt_s * 1e6).round() / 1e6),
         };
+        if let Some(k) = self.joined_at_k {
+            return format!(
+                "follower {id} joined at t = {} s (absent at the start): {} of {} steps",
+                (k as f64 * dt_s * 1e6).round() / 1e6,
+                self.recorded,
+                self.expected
+            );
+        }
         match (&self.left, self.recorded) {
             (Some(why), 0) => return format!("follower {id} took no step ({why})"),
             (Some(why), n) => {
@@ -135,10 +147,21 @@ impl Summary {
             .filter(|(_, m)| m.samples < expected)
             .map(|(&id, m)| {
                 let left = was.get(&id).and_then(|s| s.left.clone());
-                (id, Shortfall { recorded: m.samples, expected, in_gaps: m.gap_steps, left })
+                let joined_at_k = was.get(&id).and_then(|s| s.joined_at_k);
+                (id, Shortfall { recorded: m.samples, expected, in_gaps: m.gap_steps, left, joined_at_k })
             })
             .collect();
         self.complete = self.incomplete.is_empty();
+    }
+
+    /// Follower `id` left the run for good before it ended (`why`: "SIGTERM",
+    /// "absent at the start", …): its shortfall says so.
+    /// Follower `id`, absent at the start, joined the run at step `k`: its
+    /// shortfall says so.
+    pub fn mark_joined(&mut self, id: u32, k: u64) {
+        if let Some(s) = self.incomplete.get_mut(&id) {
+            s.joined_at_k = Some(k);
+        }
     }
 
     /// Follower `id` left the run for good before it ended (`why`: "SIGTERM",

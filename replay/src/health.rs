@@ -132,6 +132,8 @@ pub struct Evidence {
     pub short: Vec<String>,
     /// Followers that left the run for good: (id, at run time s, why).
     pub left: Vec<(u32, f64, String)>,
+    /// Followers absent at the start that joined later: (id, at run time s).
+    pub joined: Vec<(u32, f64)>,
     /// The followers those who left cut off from the leader (Lemma 1 on
     /// the graph without them).
     pub cut_off: Vec<u32>,
@@ -167,6 +169,9 @@ fn who_ran(e: &Evidence, degraded: &mut Vec<String>, disturbed: &mut Vec<String>
     // model does (a node fault from then on), and its record ends there.
     for (id, t, why) in &e.left {
         disturbed.push(format!("follower {id} left the run at t = {t:.3} s ({why})"));
+    }
+    for (id, t) in &e.joined {
+        disturbed.push(format!("follower {id} joined the run at t = {t:.3} s (absent at the start)"));
     }
     if !e.cut_off.is_empty() {
         let ids: Vec<String> = e.cut_off.iter().map(u32::to_string).collect();

@@ -34,6 +34,9 @@ pub struct Loaded {
     /// The handovers' gaps as network.json records them: steps [from, to)
     /// with no leader message (docs/model.md §14).
     pub handover_gaps: Vec<(u64, u64)>,
+    /// Followers absent at the start that joined, as network.json records
+    /// them: (id, the first step each took).
+    pub joins: Vec<(u32, u64)>,
 }
 
 impl Loaded {
@@ -49,8 +52,17 @@ impl Loaded {
                 _ => None,
             })
             .collect();
-        self.scenario.with_leaves(&leaves).with_handovers(&self.handover_gaps)
+        self.scenario.with_leaves(&leaves).with_handovers(&self.handover_gaps).with_joins(&self.joins)
     }
+}
+
+/// network.json's joins: (follower, first step), for followers of the scenario.
+fn joins(network: &serde_json::Value, scenario: &Scenario) -> Vec<(u32, u64)> {
+    let rows = network["joined"].as_array().map_or(&[][..], Vec::as_slice);
+    rows.iter()
+        .filter_map(|j| Some((u32::try_from(j["follower"].as_u64()?).ok()?, j["step"].as_u64()?)))
+        .filter(|&(id, k)| scenario.index_of(id).is_some() && k <= scenario.steps())
+        .collect()
 }
 
 /// network.json's handovers as gaps: [the step after the newest heard, the
@@ -108,6 +120,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
         Err(e) => return Err(Error::Input(format!("{}: network.json: {e}", dir.display()))),
     };
     let handover_gaps = network.as_ref().map_or_else(Vec::new, |n| handover_gaps(n, scenario.steps()));
+    let joins = network.as_ref().map_or_else(Vec::new, |n| joins(n, &scenario));
     if let Some(net) = network {
         let theirs = format!("{:016x}", record.fingerprint);
         let named = net["fingerprint"].as_str().map(|f| f == theirs).unwrap_or(true)
@@ -153,7 +166,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
             end = seg.end();
         }
     }
-    Ok(Loaded { dir: dir.to_path_buf(), scenario, record, handover_gaps })
+    Ok(Loaded { dir: dir.to_path_buf(), scenario, record, handover_gaps, joins })
 }
 
 /// Which hearing a replay uses: the record's, except where the model's
@@ -496,6 +509,7 @@ pub fn replay_to_folder_with(
     for (i, f) in loaded.record.followers.iter().enumerate() {
         recorder.replayed_hearing(i, &f.resumes, f.end.clone());
     }
+    recorder.replayed_joins(&loaded.joins);
     let mut sink = Folder { recorder, progress };
     let problems = replay(loaded, hearing, &mut sink)?;
     sink.recorder.finish(crate::watch::Ending::Complete)?;

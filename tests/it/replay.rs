@@ -368,7 +368,8 @@ fn the_models_hearing_replays_into_the_simulators_folder() {
         rescued: Vec::new(),
     };
     let dir = tempfile::tempdir().expect("tempdir");
-    let loaded = Loaded { dir: dir.path().join("none"), scenario, record, handover_gaps: Vec::new() };
+    let loaded =
+        Loaded { dir: dir.path().join("none"), scenario, record, handover_gaps: Vec::new(), joins: Vec::new() };
     let model = dir.path().join("model");
     let problems = replay::replay_to_folder_with(&loaded, Hearing::Model, &model, &mut |_| {}).expect("replay");
     assert!(problems.is_empty(), "{problems:?}");

@@ -434,6 +434,17 @@ impl Scenario {
         self
     }
 
+    /// The model of joins (docs/model.md §14): each follower absent at the
+    /// start that joined at step k has its links cut over [0, k), the row
+    /// `{ node = id, from = 0, to = k Δt }`.
+    pub fn with_joins(mut self, joins: &[(u32, u64)]) -> Scenario {
+        for &(id, k) in joins.iter().filter(|j| j.1 > 0) {
+            let to_s = (k as f64 * self.dt_s).min(self.duration_s + self.dt_s);
+            self.faults.push(LinkFault { target: FaultTarget::Node(id), from_s: 0.0, to_s, loss: 1.0 });
+        }
+        self
+    }
+
     /// The receiver's loss decisions for the link sender → receiver.
     pub fn link_loss(&self, sender: u32, receiver: u32) -> LinkLoss {
         let windows = self.link_windows(sender, receiver);

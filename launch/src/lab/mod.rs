@@ -54,6 +54,11 @@ pub struct LabArgs {
     /// e.g. `3@8:2`. Repeatable.
     #[cfg_attr(feature = "clap", arg(long = "restart-agent", value_name = "ID@AT:FOR"))]
     pub restart_agent: Vec<String>,
+    /// Start agent ID, absent at the start (--absent ID), at run time AT
+    /// (s), e.g. `3@12`: it joins the running formation (real time).
+    /// Repeatable.
+    #[cfg_attr(feature = "clap", arg(long = "join", value_name = "ID@AT"))]
+    pub join: Vec<String>,
     /// Kill agent ID (SIGKILL) at run time AT (s) for good, e.g. `3@8`: a
     /// follower that dies without a word (with `network.gone_after` the
     /// monitor takes it for gone). Repeatable.
@@ -417,6 +422,26 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
             action: Action::StartAgent(id),
             what: format!("agent {id} started again"),
         });
+    }
+    for r in &a.join {
+        let bad = || Error::Input(format!("--join {r}: expected ID@AT, e.g. 3@12"));
+        let (id, at) = r.split_once('@').ok_or_else(bad)?;
+        let (id, at): (u32, f64) = (id.trim().parse().map_err(|_| bad())?, at.trim().parse().map_err(|_| bad())?);
+        if !a.opts.absent.contains(&id) {
+            return Err(Error::Input(format!(
+                "--join {r}: follower {id} must be absent at the start to join later (--quorum N --absent {id})"
+            )));
+        }
+        if s.timing != formation_topology::Timing::Realtime {
+            return Err(Error::Input(format!(
+                "--join {r}: a follower joins a running formation in real time only (timing = \"realtime\"; in \
+                 lock-step its neighbours would have to agree on the step first)"
+            )));
+        }
+        if !(at.is_finite() && at > 0.0 && at < t_end) {
+            return Err(Error::Input(format!("--join {r}: {at} s is not within the run (after 0, before {t_end} s)")));
+        }
+        events.push(Event { at_s: at, action: Action::StartAgent(id), what: format!("agent {id} started: it joins") });
     }
     for r in &a.kill_agent {
         let bad = || Error::Input(format!("--kill-agent {r}: expected ID@AT, e.g. 3@8"));

@@ -175,6 +175,11 @@ pub struct Recorder {
     news: Vec<String>,
     /// Followers taken for gone after `network.gone_after` of silence.
     gone: BTreeSet<u32>,
+    /// Followers absent at the start (a quorum start).
+    absent_at_start: Vec<u32>,
+    /// Absent followers that joined later (real time): id, the first step
+    /// they took.
+    pub(crate) joined: Vec<(u32, u64)>,
     /// Leader states of steps `leader_base`.. (None: lost).
     leader: VecDeque<Option<LeaderState>>,
     leader_base: u64,
@@ -252,6 +257,8 @@ impl Recorder {
             handovers: Vec::new(),
             news: Vec::new(),
             gone: BTreeSet::new(),
+            absent_at_start: Vec::new(),
+            joined: Vec::new(),
             leader: VecDeque::new(),
             leader_base: 0,
             model_leader: scenario.leader(),
@@ -332,6 +339,11 @@ impl Recorder {
         f.hearing.end = end;
     }
 
+    /// A replay: the followers that joined late, as the run recorded them.
+    pub fn replayed_joins(&mut self, joins: &[(u32, u64)]) {
+        self.joined = joins.to_vec();
+    }
+
     /// A replay: rows for every sample whose leader state is known.
     pub fn settle(&mut self) -> std::io::Result<()> {
         self.process()
@@ -379,6 +391,7 @@ impl Recorder {
         let gone: Vec<u32> = left.iter().map(|l| l.0).collect();
         e.cut_off = if gone.is_empty() { Vec::new() } else { self.scenario.graph.unreachable_without(&gone) };
         e.left = left.into_iter().map(|(id, k, why)| (id, k as f64 * dt, why)).collect();
+        e.joined = self.joined.iter().map(|&(id, k)| (id, k as f64 * dt)).collect();
         self.realtime_evidence(&mut e);
         let mut invalid = 0;
         for (&id, n) in &self.nodes {
@@ -549,6 +562,8 @@ impl Recorder {
                 };
                 self.refuse(key_id, u64::from(cut));
                 self.back_from_gone(index);
+                let joined_at = resumed.as_ref().map_or(first_k, |r| r.k).min(self.scenario.steps());
+                self.join_if_absent(index, joined_at);
                 let batch = Batch { now, bytes, first_k, counters, done, loop_stats, delivery };
                 self.note_follower(index, &batch, clock, links);
                 self.file_events(id, events);
@@ -842,6 +857,7 @@ impl Recorder {
     /// it left before step 0 (no rows; its neighbours and the model cut its
     /// links from the start), and done: nothing more is waited for from it.
     pub fn absent(&mut self, ids: &[u32]) {
+        self.absent_at_start = ids.to_vec();
         for f in self.followers.iter_mut().filter(|f| ids.contains(&f.id) && f.next_k == 0) {
             let why = ABSENT.to_string();
             f.hearing.end = End::Left { k: 0, why: why.clone() };
@@ -901,6 +917,29 @@ impl Recorder {
         }
     }
 
+    /// Telemetry from follower `index`, absent at the start: it joined the
+    /// run at step `k` (real time; docs/model.md §14), and is waited for
+    /// from now on.
+    fn join_if_absent(&mut self, index: usize, k: u64) {
+        let f = &mut self.followers[index];
+        if !f.left.as_ref().is_some_and(|l| l.at_k == 0 && l.why == ABSENT) {
+            return;
+        }
+        f.left = None;
+        f.hearing.end = End::Unknown;
+        // Its steps before k were never to come: no gap, nothing lost.
+        f.stream.skip_to(k);
+        self.nodes.entry(f.id).or_default().done = false;
+        let id = f.id;
+        if !self.joined.iter().any(|j| j.0 == id) {
+            self.joined.push((id, k));
+            self.news.push(format!(
+                "follower {id} joined the run at t = {:.3} s (absent at the start)",
+                k as f64 * self.scenario.dt_s
+            ));
+        }
+    }
+
     /// Telemetry from follower `index`, taken for gone: it is back.
     fn back_from_gone(&mut self, index: usize) {
         let f = &mut self.followers[index];
@@ -930,7 +969,7 @@ impl Recorder {
     pub fn model_scenario(&self) -> Scenario {
         let leaves: Vec<(u32, u64)> = self.left().iter().map(|&(id, k, _)| (id, k)).collect();
         let gaps: Vec<(u64, u64)> = self.handovers.iter().filter_map(Handover::gap).collect();
-        self.scenario.with_leaves(&leaves).with_handovers(&gaps)
+        self.scenario.with_leaves(&leaves).with_handovers(&gaps).with_joins(&self.joined)
     }
 
     /// Steps recorded by every follower.
@@ -1024,6 +1063,9 @@ impl Recorder {
         summary.safety = self.proximity.take();
         for (id, _, why) in self.left() {
             summary.mark_left(id, &why);
+        }
+        for &(id, k) in &self.joined {
+            summary.mark_joined(id, k);
         }
         let health = self.health(&summary);
         self.writer.write_file("network.json", &self.network_json_with(ending, health.as_ref()))?;

@@ -68,7 +68,12 @@ impl Recorder {
             // with the same identity), as their neighbours saw it.
             "twins": self.twins(),
             // Followers a quorum start went without (also in "left", at step 0).
-            "absent": self.left().iter().filter(|l| l.1 == 0 && l.2 == super::ABSENT).map(|l| l.0).collect::<Vec<_>>(),
+            "absent": self.absent_at_start,
+            // Followers absent at the start that joined later (real time):
+            // the first step each took, and its time.
+            "joined": self.joined.iter().map(|&(id, k)| json!({
+                "follower": id, "step": k, "t_s": k as f64 * self.scenario.dt_s,
+            })).collect::<Vec<_>>(),
             // Followers that left the run for good: the first step each did
             // not take, its time, and why (its process was told to stop).
             "left": self.left().iter().map(|(id, k, why)| json!({

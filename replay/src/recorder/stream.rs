@@ -146,6 +146,14 @@ impl<T> Stream<T> {
         self.end = self.end.max(end);
     }
 
+    /// A sender that joined at step k (absent before): nothing below k is
+    /// expected, so none of it is a gap.
+    pub(super) fn skip_to(&mut self, k: u64) {
+        if self.end < k && self.ahead.is_empty() && self.gaps.is_empty() {
+            self.end = k;
+        }
+    }
+
     pub(super) fn lost_steps(&self) -> u64 {
         self.gaps.iter().map(|g| g.to - g.from).sum()
     }
