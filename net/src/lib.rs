@@ -25,6 +25,7 @@ pub mod clock_sync;
 pub mod courier;
 pub mod denials;
 pub mod identity;
+pub mod lead;
 pub mod leader;
 pub mod leave;
 pub mod limits;

@@ -26,7 +26,7 @@ use std::time::Duration;
 use formation_topology::{wire, Scenario, Timing};
 
 use crate::clock::{self, Clock};
-use crate::leader::{watch_reached, Node};
+use crate::lead::{watch_reached, Node};
 use crate::node::Shared;
 use crate::{clock_sync, startup, telemetry};
 use formation_protocol::barrier::Start;
