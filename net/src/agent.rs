@@ -390,8 +390,8 @@ impl Shared {
     }
 }
 
-/// A follower the run started without (a quorum start) ends here: it does
-/// not join later.
+/// In lock-step a follower the run started without (a quorum start) ends
+/// here: it does not join later (a real-time one joins: see `rejoin`).
 fn not_absent(id: u32, start: &Start, keys: &Keys, scenario: &Scenario) -> Result<(), Error> {
     if !start.absent.contains(&id) || scenario.timing == Timing::Realtime {
         return Ok(());

@@ -1099,3 +1099,40 @@ fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
     }
     common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
 }
+
+/// Leave for good in real time (docs/model.md §14): follower 2 leaves at
+/// 5 s of a 12 s run (`--leave 2@5`); its record ends there, the monitor
+/// names the leave, the run replays byte for byte, and the others agree
+/// with `formation sim` given the row `{ node = 2, from = 5 }`: formation
+/// error over the last 10 s and torque variation within 10 % (judged on a
+/// quiet machine).
+#[test]
+fn follower_2_leaves_at_5_s_as_the_model_predicts() {
+    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    if !lab_available() {
+        return;
+    }
+    let tag = "lab-leave";
+    let base = ["timing=realtime", "duration=12", "network.delay_steps=5"];
+    let r = lab_on(&base, tag, &[], &["--leave", "2@5"]);
+    assert_eq!(r.network["complete"], true, "{tag}: ending {}, lost {}", r.network["ending"], r.network["lost_steps"]);
+    let left = &r.network["left"][0];
+    assert!(left["follower"] == 2 && left["step"] == 5000, "{tag}: {}", r.network["left"]);
+    let rows = |id: &str| std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count() - 1;
+    assert_eq!(rows("2"), 5000, "{tag}: follower 2's rows end before step 5000");
+    common::replays_byte_for_byte(tag, &r.out);
+    let (_dir, sim_dir) = sim_on(&base, &["faults+={node=2, from=5}"]);
+    let s = common::json(&sim_dir, "summary.json");
+    let mut wrong = Vec::new();
+    for id in ["1", "3", "4"] {
+        let (a, b) = (&r.summary["followers"][id], &s["followers"][id]);
+        for m in ["formation_rms_last10", "torque_tv"] {
+            let ratio = num(&a[m]) / num(&b[m]);
+            eprintln!("{tag}: follower {id}: {m} {} in the lab, {} simulated ({ratio:.3})", a[m], b[m]);
+            if !(0.9..=1.1).contains(&ratio) {
+                wrong.push(format!("follower {id}: {m} {} in the lab vs {} simulated ({ratio:.3})", a[m], b[m]));
+            }
+        }
+    }
+    common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
+}
