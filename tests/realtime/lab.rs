@@ -1118,7 +1118,8 @@ fn follower_2_leaves_at_5_s_as_the_model_predicts() {
     assert_eq!(r.network["complete"], true, "{tag}: ending {}, lost {}", r.network["ending"], r.network["lost_steps"]);
     let left = &r.network["left"][0];
     assert!(left["follower"] == 2 && left["step"] == 5000, "{tag}: {}", r.network["left"]);
-    let rows = |id: &str| std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count() - 1;
+    let rows =
+        |id: &str| std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count() - 1;
     assert_eq!(rows("2"), 5000, "{tag}: follower 2's rows end before step 5000");
     common::replays_byte_for_byte(tag, &r.out);
     let (_dir, sim_dir) = sim_on(&base, &["faults+={node=2, from=5}"]);

@@ -490,12 +490,16 @@ fn finish(mut recorder: Recorder, ending: Ending, args: &MonitorArgs) -> Result<
     let unfinished = recorder.unfinished();
     // The model of what happened: a follower that left is cut off from then on.
     recorder.set_model(model_errors(&recorder.model_scenario()));
+    let members = recorder.membership_line();
     let (summary, dir, health) = recorder.finish_judged(ending).map_err(written)?;
     let verdict = health.as_ref().map(|h| h.verdict);
     match ending {
         Ending::Complete => {
             if !args.quiet {
                 print!("{}", summary.table());
+                if let Some(m) = &members {
+                    println!("{m}");
+                }
                 if let Some(h) = &health {
                     println!("{}", h.line());
                 }

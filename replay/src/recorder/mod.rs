@@ -952,6 +952,38 @@ impl Recorder {
         self.news.push(format!("follower {} is heard again: no longer taken for gone", f.id));
     }
 
+    /// The end-of-run line on who took part, when anyone came or went:
+    /// "members: followers 1, 2, 4 to the end; follower 3 joined at t =
+    /// 8.594 s; follower 2 left at t = 5.000 s (SIGTERM); led by a standby
+    /// from t = 10.503 s". None when everyone ran the whole run.
+    pub fn membership_line(&self) -> Option<String> {
+        let dt = self.scenario.dt_s;
+        let left = self.left();
+        if left.is_empty() && self.joined.is_empty() && self.handovers.is_empty() {
+            return None;
+        }
+        let stayed: Vec<u32> =
+            self.followers.iter().map(|f| f.id).filter(|id| !left.iter().any(|l| l.0 == *id)).collect();
+        let mut parts = vec![format!(
+            "{} {} to the end",
+            if stayed.len() == 1 { "follower" } else { "followers" },
+            formation_topology::graph::id_list(&stayed)
+        )];
+        for &(id, k) in &self.joined {
+            parts.push(format!("follower {id} joined at t = {:.3} s", k as f64 * dt));
+        }
+        for (id, k, why) in &left {
+            parts.push(match k {
+                0 => format!("follower {id} {why}"),
+                k => format!("follower {id} left at t = {:.3} s ({why})", *k as f64 * dt),
+            });
+        }
+        for h in &self.handovers {
+            parts.push(format!("led by a standby from t = {:.3} s", h.at_k as f64 * dt));
+        }
+        Some(format!("members: {}", parts.join("; ")))
+    }
+
     /// Who came and went since the last call, a line each (leaves, handovers).
     pub fn take_news(&mut self) -> Vec<String> {
         std::mem::take(&mut self.news)
@@ -1335,6 +1367,10 @@ mod tests {
         );
         r.check_gone(t0 + std::time::Duration::from_secs(5));
         assert!(r.take_news().is_empty(), "said once");
+        assert_eq!(
+            r.membership_line().as_deref(),
+            Some("members: followers 1, 2, 4 to the end; follower 3 left at t = 0.004 s (silent for 2 s)")
+        );
         r.telemetry(Some(3), &batch(3, 4, 2), t0 + std::time::Duration::from_secs(6)).unwrap();
         assert!(r.left().is_empty(), "heard again: no longer gone");
         assert_eq!(r.take_news(), ["follower 3 is heard again: no longer taken for gone"]);
@@ -1380,6 +1416,10 @@ mod tests {
         );
         let timeline = json["nodes"]["leader"]["timeline"].to_string();
         assert!(timeline.contains("a standby leader took the run over"), "{timeline}");
+        assert_eq!(
+            r.membership_line().as_deref(),
+            Some("members: followers 1, 2, 3, 4 to the end; led by a standby from t = 0.007 s")
+        );
         // In lock-step the followers wait for the standby: no gap to model.
         let lockstep = scenario.clone().with_handovers(&[]);
         assert_eq!(lockstep.faults.len(), scenario.faults.len());
@@ -1443,6 +1483,14 @@ mod tests {
               1): their estimates drift"]
         );
         assert!(r.take_news().is_empty(), "said once");
+        assert_eq!(
+            r.membership_line().as_deref(),
+            Some("members: followers 2, 3, 4 to the end; follower 1 left at t = 0.004 s (SIGTERM)")
+        );
+        assert_eq!(
+            r.membership_line().as_deref(),
+            Some("members: followers 2, 3, 4 to the end; follower 1 left at t = 0.004 s (SIGTERM)")
+        );
         let model = r.model_scenario();
         let cut = model.faults.last().expect("a fault");
         assert_eq!((cut.target, cut.from_s), (formation_topology::FaultTarget::Node(ids[0]), 4.0 * scenario.dt_s));
