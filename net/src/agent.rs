@@ -234,16 +234,11 @@ pub async fn run(
             // leave below (a step and the last telemetry's acknowledgement);
             // its topics are taken, so no later step commands it again.
             if driven {
-                for (&id, brake) in ids.iter().zip(&brakes) {
-                    stop_robot(&session, &scenario, id, brake, why, &args.node.clock).await;
-                    brake.lock().unwrap_or_else(|p| p.into_inner()).take();
-                }
+                stop_robots(&session, &scenario, ids, &brakes, why, &args.node.clock, true).await;
             }
             // Each follower leaves at its next step, tells the monitor in
             // its last batch, and ends (a bounded wait).
-            for leave in &leaves {
-                let _ = leave.set(why);
-            }
+            leaves.iter().for_each(|l| _ = l.set(why));
             let r = tokio::time::timeout(LEAVE_WITHIN, &mut work).await.unwrap_or(Ok(()));
             (r, Some(s))
         }
@@ -252,13 +247,30 @@ pub async fn run(
     if driven && signal.is_none() {
         // docs/ros2.md: an agent that ends stops its robot first.
         let why = if result.is_ok() { "the run ended" } else { "the agent stopped on an error" };
-        for (&id, brake) in ids.iter().zip(&brakes) {
-            stop_robot(&session, &scenario, id, brake, why, &args.node.clock).await;
-        }
+        stop_robots(&session, &scenario, ids, &brakes, why, &args.node.clock, false).await;
     }
     let close = if signal.is_some() { Duration::from_secs(1) } else { Duration::from_secs(5) };
     let _ = tokio::time::timeout(close, session.close()).await;
     result.map(|()| signal)
+}
+
+/// [`stop_robot`] for every follower of this process; `take`: and no later
+/// step commands its robot again.
+async fn stop_robots(
+    session: &zenoh::Session,
+    scenario: &Scenario,
+    ids: &[u32],
+    brakes: &[SharedTopics],
+    why: &str,
+    clock: &Clock,
+    take: bool,
+) {
+    for (&id, brake) in ids.iter().zip(brakes) {
+        stop_robot(session, scenario, id, brake, why, clock).await;
+        if take {
+            brake.lock().unwrap_or_else(|p| p.into_inner()).take();
+        }
+    }
 }
 
 /// Why a follower asked by `formation leave` leaves (its telemetry says so).

@@ -423,6 +423,15 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
             what: format!("agent {id} started again"),
         });
     }
+    events.extend(membership_events(a, s, t_end)?);
+    events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    Ok((events, notes))
+}
+
+/// The plan's joins, agents killed for good and the leader killed (with a
+/// standby), checked against the scenario and the mode.
+fn membership_events(a: &LabArgs, s: &Scenario, t_end: f64) -> Result<Vec<Event>, Error> {
+    let mut events = Vec::new();
     for r in &a.join {
         let bad = || Error::Input(format!("--join {r}: expected ID@AT, e.g. 3@12"));
         let (id, at) = r.split_once('@').ok_or_else(bad)?;
@@ -473,8 +482,7 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
         }
         events.push(Event { at_s: at, action: Action::KillLeader, what: "leader killed (SIGKILL)".into() });
     }
-    events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
-    Ok((events, notes))
+    Ok(events)
 }
 
 /// `formation lab`.
