@@ -201,6 +201,24 @@ fn older_messages(r: &Run) -> String {
     )
 }
 
+/// The followers `ids` of the lab run `r` against the simulator's summary
+/// `s`: each one's formation error over the last 10 s and torque variation,
+/// printed, and those more than 10 % apart.
+fn model_departures(tag: &str, r: &Run, s: &serde_json::Value, ids: &[&str]) -> Vec<String> {
+    let mut wrong = Vec::new();
+    for id in ids {
+        let (a, b) = (&r.summary["followers"][id], &s["followers"][id]);
+        for m in ["formation_rms_last10", "torque_tv"] {
+            let ratio = num(&a[m]) / num(&b[m]);
+            eprintln!("{tag}: follower {id}: {m} {} in the lab, {} simulated ({ratio:.3})", a[m], b[m]);
+            if !(0.9..=1.1).contains(&ratio) {
+                wrong.push(format!("follower {id}: {m} {} in the lab vs {} simulated ({ratio:.3})", a[m], b[m]));
+            }
+        }
+    }
+    wrong
+}
+
 /// Follower `id`'s peak estimator error from 5 s on, and when: (m, s).
 fn peak_from_5_s(e: &[(f64, f64)]) -> (f64, f64) {
     e.iter().filter(|(t, _)| *t >= 5.0).fold((0.0, 0.0), |m, &(t, x)| if x > m.0 { (x, t) } else { m })
@@ -917,17 +935,7 @@ fn a_quorum_start_without_follower_3_runs_as_the_model_predicts() {
     }
     let (_dir, sim_dir) = sim_on(&base, &["faults+={node=3, from=0}"]);
     let s = common::json(&sim_dir, "summary.json");
-    let mut wrong = Vec::new();
-    for id in ["1", "2", "4"] {
-        let (a, b) = (&r.summary["followers"][id], &s["followers"][id]);
-        for m in ["formation_rms_last10", "torque_tv"] {
-            let ratio = num(&a[m]) / num(&b[m]);
-            eprintln!("{tag}: follower {id}: {m} {} in the lab, {} simulated ({ratio:.3})", a[m], b[m]);
-            if !(0.9..=1.1).contains(&ratio) {
-                wrong.push(format!("follower {id}: {m} {} in the lab vs {} simulated ({ratio:.3})", a[m], b[m]));
-            }
-        }
-    }
+    let wrong = model_departures(tag, &r, &s, &["1", "2", "4"]);
     common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
 }
 
@@ -1086,17 +1094,7 @@ fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
     let row = format!("faults+={{node=3, from=0, to={t_j}}}");
     let (_dir, sim_dir) = sim_on(&BASE, &[row.as_str(), "network.rejoin=adopt"]);
     let s = common::json(&sim_dir, "summary.json");
-    let mut wrong = Vec::new();
-    for id in ["1", "2", "4"] {
-        let (a, b) = (&r.summary["followers"][id], &s["followers"][id]);
-        for m in ["formation_rms_last10", "torque_tv"] {
-            let ratio = num(&a[m]) / num(&b[m]);
-            eprintln!("{tag}: follower {id}: {m} {} in the lab, {} simulated ({ratio:.3})", a[m], b[m]);
-            if !(0.9..=1.1).contains(&ratio) {
-                wrong.push(format!("follower {id}: {m} {} in the lab vs {} simulated ({ratio:.3})", a[m], b[m]));
-            }
-        }
-    }
+    let wrong = model_departures(tag, &r, &s, &["1", "2", "4"]);
     common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
 }
 
@@ -1124,16 +1122,6 @@ fn follower_2_leaves_at_5_s_as_the_model_predicts() {
     common::replays_byte_for_byte(tag, &r.out);
     let (_dir, sim_dir) = sim_on(&base, &["faults+={node=2, from=5}"]);
     let s = common::json(&sim_dir, "summary.json");
-    let mut wrong = Vec::new();
-    for id in ["1", "3", "4"] {
-        let (a, b) = (&r.summary["followers"][id], &s["followers"][id]);
-        for m in ["formation_rms_last10", "torque_tv"] {
-            let ratio = num(&a[m]) / num(&b[m]);
-            eprintln!("{tag}: follower {id}: {m} {} in the lab, {} simulated ({ratio:.3})", a[m], b[m]);
-            if !(0.9..=1.1).contains(&ratio) {
-                wrong.push(format!("follower {id}: {m} {} in the lab vs {} simulated ({ratio:.3})", a[m], b[m]));
-            }
-        }
-    }
+    let wrong = model_departures(tag, &r, &s, &["1", "3", "4"]);
     common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
 }

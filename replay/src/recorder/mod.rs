@@ -1130,8 +1130,14 @@ mod tests {
 
     /// A recorder of the paper scenario cut to 10 steps, in a temporary folder.
     fn paper_recorder() -> (tempfile::TempDir, Scenario, Recorder) {
+        recorder_with(&[])
+    }
+
+    /// [`paper_recorder`] with more settings.
+    fn recorder_with(sets: &[&str]) -> (tempfile::TempDir, Scenario, Recorder) {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
-        let scenario = Scenario::load(&path, &["duration=0.01".to_string()]).expect("scenario");
+        let sets: Vec<String> = ["duration=0.01"].iter().chain(sets).map(|s| s.to_string()).collect();
+        let scenario = Scenario::load(&path, &sets).expect("scenario");
         let dir = tempfile::tempdir().expect("tempdir");
         let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
         let r = Recorder::new(&scenario, &opts).expect("recorder");
@@ -1328,12 +1334,7 @@ mod tests {
     /// later takes that back.
     #[test]
     fn a_silent_follower_is_taken_for_gone_and_back_when_heard() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
-        let sets = ["duration=0.01".to_string(), "network.gone_after=2".to_string()];
-        let scenario = Scenario::load(&path, &sets).expect("scenario");
-        let dir = tempfile::tempdir().expect("tempdir");
-        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
-        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
+        let (_dir, scenario, mut r) = recorder_with(&["network.gone_after=2"]);
         let batch = |id: u32, first_k: u64, n: u64| {
             let slots = scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
             codec::encode(&Telemetry::Follower {
@@ -1381,12 +1382,7 @@ mod tests {
     /// gap is the model's row `{ node = 0, from, to }` (real time).
     #[test]
     fn a_handover_is_said_recorded_and_modelled() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
-        let sets = ["duration=0.01".to_string(), "timing=realtime".to_string()];
-        let scenario = Scenario::load(&path, &sets).expect("scenario");
-        let dir = tempfile::tempdir().expect("tempdir");
-        let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
-        let mut r = Recorder::new(&scenario, &opts).expect("recorder");
+        let (_dir, scenario, mut r) = recorder_with(&["timing=realtime"]);
         let handover = Some(formation_protocol::telemetry::Handover { heard: Some(4), at_k: 7 });
         for (first_k, incarnation) in [(0, 1), (5, 2)] {
             let b = Telemetry::Leader {
