@@ -114,6 +114,8 @@ impl Recorder {
             "recent_events": self.recent_events(), "message": message,
             "alerts": self.alerts(),
             "safety": self.frame_safety(),
+            // Who came and went (null while everyone runs): left, joined, handed over.
+            "members": self.membership_line(),
         });
         let full = frame.to_string();
         if let Some(f) = frame.as_object_mut() {

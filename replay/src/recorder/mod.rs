@@ -1416,6 +1416,10 @@ mod tests {
             r.membership_line().as_deref(),
             Some("members: followers 1, 2, 3, 4 to the end; led by a standby from t = 0.007 s")
         );
+        // The live page's frame carries the same line.
+        let (frame, _) = r.live_frame(Instant::now(), 1, 0.0, "running", 0);
+        let frame: serde_json::Value = serde_json::from_str(&frame).expect("frame");
+        assert_eq!(frame["members"], "members: followers 1, 2, 3, 4 to the end; led by a standby from t = 0.007 s");
         // In lock-step the followers wait for the standby: no gap to model.
         let lockstep = scenario.clone().with_handovers(&[]);
         assert_eq!(lockstep.faults.len(), scenario.faults.len());
