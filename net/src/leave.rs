@@ -10,7 +10,7 @@ use std::time::Duration;
 use formation_protocol::codec;
 use formation_protocol::error::{zerr, Error};
 use formation_protocol::names::MONITOR;
-use formation_protocol::telemetry::Telemetry;
+use formation_protocol::telemetry::{Telemetry, MAX_LEFT_WHY};
 
 use crate::node::NodeArgs;
 
@@ -64,7 +64,8 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
                 codec::decode::<Telemetry>(&s.payload().to_bytes())
             {
                 if from == id {
-                    let _ = tx.try_send((l.at_k, l.why.chars().filter(|c| !c.is_control()).take(40).collect()));
+                    let _ =
+                        tx.try_send((l.at_k, l.why.chars().filter(|c| !c.is_control()).take(MAX_LEFT_WHY).collect()));
                 }
             }
         })

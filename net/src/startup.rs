@@ -273,28 +273,10 @@ impl Leading {
         use formation_protocol::claim::Claim;
         let id = formation_topology::wire::LEADER_ID;
         let mine = Claim::new(id, clock.unix_ns(), nonce(id), std::process::id(), &host());
-        let heard: Arc<Mutex<Vec<Claim>>> = Arc::default();
-        let (h, own) = (heard.clone(), mine.nonce);
-        let listening = session
-            .declare_subscriber(keys.claim(id))
-            .callback(move |sample| {
-                let Some(other) = codec::decode::<Claim>(&sample.payload().to_bytes()) else { return };
-                let mut h = lock(&h);
-                if other.id == id && other.nonce != own && h.len() < 16 && !h.contains(&other) {
-                    h.push(other);
-                }
-            })
-            .await
-            .map_err(|e| zerr("listening for another leader's claim", e))?;
+        let (listening, heard) = listen_for_claims(session, keys, &mine).await?;
         let publisher =
             session.declare_publisher(keys.claim(id)).await.map_err(|e| zerr("declaring the claim to lead", e))?;
-        let bytes = codec::encode(&mine);
-        let saying = Claiming(tokio::spawn(async move {
-            loop {
-                let _ = publisher.put(bytes.clone()).await;
-                tokio::time::sleep(CLAIM_EVERY).await;
-            }
-        }));
+        let saying = Claiming::say(publisher, codec::encode(&mine));
         Ok(Self { _saying: saying, _listening: listening, heard, mine })
     }
 
@@ -323,6 +305,18 @@ pub const CLAIM_EVERY: Duration = Duration::from_millis(100);
 /// dropped (when the node's run has started: from then on its estimates
 /// on its own key tell a later twin).
 pub struct Claiming(tokio::task::JoinHandle<()>);
+
+impl Claiming {
+    /// Says `bytes` (an encoded claim) on `publisher` every [`CLAIM_EVERY`].
+    fn say(publisher: zenoh::pubsub::Publisher<'static>, bytes: Vec<u8>) -> Self {
+        Claiming(tokio::spawn(async move {
+            loop {
+                let _ = publisher.put(bytes.clone()).await;
+                tokio::time::sleep(CLAIM_EVERY).await;
+            }
+        }))
+    }
+}
 
 impl Drop for Claiming {
     fn drop(&mut self) {
@@ -375,20 +369,7 @@ pub async fn refuse_twin(
         })
         .await
         .map_err(|e| zerr("listening for a twin", e))?;
-    let claims: Arc<Mutex<Vec<Claim>>> = Arc::default();
-    let (c, own) = (claims.clone(), mine.nonce);
-    let claim_sub = session
-        .declare_subscriber(keys.claim(id))
-        .callback(move |sample| {
-            let Some(other) = codec::decode::<Claim>(&sample.payload().to_bytes()) else { return };
-            let mut c = c.lock().unwrap_or_else(|p| p.into_inner());
-            // A few distinct claims are all a decision needs.
-            if other.id == id && other.nonce != own && c.len() < 16 && !c.contains(&other) {
-                c.push(other);
-            }
-        })
-        .await
-        .map_err(|e| zerr("listening for a twin's claim", e))?;
+    let (claim_sub, claims) = listen_for_claims(session, keys, &mine).await?;
     let publisher =
         session.declare_publisher(keys.claim(id)).await.map_err(|e| zerr("declaring this node's claim", e))?;
     let bytes = codec::encode(&mine);
@@ -409,7 +390,7 @@ pub async fn refuse_twin(
             TWIN_LISTEN.as_millis()
         )));
     }
-    if let Some(first) = claim::winner(&mine, claims.lock().unwrap_or_else(|p| p.into_inner()).iter()) {
+    if let Some(first) = claim::winner(&mine, lock(&claims).iter()) {
         return Err(Error::Input(format!(
             "run {}: {who} was started twice at once; the other ({}) keeps it, this one (process {}) gives way. \
              Stop one of them, or give this formation another name with --run NAME",
@@ -418,10 +399,30 @@ pub async fn refuse_twin(
             mine.pid
         )));
     }
-    Ok(Claiming(tokio::spawn(async move {
-        loop {
-            let _ = publisher.put(bytes.clone()).await;
-            tokio::time::sleep(CLAIM_EVERY).await;
-        }
-    })))
+    Ok(Claiming::say(publisher, bytes))
+}
+
+/// The claims of other processes to `mine`'s identity heard on its key
+/// (a few distinct ones are all a decision needs), until the subscriber
+/// is dropped.
+async fn listen_for_claims(
+    session: &zenoh::Session,
+    keys: &Keys,
+    mine: &formation_protocol::claim::Claim,
+) -> Result<(zenoh::pubsub::Subscriber<()>, Arc<Mutex<Vec<formation_protocol::claim::Claim>>>), Error> {
+    use formation_protocol::claim::Claim;
+    let heard: Arc<Mutex<Vec<Claim>>> = Arc::default();
+    let (h, id, own) = (heard.clone(), mine.id, mine.nonce);
+    let sub = session
+        .declare_subscriber(keys.claim(id))
+        .callback(move |sample| {
+            let Some(other) = codec::decode::<Claim>(&sample.payload().to_bytes()) else { return };
+            let mut h = lock(&h);
+            if other.id == id && other.nonce != own && h.len() < 16 && !h.contains(&other) {
+                h.push(other);
+            }
+        })
+        .await
+        .map_err(|e| zerr("listening for another process's claim", e))?;
+    Ok((sub, heard))
 }
