@@ -1133,6 +1133,29 @@ mod tests {
         recorder_with(&[])
     }
 
+    /// Follower `id`'s batch of steps first_k..first_k + n, each heard
+    /// fresh from every source.
+    fn follower_batch(s: &Scenario, id: u32, first_k: u64, n: u64, done: bool, left: Option<Left>) -> Telemetry {
+        let slots = s.sources_of(s.index_of(id).expect("a follower")).len();
+        Telemetry::Follower {
+            id,
+            first_k,
+            heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
+            rescued: Vec::new(),
+            resumed: None,
+            diverged: None,
+            left,
+            samples: (first_k..first_k + n).map(sample).collect(),
+            counters: Counters::default(),
+            done,
+            loop_stats: None,
+            delivery: Delivery::default(),
+            events: Vec::new(),
+            clock: None,
+            links: Vec::new(),
+        }
+    }
+
     /// [`paper_recorder`] with more settings.
     fn recorder_with(sets: &[&str]) -> (tempfile::TempDir, Scenario, Recorder) {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
@@ -1335,26 +1358,8 @@ mod tests {
     #[test]
     fn a_silent_follower_is_taken_for_gone_and_back_when_heard() {
         let (_dir, scenario, mut r) = recorder_with(&["network.gone_after=2"]);
-        let batch = |id: u32, first_k: u64, n: u64| {
-            let slots = scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
-            codec::encode(&Telemetry::Follower {
-                id,
-                first_k,
-                heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
-                rescued: Vec::new(),
-                resumed: None,
-                diverged: None,
-                left: None,
-                samples: (first_k..first_k + n).map(sample).collect(),
-                counters: Counters::default(),
-                done: false,
-                loop_stats: None,
-                delivery: Delivery::default(),
-                events: Vec::new(),
-                clock: None,
-                links: Vec::new(),
-            })
-        };
+        let batch =
+            |id: u32, first_k: u64, n: u64| codec::encode(&follower_batch(&scenario, id, first_k, n, false, None));
         let t0 = Instant::now();
         r.telemetry(Some(3), &batch(3, 0, 4), t0).unwrap();
         r.check_gone(t0 + std::time::Duration::from_millis(1999));
@@ -1447,26 +1452,7 @@ mod tests {
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
-        let batch = |id: u32, n: u64, left: Option<Left>| {
-            let slots = scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
-            Telemetry::Follower {
-                id,
-                first_k: 0,
-                heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
-                rescued: Vec::new(),
-                resumed: None,
-                diverged: None,
-                left,
-                samples: (0..n).map(sample).collect(),
-                counters: Counters::default(),
-                done: true,
-                loop_stats: None,
-                delivery: Delivery::default(),
-                events: Vec::new(),
-                clock: None,
-                links: Vec::new(),
-            }
-        };
+        let batch = |id: u32, n: u64, left: Option<Left>| follower_batch(&scenario, id, 0, n, true, left);
         for &id in &ids[1..] {
             r.telemetry(Some(id), &codec::encode(&batch(id, steps + 1, None)), Instant::now()).unwrap();
         }
@@ -1523,25 +1509,7 @@ mod tests {
         // The third follower stops after 4 of the steps + 1 samples.
         for &id in &ids {
             let n = if id == ids[2] { 4 } else { steps + 1 };
-            let samples = (0..n).map(sample).collect();
-            let slots = scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
-            let batch = Telemetry::Follower {
-                id,
-                first_k: 0,
-                heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
-                rescued: Vec::new(),
-                resumed: None,
-                diverged: None,
-                left: None,
-                samples,
-                counters: Counters::default(),
-                done: false,
-                loop_stats: None,
-                delivery: Delivery::default(),
-                events: Vec::new(),
-                clock: None,
-                links: Vec::new(),
-            };
+            let batch = follower_batch(&scenario, id, 0, n, false, None);
             r.telemetry(Some(id), &codec::encode(&batch), Instant::now()).unwrap();
         }
         let (summary, dir) = r.finish(Ending::Interrupted).expect("partial run written");
