@@ -206,9 +206,8 @@ fn absent_line(absent: &[u32], scenario: &Scenario) -> String {
         format!("followers {} do not reach the leader (--even-if-cut-off)", list(&cut))
     };
     format!(
-        "leader: started without {} {} (absent: not ready within the quorum wait); {reach}",
-        if absent.len() == 1 { "follower" } else { "followers" },
-        list(absent)
+        "leader: started without {} (absent: not ready within the quorum wait); {reach}",
+        formation_topology::graph::followers_named(absent)
     )
 }
 

@@ -48,11 +48,10 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
     }
     let cut = scenario.graph.unreachable_without(&[id]);
     if !cut.is_empty() && !a.even_if_cut_off {
-        let list = formation_topology::graph::id_list(&cut);
         return Err(Error::Input(format!(
-            "formation leave --id {id}: without follower {id} no path leads from the leader to {} {list} (Lemma 1): \
+            "formation leave --id {id}: without follower {id} no path leads from the leader to {} (Lemma 1): \
              their estimates of the leader would drift (--even-if-cut-off to leave anyway)",
-            if cut.len() == 1 { "follower" } else { "followers" }
+            formation_topology::graph::followers_named(&cut)
         )));
     }
     let session = a.node.open(MONITOR, &scenario).await?;

@@ -18,6 +18,11 @@ pub fn id_list(ids: &[u32]) -> String {
     ids.iter().map(u32::to_string).collect::<Vec<_>>().join(", ")
 }
 
+/// Followers named in a line: "follower 3", "followers 2, 3, 4".
+pub fn followers_named(ids: &[u32]) -> String {
+    format!("{} {}", if ids.len() == 1 { "follower" } else { "followers" }, id_list(ids))
+}
+
 /// An undirected follower graph with leader links.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Graph {

@@ -472,12 +472,11 @@ fn started_line(nodes: usize, absent: &[u32], startup: f64) -> String {
     if absent.is_empty() {
         return format!("started: all {nodes} nodes ready {startup:.1} s after the monitor's start");
     }
-    let list = formation_topology::graph::id_list(absent);
     format!(
-        "started: {} of {nodes} nodes ready {startup:.1} s after the monitor's start; absent: {} {list} (a quorum \
-         start: cut off from the start in the run and in its model)",
+        "started: {} of {nodes} nodes ready {startup:.1} s after the monitor's start; absent: {} (a quorum start: \
+         cut off from the start in the run and in its model)",
         nodes - absent.len(),
-        if absent.len() == 1 { "follower" } else { "followers" }
+        formation_topology::graph::followers_named(absent)
     )
 }
 

@@ -879,9 +879,8 @@ impl Recorder {
         let reach = match cut.len() {
             0 => "every remaining follower still reaches the leader".to_string(),
             n => format!(
-                "{} {} no longer {} the leader (Lemma 1): {} estimates drift",
-                if n == 1 { "follower" } else { "followers" },
-                formation_topology::graph::id_list(&cut),
+                "{} no longer {} the leader (Lemma 1): {} estimates drift",
+                formation_topology::graph::followers_named(&cut),
                 if n == 1 { "reaches" } else { "reach" },
                 if n == 1 { "its" } else { "their" }
             ),
@@ -964,11 +963,7 @@ impl Recorder {
         }
         let stayed: Vec<u32> =
             self.followers.iter().map(|f| f.id).filter(|id| !left.iter().any(|l| l.0 == *id)).collect();
-        let mut parts = vec![format!(
-            "{} {} to the end",
-            if stayed.len() == 1 { "follower" } else { "followers" },
-            formation_topology::graph::id_list(&stayed)
-        )];
+        let mut parts = vec![format!("{} to the end", formation_topology::graph::followers_named(&stayed))];
         for &(id, k) in &self.joined {
             parts.push(format!("follower {id} joined at t = {:.3} s", k as f64 * dt));
         }
