@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 16] = [
+const LAYERS: [&str; 17] = [
     // ROS 2's wire and bags: uses no other formation crate.
     "formation-ros2",
     "formation-plant",
@@ -17,6 +17,8 @@ const LAYERS: [&str; 16] = [
     "formation-topology",
     "formation-record",
     "formation-sim",
+    // The Python package's Rust half: the simulator and run folders only.
+    "formation-python",
     "formation-protocol",
     "formation-certs",
     "formation-view",

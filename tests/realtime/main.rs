@@ -13,5 +13,6 @@ mod attacks;
 mod lab;
 mod network_realtime;
 mod network_scale;
+mod python;
 mod ros2;
 mod wire_attacks;

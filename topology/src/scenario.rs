@@ -331,6 +331,20 @@ impl Scenario {
         validate(file, label, default_name, Some(text), &overridden, MAX_FOLLOWERS)
     }
 
+    /// The file [`Scenario::from_toml`] validates: `text` with `overrides`
+    /// applied, every key the text leaves out at its default (what the
+    /// Python package reads keys from and saves).
+    pub fn effective_file(text: &str, label: &str, overrides: &[String]) -> Result<ScenarioFile, ScenarioError> {
+        if overrides.is_empty() {
+            return toml::from_str(text).map_err(|e| ScenarioError::Syntax {
+                file: label.to_string(),
+                line: e.span().map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1),
+                message: syntax_message(text, &e),
+            });
+        }
+        apply_overrides(text, label, overrides).map(|(file, _)| file)
+    }
+
     /// A scenario text built in code with up to `most_followers` followers
     /// (the benchmarks' rings of 100,000): a file or a `--set` is held to
     /// [`MAX_FOLLOWERS`].

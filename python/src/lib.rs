@@ -1,0 +1,17 @@
+//! The Python package `formation` (docs/python.md): its Rust half, which
+//! needs no Python, and with the `python` feature the PyO3 module
+//! `formation._formation` that the package's Python code wraps.
+//!
+//! - [`memory`]: a scenario run in process into columns held in memory,
+//!   the numbers `formation sim` writes to its CSVs;
+//! - [`folder`]: any run folder (simulated or networked) read back into the
+//!   same columns;
+//! - [`keys`]: a scenario's keys as the file gives them, with `--set`'s
+//!   names and checks.
+
+pub mod folder;
+pub mod keys;
+pub mod memory;
+
+#[cfg(feature = "python")]
+mod py;

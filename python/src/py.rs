@@ -1,0 +1,200 @@
+//! The PyO3 module `formation._formation`. Python's `formation` package
+//! (python/formation/__init__.py) wraps it; users call that.
+
+use std::path::PathBuf;
+
+use numpy::PyArray1;
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+
+use formation_topology::generate::Spec;
+
+use crate::keys::{graph_kind, Source};
+use crate::memory::Columns;
+
+fn value_error(e: String) -> PyErr {
+    PyValueError::new_err(e)
+}
+
+/// A scenario: TOML text and `--set` assignments, checked as the command
+/// line checks them.
+#[pyclass(module = "formation._formation", name = "RawScenario")]
+#[derive(Clone)]
+pub struct RawScenario {
+    source: Source,
+}
+
+#[pymethods]
+impl RawScenario {
+    /// A file, or a built-in scenario by name.
+    #[staticmethod]
+    #[pyo3(signature = (path, overrides = Vec::new()))]
+    fn load(path: PathBuf, overrides: Vec<String>) -> PyResult<Self> {
+        Source::load(&path, overrides).map(|source| Self { source }).map_err(value_error)
+    }
+
+    /// TOML text; `name` is the run name when the text gives none.
+    #[staticmethod]
+    #[pyo3(signature = (text, name = "scenario".to_string(), label = None))]
+    fn from_toml(text: String, name: String, label: Option<String>) -> PyResult<Self> {
+        let label = label.unwrap_or_else(|| format!("{name} (text)"));
+        Source::from_text(text, label, name, Vec::new()).map(|source| Self { source }).map_err(value_error)
+    }
+
+    /// `formation generate`'s scenario.
+    #[staticmethod]
+    #[pyo3(signature = (followers, graph, chords, leader_links, radius, seed))]
+    fn generate(
+        followers: u32,
+        graph: &str,
+        chords: u32,
+        leader_links: u32,
+        radius: Option<f64>,
+        seed: u64,
+    ) -> PyResult<Self> {
+        let spec = Spec {
+            chords,
+            leader_links,
+            radius,
+            seed,
+            ..Spec::new(followers, graph_kind(graph).map_err(value_error)?)
+        };
+        Source::generate(&spec).map(|source| Self { source }).map_err(value_error)
+    }
+
+    /// Applies one `KEY=VALUE` assignment as `--set` does.
+    fn set(&mut self, assignment: &str) -> PyResult<()> {
+        self.source.set(assignment).map_err(value_error)
+    }
+
+    /// The value at a dotted key, or None.
+    fn get<'py>(&self, py: Python<'py>, key: &str) -> PyResult<Option<Bound<'py, PyAny>>> {
+        match self.source.get(key).map_err(value_error)? {
+            Some(v) => Ok(Some(to_python(py, &v)?)),
+            None => Ok(None),
+        }
+    }
+
+    /// Every key of the scenario as it runs, as nested dicts.
+    fn to_dict<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, &toml::Value::Table(self.source.table().map_err(value_error)?))
+    }
+
+    fn to_toml(&self) -> PyResult<String> {
+        self.source.to_toml().map_err(value_error)
+    }
+
+    #[getter]
+    fn name(&self) -> String {
+        self.source.scenario.name.clone()
+    }
+    #[getter]
+    fn label(&self) -> String {
+        self.source.label.clone()
+    }
+    #[getter]
+    fn text(&self) -> String {
+        self.source.text.clone()
+    }
+    #[getter]
+    fn overrides(&self) -> Vec<String> {
+        self.source.overrides.clone()
+    }
+    #[getter]
+    fn follower_ids(&self) -> Vec<u32> {
+        self.source.scenario.followers.iter().map(|f| f.id).collect()
+    }
+    #[getter]
+    fn steps(&self) -> u64 {
+        self.source.scenario.steps()
+    }
+    #[getter]
+    fn dt(&self) -> f64 {
+        self.source.scenario.dt_s
+    }
+    /// The estimator's stability warning (docs/model.md), where it applies.
+    #[getter]
+    fn warning(&self) -> Option<String> {
+        self.source.scenario.estimator_stability_warning()
+    }
+}
+
+/// Columns as a dict of 1-D float64 arrays; each Vec becomes its array's
+/// buffer (no copy).
+fn columns<'py>(py: Python<'py>, c: Columns) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    for (name, data) in c.names.into_iter().zip(c.data) {
+        d.set_item(name, PyArray1::from_vec(py, data))?;
+    }
+    Ok(d)
+}
+
+fn followers<'py>(py: Python<'py>, f: Vec<(u32, Columns)>) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    for (id, c) in f {
+        d.set_item(id, columns(py, c)?)?;
+    }
+    Ok(d)
+}
+
+/// Runs a scenario in process, the GIL released while it runs. Returns a
+/// dict: followers {id: {column: array}}, leader {column: array}, summary
+/// (summary.json's text), error (why it stopped early, or None).
+#[pyfunction]
+#[pyo3(signature = (scenario, threads = 1, every = 1))]
+fn sim<'py>(py: Python<'py>, scenario: &RawScenario, threads: usize, every: u64) -> PyResult<Bound<'py, PyDict>> {
+    let s = scenario.source.scenario.clone();
+    let run = py.detach(move || crate::memory::run(&s, threads, every)).map_err(value_error)?;
+    let d = PyDict::new(py);
+    d.set_item("summary", run.summary.to_json())?;
+    d.set_item("error", run.error)?;
+    d.set_item("followers", followers(py, run.followers)?)?;
+    d.set_item("leader", columns(py, run.leader)?)?;
+    Ok(d)
+}
+
+/// Reads a run folder: the same dict as [`sim`], plus network (network.json's
+/// text or None).
+#[pyfunction]
+fn read_run<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDict>> {
+    let run = py.detach(move || crate::folder::read(&path)).map_err(value_error)?;
+    let d = PyDict::new(py);
+    d.set_item("summary", run.summary)?;
+    d.set_item("network", run.network)?;
+    d.set_item("error", None::<String>)?;
+    d.set_item("followers", followers(py, run.followers)?)?;
+    d.set_item("leader", columns(py, run.leader)?)?;
+    Ok(d)
+}
+
+fn to_python<'py>(py: Python<'py>, v: &toml::Value) -> PyResult<Bound<'py, PyAny>> {
+    Ok(match v {
+        toml::Value::String(s) => s.into_pyobject(py)?.into_any(),
+        toml::Value::Integer(i) => i.into_pyobject(py)?.into_any(),
+        toml::Value::Float(f) => f.into_pyobject(py)?.into_any(),
+        toml::Value::Boolean(b) => b.into_pyobject(py)?.to_owned().into_any(),
+        toml::Value::Datetime(d) => d.to_string().into_pyobject(py)?.into_any(),
+        toml::Value::Array(a) => {
+            let items = a.iter().map(|x| to_python(py, x)).collect::<PyResult<Vec<_>>>()?;
+            PyList::new(py, items)?.into_any()
+        }
+        toml::Value::Table(t) => {
+            let d = PyDict::new(py);
+            for (k, x) in t {
+                d.set_item(k, to_python(py, x)?)?;
+            }
+            d.into_any()
+        }
+    })
+}
+
+/// The Rust half of the `formation` package.
+#[pymodule]
+fn _formation(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<RawScenario>()?;
+    m.add_function(wrap_pyfunction!(sim, m)?)?;
+    m.add_function(wrap_pyfunction!(read_run, m)?)?;
+    m.add("MAX_VALUES", crate::memory::MAX_VALUES)?;
+    Ok(())
+}

@@ -1,0 +1,194 @@
+"""The Python package against the command line it is built from.
+
+Run by `cargo test` (tests/it/python.rs), which passes the `formation`
+binary as FORMATION_BIN and a free block of loopback ports as
+FORMATION_BASE_PORT; by hand: `pip install ./python pytest`, then
+`FORMATION_BIN=target/debug/formation pytest python/tests`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import formation
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER = str(ROOT / "scenarios" / "paper.toml")
+
+
+def cli(*args: str, check: bool = True, timeout: float = 120) -> subprocess.CompletedProcess:
+    exe = os.environ.get("FORMATION_BIN")
+    if not exe:
+        pytest.fail("FORMATION_BIN is not set: the path of the formation binary (cargo build; target/debug/formation)")
+    p = subprocess.run([exe, *args], capture_output=True, text=True, timeout=timeout)
+    if check and p.returncode != 0:
+        pytest.fail(f"formation {' '.join(args)} exited {p.returncode}: {p.stderr.strip()}")
+    return p
+
+
+def csv_columns(path: Path) -> dict:
+    with open(path) as f:
+        names = f.readline().strip().split(",")
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=np.float64)
+    return {n: data[:, i] for i, n in enumerate(names)}
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == np.float64 and a.shape == b.shape and np.array_equal(a.view(np.uint64), b.view(np.uint64))
+
+
+def assert_run_is_folder(run: formation.Run, folder: Path, what: str) -> None:
+    for fid, table in run.followers.items():
+        file = csv_columns(folder / f"follower_{fid}.csv")
+        assert list(file) == table.columns, f"{what}: follower {fid}'s columns {table.columns} vs the CSV's {list(file)}"
+        for name, column in file.items():
+            a = table[name]
+            if not same_bits(a, column):
+                bad = np.flatnonzero(a != column) if a.shape == column.shape else []
+                first = int(bad[0]) if len(bad) else None
+                pytest.fail(
+                    f"{what}: follower {fid}'s {name} differs from the CSV ({a.shape} vs {column.shape}, first "
+                    f"different row {first}: {a[first] if first is not None else '-'} vs "
+                    f"{column[first] if first is not None else '-'})"
+                )
+    leader = csv_columns(folder / "leader.csv")
+    for name, column in leader.items():
+        assert same_bits(run.leader[name], column), f"{what}: the leader's {name} differs from leader.csv"
+
+
+def test_a_scenario_changed_in_python_runs_as_the_command_line_runs_it(tmp_path):
+    s = formation.Scenario.load("paper")
+    s["duration"] = 4
+    s["filter"] = "kf"
+    s.set("faults+={link=[1, 2], from=1, to=2.5}")
+    s["backstepping.c1"] = 3.5
+    assert s["backstepping.c1"] == 3.5 and s["filter"] == "kf" and len(s["faults"]) == 1
+    saved = tmp_path / "changed.toml"
+    s.save(saved)
+    cli("sim", str(saved), "--out", str(tmp_path / "cli"), "-q")
+    run = formation.sim(s, threads=2)
+    assert run.complete and run.error is None
+    assert_run_is_folder(run, tmp_path / "cli", "sim")
+    assert run.summary == json.loads((tmp_path / "cli" / "summary.json").read_text())
+    assert run.faults and run.faults == run.summary["faults"]
+    # The same overrides given to the command line as --set.
+    sets = [w for a in s.overrides for w in ("--set", a)]
+    cli("sim", PAPER, *sets, "--every", "10", "--out", str(tmp_path / "sets"), "-q")
+    assert_run_is_folder(formation.sim(s, every=10), tmp_path / "sets", "sim every 10")
+
+
+def set_error_cases():
+    """Every `--set` case of tests/it/hostile_inputs.rs (sim_paper(...) with
+    only --set arguments): the same list the command line is tested with."""
+    text = (ROOT / "tests" / "it" / "hostile_inputs.rs").read_text()
+    cases = []
+    for name, args in re.findall(r'sim_paper\(\s*"([^"]+)",\s*&\[([^\]]*(?:\][^\]]*)*?)\],\s*&\[', text):
+        words = re.findall(r'"((?:[^"\\]|\\.)*)"', args)
+        if words and len(words) % 2 == 0 and all(w == "--set" for w in words[::2]):
+            cases.append(pytest.param(words[1::2], id=name))
+    assert len(cases) >= 15, f"only {len(cases)} --set cases found in hostile_inputs.rs"
+    return cases
+
+
+@pytest.mark.parametrize("sets", set_error_cases())
+def test_a_bad_set_raises_value_error_with_the_command_lines_message(sets, tmp_path):
+    p = cli("sim", PAPER, "--out", str(tmp_path / "out"), "-q", *[w for a in sets for w in ("--set", a)], check=False)
+    assert p.returncode == 2, f"--set {sets}: the command line exited {p.returncode}, not 2: {p.stderr}"
+    line = p.stderr.strip().splitlines()[-1]
+    assert line.startswith("error: "), line
+    s = formation.Scenario.load(PAPER)
+    before = s.to_dict()
+    with pytest.raises(ValueError) as e:
+        for a in sets:
+            s.set(a)
+    assert str(e.value) == line[len("error: ") :]
+    assert s.to_dict() == before or len(sets) > 1, "a refused assignment changed the scenario"
+
+
+def test_keys_values_and_bad_values_from_python():
+    s = formation.Scenario.load("paper", duration=3)
+    assert s.steps == 3000 and s.dt == 0.001 and s.follower_ids == [1, 2, 3, 4]
+    assert s["followers[0].offset"] == [4.0, -4.0]
+    s["robot.mass"] = np.float64(12.5)
+    s["noise"] = False
+    s["faults"] = [{"node": 3, "from": 1.0, "to": 2.0}]
+    assert s["robot.mass"] == 12.5 and s["noise"] is False and s["faults"][0]["node"] == 3
+    with pytest.raises(KeyError):
+        s["robot.weight"]
+    with pytest.raises(ValueError, match="Lemma 1"):
+        s["edges"] = [[1, 2]]
+    with pytest.raises(TypeError):
+        s["dt"] = object()
+    with pytest.raises(ValueError, match="the built-in scenarios are"):
+        formation.Scenario.load("no-such-scenario")
+    with pytest.raises(ValueError, match="threads"):
+        formation.sim(s, threads=0)
+    c = s.with_(filter="kf")
+    assert c["filter"] == "kf" and s["filter"] == "asif"
+    assert "duration=3" in repr(s)
+
+
+def test_a_generated_scenario_is_formation_generates(tmp_path):
+    out = tmp_path / "ring.toml"
+    cli("generate", "--followers", "12", "--graph", "ring", "--chords", "3", "--seed", "7", "--out", str(out))
+    g = formation.generate(12, "ring", chords=3, seed=7)
+    assert g._raw.text == out.read_text()
+    assert len(g.follower_ids) == 12
+    with pytest.raises(ValueError, match="unknown"):
+        formation.generate(12, "torus")
+
+
+def test_a_lockstep_launch_read_back_equals_the_simulator(tmp_path):
+    base = os.environ.get("FORMATION_BASE_PORT")
+    ports = ["--base-port", base] if base else []
+    out = tmp_path / "launch"
+    cli("launch", PAPER, "--set", "duration=2", "--out", str(out), "-q", *ports, timeout=120)
+    run = formation.read_run(out)
+    assert run.network is not None and run.complete
+    sim = formation.sim(formation.Scenario.load(PAPER, duration=2))
+    for fid, table in sim.followers.items():
+        for name in table:
+            assert same_bits(run.followers[fid][name], table[name]), f"follower {fid}'s {name}: launch ≠ sim"
+    for name in sim.leader:
+        assert same_bits(run.leader[name], sim.leader[name]), f"leader's {name}: launch ≠ sim"
+    with pytest.raises(ValueError, match="no run folder"):
+        formation.read_run(tmp_path / "nothing")
+    with pytest.raises(ValueError, match="not a run folder"):
+        formation.read_run(tmp_path)
+
+
+def test_python_threads_run_simulations_at_once():
+    """The GIL is released while a run runs: 4 runs in 4 Python threads on
+    this 2-core machine take less than 0.7 of the time one after another
+    (median of 3 of each; runs of 0.2 s, so that starting a thread is
+    nothing beside them)."""
+    s = formation.Scenario.load("paper", duration=200)
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one core: threads cannot run at once")
+
+    def serial():
+        t = time.perf_counter()
+        for _ in range(4):
+            formation.sim(s)
+        return time.perf_counter() - t
+
+    def threaded():
+        t = time.perf_counter()
+        with ThreadPoolExecutor(4) as pool:
+            list(pool.map(lambda _: formation.sim(s), range(4)))
+        return time.perf_counter() - t
+
+    pairs = [(serial(), threaded()) for _ in range(3)]
+    one, four = sorted(p[0] for p in pairs)[1], sorted(p[1] for p in pairs)[1]
+    ratio = four / one
+    print(f"4 runs: {one:.3f} s one after another, {four:.3f} s in 4 threads ({ratio:.2f})")
+    assert ratio < 0.7, f"4 runs in 4 threads took {four:.3f} s, {ratio:.2f} of {one:.3f} s one after another"
