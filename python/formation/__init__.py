@@ -24,7 +24,7 @@ import numpy as np
 
 from . import _formation
 
-__all__ = ["Scenario", "Run", "Table", "sim", "read_run", "generate", "BUILT_IN"]
+__all__ = ["Scenario", "Run", "Table", "PaperTable", "sim", "read_run", "generate", "paper", "BUILT_IN"]
 
 #: The scenarios built into the package (and the command line), by name.
 BUILT_IN = ("paper", "paper-velocity", "paper-tables", "turtlebot")
@@ -266,14 +266,17 @@ class Run:
         return f"<Run {self.summary.get('scenario')!r}{where}: {len(self.followers)} followers, {rows} rows, {state}>"
 
 
-def sim(scenario: Union[Scenario, PathLike] = "paper", threads: int = 1, every: int = 1) -> Run:
+def sim(
+    scenario: Union[Scenario, PathLike] = "paper", threads: int = 1, every: int = 1, columns: bool = True
+) -> Run:
     """Runs a scenario in process and returns the run in memory.
 
     The numbers are ``formation sim``'s CSVs and summary.json, bit for bit.
     ``threads``: the followers of each step on that many threads (the
     numbers do not change); ``every``: keep every N-th sample (and the last),
-    as ``--every``. The GIL is released while it runs: Python threads run
-    several scenarios on every core.
+    as ``--every``; ``columns=False``: the summary only, as ``--no-csv``
+    (the fastest, for sweeps). The GIL is released while it runs: Python
+    threads run several scenarios on every core.
     """
     if not isinstance(scenario, Scenario):
         scenario = Scenario.load(scenario)
@@ -281,7 +284,7 @@ def sim(scenario: Union[Scenario, PathLike] = "paper", threads: int = 1, every: 
         raise ValueError(f"threads must be at least 1, not {threads}")
     if every < 1:
         raise ValueError(f"every must be at least 1, not {every}")
-    return Run(_formation.sim(scenario._raw, threads, every))
+    return Run(_formation.sim(scenario._raw, threads, every if columns else None))
 
 
 def read_run(path: PathLike) -> Run:
@@ -302,3 +305,78 @@ def generate(
     on formation slots behind the leader, a ring, grid, random-geometric,
     complete or line graph, the nearest ``leader_links`` hearing the leader."""
     return Scenario(_formation.RawScenario.generate(followers, graph, chords, leader_links, radius, seed))
+
+
+class PaperTable:
+    """Table I or II of the paper as numbers: velocity RMSE ×10⁻² per
+    follower, in the paper's column order (``COLUMNS``), over seeds.
+
+    ``values``: (seeds, followers, 4) float64, every run's own figure;
+    ``mean`` and ``std`` over the seeds; ``paper``: the paper's (4, 4);
+    ``ids``: the followers' ids, ``seeds``: the seeds run.
+    """
+
+    COLUMNS = ("linear KF", "linear ASIF", "angular KF", "angular ASIF")
+    __slots__ = ("title", "seeds", "ids", "values", "paper")
+
+    def __init__(self, raw: Dict[str, Any]):
+        self.title: str = raw["title"]
+        self.seeds: List[int] = list(raw["seeds"])
+        self.ids: List[int] = list(raw["ids"])
+        self.values: np.ndarray = raw["values"]
+        self.paper: np.ndarray = raw["paper"]
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.values.mean(axis=0)
+
+    @property
+    def std(self) -> np.ndarray:
+        """The sample standard deviation over the seeds (0 for one seed)."""
+        n = self.values.shape[0]
+        return self.values.std(axis=0, ddof=1) if n > 1 else np.zeros_like(self.values[0])
+
+    def ratio(self) -> np.ndarray:
+        """ASIF over KF per follower and channel (linear, angular), of the
+        means: (followers, 2); the paper's is ``paper_ratio()``."""
+        m = self.mean
+        return np.stack([m[:, 1] / m[:, 0], m[:, 3] / m[:, 2]], axis=1)
+
+    def paper_ratio(self) -> np.ndarray:
+        p = self.paper
+        return np.stack([p[:, 1] / p[:, 0], p[:, 3] / p[:, 2]], axis=1)
+
+    def __repr__(self) -> str:
+        lines = [f"{self.title}, mean of {len(self.seeds)} seed(s) (paper in brackets)"]
+        lines.append("follower  " + "  ".join(f"{c:>20}" for c in self.COLUMNS))
+        for i, fid in enumerate(self.ids):
+            paper = self.paper[i] if i < len(self.paper) else [float("nan")] * 4
+            cells = [f"{self.mean[i, j]:8.3f} ({paper[j]:5.2f})" for j in range(4)]
+            lines.append(f"{fid:>8}  " + "  ".join(f"{c:>20}" for c in cells))
+        return "\n".join(lines)
+
+
+class Paper:
+    """The paper's Tables I (normal case) and II (fault at 10 s) as
+    :class:`PaperTable` s: ``table1``, ``table2``."""
+
+    __slots__ = ("table1", "table2")
+
+    def __init__(self, tables: List[Dict[str, Any]]):
+        self.table1, self.table2 = (PaperTable(t) for t in tables)
+
+    def __repr__(self) -> str:
+        return f"{self.table1!r}\n\n{self.table2!r}"
+
+
+def paper(scenario: Union[Scenario, PathLike] = "paper", seeds: int = 20, threads: Optional[int] = None) -> Paper:
+    """Tables I and II of the paper over ``seeds`` seeds (the scenario's
+    seed s, s+1, …): the KF and ASIF cases ``formation paper`` runs for them,
+    normal and with the fault at 10 s, on the scenario's other keys as
+    given. ``threads``: every core by default; the GIL is released."""
+    if not isinstance(scenario, Scenario):
+        scenario = Scenario.load(scenario)
+    if seeds < 1:
+        raise ValueError(f"seeds must be at least 1, not {seeds}")
+    threads = threads or os.cpu_count() or 1
+    return Paper(_formation.paper_tables(scenario._raw, seeds, threads))

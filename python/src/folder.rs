@@ -73,7 +73,7 @@ mod tests {
         let opts = RecordOptions { dir: dir.path().join("run"), every: 1, csv: true, mcap: false, rosbag2: false };
         let (summary, out) = formation_sim::run_to_folder(&s, &opts, 1, |_| {}).expect("sim");
         let f = read(&out).expect("read back");
-        let m = crate::memory::run(&s, 1, 1).expect("in memory");
+        let m = crate::memory::run(&s, 1, Some(1)).expect("in memory");
         assert_eq!(f.followers, m.followers);
         assert_eq!(f.leader, m.leader);
         assert_eq!(f.summary.trim(), summary.to_json().trim());

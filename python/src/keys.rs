@@ -2,7 +2,7 @@
 //! the same parser and checks as the command line's `--set`, and keys are
 //! read from the file as it would run (defaults filled in).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use formation_topology::generate::{self, GraphKind, Spec};
 use formation_topology::scenario::built_in;
@@ -20,6 +20,8 @@ pub struct Source {
     pub overrides: Vec<String>,
     /// The validated scenario of `text` with `overrides`.
     pub scenario: Scenario,
+    /// The file or built-in name it was loaded from (None: text or generated).
+    pub path: Option<PathBuf>,
 }
 
 impl Source {
@@ -31,13 +33,15 @@ impl Source {
             Some((name, _)) => name.to_string(),
             None => path.file_stem().and_then(|s| s.to_str()).unwrap_or("scenario").to_string(),
         };
-        Self::from_text(text, label, stem, overrides)
+        let mut source = Self::from_text(text, label, stem, overrides)?;
+        source.path = Some(path.to_path_buf());
+        Ok(source)
     }
 
     /// A scenario from TOML text; `name` is its run name when the text gives none.
     pub fn from_text(text: String, label: String, stem: String, overrides: Vec<String>) -> Result<Self, String> {
         let scenario = Scenario::from_toml(&text, &label, &stem, &overrides).map_err(|e| e.to_string())?;
-        Ok(Self { text, label, stem, overrides, scenario })
+        Ok(Self { text, label, stem, overrides, scenario, path: None })
     }
 
     /// A generated scenario, as `formation generate` writes it.

@@ -7,11 +7,13 @@
 //! - [`folder`]: any run folder (simulated or networked) read back into the
 //!   same columns;
 //! - [`keys`]: a scenario's keys as the file gives them, with `--set`'s
-//!   names and checks.
+//!   names and checks;
+//! - [`paper`]: the paper's Tables I and II over seeds, as numbers.
 
 pub mod folder;
 pub mod keys;
 pub mod memory;
+pub mod paper;
 
 #[cfg(feature = "python")]
 mod py;

@@ -103,11 +103,13 @@ struct MemoryObserver {
     steps: u64,
     dt_s: f64,
     every: u64,
+    /// Keep columns at all (false: the summary only, as `--no-csv`).
+    keep: bool,
 }
 
 impl MemoryObserver {
     fn wants(&self, k: u64, last: bool) -> bool {
-        k % self.every == 0 || last
+        self.keep && (k % self.every == 0 || last)
     }
 }
 
@@ -124,12 +126,18 @@ impl Observer for MemoryObserver {
         }
         Ok(())
     }
+    fn wants_rows(&self) -> bool {
+        self.keep
+    }
 }
 
 /// Runs `scenario` in process with each step's followers on `threads`
 /// threads (the numbers are the same for any count), keeping every
-/// `every`-th sample and the last, as `formation sim --every` writes them.
-pub fn run(scenario: &Scenario, threads: usize, every: u64) -> Result<MemoryRun, String> {
+/// `every`-th sample and the last, as `formation sim --every` writes them;
+/// with `every` None the summary only (empty columns), as `--no-csv`.
+pub fn run(scenario: &Scenario, threads: usize, every: Option<u64>) -> Result<MemoryRun, String> {
+    let keep = every.is_some();
+    let every = every.unwrap_or(1);
     check_size(scenario, every)?;
     let threads = threads.max(1);
     if threads > 1 {
@@ -137,19 +145,20 @@ pub fn run(scenario: &Scenario, threads: usize, every: u64) -> Result<MemoryRun,
             .num_threads(threads)
             .build()
             .map_err(|e| format!("cannot start {threads} threads: {e}"))?;
-        return Ok(pool.install(|| run_on(scenario, true, every)));
+        return Ok(pool.install(|| run_on(scenario, true, every, keep)));
     }
-    Ok(run_on(scenario, false, every))
+    Ok(run_on(scenario, false, every, keep))
 }
 
-fn run_on(scenario: &Scenario, parallel: bool, every: u64) -> MemoryRun {
-    let rows = (scenario.steps() / every + 2) as usize;
+fn run_on(scenario: &Scenario, parallel: bool, every: u64, keep: bool) -> MemoryRun {
+    let rows = if keep { (scenario.steps() / every + 2) as usize } else { 0 };
     let mut observer = MemoryObserver {
         followers: scenario.followers.iter().map(|_| Columns::with_header(FOLLOWER_HEADER, rows)).collect(),
         leader: Columns::with_header(LEADER_HEADER, rows),
         steps: scenario.steps(),
         dt_s: scenario.dt_s,
         every,
+        keep,
     };
     let mut sim = Simulation::new(scenario);
     sim.set_parallel(parallel);
@@ -185,7 +194,10 @@ mod tests {
             let dir = tempfile::tempdir().expect("tempdir");
             let opts = RecordOptions { dir: dir.path().join("run"), every, csv: true, mcap: false, rosbag2: false };
             let (summary, out) = formation_sim::run_to_folder(&s, &opts, threads, |_| {}).expect("sim");
-            let m = run(&s, threads, every).expect("run in memory");
+            let m = run(&s, threads, Some(every)).expect("run in memory");
+            let bare = run(&s, threads, None).expect("summary only");
+            assert_eq!(bare.summary.to_json(), summary.to_json(), "the summary alone differs");
+            assert_eq!(bare.followers[0].1.rows(), 0);
             assert_eq!(m.error, None);
             assert_eq!(m.summary.to_json(), summary.to_json(), "every {every}: summaries differ");
             for (id, cols) in &m.followers {
@@ -205,7 +217,7 @@ mod tests {
     #[test]
     fn a_run_too_large_for_memory_is_refused_naming_every() {
         let s = paper(&["duration=2000", "dt=0.0001"]);
-        let e = run(&s, 1, 1).expect_err("20 M rows of 4 followers");
+        let e = run(&s, 1, Some(1)).expect_err("20 M rows of 4 followers");
         assert!(e.contains("GB of samples") && e.contains("every=N"), "{e}");
         assert!(check_size(&s, 1000).is_ok());
         assert_eq!(check_size(&s, 0).unwrap_err(), "every must be at least 1");

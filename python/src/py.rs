@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use numpy::PyArray1;
+use numpy::{PyArray1, PyArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
@@ -140,10 +140,16 @@ fn followers<'py>(py: Python<'py>, f: Vec<(u32, Columns)>) -> PyResult<Bound<'py
 
 /// Runs a scenario in process, the GIL released while it runs. Returns a
 /// dict: followers {id: {column: array}}, leader {column: array}, summary
-/// (summary.json's text), error (why it stopped early, or None).
+/// (summary.json's text), error (why it stopped early, or None). `every`
+/// None: the summary only.
 #[pyfunction]
-#[pyo3(signature = (scenario, threads = 1, every = 1))]
-fn sim<'py>(py: Python<'py>, scenario: &RawScenario, threads: usize, every: u64) -> PyResult<Bound<'py, PyDict>> {
+#[pyo3(signature = (scenario, threads = 1, every = Some(1)))]
+fn sim<'py>(
+    py: Python<'py>,
+    scenario: &RawScenario,
+    threads: usize,
+    every: Option<u64>,
+) -> PyResult<Bound<'py, PyDict>> {
     let s = scenario.source.scenario.clone();
     let run = py.detach(move || crate::memory::run(&s, threads, every)).map_err(value_error)?;
     let d = PyDict::new(py);
@@ -166,6 +172,45 @@ fn read_run<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDict>>
     d.set_item("followers", followers(py, run.followers)?)?;
     d.set_item("leader", columns(py, run.leader)?)?;
     Ok(d)
+}
+
+/// The paper's Tables I and II over `seeds` seeds: a list of two dicts
+/// (title, seeds, ids, values: float64 (seeds, followers, 4), paper:
+/// (4, 4)), the runs on `threads` threads with the GIL released.
+#[pyfunction]
+#[pyo3(signature = (scenario, seeds, threads))]
+fn paper_tables<'py>(
+    py: Python<'py>,
+    scenario: &RawScenario,
+    seeds: u64,
+    threads: usize,
+) -> PyResult<Vec<Bound<'py, PyDict>>> {
+    // A scenario made from text runs from a file of that text.
+    let (path, _file) = match &scenario.source.path {
+        Some(p) => (p.clone(), None),
+        None => {
+            let f = tempfile::Builder::new().suffix(".toml").tempfile().map_err(|e| value_error(e.to_string()))?;
+            std::fs::write(f.path(), &scenario.source.text).map_err(|e| value_error(e.to_string()))?;
+            (f.path().to_path_buf(), Some(f))
+        }
+    };
+    let user = scenario.source.overrides.clone();
+    let tables = py.detach(move || crate::paper::tables(&path, &user, seeds, threads)).map_err(value_error)?;
+    tables
+        .into_iter()
+        .map(|t| {
+            let d = PyDict::new(py);
+            let (n, f) = (t.values.len(), t.ids.len());
+            let flat: Vec<f64> = t.values.iter().flatten().flatten().copied().collect();
+            d.set_item("title", t.title)?;
+            d.set_item("seeds", t.seeds)?;
+            d.set_item("ids", t.ids)?;
+            d.set_item("values", PyArray1::from_vec(py, flat).reshape([n, f, 4])?)?;
+            let paper: Vec<f64> = t.paper.iter().flatten().copied().collect();
+            d.set_item("paper", PyArray1::from_vec(py, paper).reshape([4, 4])?)?;
+            Ok(d)
+        })
+        .collect()
 }
 
 fn to_python<'py>(py: Python<'py>, v: &toml::Value) -> PyResult<Bound<'py, PyAny>> {
@@ -195,6 +240,7 @@ fn _formation(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RawScenario>()?;
     m.add_function(wrap_pyfunction!(sim, m)?)?;
     m.add_function(wrap_pyfunction!(read_run, m)?)?;
+    m.add_function(wrap_pyfunction!(paper_tables, m)?)?;
     m.add("MAX_VALUES", crate::memory::MAX_VALUES)?;
     Ok(())
 }

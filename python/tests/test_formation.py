@@ -192,3 +192,29 @@ def test_python_threads_run_simulations_at_once():
     ratio = four / one
     print(f"4 runs: {one:.3f} s one after another, {four:.3f} s in 4 threads ({ratio:.2f})")
     assert ratio < 0.7, f"4 runs in 4 threads took {four:.3f} s, {ratio:.2f} of {one:.3f} s one after another"
+
+
+def test_the_paper_tables_are_formation_papers(tmp_path):
+    """Tables I and II from Python: the same runs as `formation paper`'s
+    tables (its CSVs' min, max and mean per follower and column), the
+    paper's values beside them."""
+    out = tmp_path / "paper"
+    cli("paper", "--seeds", "3", "--set", "duration=12", "--out", str(out), "-q", timeout=300)
+    p = formation.paper(formation.Scenario.load("paper", duration=12), seeds=3, threads=2)
+    for table, file in [(p.table1, "table1_normal.csv"), (p.table2, "table2_fault.csv")]:
+        assert table.values.shape == (3, 4, 4) and table.values.dtype == np.float64
+        lines = (out / file).read_text().splitlines()
+        head = lines[0].split(",")
+        rows = [dict(zip(head, line.split(","))) for line in lines[1:]]
+        assert len(rows) == 16, f"{file}: {len(rows)} rows"
+        for r in rows:
+            col = ["linear", "angular"].index(r["channel"]) * 2 + ["kf", "asif"].index(r["filter"])
+            f = table.ids.index(int(r["follower"]))
+            got = table.values[:, f, col]
+            assert got.min() == float(r["min"]) and got.max() == float(r["max"]), f"{file} {r}: {got}"
+            assert abs(got.mean() - float(r["mean"])) <= 1e-12 * abs(float(r["mean"])), f"{file} {r}: {got.mean()}"
+            assert table.paper[f, col] == float(r["paper"])
+    assert p.table2.ratio().shape == (4, 2)
+    assert "Table II" in repr(p)
+    with pytest.raises(ValueError, match="seeds"):
+        formation.paper(seeds=0)

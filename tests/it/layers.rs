@@ -17,14 +17,14 @@ const LAYERS: [&str; 17] = [
     "formation-topology",
     "formation-record",
     "formation-sim",
-    // The Python package's Rust half: the simulator and run folders only.
-    "formation-python",
     "formation-protocol",
     "formation-certs",
     "formation-view",
     "formation-replay",
     // Reports, the paper's tables, calibration: no network, no runtime.
     "formation-report",
+    // The Python package: the simulator, run folders, the paper's tables.
+    "formation-python",
     "formation-net",
     // Nodes as processes: launch, the lab, their supervisor.
     "formation-launch",
