@@ -33,34 +33,6 @@ impl Columns {
     }
 }
 
-/// The follower CSV's fields of a row, in the header's order.
-pub fn follower_fields(r: &Row) -> [f64; 22] {
-    [
-        r.t,
-        r.x,
-        r.y,
-        r.theta,
-        r.v,
-        r.w,
-        r.v_hat,
-        r.w_hat,
-        r.x_ir,
-        r.y_ir,
-        r.theta_ir,
-        r.v_ir,
-        r.w_ir,
-        r.v_c,
-        r.w_c,
-        r.tau_l,
-        r.tau_r,
-        r.formation_error,
-        r.heading_error,
-        r.estimator_error,
-        r.estimator_v_error,
-        r.estimator_w_error,
-    ]
-}
-
 /// A run held in memory.
 #[derive(Debug)]
 pub struct MemoryRun {
@@ -122,7 +94,7 @@ impl Observer for MemoryObserver {
     }
     fn follower(&mut self, index: usize, k: u64, row: &Row, last: bool) -> std::io::Result<()> {
         if self.wants(k, last) {
-            self.followers[index].push(&follower_fields(row));
+            self.followers[index].push(&row.csv_fields());
         }
         Ok(())
     }

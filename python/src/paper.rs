@@ -39,7 +39,10 @@ pub fn tables(path: &Path, user: &[String], seeds: u64, threads: usize) -> Resul
         .num_threads(threads.max(1))
         .build()
         .map_err(|e| format!("cannot start {threads} threads: {e}"))?;
-    TABLE_CASES.iter().map(|(title, names, paper)| pool.install(|| table(path, user, seeds, title, names, paper))).collect()
+    TABLE_CASES
+        .iter()
+        .map(|(title, names, paper)| pool.install(|| table(path, user, seeds, title, names, paper)))
+        .collect()
 }
 
 fn table(
@@ -74,7 +77,12 @@ fn table(
                     let pick = |m: Option<&&formation_record::FollowerMetrics>, v: bool| {
                         m.and_then(|m| if v { m.rmse_v } else { m.rmse_w }).map_or(f64::NAN, |x| x * 100.0)
                     };
-                    [pick(kf.as_ref(), true), pick(asif.as_ref(), true), pick(kf.as_ref(), false), pick(asif.as_ref(), false)]
+                    [
+                        pick(kf.as_ref(), true),
+                        pick(asif.as_ref(), true),
+                        pick(kf.as_ref(), false),
+                        pick(asif.as_ref(), false),
+                    ]
                 })
                 .collect()
         })

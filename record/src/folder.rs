@@ -88,31 +88,7 @@ impl RunWriter {
 
     pub fn follower_row(&mut self, index: usize, r: &Row) -> std::io::Result<()> {
         let b = &mut self.buffers[index];
-        let fields = [
-            r.t,
-            r.x,
-            r.y,
-            r.theta,
-            r.v,
-            r.w,
-            r.v_hat,
-            r.w_hat,
-            r.x_ir,
-            r.y_ir,
-            r.theta_ir,
-            r.v_ir,
-            r.w_ir,
-            r.v_c,
-            r.w_c,
-            r.tau_l,
-            r.tau_r,
-            r.formation_error,
-            r.heading_error,
-            r.estimator_error,
-            r.estimator_v_error,
-            r.estimator_w_error,
-        ];
-        write_fields(b, &fields);
+        write_fields(b, &r.csv_fields());
         if b.len() >= self.flush_at {
             let path = self.follower_path(index);
             append(&path, &mut self.buffers[index])?;

@@ -86,6 +86,35 @@ pub struct Row {
 }
 
 impl Row {
+    /// The row's fields in [`FOLLOWER_HEADER`]'s order: what the CSV holds.
+    #[inline]
+    pub fn csv_fields(&self) -> [f64; 22] {
+        [
+            self.t,
+            self.x,
+            self.y,
+            self.theta,
+            self.v,
+            self.w,
+            self.v_hat,
+            self.w_hat,
+            self.x_ir,
+            self.y_ir,
+            self.theta_ir,
+            self.v_ir,
+            self.w_ir,
+            self.v_c,
+            self.w_c,
+            self.tau_l,
+            self.tau_r,
+            self.formation_error,
+            self.heading_error,
+            self.estimator_error,
+            self.estimator_v_error,
+            self.estimator_w_error,
+        ]
+    }
+
     /// The row of a sample against the true leader state at the same step.
     #[inline]
     pub fn new(s: &FollowerSample, leader: &LeaderState, offset: [f64; 2], dt_s: f64) -> Self {
