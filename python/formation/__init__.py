@@ -24,7 +24,7 @@ import numpy as np
 
 from . import _formation
 
-__all__ = ["Scenario", "Run", "Table", "PaperTable", "sim", "read_run", "generate", "paper", "BUILT_IN"]
+__all__ = ["Scenario", "Run", "Table", "PaperTable", "sim", "read_run", "generate", "paper", "replay", "BUILT_IN"]
 
 #: The scenarios built into the package (and the command line), by name.
 BUILT_IN = ("paper", "paper-velocity", "paper-tables", "turtlebot")
@@ -234,7 +234,7 @@ class Run:
     table's figures; ``network`` network.json where the run was networked.
     """
 
-    __slots__ = ("followers", "leader", "summary", "network", "error", "path")
+    __slots__ = ("followers", "leader", "summary", "network", "error", "path", "problems")
 
     def __init__(self, raw: Dict[str, Any], path: Optional[str] = None):
         self.followers: Dict[int, Table] = {int(i): Table(c) for i, c in raw["followers"].items()}
@@ -245,6 +245,8 @@ class Run:
         #: Why the run stopped early (its arrays then end there), or None.
         self.error: Optional[str] = raw.get("error")
         self.path = path
+        #: A replay's steps it could not re-compute, one line each (:func:`replay`).
+        self.problems: List[str] = list(raw.get("problems") or [])
 
     @property
     def complete(self) -> bool:
@@ -291,6 +293,19 @@ def read_run(path: PathLike) -> Run:
     """Reads any run folder (``formation sim``'s or a networked run's)."""
     p = os.fspath(path)
     return Run(_formation.read_run(p), path=p)
+
+
+def replay(path: PathLike, hearing: str = "recorded") -> Run:
+    """A networked run re-computed in process from its folder, as
+    ``formation replay`` does: with ``hearing="recorded"`` from what each
+    follower heard (``hearing.bin``; equal to the run byte for byte where
+    nothing was lost), with ``"model"`` from what the model says it would
+    have heard (the run the simulator predicts). ``run.problems`` names
+    the steps it could not re-compute."""
+    if hearing not in ("recorded", "model"):
+        raise ValueError(f"hearing {hearing!r}: recorded or model")
+    p = os.fspath(path)
+    return Run(_formation.replay(p, hearing == "model"), path=p)
 
 
 def generate(

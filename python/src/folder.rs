@@ -60,6 +60,21 @@ pub fn read(dir: &Path) -> Result<FolderRun, String> {
     Ok(FolderRun { followers, leader, summary, network })
 }
 
+/// The run at `dir` re-computed from what each follower heard
+/// (`hearing.bin`, as `formation replay`), or with `model` from what the
+/// model says it would have heard; read back as a [`FolderRun`], with what
+/// could not be re-computed, one line each.
+pub fn replay(dir: &Path, model: bool) -> Result<(FolderRun, Vec<String>), String> {
+    use formation_replay::replay::{load, replay_to_folder_with, Hearing};
+    let loaded = load(dir).map_err(|e| e.to_string())?;
+    let tmp = tempfile::tempdir().map_err(|e| format!("a temporary folder: {e}"))?;
+    let out = tmp.path().join("replay");
+    let hearing = if model { Hearing::Model } else { Hearing::Recorded };
+    let problems = replay_to_folder_with(&loaded, hearing, &out, &mut |_| {}).map_err(|e| e.to_string())?;
+    let problems = problems.iter().map(|p| format!("follower {} at step {}: {}", p.follower, p.k, p.what)).collect();
+    Ok((read(&out)?, problems))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

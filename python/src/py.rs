@@ -213,6 +213,22 @@ fn paper_tables<'py>(
         .collect()
 }
 
+/// A networked run re-computed from its hearing record (or the model's):
+/// the dict of [`read_run`] plus problems (what could not be re-computed).
+#[pyfunction]
+#[pyo3(signature = (path, model = false))]
+fn replay<'py>(py: Python<'py>, path: PathBuf, model: bool) -> PyResult<Bound<'py, PyDict>> {
+    let (run, problems) = py.detach(move || crate::folder::replay(&path, model)).map_err(value_error)?;
+    let d = PyDict::new(py);
+    d.set_item("summary", run.summary)?;
+    d.set_item("network", run.network)?;
+    d.set_item("error", None::<String>)?;
+    d.set_item("problems", problems)?;
+    d.set_item("followers", followers(py, run.followers)?)?;
+    d.set_item("leader", columns(py, run.leader)?)?;
+    Ok(d)
+}
+
 fn to_python<'py>(py: Python<'py>, v: &toml::Value) -> PyResult<Bound<'py, PyAny>> {
     Ok(match v {
         toml::Value::String(s) => s.into_pyobject(py)?.into_any(),
@@ -241,6 +257,7 @@ fn _formation(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(sim, m)?)?;
     m.add_function(wrap_pyfunction!(read_run, m)?)?;
     m.add_function(wrap_pyfunction!(paper_tables, m)?)?;
+    m.add_function(wrap_pyfunction!(replay, m)?)?;
     m.add("MAX_VALUES", crate::memory::MAX_VALUES)?;
     Ok(())
 }

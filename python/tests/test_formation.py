@@ -218,3 +218,24 @@ def test_the_paper_tables_are_formation_papers(tmp_path):
     assert "Table II" in repr(p)
     with pytest.raises(ValueError, match="seeds"):
         formation.paper(seeds=0)
+
+
+def test_a_networked_run_replays_from_python_as_formation_replay(tmp_path):
+    base = os.environ.get("FORMATION_BASE_PORT")
+    ports = ["--base-port", str(int(base) + 6)] if base else []
+    out = tmp_path / "run"
+    cli("launch", PAPER, "--set", "duration=1.5", "--set", "faults+={node=3, from=0.5, to=0.8}", "--out", str(out),
+        "-q", *ports, timeout=120)
+    run = formation.read_run(out)
+    again = formation.replay(out)
+    assert again.problems == [], again.problems
+    model = formation.replay(out, hearing="model")
+    sim = formation.sim(formation.Scenario.load(PAPER, duration=1.5).set("faults+={node=3, from=0.5, to=0.8}"))
+    for fid in run.followers:
+        for name in run.followers[fid]:
+            assert same_bits(again.followers[fid][name], run.followers[fid][name]), f"replay: follower {fid} {name}"
+            assert same_bits(model.followers[fid][name], sim.followers[fid][name]), f"model: follower {fid} {name}"
+    with pytest.raises(ValueError, match="recorded or model"):
+        formation.replay(out, hearing="guess")
+    with pytest.raises(ValueError):
+        formation.replay(tmp_path / "nothing")
