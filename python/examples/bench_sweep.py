@@ -6,6 +6,7 @@ A seed sweep of the paper scenario (30 s, 4 followers) run three ways:
   loop or a MATLAB script would call it (a process per run);
 - ``formation.sim(s, columns=False)`` from Python (the summary only, as
   ``--no-csv``);
+- ``formation sim SCENARIO --set seed=S`` writing its CSVs;
 - ``formation.sim(s)`` from Python with every column as numpy arrays.
 
 Prints runs per second for each (the median of --repeat sweeps) and the
@@ -48,6 +49,12 @@ def main() -> None:
                     check=True,
                 )
 
+        def cli_csv() -> None:
+            for s in range(1, a.runs + 1):
+                subprocess.run(
+                    [a.cli, "sim", a.scenario, "--set", f"seed={s}", "-q", "--out", f"{tmp}/run"], check=True
+                )
+
         def summary_only() -> None:
             for s in scenarios:
                 formation.sim(s, columns=False)
@@ -57,8 +64,13 @@ def main() -> None:
                 formation.sim(s)
 
         rates = {}
-        for name, sweep in [("command line, --no-csv", cli), ("Python, columns=False", summary_only),
-                            ("Python, numpy arrays", arrays)]:
+        kinds = [
+            ("command line, --no-csv", cli),
+            ("Python, columns=False", summary_only),
+            ("command line, CSVs", cli_csv),
+            ("Python, numpy arrays", arrays),
+        ]
+        for name, sweep in kinds:
             times = []
             for _ in range(a.repeat):
                 t = time.perf_counter()
