@@ -130,18 +130,32 @@ fn columns<'py>(py: Python<'py>, c: Columns) -> PyResult<Bound<'py, PyDict>> {
     Ok(d)
 }
 
-fn followers<'py>(py: Python<'py>, f: Vec<(u32, Columns)>) -> PyResult<Bound<'py, PyDict>> {
-    let d = PyDict::new(py);
-    for (id, c) in f {
-        d.set_item(id, columns(py, c)?)?;
+/// A run as the package's `Run` takes it: followers {id: {column: array}},
+/// leader {column: array}, summary (summary.json's text), network
+/// (network.json's text or None), error (why it stopped early, or None).
+fn run_dict<'py>(
+    py: Python<'py>,
+    followers: Vec<(u32, Columns)>,
+    leader: Columns,
+    summary: String,
+    network: Option<String>,
+    error: Option<String>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let by_id = PyDict::new(py);
+    for (id, c) in followers {
+        by_id.set_item(id, columns(py, c)?)?;
     }
+    let d = PyDict::new(py);
+    d.set_item("followers", by_id)?;
+    d.set_item("leader", columns(py, leader)?)?;
+    d.set_item("summary", summary)?;
+    d.set_item("network", network)?;
+    d.set_item("error", error)?;
     Ok(d)
 }
 
-/// Runs a scenario in process, the GIL released while it runs. Returns a
-/// dict: followers {id: {column: array}}, leader {column: array}, summary
-/// (summary.json's text), error (why it stopped early, or None). `every`
-/// None: the summary only.
+/// Runs a scenario in process, the GIL released while it runs; the run as
+/// [`run_dict`] gives it. `every` None: the summary only.
 #[pyfunction]
 #[pyo3(signature = (scenario, threads = 1, every = Some(1)))]
 fn sim<'py>(
@@ -152,26 +166,14 @@ fn sim<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let s = scenario.source.scenario.clone();
     let run = py.detach(move || crate::memory::run(&s, threads, every)).map_err(value_error)?;
-    let d = PyDict::new(py);
-    d.set_item("summary", run.summary.to_json())?;
-    d.set_item("error", run.error)?;
-    d.set_item("followers", followers(py, run.followers)?)?;
-    d.set_item("leader", columns(py, run.leader)?)?;
-    Ok(d)
+    run_dict(py, run.followers, run.leader, run.summary.to_json(), None, run.error)
 }
 
-/// Reads a run folder: the same dict as [`sim`], plus network (network.json's
-/// text or None).
+/// Reads a run folder, as [`run_dict`] gives a run.
 #[pyfunction]
 fn read_run<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDict>> {
     let run = py.detach(move || crate::folder::read(&path)).map_err(value_error)?;
-    let d = PyDict::new(py);
-    d.set_item("summary", run.summary)?;
-    d.set_item("network", run.network)?;
-    d.set_item("error", None::<String>)?;
-    d.set_item("followers", followers(py, run.followers)?)?;
-    d.set_item("leader", columns(py, run.leader)?)?;
-    Ok(d)
+    run_dict(py, run.followers, run.leader, run.summary, run.network, None)
 }
 
 /// The paper's Tables I and II over `seeds` seeds: a list of two dicts
@@ -219,13 +221,8 @@ fn paper_tables<'py>(
 #[pyo3(signature = (path, model = false))]
 fn replay<'py>(py: Python<'py>, path: PathBuf, model: bool) -> PyResult<Bound<'py, PyDict>> {
     let (run, problems) = py.detach(move || crate::folder::replay(&path, model)).map_err(value_error)?;
-    let d = PyDict::new(py);
-    d.set_item("summary", run.summary)?;
-    d.set_item("network", run.network)?;
-    d.set_item("error", None::<String>)?;
+    let d = run_dict(py, run.followers, run.leader, run.summary, run.network, None)?;
     d.set_item("problems", problems)?;
-    d.set_item("followers", followers(py, run.followers)?)?;
-    d.set_item("leader", columns(py, run.leader)?)?;
     Ok(d)
 }
 
