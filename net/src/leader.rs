@@ -198,17 +198,14 @@ pub async fn run_leader(
 /// The leader's one line on a quorum start: who is absent, and whether the
 /// others still reach the leader (Lemma 1).
 fn absent_line(absent: &[u32], scenario: &Scenario) -> String {
-    let list = formation_topology::graph::id_list;
+    use formation_topology::graph::followers_named;
     let cut = scenario.graph.unreachable_without(absent);
-    let reach = if cut.is_empty() {
-        "every present follower reaches the leader".to_string()
-    } else {
-        format!("followers {} do not reach the leader (--even-if-cut-off)", list(&cut))
+    let reach = match cut.len() {
+        0 => "every present follower reaches the leader".to_string(),
+        1 => format!("{} does not reach the leader (--even-if-cut-off)", followers_named(&cut)),
+        _ => format!("{} do not reach the leader (--even-if-cut-off)", followers_named(&cut)),
     };
-    format!(
-        "leader: started without {} (absent: not ready within the quorum wait); {reach}",
-        formation_topology::graph::followers_named(absent)
-    )
+    format!("leader: started without {} (absent: not ready within the quorum wait); {reach}", followers_named(absent))
 }
 
 /// `start <epoch ns> <time scale> <ns ahead>` on stdout: the epoch, and how
