@@ -2,7 +2,9 @@
 //! Python equal `formation sim`'s CSVs bit for bit, every `--set` error of
 //! tests/it/hostile_inputs.rs raises `ValueError` with the command line's
 //! message, a lock-step `launch` folder read from Python equals the
-//! simulator, and Python threads run simulations at once. Here, not in
+//! simulator, a networked run replayed from Python equals its folder (and
+//! on the model's hearing, the simulator), the paper's tables equal
+//! `formation paper`'s, and Python threads run simulations at once. Here, not in
 //! `it`, because that last check is judged on time: it must have the two
 //! cores to itself (`common::alone`).
 //!
@@ -36,15 +38,25 @@ fn package_python() -> Option<PathBuf> {
     None
 }
 
-/// The newest source file the package is compiled from.
+/// The newest source file of the crates the package is compiled from.
 fn newest_source() -> (SystemTime, PathBuf) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let mut newest = (SystemTime::UNIX_EPOCH, PathBuf::new());
-    let mut dirs: Vec<PathBuf> =
-        ["python/src", "topology/src", "sim/src", "record/src", "agent/src", "plant/src", "leader/src"]
-            .iter()
-            .map(|d| root.join(d))
-            .collect();
+    let mut dirs: Vec<PathBuf> = [
+        "python/src",
+        "report/src",
+        "replay/src",
+        "protocol/src",
+        "sim/src",
+        "record/src",
+        "topology/src",
+        "agent/src",
+        "plant/src",
+        "leader/src",
+    ]
+    .iter()
+    .map(|d| root.join(d))
+    .collect();
     while let Some(dir) = dirs.pop() {
         for entry in std::fs::read_dir(&dir).expect("source folder").flatten() {
             let path = entry.path();
@@ -79,7 +91,9 @@ fn the_python_package_equals_the_command_line_under_pytest() {
         module.display(),
         source.display()
     );
-    let ports = common::Ports::free(common::LAUNCH_PORTS);
+    // Two launches (python/tests: a lock-step run, then one with an
+    // outage): the first takes these 6 ports, the second the next 6.
+    let ports = common::Ports::free(2 * common::LAUNCH_PORTS);
     let base = ports.release();
     let out = Command::new(&python)
         .args(["-m", "pytest", "-q", "-s", "-p", "no:cacheprovider"])
