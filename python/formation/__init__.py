@@ -119,10 +119,7 @@ class Scenario:
 
     def copy(self) -> "Scenario":
         """An independent copy (changes to it leave this one alone)."""
-        raw = _formation.RawScenario.from_toml(self._raw.text, self._raw.name, self._raw.label)
-        for a in self._raw.overrides:
-            raw.set(a)
-        return Scenario(raw)
+        return Scenario(self._raw.copy())
 
     def with_(self, **sets: Any) -> "Scenario":
         """A copy with keys changed: ``s.with_(filter="kf")``. A dotted key

@@ -72,25 +72,22 @@ impl Source {
     /// The value at a dotted key (`robot.mass`, `followers[0].offset`), as
     /// `--set` names keys; `None` where the file has no such key.
     pub fn get(&self, key: &str) -> Result<Option<toml::Value>, String> {
-        let table = self.table()?;
-        let mut at = toml::Value::Table(table);
+        let root = toml::Value::Table(self.table()?);
+        let mut at = &root;
         for part in key.split('.') {
-            let (name, indexes) = match part.find('[') {
-                Some(i) => (&part[..i], &part[i..]),
-                None => (part, ""),
-            };
+            let (name, indexes) = part.split_at(part.find('[').unwrap_or(part.len()));
             let Some(next) = at.get(name) else { return Ok(None) };
-            at = next.clone();
+            at = next;
             for index in indexes.split('[').skip(1) {
                 let i: usize = index
                     .strip_suffix(']')
                     .and_then(|n| n.trim().parse().ok())
                     .ok_or_else(|| format!("{key}: `[{index}` is not an index"))?;
                 let Some(next) = at.get(i) else { return Ok(None) };
-                at = next.clone();
+                at = next;
             }
         }
-        Ok(Some(at))
+        Ok(Some(at.clone()))
     }
 
     /// The scenario as a TOML file (every key written out; the original's

@@ -3,7 +3,7 @@
 //! `formation sim` writes, bit for bit, without a file between.
 
 use formation_leader::LeaderState;
-use formation_record::{Row, Summary, FOLLOWER_HEADER, LEADER_HEADER};
+use formation_record::{leader_csv_fields, Row, Summary, FOLLOWER_HEADER, LEADER_HEADER};
 use formation_sim::{Observer, Simulation};
 use formation_topology::Scenario;
 
@@ -88,7 +88,7 @@ impl MemoryObserver {
 impl Observer for MemoryObserver {
     fn leader(&mut self, k: u64, l: &LeaderState) -> std::io::Result<()> {
         if self.wants(k, k == self.steps) {
-            self.leader.push(&[k as f64 * self.dt_s, l.pose.x, l.pose.y, l.pose.theta, l.v, l.w]);
+            self.leader.push(&leader_csv_fields(k as f64 * self.dt_s, l));
         }
         Ok(())
     }

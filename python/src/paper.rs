@@ -5,6 +5,7 @@
 
 use std::path::Path;
 
+use formation_record::FollowerMetrics;
 use formation_report::paper::{case_scenario, run_seed, CASES};
 use formation_report::tables::{PAPER_TABLE_I, PAPER_TABLE_II};
 use rayon::prelude::*;
@@ -73,16 +74,12 @@ fn table(
         .map(|s| {
             ids.iter()
                 .map(|id| {
-                    let (kf, asif) = (&runs[s].followers.get(id), &runs[n + s].followers.get(id));
-                    let pick = |m: Option<&&formation_record::FollowerMetrics>, v: bool| {
-                        m.and_then(|m| if v { m.rmse_v } else { m.rmse_w }).map_or(f64::NAN, |x| x * 100.0)
-                    };
-                    [
-                        pick(kf.as_ref(), true),
-                        pick(asif.as_ref(), true),
-                        pick(kf.as_ref(), false),
-                        pick(asif.as_ref(), false),
-                    ]
+                    let (kf, asif) = (runs[s].followers.get(id), runs[n + s].followers.get(id));
+                    // ×10⁻² as the paper; NaN where the run does not reach the window.
+                    let pct = |x: Option<f64>| x.map_or(f64::NAN, |x| x * 100.0);
+                    let v = |m: Option<&FollowerMetrics>| pct(m.and_then(|m| m.rmse_v));
+                    let w = |m: Option<&FollowerMetrics>| pct(m.and_then(|m| m.rmse_w));
+                    [v(kf), v(asif), w(kf), w(asif)]
                 })
                 .collect()
         })

@@ -63,6 +63,11 @@ impl RawScenario {
         Source::generate(&spec).map(|source| Self { source }).map_err(value_error)
     }
 
+    /// An independent copy (the same text, assignments and file).
+    fn copy(&self) -> Self {
+        self.clone()
+    }
+
     /// Applies one `KEY=VALUE` assignment as `--set` does.
     fn set(&mut self, assignment: &str) -> PyResult<()> {
         self.source.set(assignment).map_err(value_error)

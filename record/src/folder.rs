@@ -97,7 +97,7 @@ impl RunWriter {
     }
 
     pub fn leader_row(&mut self, t: f64, l: &LeaderState) -> std::io::Result<()> {
-        write_fields(&mut self.leader_buffer, &[t, l.pose.x, l.pose.y, l.pose.theta, l.v, l.w]);
+        write_fields(&mut self.leader_buffer, &crate::row::leader_csv_fields(t, l));
         if self.leader_buffer.len() >= self.flush_at {
             append(&self.dir.join("leader.csv"), &mut self.leader_buffer)?;
         }

@@ -30,7 +30,7 @@ pub use live::LiveSink;
 pub use metrics::{last10_from_k, FollowerMetrics, MetricsAccumulator};
 pub use outage::{FaultSummary, OutageMetrics};
 pub use proximity::{PairAt, Proximity};
-pub use row::{FollowerSample, Row, FOLLOWER_HEADER, LEADER_HEADER};
+pub use row::{leader_csv_fields, FollowerSample, Row, FOLLOWER_HEADER, LEADER_HEADER};
 pub use summary::{name, Shortfall, Summary};
 
 #[cfg(test)]

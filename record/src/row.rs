@@ -162,5 +162,11 @@ fn norm(a: f64, b: f64) -> f64 {
 
 /// The header of every `follower_<id>.csv`: [`Row`]'s fields in order.
 pub const FOLLOWER_HEADER: &str = "t,x,y,theta,v,w,v_hat,w_hat,x_ir,y_ir,theta_ir,v_ir,w_ir,v_c,w_c,tau_l,tau_r,formation_error,heading_error,estimator_error,estimator_v_error,estimator_w_error\n";
+/// The fields of a `leader.csv` row at time `t`, in [`LEADER_HEADER`]'s order.
+#[inline]
+pub fn leader_csv_fields(t: f64, l: &LeaderState) -> [f64; 6] {
+    [t, l.pose.x, l.pose.y, l.pose.theta, l.v, l.w]
+}
+
 /// The header of `leader.csv`.
 pub const LEADER_HEADER: &str = "t,x,y,theta,v,w\n";

@@ -1131,16 +1131,29 @@ mod tests {
     /// Follower `id`'s batch of steps first_k..first_k + n, each heard
     /// fresh from every source.
     fn follower_batch(s: &Scenario, id: u32, first_k: u64, n: u64, done: bool, left: Option<Left>) -> Telemetry {
+        follower_batch_of(s, id, first_k, (first_k..first_k + n).map(sample).collect(), done, left)
+    }
+
+    /// Follower `id`'s batch of `samples` from step first_k, each heard
+    /// fresh from every source (a forged batch may say anything).
+    fn follower_batch_of(
+        s: &Scenario,
+        id: u32,
+        first_k: u64,
+        samples: Vec<FollowerSample>,
+        done: bool,
+        left: Option<Left>,
+    ) -> Telemetry {
         let slots = s.sources_of(s.index_of(id).expect("a follower")).len();
         Telemetry::Follower {
             id,
             first_k,
-            heard: HeardRuns::uniform(slots, n as u32, Heard::Age(0)),
+            heard: HeardRuns::uniform(slots, samples.len() as u32, Heard::Age(0)),
             rescued: Vec::new(),
             resumed: None,
             diverged: None,
             left,
-            samples: (first_k..first_k + n).map(sample).collect(),
+            samples,
             counters: Counters::default(),
             done,
             loop_stats: None,
@@ -1240,25 +1253,8 @@ mod tests {
                 handover: None,
             })
         };
-        let slots = |id: u32| scenario.sources_of(scenario.index_of(id).expect("a follower")).len();
         let follower = |id: u32, first_k: u64, samples: Vec<FollowerSample>, done: bool| {
-            codec::encode(&Telemetry::Follower {
-                id,
-                first_k,
-                heard: HeardRuns::uniform(slots(id), samples.len() as u32, Heard::Age(0)),
-                rescued: Vec::new(),
-                resumed: None,
-                diverged: None,
-                left: None,
-                samples,
-                counters: Counters::default(),
-                done,
-                loop_stats: None,
-                delivery: Delivery::default(),
-                events: Vec::new(),
-                clock: None,
-                links: Vec::new(),
-            })
+            codec::encode(&follower_batch_of(&scenario, id, first_k, samples, done, None))
         };
         r.telemetry(Some(0), &leader(0, steps + 1, true), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
