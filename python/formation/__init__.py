@@ -24,7 +24,7 @@ import numpy as np
 
 from . import _formation
 
-__all__ = ["Scenario", "Run", "Table", "PaperTable", "sim", "read_run", "generate", "paper", "replay", "BUILT_IN"]
+__all__ = ["Scenario", "Run", "Table", "PaperTable", "Claim", "Paper", "sim", "read_run", "generate", "paper", "replay", "BUILT_IN"]
 
 #: The scenarios built into the package (and the command line), by name.
 BUILT_IN = ("paper", "paper-velocity", "paper-tables", "turtlebot")
@@ -368,27 +368,89 @@ class PaperTable:
         return "\n".join(lines)
 
 
-class Paper:
-    """The paper's Tables I (normal case) and II (fault at 10 s) as
-    :class:`PaperTable` s: ``table1``, ``table2``."""
+class Claim:
+    """One statement of the paper (docs/model.md §12) checked on the runs,
+    as ``formation paper``'s ``claims.csv`` gives it.
 
-    __slots__ = ("table1", "table2")
+    ``claim``: the statement; ``quantity`` (in ``unit``): what is measured
+    per seed, ``values`` (float64, one per seed); ``required``: the
+    condition as text, ``condition`` as numbers (``("<=", bound)``, or
+    ``("near", target, tolerance)``); ``holds``: the seeds it holds for;
+    ``result``: ``"PASS"`` (every seed), ``"FAIL"`` or ``"N/A"`` (not
+    measurable in these runs: ``missing`` says why); ``measured``: the
+    values summarised as the report writes them.
+    """
 
-    def __init__(self, tables: List[Dict[str, Any]]):
-        self.table1, self.table2 = (PaperTable(t) for t in tables)
+    __slots__ = ("claim", "quantity", "unit", "cases", "values", "required", "condition", "holds", "result",
+                 "missing", "measured")
+
+    def __init__(self, raw: Dict[str, Any]):
+        self.claim: str = raw["claim"]
+        self.quantity: str = raw["quantity"]
+        self.unit: str = raw["unit"]
+        self.cases: List[str] = list(raw["cases"])
+        self.values: np.ndarray = raw["values"]
+        self.required: str = raw["required"]
+        self.condition: tuple = tuple(raw["condition"])
+        self.holds: int = raw["holds"]
+        self.result: str = raw["result"]
+        self.missing: Optional[str] = raw["missing"]
+        self.measured: str = raw["measured"]
+
+    @property
+    def passed(self) -> bool:
+        return self.result == "PASS"
 
     def __repr__(self) -> str:
-        return f"{self.table1!r}\n\n{self.table2!r}"
+        if self.result == "N/A":
+            return f"N/A   {self.claim}: {self.missing}"
+        return f"{self.result:<4}  {self.claim}: {self.measured} {self.unit} (required {self.required})"
 
 
-def paper(scenario: Union[Scenario, PathLike] = "paper", seeds: int = 20, threads: Optional[int] = None) -> Paper:
-    """Tables I and II of the paper over ``seeds`` seeds (the scenario's
-    seed s, s+1, …): the KF and ASIF cases ``formation paper`` runs for them,
-    normal and with the fault at 10 s, on the scenario's other keys as
-    given. ``threads``: every core by default; the GIL is released."""
+class Paper:
+    """What ``formation paper`` checks, from one set of runs: Tables I
+    (normal case) and II (fault at 10 s) as :class:`PaperTable` s
+    (``table1``, ``table2``), and every claim of the paper as a
+    :class:`Claim` (``claims``; ``passed`` when every one passes)."""
+
+    __slots__ = ("table1", "table2", "claims")
+
+    def __init__(self, raw: Dict[str, List[Dict[str, Any]]]):
+        self.table1, self.table2 = (PaperTable(t) for t in raw["tables"])
+        self.claims: List[Claim] = [Claim(c) for c in raw["claims"]]
+
+    @property
+    def passed(self) -> bool:
+        return all(c.passed for c in self.claims)
+
+    def claim(self, words: str) -> Claim:
+        """The first claim whose statement contains ``words``."""
+        for c in self.claims:
+            if words in c.claim:
+                return c
+        raise KeyError(f"no claim says {words!r}; the claims: {[c.claim for c in self.claims]}")
+
+    def __repr__(self) -> str:
+        if not self.claims:
+            return f"{self.table1!r}\n\n{self.table2!r}"
+        counts = {r: sum(c.result == r for c in self.claims) for r in ("PASS", "FAIL", "N/A")}
+        head = f"claims: {counts['PASS']} pass, {counts['FAIL']} fail, {counts['N/A']} not measurable"
+        return "\n".join([f"{self.table1!r}", "", f"{self.table2!r}", "", head] + [f"  {c!r}" for c in self.claims])
+
+
+def paper(scenario: Union[Scenario, PathLike] = "paper", seeds: int = 20, threads: Optional[int] = None,
+          claims: bool = True) -> Paper:
+    """The paper over ``seeds`` seeds (the scenario's seed s, s+1, …):
+    every case ``formation paper`` runs (the proposed method, conventional
+    backstepping, conventional and super-twisting SMC, KF and ASIF normal
+    and with the fault at 10 s, zero-initialised estimates), on the
+    scenario's other keys as given; Tables I and II and every claim checked
+    on those runs. ``claims=False`` runs only the tables' four cases (KF and
+    ASIF, normal and fault), in half the time, and checks no claim.
+    ``threads``: every core by default; the GIL is released."""
     if not isinstance(scenario, Scenario):
         scenario = Scenario.load(scenario)
     if seeds < 1:
         raise ValueError(f"seeds must be at least 1, not {seeds}")
     threads = threads or os.cpu_count() or 1
-    return Paper(_formation.paper_tables(scenario._raw, seeds, threads))
+    return Paper(_formation.paper(scenario._raw, seeds, threads, claims))

@@ -181,17 +181,21 @@ fn read_run<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDict>>
     run_dict(py, run.followers, run.leader, run.summary, run.network, None)
 }
 
-/// The paper's Tables I and II over `seeds` seeds: a list of two dicts
-/// (title, seeds, ids, values: float64 (seeds, followers, 4), paper:
-/// (4, 4)), the runs on `threads` threads with the GIL released.
+/// The paper over `seeds` seeds, every case `formation paper` runs (the
+/// tables' four only without `claims`), on
+/// `threads` threads with the GIL released: a dict of `tables` (two dicts:
+/// title, seeds, ids, values: float64 (seeds, followers, 4), paper: (4, 4))
+/// and `claims` (a dict per claim, as `claims.csv` has it, with its
+/// per-seed values).
 #[pyfunction]
-#[pyo3(signature = (scenario, seeds, threads))]
-fn paper_tables<'py>(
+#[pyo3(signature = (scenario, seeds, threads, claims = true))]
+fn paper<'py>(
     py: Python<'py>,
     scenario: &RawScenario,
     seeds: u64,
     threads: usize,
-) -> PyResult<Vec<Bound<'py, PyDict>>> {
+    claims: bool,
+) -> PyResult<Bound<'py, PyDict>> {
     // A scenario made from text runs from a file of that text.
     let (path, _file) = match &scenario.source.path {
         Some(p) => (p.clone(), None),
@@ -202,8 +206,9 @@ fn paper_tables<'py>(
         }
     };
     let user = scenario.source.overrides.clone();
-    let tables = py.detach(move || crate::paper::tables(&path, &user, seeds, threads)).map_err(value_error)?;
-    tables
+    let paper = py.detach(move || crate::paper::paper(&path, &user, seeds, threads, claims)).map_err(value_error)?;
+    let tables = paper
+        .tables
         .into_iter()
         .map(|t| {
             let d = PyDict::new(py);
@@ -217,7 +222,38 @@ fn paper_tables<'py>(
             d.set_item("paper", PyArray1::from_vec(py, paper).reshape([4, 4])?)?;
             Ok(d)
         })
-        .collect()
+        .collect::<PyResult<Vec<_>>>()?;
+    let claims = paper.claims.into_iter().map(|c| claim_dict(py, c)).collect::<PyResult<Vec<_>>>()?;
+    let d = PyDict::new(py);
+    d.set_item("tables", tables)?;
+    d.set_item("claims", claims)?;
+    Ok(d)
+}
+
+/// One checked claim: its words, what is measured and required, the
+/// per-seed values, how many hold, and PASS, FAIL or N/A (with why).
+fn claim_dict(py: Python<'_>, c: formation_report::tables::Check) -> PyResult<Bound<'_, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("result", c.result())?;
+    d.set_item("measured", c.measured())?;
+    d.set_item("required", c.condition.text())?;
+    // The condition as numbers: (op, bound) or ("near", target, tolerance).
+    use formation_report::tables::Cond;
+    match c.condition {
+        Cond::Lt(b) => d.set_item("condition", ("<", b))?,
+        Cond::Le(b) => d.set_item("condition", ("<=", b))?,
+        Cond::Gt(b) => d.set_item("condition", (">", b))?,
+        Cond::Ge(b) => d.set_item("condition", (">=", b))?,
+        Cond::Near { target, tol } => d.set_item("condition", ("near", target, tol))?,
+    }
+    d.set_item("claim", c.claim)?;
+    d.set_item("quantity", c.quantity)?;
+    d.set_item("unit", c.unit)?;
+    d.set_item("cases", c.cases)?;
+    d.set_item("holds", c.holds)?;
+    d.set_item("missing", c.missing)?;
+    d.set_item("values", PyArray1::from_vec(py, c.values))?;
+    Ok(d)
 }
 
 /// A networked run re-computed from its hearing record (or the model's):
@@ -258,7 +294,7 @@ fn _formation(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RawScenario>()?;
     m.add_function(wrap_pyfunction!(sim, m)?)?;
     m.add_function(wrap_pyfunction!(read_run, m)?)?;
-    m.add_function(wrap_pyfunction!(paper_tables, m)?)?;
+    m.add_function(wrap_pyfunction!(paper, m)?)?;
     m.add_function(wrap_pyfunction!(replay, m)?)?;
     m.add("MAX_VALUES", crate::memory::MAX_VALUES)?;
     Ok(())

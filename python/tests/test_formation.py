@@ -8,6 +8,7 @@ FORMATION_BASE_PORT; by hand: `pip install ./python pytest`, then
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import re
@@ -216,8 +217,37 @@ def test_the_paper_tables_are_formation_papers(tmp_path):
             assert table.paper[f, col] == float(r["paper"])
     assert p.table2.ratio().shape == (4, 2)
     assert "Table II" in repr(p)
+
+    # The claims: claims.csv's rows, one for one, from the same runs.
+    with open(out / "claims.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [c.claim for c in p.claims] == [r["claim"] for r in rows]
+    for c, r in zip(p.claims, rows):
+        assert (c.quantity, c.unit, " ".join(c.cases), c.required, str(c.holds), c.result) == (
+            r["quantity"], r["unit"], r["cases"], r["required"], r["holds"], r["result"]), f"{c!r} against {r}"
+        assert len(c.values) == int(r["n"]), f"{c!r}: {len(c.values)} values, claims.csv n = {r['n']}"
+        if len(c.values):
+            assert c.values.min() == float(r["min"]) and c.values.max() == float(r["max"]), f"{c!r}: {c.values}"
+            assert abs(c.values.mean() - float(r["mean"])) <= 1e-12 * abs(float(r["mean"])), f"{c!r}: {c.values}"
+    # 2 s after the fault are too few for the fault claims: both verdicts compared.
+    results = {c.result for c in p.claims}
+    assert {"PASS", "FAIL"} <= results, f"a 12 s run both passes claims and fails some: {results}"
+    assert not p.passed
     with pytest.raises(ValueError, match="seeds"):
         formation.paper(seeds=0)
+
+
+def test_the_papers_claims_hold_on_the_paper_scenario():
+    """Every claim of docs/model.md §12 passes on the paper's own scenario
+    (20 s), checked from Python on 3 seeds, with each claim's numbers."""
+    p = formation.paper(seeds=3, threads=2)
+    bad = [c for c in p.claims if not c.passed]
+    assert p.passed and len(p.claims) >= 12, f"{len(p.claims)} claims; not passing: {bad}"
+    jump = p.claim("v_c(0)")
+    assert jump.condition[0] == "near" and abs(jump.values - 15.0).max() <= 1e-9, f"{jump!r}: {jump.values}"
+    assert "claims: " in repr(p)
+    with pytest.raises(KeyError, match="no claim"):
+        p.claim("no such words")
 
 
 def test_a_networked_run_replays_from_python_as_formation_replay(tmp_path):
