@@ -316,6 +316,9 @@ pub(crate) fn agents(
         let ids = group_ids(scenario, members);
         let mut c = node_command(exe, "agent", a, run);
         c.arg("--id").arg(ids.join(","));
+        if a.opts.quiet {
+            c.arg("--quiet");
+        }
         for l in members.clone().flat_map(|i| a.opts.leaves_of(scenario.graph.id(i))) {
             c.arg("--leave").arg(l);
         }

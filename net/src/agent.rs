@@ -75,6 +75,10 @@ pub struct AgentArgs {
     /// row `node = ID, from = SECONDS` to the end.
     #[cfg_attr(feature = "clap", arg(long = "leave", value_name = "ID@SECONDS"))]
     pub leave: Vec<String>,
+    /// No line of news (a follower leaving the run); warnings and errors
+    /// are still said.
+    #[cfg_attr(feature = "clap", arg(short, long))]
+    pub quiet: bool,
 }
 
 /// `--id`'s first follower (the process's name), or one line for ids
@@ -206,6 +210,7 @@ pub async fn run(
                 leave: leave.clone(),
                 leave_at: leave_at.iter().find(|l| l.0 == id).map(|l| l.1),
                 quorum_wait,
+                quiet: args.quiet,
             };
             let body: Box<dyn Body> = match odometry {
                 Some(inbox) => Box::new(DrivenRobot::new(&scenario, index, inbox)),
@@ -378,6 +383,8 @@ pub struct FollowerOptions {
     pub leave_at: Option<u64>,
     /// `--quorum-wait`: ready from then on without the neighbours not heard.
     pub quorum_wait: Option<Duration>,
+    /// `--quiet`: no line of news.
+    pub quiet: bool,
 }
 
 /// A process's request that its followers leave the run, and why.
@@ -513,6 +520,7 @@ pub async fn run_follower(
         incarnation: opts.clock.unix_ns(),
         topics: topics.clone(),
         leave: opts.leave.clone(),
+        quiet: opts.quiet,
     };
     let outcome = if lockstep || !opts.on_zenoh_thread {
         tokio::task::spawn_blocking(move || node.drive()).await.map_err(|e| e.to_string())
@@ -791,6 +799,7 @@ struct Node {
     /// ROS 2 on: each step's topics.
     topics: SharedTopics,
     leave: Leave,
+    quiet: bool,
 }
 
 impl Node {
@@ -844,7 +853,13 @@ impl Node {
         out.transmit.extend(std::iter::from_fn(|| m.poll_transmit()));
         out.poses.extend(std::iter::from_fn(|| m.poll_pose()));
         out.batches.extend(std::iter::from_fn(|| m.poll_telemetry()));
-        let said: Vec<String> = std::iter::from_fn(|| m.poll_say()).collect();
+        let mut said: Vec<String> = std::iter::from_fn(|| m.poll_say()).collect();
+        let news = std::iter::from_fn(|| m.poll_news());
+        if self.quiet {
+            news.for_each(drop);
+        } else {
+            said.extend(news);
+        }
         let checkpoint = m.checkpoint();
         let outcome = m.outcome().cloned();
         let sample = m.take_sample();

@@ -283,6 +283,8 @@ pub struct Follower {
     transmit: VecDeque<Vec<u8>>,
     telemetry: VecDeque<Batch>,
     say: VecDeque<String>,
+    /// Lines of news for the operator (it left the run): not warnings.
+    news: VecDeque<String>,
     /// The sample of the last step computed, until taken.
     latest: Option<FollowerSample>,
     /// The other robots' poses, with the safety filter on.
@@ -379,6 +381,7 @@ impl Follower {
             transmit: VecDeque::new(),
             telemetry: VecDeque::new(),
             say: VecDeque::new(),
+            news: VecDeque::new(),
             latest: None,
             leave_at: None,
             leave_why: "",
@@ -609,7 +612,7 @@ impl Follower {
         let why = self.leave_why;
         self.left = Some(Left { at_k, why: why.chars().take(MAX_LEFT_WHY).collect() });
         self.close_batch(at_k - 1, true, None);
-        self.say.push_back(format!("follower {}: leaves the run before step {at_k} ({why})", self.rules.id));
+        self.news.push_back(format!("follower {}: leaves the run before step {at_k}: {why}", self.rules.id));
         self.finish(Ok(()));
     }
 
@@ -700,9 +703,15 @@ impl Follower {
         self.telemetry.pop_front()
     }
 
-    /// The next line for the operator (stderr).
+    /// The next line for the operator (stderr): a warning.
     pub fn poll_say(&mut self) -> Option<String> {
         self.say.pop_front()
+    }
+
+    /// The next line of news for the operator (the follower left the run),
+    /// which a quiet node keeps to itself.
+    pub fn poll_news(&mut self) -> Option<String> {
+        self.news.pop_front()
     }
 
     /// The sample of the last step computed, once (for a node that publishes

@@ -355,6 +355,9 @@ fn realtime_a_follower_that_leaves_says_so_in_its_last_batch_and_the_others_run_
     assert_eq!(left.map(|l| l.why), Some("SIGTERM".to_string()));
     assert!((990..=1_010).contains(&at_k), "left before step {at_k}, not at 1 s");
     assert_eq!(samples.len() as u64, at_k, "every step taken before the leave is in its telemetry");
+    // The leave is news for the operator, which a quiet agent keeps to itself.
+    let news: Vec<String> = std::iter::from_fn(|| w.followers[i3].poll_news()).collect();
+    assert_eq!(news, [format!("follower 3: leaves the run before step {at_k}: SIGTERM")]);
     assert!(samples.iter().enumerate().all(|(n, s)| s.k == n as u64), "its samples are steps 0..{at_k}");
     let steps = w.scenario.steps();
     for (i, f) in w.followers.iter().enumerate().filter(|&(i, _)| i != i3) {

@@ -143,6 +143,20 @@ impl Group {
         Group(child)
     }
 
+    /// [`Group::spawn`], its stderr into the file `log`.
+    pub fn spawn_logged(args: &[&str], log: &Path) -> Self {
+        let file = std::fs::File::create(log).expect("create the stderr log");
+        let child = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(file)
+            .process_group(0)
+            .spawn()
+            .expect("spawn formation");
+        Group(child)
+    }
+
     /// `formation launch SCENARIO -q --out OUT [--set S]… EXTRA…`.
     pub fn launch(out: &Path, sets: &[&str], extra: &[&str]) -> Self {
         let out = out.display().to_string();

@@ -197,6 +197,9 @@ fn lockstep_a_follower_that_leaves_equals_sim_with_its_node_cut_off() {
     let dir = tempfile::tempdir().expect("tempdir");
     let net = dir.path().join("net");
     let n = without_follower_3(&net, &["--run", "ls-leave", "--leave", "3@1"], "faults+={node=3, from=1, to=2.001}");
+    // -q: the leave is news, and the agent keeps it to itself as the monitor does.
+    let said = std::fs::read_to_string(net.with_file_name("launch.stderr")).expect("launch's stderr");
+    assert!(!said.contains("leave"), "launch -q said:\n{said}");
     let rows3 = std::fs::read_to_string(net.join("follower_3.csv")).expect("follower_3.csv").lines().count();
     assert_eq!(rows3, 1 + 1000, "follower 3: a header and steps 0..1000");
     assert_eq!(
@@ -225,7 +228,10 @@ fn without_follower_3(net: &Path, flags: &[&str], row: &str) -> serde_json::Valu
     let simd = net.with_file_name("sim");
     let mut args = vec!["--base-port", &base];
     args.extend(flags);
-    let mut g = Group::launch(net, &["duration=2"], &args);
+    let out = net.display().to_string();
+    let mut launch = vec!["launch", common::SCENARIO, "-q", "--out", &out, "--set", "duration=2"];
+    launch.extend(args);
+    let mut g = Group::spawn_logged(&launch, &net.with_file_name("launch.stderr"));
     sim(&simd, &["duration=2", row]);
     let status = g.wait(LIMIT);
     let n = network(net);
