@@ -260,13 +260,10 @@ impl RunOptions {
                 list(&self.absent)
             )));
         }
-        let cut = scenario.graph.unreachable_without(&self.absent);
-        if !cut.is_empty() && !self.even_if_cut_off {
+        if let Some(cut) = scenario.graph.cut_off_without(&self.absent).filter(|_| !self.even_if_cut_off) {
             return Err(Error::Input(format!(
-                "--absent {}: without them, followers {} no longer reach the leader (Lemma 1); not started \
-                 (--even-if-cut-off starts anyway)",
-                list(&self.absent),
-                list(&cut)
+                "--absent {}: {cut}: not started (--even-if-cut-off starts anyway)",
+                list(&self.absent)
             )));
         }
         Ok(())

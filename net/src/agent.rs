@@ -137,19 +137,12 @@ pub fn leave_steps(leave: &[String], ids: &[u32], scenario: &Scenario) -> Result
 /// from the leader (their estimates would drift on dead reckoning).
 pub fn check_leaves(leave: &[String], scenario: &Scenario) -> Result<(), Error> {
     let gone: Vec<u32> = leave_steps(leave, scenario.graph.ids(), scenario)?.into_iter().map(|(id, _)| id).collect();
-    let cut = scenario.graph.unreachable_without(&gone);
-    if cut.is_empty() {
-        return Ok(());
+    match scenario.graph.cut_off_without(&gone) {
+        None => Ok(()),
+        Some(cut) => Err(Error::Input(format!(
+            "--leave: {cut}: their estimates of the leader would drift; leave another follower, or fewer"
+        ))),
     }
-    let names = formation_topology::graph::id_list;
-    Err(Error::Input(format!(
-        "--leave: without follower{} {} no path leads from the leader to follower{} {} (Lemma 1): their estimates \
-         of the leader would drift; leave another follower, or fewer",
-        if gone.len() == 1 { "" } else { "s" },
-        names(&gone),
-        if cut.len() == 1 { "" } else { "s" },
-        names(&cut)
-    )))
 }
 
 /// Runs the follower(s) of `--id` to the end of the scenario.

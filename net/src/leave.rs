@@ -46,12 +46,11 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
     if !(a.timeout.is_finite() && a.timeout > 0.0) {
         return Err(Error::Input(format!("--timeout must be a positive number of seconds, not {}", a.timeout)));
     }
-    let cut = scenario.graph.unreachable_without(&[id]);
-    if !cut.is_empty() && !a.even_if_cut_off {
+    let cut = scenario.graph.cut_off_without(&[id]);
+    if let Some(cut) = cut.as_ref().filter(|_| !a.even_if_cut_off) {
         return Err(Error::Input(format!(
-            "formation leave --id {id}: without follower {id} no path leads from the leader to {} (Lemma 1): \
-             their estimates of the leader would drift (--even-if-cut-off to leave anyway)",
-            formation_topology::graph::followers_named(&cut)
+            "formation leave --id {id}: {cut}: their estimates of the leader would drift (--even-if-cut-off to \
+             leave anyway)"
         )));
     }
     let session = a.node.open(MONITOR, &scenario).await?;
@@ -87,7 +86,7 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
             "follower {id} left run {} at t = {:.3} s ({why}){}",
             keys.run,
             k as f64 * scenario.dt_s,
-            if cut.is_empty() { String::new() } else { " — the others it cut off from the leader now drift".into() }
+            if cut.is_none() { "" } else { " — the others it cut off from the leader now drift" }
         )),
         None => Err(Error::Run(format!(
             "follower {id} of run {} did not say it left within {} s: is its agent running, in this run (--run), \

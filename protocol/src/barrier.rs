@@ -651,15 +651,8 @@ impl Lead {
         if others_missing || graph.len() - absent.len() < q.followers {
             return None;
         }
-        let cut = graph.unreachable_without(&absent);
-        if !cut.is_empty() && !q.even_if_cut_off {
-            let list = formation_topology::graph::id_list;
-            let reason = format!(
-                "without the absent followers {}, followers {} no longer reach the leader (Lemma 1): not started \
-                 (--even-if-cut-off starts anyway)",
-                list(&absent),
-                list(&cut)
-            );
+        if let Some(cut) = graph.cut_off_without(&absent).filter(|_| !q.even_if_cut_off) {
+            let reason = format!("{cut}: not started (--even-if-cut-off starts anyway)");
             let error = Error::Input(format!("leader: {reason} (run {})", self.run));
             return Some(LeadStep::Refuse { reason, error });
         }
@@ -1033,7 +1026,7 @@ mod tests {
         let mut l = leader_with(quorum(3, false), &["2", "3", "4", "monitor"]);
         match l.poll(at) {
             LeadStep::Refuse { reason, .. } => assert!(
-                reason.starts_with("without the absent followers 1, followers 2, 3, 4 no longer reach the leader")
+                reason.starts_with("without follower 1, followers 2, 3, 4 no longer reach the leader (Lemma 1)")
                     && !reason.contains('\n'),
                 "{reason}"
             ),

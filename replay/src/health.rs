@@ -174,11 +174,9 @@ fn who_ran(e: &Evidence, degraded: &mut Vec<String>, disturbed: &mut Vec<String>
         disturbed.push(format!("follower {id} joined the run at t = {t:.3} s (absent at the start)"));
     }
     if !e.cut_off.is_empty() {
-        let ids: Vec<String> = e.cut_off.iter().map(u32::to_string).collect();
         disturbed.push(format!(
-            "without the followers that left, no path leads from the leader to follower{} {} (Lemma 1)",
-            if ids.len() == 1 { "" } else { "s" },
-            ids.join(", ")
+            "without the followers that left, {}",
+            formation_topology::graph::no_longer_reach(&e.cut_off)
         ));
     }
 }

@@ -432,7 +432,7 @@ fn formation_leave_makes_a_running_follower_leave_and_bad_requests_are_refused()
     };
     let leave = |extra: &[&str]| leave_from("leave-cmd", extra);
     for (extra, says) in [
-        (&["--id", "1"][..], "without follower 1 no path leads from the leader to followers 2, 3, 4 (Lemma 1)"),
+        (&["--id", "1"][..], "without follower 1, followers 2, 3, 4 no longer reach the leader (Lemma 1)"),
         (&["--id", "9"][..], "has no follower 9 (ids: 1, 2, 3, 4)"),
         (&["--id", "3", "--timeout", "0"][..], "--timeout must be a positive number"),
     ] {
@@ -832,10 +832,7 @@ fn a_bad_leave_is_refused_up_front() {
         (&["--leave", "2@40"], "--leave 2@40: the time must be within the run, after 0 and before its end at 30 s"),
         (&["--leave", "2@0"], "--leave 2@0: the time must be within the run"),
         (&["--leave", "2@1", "--leave", "2@3"], "--leave: follower 2 is given twice"),
-        (
-            &["--leave", "1@5"],
-            "--leave: without follower 1 no path leads from the leader to followers 2, 3, 4 (Lemma 1)",
-        ),
+        (&["--leave", "1@5"], "--leave: without follower 1, followers 2, 3, 4 no longer reach the leader (Lemma 1)"),
     ];
     for (extra, want) in cases {
         let out = tmp.path().join("never");

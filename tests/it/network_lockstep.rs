@@ -283,7 +283,10 @@ fn a_bad_quorum_is_refused_up_front_in_one_line() {
         ),
         (&["--quorum", "3", "--absent", "9"], "--absent 9: no follower 9 in this scenario"),
         (&["--quorum", "4", "--absent", "3"], "--quorum 4 with followers 3 absent: only 3 can be ready"),
-        (&["--quorum", "3", "--absent", "1"], "--absent 1: without them, followers 2, 3, 4 no longer reach the leader"),
+        (
+            &["--quorum", "3", "--absent", "1"],
+            "--absent 1: without follower 1, followers 2, 3, 4 no longer reach the leader (Lemma 1): not started",
+        ),
     ];
     for (flags, says) in cases {
         let dir = tempfile::tempdir().expect("tempdir");

@@ -23,6 +23,14 @@ pub fn followers_named(ids: &[u32]) -> String {
     format!("{} {}", if ids.len() == 1 { "follower" } else { "followers" }, id_list(ids))
 }
 
+/// "follower 3 no longer reaches the leader (Lemma 1)", "followers 2, 3, 4
+/// no longer reach the leader (Lemma 1)": the one wording of every line
+/// that says a graph without some followers breaks Lemma 1.
+pub fn no_longer_reach(cut: &[u32]) -> String {
+    let verb = if cut.len() == 1 { "reaches" } else { "reach" };
+    format!("{} no longer {verb} the leader (Lemma 1)", followers_named(cut))
+}
+
 /// An undirected follower graph with leader links.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Graph {
@@ -118,6 +126,15 @@ impl Graph {
             }
         }
         (0..n).filter(|&i| !seen[i]).map(|i| self.ids[i]).collect()
+    }
+
+    /// Lemma 1 without the followers `gone` said in one line (None when it
+    /// holds): "without follower 1, followers 2, 3, 4 no longer reach the
+    /// leader (Lemma 1)". Every refusal of an absence or a leave that cuts
+    /// followers off starts with it.
+    pub fn cut_off_without(&self, gone: &[u32]) -> Option<String> {
+        let cut = self.unreachable_without(gone);
+        (!cut.is_empty()).then(|| format!("without {}, {}", followers_named(gone), no_longer_reach(&cut)))
     }
 
     /// Lemma 1 on the graph without the followers `gone` (by id: absent,
@@ -335,5 +352,15 @@ mod tests {
         assert_eq!(g.unreachable_without(&[4]), Vec::<u32>::new());
         assert_eq!(g.unreachable_without(&[2]), vec![3, 4]);
         assert_eq!(g.unreachable_without(&[1]), vec![2, 3, 4]);
+        // Said in one wording, singular and plural.
+        assert_eq!(g.cut_off_without(&[4]), None);
+        assert_eq!(
+            g.cut_off_without(&[3]).as_deref(),
+            Some("without follower 3, follower 4 no longer reaches the leader (Lemma 1)")
+        );
+        assert_eq!(
+            g.cut_off_without(&[1, 2]).as_deref(),
+            Some("without followers 1, 2, followers 3, 4 no longer reach the leader (Lemma 1)")
+        );
     }
 }

@@ -874,14 +874,12 @@ impl Recorder {
         if !gone.contains(&id) {
             gone.push(id);
         }
-        let cut: Vec<u32> =
-            self.scenario.graph.unreachable_without(&gone).into_iter().filter(|c| !gone.contains(c)).collect();
+        let cut = self.scenario.graph.unreachable_without(&gone);
         let reach = match cut.len() {
             0 => "every remaining follower still reaches the leader".to_string(),
             n => format!(
-                "{} no longer {} the leader (Lemma 1): {} estimates drift",
-                formation_topology::graph::followers_named(&cut),
-                if n == 1 { "reaches" } else { "reach" },
+                "{}: {} estimates drift",
+                formation_topology::graph::no_longer_reach(&cut),
                 if n == 1 { "its" } else { "their" }
             ),
         };
