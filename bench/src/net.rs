@@ -153,6 +153,8 @@ fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: 
         router: None,
         links: Some(a.plain_links()),
         zenoh_config: None,
+        standby: false,
+        take_over_after: 0.5,
     }
 }
 

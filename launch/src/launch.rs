@@ -79,6 +79,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), Error> {
         ));
     }
     a.links()?;
+    a.check_standby()?;
     let zfile = match &a.zenoh_config {
         Some(path) => Some(session::SharedFile::check(path).map_err(|e| Error::Input(format!("--zenoh-config: {e}")))?),
         None => None,
@@ -275,8 +276,9 @@ async fn launch(
     }
     let node_ports = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
     let monitor_and_leader = plan::monitor_and_leader(a, run, out, exe, &wiring, node_ports);
+    let standby = a.standby.then(|| plan::standby(a, run, exe, &wiring));
     let agents = plan::agents(a, scenario, run, exe, &wiring, &groups, &p, robots);
-    for node in monitor_and_leader.into_iter().chain(agents) {
+    for node in monitor_and_leader.into_iter().chain(standby).chain(agents) {
         spawn(children, &node.name, node.command)?;
     }
     supervise(children, out, Duration::from_millis(50), shutdown, |_| Ok(())).await

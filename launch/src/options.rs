@@ -323,9 +323,40 @@ pub struct LaunchArgs {
     /// node its own. A lease it sets replaces the launch's 10 s.
     #[cfg_attr(feature = "clap", arg(long, value_name = "FILE.json5"))]
     pub zenoh_config: Option<PathBuf>,
+    /// Start a standby leader beside the leader (client mode): should the
+    /// leader die (`kill -9` it to try), the standby takes the run over
+    /// after --take-over-after seconds of silence, with the same trajectory
+    /// and timebase, and the run goes on; the monitor names the handover.
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub standby: bool,
+    /// With --standby: the leader's silence (s) after which the standby takes over.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.5, value_name = "SECONDS", requires = "standby"))]
+    pub take_over_after: f64,
 }
 
 impl LaunchArgs {
+    /// `--standby`: one line for a standby this launch cannot wire, or a
+    /// bad wait.
+    pub fn check_standby(&self) -> Result<(), Error> {
+        if !self.standby {
+            return Ok(());
+        }
+        if self.mode != LaunchMode::Client && self.router.is_none() {
+            return Err(Error::Input(
+                "--standby needs --mode client (or --router): the standby reaches every node through the router, \
+                 as on a host of its own"
+                    .into(),
+            ));
+        }
+        if !(self.take_over_after.is_finite() && self.take_over_after > 0.0) {
+            return Err(Error::Input(format!(
+                "--take-over-after must be a positive number of seconds, not {}",
+                self.take_over_after
+            )));
+        }
+        Ok(())
+    }
+
     /// The links this launch uses (see [`LaunchArgs::links`]).
     pub fn links(&self) -> Result<Links, Error> {
         let tcp_only = match (&self.opts.tls, &self.router) {

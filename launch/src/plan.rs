@@ -280,6 +280,18 @@ pub(crate) fn monitor_and_leader(
     [Planned { name: "monitor".into(), command: monitor }, Planned { name: "leader".into(), command: leader }]
 }
 
+/// `--standby`: a second leader process, a client of the router, that
+/// takes the run over when the leader is gone.
+pub(crate) fn standby(a: &LaunchArgs, run: &str, exe: &Path, wiring: &Wiring) -> Planned {
+    let mut c = node_command(exe, "leader", a, run);
+    c.arg("--standby").arg("--take-over-after").arg(a.take_over_after.to_string());
+    if let Some(x) = a.opts.time_scale {
+        c.arg("--time-scale").arg(x.to_string());
+    }
+    wiring.apply(&mut c, None, &[]);
+    Planned { name: crate::supervisor::STANDBY.into(), command: c }
+}
+
 /// The port agent process `g` listens on (peer mode; None as a client).
 fn agent_listen(wiring: &Wiring, p: &[u16], g: usize) -> Option<u16> {
     (wiring.mode == LaunchMode::Peer).then(|| p.get(2 + g).copied().unwrap_or(0))

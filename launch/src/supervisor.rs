@@ -13,6 +13,10 @@ use formation_record::Summary;
 use crate::error::Error;
 use crate::zenoh_log;
 
+/// The standby leader's name among the children (`launch --standby`,
+/// `lab --kill-leader`).
+pub(crate) const STANDBY: &str = "standby";
+
 /// The child processes of a launch; every one still running is killed on drop.
 pub struct Children {
     list: Vec<(String, Child)>,
@@ -114,6 +118,11 @@ impl Children {
 
     pub(crate) fn remove(&mut self, name: &str) {
         self.list.retain(|(n, _)| n != name);
+    }
+
+    /// Whether the named child is still running.
+    pub(crate) fn running(&mut self, name: &str) -> bool {
+        self.list.iter_mut().any(|(n, c)| n == name && matches!(c.try_wait(), Ok(None)))
     }
 
     /// Process ids of the children still running.
@@ -239,8 +248,11 @@ pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summa
             return Some(summary.map_err(|e| Error::Run(format!("reading {}: {e}", path.display()))));
         }
         // An agent stopped by SIGTERM or Ctrl-C (`kill`, `formation leave`)
-        // left the run and told the monitor: the run goes on without it.
-        if status.success() || (name.starts_with("agent") && matches!(status.code(), Some(130 | 143))) {
+        // left the run and told the monitor: the run goes on without it; a
+        // leader that died beside a standby is the standby's to replace
+        // (the monitor names the handover, or the run's failure).
+        let replaced = name == "leader" && children.running(STANDBY);
+        if status.success() || (name.starts_with("agent") && matches!(status.code(), Some(130 | 143))) || replaced {
             children.remove(&name);
             continue;
         }

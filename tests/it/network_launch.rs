@@ -506,6 +506,71 @@ fn a_standby_that_took_over_beside_a_live_leader_defers_and_the_run_completes() 
     first.assert_group_empty();
 }
 
+/// `launch --standby` under --tls (client mode): the leader killed with
+/// SIGKILL 2 s into a 7 s real-time run, the standby takes the run over
+/// with the leader's certificate: the launch completes (exit 0) and says
+/// the handover, network.json records one, its health is "disturbed"
+/// naming it, the access policy denied nothing, and the standby answered
+/// the nodes' clock questions (`control/time`) after the takeover.
+#[test]
+fn launch_standby_under_tls_takes_the_run_over_from_a_killed_leader() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (out, certs) = (dir.path().join("standby"), dir.path().join("certs"));
+    common::certs(&certs);
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let (out_s, certs_s) = (out.display().to_string(), certs.display().to_string());
+    let args = ["launch", common::SCENARIO, "--out", &out_s, "--set", "timing=realtime", "--set", "duration=7"];
+    let more = ["--mode", "client", "--standby", "--tls", &certs_s, "--base-port", &base, "--run", "standby-tls"];
+    let log = dir.path().join("launch.stderr");
+    let mut g = Group::spawn_logged(&[&args[..], &more[..]].concat(), &log);
+    let said = || std::fs::read_to_string(&log).unwrap_or_default();
+    let t = Instant::now();
+    while !said().contains("started:") {
+        assert!(t.elapsed() < Duration::from_secs(60), "the run did not start: {}", said());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_secs(2));
+    let cmdline = |pid: u32| std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+    let is_leader = |c: &[u8]| {
+        let c = String::from_utf8_lossy(c).replace('\0', " ");
+        c.contains("node leader ") && !c.contains("--standby")
+    };
+    let leader = g.members().into_iter().find(|&p| is_leader(&cmdline(p))).expect("the leader's process");
+    common::run_ok(Command::new("kill").args(["-KILL", &leader.to_string()]));
+    let status = g.wait(LIMIT);
+    assert!(status.success(), "formation launch --standby: {status}: {}", said());
+    assert!(said().contains("the leader handed over: a standby took the run over at t = "), "{}", said());
+    let network = common::json(&out, "network.json");
+    assert_eq!(network["complete"], true, "the record: {}", network["ending"]);
+    assert_eq!(network["handovers"].as_array().map_or(0, Vec::len), 1, "{}", network["handovers"]);
+    let health = &network["health"];
+    assert_eq!(health["verdict"], "disturbed", "{health}");
+    assert!(health["disturbed"].to_string().contains("the leader handed over"), "{health}");
+    assert_eq!(network["access_denied"], serde_json::json!([]), "denied under --tls");
+    let answered = network["nodes"]["leader"]["time_queries"].as_u64();
+    assert!(answered.is_some_and(|n| n > 0), "the standby's clock answers: {answered:?}");
+    g.assert_group_empty();
+}
+
+/// `--standby` without a router, or with a bad wait: one line, exit 2.
+#[test]
+fn a_standby_without_a_router_or_with_a_bad_wait_is_refused_up_front() {
+    for (extra, says) in [
+        (&["--standby"][..], "--standby needs --mode client (or --router)"),
+        (&["--standby", "--mode", "client", "--take-over-after", "0"][..], "--take-over-after must be a positive"),
+        (&["--take-over-after", "1"][..], "--standby"),
+    ] {
+        let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["launch", common::SCENARIO, "--out", "/nonexistent/never"])
+            .args(extra)
+            .output()
+            .expect("run formation");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+    }
+}
+
 /// One agent with another robot mass: every node ends within seconds,
 /// naming the node and the key that differs (exit 2); the leader tells the
 /// nodes that cannot see the odd one; the monitor leaves no folder.

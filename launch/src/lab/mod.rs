@@ -32,7 +32,7 @@ use crate::error::Error;
 use crate::launch;
 use crate::options::{LaunchMode, RunOptions};
 use crate::plan;
-use crate::supervisor::{self, Children};
+use crate::supervisor::{self, Children, STANDBY};
 use formation_record::Summary;
 
 /// The port every node listens on, on its own address.
@@ -325,9 +325,6 @@ struct Event {
     action: Action,
     what: String,
 }
-
-/// The standby leader's host (`--kill-leader`).
-const STANDBY: &str = "standby";
 
 fn agent_host(id: u32) -> String {
     format!("agent-{id}")

@@ -1406,6 +1406,8 @@ mod tests {
         );
         let timeline = json["nodes"]["leader"]["timeline"].to_string();
         assert!(timeline.contains("a standby leader took the run over"), "{timeline}");
+        // Its record began at step 5, resending the leader's: not a restart.
+        assert!(timeline.contains("the standby's record begins") && !timeline.contains("restarted"), "{timeline}");
         assert_eq!(
             r.membership_line().as_deref(),
             Some("members: followers 1, 2, 3, 4 to the end; led by a standby from t = 0.007 s")

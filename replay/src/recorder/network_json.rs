@@ -104,11 +104,16 @@ impl Recorder {
         let c = &n.counters;
         let follower = self.scenario.index_of(id).filter(|_| id != 0).map(|i| &self.followers[i]);
         let (stream, timeline) = match follower {
-            Some(f) => (Figures::of(&f.stream), self.timeline(n, &f.stream, Vec::new())),
+            Some(f) => (Figures::of(&f.stream), self.timeline(n, &f.stream, Vec::new(), |_| RESTARTED)),
             None => {
                 let took = "a standby leader took the run over";
                 let handovers = self.handovers.iter().map(|h| (h.at_k, took.to_string())).collect();
-                (Figures::of(&self.leader_stream), self.timeline(n, &self.leader_stream, handovers))
+                // A standby's record begins before its takeover: it resends
+                // the leader's states of the last second (and two batches).
+                let window = (1.0 / self.scenario.dt_s).round() as u64 * 2;
+                let resent = |k: u64| self.handovers.iter().any(|h| k <= h.at_k && h.at_k - k <= window);
+                let why = |k: u64| if resent(k) { STANDBYS_RECORD } else { RESTARTED };
+                (Figures::of(&self.leader_stream), self.timeline(n, &self.leader_stream, handovers, why))
             }
         };
         let d = &n.delivery;
@@ -149,7 +154,13 @@ impl Recorder {
     /// A node's timeline: its own events, and the monitor's (telemetry
     /// that came late and filled a hole, steps lost for good, restarts), in
     /// step order.
-    fn timeline<T>(&self, n: &NodeStats, stream: &Stream<T>, extra: Vec<(u64, String)>) -> Vec<Value> {
+    fn timeline<T>(
+        &self,
+        n: &NodeStats,
+        stream: &Stream<T>,
+        extra: Vec<(u64, String)>,
+        restart: impl Fn(u64) -> &'static str,
+    ) -> Vec<Value> {
         let dt = self.scenario.dt_s;
         let span = |a: u64, b: u64| format!("t = {:.3}–{:.3} s", a as f64 * dt, b as f64 * dt);
         let mut timeline: Vec<(u64, String)> = n.timeline.iter().map(|e| (e.k, e.what.describe())).collect();
@@ -158,12 +169,17 @@ impl Recorder {
         timeline.extend(
             stream.gaps.iter().map(|g| (g.from, format!("telemetry for {} lost ({})", span(g.from, g.to), g.why))),
         );
-        timeline.extend(stream.restarts.iter().map(|&k| (k, "a new process took over (restarted)".to_string())));
+        timeline.extend(stream.restarts.iter().map(|&k| (k, restart(k).to_string())));
         timeline.extend(extra);
         timeline.sort_by_key(|e| e.0);
         timeline.iter().map(|(k, what)| json!({"t": *k as f64 * dt, "event": what})).collect()
     }
 }
+
+/// A new process's telemetry, in a node's timeline.
+const RESTARTED: &str = "a new process took over (restarted)";
+/// The same for a standby leader's, resending the leader's states before its takeover.
+const STANDBYS_RECORD: &str = "the standby's record begins (the leader's states before its takeover, resent)";
 
 /// A node's stream figures as `network.json` gives them.
 struct Figures<'a> {
