@@ -537,7 +537,7 @@ impl Follower {
     /// equal the simulator with the follower's node cut off from `at_k` on.
     pub fn schedule_leave(&mut self, at_k: u64) {
         self.leave_at = Some(at_k.max(1));
-        self.leave_why = "as scheduled (--leave)";
+        self.leave_why = "--leave, as scheduled";
     }
 
     /// Neighbour `id` left the run before step `at_k` (lock-step: its last

@@ -208,7 +208,7 @@ fn lockstep_a_follower_that_leaves_equals_sim_with_its_node_cut_off() {
         "{}",
         n["left"]
     );
-    assert_eq!(n["left"][0]["why"], "as scheduled (--leave)");
+    assert_eq!(n["left"][0]["why"], "--leave, as scheduled");
     assert_eq!(n["health"]["verdict"], "disturbed", "{}", n["health"]);
     // The run again from its record, and beside its model (the leave as
     // the model's node fault): the same bytes, and no departure.

@@ -325,3 +325,53 @@ fn a_web_address_that_cannot_be_used_gets_one_clear_line() {
         assert!(first.contains(says), "{bad}: the first line should name the option: {err}");
     }
 }
+
+/// Issue 50's membership on the live page: a lock-step quorum start
+/// without follower 4 (`--absent 4`) in which follower 3 leaves at 1 s
+/// (`--leave 3@1`): once the run is over the page's table marks follower
+/// 4's row "absent at the start" and follower 3's "left at 1.000 s …",
+/// both greyed (class `left`), and no other row.
+#[test]
+fn the_live_page_marks_the_rows_of_followers_absent_and_gone() {
+    let test = "the_live_page_marks_the_rows_of_followers_absent_and_gone";
+    let Some((chromium, chromedriver)) = browser_or_skip(test) else { return };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let page_port = common::Ports::free(1).release();
+    let web = format!("127.0.0.1:{page_port}");
+    let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
+    let members = ["--quorum", "3", "--quorum-wait", "1", "--absent", "4", "--leave", "3@1"];
+    let page_flags = ["--base-port", &base, "--run", "web-members", "--web", &web, "--web-linger", "20"];
+    let mut g = Group::launch(&out, &["duration=6"], &[&members[..], &page_flags[..]].concat());
+    wait_for_port(page_port, LIMIT);
+    let a = Browser::start(&chromium, &chromedriver, common::Ports::free(1).release());
+    a.goto(&format!("http://{web}/"));
+    const ROWS: &str = r#"
+        const v = window.formationView;
+        if (!v || !v.ended) return null;
+        return [...document.querySelectorAll('#rows tr')].map((tr) =>
+            [tr.children[0].textContent, tr.className, (tr.querySelector('.mark') || {}).textContent || '']);
+    "#;
+    let t = Instant::now();
+    let rows = loop {
+        let r = a.exec(ROWS);
+        if !r.is_null() {
+            break r;
+        }
+        assert!(t.elapsed() < Duration::from_secs(90), "the page did not see the run end");
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    let rows: Vec<[String; 3]> = serde_json::from_value(rows).expect("rows");
+    let row = |name: &str| rows.iter().find(|r| r[0].starts_with(name)).unwrap_or_else(|| panic!("{rows:?}")).clone();
+    let [_, class3, mark3] = row("follower 3");
+    assert!(mark3.starts_with("left at 1.000 s (") && class3 == "left", "follower 3's row: {rows:?}");
+    let [_, class4, mark4] = row("follower 4");
+    assert!(mark4 == "absent at the start" && class4 == "left", "follower 4's row: {rows:?}");
+    for name in ["leader", "follower 1", "follower 2"] {
+        assert_eq!(row(name)[2], "", "{name}'s row is marked: {rows:?}");
+    }
+    drop(a);
+    let status = g.wait(LIMIT);
+    assert!(status.success(), "formation launch --web: {status}");
+    g.assert_group_empty();
+}

@@ -116,6 +116,8 @@ impl Recorder {
             "safety": self.frame_safety(),
             // Who came and went (null while everyone runs): left, joined, handed over.
             "members": self.membership_line(),
+            // The same per node, for the page's rows.
+            "membership": self.membership_marks(),
         });
         let full = frame.to_string();
         if let Some(f) = frame.as_object_mut() {
@@ -123,6 +125,27 @@ impl Recorder {
             f.insert("recent_events".into(), json!([]));
         }
         (full, frame.to_string())
+    }
+
+    /// Who came and went, by node id (0: the leader), for the live page's
+    /// rows: "joined at 8.594 s", "left at 5.000 s (SIGTERM)", "absent at
+    /// the start", "a standby leads from 10.503 s"; empty while everyone runs.
+    fn membership_marks(&self) -> Value {
+        let dt = self.scenario.dt_s;
+        let mut marks: std::collections::BTreeMap<u32, Vec<String>> = Default::default();
+        for &(id, k) in &self.joined {
+            marks.entry(id).or_default().push(format!("joined at {:.3} s", k as f64 * dt));
+        }
+        for (id, k, why) in self.left() {
+            marks.entry(id).or_default().push(match k {
+                0 => why,
+                k => format!("left at {:.3} s ({why})", k as f64 * dt),
+            });
+        }
+        if let Some(h) = self.handovers.last() {
+            marks.entry(0).or_default().push(format!("a standby leads from {:.3} s", h.at_k as f64 * dt));
+        }
+        Value::Object(marks.into_iter().map(|(id, m)| (id.to_string(), json!(m.join("; ")))).collect())
     }
 
     /// How close the robots came so far (docs/model.md §16); null without

@@ -1416,6 +1416,7 @@ mod tests {
         let (frame, _) = r.live_frame(Instant::now(), 1, 0.0, "running", 0);
         let frame: serde_json::Value = serde_json::from_str(&frame).expect("frame");
         assert_eq!(frame["members"], "members: followers 1, 2, 3, 4 to the end; led by a standby from t = 0.007 s");
+        assert_eq!(frame["membership"], serde_json::json!({"0": "a standby leads from 0.007 s"}), "the leader's row");
         // In lock-step the followers wait for the standby: no gap to model.
         let lockstep = scenario.clone().with_handovers(&[]);
         assert_eq!(lockstep.faults.len(), scenario.faults.len());
@@ -1468,6 +1469,10 @@ mod tests {
             r.membership_line().as_deref(),
             Some("members: followers 2, 3, 4 to the end; follower 1 left at t = 0.004 s (SIGTERM)")
         );
+        // The live page marks its row.
+        let (frame, _) = r.live_frame(Instant::now(), 1, 0.0, "running", 0);
+        let frame: serde_json::Value = serde_json::from_str(&frame).expect("frame");
+        assert_eq!(frame["membership"], serde_json::json!({"1": "left at 0.004 s (SIGTERM)"}), "{frame}");
         let model = r.model_scenario();
         let cut = model.faults.last().expect("a fault");
         assert_eq!((cut.target, cut.from_s), (formation_topology::FaultTarget::Node(ids[0]), 4.0 * scenario.dt_s));
