@@ -55,7 +55,10 @@ pub struct LeaderArgs {
     /// Stand by for the leader of a run (another process, on this host or
     /// another): take the run over, on its timebase and trajectory, once
     /// the leader has been silent for --take-over-after (docs/model.md §14).
-    #[cfg_attr(feature = "clap", arg(long, conflicts_with_all = ["quorum", "print_start"]))]
+    /// A leader gone before the run began (its claim on the run silent for
+    /// --take-over-after, at least 1 s) is replaced from the start: this
+    /// process then leads the start barrier itself (with --quorum, if given).
+    #[cfg_attr(feature = "clap", arg(long, conflicts_with = "print_start"))]
     pub standby: bool,
     /// With --standby: how long the leader's silence lasts before this
     /// process takes over (s).
@@ -94,10 +97,16 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     let session = args.node.open(names::LEADER, &scenario).await?;
     tokio::spawn(crate::denials::report(session.clone(), names::LEADER.to_string(), Some(keys.run.clone())));
     let lead = Duration::from_secs_f64(args.start_lead);
-    let start = StartAs { time_scale, lead, print: args.print_start, quorum };
+    let mut start = StartAs { time_scale, lead, print: args.print_start, quorum, standby: false };
     let clock = &args.node.clock;
     let result = match args.standby {
-        true => crate::standby::run(&session, &scenario, &keys, Duration::from_secs_f64(after), clock).await,
+        true => match crate::standby::run(&session, &scenario, &keys, Duration::from_secs_f64(after), clock).await {
+            Ok(crate::standby::Ended::GoneBeforeStart) => {
+                start.standby = true;
+                run_leader(&session, &scenario, &keys, start, clock).await
+            }
+            other => other.map(drop),
+        },
         false => run_leader(&session, &scenario, &keys, start, clock).await,
     };
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
@@ -106,12 +115,14 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
 
 /// How the leader starts its run: the time scale, how long before step 0
 /// the epoch is announced (real time), whether the start is printed (for
-/// `formation lab`), and a quorum start if asked.
+/// `formation lab`), a quorum start if asked, and whether a standby leads
+/// it (the leader gone before the start).
 pub struct StartAs {
     pub time_scale: f64,
     pub lead: Duration,
     pub print: bool,
     pub quorum: Option<Quorum>,
+    pub standby: bool,
 }
 
 pub async fn run_leader(
@@ -121,14 +132,17 @@ pub async fn run_leader(
     start_as: StartAs,
     clock: &clock::Clock,
 ) -> Result<(), Error> {
-    let StartAs { time_scale, lead: start_lead, print: print_start, quorum } = start_as;
+    let StartAs { time_scale, lead: start_lead, print: print_start, quorum, standby } = start_as;
     // A second formation with this run name: refuse before saying anything.
     let claiming = startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps(), clock).await?;
     // The run's timebase is this leader's clock; the others ask it from now on.
     let timebase = clock::Timebase::leader(clock);
     let queries = Arc::new(QueryCount::default());
     let time_server = clock_sync::serve_counted(session, keys, timebase.clone(), queries.clone()).await?;
-    let machine = Machine::new(scenario);
+    let mut machine = Machine::new(scenario);
+    if standby {
+        machine.led_by_a_standby_from_the_start();
+    }
     let hearing = machine.hearing().to_vec();
     let shared = Arc::new(Shared::new(machine));
     let subs = watch_reached(session, keys, &hearing, &shared).await?;

@@ -39,15 +39,30 @@ use formation_protocol::names::Keys;
 /// How long a standby waits to hear the run's start.
 const START_LIMIT: Duration = Duration::from_secs(120);
 
+/// Before the start the leader says its claim every 100 ms: a leader is
+/// taken for gone when its claim has been silent this long, at least.
+const GONE_BEFORE_START: Duration = Duration::from_secs(1);
+
+/// How a standby's watch ended.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Ended {
+    /// The run ended (taken over or not).
+    Run,
+    /// The leader was gone before the run began: lead it from the start.
+    GoneBeforeStart,
+}
+
 /// Stands by for the leader of the run `keys` names; takes the run over
-/// once the leader has been silent for `after`; returns at the run's end.
+/// once the leader has been silent for `after`; returns at the run's end,
+/// or, when the leader's claim fell silent before the start, at once: the
+/// caller then leads the run from its start.
 pub async fn run(
     session: &zenoh::Session,
     scenario: &Scenario,
     keys: &Keys,
     after: Duration,
     clock: &Clock,
-) -> Result<(), Error> {
+) -> Result<Ended, Error> {
     let me = "leader (standby)".to_string();
     let timebase = clock::Timebase::estimated(clock);
     let quarter_step_ns = scenario.dt_s * 1e9 / 4.0;
@@ -77,7 +92,9 @@ pub async fn run(
         keys.run,
         after.as_secs_f64()
     ));
-    let start = wait_for_start(start_rx, &me).await?;
+    let Some(start) = wait_for_start(session, keys, start_rx, after.max(GONE_BEFORE_START), clock, &me).await? else {
+        return Ok(Ended::GoneBeforeStart);
+    };
     clock_sync::wait_for_estimate(&timebase, keys, &me, START_LIMIT).await?;
     shared.lock().handle_start(&start, timebase.now());
     drop(start_sub);
@@ -114,18 +131,55 @@ pub async fn run(
     let outcome = driving.await.map_err(|e| Error::Run(format!("{me}: loop panicked: {e}")))?;
     telemetry::finish_delivery(delivery, "leader").await;
     drop((acks, held, leader_sub, reached, done_subs));
-    outcome.map_err(|e| Error::Run(format!("{me}: {e}")))
+    outcome.map(|()| Ended::Run).map_err(|e| Error::Run(format!("{me}: {e}")))
 }
 
-/// The run's start, as the leader announces it (every 100 ms).
-async fn wait_for_start(mut rx: tokio::sync::watch::Receiver<Option<Start>>, me: &str) -> Result<Start, Error> {
-    match tokio::time::timeout(START_LIMIT, rx.wait_for(Option::is_some)).await {
-        Ok(Ok(start)) => Ok(start.clone().expect("waited for one")),
-        _ => Err(Error::Input(format!(
-            "{me}: no start heard within {} s: is the leader of this run (same --run, same scenario) running and \
-             reachable?",
-            START_LIMIT.as_secs()
-        ))),
+/// The run's start, as the leader announces it (every 100 ms); None when
+/// the leader's claim on the run, heard before, has been silent for `gone`
+/// with no start (the leader died before the run began).
+async fn wait_for_start(
+    session: &zenoh::Session,
+    keys: &Keys,
+    mut rx: tokio::sync::watch::Receiver<Option<Start>>,
+    gone: Duration,
+    clock: &Clock,
+    me: &str,
+) -> Result<Option<Start>, Error> {
+    use formation_protocol::claim::Claim;
+    let last_claim = Arc::new(std::sync::Mutex::new(None::<Duration>));
+    let (heard, c) = (last_claim.clone(), clock.clone());
+    let _claims = session
+        .declare_subscriber(keys.claim(wire::LEADER_ID))
+        .callback(move |s| {
+            if codec::decode::<Claim>(&s.payload().to_bytes()).is_some_and(|cl| cl.id == wire::LEADER_ID) {
+                *heard.lock().unwrap_or_else(|p| p.into_inner()) = Some(c.mono());
+            }
+        })
+        .await
+        .map_err(|e| zerr("listening to the leader's claim", e))?;
+    let limit = clock.mono() + START_LIMIT;
+    loop {
+        if let Some(start) = rx.borrow_and_update().clone() {
+            return Ok(Some(start));
+        }
+        let now = clock.mono();
+        let last = *last_claim.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(silent) = last.map(|l| now.saturating_sub(l)).filter(|&s| s >= gone) {
+            crate::node::say(&format!(
+                "{me}: the leader silent for {:.1} s before the run began: leading run {} from its start",
+                silent.as_secs_f64(),
+                keys.run
+            ));
+            return Ok(None);
+        }
+        if now >= limit {
+            return Err(Error::Input(format!(
+                "{me}: no start heard within {} s: is the leader of this run (same --run, same scenario) running \
+                 and reachable?",
+                START_LIMIT.as_secs()
+            )));
+        }
+        let _ = tokio::time::timeout(Duration::from_millis(50), rx.changed()).await;
     }
 }
 

@@ -205,6 +205,13 @@ impl Leader {
         self.took_over.map(|h| h.at_k)
     }
 
+    /// A standby that leads the run from its start, the leader having gone
+    /// before it began: said in every telemetry batch as a handover at step
+    /// 0 with nothing heard (no gap: no leader message was due).
+    pub fn led_by_a_standby_from_the_start(&mut self) {
+        self.took_over = Some(Handover { heard: None, at_k: 0 });
+    }
+
     /// Another process leads (this one took over later): this one ends,
     /// saying `why`.
     pub fn defer(&mut self, why: String) {

@@ -360,13 +360,14 @@ fn heard_otherwise(e: &Evidence) -> Option<String> {
     ))
 }
 
-/// One line for all the followers whose clock was known worse than a
-/// quarter step at the end (each follower's own warning, when it runs by
-/// itself; in a `launch` they are summed up here, not 100 lines on the
-/// terminal).
 /// "the leader handed over: a standby took the run over at t = 10.505 s;
-/// no leader message from t = 10.006 s (0.499 s)".
+/// no leader message from t = 10.006 s (0.499 s)"; or, for a leader gone
+/// before the run began, "the leader was gone before the start: a standby
+/// led the run from its start".
 pub fn handover_line(heard: Option<u64>, at: u64, dt_s: f64) -> String {
+    if heard.is_none() && at == 0 {
+        return "the leader was gone before the start: a standby led the run from its start".into();
+    }
     let gap = match heard {
         Some(h) if h + 1 < at => {
             format!("; no leader message from t = {:.3} s ({:.3} s)", (h + 1) as f64 * dt_s, (at - h - 1) as f64 * dt_s)
@@ -376,6 +377,10 @@ pub fn handover_line(heard: Option<u64>, at: u64, dt_s: f64) -> String {
     format!("the leader handed over: a standby took the run over at t = {:.3} s{gap}", at as f64 * dt_s)
 }
 
+/// One line for all the followers whose clock was known worse than a
+/// quarter step at the end (each follower's own warning, when it runs by
+/// itself; in a `launch` they are summed up here, not 100 lines on the
+/// terminal).
 fn unsure_clocks(e: &Evidence) -> Option<String> {
     if e.quarter_step_us <= 0.0 {
         return None;
@@ -413,6 +418,22 @@ mod tests {
         let h = judge(&e);
         assert_eq!(h.verdict, Verdict::Degraded, "{h:?}");
         assert_eq!(h.degraded, ["incomplete: follower 3 recorded 5150 of 12001 samples (to t = 5.149 s of T = 12 s)"]);
+    }
+
+    /// A handover is said with its gap; a standby that led from the start
+    /// (nothing heard, step 0) is said as such, with no gap.
+    #[test]
+    fn a_handover_says_its_gap_or_that_the_standby_led_from_the_start() {
+        assert_eq!(
+            handover_line(Some(10_003), 10_503, 1e-3),
+            "the leader handed over: a standby took the run over at t = 10.503 s; no leader message from t = \
+             10.004 s (0.499 s)"
+        );
+        assert_eq!(
+            handover_line(None, 0, 1e-3),
+            "the leader was gone before the start: a standby led the run from its start"
+        );
+        assert_eq!(handover_line(None, 70, 1e-3), "the leader handed over: a standby took the run over at t = 0.070 s");
     }
 
     #[test]

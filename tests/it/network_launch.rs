@@ -530,13 +530,7 @@ fn launch_standby_under_tls_takes_the_run_over_from_a_killed_leader() {
         std::thread::sleep(Duration::from_millis(50));
     }
     std::thread::sleep(Duration::from_secs(2));
-    let cmdline = |pid: u32| std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
-    let is_leader = |c: &[u8]| {
-        let c = String::from_utf8_lossy(c).replace('\0', " ");
-        c.contains("node leader ") && !c.contains("--standby")
-    };
-    let leader = g.members().into_iter().find(|&p| is_leader(&cmdline(p))).expect("the leader's process");
-    common::run_ok(Command::new("kill").args(["-KILL", &leader.to_string()]));
+    kill_the_leader(&g);
     let status = g.wait(LIMIT);
     assert!(status.success(), "formation launch --standby: {status}: {}", said());
     assert!(said().contains("the leader handed over: a standby took the run over at t = "), "{}", said());
@@ -549,6 +543,60 @@ fn launch_standby_under_tls_takes_the_run_over_from_a_killed_leader() {
     assert_eq!(network["access_denied"], serde_json::json!([]), "denied under --tls");
     let answered = network["nodes"]["leader"]["time_queries"].as_u64();
     assert!(answered.is_some_and(|n| n > 0), "the standby's clock answers: {answered:?}");
+    g.assert_group_empty();
+}
+
+/// Kills (SIGKILL) the leader's process of the launch `g` (not its standby).
+fn kill_the_leader(g: &Group) {
+    let t = Instant::now();
+    let cmdline = |pid: u32| std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+    let is_leader = |c: &[u8]| {
+        let c = String::from_utf8_lossy(c).replace('\0', " ");
+        c.contains("node leader ") && !c.contains("--standby")
+    };
+    let leader = loop {
+        if let Some(p) = g.members().into_iter().find(|&p| is_leader(&cmdline(p))) {
+            break p;
+        }
+        assert!(t.elapsed() < Duration::from_secs(20), "no leader process in the launch");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    common::run_ok(Command::new("kill").args(["-KILL", &leader.to_string()]));
+}
+
+/// A leader killed before the run began (during a quorum wait of 3 s,
+/// follower 4 absent): `launch --standby` goes on, the standby hears the
+/// leader's claim fall silent (1 s), leads the start itself with the same
+/// quorum, and the run completes with followers 1, 2 and 3 whole; the run
+/// says the standby led it from its start (a handover at step 0 with no
+/// gap, "disturbed").
+#[test]
+fn a_leader_killed_before_the_start_is_replaced_by_its_standby_from_the_start() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("standby-start");
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let sets = ["timing=realtime", "duration=4"];
+    let flags = ["--mode", "client", "--standby", "--quorum", "3", "--quorum-wait", "3", "--absent", "4"];
+    let mut g = Group::launch(&out, &sets, &[&flags[..], &["--base-port", &base, "--run", "standby-start"]].concat());
+    // Its claim said (a session opens well within 1.5 s), its start 3 s off.
+    std::thread::sleep(Duration::from_millis(1500));
+    kill_the_leader(&g);
+    let status = g.wait(LIMIT);
+    let network = common::json(&out, "network.json");
+    assert!(status.success(), "formation launch --standby: {status}: {}", network["health"]);
+    assert_eq!(
+        (network["handovers"][0]["step"].as_u64(), network["handovers"][0]["heard_step"].is_null()),
+        (Some(0), true),
+        "{}",
+        network["handovers"]
+    );
+    assert_eq!(network["absent"], serde_json::json!([4]));
+    let health = network["health"].to_string();
+    assert!(health.contains("the leader was gone before the start: a standby led the run from its start"), "{health}");
+    for id in 1..=3 {
+        let rows = std::fs::read_to_string(out.join(format!("follower_{id}.csv"))).expect("csv").lines().count();
+        assert_eq!(rows, 1 + 4001, "follower {id}'s record");
+    }
     g.assert_group_empty();
 }
 

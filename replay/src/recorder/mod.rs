@@ -997,9 +997,12 @@ impl Recorder {
         self.scenario.with_leaves(&leaves).with_handovers(&gaps).with_joins(&self.joined)
     }
 
-    /// Steps recorded by every follower.
+    /// Steps recorded by every follower still in the run (one that left, or
+    /// was absent from the start, has all it will have); every follower's
+    /// most when none is left.
     pub fn recorded_steps(&self) -> u64 {
-        self.followers.iter().map(|f| f.next_k).min().unwrap_or(0)
+        let present = self.followers.iter().filter(|f| f.left.is_none()).map(|f| f.next_k).min();
+        present.or_else(|| self.followers.iter().map(|f| f.next_k).max()).unwrap_or(0)
     }
 
     /// Nodes that have not reported their final step.
@@ -1453,6 +1456,8 @@ mod tests {
         r.telemetry(Some(ids[0]), &codec::encode(&batch(ids[0], 4, Some(left))), Instant::now()).unwrap();
         assert!(r.complete(), "a follower that left is not waited for");
         assert_eq!(r.left(), vec![(ids[0], 4, "SIGTERM".to_string())]);
+        // Nor does it hold back the steps counted recorded (the live line's t).
+        assert_eq!(r.recorded_steps(), steps + 1, "{}", r.status_line());
         // Said as it is learnt, with Lemma 1 checked again: in the paper's
         // graph follower 1 is the only one that hears the leader.
         assert_eq!(
