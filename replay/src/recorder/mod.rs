@@ -151,6 +151,10 @@ struct FollowerTrack {
     left: Option<Left>,
 }
 
+/// The leader's states kept for a follower absent from the start, which
+/// may join with its first batch: this many seconds behind the newest (s).
+const JOIN_WINDOW_S: f64 = 5.0;
+
 /// Why a follower absent from a quorum start "left" (before step 0).
 pub const ABSENT: &str = "absent at the start";
 
@@ -781,9 +785,22 @@ impl Recorder {
                 f.next_k = f.next_k.max(f.stream.end.min(leader_end));
             }
         }
-        // Leader states every follower has used are no longer needed.
-        let used =
-            self.followers.iter().map(|f| f.pending.front().map_or(f.next_k, |s| s.k)).min().unwrap_or(leader_end);
+        // Leader states every follower has used are no longer needed. One
+        // that left for good (it said so) or was absent from the start sends
+        // nothing older than now: it holds none back, but an absent one may
+        // join at the step then due, so the last JOIN_WINDOW stay for it.
+        let (gone, absent) = (&self.gone, &self.absent_at_start);
+        let waits = |f: &&FollowerTrack| f.left.is_none() || gone.contains(&f.id) || !f.pending.is_empty();
+        let mut used = self
+            .followers
+            .iter()
+            .filter(waits)
+            .map(|f| f.pending.front().map_or(f.next_k, |s| s.k))
+            .min()
+            .unwrap_or(leader_end);
+        if self.followers.iter().any(|f| f.left.is_some() && absent.contains(&f.id)) {
+            used = used.min(leader_end.saturating_sub((JOIN_WINDOW_S / dt).round() as u64));
+        }
         while self.leader_base < used && !self.leader.is_empty() {
             self.leader.pop_front();
             self.leader_base += 1;
@@ -1426,6 +1443,47 @@ mod tests {
         let mut ls = scenario.clone();
         ls.timing = formation_topology::Timing::Lockstep;
         assert_eq!(ls.with_handovers(&[(5, 7)]).faults.len(), scenario.faults.len());
+    }
+
+    /// The monitor's memory with followers absent or gone: the leader's
+    /// states a follower absent from the start (3) or one that left for
+    /// good (2, at 3 s) will never use are not kept beyond the join window
+    /// (the buffer stays within JOIN_WINDOW_S, not the run), and follower 3
+    /// joining at 10 s still finds the states of its first steps.
+    #[test]
+    fn followers_absent_or_gone_hold_back_no_leader_state() {
+        let (_dir, scenario, mut r) = recorder_with(&["duration=12", "timing=realtime"]);
+        r.absent(&[3]);
+        let (steps, batch) = (scenario.steps(), u64::from(scenario.network.telemetry_batch));
+        let window = (JOIN_WINDOW_S / scenario.dt_s) as usize;
+        let mut most = 0;
+        for first in (0..=steps).step_by(batch as usize) {
+            let n = batch.min(steps + 1 - first);
+            let leader = Telemetry::Leader {
+                first_k: first,
+                states: vec![LeaderState::default(); n as usize],
+                counters: Counters::default(),
+                done: first + n > steps,
+                loop_stats: None,
+                delivery: Delivery::default(),
+                handover: None,
+            };
+            r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
+            for id in [1, 2, 3, 4] {
+                let left = (id == 2 && first + n >= 3000).then(|| Left { at_k: first + n, why: "SIGTERM".into() });
+                if (id == 2 && first >= 3000) || (id == 3 && first < 10_000) {
+                    continue;
+                }
+                let done = first + n > steps || left.is_some();
+                let b = follower_batch(&scenario, id, first, n, done, left);
+                r.telemetry(Some(id), &codec::encode(&b), Instant::now()).unwrap();
+            }
+            most = most.max(r.leader.len());
+        }
+        assert!(most <= window + 2 * batch as usize, "{most} leader states held (window {window})");
+        assert_eq!(r.joined, vec![(3, 10_000)], "follower 3 joined at 10 s");
+        assert!(r.followers.iter().all(|f| f.unpaired == 0), "a sample without its leader state");
+        assert!(r.complete(), "the record is whole: {:?}", r.unfinished());
     }
 
     /// A follower that left the run (its last batch says so, done) is not
