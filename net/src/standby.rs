@@ -44,12 +44,14 @@ const START_LIMIT: Duration = Duration::from_secs(120);
 const GONE_BEFORE_START: Duration = Duration::from_secs(1);
 
 /// How a standby's watch ended.
-#[derive(Debug, PartialEq, Eq)]
+#[derive(Debug)]
 pub enum Ended {
     /// The run ended (taken over or not).
     Run,
-    /// The leader was gone before the run began: lead it from the start.
-    GoneBeforeStart,
+    /// The leader was gone before the run began: lead it from the start,
+    /// on this estimate of the gone leader's clock where there is one (the
+    /// followers estimate the same clock: a new one would be a second).
+    GoneBeforeStart(Option<clock::Timebase>),
 }
 
 /// Stands by for the leader of the run `keys` names; takes the run over
@@ -93,7 +95,9 @@ pub async fn run(
         after.as_secs_f64()
     ));
     let Some(start) = wait_for_start(session, keys, start_rx, after.max(GONE_BEFORE_START), clock, &me).await? else {
-        return Ok(Ended::GoneBeforeStart);
+        drop(following);
+        let known = timebase.now_ns().is_some();
+        return Ok(Ended::GoneBeforeStart(known.then_some(timebase)));
     };
     clock_sync::wait_for_estimate(&timebase, keys, &me, START_LIMIT).await?;
     shared.lock().handle_start(&start, timebase.now());
