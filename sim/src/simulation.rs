@@ -131,6 +131,19 @@ pub struct SimFollower {
     pub robot: SimRobot,
     pub noise: NoiseSource,
     pub metrics: MetricsAccumulator,
+    /// A late join (a `join = true` fault row): until then its links are
+    /// down; then it starts as its new process does.
+    pub join_at: Option<Box<Join>>,
+}
+
+/// A follower's late join (docs/model.md §14): at step `k` it starts as its
+/// new process does: [`SimFollower::resume`] at its initial `pose`, its
+/// noise drawn from the start of its stream.
+#[derive(Clone, Debug)]
+pub struct Join {
+    pub k: u64,
+    pub pose: Pose,
+    pub noise: NoiseSource,
 }
 
 impl SimFollower {
@@ -141,6 +154,10 @@ impl SimFollower {
         let spec = &scenario.followers[index];
         let brain = Follower::new(scenario.follower_config(index), scenario.initial_estimate(), spec.velocity);
         Self {
+            join_at: scenario.join_step(spec.id).map(|k| {
+                let noise = NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id);
+                Box::new(Join { k, pose: spec.pose, noise })
+            }),
             brain,
             robot: SimRobot::new(scenario, index),
             noise: NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id),
@@ -195,6 +212,12 @@ impl SimFollower {
         I: IntoIterator<Item = &'a Message>,
         I::IntoIter: Clone,
     {
+        if self.join_at.as_ref().is_some_and(|j| j.k == self.brain.next_step()) {
+            if let Some(j) = self.join_at.take() {
+                self.noise = j.noise;
+                self.resume(j.k, j.pose);
+            }
+        }
         match &mut self.robot {
             SimRobot::Torque { robot, measurement } => {
                 // sin/cos of θ(k), for the brain's body-frame error and the robot's move.

@@ -351,6 +351,32 @@ fn cases() -> Vec<Case> {
             &["faults[0].node", "follower 9"],
         ),
         sim_paper("--set a disconnected graph", &["--set", "edges=[[1,2]]"], &["--set edges=[[1,2]]", "Lemma 1"]),
+        // A late join (docs/model.md §14) is a follower's, absent from the start until a time given.
+        sim_paper(
+            "--set a join that starts late",
+            &["--set", "faults+={node=3, from=1, to=8, join=true}"],
+            &["faults[0].from", "absent from the start"],
+        ),
+        sim_paper(
+            "--set a join without its time",
+            &["--set", "faults+={node=3, from=0, join=true}"],
+            &["faults[0].to", "a join needs `to`"],
+        ),
+        sim_paper(
+            "--set a join of a link",
+            &["--set", "faults+={link=[1,3], from=0, to=8, join=true}"],
+            &["faults[0].link", "give `node = ID`"],
+        ),
+        sim_paper(
+            "--set a join of the leader",
+            &["--set", "faults+={node=0, from=0, to=3, join=true}"],
+            &["faults[0].node", "the leader does not join"],
+        ),
+        sim_paper(
+            "--set a join with loss",
+            &["--set", "faults+={node=3, from=0, to=3, loss=0.5, join=true}"],
+            &["faults[0].loss", "loss = 1"],
+        ),
         sim_paper(
             "--set rejoin_after beyond the run",
             &["--set", "network.rejoin_after=1e9"],

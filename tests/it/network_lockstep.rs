@@ -219,6 +219,26 @@ fn lockstep_a_follower_that_leaves_equals_sim_with_its_node_cut_off() {
     assert!(text.contains("the run heard exactly what the model assumes: no departure"), "{text}");
 }
 
+/// Issue 50's join as the fault table's row, in lock-step: `{ node = 3,
+/// from = 0, to = 1, join = true }` — follower 3's links down until 1 s,
+/// then it starts as a new process does (its robot at its initial pose, a
+/// fresh filter, its estimate taken from what it hears, nothing published
+/// before its first step). Every record, follower 3's and the summary
+/// included, equals `formation sim`'s byte for byte. (A process started
+/// late in lock-step is refused, `lab --join`: see docs/model.md §14.)
+#[test]
+fn lockstep_a_join_row_equals_sim_byte_for_byte() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let net = dir.path().join("net");
+    let base = Ports::free(LAUNCH_PORTS).release().to_string();
+    let sets = ["duration=2", "faults+={node=3, from=0, to=1, join=true}"];
+    let mut g = Group::launch(&net, &sets, &["--base-port", &base, "--run", "ls-join"]);
+    let status = g.wait(LIMIT);
+    assert!(status.success(), "formation launch with a join row: {status}: {}", network(&net)["health"]);
+    common::assert_equals_the_simulator(&net, &dir.path().join("sim"), &sets, "a lock-step join row");
+    g.assert_group_empty();
+}
+
 /// A 2 s lock-step launch of the paper with `flags` into `net`, in which
 /// follower 3 takes fewer steps than the run: every other follower's
 /// record and the leader's equal `formation sim` with the fault row `row`

@@ -1066,12 +1066,12 @@ fn a_follower_killed_for_good_is_taken_for_gone_after_the_scenarios_timeout() {
 /// hears), its neighbours take its messages from its first one, the
 /// monitor names the join; the record is complete (follower 3's from its
 /// first step), the run replays byte for byte, and the others agree with
-/// `formation sim` given the row `{ node = 3, from = 0, to = t_J }` under
-/// `network.rejoin = "adopt"` (a new process takes its estimate from what
-/// it hears, docs/model.md §14; under `consensus` the model's follower 3
-/// would come back with 8 s of dead reckoning and pull the others: torque
-/// variation 16–25 % above the run's): the formation error over the last
-/// 10 s and torque variation within 10 % (judged on a quiet machine).
+/// `formation sim` given the join row `{ node = 3, from = 0, to = t_J,
+/// join = true }` (docs/model.md §14: at t_J the model's follower 3 starts
+/// as a new process does, its robot at its initial pose, its estimate
+/// taken from what it hears): the others' formation error over the last 10
+/// s and torque variation, and follower 3's formation error, within 10 %
+/// (judged on a quiet machine).
 #[test]
 fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
     let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
@@ -1093,10 +1093,18 @@ fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
     }
     assert!(r.network["health"]["disturbed"].to_string().contains("follower 3 joined the run at t = "), "{tag}");
     common::replays_byte_for_byte(tag, &r.out);
-    let row = format!("faults+={{node=3, from=0, to={t_j}}}");
-    let (_dir, sim_dir) = sim_on(&BASE, &[row.as_str(), "network.rejoin=adopt"]);
+    let row = format!("faults+={{node=3, from=0, to={t_j}, join=true}}");
+    let (_dir, sim_dir) = sim_on(&BASE, &[row.as_str()]);
     let s = common::json(&sim_dir, "summary.json");
-    let wrong = model_departures(tag, &r, &s, &["1", "2", "4"]);
+    let mut wrong = model_departures(tag, &r, &s, &["1", "2", "4"]);
+    // The joiner itself, from its join on (the model's rows before it are
+    // a follower cut off): its formation error over the last 10 s.
+    let m = "formation_rms_last10";
+    let (run3, sim3) = (num(&r.summary["followers"]["3"][m]), num(&s["followers"]["3"][m]));
+    eprintln!("{tag}: follower 3: {m} {run3} in the lab, {sim3} simulated ({:.3})", run3 / sim3);
+    if !(0.9..=1.1).contains(&(run3 / sim3)) {
+        wrong.push(format!("follower 3: {m} {run3} in the lab vs {sim3} simulated ({:.3})", run3 / sim3));
+    }
     common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
 }
 

@@ -132,6 +132,12 @@ pub struct LinkFaultFile {
     /// Probability that a message is lost (1: the link is down).
     #[serde(default = "d::loss")]
     pub loss: f64,
+    /// A follower that joins late (`node = ID, from = 0, to = T_J`): its
+    /// process starts at `to`, taking its estimate from the first source it
+    /// hears, as a new process does, whatever `network.rejoin` says
+    /// (docs/model.md §14).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub join: bool,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

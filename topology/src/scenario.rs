@@ -150,6 +150,8 @@ pub struct LinkFault {
     pub from_s: f64,
     pub to_s: f64,
     pub loss: f64,
+    /// A late join (`join = true`): the follower's process starts at `to_s`.
+    pub join: bool,
 }
 
 impl LinkFault {
@@ -405,7 +407,12 @@ impl Scenario {
             .iter()
             .filter(|f| f.covers(sender, receiver))
             .map(|f| {
-                let (from_k, to_k) = f.steps(self.dt_s);
+                let (from_k, mut to_k) = f.steps(self.dt_s);
+                // A joiner's new process publishes nothing before its first
+                // step: its message of the join step is not sent either.
+                if f.join && f.target == FaultTarget::Node(sender) {
+                    to_k += 1;
+                }
                 LossWindow { from_k, to_k, loss: f.loss }
             })
             .collect()
@@ -423,6 +430,7 @@ impl Scenario {
                 from_s: at_k as f64 * s.dt_s,
                 to_s: s.duration_s + s.dt_s,
                 loss: 1.0,
+                join: false,
             });
         }
         s
@@ -443,20 +451,29 @@ impl Scenario {
                 from_s: from_k as f64 * self.dt_s,
                 to_s,
                 loss: 1.0,
+                join: false,
             });
         }
         self
     }
 
     /// The model of joins (docs/model.md §14): each follower absent at the
-    /// start that joined at step k has its links cut over [0, k), the row
-    /// `{ node = id, from = 0, to = k Δt }`.
+    /// start that joined at step k has its links cut over [0, k) and takes
+    /// its estimate from the first source it hears, the row `{ node = id,
+    /// from = 0, to = k Δt, join = true }`.
     pub fn with_joins(mut self, joins: &[(u32, u64)]) -> Scenario {
         for &(id, k) in joins.iter().filter(|j| j.1 > 0) {
             let to_s = (k as f64 * self.dt_s).min(self.duration_s + self.dt_s);
-            self.faults.push(LinkFault { target: FaultTarget::Node(id), from_s: 0.0, to_s, loss: 1.0 });
+            self.faults.push(LinkFault { target: FaultTarget::Node(id), from_s: 0.0, to_s, loss: 1.0, join: true });
         }
         self
+    }
+
+    /// The step at which follower `id` joins late (a `join = true` row,
+    /// docs/model.md §14): its process starts then, its robot at its
+    /// initial pose, its estimate taken from the first source it hears.
+    pub fn join_step(&self, id: u32) -> Option<u64> {
+        self.faults.iter().find(|f| f.join && f.target == FaultTarget::Node(id)).map(|f| f.steps(self.dt_s).1)
     }
 
     /// The receiver's loss decisions for the link sender → receiver.
@@ -1565,7 +1582,10 @@ fn validate_faults(
                 c.fail(&field("to"), format!("the window [{}, {}) s is empty: `to` must be after `from`", f.from, to))
             );
         }
-        let (from_k, to_k) = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss }.steps(file.dt);
+        if f.join {
+            check_join(c, &field, target, f)?;
+        }
+        let (from_k, to_k) = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join }.steps(file.dt);
         if from_k >= to_k {
             return Err(c.fail(
                 &field("to"),
@@ -1593,9 +1613,35 @@ fn validate_faults(
         if !(0.0..=1.0).contains(&f.loss) {
             return Err(c.fail(&field("loss"), format!("{} is not a probability in [0, 1]", f.loss)));
         }
-        out.push(LinkFault { target, from_s: f.from, to_s: to, loss: f.loss });
+        out.push(LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join });
     }
     Ok(out)
+}
+
+/// A join row (`join = true`): a follower, absent from the run's start
+/// (`from = 0`, the link down) until `to`, which must be given.
+fn check_join(
+    c: &Check<'_>,
+    field: &dyn Fn(&str) -> String,
+    target: FaultTarget,
+    f: &crate::file::LinkFaultFile,
+) -> Result<(), ScenarioError> {
+    let why = match target {
+        FaultTarget::Node(0) => Some(("node", "the leader does not join: give a follower's id".to_string())),
+        FaultTarget::Link(..) => Some(("link", "a join is a follower's: give `node = ID`, not `link`".to_string())),
+        FaultTarget::Node(_) if f.from != 0.0 => {
+            Some(("from", format!("a follower that joins is absent from the start: from = 0, not {}", f.from)))
+        }
+        FaultTarget::Node(_) if f.to.is_none() => Some(("to", "a join needs `to`, the time it joins (s)".to_string())),
+        FaultTarget::Node(_) if f.loss != 1.0 => {
+            Some(("loss", format!("a follower not yet started sends nothing: loss = 1, not {}", f.loss)))
+        }
+        FaultTarget::Node(_) => None,
+    };
+    match why {
+        Some((key, why)) => Err(c.fail(&field(key), why)),
+        None => Ok(()),
+    }
 }
 
 /// Why a–b is not a fault table's link: whom its follower end talks to.
@@ -1774,6 +1820,22 @@ mod tests {
         for (a, b) in [(1, 2), (1, 3), (3, 4)] {
             assert!(s.link_windows(a, b).is_empty(), "{a}–{b} is no link of the leader");
         }
+    }
+
+    /// A join row (docs/model.md §14): follower 3 joins at 8 s, its step
+    /// 8000; its incoming links are down over [0, 8000), its outgoing ones
+    /// one step longer (a new process publishes nothing before its first
+    /// step); it is written back as given.
+    #[test]
+    fn a_join_row_names_the_join_step_and_cuts_the_joiners_first_message() {
+        let s = with_faults("[[faults]]\nnode = 3\nfrom = 0\nto = 8\njoin = true\n").expect("a join row");
+        assert_eq!((s.join_step(3), s.join_step(2)), (Some(8000), None));
+        assert_eq!(s.link_windows(1, 3), vec![LossWindow { from_k: 0, to_k: 8000, loss: 1.0 }]);
+        assert_eq!(s.link_windows(3, 1), vec![LossWindow { from_k: 0, to_k: 8001, loss: 1.0 }]);
+        let plain = with_faults("[[faults]]\nnode = 3\nfrom = 0\nto = 8\n").expect("an outage");
+        assert_eq!((plain.join_step(3), plain.link_windows(3, 1)[0].to_k), (None, 8000));
+        assert!(toml::to_string(&s.source.faults[0]).expect("toml").contains("join = true"));
+        assert!(!toml::to_string(&plain.source.faults[0]).expect("toml").contains("join"));
     }
 
     /// A window may end one step after the run's end, T + Δt, and then
