@@ -272,22 +272,25 @@ pub(crate) fn monitor_and_leader(
     }
     monitor.args(a.opts.web.to_args());
     wiring.apply(&mut monitor, Some(mon_port), &[]);
-    let mut leader = node_command(exe, "leader", a, run);
-    if let Some(x) = a.opts.time_scale {
-        leader.arg("--time-scale").arg(x.to_string());
-    }
+    let mut leader = leader_command(exe, a, run);
     wiring.apply(&mut leader, Some(lead_port), &[mon_port]);
     [Planned { name: "monitor".into(), command: monitor }, Planned { name: "leader".into(), command: leader }]
+}
+
+/// `node leader` of a run, with the launch's time scale (the leader's, and its standby's).
+fn leader_command(exe: &Path, a: &LaunchArgs, run: &str) -> Command {
+    let mut c = node_command(exe, "leader", a, run);
+    if let Some(x) = a.opts.time_scale {
+        c.arg("--time-scale").arg(x.to_string());
+    }
+    c
 }
 
 /// `--standby`: a second leader process, a client of the router, that
 /// takes the run over when the leader is gone.
 pub(crate) fn standby(a: &LaunchArgs, run: &str, exe: &Path, wiring: &Wiring) -> Planned {
-    let mut c = node_command(exe, "leader", a, run);
+    let mut c = leader_command(exe, a, run);
     c.arg("--standby").arg("--take-over-after").arg(a.take_over_after.to_string());
-    if let Some(x) = a.opts.time_scale {
-        c.arg("--time-scale").arg(x.to_string());
-    }
     wiring.apply(&mut c, None, &[]);
     Planned { name: crate::supervisor::STANDBY.into(), command: c }
 }

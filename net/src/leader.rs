@@ -97,12 +97,12 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     let session = args.node.open(names::LEADER, &scenario).await?;
     tokio::spawn(crate::denials::report(session.clone(), names::LEADER.to_string(), Some(keys.run.clone())));
     let lead = Duration::from_secs_f64(args.start_lead);
-    let mut start = StartAs { time_scale, lead, print: args.print_start, quorum, standby: None };
+    let mut start = StartAs { time_scale, lead, print: args.print_start, quorum, standby: false, timebase: None };
     let clock = &args.node.clock;
     let result = match args.standby {
         true => match crate::standby::run(&session, &scenario, &keys, Duration::from_secs_f64(after), clock).await {
             Ok(crate::standby::Ended::GoneBeforeStart(timebase)) => {
-                start.standby = Some(timebase);
+                (start.standby, start.timebase) = (true, timebase);
                 run_leader(&session, &scenario, &keys, start, clock).await
             }
             other => other.map(drop),
@@ -116,14 +116,16 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
 /// How the leader starts its run: the time scale, how long before step 0
 /// the epoch is announced (real time), whether the start is printed (for
 /// `formation lab`), a quorum start if asked, and whether a standby leads
-/// it (the leader gone before the start), on its estimate of that leader's
-/// clock where it has one.
+/// it (the leader gone before the start).
 pub struct StartAs {
     pub time_scale: f64,
     pub lead: Duration,
     pub print: bool,
     pub quorum: Option<Quorum>,
-    pub standby: Option<Option<clock::Timebase>>,
+    pub standby: bool,
+    /// The run's timebase where it is not this process's own clock: a
+    /// standby's estimate of the gone leader's, which the others follow.
+    pub timebase: Option<clock::Timebase>,
 }
 
 pub async fn run_leader(
@@ -133,16 +135,16 @@ pub async fn run_leader(
     start_as: StartAs,
     clock: &clock::Clock,
 ) -> Result<(), Error> {
-    let StartAs { time_scale, lead: start_lead, print: print_start, quorum, standby } = start_as;
+    let StartAs { time_scale, lead: start_lead, print: print_start, quorum, standby, timebase } = start_as;
     // A second formation with this run name: refuse before saying anything.
     let claiming = startup::refuse_twin(session, keys, wire::LEADER_ID, scenario.steps(), clock).await?;
     // The run's timebase is this leader's clock (a standby's estimate of
     // the gone leader's, which the others follow already); they ask it.
-    let timebase = standby.clone().flatten().unwrap_or_else(|| clock::Timebase::leader(clock));
+    let timebase = timebase.unwrap_or_else(|| clock::Timebase::leader(clock));
     let queries = Arc::new(QueryCount::default());
     let time_server = clock_sync::serve_counted(session, keys, timebase.clone(), queries.clone()).await?;
     let mut machine = Machine::new(scenario);
-    if standby.is_some() {
+    if standby {
         machine.led_by_a_standby_from_the_start();
     }
     let hearing = machine.hearing().to_vec();

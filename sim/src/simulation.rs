@@ -153,14 +153,12 @@ impl SimFollower {
     pub fn new(scenario: &Scenario, index: usize) -> Self {
         let spec = &scenario.followers[index];
         let brain = Follower::new(scenario.follower_config(index), scenario.initial_estimate(), spec.velocity);
+        let noise = NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id);
         Self {
-            join_at: scenario.join_step(spec.id).map(|k| {
-                let noise = NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id);
-                Box::new(Join { k, pose: spec.pose, noise })
-            }),
+            join_at: scenario.join_step(spec.id).map(|k| Box::new(Join { k, pose: spec.pose, noise: noise.clone() })),
             brain,
             robot: SimRobot::new(scenario, index),
-            noise: NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id),
+            noise,
             metrics: MetricsAccumulator::for_scenario(scenario),
         }
     }

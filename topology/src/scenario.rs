@@ -1585,7 +1585,8 @@ fn validate_faults(
         if f.join {
             check_join(c, &field, target, f)?;
         }
-        let (from_k, to_k) = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join }.steps(file.dt);
+        let fault = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join };
+        let (from_k, to_k) = fault.steps(file.dt);
         if from_k >= to_k {
             return Err(c.fail(
                 &field("to"),
@@ -1613,7 +1614,7 @@ fn validate_faults(
         if !(0.0..=1.0).contains(&f.loss) {
             return Err(c.fail(&field("loss"), format!("{} is not a probability in [0, 1]", f.loss)));
         }
-        out.push(LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join });
+        out.push(fault);
     }
     Ok(out)
 }

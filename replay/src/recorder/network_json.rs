@@ -108,10 +108,11 @@ impl Recorder {
             None => {
                 let took = "a standby leader took the run over";
                 let handovers = self.handovers.iter().map(|h| (h.at_k, took.to_string())).collect();
-                // A standby's record begins before its takeover: it resends
-                // the leader's states of the last second (and two batches).
-                let window = (1.0 / self.scenario.dt_s).round() as u64 * 2;
-                let resent = |k: u64| self.handovers.iter().any(|h| k <= h.at_k && h.at_k - k <= window);
+                // A standby's record begins before its takeover (it resends
+                // the leader's last states): the newest restart at or before it.
+                let restarts = &self.leader_stream.restarts;
+                let standbys = |at_k: u64| restarts.iter().copied().filter(|&r| r <= at_k).max();
+                let resent = |k: u64| self.handovers.iter().any(|h| standbys(h.at_k) == Some(k));
                 let why = |k: u64| if resent(k) { STANDBYS_RECORD } else { RESTARTED };
                 (Figures::of(&self.leader_stream), self.timeline(n, &self.leader_stream, handovers, why))
             }
