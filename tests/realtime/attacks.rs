@@ -14,10 +14,10 @@ use std::time::{Duration, Instant};
 use common::{Group, Ports, LAUNCH_PORTS};
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 
-/// Every test here loads the machine (floods, storms, real-time runs) and the
-/// real-time one is judged on its timing: one at a time (with every other
-/// test of the `realtime` binary).
-use crate::common::ALONE as ONE_AT_A_TIME;
+/// The floods and the storm load the machine on purpose: [`Load::Whole`],
+/// alone; the attack on a real-time run is judged on its timing beside at
+/// most another lab's load ([`Load::Lab`]).
+use common::Load;
 
 fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }
@@ -183,7 +183,7 @@ async fn attack(kind: Attack, certs: &Path, port: u16, run: &str, done: &Done, s
 /// in network.json within 1 s.
 #[test]
 fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _cores = common::cores(Load::Lab);
     let tmp = tempfile::tempdir().expect("tempdir");
     let certs = tmp.path().join("certs");
     common::certs(&certs);
@@ -279,7 +279,7 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
 /// simulator byte for byte and the monitor stay below 100 MB.
 #[test]
 fn telemetry_sent_straight_to_the_monitor_cannot_fill_its_memory() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _cores = common::cores(Load::Whole);
     let tmp = tempfile::tempdir().expect("tempdir");
     let certs = tmp.path().join("certs");
     common::certs(&certs);
@@ -337,7 +337,7 @@ fn telemetry_sent_straight_to_the_monitor_cannot_fill_its_memory() {
 /// a second kept certified nodes out).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_storm_of_failed_handshakes_does_not_delay_a_certified_join() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _cores = common::cores(Load::Whole);
     let tmp = tempfile::tempdir().expect("tempdir");
     let certs = tmp.path().join("certs");
     common::certs(&certs);

@@ -1,7 +1,8 @@
 //! `formation lab` end to end: every node in a network namespace of its own,
 //! faults performed by the network (the paper scenario cut to 20 s, real
-//! time at 1 kHz, seed as in scenarios/paper.toml). One lab at a time (two
-//! would share the two cores). Where namespaces cannot be made here, each
+//! time at 1 kHz, seed as in scenarios/paper.toml). Two real-time labs
+//! may run side by side (`common::cores`: about 0.5 cores each, within the
+//! binary's budget of 1.2); a lock-step lab runs alone. Where namespaces cannot be made here, each
 //! test says why and passes, unless FORMATION_LAB_REQUIRED=1 (set by CI,
 //! which runs as root): then it fails.
 
@@ -12,8 +13,9 @@ use std::time::Duration;
 
 use common::Group;
 
-/// One lab at a time, and no other test of the `realtime` binary beside it.
-use crate::common::ALONE as ONE_LAB;
+/// A lab in real time holds [`Load::Lab`] of the cores (two run side by
+/// side); a lab in lock-step takes what there is, [`Load::Whole`].
+use common::Load;
 const LIMIT: Duration = Duration::from_secs(150);
 const BASE: [&str; 2] = ["timing=realtime", "duration=20"];
 
@@ -228,7 +230,7 @@ fn peak_from_5_s(e: &[(f64, f64)]) -> (f64, f64) {
 /// source silent after 100 ms, formation error and torque variation within
 /// 10 % (judged when the host was quiet during the run).
 fn fault_free(tag: &str, timely: bool) {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -288,7 +290,7 @@ fn fault_free_clients_through_a_router_match_the_simulator() {
 /// lab run, the simulator's folder for the same outage, and what differs
 /// from the model. The record and the exit statuses are judged always.
 fn follower_3_cut_off(tag: &str, mode: &str, rejoin: &str) -> Option<CutOff> {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return None;
     }
@@ -398,7 +400,7 @@ fn router_restart(tag: &str, sets: &[&str]) -> (Run, f64) {
 
 #[test]
 fn a_router_killed_for_3_s_costs_nothing_recorded_and_traffic_is_back_within_1_s() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -424,7 +426,7 @@ fn a_router_killed_for_3_s_costs_nothing_recorded_and_traffic_is_back_within_1_s
 /// simulator predicts recovery within 2 ms of the links' return.
 #[test]
 fn a_router_killed_for_3_s_every_follower_recovers_within_2_s() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -446,7 +448,7 @@ fn a_router_killed_for_3_s_every_follower_recovers_within_2_s() {
 /// network at the given wall time and the agents apply the table in
 /// software at the given run time).
 fn lockstep_equals_sim(tag: &str, sets: &[&str], extra: &[&str]) {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Whole);
     if !lab_available() {
         return;
     }
@@ -519,7 +521,7 @@ fn lockstep_with_30_percent_loss_on_follower_2_equals_the_simulator() {
 
 #[test]
 fn thirty_percent_loss_on_follower_2_for_10_s_loses_no_record() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -548,7 +550,7 @@ fn a_bad_plan_is_refused_before_any_namespace_is_made() {
 /// restarted agent), the record marks the gap and nothing else jumps.
 #[test]
 fn an_agent_killed_and_restarted_rejoins_the_running_formation() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -559,7 +561,7 @@ fn an_agent_killed_and_restarted_rejoins_the_running_formation() {
 /// fault-free run, at t = 13.3 s); 0.024 m in two runs on a busy one.
 #[test]
 fn an_agent_killed_and_restarted_goes_unnoticed_by_the_others() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -632,7 +634,7 @@ fn lockstep_the_follower_that_hears_the_leader_restarted_rejoins_and_the_run_com
 }
 
 fn lockstep_restart(victim: &str, tag: &str) {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Whole);
     if !lab_available() {
         return;
     }
@@ -685,7 +687,7 @@ fn lockstep_restart(victim: &str, tag: &str) {
 /// source-steps of slack).
 #[test]
 fn clocks_that_disagree_change_nothing() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -789,7 +791,7 @@ const CLOCK_SILENT_SLACK: f64 = 50.0;
 /// simulated error exceeds 0.04 m.
 #[test]
 fn two_sites_cut_apart_behave_as_the_model_predicts() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -861,7 +863,7 @@ fn two_sites_cut_apart_behave_as_the_model_predicts() {
 /// all); in one CI run 76.0 % together.
 #[test]
 fn a_slow_link_is_the_one_explain_ranks_first() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -919,7 +921,7 @@ fn a_slow_link_is_the_one_explain_ranks_first() {
 /// `formation sim` with the row `{ node = 3, from = 0 }`.
 #[test]
 fn a_quorum_start_without_follower_3_runs_as_the_model_predicts() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -952,7 +954,7 @@ fn a_quorum_start_without_follower_3_runs_as_the_model_predicts() {
 /// a quiet machine).
 #[test]
 fn the_leader_killed_at_10_s_a_standby_takes_the_run_over_as_the_model_predicts() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -1037,7 +1039,7 @@ fn lockstep_with_the_leader_killed_a_standby_takes_over_and_equals_the_simulator
 /// from then on (the run is not degraded: the lab exits 0).
 #[test]
 fn a_follower_killed_for_good_is_taken_for_gone_after_the_scenarios_timeout() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -1074,7 +1076,7 @@ fn a_follower_killed_for_good_is_taken_for_gone_after_the_scenarios_timeout() {
 /// (judged on a quiet machine).
 #[test]
 fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }
@@ -1116,7 +1118,7 @@ fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
 /// quiet machine).
 #[test]
 fn follower_2_leaves_at_5_s_as_the_model_predicts() {
-    let _one = ONE_LAB.lock().unwrap_or_else(|p| p.into_inner());
+    let _cores = common::cores(Load::Lab);
     if !lab_available() {
         return;
     }

@@ -2,9 +2,12 @@
 //! model, the host's quiet measured) or load the machine on purpose
 //! (floods, 100 agents, the lab): one binary, `cargo test --test realtime`
 //! (one file's: `cargo test --test realtime attacks::`). Every test here
-//! holds `common::ALONE` while it runs, so none shares the two cores with
-//! another test of this binary, as when each file was a binary of its own
-//! serialised by its own lock (cargo runs test binaries one after another).
+//! holds its share of the two cores while it runs (`common::cores`, its
+//! measured load): two real-time labs side by side, or a lab beside light
+//! runs, within `common::BUDGET`; lock-step runs, floods and 100 agents
+//! alone. A run's comparison with the model counts the tests beside it as
+//! the binary's own load, which was there when its tolerances were measured
+//! (docs/performance.md).
 
 #[path = "../common/mod.rs"]
 mod common;

@@ -20,7 +20,7 @@ const TORQUE_TV_MEDIAN: f64 = 0.03;
 #[test]
 fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Whole);
     let base = common::Ports::free(1).release().to_string();
     hundred_agents_in_lockstep(&["--mode", "client", "--base-port", &base, "--run", "scale100"], 0.1);
 }
@@ -30,7 +30,7 @@ fn a_hundred_agents_in_lockstep_through_launch_equal_the_simulator() {
 #[test]
 fn a_hundred_agents_in_two_processes_in_lockstep_equal_the_simulator() {
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Whole);
     // Ports: the monitor, the leader, two agent processes.
     let base = common::Ports::free(4).release().to_string();
     hundred_agents_in_lockstep(&["--group", "50", "--base-port", &base, "--run", "scale100g"], 0.5);
@@ -123,7 +123,7 @@ fn hundred_agents_in_lockstep(launch_args: &[&str], duration: f64) {
 #[test]
 fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Whole);
     let run = RingInRealTime::run(50, &["estimator.k=[0.5,0.5,0.5]"], "rt50");
     // Without real-time scheduling a few messages a run come a step late on
     // a busy 2-core machine (see above): 25 %, as before.
@@ -171,7 +171,7 @@ const KEPT_THE_PERIOD: u64 = 50;
 #[test]
 fn a_hundred_agents_in_real_time_at_100_hz_record_everything_and_follow_the_model() {
     // Alone in the `realtime` binary (see its main.rs), before the ports are chosen.
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Whole);
     let run = RingInRealTime::run(100, &["estimator.k=[0.2,0.2,0.2]"], "rt100");
     run.judge(0.03, TORQUE_TV_MEDIAN);
 }

@@ -6,7 +6,7 @@
 //! on the model's hearing, the simulator), the paper's tables equal
 //! `formation paper`'s, and Python threads run simulations at once. Here, not in
 //! `it`, because that last check is judged on time: it must have the two
-//! cores to itself (`common::alone`).
+//! cores to itself (`common::cores(Load::Whole)`).
 //!
 //! The package must be installed in the Python named by
 //! `FORMATION_PYTHON_PACKAGE` (.ci/run: a virtual environment with
@@ -74,7 +74,7 @@ fn newest_source() -> (SystemTime, PathBuf) {
 
 #[test]
 fn the_python_package_equals_the_command_line_under_pytest() {
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Whole);
     let Some(python) = package_python() else { return };
     // The package is built by pip, not by cargo: one older than its
     // sources would test code that is no longer there.

@@ -66,7 +66,7 @@ fn same_heading(a: f64, b: f64) -> bool {
 
 #[test]
 fn a_foreign_subscriber_hears_follower_1_odom_on_rmw_zenohs_key() {
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Light);
     let Some(py) = common::ros2_python() else { return };
     let tmp = tempfile::tempdir().expect("tempdir");
     let (_router, ep) = router();
@@ -178,7 +178,7 @@ fn a_foreign_subscriber_hears_follower_1_odom_on_rmw_zenohs_key() {
 
 #[test]
 fn python_unicycles_are_driven_and_one_that_stops_is_sent_zero_velocity() {
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Light);
     let Some(py) = common::ros2_python() else { return };
     let tmp = tempfile::tempdir().expect("tempdir");
     let (_router, ep) = router();
@@ -288,7 +288,7 @@ fn python_unicycles_are_driven_and_one_that_stops_is_sent_zero_velocity() {
 
 #[test]
 fn stand_in_robots_in_real_time_behave_like_the_model() {
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Light);
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
     let o = out.display().to_string();
@@ -420,7 +420,7 @@ fn first_stop(logs: &[String], id: usize, from: u64, launch: &str) -> (f64, f64,
 /// TurtleBot's 0.22 m/s and 2.84 rad/s.
 #[test]
 fn a_robot_stops_when_its_launch_is_stopped() {
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Light);
     let (logs, said, at) = drive_then(|run| {
         let _ = Command::new("kill").args(["-TERM", &run.0.id().to_string()]).status();
     });
@@ -438,7 +438,7 @@ fn a_robot_stops_when_its_launch_is_stopped() {
 /// other agents, and they stop their robots with zero velocity.
 #[test]
 fn a_robot_whose_agent_is_killed_stops_on_its_command_timeout() {
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Light);
     let (logs, said, at) = drive_then(|run| {
         let pid = agent_pid(run, 2).expect("follower 2's agent");
         let _ = Command::new("kill").args(["-KILL", &pid.to_string()]).status();
@@ -461,7 +461,7 @@ fn a_robot_whose_agent_is_killed_stops_on_its_command_timeout() {
 /// machine; the margin measured below).
 #[test]
 fn the_safety_filter_in_real_time_keeps_the_robots_apart_as_the_model_does() {
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Light);
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
     let o = out.display().to_string();
@@ -541,7 +541,7 @@ fn the_safety_filter_in_real_time_keeps_the_robots_apart_as_the_model_does() {
 /// frame `map`: refused, counted and named.
 #[test]
 fn robots_whose_odometry_starts_at_zero_in_their_own_frame_end_in_their_slots() {
-    let _alone = common::alone();
+    let _cores = common::cores(common::Load::Light);
     let Some(py) = common::ros2_python() else { return };
     let tmp = tempfile::tempdir().expect("tempdir");
     let (_router, ep) = router();

@@ -23,9 +23,10 @@ use std::time::{Duration, Instant};
 use common::{Group, Ports};
 use formation_net::session::{self, ZenohArgs, ZenohMode};
 
-/// Each run here is judged on what the formation did: one at a time (with
-/// every other test of the `realtime` binary).
-use crate::common::ALONE as ONE_AT_A_TIME;
+/// The floods load the machine on purpose ([`Load::Whole`], alone); the
+/// second clock's real-time run is judged beside at most another lab's
+/// load ([`Load::Lab`]).
+use common::Load;
 
 fn client(port: u16) -> ZenohArgs {
     ZenohArgs { mode: Some(ZenohMode::Client), connect: vec![format!("tcp/127.0.0.1:{port}")], ..Default::default() }
@@ -82,7 +83,7 @@ fn errors(dir: &Path) -> Vec<(String, f64)> {
 /// questions, from before the start to the end.
 #[test]
 fn crafted_length_fields_and_control_floods_crash_nothing_and_are_counted() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _cores = common::cores(Load::Whole);
     let tmp = tempfile::tempdir().expect("tempdir");
     let (out, sim) = (tmp.path().join("run"), tmp.path().join("sim"));
     let sets = ["duration=5"];
@@ -230,7 +231,7 @@ async fn forge_time(
 /// (mid-run) and in network.json's health, and exit 0 ("disturbed").
 #[test]
 fn a_second_clock_half_a_second_ahead_never_moves_the_formation() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _cores = common::cores(Load::Lab);
     let tmp = tempfile::tempdir().expect("tempdir");
     let host = common::Host::now();
     let mut wrong = Vec::new();
