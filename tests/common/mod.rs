@@ -118,8 +118,8 @@ impl Ports {
 
 /// The share of the machine's two cores a test of the `realtime` binary
 /// runs with: its processes' CPU time over its wall time, measured one test
-/// at a time (docs/performance.md, "Where the `realtime` binary's time
-/// goes"), rounded up to a class.
+/// at a time (docs/performance.md, "The real-time tests share the cores
+/// by their load"), rounded up to a class.
 #[derive(Clone, Copy, Debug)]
 pub enum Load {
     /// Up to 0.3 cores: the ROS 2 robots, a six-node launch at 100–200 Hz
