@@ -6,8 +6,8 @@
 //! measured load): two real-time labs side by side, or a lab beside light
 //! runs, within `common::BUDGET`; lock-step runs, floods and 100 agents
 //! alone. A run's comparison with the model counts the tests beside it as
-//! the binary's own load, which was there when its tolerances were measured
-//! (docs/performance.md).
+//! the binary's own, budgeted load; that the tolerances hold beside it was
+//! measured over repeated runs (docs/performance.md).
 
 #[path = "../common/mod.rs"]
 mod common;
