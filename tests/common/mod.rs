@@ -287,6 +287,24 @@ pub fn json(dir: &Path, name: &str) -> serde_json::Value {
     serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
+/// What zenoh logged during a run: the files of its `zenoh-log/` folder,
+/// each under its name; empty when it logged nothing (no folder).
+pub fn zenoh_log(dir: &Path) -> String {
+    let folder = dir.join("zenoh-log");
+    let Ok(entries) = std::fs::read_dir(&folder) else { return String::new() };
+    let mut files: Vec<_> = entries.filter_map(|e| e.ok().map(|e| e.path())).collect();
+    files.sort();
+    let mut said = String::new();
+    for f in files {
+        let text = std::fs::read_to_string(&f).unwrap_or_else(|e| format!("(unreadable: {e})"));
+        said.push_str(&format!("{}:\n{text}", f.display()));
+    }
+    if said.is_empty() {
+        said = format!("{} (empty)", folder.display());
+    }
+    said
+}
+
 /// Runs a command to the end; panics with its output unless it succeeded.
 pub fn run_ok(cmd: &mut Command) -> std::process::Output {
     let out = cmd.output().expect("formation runs");

@@ -38,9 +38,24 @@ fn short_launch_succeeds_and_leaves_nothing_behind() {
     // 65 KB of a 72 KB record).
     let hearing = std::fs::metadata(out.join("hearing.bin")).expect("hearing.bin").len();
     assert!(hearing < 10_000, "hearing.bin of a 0.5 s run is {hearing} bytes");
-    // Zenoh logged nothing: no zenoh-log/ and no zenoh_log in network.json.
-    assert!(!out.join("zenoh-log").exists(), "a zenoh-log/ folder for a run where zenoh said nothing");
-    assert!(common::json(&out, "network.json").get("zenoh_log").is_none());
+    // Zenoh logged nothing but its start-up race (docs/performance.md: data
+    // that reached a session before the key it names, a message of the
+    // first steps, counted by the hearing record; about once in 80 runs
+    // beside three busy cores): no other line in zenoh-log/, no warning and
+    // no transport closed in network.json.
+    let said = common::zenoh_log(&out);
+    let other: Vec<&str> = said
+        .lines()
+        .filter(|l| !l.ends_with(".log:") && !l.starts_with("formation: this node's zenoh id is"))
+        .filter(|l| !l.contains(" ERROR zenoh::api::session: Received Data for unknown expr_id: "))
+        .collect();
+    assert!(other.is_empty(), "zenoh said {other:?} in a short fault-free run; all it said:\n{said}");
+    if let Some(log) = common::json(&out, "network.json").get("zenoh_log") {
+        assert_eq!(log["transports_closed"], serde_json::json!([]), "{log}");
+        let warnings: u64 =
+            log["nodes"].as_object().expect("nodes").values().map(|n| n["warnings"].as_u64().unwrap()).sum();
+        assert_eq!(warnings, 0, "{log}");
+    }
     assert!(!stale.exists(), "the old {} stays", stale.display());
     // A complete run has nothing to rejoin: the agents remove their checkpoints.
     let checkpoints = std::env::temp_dir().join("formation-checkpoints");
