@@ -120,7 +120,7 @@ impl Ports {
 /// runs with: its processes' CPU time over its wall time, measured one test
 /// at a time (docs/performance.md, "The real-time tests share the cores
 /// by their load"), rounded up to a class.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Load {
     /// Up to 0.3 cores: the ROS 2 robots, a six-node launch at 100–200 Hz
     /// (measured 0.10–0.30).
@@ -129,9 +129,16 @@ pub enum Load {
     /// 1 kHz, a real-time run under attack (measured 0.45–0.60; the
     /// certified node's attack 0.74).
     Lab,
-    /// The cores to itself: lock-step runs (they take what there is,
-    /// 1.2–1.6), 50 and 100 agents, floods, the Python package's tests.
+    /// The cores to itself: 50 and 100 agents in real time, floods, the
+    /// Python package's tests (one of which is judged on time).
     Whole,
+    /// What the others leave: a lock-step run, whose verdict (equal to the
+    /// simulator byte for byte) does not depend on time. Its thread, and so
+    /// every process it starts, runs under `SCHED_IDLE`: the kernel runs it
+    /// only on a core no other task wants, and a real-time node that wakes
+    /// takes the core from it at once. One at a time, never beside a
+    /// `Whole` test, outside [`BUDGET`].
+    Idle,
 }
 
 impl Load {
@@ -140,6 +147,7 @@ impl Load {
             Load::Light => 0.3,
             Load::Lab => 0.6,
             Load::Whole => BUDGET,
+            Load::Idle => 0.0,
         }
     }
 }
@@ -147,7 +155,8 @@ impl Load {
 /// The cores the `realtime` binary's tests may hold at once, of two: two
 /// labs side by side, or a lab and two light runs; a `Whole` test alone.
 /// The rest is the host's, the test harness's and the slack a 1 kHz loop
-/// needs. Why it is 1.2 and how often the tests held at it: docs/performance.md.
+/// needs (and an `Idle` test's). Why it is 1.2 and how often the tests held
+/// at it: docs/performance.md.
 pub const BUDGET: f64 = 1.2;
 
 /// The cores the running tests of this binary hold, and the queue.
@@ -156,40 +165,99 @@ struct Held {
     /// The next ticket to hand out, and the one that starts next.
     next: u64,
     serving: u64,
+    /// Whether an `Idle` test runs, whether a `Whole` one does, and how
+    /// many `Whole` tests wait.
+    idle: bool,
+    whole: bool,
+    whole_waiting: usize,
 }
 
-static HELD: Mutex<Held> = Mutex::new(Held { cores: 0.0, next: 0, serving: 0 });
+static HELD: Mutex<Held> =
+    Mutex::new(Held { cores: 0.0, next: 0, serving: 0, idle: false, whole: false, whole_waiting: 0 });
 static FREED: std::sync::Condvar = std::sync::Condvar::new();
 
 /// `load`'s share of the cores, held until dropped. Tests start in the
 /// order they ask (libtest's, by name), each once the tests running beside
-/// it leave room within [`BUDGET`] (always when none runs): a lock-step
-/// run waiting for the cores to itself is not overtaken by a stream of
-/// labs. A real-time test's comparison with the model counts the tests
-/// beside it as this binary's own load ([`Host`]): they are budgeted here.
+/// it leave room within [`BUDGET`] (always when none runs): a `Whole` test
+/// waiting for the cores to itself is not overtaken by a stream of labs.
+/// `Idle` tests queue apart (they hold no share, so they hold up no one).
+/// A real-time test's comparison with the model counts the tests beside it
+/// as this binary's own load ([`Host`]): they are budgeted here.
 pub fn cores(load: Load) -> Cores {
-    let want = load.cores();
     let mut held = HELD.lock().unwrap_or_else(|e| e.into_inner());
+    if load == Load::Idle {
+        while held.idle || held.whole || held.whole_waiting > 0 {
+            held = FREED.wait(held).unwrap_or_else(|e| e.into_inner());
+        }
+        held.idle = true;
+        drop(held);
+        if let Err(e) = idle_policy(true) {
+            release(0.0, Load::Idle);
+            panic!("SCHED_IDLE for an idle test: {e}");
+        }
+        return Cores { share: 0.0, load };
+    }
+    let want = load.cores();
+    let whole = load == Load::Whole;
     let ticket = held.next;
     held.next += 1;
-    while held.serving != ticket || (held.cores > 0.0 && held.cores + want > BUDGET + 1e-9) {
+    held.whole_waiting += usize::from(whole);
+    while held.serving != ticket || (held.cores > 0.0 && held.cores + want > BUDGET + 1e-9) || (whole && held.idle) {
         held = FREED.wait(held).unwrap_or_else(|e| e.into_inner());
     }
+    held.whole_waiting -= usize::from(whole);
+    held.whole |= whole;
     held.serving += 1;
     held.cores += want;
     FREED.notify_all();
-    Cores(want)
+    Cores { share: want, load }
+}
+
+/// This thread's scheduling policy (inherited by the processes it starts
+/// from now on): `SCHED_IDLE`, or back to the default. Going back can be
+/// refused to a user without privileges (RLIMIT_NICE): the thread then
+/// stays idle until libtest ends it with its test, which is harmless.
+fn idle_policy(idle: bool) -> std::io::Result<()> {
+    let policy = if idle { libc::SCHED_IDLE } else { libc::SCHED_OTHER };
+    let param = libc::sched_param { sched_priority: 0 };
+    // pid 0: the calling thread (Linux keeps the policy per thread).
+    match unsafe { libc::sched_setscheduler(0, policy, &param) } {
+        0 => Ok(()),
+        _ => Err(std::io::Error::last_os_error()),
+    }
 }
 
 /// A share of the cores (see [`cores`]); given back on drop, also when
 /// its test panicked.
-pub struct Cores(f64);
+pub struct Cores {
+    share: f64,
+    load: Load,
+}
 
 impl Drop for Cores {
     fn drop(&mut self) {
-        let mut held = HELD.lock().unwrap_or_else(|e| e.into_inner());
-        held.cores = (held.cores - self.0).max(0.0);
-        FREED.notify_all();
+        if self.load == Load::Idle {
+            let _ = idle_policy(false);
+        }
+        release(self.share, self.load);
+    }
+}
+
+/// Gives back a share of the cores, or the idle turn.
+fn release(share: f64, load: Load) {
+    let mut held = HELD.lock().unwrap_or_else(|e| e.into_inner());
+    held.cores = (held.cores - share).max(0.0);
+    held.idle &= load != Load::Idle;
+    held.whole &= load != Load::Whole;
+    FREED.notify_all();
+}
+
+/// libtest's default number of test threads for this binary, set before
+/// `main` (from a `.init_array` entry) unless `RUST_TEST_THREADS` is set;
+/// `--test-threads` still wins over both.
+pub fn default_test_threads(n: &str) {
+    if std::env::var_os("RUST_TEST_THREADS").is_none() {
+        std::env::set_var("RUST_TEST_THREADS", n);
     }
 }
 

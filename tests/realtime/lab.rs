@@ -14,7 +14,7 @@ use std::time::Duration;
 use common::Group;
 
 /// A lab in real time holds [`Load::Lab`] of the cores (two run side by
-/// side); a lab in lock-step takes what there is, [`Load::Whole`].
+/// side); a lab in lock-step takes what they leave, [`Load::Idle`].
 use common::Load;
 const LIMIT: Duration = Duration::from_secs(150);
 const BASE: [&str; 2] = ["timing=realtime", "duration=20"];
@@ -448,7 +448,7 @@ fn a_router_killed_for_3_s_every_follower_recovers_within_2_s() {
 /// network at the given wall time and the agents apply the table in
 /// software at the given run time).
 fn lockstep_equals_sim(tag: &str, sets: &[&str], extra: &[&str]) {
-    let _cores = common::cores(Load::Whole);
+    let _cores = common::cores(Load::Idle);
     if !lab_available() {
         return;
     }
@@ -634,7 +634,7 @@ fn lockstep_the_follower_that_hears_the_leader_restarted_rejoins_and_the_run_com
 }
 
 fn lockstep_restart(victim: &str, tag: &str) {
-    let _cores = common::cores(Load::Whole);
+    let _cores = common::cores(Load::Idle);
     if !lab_available() {
         return;
     }

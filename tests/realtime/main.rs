@@ -4,13 +4,27 @@
 //! (one file's: `cargo test --test realtime attacks::`). Every test here
 //! holds its share of the two cores while it runs (`common::cores`, its
 //! measured load): two real-time labs side by side, or a lab beside light
-//! runs, within `common::BUDGET`; lock-step runs, floods and 100 agents
-//! alone. A run's comparison with the model counts the tests beside it as
-//! the binary's own, budgeted load; that the tolerances hold beside it was
-//! measured over repeated runs (docs/performance.md).
+//! runs, within `common::BUDGET`; floods and 100 agents alone. A lock-step
+//! lab, whose verdict does not depend on time, runs beside them on what
+//! they leave (`SCHED_IDLE`, one at a time). A run's comparison with the
+//! model counts the tests beside it as the binary's own load; that the
+//! tolerances hold beside it was measured over repeated runs
+//! (docs/performance.md).
 
 #[path = "../common/mod.rs"]
 mod common;
+
+/// Eight tests at a time unless `RUST_TEST_THREADS` or `--test-threads`
+/// says otherwise: two labs run, a lock-step run takes what they leave
+/// (`Load::Idle`), and the tests waiting their turn each hold a thread.
+#[used]
+#[link_section = ".init_array"]
+static TEST_THREADS: extern "C" fn() = {
+    extern "C" fn eight() {
+        common::default_test_threads("8");
+    }
+    eight
+};
 
 mod attacks;
 mod lab;
