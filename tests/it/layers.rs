@@ -528,4 +528,13 @@ fn the_crates_built_unoptimised_are_exactly_the_host_only_ones() {
         unlisted.is_empty(),
         "{unlisted:?} run only inside the compiler: add them to Cargo.toml's [profile.dev.package] at opt-level 0"
     );
+    // The crates linked but cold (Cargo.toml says why): each still linked.
+    let cold: BTreeSet<String> = text
+        .lines()
+        .filter_map(|l| l.strip_suffix(" = { opt-level = 0 } # cold"))
+        .map(|n| n.trim().to_string())
+        .collect();
+    assert!(cold.len() >= 5, "Cargo.toml lists only {} cold crates: the list's form changed?", cold.len());
+    let gone: Vec<&String> = cold.difference(&target).collect();
+    assert!(gone.is_empty(), "Cargo.toml builds {gone:?} unoptimised as linked but cold, but no node links them");
 }
