@@ -130,7 +130,7 @@ pub enum Load {
     /// certified node's attack 0.74).
     Lab,
     /// The cores to itself: 50 and 100 agents in real time, floods, the
-    /// Python package's tests (one of which is judged on time).
+    /// Python package's one check judged on time.
     Whole,
     /// What the others leave: a lock-step run, whose verdict (equal to the
     /// simulator byte for byte) does not depend on time. Its thread, and so
@@ -192,10 +192,10 @@ pub fn cores(load: Load) -> Cores {
         held.idle = true;
         drop(held);
         if let Err(e) = idle_policy(true) {
-            release(0.0, Load::Idle);
+            release(Load::Idle);
             panic!("SCHED_IDLE for an idle test: {e}");
         }
-        return Cores { share: 0.0, load };
+        return Cores(load);
     }
     let want = load.cores();
     let whole = load == Load::Whole;
@@ -210,7 +210,7 @@ pub fn cores(load: Load) -> Cores {
     held.serving += 1;
     held.cores += want;
     FREED.notify_all();
-    Cores { share: want, load }
+    Cores(load)
 }
 
 /// This thread's scheduling policy (inherited by the processes it starts
@@ -229,37 +229,52 @@ fn idle_policy(idle: bool) -> std::io::Result<()> {
 
 /// A share of the cores (see [`cores`]); given back on drop, also when
 /// its test panicked.
-pub struct Cores {
-    share: f64,
-    load: Load,
-}
+pub struct Cores(Load);
 
 impl Drop for Cores {
     fn drop(&mut self) {
-        if self.load == Load::Idle {
+        if self.0 == Load::Idle {
             let _ = idle_policy(false);
         }
-        release(self.share, self.load);
+        release(self.0);
     }
 }
 
 /// Gives back a share of the cores, or the idle turn.
-fn release(share: f64, load: Load) {
+fn release(load: Load) {
     let mut held = HELD.lock().unwrap_or_else(|e| e.into_inner());
-    held.cores = (held.cores - share).max(0.0);
+    held.cores = (held.cores - load.cores()).max(0.0);
     held.idle &= load != Load::Idle;
     held.whole &= load != Load::Whole;
     FREED.notify_all();
 }
 
 /// libtest's default number of test threads for this binary, set before
-/// `main` (from a `.init_array` entry) unless `RUST_TEST_THREADS` is set;
-/// `--test-threads` still wins over both.
+/// `main` (from a `.init_array` entry, [`test_threads_by_default`]) unless
+/// `RUST_TEST_THREADS` is set; `--test-threads` still wins over both.
 pub fn default_test_threads(n: &str) {
     if std::env::var_os("RUST_TEST_THREADS").is_none() {
         std::env::set_var("RUST_TEST_THREADS", n);
     }
 }
+
+/// `common::test_threads_by_default!("N");` in a test binary's main.rs:
+/// its tests run N at a time unless told otherwise ([`default_test_threads`]).
+#[allow(unused_macros)] // containers.rs sets no default
+macro_rules! test_threads_by_default {
+    ($n:literal) => {
+        #[used]
+        #[link_section = ".init_array"]
+        static TEST_THREADS: extern "C" fn() = {
+            extern "C" fn set() {
+                common::default_test_threads($n);
+            }
+            set
+        };
+    };
+}
+#[allow(unused_imports)] // containers.rs sets no default
+pub(crate) use test_threads_by_default;
 
 /// A child process leading its own process group; the group is killed on drop.
 pub struct Group(pub Child);

@@ -15,19 +15,12 @@
 #[path = "../common/mod.rs"]
 mod common;
 
-/// Four tests at a time unless `RUST_TEST_THREADS` or `--test-threads`
-/// says otherwise (libtest's default is one per core): most of these tests
-/// wait on the processes they started (130 s with 2, 80 s with 4;
-/// docs/performance.md). Not more: the few real-time runs here are judged
-/// on their end state, and 8 made one of them miss it (2 runs of 2).
-#[used]
-#[link_section = ".init_array"]
-static TEST_THREADS: extern "C" fn() = {
-    extern "C" fn four() {
-        common::default_test_threads("4");
-    }
-    four
-};
+// Four tests at a time unless `RUST_TEST_THREADS` or `--test-threads`
+// says otherwise (libtest's default is one per core): most of these tests
+// wait on the processes they started (130 s with 2, 80 s with 4;
+// docs/performance.md). Not more: the few real-time runs here are judged
+// on their end state, and 8 made one of them miss it (2 runs of 2).
+common::test_threads_by_default!("4");
 
 mod certs_safety;
 mod cli_generate;

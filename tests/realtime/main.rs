@@ -14,17 +14,10 @@
 #[path = "../common/mod.rs"]
 mod common;
 
-/// Eight tests at a time unless `RUST_TEST_THREADS` or `--test-threads`
-/// says otherwise: two labs run, a lock-step run takes what they leave
-/// (`Load::Idle`), and the tests waiting their turn each hold a thread.
-#[used]
-#[link_section = ".init_array"]
-static TEST_THREADS: extern "C" fn() = {
-    extern "C" fn eight() {
-        common::default_test_threads("8");
-    }
-    eight
-};
+// Eight tests at a time unless `RUST_TEST_THREADS` or `--test-threads`
+// says otherwise: two labs run, a lock-step run takes what they leave
+// (`Load::Idle`), and the tests waiting their turn each hold a thread.
+common::test_threads_by_default!("8");
 
 mod attacks;
 mod lab;
