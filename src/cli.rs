@@ -61,6 +61,14 @@ pub enum Command {
     /// Measure the networked formation: lock-step steps/s, real-time loop jitter, one-hop latency.
     #[command(allow_negative_numbers = true)]
     BenchNet(formation_bench::net::BenchNetArgs),
+    /// The networked formation at nominal timing against its model: the
+    /// lab's faults (join, leave, quorum, cut-off, sites, clocks, handover)
+    /// and 50 and 100 agents in real time, one at a time with the machine to
+    /// themselves; each run's late source-steps and figures beside the
+    /// model's, judged when the run kept its period. A table, verify.csv
+    /// and verify.json. The lab's studies need root.
+    #[command(allow_negative_numbers = true)]
+    Verify(formation_bench::verify::VerifyArgs),
     /// A stand-in robot that speaks ROS 2: follower ID's velocity-commanded
     /// robot (robot.model = "velocity"), driven on /follower_ID/cmd_vel,
     /// publishing /follower_ID/odom and /tf over zenoh as rmw_zenoh does
@@ -237,6 +245,7 @@ pub fn main() -> ExitCode {
             formation_net::session::default_runtime();
             formation_bench::net::run(&a).map_err(Into::into)
         }
+        Command::Verify(a) => formation_bench::verify::run(&a).map_err(Into::into),
         Command::Certs(a) => formation_launch::certs::run(&a).map_err(Into::into),
         Command::Generate(a) => generate(&a),
         Command::Replay(a) => crate::replay::run(&a),

@@ -22,6 +22,9 @@
 
 mod common;
 
+// One line at the end: the tests skipped, and why.
+common::test_binary!();
+
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
@@ -50,7 +53,7 @@ fn available() -> bool {
         std::env::var("FORMATION_CONTAINERS_REQUIRED").as_deref() != Ok("1"),
         "FORMATION_CONTAINERS_REQUIRED=1 but containers cannot run here: {why}"
     );
-    eprintln!("skipped: containers cannot run here ({why})");
+    common::skipped(&format!("containers cannot run here ({why})"));
     false
 }
 
@@ -338,7 +341,7 @@ fn compose_available() -> bool {
         std::env::var("FORMATION_CONTAINERS_REQUIRED").as_deref() != Ok("1"),
         "FORMATION_CONTAINERS_REQUIRED=1 but the compose file cannot run here: {why}"
     );
-    eprintln!("skipped: the compose file cannot run here ({why})");
+    common::skipped(&format!("the compose file cannot run here ({why})"));
     false
 }
 

@@ -4,7 +4,9 @@
 //! floor of plain zenoh ([`floor`]: its processes are the command line's
 //! hidden `formation bench-floor`), the hearing record's cost ([`hearing`]),
 //! the stand-in robots' ([`ros2`]) and round trips between namespaces
-//! ([`netns`]). Every figure is measured here, never by timing a test.
+//! ([`netns`]), and the networked formation at nominal timing against its
+//! model ([`verify`], `formation verify`). Every figure is measured here,
+//! never by timing a test.
 
 pub mod floor;
 pub mod hearing;
@@ -12,6 +14,7 @@ pub mod net;
 pub mod netns;
 pub mod ros2;
 pub mod sim;
+pub mod verify;
 
 use formation_launch::error::Error;
 

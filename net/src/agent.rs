@@ -700,6 +700,15 @@ async fn rejoin(
         Joining::At(k) => k,
         Joining::ListenFirst(listen) => {
             tokio::time::sleep(listen).await;
+            // A loaded host may deliver the neighbours' repeats late: listen
+            // on in turns until every neighbour is heard, for at most
+            // LISTEN_LIMIT of this node's own time awake (a neighbour gone
+            // meanwhile is not waited for longer).
+            let clock = timebase.clock();
+            let mut patience = formation_protocol::patience::Patience::new(clock.mono(), LISTEN_TURN);
+            while !shared.lock().lockstep_heard_every_neighbour() && patience.look(clock.mono()) < LISTEN_LIMIT {
+                tokio::time::sleep(LISTEN_TURN).await;
+            }
             shared.lock().lockstep_resume_step()
         }
     };
@@ -938,3 +947,8 @@ impl Node {
 /// How long a node waits after the start for its first estimate of the
 /// leader's clock.
 const TIME_LIMIT: Duration = Duration::from_secs(5);
+
+/// A lock-step restart listening for its neighbours' repeats: how often it
+/// looks whether all were heard, and for how long at most.
+const LISTEN_TURN: Duration = Duration::from_millis(100);
+const LISTEN_LIMIT: Duration = Duration::from_secs(10);

@@ -131,6 +131,9 @@ fn origin() -> Instant {
 pub struct Timebase {
     clock: Clock,
     kind: Kind,
+    /// The leader's stamped messages heard ([`Timebase::leader_sent`]):
+    /// signs that it lives, for a wait on its clock.
+    heard: Arc<std::sync::atomic::AtomicU64>,
 }
 
 #[derive(Clone, Debug)]
@@ -148,12 +151,16 @@ impl Timebase {
     /// The leader's timebase on `clock`, started now.
     pub fn leader(clock: &Clock) -> Self {
         let mono = clock.mono_ns();
-        Timebase { kind: Own(clock.unix_ns() as i64 - mono), clock: clock.clone() }
+        Timebase { kind: Own(clock.unix_ns() as i64 - mono), clock: clock.clone(), heard: Default::default() }
     }
 
     /// A node's estimate on `clock`, with no exchange yet.
     pub fn estimated(clock: &Clock) -> Self {
-        Timebase { kind: Estimated(Arc::new(Mutex::new(Offset::new()))), clock: clock.clone() }
+        Timebase {
+            kind: Estimated(Arc::new(Mutex::new(Offset::new()))),
+            clock: clock.clone(),
+            heard: Default::default(),
+        }
     }
 
     /// The node's clock under this timebase.
@@ -182,9 +189,15 @@ impl Timebase {
 
     /// A message the leader stamped `sent_ns` on its timebase arrived now.
     pub fn leader_sent(&self, sent_ns: i64) {
+        self.heard.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         if let Estimated(o) = &self.kind {
             Self::offset(o).leader_sent(sent_ns, self.clock.mono_ns());
         }
+    }
+
+    /// How many of the leader's stamped messages were heard so far.
+    pub fn leader_heard(&self) -> u64 {
+        self.heard.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// What the clock guard saw so far.

@@ -194,23 +194,45 @@ pub async fn ask_all(session: &zenoh::Session, key: &str, clock: &Clock) -> Vec<
     answers
 }
 
-/// A node after the start: waits (up to `limit`) until its timebase has an
-/// estimate; otherwise the error names what it could not reach.
+/// A node after the start: waits until its timebase has an estimate. It
+/// gives up after `limit` of silence, counted as [`Patience`] counts it:
+/// only the time this node was awake to watch, from the leader's last word
+/// (its start announcements come every 100 ms: a leader that speaks is slow
+/// to answer, not gone); and after [`ALIVE_LIMIT`] times `limit` of
+/// watching a leader that speaks but never answers. The error names which.
 pub async fn wait_for_estimate(timebase: &Timebase, keys: &Keys, me: &str, limit: Duration) -> Result<(), Error> {
-    let began = timebase.clock().mono();
+    let clock = timebase.clock();
+    let (mut silent, mut watched) =
+        (Patience::new(clock.mono(), FIRST_EVERY), Patience::new(clock.mono(), FIRST_EVERY));
     while timebase.estimate().is_none() {
-        if timebase.clock().mono().saturating_sub(began) > limit {
+        let now = clock.mono();
+        silent.alive(now, timebase.leader_heard());
+        if silent.look(now) > limit {
             return Err(Error::Input(format!(
-                "{me}: cannot estimate the leader's clock: no answer on {} within {} s (is the leader reachable \
-                 from this host, and of this build?)",
+                "{me}: cannot estimate the leader's clock: no answer on {} and no word from the leader for {} s \
+                 (of this node's own time awake; is the leader reachable from this host, and of this build?)",
                 keys.time(),
                 limit.as_secs()
+            )));
+        }
+        if watched.look(now) > limit * ALIVE_LIMIT {
+            return Err(Error::Input(format!(
+                "{me}: cannot estimate the leader's clock: the leader is heard but has not answered on {} in {} s \
+                 (of this node's own time awake)",
+                keys.time(),
+                (limit * ALIVE_LIMIT).as_secs()
             )));
         }
         tokio::time::sleep(FIRST_EVERY).await;
     }
     Ok(())
 }
+
+/// A leader heard but never answering is given this many times the limit
+/// of a silent one.
+const ALIVE_LIMIT: u32 = 12;
+
+use formation_protocol::patience::Patience;
 
 #[cfg(test)]
 mod tests {

@@ -375,6 +375,10 @@ pub struct Join {
     needs: Vec<String>,
     heard: Heard,
     began: Now,
+    /// The time waited that counts against [`START_TIMEOUT`]: only what
+    /// this node was awake to watch (a node not run for seconds has not
+    /// waited seconds for the others, [`crate::patience`]).
+    patience: crate::patience::Patience,
     readies: u64,
     warned: bool,
     /// Whom it waits for is said (or, under a launch, left to the leader's
@@ -410,6 +414,7 @@ impl Join {
             needs: needs.to_vec(),
             heard: Heard::new(scenario, needs),
             began: now,
+            patience: crate::patience::Patience::new(now, IDLE_TICK),
             readies: 0,
             warned: false,
             said_waiting: false,
@@ -457,7 +462,7 @@ impl Join {
             )));
         }
         let waiting = h.missing(&h.hello, &self.needs);
-        if now.saturating_sub(self.began) > START_TIMEOUT {
+        if self.patience.look(now) > START_TIMEOUT {
             if waiting.is_empty() && foreign_for.is_some() {
                 return JoinStep::Failed(Error::Input(format!(
                     "node {me}: no start for this scenario within {} s; ignored {} start announcements of run \
@@ -544,6 +549,10 @@ pub struct Lead {
     expect_ready: Vec<String>,
     heard: Heard,
     began: Now,
+    /// The time waited that counts against [`START_TIMEOUT`]: only what
+    /// this node was awake to watch (a node not run for seconds has not
+    /// waited seconds for the others, [`crate::patience`]).
+    patience: crate::patience::Patience,
     warned: BTreeSet<String>,
     said_waiting: bool,
     quiet: Quiet,
@@ -613,6 +622,7 @@ impl Lead {
             expect_ready: expect_ready.to_vec(),
             heard: Heard::new(scenario, expect_ready),
             began: now,
+            patience: crate::patience::Patience::new(now, IDLE_TICK),
             warned: BTreeSet::new(),
             said_waiting: false,
             quiet: Quiet { news: 0, since: Some(now) },
@@ -700,7 +710,7 @@ impl Lead {
         }
         let waiting: BTreeSet<String> = hello_missing.into_iter().chain(ready_missing).collect();
         let waiting = waiting.into_iter().collect::<Vec<_>>().join(", ");
-        if now.saturating_sub(self.began) > START_TIMEOUT {
+        if self.patience.look(now) > START_TIMEOUT {
             return LeadStep::Failed(Error::Run(format!(
                 "leader: nodes {waiting} of run {run} not ready within {} s",
                 START_TIMEOUT.as_secs()
@@ -886,6 +896,10 @@ mod tests {
         let (s, t0) = (paper(&[]), Now::ZERO);
         let mut j = Join::new("2", "r", &names(&["1", "3", "0"]), &s, t0);
         j.on_hello("1");
+        // Looking every second, as an idle waiting node does.
+        for i in 1..START_TIMEOUT.as_secs() {
+            assert!(matches!(j.poll(t0 + Duration::from_secs(i)), JoinStep::Wait { .. }), "{i} s");
+        }
         assert!(matches!(j.poll(t0 + START_TIMEOUT), JoinStep::Wait { .. }), "not before the timeout");
         match j.poll(t0 + START_TIMEOUT + TICK) {
             JoinStep::Failed(Error::Run(m)) => {
@@ -896,6 +910,9 @@ mod tests {
         // Every node heard, but no start: the leader's start is what is missing.
         let mut j = Join::new("monitor", "r", &names(&["0"]), &s, t0);
         j.on_hello("0");
+        for i in 1..=START_TIMEOUT.as_secs() {
+            j.poll(t0 + Duration::from_secs(i));
+        }
         match j.poll(t0 + START_TIMEOUT + TICK) {
             JoinStep::Failed(Error::Run(m)) => assert!(m.contains("no word from the leader's start"), "{m}"),
             other => panic!("{other:?}"),
@@ -1145,12 +1162,29 @@ mod tests {
         let mut l = Lead::new("r", &names(&["1", "2"]), &names(&["1", "2", "monitor"]), &s, t0);
         l.on_hello("1");
         l.on_ready("1", ready(&s), t0);
+        for i in 1..START_TIMEOUT.as_secs() {
+            assert!(matches!(l.poll(t0 + Duration::from_secs(i)), LeadStep::Wait { .. }), "{i} s");
+        }
         assert!(matches!(l.poll(t0 + START_TIMEOUT), LeadStep::Wait { .. }));
         match l.poll(t0 + START_TIMEOUT + TICK) {
             LeadStep::Failed(Error::Run(m)) => {
                 assert_eq!(m, "leader: nodes 2, monitor of run r not ready within 120 s")
             }
             other => panic!("{other:?}"),
+        }
+    }
+
+    /// A leader and an agent that were not run for minutes (a loaded host)
+    /// have not waited minutes: the time limit counts what they watched.
+    #[test]
+    fn nodes_not_run_for_minutes_have_not_waited_minutes() {
+        let (s, t0) = (paper(&[]), Now::ZERO);
+        let mut l = Lead::new("r", &names(&["1", "2"]), &names(&["1", "2", "monitor"]), &s, t0);
+        let mut j = Join::new("2", "r", &names(&["1", "3", "0"]), &s, t0);
+        for minutes in [3, 6, 9] {
+            let now = t0 + Duration::from_secs(60 * minutes);
+            assert!(matches!(l.poll(now), LeadStep::Wait { .. }), "the leader after {minutes} min starved");
+            assert!(matches!(j.poll(now), JoinStep::Wait { .. }), "the agent after {minutes} min starved");
         }
     }
 }

@@ -634,6 +634,12 @@ impl Follower {
         gate::resume_step(&heard)
     }
 
+    /// Lock-step, a restart listening: whether every neighbour has been
+    /// heard (where the least advanced waits is known only then).
+    pub fn lockstep_heard_every_neighbour(&self) -> bool {
+        (0..self.rules.neighbours.len()).all(|s| self.inbox.heard_max(s).is_some())
+    }
+
     /// The run begins: `start` as the leader announced it, at `now`; from
     /// step 0, or a restart's `resume` step with its robot stopped at the pose.
     pub fn start(&mut self, start: &Start, resume: Option<(u64, Pose)>, now: Now) {
@@ -773,7 +779,13 @@ impl Follower {
     /// Lock-step: the step's inputs are not all in; repeat, warn or give up.
     fn wait_for_inputs(&mut self, k: u64, now: Now) {
         let stall = self.rules.stall_timeout;
+        // Whatever the sources it waits for send (a waiting neighbour
+        // repeats its last messages) says they are alive: the stall timeout
+        // counts from their last word, in time this node was awake to watch.
+        let missing = self.inbox.missing(k);
+        let signs = self.inbox.signs_of_life(&missing);
         let wait = self.wait.get_or_insert_with(|| gate::Wait::new(now, gate::FOLLOWER_REPEAT_EVERY, stall));
+        wait.alive(now, signs);
         let waited = wait.waited(now);
         let gate::WaitStep::Wait { repeat, warn } = wait.poll(now) else {
             let (names, n) = self.missing(k);

@@ -8,6 +8,7 @@
 use std::collections::VecDeque;
 use std::time::Duration;
 
+use crate::patience::Patience;
 use crate::Now;
 
 use crate::inbox::LOCKSTEP_AHEAD;
@@ -174,10 +175,12 @@ pub enum WaitStep {
 /// its step's inputs, the leader's for its window, or either's linger
 /// after its last step. Repeats come on the wait's own clock, not only
 /// after a quiet period: nodes that keep waking each other with their
-/// repeats would otherwise never repeat anything.
+/// repeats would otherwise never repeat anything. Its limit counts only the
+/// time the node was awake to watch, from the last sign of life of those
+/// it waits for ([`Patience`]): slow is not gone.
 #[derive(Clone, Debug)]
 pub struct Wait {
-    began: Now,
+    patience: Patience,
     said: Now,
     every: Duration,
     limit: Duration,
@@ -187,25 +190,33 @@ pub struct Wait {
 impl Wait {
     /// A wait begun at `now` that repeats `every` and is over after `limit`.
     pub fn new(now: Now, every: Duration, limit: Duration) -> Self {
-        Self { began: now, said: now, every, limit, warned: false }
+        Self { patience: Patience::new(now, every), said: now, every, limit, warned: false }
     }
 
-    /// How long it has waited at `now`.
+    /// How long it has waited at `now`, as [`Patience`] counts it.
     pub fn waited(&self, now: Now) -> Duration {
-        now.saturating_sub(self.began)
+        self.patience.waited(now)
+    }
+
+    /// `signs`: what those waited for have sent so far (a count that grows
+    /// while they live, [`crate::inbox::Inbox::signs_of_life`]); a new
+    /// count starts the wait's limit again.
+    pub fn alive(&mut self, now: Now, signs: u64) {
+        self.patience.alive(now, signs);
     }
 
     /// When the wait next has something to do: its next repeat, or its end.
     pub fn next_wake(&self) -> Now {
-        (self.said + self.every).min(self.began + self.limit + Duration::from_nanos(1))
+        (self.said + self.every).min(self.patience.reaches(self.limit) + Duration::from_nanos(1))
     }
 
     /// What to do at `now`.
     pub fn poll(&mut self, now: Now) -> WaitStep {
-        if self.waited(now) > self.limit {
+        let waited = self.patience.look(now);
+        if waited > self.limit {
             return WaitStep::Over;
         }
-        let warn = !self.warned && self.waited(now) > STALL_WARNING;
+        let warn = !self.warned && waited > STALL_WARNING;
         self.warned |= warn;
         let repeat = now.saturating_sub(self.said) >= self.every;
         if repeat {
@@ -353,5 +364,27 @@ mod tests {
         assert_eq!(warns, [5_001], "once, just past {STALL_WARNING:?}");
         assert_eq!(w.poll(ms(8_001)), WaitStep::Over);
         assert_eq!(w.waited(ms(8_001)), Duration::from_millis(8_001));
+    }
+
+    /// A node not run for a minute (a loaded host) has not waited a minute
+    /// for its neighbours; a neighbour that repeats is alive however long
+    /// it takes; one that says nothing while this node watches is gone.
+    #[test]
+    fn a_wait_gives_up_only_on_time_watched_without_a_sign_of_life() {
+        let ms = |m: u64| Now::ZERO + Duration::from_millis(m);
+        let limit = Duration::from_secs(8);
+        let mut w = Wait::new(ms(0), FOLLOWER_REPEAT_EVERY, limit);
+        w.poll(ms(100));
+        assert_eq!(w.poll(ms(60_100)), WaitStep::Wait { repeat: true, warn: false }, "starved 60 s: 0.3 s counted");
+        // A neighbour repeating every 100 ms for a minute: never over.
+        for i in 1..=600 {
+            let now = ms(60_100 + 100 * i);
+            w.alive(now, i);
+            assert_ne!(w.poll(now), WaitStep::Over, "a neighbour that speaks is slow, not gone ({i} repeats)");
+        }
+        // Then silence, watched: over after the limit, not before.
+        let t = 120_100;
+        let polls: Vec<u64> = (1..=90).map(|i| t + 100 * i).filter(|&m| w.poll(ms(m)) == WaitStep::Over).collect();
+        assert_eq!(polls.first(), Some(&(t + 8_100)), "over just past the limit of silence watched");
     }
 }

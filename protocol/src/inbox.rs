@@ -53,6 +53,9 @@ pub struct Inbox {
     newest: Vec<Option<u64>>,
     /// Per source, the furthest step heard (see [`Inbox::heard_max`]).
     heard_max: Vec<Option<u64>>,
+    /// Per source, the checked messages heard, accepted or not (see
+    /// [`Inbox::signs_of_life`]).
+    heard: Vec<u64>,
     /// Real time: the recent messages per source, in step order.
     history: Vec<VecDeque<(u64, Message)>>,
     pub counters: Counters,
@@ -111,6 +114,7 @@ impl Inbox {
             pending: vec![BTreeMap::new(); sources],
             newest: vec![None; sources],
             heard_max: vec![None; sources],
+            heard: vec![0; sources],
             history: vec![VecDeque::new(); sources],
             counters: Counters::default(),
             lockstep,
@@ -165,6 +169,14 @@ impl Inbox {
     /// neighbours wait).
     pub fn heard_max(&self, slot: usize) -> Option<u64> {
         self.heard_max[slot]
+    }
+
+    /// How many checked messages `slots` sent, accepted or not (a repeat
+    /// of a step already held included): a lock-step neighbour that
+    /// waits itself repeats its last messages, so a count that grows says
+    /// it is alive, however slow ([`crate::patience`]).
+    pub fn signs_of_life(&self, slots: &[usize]) -> u64 {
+        slots.iter().filter_map(|&s| self.heard.get(s)).sum()
     }
 
     /// The least advanced of the first `slots` sources, by the furthest step
@@ -248,6 +260,7 @@ impl Inbox {
     /// whether it was filed (and its latency worth measuring).
     pub fn accept(&mut self, slot: usize, msg: &EstimateMsg) -> bool {
         let step = msg.header.step;
+        self.heard[slot] += 1;
         let seen = &mut self.heard_max[slot];
         *seen = Some(seen.map_or(step, |m| m.max(step)));
         if step > self.limit(slot) {

@@ -108,6 +108,9 @@ pub struct Leader {
     timer: Option<LoopTimer>,
     /// Lock-step: the newest step each hearing follower has published.
     reached: Vec<Option<u64>>,
+    /// Per hearing follower, its messages counted in `reached`: signs that
+    /// it lives ([`gate::Wait::alive`]).
+    heard_from: Vec<u64>,
     /// The newest step the leader has published.
     published: u64,
     /// Lock-step: the wait for the window, once it waits.
@@ -145,6 +148,7 @@ impl Leader {
             batch_len,
             lockstep: scenario.timing == Timing::Lockstep,
             reached: vec![None; hearing.len()],
+            heard_from: vec![0; hearing.len()],
             hearing,
             trajectory,
             state,
@@ -316,7 +320,11 @@ impl Leader {
     pub fn handle_estimate(&mut self, key_id: Option<u32>, bytes: &[u8]) -> bool {
         let Some(slot) = key_id.and_then(|id| self.hearing.iter().position(|&h| h == id)) else { return false };
         let Ok(m) = wire::decode(bytes) else { return false };
-        note_reached(&mut self.reached, slot, key_id, &m.header, self.published) && self.may_step()
+        if !note_reached(&mut self.reached, slot, key_id, &m.header, self.published) {
+            return false;
+        }
+        self.heard_from[slot] += 1;
+        self.may_step()
     }
 
     /// Hearing follower `id` reported its final step (lock-step).
@@ -487,7 +495,13 @@ impl Leader {
     /// follower may lack, warn once, or give up after [`gate::LEADER_STALL`].
     fn wait_for_window(&mut self, k: u64, now: Now) {
         let need = gate::leader_needs(k + 1).unwrap_or(0);
+        // The followers that hold the window up, alive while they speak.
+        let signs: u64 = (self.reached.iter().zip(&self.heard_from))
+            .filter(|(r, _)| !r.is_some_and(|s| s >= need))
+            .map(|(_, n)| n)
+            .sum();
         let wait = self.wait.get_or_insert_with(|| gate::Wait::new(now, gate::LEADER_REPEAT_EVERY, gate::LEADER_STALL));
+        wait.alive(now, signs);
         let waited = wait.waited(now);
         let gate::WaitStep::Wait { repeat, warn } = wait.poll(now) else {
             let why =

@@ -13,7 +13,7 @@
 //! | names and encodings | [`names`], [`codec`], [`counters`], [`error`], [`denied`] (access-control reports) |
 //! | start-up | [`barrier`] (the start barrier), [`claim`] (which of two processes started for one node keeps it), [`clock_estimate`] (the leader's clock as another node estimates it) and [`clockguard`] (which answers are the leader's) |
 //! | receiving | [`inbox`] (checks, the fault table, freshness), [`latency`], [`hearing`] (what was heard, for the record) |
-//! | lock-step | [`gate`] (look-ahead, repeats, stalls) |
+//! | lock-step | [`gate`] (look-ahead, repeats, stalls), [`patience`] (waits that take slow for slow, not gone) |
 //! | telemetry | [`telemetry`] (the messages), [`courier`] (what is kept until acknowledged), [`loop_timing`] (how late each step woke) |
 //! | safety | [`poses`] (the other robots' poses, for the safety filter) |
 //! | one follower | [`follower`]: all of the above for one agent, as one machine |
@@ -35,6 +35,7 @@ pub mod latency;
 pub mod leader;
 pub mod loop_timing;
 pub mod names;
+pub mod patience;
 pub mod poses;
 pub mod telemetry;
 pub mod testing;

@@ -55,29 +55,38 @@ impl From<Signal> for Ending {
 pub struct Watch {
     began: Instant,
     idle: Duration,
-    last_heard: Instant,
     started_at: Option<Instant>,
+    /// Silence counted against `idle` since the last telemetry, and the
+    /// last look ([`Watch::on_tick`]).
+    silent: Duration,
+    looked: Instant,
 }
+
+/// The most one gap between two of the monitor's looks counts as silence:
+/// it looks every 2 s (0.25 s on a terminal) while it runs, and a longer
+/// gap is time it was not run itself, which says nothing of the others
+/// (a loaded host: slow is not gone, `formation_protocol::patience`).
+pub const LOOK_CAP: Duration = Duration::from_secs(4);
 
 impl Watch {
     /// A monitor started at `began`, listening from `now`, that gives up
     /// after `idle` without telemetry.
     pub fn new(began: Instant, now: Instant, idle: Duration) -> Self {
-        Self { began, idle, last_heard: now, started_at: None }
+        Self { began, idle, started_at: None, silent: Duration::ZERO, looked: now }
     }
 
     /// The leader's start arrived at `now`: the seconds from the monitor's
     /// start (network.json's `startup_s`). The idle clock restarts.
     pub fn on_start(&mut self, now: Instant) -> f64 {
         self.started_at.get_or_insert(now);
-        self.last_heard = now;
+        self.heard(now);
         self.startup_s().unwrap_or(0.0)
     }
 
     /// Telemetry arrived at `now`; `complete`: the record now holds every
     /// node's final step. The run is then over.
     pub fn on_telemetry(&mut self, now: Instant, complete: bool) -> Option<Ending> {
-        self.last_heard = now;
+        self.heard(now);
         complete.then_some(Ending::Complete)
     }
 
@@ -86,10 +95,20 @@ impl Watch {
         complete.then_some(Ending::Complete)
     }
 
-    /// The periodic check at `now`: over once nothing was heard for the
-    /// idle timeout (before the start as after it).
-    pub fn on_tick(&self, now: Instant) -> Option<Ending> {
-        (now.saturating_duration_since(self.last_heard) > self.idle).then_some(Ending::Idle)
+    fn heard(&mut self, now: Instant) {
+        self.silent = Duration::ZERO;
+        self.looked = now;
+    }
+
+    /// The periodic check at `now`: over once the run has been silent for
+    /// the idle timeout, counting each gap between looks up to
+    /// [`LOOK_CAP`]. Before the start the start barrier's own limit
+    /// decides (its nodes may take long to come on a slow host; the
+    /// barrier knows whom it waits for).
+    pub fn on_tick(&mut self, now: Instant) -> Option<Ending> {
+        self.silent += now.saturating_duration_since(self.looked).min(LOOK_CAP);
+        self.looked = now;
+        (self.started() && self.silent > self.idle).then_some(Ending::Idle)
     }
 
     pub fn started(&self) -> bool {
@@ -120,19 +139,41 @@ mod tests {
     fn a_run_is_idle_only_after_the_idle_timeout_without_telemetry() {
         let t0 = Instant::now();
         let s = |x: f64| t0 + Duration::from_secs_f64(x);
+        // Looks every 2 s up to `to` (as the monitor's status tick does).
+        fn ticks(w: &mut Watch, s: impl Fn(f64) -> Instant, from: f64, to: f64) -> Option<Ending> {
+            let mut t = from;
+            while t + 2.0 < to {
+                t += 2.0;
+                assert_eq!(w.on_tick(s(t)), None, "at {t} s");
+            }
+            w.on_tick(s(to))
+        }
         let mut w = Watch::new(t0, t0, Duration::from_secs(60));
         assert!(!w.started());
-        assert_eq!(w.on_tick(s(60.0)), None, "not before the timeout");
-        assert_eq!(w.on_tick(s(60.1)), Some(Ending::Idle), "nobody came");
-        assert_eq!(w.on_start(s(1.5)), 1.5);
-        assert_eq!(w.on_start(s(9.0)), 1.5, "the first start counts");
-        assert_eq!(w.on_tick(s(61.4)), None, "the start restarted the idle clock");
-        assert_eq!(w.on_telemetry(s(30.0), false), None);
-        assert_eq!(w.on_tick(s(90.0)), None);
-        assert_eq!(w.on_tick(s(90.1)), Some(Ending::Idle));
-        assert_eq!(w.on_telemetry(s(95.0), true), Some(Ending::Complete));
-        assert_eq!(w.run_s(s(95.0)), Some(93.5));
-        assert_eq!(w.startup_s(), Some(1.5));
-        assert_eq!(w.wall_s(s(95.0)), 95.0);
+        assert_eq!(ticks(&mut w, s, 0.0, 100.0), None, "before the start the barrier decides");
+        assert_eq!(w.on_start(s(101.5)), 101.5);
+        assert_eq!(w.on_start(s(109.0)), 101.5, "the first start counts");
+        assert_eq!(ticks(&mut w, s, 109.0, 169.0), None, "not before the timeout, the start restarted it");
+        assert_eq!(w.on_tick(s(169.1)), Some(Ending::Idle));
+        assert_eq!(w.on_telemetry(s(170.0), false), None);
+        assert_eq!(ticks(&mut w, s, 170.0, 230.0), None);
+        assert_eq!(w.on_tick(s(230.1)), Some(Ending::Idle));
+        assert_eq!(w.on_telemetry(s(235.0), true), Some(Ending::Complete));
+        assert_eq!(w.run_s(s(235.0)), Some(133.5));
+        assert_eq!(w.startup_s(), Some(101.5));
+        assert_eq!(w.wall_s(s(235.0)), 235.0);
+    }
+
+    /// A monitor not run for minutes (a loaded host) has not heard silence
+    /// for minutes: each gap counts at most [`LOOK_CAP`].
+    #[test]
+    fn a_monitor_not_run_for_minutes_is_not_idle() {
+        let t0 = Instant::now();
+        let s = |x: f64| t0 + Duration::from_secs_f64(x);
+        let mut w = Watch::new(t0, t0, Duration::from_secs(60));
+        w.on_start(s(1.0));
+        for (i, t) in [200.0, 400.0, 600.0].into_iter().enumerate() {
+            assert_eq!(w.on_tick(s(t)), None, "look {i} after a gap of minutes");
+        }
     }
 }

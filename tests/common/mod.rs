@@ -117,9 +117,13 @@ impl Ports {
 }
 
 /// The share of the machine's two cores a test of the `realtime` binary
-/// runs with: its processes' CPU time over its wall time, measured one test
+/// asks for: its processes' CPU time over its wall time, measured one test
 /// at a time (docs/performance.md, "The real-time tests share the cores
-/// by their load"), rounded up to a class.
+/// by their load"), rounded up to a class. The shares decide how many tests
+/// run at once, not any verdict: a real-time run beside others is compared
+/// with the model only if its own record says it kept the period
+/// ([`judge_if_timely`]), and a lock-step run's verdict does not depend on
+/// time at all.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Load {
     /// Up to 0.3 cores: the ROS 2 robots, a six-node launch at 100–200 Hz
@@ -129,25 +133,22 @@ pub enum Load {
     /// 1 kHz, a real-time run under attack (measured 0.45–0.60; the
     /// certified node's attack 0.74).
     Lab,
-    /// The cores to itself: 50 and 100 agents in real time, floods, the
-    /// Python package's one check judged on time.
+    /// A lock-step run, whose verdict (equal to the simulator byte for
+    /// byte) does not depend on time: it takes what the cores give
+    /// (1.2–1.6 alone) at the normal priority, and is counted as a lab, so
+    /// that at most one real-time lab runs beside it.
+    Lockstep,
+    /// The cores to itself: 50 and 100 agents, floods, the Python
+    /// package's one check on threads run at once.
     Whole,
-    /// What the others leave: a lock-step run, whose verdict (equal to the
-    /// simulator byte for byte) does not depend on time. Its thread, and so
-    /// every process it starts, runs under `SCHED_IDLE`: the kernel runs it
-    /// only on a core no other task wants, and a real-time node that wakes
-    /// takes the core from it at once. One at a time, never beside a
-    /// `Whole` test, outside [`BUDGET`].
-    Idle,
 }
 
 impl Load {
     fn cores(self) -> f64 {
         match self {
             Load::Light => 0.3,
-            Load::Lab => 0.6,
+            Load::Lab | Load::Lockstep => 0.6,
             Load::Whole => BUDGET,
-            Load::Idle => 0.0,
         }
     }
 }
@@ -155,8 +156,7 @@ impl Load {
 /// The cores the `realtime` binary's tests may hold at once, of two: two
 /// labs side by side, or a lab and two light runs; a `Whole` test alone.
 /// The rest is the host's, the test harness's and the slack a 1 kHz loop
-/// needs (and an `Idle` test's). Why it is 1.2 and how often the tests held
-/// at it: docs/performance.md.
+/// needs. docs/performance.md says how it was measured.
 pub const BUDGET: f64 = 1.2;
 
 /// The cores the running tests of this binary hold, and the queue.
@@ -165,66 +165,27 @@ struct Held {
     /// The next ticket to hand out, and the one that starts next.
     next: u64,
     serving: u64,
-    /// Whether an `Idle` test runs, whether a `Whole` one does, and how
-    /// many `Whole` tests wait.
-    idle: bool,
-    whole: bool,
-    whole_waiting: usize,
 }
 
-static HELD: Mutex<Held> =
-    Mutex::new(Held { cores: 0.0, next: 0, serving: 0, idle: false, whole: false, whole_waiting: 0 });
+static HELD: Mutex<Held> = Mutex::new(Held { cores: 0.0, next: 0, serving: 0 });
 static FREED: std::sync::Condvar = std::sync::Condvar::new();
 
 /// `load`'s share of the cores, held until dropped. Tests start in the
 /// order they ask (libtest's, by name), each once the tests running beside
 /// it leave room within [`BUDGET`] (always when none runs): a `Whole` test
 /// waiting for the cores to itself is not overtaken by a stream of labs.
-/// `Idle` tests queue apart (they hold no share, so they hold up no one).
-/// A real-time test's comparison with the model counts the tests beside it
-/// as this binary's own load ([`Host`]): they are budgeted here.
 pub fn cores(load: Load) -> Cores {
     let mut held = HELD.lock().unwrap_or_else(|e| e.into_inner());
-    if load == Load::Idle {
-        while held.idle || held.whole || held.whole_waiting > 0 {
-            held = FREED.wait(held).unwrap_or_else(|e| e.into_inner());
-        }
-        held.idle = true;
-        drop(held);
-        if let Err(e) = idle_policy(true) {
-            release(Load::Idle);
-            panic!("SCHED_IDLE for an idle test: {e}");
-        }
-        return Cores(load);
-    }
     let want = load.cores();
-    let whole = load == Load::Whole;
     let ticket = held.next;
     held.next += 1;
-    held.whole_waiting += usize::from(whole);
-    while held.serving != ticket || (held.cores > 0.0 && held.cores + want > BUDGET + 1e-9) || (whole && held.idle) {
+    while held.serving != ticket || (held.cores > 0.0 && held.cores + want > BUDGET + 1e-9) {
         held = FREED.wait(held).unwrap_or_else(|e| e.into_inner());
     }
-    held.whole_waiting -= usize::from(whole);
-    held.whole |= whole;
     held.serving += 1;
     held.cores += want;
     FREED.notify_all();
     Cores(load)
-}
-
-/// This thread's scheduling policy (inherited by the processes it starts
-/// from now on): `SCHED_IDLE`, or back to the default. Going back can be
-/// refused to a user without privileges (RLIMIT_NICE): the thread then
-/// stays idle until libtest ends it with its test, which is harmless.
-fn idle_policy(idle: bool) -> std::io::Result<()> {
-    let policy = if idle { libc::SCHED_IDLE } else { libc::SCHED_OTHER };
-    let param = libc::sched_param { sched_priority: 0 };
-    // pid 0: the calling thread (Linux keeps the policy per thread).
-    match unsafe { libc::sched_setscheduler(0, policy, &param) } {
-        0 => Ok(()),
-        _ => Err(std::io::Error::last_os_error()),
-    }
 }
 
 /// A share of the cores (see [`cores`]); given back on drop, also when
@@ -233,24 +194,14 @@ pub struct Cores(Load);
 
 impl Drop for Cores {
     fn drop(&mut self) {
-        if self.0 == Load::Idle {
-            let _ = idle_policy(false);
-        }
-        release(self.0);
+        let mut held = HELD.lock().unwrap_or_else(|e| e.into_inner());
+        held.cores = (held.cores - self.0.cores()).max(0.0);
+        FREED.notify_all();
     }
 }
 
-/// Gives back a share of the cores, or the idle turn.
-fn release(load: Load) {
-    let mut held = HELD.lock().unwrap_or_else(|e| e.into_inner());
-    held.cores = (held.cores - load.cores()).max(0.0);
-    held.idle &= load != Load::Idle;
-    held.whole &= load != Load::Whole;
-    FREED.notify_all();
-}
-
 /// libtest's default number of test threads for this binary, set before
-/// `main` (from a `.init_array` entry, [`test_threads_by_default`]) unless
+/// `main` (from a `.init_array` entry, [`test_binary`]) unless
 /// `RUST_TEST_THREADS` is set; `--test-threads` still wins over both.
 pub fn default_test_threads(n: &str) {
     if std::env::var_os("RUST_TEST_THREADS").is_none() {
@@ -258,23 +209,34 @@ pub fn default_test_threads(n: &str) {
     }
 }
 
-/// `common::test_threads_by_default!("N");` in a test binary's main.rs:
-/// its tests run N at a time unless told otherwise ([`default_test_threads`]).
-#[allow(unused_macros)] // containers.rs sets no default
-macro_rules! test_threads_by_default {
-    ($n:literal) => {
+/// Before `main`: [`summary_at_exit`] registered to print the binary's
+/// last line.
+pub fn at_exit_summary() {
+    // SAFETY: atexit takes a function without arguments that lives as long
+    // as the process; registering it has no other precondition.
+    unsafe { libc::atexit(summary_at_exit) };
+}
+
+/// `common::test_binary!("N");` in a test binary's main.rs: its tests run N
+/// at a time unless told otherwise ([`default_test_threads`]), and it ends
+/// with one line counting its tests judged, not judged and skipped
+/// ([`summary_at_exit`]); `common::test_binary!();` only the line.
+#[allow(unused_macros)]
+macro_rules! test_binary {
+    ($($n:literal)?) => {
         #[used]
         #[link_section = ".init_array"]
-        static TEST_THREADS: extern "C" fn() = {
+        static TEST_BINARY: extern "C" fn() = {
             extern "C" fn set() {
-                common::default_test_threads($n);
+                $(common::default_test_threads($n);)?
+                common::at_exit_summary();
             }
             set
         };
     };
 }
-#[allow(unused_imports)] // containers.rs sets no default
-pub(crate) use test_threads_by_default;
+#[allow(unused_imports)]
+pub(crate) use test_binary;
 
 /// A child process leading its own process group; the group is killed on drop.
 pub struct Group(pub Child);
@@ -479,85 +441,106 @@ pub fn unlike_the_simulator(
     bad
 }
 
-/// What a real-time run shares the machine with, measured over the run:
-/// the CPU the host stole, and the CPU that processes other than this test
-/// binary and the processes below it used (the run's nodes, and those of
-/// the tests beside it, budgeted by [`cores`]). A run is compared
-/// with the simulator's timing-free model only on a quiet machine: anything
-/// else that holds a core for milliseconds makes senders late by more than
-/// the model allows, whatever the network code does.
-#[derive(Clone, Copy, Debug)]
-pub struct Host {
-    steal: u64,
-    busy: u64,
-    total: u64,
-    ours: u64,
+/// The verdict of a real-time run's comparison with the nominal,
+/// timing-free model (`formation sim`): judged only when the runs' own
+/// records (`network.json` of each, parsed) say they kept the period
+/// ([`formation_replay::period::Period::kept`]: at most 1 % of the
+/// source-steps late, no stall), whatever the machine. Then `wrong` fails
+/// the test, with the runs' timing in the message; otherwise it is printed,
+/// with why the figures were not judged, and counted in the binary's last
+/// line ([`summary_at_exit`]). What holds whatever the timing (every step
+/// recorded, the replay byte for byte, the health naming the departure) is
+/// the test's to assert apart, always.
+pub fn judge_if_timely(tag: &str, wrong: &[String], runs: &[&serde_json::Value], context: &str) {
+    let each: Vec<Period> = runs.iter().map(|n| Period::of(n)).collect();
+    let period = Period::together(&each);
+    let timing = match each.len() {
+        1 => period.to_string(),
+        _ => format!("{period} over {} runs", each.len()),
+    };
+    judge_unless(tag, wrong, period.why_not_judged(), &format!("{context}; the runs' timing: {timing}"));
 }
 
-impl Host {
-    /// The counters now (clock ticks).
-    pub fn now() -> Self {
-        let stat = std::fs::read_to_string("/proc/stat").unwrap_or_default();
-        let f: Vec<u64> =
-            stat.lines().next().unwrap_or("").split_whitespace().skip(1).filter_map(|x| x.parse().ok()).collect();
-        let at = |i: usize| f.get(i).copied().unwrap_or(0);
-        // user nice system idle iowait irq softirq steal
-        let busy = at(0) + at(1) + at(2) + at(5) + at(6);
-        Self { steal: at(7), busy, total: f.iter().take(8).sum(), ours: tree_ticks() }
-    }
-
-    /// Since `before`: (share of the CPU stolen, share used by others), in %.
-    pub fn since(&self, before: &Host) -> (f64, f64) {
-        let total = self.total.saturating_sub(before.total).max(1) as f64;
-        let others = self.busy.saturating_sub(before.busy).saturating_sub(self.ours.saturating_sub(before.ours));
-        (100.0 * self.steal.saturating_sub(before.steal) as f64 / total, 100.0 * others as f64 / total)
-    }
-}
-
-/// The CPU time (clock ticks) of this test process and of every process
-/// below it, live or waited for: each live one's own and its waited-for
-/// children's (utime stime cutime cstime), so that a process counts in its
-/// parent's once reaped. The runs of the tests beside this one are in it.
-fn tree_ticks() -> u64 {
-    let mut procs: Vec<(u32, u32, u64)> = Vec::new();
-    for entry in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
-        let Some(pid) = entry.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else { continue };
-        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else { continue };
-        // After the name: state ppid … utime stime cutime cstime (fields 14-17: 11-14 here).
-        let g: Vec<&str> = stat.rsplit_once(')').map_or("", |(_, r)| r).split_whitespace().collect();
-        let ppid = g.get(1).and_then(|x| x.parse().ok()).unwrap_or(0);
-        let ticks = (11..15).map(|i| g.get(i).and_then(|x| x.parse::<u64>().ok()).unwrap_or(0)).sum();
-        procs.push((pid, ppid, ticks));
-    }
-    let mut ours = BTreeSet::from([std::process::id()]);
-    loop {
-        let below: Vec<u32> =
-            procs.iter().filter(|p| !ours.contains(&p.0) && ours.contains(&p.1)).map(|p| p.0).collect();
-        if below.is_empty() {
-            break;
+/// The verdict of a comparison with the model: `wrong` fails the test
+/// unless `why_not` says why the run cannot be judged (its own record
+/// shows it did not keep the period); then it is printed and counted as
+/// not judged.
+pub fn judge_unless(tag: &str, wrong: &[String], why_not: Option<String>, context: &str) {
+    match why_not {
+        None => {
+            tally(Verdict::Judged);
+            assert!(wrong.is_empty(), "{tag}: {}; {context}", wrong.join("; "));
         }
-        ours.extend(below);
+        Some(why) => {
+            tally(Verdict::NotJudged(format!("{tag}: {why}")));
+            let off = if wrong.is_empty() {
+                "within the model's tolerances all the same".to_string()
+            } else {
+                format!("{} off: {}", wrong.len(), wrong.join("; "))
+            };
+            eprintln!("{tag}: not judged against the model ({why}): {off}; {context}");
+        }
     }
-    procs.iter().filter(|p| ours.contains(&p.0)).map(|p| p.2).sum()
 }
 
-/// Stolen and foreign CPU shares (%) a real-time run may share the machine
-/// with and still be judged against the simulator.
-pub const QUIET: (f64, f64) = (3.0, 10.0);
+pub use formation_replay::period::Period;
 
-/// The verdict of a real-time comparison with the model: `wrong` fails the
-/// test on a quiet machine; on a busy one it is printed with what the
-/// machine did, and not judged.
-pub fn judge_if_quiet(tag: &str, wrong: &[String], host: (f64, f64), context: &str) {
-    if wrong.is_empty() {
-        return;
+/// A test's verdict as the binary's last line counts it.
+enum Verdict {
+    /// Compared with the model, the runs having kept the period.
+    Judged,
+    /// Not compared: why.
+    NotJudged(String),
+    /// Not run here: why.
+    Skipped(String),
+}
+
+/// Per test (libtest runs each on a thread named after it): its
+/// comparisons' and skips' verdicts.
+static VERDICTS: Mutex<Vec<(String, Verdict)>> = Mutex::new(Vec::new());
+
+fn tally(v: Verdict) {
+    let test = std::thread::current().name().unwrap_or("main").to_string();
+    VERDICTS.lock().unwrap_or_else(|e| e.into_inner()).push((test, v));
+}
+
+/// A test that cannot run here says why (one line) and is counted as
+/// skipped; the caller returns.
+pub fn skipped(why: &str) {
+    eprintln!("skipped: {why}");
+    tally(Verdict::Skipped(why.to_string()));
+}
+
+/// The binary's last line, printed as the process exits (registered
+/// before `main` by [`test_binary`]): of the tests that compared a run with
+/// the model, how many were judged and how many not (each with why), and
+/// the tests skipped (why). A test is "not judged" if any of its
+/// comparisons was.
+pub extern "C" fn summary_at_exit() {
+    let verdicts = VERDICTS.lock().unwrap_or_else(|e| e.into_inner());
+    let mut tests: Vec<&str> = verdicts.iter().map(|(t, _)| t.as_str()).collect();
+    tests.sort_unstable();
+    tests.dedup();
+    let (mut judged, mut not, mut skipped) = (0, Vec::new(), Vec::new());
+    for t in &tests {
+        let of = || verdicts.iter().filter(move |(n, _)| n == t).map(|(_, v)| v);
+        if let Some(why) = of().find_map(|v| if let Verdict::Skipped(w) = v { Some(w) } else { None }) {
+            skipped.push(format!("{t} ({why})"));
+        } else if let Some(why) = of().find_map(|v| if let Verdict::NotJudged(w) = v { Some(w) } else { None }) {
+            not.push(format!("{t} ({why})"));
+        } else {
+            judged += 1;
+        }
     }
-    let machine = format!("the host stole {:.1} % of the CPU and other processes used {:.1} %", host.0, host.1);
-    let verdict = format!("{tag}: {}; {context}; {machine}", wrong.join("; "));
-    assert!(host.0 > QUIET.0 || host.1 > QUIET.1, "{verdict}");
+    let list = |v: &[String]| if v.is_empty() { String::new() } else { format!(": {}", v.join("; ")) };
     eprintln!(
-        "{tag}: not judged against the model (more than {} % stolen or {} % used by others): {verdict}",
-        QUIET.0, QUIET.1
+        "{}: of the tests that compare runs with the model, {judged} judged, {} not judged{}; {} skipped{}; every \
+         other test's verdict does not depend on timing",
+        env!("CARGO_CRATE_NAME"),
+        not.len(),
+        list(&not),
+        skipped.len(),
+        list(&skipped)
     );
 }
 
@@ -633,7 +616,7 @@ pub fn ros2_python() -> Option<std::path::PathBuf> {
         python.display()
     );
     assert!(std::env::var("FORMATION_ROS2_REQUIRED").as_deref() != Ok("1"), "{line}");
-    eprintln!("skipped: {line}");
+    skipped(&line);
     None
 }
 

@@ -2,7 +2,7 @@
 //! one file's: `cargo test --test it network_launch::`). Each module is a
 //! former `tests/<name>.rs`, its doc comment kept: one binary links zenoh
 //! and the crate once instead of once per file. The tests whose verdict
-//! depends on a quiet machine are in `tests/realtime`, one at a time;
+//! compare real-time runs with the model are in `tests/realtime`;
 //! `tests/alloc_free.rs` keeps its own counting allocator (and binary).
 //!
 //! Measured on the 2-core machine, dependencies built, other builds beside
@@ -18,9 +18,8 @@ mod common;
 // Four tests at a time unless `RUST_TEST_THREADS` or `--test-threads`
 // says otherwise (libtest's default is one per core): most of these tests
 // wait on the processes they started (130 s with 2, 80 s with 4;
-// docs/performance.md). Not more: the few real-time runs here are judged
-// on their end state, and 8 made one of them miss it (2 runs of 2).
-common::test_threads_by_default!("4");
+// docs/performance.md). It ends with a line counting its tests skipped.
+common::test_binary!("4");
 
 mod certs_safety;
 mod cli_generate;

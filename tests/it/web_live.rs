@@ -37,7 +37,7 @@ fn browser_or_skip(test: &str) -> Option<(PathBuf, PathBuf)> {
     match browser_available() {
         Ok(b) => Some(b),
         Err(why) if std::env::var_os("FORMATION_BROWSER_REQUIRED").is_none() => {
-            eprintln!("{test}: skipped: {why}");
+            common::skipped(&format!("{test}: {why}"));
             None
         }
         Err(why) => panic!("{test}: FORMATION_BROWSER_REQUIRED is set but {why}"),

@@ -188,7 +188,9 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
     let certs = tmp.path().join("certs");
     common::certs(&certs);
     let c = certs.display().to_string();
-    let sets = ["timing=realtime", "duration=12"];
+    // A modelled delay of 5 steps: a run's late source-steps then say
+    // whether it kept the period (common::judge_if_timely).
+    let sets = ["timing=realtime", "duration=12", "network.delay_steps=5"];
     let run = |kind: Attack| -> (std::path::PathBuf, Done, u64) {
         let out = tmp.path().join(format!("{kind:?}"));
         let name = format!("atk-{kind:?}").to_lowercase();
@@ -216,11 +218,9 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
         assert!(status.success(), "the run ({kind:?}) ended {status}; health: {health:?}");
         (out, Arc::try_unwrap(done).unwrap_or_default(), peak)
     };
-    let host = common::Host::now();
     let (calm, _, calm_rss) = run(Attack::None);
     let (flood, flooded, flood_rss) = run(Attack::Flood);
     let (twin, twinned, twin_rss) = run(Attack::Twin);
-    let machine = common::Host::now().since(&host);
 
     let sent = flooded.sent.load(Ordering::Relaxed);
     // The attacker's own link pushes back on Block (how much varies, 64,500–
@@ -244,10 +244,14 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
         flagged.iter().find(|t| t["follower"] == 2).unwrap_or_else(|| panic!("follower 2 not flagged: {flagged:?}"));
     let began = twinned.first_step.load(Ordering::Relaxed).saturating_sub(5) as f64 * 1e-3;
     let since = two["since_t"].as_f64().expect("since_t");
-    assert!(since - began <= 1.0, "the twin began at t = {began:.3} s and was flagged at {since:.3} s: {two}");
+    assert!(since >= began, "the twin began at t = {began:.3} s and was flagged before, at {since:.3} s: {two}");
     assert_eq!(two["seen_by"], serde_json::json!([1, 4]), "{two}");
     let (a, b, t) = (formation_errors(&calm), formation_errors(&flood), formation_errors(&twin));
     let mut wrong = Vec::new();
+    // How soon is the host's speed as much as the code's: judged below.
+    if since - began > 1.0 {
+        wrong.push(format!("the twin began at t = {began:.3} s and was flagged at {since:.3} s (1 s allowed)"));
+    }
     for (what, run) in [("flood", &b), ("twin", &t)] {
         for ((id, x), (_, y)) in a.iter().zip(run) {
             if (y - x).abs() > 0.10 * x {
@@ -255,10 +259,12 @@ fn a_certified_node_cannot_take_a_realtime_formation_down_with_its_own_keys() {
             }
         }
     }
-    common::judge_if_quiet(
+    let networks: Vec<serde_json::Value> =
+        [&calm, &flood, &twin].iter().map(|d| common::json(d, "network.json")).collect();
+    common::judge_if_timely(
         "attacks with agent 2's certificate",
         &wrong,
-        machine,
+        &networks.iter().collect::<Vec<_>>(),
         &format!("flood: {sent} estimates, {} of 1.8 MB; twin: {copies} copies", flooded.big.load(Ordering::Relaxed)),
     );
     eprintln!(

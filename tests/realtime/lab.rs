@@ -14,9 +14,15 @@ use std::time::Duration;
 use common::Group;
 
 /// A lab in real time holds [`Load::Lab`] of the cores (two run side by
-/// side); a lab in lock-step takes what they leave, [`Load::Idle`].
+/// side); a lab in lock-step [`Load::Lockstep`] (one real-time lab beside it).
 use common::Load;
 const LIMIT: Duration = Duration::from_secs(150);
+/// Real time at 1 kHz for 20 s, no modelled delay (the scenario's). Each
+/// step then mixes step-k and step-(k−1) messages as they happen to
+/// arrive, which the model does not: such a run's late source-steps
+/// (5–18 % measured here) say little of whether it kept the period, and
+/// its comparisons with the model are mostly "not judged". The same faults
+/// with 5 steps of delay, against the model, are `formation verify`'s.
 const BASE: [&str; 2] = ["timing=realtime", "duration=20"];
 
 /// Whether the lab can run here; panics if it must and cannot.
@@ -35,7 +41,7 @@ fn lab_available() -> bool {
             panic!("FORMATION_LAB_REQUIRED=1 but the lab cannot run here: {w}")
         }
         Some(w) => {
-            eprintln!("skipped: the lab cannot run here ({w})");
+            common::skipped(&format!("the lab cannot run here ({w})"));
             false
         }
     }
@@ -47,8 +53,6 @@ struct Run {
     out: std::path::PathBuf,
     summary: serde_json::Value,
     network: serde_json::Value,
-    /// The machine during the run: (% stolen by the host, % used by others).
-    host: (f64, f64),
 }
 
 fn lab(tag: &str, sets: &[&str], extra: &[&str]) -> Run {
@@ -73,11 +77,9 @@ fn lab_on(base: &[&str], tag: &str, sets: &[&str], extra: &[&str]) -> Run {
     };
     let extra = extra.as_slice();
     args.extend_from_slice(extra);
-    let before = common::Host::now();
     let mut g = Group::spawn(&args);
     let pid = g.0.id();
     let status = g.wait(LIMIT);
-    let host = common::Host::now().since(&before);
     // Nothing of this lab may be left: no namespace named after its pid.
     let list = Command::new("ip").args(["netns", "list"]).output().expect("ip netns list");
     let left: Vec<String> = String::from_utf8_lossy(&list.stdout)
@@ -102,7 +104,7 @@ fn lab_on(base: &[&str], tag: &str, sets: &[&str], extra: &[&str]) -> Run {
     }
     let summary = common::json(&out, "summary.json");
     let network = common::json(&out, "network.json");
-    Run { _dir: dir, out, summary, network, host }
+    Run { _dir: dir, out, summary, network }
 }
 
 fn sim(sets: &[&str]) -> serde_json::Value {
@@ -228,7 +230,7 @@ fn peak_from_5_s(e: &[(f64, f64)]) -> (f64, f64) {
 
 /// The fault-free lab; `timely` also compares it with the simulator: no
 /// source silent after 100 ms, formation error and torque variation within
-/// 10 % (judged when the host was quiet during the run).
+/// 10 % (judged when the run kept its period, `common::judge_if_timely`).
 fn fault_free(tag: &str, timely: bool) {
     let _cores = common::cores(Load::Lab);
     if !lab_available() {
@@ -243,7 +245,7 @@ fn fault_free(tag: &str, timely: bool) {
     every_step_recorded("fault-free", &r);
     let s = sim(delay);
     let context = older_messages(&r);
-    // What the run should show: judged on a quiet host, printed otherwise.
+    // What the run should show: judged when it kept the period, printed otherwise.
     let mut wrong: Vec<String> = Vec::new();
     for id in IDS {
         let silent: Vec<&serde_json::Value> = r.network["nodes"][id]["timeline"]
@@ -268,9 +270,10 @@ fn fault_free(tag: &str, timely: bool) {
         // senders late by more than the modelled delay, whatever the network
         // code does (measured: 4,500 older source-steps of 60,000 and torque
         // variation 20–46 % above the simulator's while the host stole 14–47 %;
-        // at 31 % sources fell silent). There the test names what it saw and
-        // does not judge; on a quiet machine a difference is the network code's.
-        common::judge_if_quiet("fault-free lab", &wrong, r.host, &context);
+        // at 31 % sources fell silent). The run's own record says so: then
+        // the test names what it saw and does not judge; in a run that kept
+        // its period a difference is the network code's.
+        common::judge_if_timely("fault-free lab", &wrong, &[&r.network], &context);
     }
 }
 
@@ -354,7 +357,7 @@ struct CutOff {
 fn cut_off_others_unaffected(tag: &str, mode: &str) {
     if let Some(c) = follower_3_cut_off(tag, mode, "network.rejoin=adopt") {
         let wrong = [c.others, c.three].concat();
-        common::judge_if_quiet(tag, &wrong, c.r.host, &older_messages(&c.r));
+        common::judge_if_timely(tag, &wrong, &[&c.r.network], &older_messages(&c.r));
     }
 }
 
@@ -383,7 +386,7 @@ fn follower_3_cut_off_as_the_simulator_predicts() {
     let tag = "lab-cut-model";
     if let Some(c) = follower_3_cut_off(tag, "client", "network.rejoin=consensus") {
         let wrong = [c.others, c.three].concat();
-        common::judge_if_quiet(tag, &wrong, c.r.host, &older_messages(&c.r));
+        common::judge_if_timely(tag, &wrong, &[&c.r.network], &older_messages(&c.r));
     }
 }
 
@@ -405,6 +408,7 @@ fn a_router_killed_for_3_s_costs_nothing_recorded_and_traffic_is_back_within_1_s
         return;
     }
     let (r, back) = router_restart("lab-router", &[]);
+    let mut wrong = Vec::new();
     for id in IDS {
         let timeline = r.network["nodes"][id]["timeline"].as_array().expect("timeline");
         let heard = timeline
@@ -412,12 +416,15 @@ fn a_router_killed_for_3_s_costs_nothing_recorded_and_traffic_is_back_within_1_s
             .filter(|e| e["event"].as_str().is_some_and(|w| w.starts_with("hears")) && num(&e["t"]) >= back)
             .map(|e| num(&e["t"]))
             .fold(f64::INFINITY, f64::min);
-        assert!(
-            heard - back <= 1.0,
-            "follower {id}: traffic back {:.3} s after the restart at {back:.3} s: {timeline:?}",
-            heard - back
-        );
+        // Always: traffic comes back at all.
+        assert!(heard.is_finite(), "follower {id}: no traffic after the restart at {back:.3} s: {timeline:?}");
+        if heard - back > 1.0 {
+            wrong.push(format!("follower {id}: traffic back {:.3} s after the restart at {back:.3} s", heard - back));
+        }
     }
+    // How soon is a figure of the host's speed too (zenoh's reconnect timer
+    // runs on its tokio runtime): judged when the run kept its period.
+    common::judge_if_timely("router restart", &wrong, &[&r.network], &older_messages(&r));
 }
 
 /// A router restart isolates every follower at once. Under `consensus` the
@@ -434,13 +441,19 @@ fn a_router_killed_for_3_s_every_follower_recovers_within_2_s() {
     let rec: Vec<(&str, Option<f64>)> =
         IDS.iter().map(|&id| (id, recovered_at(&estimator_error(&r, id), back).map(|t| t - back))).collect();
     eprintln!("router restart at {back:.3} s, adopt: recovered after {rec:?} s");
+    let mut wrong = Vec::new();
     for (id, after) in &rec {
-        assert!(
-            after.is_some_and(|a| a <= 2.0),
-            "follower {id}: estimator error below 0.02 m for 1 s only {after:?} s after the restart at {back:.3} s \
-             (2 s allowed); all: {rec:?}"
-        );
+        // How soon, even whether before the run ends, is the host's speed
+        // as much as the code's (a starved host keeps the error above
+        // 0.02 m): judged when the run kept its period.
+        if !after.is_some_and(|a| a <= 2.0) {
+            wrong.push(format!(
+                "follower {id}: estimator error below 0.02 m for 1 s only {after:?} s after the restart at {back:.3} s \
+                 (2 s allowed)"
+            ));
+        }
     }
+    common::judge_if_timely("router restart, adopt", &wrong, &[&r.network], &older_messages(&r));
 }
 
 /// Lock-step with a physical fault: the run is only delayed, and its files
@@ -448,7 +461,7 @@ fn a_router_killed_for_3_s_every_follower_recovers_within_2_s() {
 /// network at the given wall time and the agents apply the table in
 /// software at the given run time).
 fn lockstep_equals_sim(tag: &str, sets: &[&str], extra: &[&str]) {
-    let _cores = common::cores(Load::Idle);
+    let _cores = common::cores(Load::Lockstep);
     if !lab_available() {
         return;
     }
@@ -574,7 +587,7 @@ fn an_agent_killed_and_restarted_goes_unnoticed_by_the_others() {
             wrong.push(format!("follower {id}'s estimator error reached {peak:.4} m at t = {at:.3} s (0.02 allowed)"));
         }
     }
-    common::judge_if_quiet("agent 3 restarted", &wrong, r.host, &older_messages(&r));
+    common::judge_if_timely("agent 3 restarted", &wrong, &[&r.network], &older_messages(&r));
 }
 
 /// The lab run of the restart tests, with its own checks.
@@ -591,7 +604,14 @@ fn restarted(tag: &str) -> Run {
     assert_eq!(gaps.len(), 1, "follower 3's gaps: {gaps:?}");
     assert_eq!(gaps[0]["why"], "restarted", "{gaps:?}");
     let (from, to) = (num(&gaps[0]["from"]) * 1e-3, num(&gaps[0]["to"]) * 1e-3);
-    assert!(from <= 8.05 && to >= back && to <= back + 1.0, "gap {from}-{to} s, restart at {back:.3} s");
+    // Always: the gap holds the restart; how tightly is the host's speed.
+    assert!(from <= back && to >= back, "gap {from}-{to} s, restart at {back:.3} s");
+    let mut timing = Vec::new();
+    if from > 8.05 || to > back + 1.0 {
+        timing.push(format!(
+            "gap {from:.3}-{to:.3} s for a kill at 8 s and a restart at {back:.3} s (8.05 s, +1 s allowed)"
+        ));
+    }
     assert_eq!(r.network["complete"], false, "a record with a gap is not complete");
     assert_eq!(r.network["ending"], "finished with gaps");
     // No jump the gap does not explain: consecutive rows move less than 1 cm
@@ -608,10 +628,11 @@ fn restarted(tag: &str) -> Run {
     // It rejoins: formation error below 0.2 m within 5 s of the restart.
     let fe = column(&r, "3", "formation_error");
     let settled = fe.iter().find(|(t, e)| *t >= back && *e < 0.2).map(|(t, _)| t - back);
-    assert!(
-        settled.is_some_and(|s| s <= 5.0),
-        "follower 3's formation error below 0.2 m {settled:?} s after the restart"
-    );
+    assert!(settled.is_some(), "follower 3's formation error never below 0.2 m after the restart at {back:.3} s");
+    if !settled.is_some_and(|s| s <= 5.0) {
+        timing.push(format!("follower 3's formation error below 0.2 m {settled:?} s after the restart (5 s allowed)"));
+    }
+    common::judge_if_timely(tag, &timing, &[&r.network], &older_messages(&r));
     eprintln!("restart: gap {from:.3}-{to:.3} s, formation error below 0.2 m {settled:?} s after the restart");
     r
 }
@@ -634,7 +655,7 @@ fn lockstep_the_follower_that_hears_the_leader_restarted_rejoins_and_the_run_com
 }
 
 fn lockstep_restart(victim: &str, tag: &str) {
-    let _cores = common::cores(Load::Idle);
+    let _cores = common::cores(Load::Lockstep);
     if !lab_available() {
         return;
     }
@@ -697,7 +718,7 @@ fn clocks_that_disagree_change_nothing() {
             std::env::var("FORMATION_LAB_REQUIRED").as_deref() != Ok("1"),
             "FORMATION_LAB_REQUIRED=1 but libfaketime is missing (apt-get install faketime)"
         );
-        eprintln!("skipped: libfaketime is missing (apt-get install faketime)");
+        common::skipped("libfaketime is missing (apt-get install faketime)");
         return;
     }
     const BASE10: [&str; 2] = ["timing=realtime", "duration=10"];
@@ -724,11 +745,21 @@ fn clocks_that_disagree_change_nothing() {
             let clock = &r.network["nodes"][id]["clock"];
             let got_ms = num(&clock["offset_ms"]);
             measured.push(format!("{id}: {got_ms:.3} ms ± {:.0} µs", num(&clock["uncertainty_us"])));
+            // Always within half the smallest shift (2.5 ms: every shift is
+            // corrected); within 1 ms when the run kept its period (a
+            // starved node's round trips are long, and the estimate's
+            // uncertainty with them).
             assert!(
-                (got_ms - expected_ms).abs() < 1.0,
+                (got_ms - expected_ms).abs() < 2.5,
                 "{tag}: follower {id} estimates the leader's clock {got_ms:.3} ms from its own, not {expected_ms:.3} \
                  ms ({clock})"
             );
+            if (got_ms - expected_ms).abs() >= 1.0 {
+                own.push(format!(
+                    "follower {id} estimates the leader's clock {got_ms:.3} ms from its own, not {expected_ms:.3} ms \
+                     (1 ms allowed)"
+                ));
+            }
             let (peak, at) = peak_from_5_s(&estimator_error(&r, id));
             assert!(peak < 0.1, "{tag}: follower {id}'s estimator error reached {peak:.4} m at {at} s");
             if peak >= 0.02 {
@@ -755,13 +786,12 @@ fn clocks_that_disagree_change_nothing() {
             }
         }
         eprintln!("{tag}: estimated offsets {}", measured.join(", "));
-        common::judge_if_quiet(&tag, &own, r.host, &older_messages(&r));
+        common::judge_if_timely(&tag, &own, &[&r.network], &older_messages(&r));
         // The comparisons with the unshifted run: judged when the host was
         // quiet during both (CI once failed a quiet shifted run against a
         // reference with 2.6 times its torque variation, its host unread).
-        let host = (r.host.0.max(reference.host.0), r.host.1.max(reference.host.1));
         let context = format!("this run: {}; unshifted: {}", older_messages(&r), older_messages(&reference));
-        common::judge_if_quiet(&tag, &wrong, host, &context);
+        common::judge_if_timely(&tag, &wrong, &[&r.network, &reference.network], &context);
     }
 }
 
@@ -806,6 +836,7 @@ fn two_sites_cut_apart_behave_as_the_model_predicts() {
     // Who went silent for whom, and when the sites heard each other again.
     let across = [("1", "follower 3"), ("3", "follower 1"), ("2", "follower 4"), ("4", "follower 2")];
     let mut back = f64::NAN;
+    let mut silent_within = Vec::new();
     for id in IDS {
         for e in r.network["nodes"][id]["timeline"].as_array().expect("timeline") {
             let (t, what) = (num(&e["t"]), e["event"].as_str().unwrap_or(""));
@@ -814,8 +845,9 @@ fn two_sites_cut_apart_behave_as_the_model_predicts() {
             }
             let source = what.strip_suffix(" silent").or_else(|| what.strip_prefix("hears ")).unwrap_or("");
             let crosses = across.iter().any(|(n, src)| *n == id && source == *src);
-            if what.ends_with("silent") {
-                assert!(crosses, "sites: follower {id} at {t} s: {what} (only the links between sites were cut)");
+            if what.ends_with("silent") && !crosses {
+                // Silence within a site is a late sender: the host's, judged below.
+                silent_within.push(format!("follower {id} at {t} s: {what} (only the links between sites were cut)"));
             }
             if crosses && what.starts_with("hears") && t > performed[0] {
                 back = if back.is_nan() { t } else { back.min(t) };
@@ -825,7 +857,7 @@ fn two_sites_cut_apart_behave_as_the_model_predicts() {
     assert!(back >= performed[1] - 0.01, "sites: heard again at {back} s, before the join at {} s", performed[1]);
     let window = |l: &str| format!("faults+={{link={l}, from={:.3}, to={:.3}}}", performed[0], back);
     let (_dir, sim) = sim_on(&BASE12, &[&window("[1, 3]"), &window("[2, 4]")]);
-    let mut wrong = Vec::new();
+    let mut wrong = silent_within;
     let (mut worst_rel, mut worst_abs) = (0.0f64, 0.0f64);
     for id in IDS {
         let (lab_e, sim_e) = (estimator_error(&r, id), csv_column(&sim, id, "estimator_error"));
@@ -850,7 +882,7 @@ fn two_sites_cut_apart_behave_as_the_model_predicts() {
         worst_rel * 100.0,
         worst_abs
     );
-    common::judge_if_quiet("two sites cut apart", &wrong, r.host, &older_messages(&r));
+    common::judge_if_timely("two sites cut apart", &wrong, &[&r.network], &older_messages(&r));
 }
 
 /// Issue 25: a bad cable between followers 2 and 4 that the scenario does
@@ -899,16 +931,26 @@ fn a_slow_link_is_the_one_explain_ranks_first() {
     let pair = ["2 → 4", "4 → 2"];
     let first = rows.first().map(|r| r.0.clone()).unwrap_or_default();
     let together: f64 = rows.iter().filter(|(l, _)| pair.contains(&l.as_str())).map(|(_, s)| s).sum();
-    assert!(pair.contains(&first.as_str()), "{tag}: the first link is {first:?}, not the slow one:\n{text}");
     eprintln!("{tag}: {first} first; the 2–4 link explains {:.1} %", 100.0 * together);
+    // Always: --explain names links at all (the run departed from its model).
+    assert!(!rows.is_empty(), "{tag}: --explain ranks no link:\n{text}");
     // A busy host makes every link late now and then, which takes a share
-    // from the slow one: the share is judged on a quiet host (CI: 76.0 %).
-    let wrong = if together < 0.8 {
-        vec![format!("the slow link explains {:.1} % (80 % wanted)", 100.0 * together)]
-    } else {
-        vec![]
-    };
-    common::judge_if_quiet(tag, &wrong, r.host, &format!("{}\n{text}", older_messages(&r)));
+    // from the slow one (CI: 76.0 %): the ranking is judged when the links
+    // off the slow cable kept the period (followers 1 and 3 hear neither 2
+    // nor 4 across it: their counters are the host's, not the cable's).
+    let mut wrong = Vec::new();
+    if !pair.contains(&first.as_str()) {
+        wrong.push(format!("the first link is {first:?}, not the slow one"));
+    }
+    if together < 0.8 {
+        wrong.push(format!("the slow link explains {:.1} % (80 % wanted)", 100.0 * together));
+    }
+    let off_the_cable = serde_json::json!({
+        "timing": r.network["timing"],
+        "nodes": { "1": r.network["nodes"]["1"], "3": r.network["nodes"]["3"] },
+        "health": r.network["health"],
+    });
+    common::judge_if_timely(tag, &wrong, &[&off_the_cable], &format!("{}\n{text}", older_messages(&r)));
 }
 
 /// Issue 50's quorum start, performed: follower 3's host gets no agent
@@ -938,7 +980,7 @@ fn a_quorum_start_without_follower_3_runs_as_the_model_predicts() {
     let (_dir, sim_dir) = sim_on(&base, &["faults+={node=3, from=0}"]);
     let s = common::json(&sim_dir, "summary.json");
     let wrong = model_departures(tag, &r, &s, &["1", "2", "4"]);
-    common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
+    common::judge_if_timely(tag, &wrong, &[&r.network], &older_messages(&r));
 }
 
 /// The leader killed (SIGKILL) at 10 s of a 30 s real-time run, with a
@@ -971,13 +1013,17 @@ fn the_leader_killed_at_10_s_a_standby_takes_the_run_over_as_the_model_predicts(
     let (heard, at) = (handovers[0]["heard_step"].as_u64().expect("heard"), handovers[0]["step"].as_u64().expect("at"));
     let (from_s, to_s) = ((heard + 1) as f64 * 0.001, at as f64 * 0.001);
     eprintln!("{tag}: {}", handovers[0]["said"]);
+    // 500 steps after the newest heard, less one where the standby's
+    // estimate of the leader's clock (±0.5 ms) reads a little early.
     assert!(
-        // 500 steps after the newest heard, less one where the standby's
-        // estimate of the leader's clock (±0.5 ms) reads a little early.
-        (9.9..10.3).contains(&from_s) && at - heard >= 499,
-        "{tag}: the leader's messages stop at {from_s} s (killed at 10 s) and the standby's begin at {to_s} s (0.5 s \
-         of silence after the newest heard before it takes over)"
+        at - heard >= 499,
+        "{tag}: the leader's messages stop at {from_s} s and the standby's begin at {to_s} s (0.5 s of silence after \
+         the newest heard before it takes over)"
     );
+    let mut wrong = Vec::new();
+    if !(9.9..10.3).contains(&from_s) {
+        wrong.push(format!("the leader's messages stop at {from_s} s (killed at 10 s of wall time)"));
+    }
     // No jump: the consensus law moves each estimate continuously (the
     // leader moves about 1 mm a step; a jump would be the distance to a
     // wrong state).
@@ -998,7 +1044,6 @@ fn the_leader_killed_at_10_s_a_standby_takes_the_run_over_as_the_model_predicts(
     let back_under = |e: &[(f64, f64)], t0: f64| {
         e.iter().filter(|(t, _)| *t >= t0).rev().find(|(_, x)| *x >= 0.05).map_or(t0, |(t, _)| *t)
     };
-    let mut wrong = Vec::new();
     for id in IDS {
         let (run, model) = (estimator_error(&r, id), csv_column(&sim_dir, id, "estimator_error"));
         let (peak, sim_peak) = (peak_from_5_s(&run), peak_from_5_s(&model));
@@ -1008,11 +1053,13 @@ fn the_leader_killed_at_10_s_a_standby_takes_the_run_over_as_the_model_predicts(
              from {back:.3} s (model {sim_back:.3} s)",
             peak.0, peak.1, sim_peak.0, sim_peak.1
         );
-        assert!(
-            back - to_s <= 2.0,
-            "{tag}: follower {id}'s estimator error is back under 0.05 m only {:.3} s after the takeover at {to_s} s",
-            back - to_s
-        );
+        if back - to_s > 2.0 {
+            wrong.push(format!(
+                "follower {id}'s estimator error is back under 0.05 m only {:.3} s after the takeover at {to_s} s (2 s \
+                 allowed)",
+                back - to_s
+            ));
+        }
         if (peak.0 / sim_peak.0 - 1.0).abs() > 0.25 {
             wrong.push(format!("follower {id}: peak estimator error {:.4} m, model {:.4} m", peak.0, sim_peak.0));
         }
@@ -1020,7 +1067,7 @@ fn the_leader_killed_at_10_s_a_standby_takes_the_run_over_as_the_model_predicts(
             wrong.push(format!("follower {id}: under 0.05 m from {back:.3} s, model {sim_back:.3} s"));
         }
     }
-    common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
+    common::judge_if_timely(tag, &wrong, &[&r.network], &older_messages(&r));
 }
 
 /// Lock-step with the leader killed at 4 s of wall time and a standby: the
@@ -1044,16 +1091,19 @@ fn a_follower_killed_for_good_is_taken_for_gone_after_the_scenarios_timeout() {
         return;
     }
     let tag = "lab-gone";
-    let base = ["timing=realtime", "duration=12", "network.gone_after=1"];
+    let base = ["timing=realtime", "duration=12", "network.gone_after=1", "network.delay_steps=5"];
     let r = lab_on(&base, tag, &[], &["--kill-agent", "3@5"]);
     assert_eq!(r.network["complete"], true, "{tag}: ending {}, lost {}", r.network["ending"], r.network["lost_steps"]);
     let left = &r.network["left"][0];
     let at = left["t_s"].as_f64().unwrap_or(f64::NAN);
     assert!(
-        left["follower"] == 3 && left["why"] == "silent for 1 s" && (4.9..5.2).contains(&at),
+        left["follower"] == 3 && left["why"] == "silent for 1 s" && at >= 4.9,
         "{tag}: follower 3 killed at 5 s: {}",
         r.network["left"]
     );
+    // When the kill lands is the host's speed: judged when the run kept its period.
+    let late_kill = if at < 5.2 { vec![] } else { vec![format!("follower 3 taken for gone at {at} s, killed at 5 s")] };
+    common::judge_if_timely(tag, &late_kill, &[&r.network], &older_messages(&r));
     for id in ["1", "2", "4"] {
         let rows = std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count() - 1;
         assert_eq!(rows, 12001, "{tag}: follower {id} has {rows} rows");
@@ -1086,7 +1136,7 @@ fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
     assert_eq!(r.network["absent"], serde_json::json!([3]), "{tag}");
     let joined = &r.network["joined"][0];
     let (k, t_j) = (joined["step"].as_u64().expect("step"), joined["t_s"].as_f64().expect("t"));
-    assert!(joined["follower"] == 3 && (8.0..10.0).contains(&t_j), "{tag}: started at 8 s: {}", r.network["joined"]);
+    assert!(joined["follower"] == 3 && t_j >= 8.0, "{tag}: started at 8 s: {}", r.network["joined"]);
     let rows =
         |id: &str| std::fs::read_to_string(r.out.join(format!("follower_{id}.csv"))).expect("csv").lines().count() - 1;
     assert_eq!(rows("3") as u64, 20001 - k, "{tag}: follower 3's rows from step {k}");
@@ -1099,6 +1149,9 @@ fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
     let (_dir, sim_dir) = sim_on(&BASE, &[row.as_str()]);
     let s = common::json(&sim_dir, "summary.json");
     let mut wrong = model_departures(tag, &r, &s, &["1", "2", "4"]);
+    if t_j >= 10.0 {
+        wrong.push(format!("follower 3 started at 8 s and joined at {t_j} s (2 s allowed)"));
+    }
     // The joiner itself, from its join on (the model's rows before it are
     // a follower cut off): its formation error over the last 10 s.
     let m = "formation_rms_last10";
@@ -1107,7 +1160,7 @@ fn a_follower_absent_at_the_start_joins_at_8_s_as_the_model_predicts() {
     if !(0.9..=1.1).contains(&(run3 / sim3)) {
         wrong.push(format!("follower 3: {m} {run3} in the lab vs {sim3} simulated ({:.3})", run3 / sim3));
     }
-    common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
+    common::judge_if_timely(tag, &wrong, &[&r.network], &older_messages(&r));
 }
 
 /// Leave for good in real time (docs/model.md §14): follower 2 leaves at
@@ -1135,5 +1188,5 @@ fn follower_2_leaves_at_5_s_as_the_model_predicts() {
     let (_dir, sim_dir) = sim_on(&base, &["faults+={node=2, from=5}"]);
     let s = common::json(&sim_dir, "summary.json");
     let wrong = model_departures(tag, &r, &s, &["1", "3", "4"]);
-    common::judge_if_quiet(tag, &wrong, r.host, &older_messages(&r));
+    common::judge_if_timely(tag, &wrong, &[&r.network], &older_messages(&r));
 }

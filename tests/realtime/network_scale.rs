@@ -186,8 +186,6 @@ struct RingInRealTime {
     got: serde_json::Value,
     want: serde_json::Value,
     network: serde_json::Value,
-    /// (stolen, others' CPU) over the run (`common::Host`).
-    host: (f64, f64),
     /// As root (CI): every node under real-time scheduling (`--rt-priority
     /// 10`), as a real-time deployment runs.
     root: bool,
@@ -221,10 +219,8 @@ impl RingInRealTime {
         for s in &sets {
             args.extend(["--set", s]);
         }
-        let before = common::Host::now();
         let mut g = Group::spawn(&args);
-        let status = g.wait(std::time::Duration::from_secs(120));
-        let host = common::Host::now().since(&before);
+        let status = g.wait(std::time::Duration::from_secs(600));
         assert!(status.success(), "formation launch with {followers} agents failed: {status}");
         g.assert_group_empty();
         let sim = dir.path().join("sim");
@@ -239,7 +235,7 @@ impl RingInRealTime {
             common::json(&sim, "summary.json"),
             common::json(&net, "network.json"),
         );
-        RingInRealTime { _dir: dir, net, got, want, network, host, root }
+        RingInRealTime { _dir: dir, net, got, want, network, root }
     }
 
     /// Asserts what holds whatever the timing, and, when the host kept the
@@ -259,18 +255,13 @@ impl RingInRealTime {
             bad.push(tv.complaint(tv_allowed));
         }
         let verdict = self.verdict(&hearing, tv.median);
-        if self.kept_the_period(&hearing) {
-            assert!(
-                bad.is_empty(),
-                "{agents} agents in real time, the host keeping the period ({verdict}): {}\n{explained}",
-                bad.join("; ")
-            );
-        } else {
-            eprintln!(
-                "{agents} agents in real time: the host fell behind ({verdict}): not judged against the model's figures{}",
-                if bad.is_empty() { String::new() } else { format!(" ({} of them off)", bad.len()) }
-            );
-        }
+        let why_not = (!self.kept_the_period(&hearing)).then(|| format!("the host fell behind: {verdict}"));
+        common::judge_unless(
+            &format!("{agents} agents in real time"),
+            &bad,
+            why_not,
+            &format!("the host keeping the period ({verdict})\n{explained}"),
+        );
         eprintln!("{agents} agents in real time: {verdict}; the record complete and replayed byte for byte");
     }
 
@@ -328,9 +319,8 @@ impl RingInRealTime {
         let stalls = self.network["health"]["stalls"].as_array().map_or(0, Vec::len);
         format!(
             "{} of {} link-steps differ from the model ({} heard nothing), {stalls} stall(s) of every node at once; \
-             median torque variation {median:.3} of the model's; the host stole {:.1} % of the CPU, other processes \
-             used {:.1} %",
-            hearing.differ, hearing.link_steps, hearing.silent, self.host.0, self.host.1
+             median torque variation {median:.3} of the model's",
+            hearing.differ, hearing.link_steps, hearing.silent
         )
     }
 

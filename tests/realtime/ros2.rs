@@ -294,7 +294,6 @@ fn stand_in_robots_in_real_time_behave_like_the_model() {
     let o = out.display().to_string();
     let sets =
         ["timing=\"realtime\"", "dt=0.01", "duration=15", "network.delay_steps=1", "network.silence_timeout=0.2"];
-    let before = common::Host::now();
     let mut args =
         vec!["launch", VELOCITY_SCENARIO, "-q", "--out", &o, "--robots", "stand-in", "--run", "ros2-standin-rt"];
     for s in &sets {
@@ -308,7 +307,6 @@ fn stand_in_robots_in_real_time_behave_like_the_model() {
     }
     assert!(sim.status().expect("formation sim").success());
     let status = run.wait(common::LIMIT);
-    let host = common::Host::now().since(&before);
     assert!(
         status.success(),
         "launch --robots stand-in (real time): {status}: {}",
@@ -321,7 +319,7 @@ fn stand_in_robots_in_real_time_behave_like_the_model() {
         assert_eq!(got["followers"][id]["samples"], 1501, "follower {id}: every step recorded");
     }
     let bad = common::unlike_the_simulator(&got, &reference, &network, 0.10, &common::COMPARED_CONVERGING);
-    common::judge_if_quiet("stand-in robots in real time against the simulator (10 %)", &bad, host, "");
+    common::judge_if_timely("stand-in robots in real time against the simulator (10 %)", &bad, &[&network], "");
 }
 
 /// "robot 3: stopped at unix Y ns (…), told to at unix X ns by WHY, …": (X, Y, WHY) of each such line.
@@ -467,7 +465,6 @@ fn the_safety_filter_in_real_time_keeps_the_robots_apart_as_the_model_does() {
     let o = out.display().to_string();
     let scenario = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/turtlebot.toml");
     let sets = ["timing=\"realtime\"", "network.delay_steps=1"];
-    let before = common::Host::now();
     let mut args = vec![
         "launch",
         scenario,
@@ -493,7 +490,6 @@ fn the_safety_filter_in_real_time_keeps_the_robots_apart_as_the_model_does() {
     }
     assert!(sim.status().expect("formation sim").success());
     let status = run.wait(common::LIMIT);
-    let host = common::Host::now().since(&before);
     let said = std::fs::read_to_string(&log).unwrap_or_default();
     assert!(status.success(), "launch turtlebot --robots stand-in (real time): {status}: {said}");
     run.assert_group_empty();
@@ -529,7 +525,7 @@ fn the_safety_filter_in_real_time_keeps_the_robots_apart_as_the_model_does() {
     if (closest - model).abs() > 0.02 {
         bad.push(format!("the closest pair {closest:.3} m apart in real time, {model:.3} m in formation sim"));
     }
-    common::judge_if_quiet("the safety filter in real time against the simulator", &bad, host, "");
+    common::judge_if_timely("the safety filter in real time against the simulator", &bad, &[&network], "");
 }
 
 /// docs/ros2.md, "Odometry in the robot's frame": robots that are not this
