@@ -155,17 +155,14 @@ fn studies() -> Vec<Study> {
             args: &["--mode", "client"],
             model: none,
             figures: |r, m| {
-                let mut f = Vec::new();
-                for k in ["recovery_s", "peak_estimator_error"] {
-                    let (a, b) = (&r.summary["faults"][0]["followers"]["3"][k], &m["faults"][0]["followers"]["3"][k]);
-                    f.push(Figure {
-                        what: format!("follower 3 {k}"),
-                        run: num(a),
-                        model: num(b),
-                        allowed: Allowed::Rel(0.25),
-                    });
-                }
-                f.extend(followers(r, m, &[1, 2, 4], &["formation_rms_last10"], Allowed::Rel(0.10)));
+                // (Its recovery time is not defined with 5 steps of delay: the
+                // estimator error stays above the 0.02 m it is measured at.)
+                let k = "peak_estimator_error";
+                let (a, b) = (&r.summary["faults"][0]["followers"]["3"][k], &m["faults"][0]["followers"]["3"][k]);
+                let peak =
+                    Figure { what: format!("follower 3 {k}"), run: num(a), model: num(b), allowed: Allowed::Rel(0.25) };
+                let mut f = vec![peak];
+                f.extend(followers(r, m, &[1, 2, 3, 4], &["formation_rms_last10"], Allowed::Rel(0.10)));
                 f
             },
         },
@@ -212,10 +209,14 @@ fn studies() -> Vec<Study> {
             model: none,
             figures: |r, m| {
                 let mut f = followers(r, m, &[1, 2, 3, 4], &BOTH, Allowed::Rel(0.10));
-                let got = num(&r.network["nodes"]["3"]["clock"]["offset_ms"]);
+                // Against the unshifted followers' estimates: a step of the
+                // host's own wall clock during the run (this VM's moved by
+                // 50–150 ms in some runs) moves every node's alike.
+                let offset = |id: &str| num(&r.network["nodes"][id]["clock"]["offset_ms"]);
+                let others = (offset("1") + offset("2") + offset("4")) / 3.0;
                 f.push(Figure {
-                    what: "follower 3's estimate of the leader's clock, ms".into(),
-                    run: got,
+                    what: "follower 3's leader clock less the others', ms".into(),
+                    run: offset("3") - others,
                     model: 1000.0,
                     allowed: Allowed::Abs(1.0),
                 });
@@ -439,10 +440,14 @@ fn study(exe: &Path, a: &VerifyArgs, s: &Study) -> Result<Outcome, String> {
         c.args(["--set", set]);
     }
     c.args(s.args);
+    // What the nodes say goes to the study's folder, not the table's terminal.
+    let log = dir.join("run.log");
+    let file = std::fs::File::create(&log).map_err(|e| format!("{}: {e}", log.display()))?;
+    c.stdout(std::process::Stdio::null()).stderr(file);
     let status = c.status().map_err(|e| format!("starting {}: {e}", exe.display()))?;
     // 3: degraded, said in network.json's health; the figures say how far.
     if !(status.success() || status.code() == Some(3)) {
-        return Err(format!("the run ended {status} (its folder: {})", run_dir.display()));
+        return Err(format!("the run ended {status} (what it said: {})", log.display()));
     }
     let read = |name: &str| -> Result<serde_json::Value, String> {
         let p = run_dir.join(name);
