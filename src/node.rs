@@ -90,8 +90,9 @@ pub fn run_floor(f: formation_bench::floor::FloorArgs) -> ExitCode {
 pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
     let name = format!("robot-{}", r.id);
     shell(&r.node.zenoh.clone(), &name, true, async move {
-        formation_net::ros2::robot::run(&r, async {
-            formation_launch::shutdown::signalled().await;
+        let stop = formation_launch::shutdown::from_now();
+        formation_net::ros2::robot::run(&r, async move {
+            stop.await;
         })
         .await
         .map(|()| ExitCode::SUCCESS)
@@ -104,7 +105,9 @@ pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
 pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
     let name = formation_protocol::names::agent_name(a.id.first().copied().unwrap_or(0));
     shell(&a.node.zenoh.clone(), &name, true, async move {
-        agent::run(&a, formation_launch::shutdown::signalled()).await.map(|signal| match signal {
+        // The handlers from the process's first moment (a signal before its
+        // loop began is a stop, not the default death).
+        agent::run(&a, formation_launch::shutdown::from_now()).await.map(|signal| match signal {
             None => ExitCode::SUCCESS,
             Some(Signal::Interrupt) => ExitCode::from(130),
             Some(Signal::Terminate) => ExitCode::from(143),
@@ -131,7 +134,7 @@ pub fn run_leader(a: leader::LeaderArgs) -> ExitCode {
 /// The `monitor` binary.
 pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
     shell(&a.node.zenoh.clone(), formation_protocol::names::MONITOR, true, async move {
-        monitor::run(&a, formation_launch::shutdown::signalled()).await.map(monitor_status)
+        monitor::run(&a, formation_launch::shutdown::from_now()).await.map(monitor_status)
     })
 }
 
@@ -141,7 +144,7 @@ pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
 /// empties it.
 pub fn run_router(r: router::RouterArgs) -> ExitCode {
     shell(&r.zenoh.clone(), formation_protocol::names::ROUTER, false, async move {
-        router::run(&r, formation_launch::shutdown::signalled()).await.map(|()| ExitCode::SUCCESS)
+        router::run(&r, formation_launch::shutdown::from_now()).await.map(|()| ExitCode::SUCCESS)
     })
 }
 

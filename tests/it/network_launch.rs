@@ -324,7 +324,9 @@ fn the_monitor_exits_143_on_sigterm_and_130_on_sigint() {
             .spawn()
             .expect("spawn monitor");
         let mut g = Group(child);
-        std::thread::sleep(Duration::from_millis(1500));
+        // Once it listens (its handlers are installed before): a fixed
+        // sleep was a guess at the host's speed, and a loaded host lost it.
+        common::wait_listening(port, Duration::from_secs(60));
         let sent = Command::new("kill").args([signal, &g.0.id().to_string()]).status().expect("kill");
         assert!(sent.success());
         let status = g.wait(Duration::from_secs(20));
