@@ -137,6 +137,14 @@ fn none(_: &Run) -> Result<Vec<String>, String> {
 }
 
 fn studies() -> Vec<Study> {
+    let mut all = lab_studies();
+    all.extend(membership_studies());
+    all.extend(host_studies());
+    all
+}
+
+/// The lab's faults of the network, each run in network namespaces (root).
+fn lab_studies() -> Vec<Study> {
     vec![
         Study {
             name: "lab-free",
@@ -165,40 +173,6 @@ fn studies() -> Vec<Study> {
                 f.extend(followers(r, m, &[1, 2, 3, 4], &["formation_rms_last10"], Allowed::Rel(0.10)));
                 f
             },
-        },
-        Study {
-            name: "lab-join",
-            what: "follower 3 absent at a quorum start, its agent started at 8 s",
-            kind: Kind::Lab,
-            sets: LAB20,
-            args: &["--quorum", "3", "--quorum-wait", "1", "--absent", "3", "--join", "3@8"],
-            model: |r| {
-                let t = r.network["joined"][0]["t_s"].as_f64().ok_or("network.json names no join")?;
-                Ok(vec![format!("faults+={{node=3, from=0, to={t}, join=true}}")])
-            },
-            figures: |r, m| {
-                let mut f = followers(r, m, &[1, 2, 4], &BOTH, Allowed::Rel(0.10));
-                f.extend(followers(r, m, &[3], &["formation_rms_last10"], Allowed::Rel(0.10)));
-                f
-            },
-        },
-        Study {
-            name: "lab-leave",
-            what: "follower 2 leaves for good at 5 s of 12",
-            kind: Kind::Lab,
-            sets: LAB12,
-            args: &["--leave", "2@5"],
-            model: |_| Ok(vec!["faults+={node=2, from=5}".into()]),
-            figures: |r, m| followers(r, m, &[1, 3, 4], &BOTH, Allowed::Rel(0.10)),
-        },
-        Study {
-            name: "lab-quorum",
-            what: "a quorum start without follower 3 (absent), 12 s",
-            kind: Kind::Lab,
-            sets: LAB12,
-            args: &["--quorum", "3", "--quorum-wait", "1", "--absent", "3"],
-            model: |_| Ok(vec!["faults+={node=3, from=0}".into()]),
-            figures: |r, m| followers(r, m, &[1, 2, 4], &BOTH, Allowed::Rel(0.10)),
         },
         Study {
             name: "lab-clock",
@@ -240,6 +214,47 @@ fn studies() -> Vec<Study> {
             },
             figures: |r, m| followers(r, m, &[1, 2, 3, 4], &["formation_rms_last10"], Allowed::Rel(0.25)),
         },
+    ]
+}
+
+/// The lab's changes of membership: a join, a leave, a quorum start, a
+/// handover (root).
+fn membership_studies() -> Vec<Study> {
+    vec![
+        Study {
+            name: "lab-join",
+            what: "follower 3 absent at a quorum start, its agent started at 8 s",
+            kind: Kind::Lab,
+            sets: LAB20,
+            args: &["--quorum", "3", "--quorum-wait", "1", "--absent", "3", "--join", "3@8"],
+            model: |r| {
+                let t = r.network["joined"][0]["t_s"].as_f64().ok_or("network.json names no join")?;
+                Ok(vec![format!("faults+={{node=3, from=0, to={t}, join=true}}")])
+            },
+            figures: |r, m| {
+                let mut f = followers(r, m, &[1, 2, 4], &BOTH, Allowed::Rel(0.10));
+                f.extend(followers(r, m, &[3], &["formation_rms_last10"], Allowed::Rel(0.10)));
+                f
+            },
+        },
+        Study {
+            name: "lab-leave",
+            what: "follower 2 leaves for good at 5 s of 12",
+            kind: Kind::Lab,
+            sets: LAB12,
+            args: &["--leave", "2@5"],
+            model: |_| Ok(vec!["faults+={node=2, from=5}".into()]),
+            figures: |r, m| followers(r, m, &[1, 3, 4], &BOTH, Allowed::Rel(0.10)),
+        },
+        Study {
+            name: "lab-quorum",
+            what: "a quorum start without follower 3 (absent), 12 s",
+            kind: Kind::Lab,
+            sets: LAB12,
+            args: &["--quorum", "3", "--quorum-wait", "1", "--absent", "3"],
+            model: |_| Ok(vec!["faults+={node=3, from=0}".into()]),
+            figures: |r, m| followers(r, m, &[1, 2, 4], &BOTH, Allowed::Rel(0.10)),
+        },
         Study {
             name: "lab-handover",
             what: "the leader killed at 10 s of 30, a standby takes over",
@@ -255,6 +270,12 @@ fn studies() -> Vec<Study> {
             },
             figures: |r, m| followers(r, m, &[1, 2, 3, 4], &BOTH, Allowed::Rel(0.10)),
         },
+    ]
+}
+
+/// Runs on this host: a launch, and the rings of 50 and 100 agents.
+fn host_studies() -> Vec<Study> {
+    vec![
         Study {
             name: "launch-delay",
             what: "launch on this host, 100 Hz at time scale 2, 2 steps of delay, 20 s",
@@ -364,7 +385,7 @@ pub fn run(a: &VerifyArgs) -> Result<(), Error> {
     }
     std::fs::create_dir_all(&a.out).map_err(|e| Error::Run(format!("{}: {e}", a.out.display())))?;
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
-    let lab = lab_available();
+    let lab = formation_launch::lab::netns::root_lab().map_err(|e| e.0);
     let mut outcomes = Vec::new();
     for (i, s) in chosen.iter().enumerate() {
         eprintln!("verify: {}/{} {}: {}", i + 1, chosen.len(), s.name, s.what);
@@ -399,17 +420,6 @@ pub fn run(a: &VerifyArgs) -> Result<(), Error> {
         )));
     }
     Ok(())
-}
-
-/// Whether the lab can run here (root and nft), or why not.
-fn lab_available() -> Result<(), String> {
-    let nft = Command::new("nft").arg("--version").output().is_ok_and(|o| o.status.success());
-    match formation_launch::lab::netns::privilege() {
-        Ok(formation_launch::lab::netns::Privilege::Root) if nft => Ok(()),
-        Ok(formation_launch::lab::netns::Privilege::Root) => Err("`nft` (nftables) is missing".into()),
-        Ok(formation_launch::lab::netns::Privilege::Unshare) => Err("the lab's studies need root".into()),
-        Err(e) => Err(e.0),
-    }
 }
 
 /// One study: its run, its model, its figures.
@@ -449,15 +459,10 @@ fn study(exe: &Path, a: &VerifyArgs, s: &Study) -> Result<Outcome, String> {
     if !(status.success() || status.code() == Some(3)) {
         return Err(format!("the run ended {status} (what it said: {})", log.display()));
     }
-    let read = |name: &str| -> Result<serde_json::Value, String> {
-        let p = run_dir.join(name);
-        let text = std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))?;
-        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))
-    };
     let run = Run {
-        summary: read("summary.json")?,
-        network: read("network.json")?,
-        lab: if s.kind == Kind::Lab { read("lab.json")? } else { serde_json::Value::Null },
+        summary: read_json(&run_dir.join("summary.json"))?,
+        network: read_json(&run_dir.join("network.json"))?,
+        lab: if s.kind == Kind::Lab { read_json(&run_dir.join("lab.json"))? } else { serde_json::Value::Null },
         dir: run_dir.clone(),
     };
     let model_dir = dir.join("model");
@@ -470,11 +475,7 @@ fn study(exe: &Path, a: &VerifyArgs, s: &Study) -> Result<Outcome, String> {
     if !o.status.success() {
         return Err(format!("formation sim: {}", String::from_utf8_lossy(&o.stderr).trim()));
     }
-    let model = {
-        let p = model_dir.join("summary.json");
-        let text = std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))?;
-        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))?
-    };
+    let model = read_json(&model_dir.join("summary.json"))?;
     let period = Period::of(&run.network);
     let complete = run.network["complete"] == true;
     let not_judged = if !complete {
@@ -483,6 +484,12 @@ fn study(exe: &Path, a: &VerifyArgs, s: &Study) -> Result<Outcome, String> {
         period.why_not_judged()
     };
     Ok(Outcome { study: s.name, period: Some(period), not_judged, figures: (s.figures)(&run, &model) })
+}
+
+/// A run folder's JSON file, parsed; the error names the file.
+fn read_json(p: &Path) -> Result<serde_json::Value, String> {
+    let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
+    serde_json::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))
 }
 
 /// `count` consecutive free loopback ports from 20,000 up.

@@ -29,15 +29,8 @@ const BASE: [&str; 2] = ["timing=realtime", "duration=20"];
 
 /// Whether the lab can run here; panics if it must and cannot.
 fn lab_available() -> bool {
-    let nft = Command::new("nft").arg("--version").output().is_ok_and(|o| o.status.success());
     // Root is asked for here: the unshare fallback is for `formation lab` by hand.
-    let why = match formation_launch::lab::netns::privilege() {
-        Ok(formation_launch::lab::netns::Privilege::Root) if nft => None,
-        Ok(formation_launch::lab::netns::Privilege::Root) => Some("`nft` (nftables) is missing".to_string()),
-        Ok(formation_launch::lab::netns::Privilege::Unshare) => Some("not root".to_string()),
-        Err(e) => Some(e.0),
-    };
-    match why {
+    match formation_launch::lab::netns::root_lab().err().map(|e| e.0) {
         None => true,
         Some(w) if std::env::var("FORMATION_LAB_REQUIRED").as_deref() == Ok("1") => {
             panic!("FORMATION_LAB_REQUIRED=1 but the lab cannot run here: {w}")

@@ -92,6 +92,18 @@ pub fn privilege() -> Result<Privilege, LabError> {
     Ok(Privilege::Unshare)
 }
 
+/// Whether every part of the lab can run here as root, namespaces built
+/// directly and faults performed with nftables (what the lab's tests and
+/// `formation verify` need), or one line saying why not.
+pub fn root_lab() -> Result<(), LabError> {
+    let nft = Command::new("nft").arg("--version").output().is_ok_and(|o| o.status.success());
+    match privilege()? {
+        Privilege::Root if nft => Ok(()),
+        Privilege::Root => Err(LabError("`nft` (nftables) is missing".into())),
+        Privilege::Unshare => Err(LabError("not root".into())),
+    }
+}
+
 /// The effective uid: the second field of /proc/self/status's `Uid:` line,
 /// else the owner of /proc/self.
 fn euid() -> Option<u32> {
