@@ -782,8 +782,7 @@ impl Follower {
         // Whatever the sources it waits for send (a waiting neighbour
         // repeats its last messages) says they are alive: the stall timeout
         // counts from their last word, in time this node was awake to watch.
-        let missing = self.inbox.missing(k);
-        let signs = self.inbox.signs_of_life(&missing);
+        let signs = self.inbox.signs_of_life(k);
         let wait = self.wait.get_or_insert_with(|| gate::Wait::new(now, gate::FOLLOWER_REPEAT_EVERY, stall));
         wait.alive(now, signs);
         let waited = wait.waited(now);

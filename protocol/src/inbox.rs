@@ -171,12 +171,17 @@ impl Inbox {
         self.heard_max[slot]
     }
 
-    /// How many checked messages `slots` sent, accepted or not (a repeat
-    /// of a step already held included): a lock-step neighbour that
-    /// waits itself repeats its last messages, so a count that grows says
-    /// it is alive, however slow ([`crate::patience`]).
-    pub fn signs_of_life(&self, slots: &[usize]) -> u64 {
-        slots.iter().filter_map(|&s| self.heard.get(s)).sum()
+    /// Lock-step: how many checked messages the sources whose step-k
+    /// message is missing sent, accepted or not (a repeat of a step already
+    /// held included): a neighbour that waits itself repeats its last
+    /// messages, so a count that grows says it is alive, however slow
+    /// ([`crate::patience`]). Counted in place: the wait polls it on every
+    /// wake-up.
+    pub fn signs_of_life(&mut self, k: u64) -> u64 {
+        (0..self.pending.len())
+            .filter(|&s| !self.pending[s].contains_key(&k) && !self.links[s].lost(k))
+            .map(|s| self.heard[s])
+            .sum()
     }
 
     /// The least advanced of the first `slots` sources, by the furthest step
