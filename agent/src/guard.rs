@@ -88,27 +88,48 @@ impl Guard {
     }
 }
 
+/// How this follower knows another robot at step k (docs/model.md §16).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub enum Seen {
+    /// Heard in time and running a filter of its own: each of the two
+    /// takes half of the pair's barrier (eq. G3).
+    #[default]
+    Live,
+    /// Not running (absent, left the run, taken for gone): standing at its
+    /// pose; this robot takes the whole barrier (eq. G3b).
+    Still,
+    /// Not heard for `age_s`, longer than the silence time-out: somewhere
+    /// within v_max × `age_s` of its last pose, that bound still `growing`
+    /// until the robot is taken for gone (eq. G3c).
+    Stale { age_s: f64, growing: bool },
+}
+
 /// The other robots' poses as this follower knows them at step k (the
 /// simulator and lock-step agents: each one's pose of step k − 1; real
 /// time: the newest heard), by scenario index; `own` is this follower's
-/// index, skipped. `stale`, by the same index (empty: none), marks a pose
-/// not heard for longer than the scenario's silence time-out: a robot whose
-/// last known point is within `safety.radius` and stale stops this one
-/// (docs/model.md §16).
+/// index, skipped. `seen`, by the same index (empty: every robot
+/// [`Seen::Live`]), says how each is known. `lost`: this follower has heard
+/// no other robot for longer than the time after which a silent robot is
+/// taken for gone, and stops (docs/model.md §16).
 #[derive(Clone, Copy, Debug)]
 pub struct Nearby<'a> {
     pub poses: &'a [Pose],
     pub own: usize,
-    pub stale: &'a [bool],
+    pub seen: &'a [Seen],
+    pub lost: bool,
 }
 
 impl<'a> Nearby<'a> {
     /// No other robot known.
-    pub const NONE: Nearby<'static> = Nearby { poses: &[], own: 0, stale: &[] };
+    pub const NONE: Nearby<'static> = Nearby { poses: &[], own: 0, seen: &[], lost: false };
 
-    /// Every pose fresh (the simulator, lock-step).
+    /// Every other robot live, its pose exact (the simulator, lock-step).
     pub fn fresh(poses: &'a [Pose], own: usize) -> Self {
-        Self { poses, own, stale: &[] }
+        Self { poses, own, seen: &[], lost: false }
+    }
+
+    fn seen(&self, j: usize) -> Seen {
+        self.seen.get(j).copied().unwrap_or_default()
     }
 }
 
@@ -130,7 +151,9 @@ pub struct GuardStep {
     /// The program had no solution (the robots were already closer than the
     /// barrier's radius, or a robot was outside the arena): the robot was stopped.
     pub infeasible: bool,
-    /// A robot within `radius` had a stale pose: the robot was stopped.
+    /// The robot was stopped for want of others' poses: it was lost, a
+    /// stale robot of unbounded speed was within `radius`, or a stale
+    /// robot's bound reached it (docs/model.md §16).
     pub blind: bool,
 }
 
@@ -147,7 +170,7 @@ pub struct GuardTally {
     pub change_sum: f64,
     /// Steps whose program had no solution (the robot stopped).
     pub infeasible: u64,
-    /// Steps stopped because a robot within `radius` had a stale pose.
+    /// Steps stopped for want of others' poses ([`GuardStep::blind`]).
     #[serde(default)]
     pub blind: u64,
 }
@@ -167,7 +190,10 @@ impl GuardTally {
 
 /// The command the robot gets at step k from the controller's command, the
 /// robot's pose and the others' (docs/model.md §16's order): clip to the
-/// limits (G1a); filter (G2–G5); scale into the limits (G1b).
+/// limits (G1a); filter (G2–G5); scale into the limits (G1b). Stopped, and
+/// counted `blind`: a lost follower; a stale robot within `radius` when the
+/// robots' speed has no bound (no `robot.v_max`); a stale robot's bound
+/// that this robot cannot outrun within its limits.
 pub fn apply(guard: &Guard, requested: Velocity, pose: &Pose, nearby: Nearby<'_>) -> (Velocity, GuardStep) {
     let mut step = GuardStep::default();
     let mut command = requested;
@@ -176,78 +202,131 @@ pub fn apply(guard: &Guard, requested: Velocity, pose: &Pose, nearby: Nearby<'_>
         step.saturated = command != requested;
     }
     if let Some(s) = &guard.safety {
-        if blind(s, pose, nearby) {
+        let speed = guard.limits.map(|l| l.v_max);
+        if nearby.lost || (speed.is_none() && stale_within_radius(s, pose, nearby)) {
             step.blind = true;
             return (Velocity::default(), step);
         }
-        let (filtered, change, feasible) = filter(s, command, pose, nearby);
-        command = filtered;
-        step.change = change;
-        step.infeasible = !feasible;
+        let f = filter(s, speed, command, pose, nearby);
+        command = f.command;
+        step.change = f.change;
+        step.infeasible = !f.feasible;
         if let Some(l) = &guard.limits {
-            command = l.scale(command);
+            let scaled = l.scale(command);
+            if f.retreating && scaled != command {
+                step.blind = true;
+                return (Velocity::default(), step);
+            }
+            command = scaled;
         }
     }
     (command, step)
 }
 
 /// Whether a robot whose last known point is within `radius` of this one's
-/// has a stale pose (the real-time rule of docs/model.md §16: stop).
-fn blind(s: &SafetyParams, pose: &Pose, nearby: Nearby<'_>) -> bool {
-    if !nearby.stale.contains(&true) {
-        return false;
-    }
+/// is stale: without a speed bound it may be anywhere near (stop).
+fn stale_within_radius(s: &SafetyParams, pose: &Pose, nearby: Nearby<'_>) -> bool {
     let p = s.point(pose);
-    nearby.poses.iter().zip(nearby.stale).enumerate().any(|(j, (other, &stale))| {
+    nearby.poses.iter().enumerate().any(|(j, other)| {
         let q = s.point(other);
         let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2);
-        stale && j != nearby.own && d2 <= s.radius * s.radius
+        j != nearby.own && matches!(nearby.seen(j), Seen::Stale { .. }) && d2 <= s.radius * s.radius
     })
+}
+
+/// What [`filter`] made of one command.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Filtered {
+    pub command: Velocity,
+    /// ‖u − û‖, m/s.
+    pub change: f64,
+    /// Whether (G4) had a solution (if not: a stop, (0, 0)).
+    pub feasible: bool,
+    /// A stale robot's bound is closing in: (G3c) asks this robot to move
+    /// away, which scaling into the limits (G1b) may undo.
+    pub retreating: bool,
 }
 
 /// Eq. G2–G5 for one robot: the unicycle command (v, ω) as the velocity u of
 /// the point l ahead (G2), the barrier constraints of every other robot
-/// within `radius` and of the arena (G3), the closest u to û that meets them
-/// all (G4), and back to (v, ω) (G5). Returns the command, ‖u − û‖ and
-/// whether the program was feasible (if not: a stop, (0, 0)).
-pub fn filter(s: &SafetyParams, command: Velocity, pose: &Pose, nearby: Nearby<'_>) -> (Velocity, f64, bool) {
+/// that may be within `radius` and of the arena (G3), the closest u to û
+/// that meets them all (G4), and back to (v, ω) (G5). `speed` bounds how
+/// fast a stale robot may have moved (`robot.v_max`; none: stale robots
+/// are left to [`apply`]'s stop).
+pub fn filter(s: &SafetyParams, speed: Option<f64>, command: Velocity, pose: &Pose, nearby: Nearby<'_>) -> Filtered {
     let (sin, cos) = pose.theta.sin_cos();
     let l = s.projection;
     let p = [pose.x + l * cos, pose.y + l * sin];
     // G2: u = R(θ) diag(1, l) (v, ω).
     let want = [cos * command.v - l * sin * command.w, sin * command.v + l * cos * command.w];
     let mut program = Program::default();
-    let r2 = s.barrier_radius() * s.barrier_radius();
-    // The nearest MAX_NEARBY within `radius`, by squared distance.
-    let mut near = [(f64::INFINITY, [0.0; 2]); MAX_NEARBY];
+    let r = s.barrier_radius();
+    let r2 = r * r;
+    // The nearest MAX_NEARBY that may be within `radius` (a stale robot's
+    // point by its bound), by how close they may be.
+    let mut near = [Near { key: f64::INFINITY, d: [0.0; 2], d2: 0.0, seen: Seen::Live }; MAX_NEARBY];
     for (j, other) in nearby.poses.iter().enumerate() {
         if j == nearby.own {
             continue;
         }
+        let seen = nearby.seen(j);
+        let reach = match (seen, speed) {
+            (Seen::Stale { age_s, .. }, Some(v)) => v * age_s,
+            (Seen::Stale { .. }, None) => continue,
+            _ => 0.0,
+        };
         let q = s.point(other);
         let d = [p[0] - q[0], p[1] - q[1]];
         let d2 = d[0] * d[0] + d[1] * d[1];
-        if d2 > s.radius * s.radius || !d2.is_finite() {
+        // (A live or still robot's key is d² itself, as it always was.)
+        let key = match reach {
+            0.0 => d2,
+            _ => (d2.sqrt() - reach).max(0.0).powi(2),
+        };
+        if key > s.radius * s.radius || !key.is_finite() {
             continue;
         }
         // Insert in order, dropping the farthest.
         let mut at = MAX_NEARBY;
-        while at > 0 && near[at - 1].0 > d2 {
+        while at > 0 && near[at - 1].key > key {
             at -= 1;
         }
         if at < MAX_NEARBY {
             near.copy_within(at..MAX_NEARBY - 1, at + 1);
-            near[at] = (d2, d);
+            near[at] = Near { key, d, d2, seen };
         }
     }
-    for &(d2, d) in near.iter().take_while(|n| n.0.is_finite()) {
-        // G3, this robot's half: −2 (p_i − p_j)ᵀ u_i ≤ ½ γ h³, h = ‖p_i − p_j‖² − r².
-        let h = d2 - r2;
-        program.push([-2.0 * d[0], -2.0 * d[1]], 0.5 * s.gamma * h * h * h);
+    let mut retreating = false;
+    for n in near.iter().take_while(|n| n.key.is_finite()) {
+        let (d, d2) = (n.d, n.d2);
+        let a = [-2.0 * d[0], -2.0 * d[1]];
+        match n.seen {
+            // G3, this robot's half: −2 (p_i − p_j)ᵀ u_i ≤ ½ γ h³, h = ‖p_i − p_j‖² − r².
+            Seen::Live => {
+                let h = d2 - r2;
+                program.push(a, 0.5 * s.gamma * h * h * h);
+            }
+            // G3b, all of it: the other robot does not move.
+            Seen::Still => {
+                let h = d2 - r2;
+                program.push(a, s.gamma * h * h * h);
+            }
+            // G3c, all of it, the radius ρ = r + v_max age growing at v_max:
+            // −2 (p_i − q_j)ᵀ u_i ≤ γ h³ − 2 ρ ρ̇, h = ‖p_i − q_j‖² − ρ².
+            Seen::Stale { age_s, growing } => {
+                let v = speed.unwrap_or(0.0);
+                let rho = r + v * age_s;
+                let rate = if growing { v } else { 0.0 };
+                let h = d2 - rho * rho;
+                let b = s.gamma * h * h * h - 2.0 * rho * rate;
+                retreating |= b < 0.0;
+                program.push(a, b);
+            }
+        }
     }
     if let Some([x0, x1, y0, y1]) = s.arena {
         // G3 at the walls: ±e_x,yᵀ u ≤ 0.4 γ (wall distance − r/2)³.
-        let half = s.barrier_radius() / 2.0;
+        let half = r / 2.0;
         let wall = |gap: f64| 0.4 * s.gamma * gap * gap * gap;
         program.push([1.0, 0.0], wall(x1 - half - p[0]));
         program.push([-1.0, 0.0], wall(p[0] - x0 - half));
@@ -255,15 +334,27 @@ pub fn filter(s: &SafetyParams, command: Velocity, pose: &Pose, nearby: Nearby<'
         program.push([0.0, -1.0], wall(p[1] - y0 - half));
     }
     let Some(u) = program.closest(want) else {
-        return (Velocity::default(), (want[0] * want[0] + want[1] * want[1]).sqrt(), false);
+        let change = (want[0] * want[0] + want[1] * want[1]).sqrt();
+        return Filtered { command: Velocity::default(), change, feasible: false, retreating };
     };
     let change = ((u[0] - want[0]).powi(2) + (u[1] - want[1]).powi(2)).sqrt();
     if change == 0.0 {
         // The command was safe: passed on untouched (no round trip through G5).
-        return (command, 0.0, true);
+        return Filtered { command, change: 0.0, feasible: true, retreating };
     }
     // G5: (v, ω) = diag(1, 1/l) R(θ)ᵀ u.
-    (Velocity::new(cos * u[0] + sin * u[1], (-sin * u[0] + cos * u[1]) / l), change, true)
+    let command = Velocity::new(cos * u[0] + sin * u[1], (-sin * u[0] + cos * u[1]) / l);
+    Filtered { command, change, feasible: true, retreating }
+}
+
+/// One other robot in [`filter`]'s program: how close it may be (squared,
+/// the sort key), p_i − q_j, its square, and how it is known.
+#[derive(Clone, Copy, Debug)]
+struct Near {
+    key: f64,
+    d: [f64; 2],
+    d2: f64,
+    seen: Seen,
 }
 
 /// Eq. G4: min ‖u − û‖² subject to aᵢᵀ u ≤ bᵢ, u ∈ ℝ².
@@ -350,6 +441,12 @@ mod tests {
     const SAFETY: SafetyParams =
         SafetyParams { distance: 0.3, gamma: 100.0, projection: 0.05, radius: 2.0, arena: None };
 
+    /// [`filter`] without a speed bound, as (command, change, feasible).
+    fn f3(s: &SafetyParams, c: Velocity, pose: &Pose, nearby: Nearby<'_>) -> (Velocity, f64, bool) {
+        let f = filter(s, None, c, pose, nearby);
+        (f.command, f.change, f.feasible)
+    }
+
     #[test]
     fn limits_clip_each_channel_and_scale_both() {
         let l = Limits { v_max: 0.22, w_max: 2.84 };
@@ -366,11 +463,11 @@ mod tests {
         let me = Pose::new(0.0, 0.0, 0.0);
         let far = [me, Pose::new(1.5, 0.0, 0.0)];
         let c = Velocity::new(0.2, 0.3);
-        let (out, change, ok) = filter(&SAFETY, c, &me, Nearby::fresh(&far, 0));
+        let (out, change, ok) = f3(&SAFETY, c, &me, Nearby::fresh(&far, 0));
         assert_eq!((out, change, ok), (c, 0.0, true));
         // Outside the radius: not considered at all, however it moves.
         let beyond = [me, Pose::new(2.5, 0.0, 0.0)];
-        assert_eq!(filter(&SAFETY, Velocity::new(10.0, 0.0), &me, Nearby::fresh(&beyond, 0)).0.v, 10.0);
+        assert_eq!(f3(&SAFETY, Velocity::new(10.0, 0.0), &me, Nearby::fresh(&beyond, 0)).0.v, 10.0);
     }
 
     #[test]
@@ -378,12 +475,12 @@ mod tests {
         // Another robot 0.5 m ahead, facing us: its point is 0.4 m from ours.
         let me = Pose::new(0.0, 0.0, 0.0);
         let poses = [me, Pose::new(0.5, 0.0, std::f64::consts::PI)];
-        let (out, change, ok) = filter(&SAFETY, Velocity::new(0.2, 0.0), &me, Nearby::fresh(&poses, 0));
+        let (out, change, ok) = f3(&SAFETY, Velocity::new(0.2, 0.0), &me, Nearby::fresh(&poses, 0));
         assert!(ok);
         // −2 (−0.4) u_x ≤ ½ γ h³, h = 0.16 − 0.16 = 0 at r = 0.4: u_x ≤ 0.
         assert!(out.v <= 1e-12 && change > 0.19, "{out:?}, change {change}");
         // Moving away is never restricted.
-        let (back, change, _) = filter(&SAFETY, Velocity::new(-0.2, 0.0), &me, Nearby::fresh(&poses, 0));
+        let (back, change, _) = f3(&SAFETY, Velocity::new(-0.2, 0.0), &me, Nearby::fresh(&poses, 0));
         assert_eq!((back.v, change), (-0.2, 0.0));
     }
 
@@ -398,13 +495,15 @@ mod tests {
         for _ in 0..2000 {
             let before = poses;
             for (i, p) in poses.iter_mut().enumerate() {
-                let (c, _, ok) = filter(&SAFETY, Velocity::new(0.22, 0.0), p, Nearby::fresh(&before, i));
+                let (c, _, ok) = f3(&SAFETY, Velocity::new(0.22, 0.0), p, Nearby::fresh(&before, i));
                 assert!(ok);
                 p.advance(c, p.theta.sin_cos(), dt);
             }
             closest = closest.min((poses[0].x - poses[1].x).hypot(poses[0].y - poses[1].y));
         }
         assert!(closest >= SAFETY.distance, "closest {closest}");
+        // Apart and past each other: two robots that stopped would pass the line above.
+        assert!(poses[0].x > 0.5 && poses[1].x < -0.5, "not past each other after 20 s: {poses:?}");
     }
 
     #[test]
@@ -412,7 +511,7 @@ mod tests {
         let s = SafetyParams { arena: Some([-1.0, 1.0, -1.0, 1.0]), ..SAFETY };
         let mut p = Pose::new(0.0, 0.0, 0.3);
         for _ in 0..3000 {
-            let (c, _, ok) = filter(&s, Velocity::new(0.22, 0.0), &p, Nearby::NONE);
+            let (c, _, ok) = f3(&s, Velocity::new(0.22, 0.0), &p, Nearby::NONE);
             assert!(ok);
             p.advance(c, p.theta.sin_cos(), 0.01);
             assert!(p.x.abs() < 1.0 && p.y.abs() < 1.0, "{p:?}");
@@ -430,33 +529,159 @@ mod tests {
         assert_eq!(q.closest([1.0, 1.0]), None);
     }
 
+    /// With another robot near, so that the filter acts: the guard's
+    /// command is scale(filter(clip(c))), and each other order gives
+    /// another command here (so a guard that changed the order fails).
     #[test]
     fn the_guard_clips_filters_and_scales_in_that_order() {
-        let g = Guard { limits: Some(Limits { v_max: 0.22, w_max: 2.84 }), safety: Some(SAFETY) };
+        let l = LIMITS;
+        let g = Guard { limits: Some(l), safety: Some(SAFETY) };
         let me = Pose::new(0.0, 0.0, 0.0);
-        let (c, step) = apply(&g, Velocity::new(4.0, 0.0), &me, Nearby::fresh(&[me], 0));
-        assert_eq!(c, Velocity::new(0.22, 0.0));
-        assert!(step.saturated && step.change == 0.0 && !step.infeasible);
+        // 0.46 m ahead, facing us: the filter turns the robot faster than w_max.
+        let poses = [me, Pose::new(0.46, 0.01, std::f64::consts::PI)];
+        let near = Nearby::fresh(&poses, 0);
+        let asked = Velocity::new(0.5, -4.0);
+        let (c, step) = apply(&g, asked, &me, near);
+        let filtered = |v: Velocity| filter(&SAFETY, Some(l.v_max), v, &me, near).command;
+        let expected = l.scale(filtered(l.clip(asked)));
+        assert_eq!(c, expected);
+        assert!(step.saturated && step.change > 0.0 && !step.infeasible, "{step:?}");
+        assert!(l.within(c), "{c:?}");
+        let others = [
+            ("filter, clip", l.clip(filtered(asked))),
+            ("filter, scale", l.scale(filtered(asked))),
+            ("clip, filter", filtered(l.clip(asked))),
+            ("clip, scale, filter", filtered(l.scale(l.clip(asked)))),
+        ];
+        for (order, other) in others {
+            assert_ne!(other, expected, "{order} gives the same command: this case does not tell the orders apart");
+        }
         let off = apply(&Guard::default(), Velocity::new(4.0, 9.0), &me, Nearby::NONE);
         assert_eq!(off.0, Velocity::new(4.0, 9.0));
     }
 
     #[test]
-    fn a_stale_pose_within_the_radius_stops_the_robot_and_one_beyond_it_does_not() {
+    fn without_a_speed_bound_a_stale_pose_within_the_radius_stops_the_robot_and_one_beyond_it_does_not() {
         let g = Guard { limits: None, safety: Some(SAFETY) };
         let me = Pose::new(0.0, 0.0, 0.0);
         let near = Pose::new(SAFETY.radius * 0.5, 0.0, 0.0);
         let far = Pose::new(SAFETY.radius * 3.0, 0.0, 0.0);
         let go = Velocity::new(0.1, 0.0);
         let poses = [me, near, far];
-        let (c, step) = apply(&g, go, &me, Nearby { poses: &poses, own: 0, stale: &[false, true, false] });
+        let stale = Seen::Stale { age_s: 9.0, growing: true };
+        let at = |seen: &[Seen]| apply(&g, go, &me, Nearby { poses: &poses, own: 0, seen, lost: false });
+        let (c, step) = at(&[Seen::Live, stale, Seen::Live]);
         assert_eq!((c, step.blind), (Velocity::default(), true), "a stale robot at {} m", near.x);
-        let (c, step) = apply(&g, go, &me, Nearby { poses: &poses, own: 0, stale: &[false, false, true] });
+        let (c, step) = at(&[Seen::Live, Seen::Live, stale]);
         assert!(!step.blind && c.v > 0.0, "a stale robot at {} m, beyond the radius, stopped it: {c:?}", far.x);
-        let (_, step) = apply(&g, go, &me, Nearby { poses: &poses, own: 0, stale: &[true, false, false] });
+        let (_, step) = at(&[stale, Seen::Live, Seen::Live]);
         assert!(!step.blind, "its own entry is not another robot");
         let mut tally = GuardTally::default();
         tally.add(&GuardStep { blind: true, ..GuardStep::default() });
         assert_eq!(tally.blind, 1);
+    }
+
+    const LIMITS: Limits = Limits { v_max: 0.22, w_max: 2.84 };
+
+    /// With `robot.v_max`, a robot not heard for `age` may be anywhere within
+    /// v_max × age of its last pose: one beyond `radius` by less than that
+    /// is in the program; one that may not be within it is not.
+    #[test]
+    fn a_stale_robot_counts_wherever_its_bound_may_have_brought_it() {
+        let me = Pose::new(0.0, 0.0, 0.0);
+        let poses = [me, Pose::new(SAFETY.radius + 0.6, 0.0, 0.0)];
+        let fast = Velocity::new(30.0, 0.0);
+        let run = |seen: Seen| {
+            filter(
+                &SAFETY,
+                Some(LIMITS.v_max),
+                fast,
+                &me,
+                Nearby { poses: &poses, own: 0, seen: &[Seen::Live, seen], lost: false },
+            )
+        };
+        assert_eq!(run(Seen::Live).change, 0.0, "a live robot beyond the radius is left out");
+        assert_eq!(
+            run(Seen::Stale { age_s: 1.0, growing: true }).change,
+            0.0,
+            "0.22 m of reach does not bring it within"
+        );
+        let closing = run(Seen::Stale { age_s: 9.0, growing: true });
+        assert!(closing.change > 0.0 && closing.command.v < fast.v, "1.98 m of reach: {closing:?}");
+        let held = run(Seen::Stale { age_s: 9.0, growing: false });
+        assert!(
+            held.command.v > closing.command.v,
+            "a bound no longer growing allows more: {held:?} against {closing:?}"
+        );
+    }
+
+    /// A robot driving at one that stopped answering (and in truth stands
+    /// where it was last heard) keeps outside its bound, distance + v_max ×
+    /// age from that pose, for as long as it can outrun it; then it stops
+    /// (blind) and never comes closer to the silent robot than `distance`.
+    #[test]
+    fn a_robot_keeps_outside_a_stale_robots_growing_bound_and_stops_when_it_cannot_outrun_it() {
+        let g = Guard { limits: Some(LIMITS), safety: Some(SAFETY) };
+        let silent = Pose::new(1.5, 0.0, std::f64::consts::PI);
+        let mut me = Pose::new(0.0, 0.0, 0.0);
+        let dt = 0.01;
+        let (mut first_blind, mut closest) = (None, f64::INFINITY);
+        for k in 0..1000 {
+            let age_s = k as f64 * dt;
+            let poses = [me, silent];
+            let seen = [Seen::Live, Seen::Stale { age_s, growing: true }];
+            let (c, step) =
+                apply(&g, Velocity::new(0.22, 0.0), &me, Nearby { poses: &poses, own: 0, seen: &seen, lost: false });
+            assert!(LIMITS.within(c), "step {k}: {c:?} beyond the limits");
+            let gap = (me.x - silent.x).hypot(me.y - silent.y);
+            closest = closest.min(gap);
+            if step.blind {
+                assert_eq!(c, Velocity::default());
+                first_blind.get_or_insert((k, gap));
+            } else if first_blind.is_none() {
+                let bound = SAFETY.distance + LIMITS.v_max * age_s;
+                assert!(
+                    gap >= bound - 1e-3,
+                    "step {k}: {gap:.4} m from the silent robot's last pose, its bound {bound:.4} m"
+                );
+            }
+            me.advance(c, me.theta.sin_cos(), dt);
+        }
+        let (k, gap) = first_blind.expect("the bound, growing at v_max, overtook a robot that cannot reverse faster");
+        assert!(k > 100, "stopped at step {k} ({gap:.3} m): it should first have kept ahead of the bound");
+        assert!(closest >= SAFETY.distance, "came {closest:.4} m from the silent robot");
+    }
+
+    /// A robot that is not running (absent, left, gone) is an obstacle at
+    /// its pose: this robot takes the whole barrier (G3b), so it may come
+    /// closer than to a live robot, which takes half, never closer than
+    /// `distance`, and it gets past (the command drives straight on).
+    #[test]
+    fn a_still_robot_takes_the_whole_barrier_and_is_never_reached() {
+        let g = Guard { limits: Some(LIMITS), safety: Some(SAFETY) };
+        let other = Pose::new(1.0, 0.02, std::f64::consts::PI);
+        let approach = |seen: Seen| {
+            let (mut me, mut closest) = (Pose::new(0.0, 0.0, 0.0), f64::INFINITY);
+            for _ in 0..3000 {
+                let poses = [me, other];
+                let nearby = Nearby { poses: &poses, own: 0, seen: &[Seen::Live, seen], lost: false };
+                let (c, _) = apply(&g, Velocity::new(0.22, 0.0), &me, nearby);
+                me.advance(c, me.theta.sin_cos(), 0.01);
+                closest = closest.min((me.x - other.x).hypot(me.y - other.y));
+            }
+            (closest, me.x)
+        };
+        let ((still, x_still), (live, _)) = (approach(Seen::Still), approach(Seen::Live));
+        assert!(still >= SAFETY.distance && live >= SAFETY.distance, "closest: still {still:.4} m, live {live:.4} m");
+        assert!(still < live, "against a still robot it may use the whole margin: {still:.4} m, live {live:.4} m");
+        assert!(x_still > other.x + 1.0, "it did not get past the still robot: x = {x_still:.3} m after 30 s");
+    }
+
+    #[test]
+    fn a_lost_follower_stops() {
+        let g = Guard { limits: Some(LIMITS), safety: Some(SAFETY) };
+        let me = Pose::new(0.0, 0.0, 0.0);
+        let (c, step) = apply(&g, Velocity::new(0.2, 0.1), &me, Nearby { poses: &[me], own: 0, seen: &[], lost: true });
+        assert_eq!((c, step.blind), (Velocity::default(), true));
     }
 }

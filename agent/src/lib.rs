@@ -22,7 +22,7 @@ pub use dynamic::{DynamicGains, DynamicKind};
 pub use estimator::EstimatorGains;
 pub use filter::{FilterKind, FilterParams, VelocityFilter};
 pub use follower::{ControlParams, Fault, Follower, FollowerConfig, NonFinite, StepOutput};
-pub use guard::{Guard, GuardStep, GuardTally, Limits, Nearby, SafetyParams};
+pub use guard::{Guard, GuardStep, GuardTally, Limits, Nearby, SafetyParams, Seen};
 pub use kinematic::{BodyError, KinematicGains, KinematicKind};
 pub use links::{Hearing, LinkLoss, LossWindow, Message, RejoinPolicy, RejoinRule};
 pub use math::Shunting;

@@ -98,7 +98,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), Error> {
         }
     }
     let (scenario, run, out) = a.opts.resolve()?;
-    a.opts.warnings(&scenario, &out)?;
+    a.opts.warnings(&scenario, &out, &[], &[])?;
     if !a.opts.absent.is_empty() && a.group > 1 {
         return Err(Error::Input("--absent leaves out one follower's agent: it needs --group 1".into()));
     }

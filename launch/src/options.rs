@@ -274,10 +274,51 @@ impl RunOptions {
         self.quorum_wait.unwrap_or(formation_net::leader::QUORUM_WAIT.as_secs_f64())
     }
 
-    pub fn warnings(&self, scenario: &Scenario, out: &Path) -> Result<(), Error> {
+    /// Lemma 1 through every membership change the run is given: `--absent`
+    /// (each joining at its time in `joins`, the lab's `--join`), `--leave`
+    /// and the scenario's leave rows, together. One line naming the flags,
+    /// unless --even-if-cut-off.
+    pub fn check_membership(
+        &self,
+        scenario: &Scenario,
+        joins: &[(u32, f64)],
+        kills: &[(u32, f64)],
+    ) -> Result<(), Error> {
+        let mut leaves = formation_net::agent::planned_leaves(&self.leave, scenario)?;
+        leaves.extend(kills.iter().filter(|k| !leaves.iter().any(|l| l.0 == k.0)).copied().collect::<Vec<_>>());
+        let absent: Vec<(u32, Option<f64>)> =
+            self.absent.iter().map(|&id| (id, joins.iter().find(|j| j.0 == id).map(|j| j.1))).collect();
+        let Some(cut) = scenario.graph.cut_off_through(&absent, &leaves, &[]) else { return Ok(()) };
+        if self.even_if_cut_off {
+            return Ok(());
+        }
+        let mut given: Vec<String> = Vec::new();
+        if !self.absent.is_empty() {
+            given.push(format!("--absent {}", formation_topology::graph::id_list(&self.absent)));
+        }
+        given.extend(self.leave.iter().map(|l| format!("--leave {l}")));
+        given.extend(kills.iter().map(|k| format!("--kill-agent {}@{}", k.0, k.1)));
+        if scenario.faults.iter().any(|f| f.leave) {
+            given.push("the scenario's leave rows".into());
+        }
+        Err(Error::Input(format!(
+            "{}: {cut}: their estimates of the leader would drift; not started (--even-if-cut-off starts anyway)",
+            given.join(" with ")
+        )))
+    }
+
+    /// `joins` and `kills`: the lab's `--join` and `--kill-agent` (id, s).
+    pub fn warnings(
+        &self,
+        scenario: &Scenario,
+        out: &Path,
+        joins: &[(u32, f64)],
+        kills: &[(u32, f64)],
+    ) -> Result<(), Error> {
         // Checked here, in the agents' own words, before anything starts.
         formation_net::agent::check_leaves(&self.leave, scenario)?;
         self.check_quorum(scenario)?;
+        self.check_membership(scenario, joins, kills)?;
         let less = if self.mcap { "a shorter duration or no --mcap" } else { "a shorter duration" };
         crate::runsize::check(scenario, 1, true, self.mcap, out, less)?;
         if self.tls.is_none() && !self.quiet {

@@ -337,6 +337,9 @@ pub(crate) fn agents(
         for l in members.clone().flat_map(|i| a.opts.leaves_of(scenario.graph.id(i))) {
             c.arg("--leave").arg(l);
         }
+        if a.opts.even_if_cut_off {
+            c.arg("--even-if-cut-off");
+        }
         let mut connect = vec![mon_port, lead_port];
         if peer {
             let mut dial: Vec<usize> = members

@@ -75,6 +75,11 @@ pub struct AgentArgs {
     /// row `node = ID, from = SECONDS` to the end.
     #[cfg_attr(feature = "clap", arg(long = "leave", value_name = "ID@SECONDS"))]
     pub leave: Vec<String>,
+    /// Leave (--leave, or the scenario's leave row) even if others would
+    /// then no longer reach the leader, with the followers absent at the
+    /// start (Lemma 1; else refused, naming them).
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub even_if_cut_off: bool,
     /// No line of news (a follower leaving the run); warnings and errors
     /// are still said.
     #[cfg_attr(feature = "clap", arg(short, long))]
@@ -132,6 +137,31 @@ pub fn leave_steps(leave: &[String], ids: &[u32], scenario: &Scenario) -> Result
     Ok(out)
 }
 
+/// Every leave a run is given: `--leave ID@SECONDS` (of any follower) and
+/// the scenario's leave rows, as (id, run time in s).
+pub fn planned_leaves(leave: &[String], scenario: &Scenario) -> Result<Vec<(u32, f64)>, Error> {
+    let mut out: Vec<(u32, f64)> = leave_steps(leave, scenario.graph.ids(), scenario)?
+        .into_iter()
+        .map(|(id, k)| (id, k as f64 * scenario.dt_s))
+        .collect();
+    for &id in scenario.graph.ids() {
+        if let Some(k) = scenario.leave_step(id).filter(|_| !out.iter().any(|l| l.0 == id)) {
+            out.push((id, k as f64 * scenario.dt_s));
+        }
+    }
+    Ok(out)
+}
+
+/// "follower 3's leave at 5 s", "followers 2, 3's leaves at 5, 8 s".
+fn leaves_named(leaves: &[(u32, f64)]) -> String {
+    let ids: Vec<u32> = leaves.iter().map(|l| l.0).collect();
+    let at: Vec<String> = leaves.iter().map(|l| l.1.to_string()).collect();
+    match leaves.len() {
+        1 => format!("follower {}'s leave at {} s", ids[0], at[0]),
+        _ => format!("followers {}' leaves at {} s", formation_topology::graph::id_list(&ids), at.join(", ")),
+    }
+}
+
 /// Lemma 1 once the followers of `--leave` (every one of the formation's)
 /// have left: refused in one line naming the followers they would cut off
 /// from the leader (their estimates would drift on dead reckoning).
@@ -168,7 +198,19 @@ pub async fn run(
             Error::Input(format!("scenario {} has no follower {id} (ids: {})", scenario.name, all.join(", ")))
         })?);
     }
-    let leave_at = leave_steps(&args.leave, ids, &scenario)?;
+    let mut leave_at = leave_steps(&args.leave, ids, &scenario)?;
+    for &id in ids {
+        if let Some(k) = scenario.leave_step(id).filter(|_| !leave_at.iter().any(|l| l.0 == id)) {
+            leave_at.push((id, k));
+        }
+    }
+    let planned: Vec<(u32, f64)> = leave_at.iter().map(|&(id, k)| (id, k as f64 * scenario.dt_s)).collect();
+    if let Some(cut) = scenario.graph.cut_off_through(&[], &planned, &[]).filter(|_| !args.even_if_cut_off) {
+        return Err(Error::Input(format!(
+            "{}: {cut}: their estimates of the leader would drift (--even-if-cut-off to leave anyway)",
+            leaves_named(&planned)
+        )));
+    }
     if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
         return Err(Error::Input("--stall-timeout must be positive".into()));
     }
@@ -202,6 +244,7 @@ pub async fn run(
                 clock: args.node.clock.clone(),
                 leave: leave.clone(),
                 leave_at: leave_at.iter().find(|l| l.0 == id).map(|l| l.1),
+                even_if_cut_off: args.even_if_cut_off,
                 quorum_wait,
                 quiet: args.quiet,
             };
@@ -374,6 +417,8 @@ pub struct FollowerOptions {
     pub leave: Leave,
     /// `--leave`: the step before which this follower leaves the run.
     pub leave_at: Option<u64>,
+    /// `--even-if-cut-off`: its leave is not checked against those absent at the start.
+    pub even_if_cut_off: bool,
     /// `--quorum-wait`: ready from then on without the neighbours not heard.
     pub quorum_wait: Option<Duration>,
     /// `--quiet`: no line of news.
@@ -416,6 +461,24 @@ fn not_absent(id: u32, start: &Start, keys: &Keys, scenario: &Scenario) -> Resul
          follower absent at the start does not join later (in real time it joins at the step due)",
         keys.run
     )))
+}
+
+/// A follower that will leave (--leave, a leave row) checks Lemma 1 again
+/// once the start says who is absent: with them out as well, its leave
+/// must not cut a present follower off from the leader.
+fn own_leave_keeps_lemma_1(id: u32, opts: &FollowerOptions, start: &Start, scenario: &Scenario) -> Result<(), Error> {
+    let Some(k) = opts.leave_at.filter(|_| !opts.even_if_cut_off && !start.absent.is_empty()) else { return Ok(()) };
+    let absent: Vec<(u32, Option<f64>)> = start.absent.iter().map(|&a| (a, None)).collect();
+    let leave = [(id, k as f64 * scenario.dt_s)];
+    match scenario.graph.cut_off_through(&absent, &leave, &[]) {
+        None => Ok(()),
+        Some(cut) => Err(Error::Input(format!(
+            "follower {id}: {} with followers {} absent at the start: {cut}: not started (--even-if-cut-off \
+             starts anyway)",
+            leaves_named(&leave),
+            formation_topology::graph::id_list(&start.absent)
+        ))),
+    }
 }
 
 /// Starts the machine; the other followers absent from the start have
@@ -482,6 +545,7 @@ pub async fn run_follower(
         startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock, opts.quorum_wait)
             .await?;
     not_absent(id, &start, keys, scenario)?;
+    own_leave_keeps_lemma_1(id, &opts, &start, scenario)?;
     // Started: a later twin hears this follower's estimates from now on.
     drop(claiming);
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;

@@ -76,6 +76,11 @@ pub trait Body: Send {
     fn robot_ready(&self, _k: u64) -> bool {
         true
     }
+    /// The robot's pose now, after its last step's move (the pose of the
+    /// next step), where known: a leaving follower's last pose message.
+    fn pose(&self) -> Option<Pose> {
+        None
+    }
     /// Who [`Body::robot_ready`] waits for, for the operator.
     fn robot_name(&self) -> std::borrow::Cow<'_, str> {
         "the robot".into()
@@ -108,6 +113,9 @@ impl Body for SimFollower {
     }
     fn adopting(&self) -> bool {
         self.brain.adopting()
+    }
+    fn pose(&self) -> Option<Pose> {
+        Some(self.robot.seen_pose())
     }
 }
 
@@ -563,6 +571,9 @@ impl Follower {
     /// that message's step ([`Follower::handle_checked`]).
     pub fn handle_absent(&mut self, id: u32) {
         self.handle_gone(id, 0);
+        if let Some(p) = self.poses.as_mut() {
+            p.absent(id);
+        }
         if !self.rules.lockstep && self.rules.neighbours.contains(&id) && !self.joinable.contains(&id) {
             self.joinable.push(id);
         }
@@ -611,6 +622,12 @@ impl Follower {
     fn leave_now(&mut self, at_k: u64) {
         let why = self.leave_why;
         self.left = Some(Left { at_k, why: why.chars().take(MAX_LEFT_WHY).collect() });
+        // Where its robot stopped, the pose of step at_k, marked left: the
+        // others stop waiting for its poses and keep clear of it there.
+        let stopped = self.body.pose().or(self.latest.map(|s| s.pose));
+        if let (Some(p), Some(pose)) = (self.poses.as_mut(), stopped) {
+            self.pose_transmit.push_back(p.publish(at_k, pose, true, self.last_now, self.rules.dt_s));
+        }
         self.close_batch(at_k - 1, true, None);
         self.news.push_back(format!("follower {}: leaves the run before step {at_k}: {why}", self.rules.id));
         self.finish(Ok(()));
@@ -925,14 +942,14 @@ impl Follower {
         let nearby = match self.poses.as_mut() {
             Some(p) => {
                 let own = p.own();
-                let (poses, stale) = p.view(k, now);
-                Nearby { poses, own, stale }
+                let (poses, seen, lost) = p.view(k, now);
+                Nearby { poses, own, seen, lost }
             }
             None => Nearby::NONE,
         };
         let (sample, next) = self.body.step(t, self.rules.dt_s, leader.as_ref(), &self.inputs, nearby, last);
         if let (Some(p), false) = (self.poses.as_mut(), last) {
-            self.pose_transmit.push_back(p.publish(k, sample.pose, now, self.rules.dt_s));
+            self.pose_transmit.push_back(p.publish(k, sample.pose, false, now, self.rules.dt_s));
         }
         let rejoin = self.rules.rejoin_after_steps;
         match self.body.silent_steps() {

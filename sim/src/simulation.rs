@@ -2,7 +2,7 @@
 //! stepped in lock-step in docs/model.md §9's order. Deterministic: the same scenario
 //! gives the same numbers, bit for bit.
 
-use formation_agent::{Follower, Hearing, LinkLoss, Message, Nearby, StepOutput};
+use formation_agent::{Follower, Hearing, LinkLoss, Message, Nearby, Seen, StepOutput};
 use formation_leader::Leader;
 use formation_leader::LeaderState;
 use formation_plant::{Drive, NoiseSource, Pose, Robot, Velocity, VelocityRobot};
@@ -341,8 +341,31 @@ pub struct Simulation<'s> {
     /// k − 1 and of step k, and how close they came; empty and `None` without.
     poses_before: Vec<Pose>,
     poses_now: Vec<Pose>,
+    /// With `[safety]` and followers that join or leave (the fault table's
+    /// join and leave rows): who runs when, and how the filters of step k
+    /// see each robot; empty without.
+    presence: Vec<Presence>,
+    seen: Vec<Seen>,
     proximity: Option<Proximity>,
     k: u64,
+}
+
+/// When a follower's robot is not running (docs/model.md §14, §16): absent
+/// at its initial pose before its join step; stopped at its pose of its
+/// leave step from then on (kept in `stopped`).
+#[derive(Clone, Copy, Debug)]
+struct Presence {
+    join_k: Option<u64>,
+    leave_k: Option<u64>,
+    initial: Pose,
+    stopped: Option<Pose>,
+}
+
+impl Presence {
+    /// Whether the robot stands still at step `s`.
+    fn still(&self, s: u64) -> bool {
+        self.join_k.is_some_and(|j| s < j) || self.leave_k.is_some_and(|l| s >= l)
+    }
 }
 
 /// Followers a thread of the parallel step takes at a time.
@@ -373,6 +396,8 @@ struct StepInputs<'a> {
     /// Every robot's pose of step k − 1 (of step 0 at step 0), for the
     /// safety filter (docs/model.md §16); empty without one.
     poses: &'a [Pose],
+    /// How the filters see each robot (empty: every one live).
+    seen: &'a [Seen],
 }
 
 /// Follower `i`'s step k: its inputs (through its reception when the fault
@@ -384,7 +409,7 @@ fn step_follower(
     rx: &mut Option<Box<Reception>>,
 ) -> (FollowerSample, Message) {
     let (s, messages, leader, sent_k) = (x.s, x.messages, x.leader, x.sent_k);
-    let nearby = Nearby::fresh(x.poses, i);
+    let nearby = Nearby { poses: x.poses, own: i, seen: x.seen, lost: false };
     match rx {
         None => {
             let heard = s.graph.hears_leader(i).then_some(leader);
@@ -500,6 +525,21 @@ fn prefetch(x: &StepInputs, i: usize, f: Option<&SimFollower>) {
     let _ = (x, i, f);
 }
 
+/// Robots that do not run (docs/model.md §16): at step k one absent stands
+/// at its initial pose and one that left at its pose of its leave step;
+/// step k's filters, which take the poses of step k − 1, see each that
+/// stood still then as [`Seen::Still`].
+fn hold_the_still(presence: &mut [Presence], poses_now: &mut [Pose], seen: &mut [Seen], k: u64) {
+    for (i, p) in presence.iter_mut().enumerate() {
+        if p.join_k.is_some_and(|j| k < j) {
+            poses_now[i] = p.initial;
+        } else if let Some(l) = p.leave_k.filter(|&l| k >= l) {
+            poses_now[i] = *p.stopped.get_or_insert(if k == l { poses_now[i] } else { p.initial });
+        }
+        seen[i] = if p.still(k.saturating_sub(1)) { Seen::Still } else { Seen::Live };
+    }
+}
+
 fn diverged(s: &Scenario, i: usize, k: u64, quantity: &'static str) -> SimError {
     Diverged { follower: s.followers[i].id, step: k, t_s: k as f64 * s.dt_s, quantity }.into()
 }
@@ -515,9 +555,26 @@ impl<'s> Simulation<'s> {
             true => followers.iter().map(|f| f.robot.seen_pose()).collect(),
             false => Vec::new(),
         };
+        let presence: Vec<Presence> = scenario
+            .followers
+            .iter()
+            .map(|f| Presence {
+                join_k: scenario.join_step(f.id),
+                leave_k: scenario.leave_step(f.id),
+                initial: f.pose,
+                stopped: None,
+            })
+            .collect();
+        let comes_and_goes = presence.iter().any(|p| p.join_k.is_some() || p.leave_k.is_some());
+        let (presence, seen) = match !poses_before.is_empty() && comes_and_goes {
+            true => (presence, vec![Seen::Live; followers.len()]),
+            false => (Vec::new(), Vec::new()),
+        };
         Self {
             poses_now: poses_before.clone(),
             poses_before,
+            presence,
+            seen,
             proximity,
             scenario,
             leader: scenario.leader(),
@@ -632,6 +689,7 @@ impl<'s> Simulation<'s> {
             for (p, f) in self.poses_now.iter_mut().zip(&self.followers) {
                 *p = f.robot.seen_pose();
             }
+            hold_the_still(&mut self.presence, &mut self.poses_now, &mut self.seen, k);
             if k == 0 {
                 self.poses_before.copy_from_slice(&self.poses_now);
             }
@@ -645,6 +703,7 @@ impl<'s> Simulation<'s> {
             last,
             disturbance: s.disturbance.at(t),
             poses: &self.poses_before,
+            seen: &self.seen,
         };
         // Metrics, the observer (in index order, as a sequential run) and
         // the first follower that diverged; every follower steps even when

@@ -9,7 +9,7 @@
 use crate::common;
 
 use std::os::unix::process::CommandExt;
-use std::process::Command;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::{Group, Ports, LAUNCH_PORTS, LIMIT};
@@ -1060,5 +1060,42 @@ fn a_bad_leave_is_refused_up_front() {
         assert!(err.contains(want), "{extra:?}: {err}");
         assert_eq!(err.lines().filter(|l| l.starts_with("error")).count(), 1, "{extra:?}: one line: {err}");
         assert!(!out.exists(), "{extra:?}: a folder was written");
+    }
+}
+
+/// Lemma 1 through every membership change together (docs/model.md §14):
+/// on the paper's graph, follower 2 absent or follower 3 leaving alone is
+/// fine, both cut follower 4 off; so do a leave row in the scenario and an
+/// agent started by hand with its own leave. Each is refused before
+/// anything starts: exit 2, one line naming the flags and follower 4.
+#[test]
+fn combinations_of_absent_and_leaving_followers_that_cut_one_off_are_refused_in_one_line() {
+    let formation = env!("CARGO_BIN_EXE_formation");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let cases: [(&str, Vec<&str>); 3] = [
+        ("launch --absent 2 --leave 3@5", vec!["launch", "paper", "--quorum", "3", "--absent", "2", "--leave", "3@5"]),
+        (
+            "launch --leave 3@5 with a leave row for 2",
+            vec!["launch", "paper", "--leave", "3@5", "--set", "faults+={node=2, from=1, leave=true}"],
+        ),
+        (
+            "agent --id 2,3 with both leaving",
+            vec!["--scenario", "paper", "--id", "2,3", "--leave", "2@4", "--leave", "3@5"],
+        ),
+    ];
+    for (what, args) in cases {
+        let out = tmp.path().join(what.replace(' ', "_"));
+        let launch = args[0] == "launch";
+        let mut c = Command::new(if launch { formation } else { env!("CARGO_BIN_EXE_agent") });
+        c.args(&args).stdin(Stdio::null());
+        if launch {
+            c.arg("--out").arg(&out).args(["--set", "duration=10"]);
+        }
+        let o = c.output().expect("formation");
+        let err = String::from_utf8_lossy(&o.stderr);
+        let line = err.lines().find(|l| l.contains("no longer reach")).unwrap_or_default();
+        assert_eq!(o.status.code(), Some(2), "{what}: exit {:?}\n{err}", o.status);
+        assert!(line.contains("follower 4") && line.contains("Lemma 1"), "{what}: {err}");
+        assert!(!out.exists(), "{what}: a refused run wrote {}", out.display());
     }
 }

@@ -138,6 +138,12 @@ pub struct LinkFaultFile {
     /// (docs/model.md §14).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub join: bool,
+    /// A follower that leaves the run for good at `from` (`node = ID`, no
+    /// `to`): its links are cut from then on and its robot stops where it
+    /// is, an obstacle there for the others' safety filters (docs/model.md
+    /// §14, §16). Without it, such a row is a follower cut off but running.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub leave: bool,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

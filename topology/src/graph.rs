@@ -137,6 +137,33 @@ impl Graph {
         (!cut.is_empty()).then(|| format!("without {}, {}", followers_named(gone), no_longer_reach(&cut)))
     }
 
+    /// Lemma 1 through a run's membership changes: followers `absent` at
+    /// the start (each with the time it joins, if it does), followers that
+    /// leave (id, time, s) and followers already gone. Checked at the start
+    /// and at every leave, on the followers out at that moment; the first
+    /// moment some present follower no longer reaches the leader, said in
+    /// one line ("at t = 5 s, without followers 2 and 3, follower 4 no
+    /// longer reaches the leader (Lemma 1)"), or None.
+    pub fn cut_off_through(
+        &self,
+        absent: &[(u32, Option<f64>)],
+        leaves: &[(u32, f64)],
+        gone: &[u32],
+    ) -> Option<String> {
+        let mut moments: Vec<f64> = std::iter::once(0.0).chain(leaves.iter().map(|l| l.1)).collect();
+        moments.sort_by(f64::total_cmp);
+        moments.dedup();
+        moments.into_iter().find_map(|t| {
+            let mut out: Vec<u32> = gone.to_vec();
+            out.extend(absent.iter().filter(|a| a.1.is_none_or(|j| j > t)).map(|a| a.0));
+            out.extend(leaves.iter().filter(|l| l.1 <= t).map(|l| l.0));
+            out.sort_unstable();
+            out.dedup();
+            let line = self.cut_off_without(&out)?;
+            Some(if t > 0.0 { format!("at t = {t} s, {line}") } else { line })
+        })
+    }
+
     /// Lemma 1 on the graph without the followers `gone` (by id: absent,
     /// or left for good): the others that no path through the rest connects
     /// to a follower hearing the leader, by id. Empty when every remaining
@@ -262,6 +289,23 @@ mod tests {
 
     fn paper() -> Graph {
         Graph::new(vec![1, 2, 3, 4], &[(0, 1), (0, 2), (1, 3), (2, 3)], vec![true, false, false, false])
+    }
+
+    /// Lemma 1 through membership changes: each alone is fine, together
+    /// they cut follower 4 off from the moment the second goes; a join
+    /// before the leave brings the first back in time, one after does not.
+    #[test]
+    fn lemma_1_is_checked_at_the_start_and_at_every_leave_on_everyone_out_then() {
+        let g = paper();
+        assert_eq!(g.cut_off_through(&[(2, None)], &[], &[]), None);
+        assert_eq!(g.cut_off_through(&[], &[(3, 5.0)], &[]), None);
+        let both = g.cut_off_through(&[(2, None)], &[(3, 5.0)], &[]).expect("4 is cut off");
+        assert!(both.starts_with("at t = 5 s, without followers 2") && both.contains("follower 4"), "{both}");
+        assert_eq!(g.cut_off_through(&[(2, Some(4.0))], &[(3, 5.0)], &[]), None, "2 joins at 4 s, before 3 leaves");
+        assert!(g.cut_off_through(&[(2, Some(6.0))], &[(3, 5.0)], &[]).is_some(), "2 joins at 6 s, after");
+        assert!(g.cut_off_through(&[], &[(3, 5.0)], &[2]).is_some(), "2 already gone");
+        let start = g.cut_off_through(&[(2, None), (3, None)], &[], &[]).expect("cut off at the start");
+        assert!(!start.starts_with("at t"), "{start}");
     }
 
     #[test]

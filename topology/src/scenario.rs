@@ -152,6 +152,9 @@ pub struct LinkFault {
     pub loss: f64,
     /// A late join (`join = true`): the follower's process starts at `to_s`.
     pub join: bool,
+    /// A leave (`leave = true`): the follower's process ends at `from_s`,
+    /// its robot stopped where it is (docs/model.md §14).
+    pub leave: bool,
 }
 
 impl LinkFault {
@@ -431,6 +434,7 @@ impl Scenario {
                 to_s: s.duration_s + s.dt_s,
                 loss: 1.0,
                 join: false,
+                leave: true,
             });
         }
         s
@@ -452,6 +456,7 @@ impl Scenario {
                 to_s,
                 loss: 1.0,
                 join: false,
+                leave: false,
             });
         }
         self
@@ -464,7 +469,14 @@ impl Scenario {
     pub fn with_joins(mut self, joins: &[(u32, u64)]) -> Scenario {
         for &(id, k) in joins.iter().filter(|j| j.1 > 0) {
             let to_s = (k as f64 * self.dt_s).min(self.duration_s + self.dt_s);
-            self.faults.push(LinkFault { target: FaultTarget::Node(id), from_s: 0.0, to_s, loss: 1.0, join: true });
+            self.faults.push(LinkFault {
+                target: FaultTarget::Node(id),
+                from_s: 0.0,
+                to_s,
+                loss: 1.0,
+                join: true,
+                leave: false,
+            });
         }
         self
     }
@@ -474,6 +486,13 @@ impl Scenario {
     /// initial pose, its estimate taken from the first source it hears.
     pub fn join_step(&self, id: u32) -> Option<u64> {
         self.faults.iter().find(|f| f.join && f.target == FaultTarget::Node(id)).map(|f| f.steps(self.dt_s).1)
+    }
+
+    /// The step before which follower `id` leaves the run for good (a
+    /// `leave = true` row, docs/model.md §14): its robot stops at its pose
+    /// of that step.
+    pub fn leave_step(&self, id: u32) -> Option<u64> {
+        self.faults.iter().filter(|f| f.leave && f.target == FaultTarget::Node(id)).map(|f| f.steps(self.dt_s).0).min()
     }
 
     /// The receiver's loss decisions for the link sender → receiver.
@@ -1585,7 +1604,10 @@ fn validate_faults(
         if f.join {
             check_join(c, &field, target, f)?;
         }
-        let fault = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join };
+        if f.leave {
+            check_leave(c, &field, target, f)?;
+        }
+        let fault = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join, leave: f.leave };
         let (from_k, to_k) = fault.steps(file.dt);
         if from_k >= to_k {
             return Err(c.fail(
@@ -1639,10 +1661,40 @@ fn check_join(
         }
         FaultTarget::Node(_) => None,
     };
+    refuse_row(c, field, why)
+}
+
+/// A fault row's one line, naming its key, or Ok.
+fn refuse_row(c: &Check<'_>, field: &dyn Fn(&str) -> String, why: Option<(&str, String)>) -> Result<(), ScenarioError> {
     match why {
         Some((key, why)) => Err(c.fail(&field(key), why)),
         None => Ok(()),
     }
+}
+
+/// A leave row (`leave = true`): a follower, cut off from `from` to the
+/// end of the run (no `to`), not also a join.
+fn check_leave(
+    c: &Check<'_>,
+    field: &dyn Fn(&str) -> String,
+    target: FaultTarget,
+    f: &crate::file::LinkFaultFile,
+) -> Result<(), ScenarioError> {
+    let why = match target {
+        FaultTarget::Node(0) => {
+            Some(("node", "the leader does not leave: a handover is its own row (node = 0)".to_string()))
+        }
+        FaultTarget::Link(..) => Some(("link", "a leave is a follower's: give `node = ID`, not `link`".to_string())),
+        FaultTarget::Node(_) if f.join => Some(("join", "a row is a join or a leave, not both".to_string())),
+        FaultTarget::Node(_) if f.to.is_some() => {
+            Some(("to", "a follower that leaves does not come back: leave `to` out (the rest of the run)".to_string()))
+        }
+        FaultTarget::Node(_) if f.loss != 1.0 => {
+            Some(("loss", format!("a follower that left sends nothing: loss = 1, not {}", f.loss)))
+        }
+        FaultTarget::Node(_) => None,
+    };
+    refuse_row(c, field, why)
 }
 
 /// Why a–b is not a fault table's link: whom its follower end talks to.
@@ -1837,6 +1889,29 @@ mod tests {
         assert_eq!((plain.join_step(3), plain.link_windows(3, 1)[0].to_k), (None, 8000));
         assert!(toml::to_string(&s.source.faults[0]).expect("toml").contains("join = true"));
         assert!(!toml::to_string(&plain.source.faults[0]).expect("toml").contains("join"));
+    }
+
+    /// A leave row: follower 3 leaves at 5 s, its step 5000, for the rest
+    /// of the run; anything else written as a leave is refused in one line
+    /// naming the key.
+    #[test]
+    fn a_leave_row_names_the_leave_step_and_bad_ones_are_refused_with_the_key() {
+        let s = with_faults("[[faults]]\nnode = 3\nfrom = 5\nleave = true\n").expect("a leave row");
+        assert_eq!((s.leave_step(3), s.leave_step(2), s.join_step(3)), (Some(5000), None, None));
+        assert!(toml::to_string(&s.source.faults[0]).expect("toml").contains("leave = true"));
+        let plain = with_faults("[[faults]]\nnode = 3\nfrom = 5\n").expect("cut off for good");
+        assert_eq!(plain.leave_step(3), None, "a row without leave cuts a follower off that still runs");
+        for (row, key, says) in [
+            ("node = 0\nfrom = 5\nleave = true", "node", "the leader does not leave"),
+            ("link = [1, 2]\nfrom = 5\nleave = true", "link", "a leave is a follower's"),
+            ("node = 3\nfrom = 5\nto = 6\nleave = true", "to", "does not come back"),
+            ("node = 3\nfrom = 5\nloss = 0.5\nleave = true", "loss", "sends nothing"),
+            ("node = 3\nfrom = 0\nto = 5\njoin = true\nleave = true", "join", "a join or a leave"),
+        ] {
+            let e = with_faults(&format!("[[faults]]\n{row}\n")).expect_err(row).to_string();
+            assert!(e.contains(&format!("faults[0].{key}")) && e.contains(says), "{row}: {e}");
+            assert_eq!(e.lines().count(), 1, "{e}");
+        }
     }
 
     /// A window may end one step after the run's end, T + Δt, and then

@@ -10,7 +10,7 @@ use formation_leader::LeaderState;
 use serde::{Deserialize, Serialize};
 
 /// Bumped on any change of the encoding.
-pub const FORMAT_VERSION: u16 = 3;
+pub const FORMAT_VERSION: u16 = 4;
 
 /// Leader id on the wire.
 pub const LEADER_ID: u32 = 0;
@@ -146,11 +146,14 @@ pub fn decode(bytes: &[u8]) -> Result<EstimateMsg, Reject> {
 /// A robot's pose message (docs/model.md §16), published only where the
 /// scenario turns the safety filter on: follower `sender`'s robot's pose
 /// [x, y, θ] at step k, the one its step k ran on (odometry for a velocity
-/// robot). Its header's version is [`FORMAT_VERSION`].
+/// robot). Its header's version is [`FORMAT_VERSION`]. `left`: the
+/// robot's last pose, where it stopped, from a follower that leaves the run
+/// before step k (format 4).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseMsg {
     pub header: Header,
     pub pose: [f64; 3],
+    pub left: bool,
 }
 
 pub fn encode_pose(msg: &PoseMsg) -> Vec<u8> {
@@ -185,18 +188,18 @@ mod tests {
     #[test]
     fn round_trip() {
         assert_eq!(decode(&encode(&msg())), Ok(msg()));
-        let pose = PoseMsg { header: msg().header, pose: [1.0, -2.0, 3.0] };
+        let pose = PoseMsg { header: msg().header, pose: [1.0, -2.0, 3.0], left: true };
         assert_eq!(decode_pose(&encode_pose(&pose)), Ok(pose));
     }
 
     #[test]
     fn bad_pose_messages_are_refused() {
-        let pose = PoseMsg { header: msg().header, pose: [1.0, f64::INFINITY, 3.0] };
+        let pose = PoseMsg { header: msg().header, pose: [1.0, f64::INFINITY, 3.0], left: false };
         assert_eq!(decode_pose(&encode_pose(&pose)), Err(Reject::NonFinite));
-        let bytes = encode_pose(&PoseMsg { header: msg().header, pose: [0.0; 3] });
+        let bytes = encode_pose(&PoseMsg { header: msg().header, pose: [0.0; 3], left: false });
         assert_eq!(decode_pose(&bytes[..bytes.len() - 1]), Err(Reject::Malformed));
         assert_eq!(decode_pose(&encode(&msg())), Err(Reject::Malformed), "an estimate is not a pose");
-        let mut old = PoseMsg { header: msg().header, pose: [0.0; 3] };
+        let mut old = PoseMsg { header: msg().header, pose: [0.0; 3], left: false };
         old.header.version = 2;
         assert_eq!(decode_pose(&encode_pose(&old)), Err(Reject::Version));
     }

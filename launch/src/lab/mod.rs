@@ -425,6 +425,16 @@ fn plan(a: &LabArgs, s: &Scenario) -> Result<(Vec<Event>, Vec<String>), Error> {
     Ok((events, notes))
 }
 
+/// `ID@AT` values that parse, as (id, s) (the bad ones are refused with
+/// their flag by [`membership_events`]).
+fn id_at(values: &[String]) -> Vec<(u32, f64)> {
+    let one = |r: &String| {
+        let (id, at) = r.split_once('@')?;
+        Some((id.trim().parse().ok()?, at.trim().parse().ok()?))
+    };
+    values.iter().filter_map(one).collect()
+}
+
 /// The plan's joins, agents killed for good and the leader killed (with a
 /// standby), checked against the scenario and the mode.
 fn membership_events(a: &LabArgs, s: &Scenario, t_end: f64) -> Result<Vec<Event>, Error> {
@@ -605,7 +615,7 @@ fn runs_here(a: &LabArgs, scenario: &Scenario, out: &Path) -> Result<bool, Error
     };
     match privilege {
         netns::Privilege::Root => {
-            a.opts.warnings(scenario, out)?;
+            a.opts.warnings(scenario, out, &id_at(&a.join), &id_at(&a.kill_agent))?;
             Ok(true)
         }
         netns::Privilege::Unshare if a.opts.web.web.is_some() => Err(Error::Input(
@@ -750,6 +760,9 @@ impl Ctx<'_> {
         c.arg("--id").arg(id.to_string());
         for l in self.a.opts.leaves_of(id) {
             c.arg("--leave").arg(l);
+        }
+        if self.a.opts.even_if_cut_off {
+            c.arg("--even-if-cut-off");
         }
         // Real time: the network performs the node rows. Lock-step keeps the
         // table in software (its numbers are the simulator's); the physical

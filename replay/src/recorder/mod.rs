@@ -147,6 +147,8 @@ struct FollowerTrack {
     formation_error: f64,
     /// The newest row and the leader state it was measured against (the live page).
     latest: Option<(Row, LeaderState)>,
+    /// The robot's last recorded pose (with `[safety]`): where one that left stands.
+    last_pose: Option<Pose>,
     /// It left the run for good before this step, and why (its last batch said).
     left: Option<Left>,
 }
@@ -245,6 +247,7 @@ impl Recorder {
                 metrics: MetricsAccumulator::for_scenario(scenario),
                 formation_error: f64::NAN,
                 latest: None,
+                last_pose: None,
                 left: None,
             })
             .collect();
@@ -771,6 +774,7 @@ impl Recorder {
                 if self.proximity.is_some() {
                     let n = self.scenario.followers.len();
                     self.step_poses.entry(k).or_insert_with(|| vec![None; n])[index] = Some(sample.pose);
+                    f.last_pose = Some(sample.pose);
                 }
                 f.formation_error = row.formation_error;
                 f.latest = Some((row, l));
@@ -818,6 +822,19 @@ impl Recorder {
         let filled = self.followers.iter().map(|f| f.next_k).min().unwrap_or(0);
         let newest = self.step_poses.last_key_value().map_or(0, |(&k, _)| k);
         let ids: Vec<u32> = self.followers.iter().map(|f| f.id).collect();
+        // A robot that does not run is still there (docs/model.md §16): one
+        // absent at the start at its initial pose, one that left at its last
+        // recorded pose, from the step it left on.
+        let still: Vec<Option<(u64, Pose)>> = self
+            .followers
+            .iter()
+            .zip(&self.scenario.followers)
+            .map(|(f, spec)| {
+                let l = f.left.as_ref()?;
+                let pose = if l.at_k == 0 { Some(spec.pose) } else { f.last_pose };
+                pose.map(|p| (l.at_k, p))
+            })
+            .collect();
         let (mut have_ids, mut have) = (Vec::new(), Vec::new());
         while let Some(entry) = self.step_poses.first_entry() {
             let k = *entry.key();
@@ -828,10 +845,11 @@ impl Recorder {
             let poses = entry.remove();
             have_ids.clear();
             have.clear();
-            for (&id, pose) in ids.iter().zip(&poses) {
-                if let Some(pose) = pose {
+            for ((&id, pose), still) in ids.iter().zip(&poses).zip(&still) {
+                let held = still.filter(|&(at_k, _)| k >= at_k).map(|(_, p)| p);
+                if let Some(pose) = pose.or(held) {
                     have_ids.push(id);
-                    have.push(*pose);
+                    have.push(pose);
                 }
             }
             p.push(k as f64 * self.scenario.dt_s, &have_ids, &have);
