@@ -433,7 +433,8 @@ fn a_robot_stops_when_its_launch_is_stopped() {
 /// Follower 2's agent killed with SIGKILL sends nothing: its robot stops on
 /// its own `robot.cmd_timeout` (0.5 s), within that and a period (20 ms)
 /// of the kill, with 0.2 s for a loaded host. The launch then stops the
-/// other agents, and they stop their robots with zero velocity.
+/// other agents, and they stop their robots with zero velocity (not on
+/// their time-out).
 #[test]
 fn a_robot_whose_agent_is_killed_stops_on_its_command_timeout() {
     let _cores = common::cores(common::Load::Light);
@@ -447,7 +448,11 @@ fn a_robot_whose_agent_is_killed_stops_on_its_command_timeout() {
     for id in [1, 3, 4] {
         let (told, _, why) = first_stop(&logs, id, at, &said);
         assert_eq!(why, "a zero command", "robot {id}: {}\nlaunch: {said}", logs[id - 1]);
-        assert!(told < 0.5, "robot {id}: zero velocity {told:.3} s after agent 2 was killed");
+        // (The others' filters keep clear of robot 2's growing bound
+        // instead of stopping at once, docs/model.md §16: their zero comes
+        // from the launch stopping them, 0.6 s after the kill here; 2 s is
+        // a hang guard, not a verdict on speed.)
+        assert!(told < 2.0, "robot {id}: zero velocity {told:.3} s after agent 2 was killed");
     }
 }
 
