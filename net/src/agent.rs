@@ -152,6 +152,25 @@ pub fn planned_leaves(leave: &[String], scenario: &Scenario) -> Result<Vec<(u32,
     Ok(out)
 }
 
+/// The leaves of this process's followers (`--leave`, and the scenario's
+/// leave rows), as (id, step), refused in one line where they break Lemma 1.
+fn own_leaves(args: &AgentArgs, scenario: &Scenario) -> Result<Vec<(u32, u64)>, Error> {
+    let mut leave_at = leave_steps(&args.leave, &args.id, scenario)?;
+    for &id in &args.id {
+        if let Some(k) = scenario.leave_step(id).filter(|_| !leave_at.iter().any(|l| l.0 == id)) {
+            leave_at.push((id, k));
+        }
+    }
+    let planned: Vec<(u32, f64)> = leave_at.iter().map(|&(id, k)| (id, k as f64 * scenario.dt_s)).collect();
+    match scenario.graph.cut_off_through(&[], &planned, &[]).filter(|_| !args.even_if_cut_off) {
+        None => Ok(leave_at),
+        Some(cut) => Err(Error::Input(format!(
+            "{}: {cut}: their estimates of the leader would drift (--even-if-cut-off to leave anyway)",
+            leaves_named(&planned)
+        ))),
+    }
+}
+
 /// "follower 3's leave at 5 s", "followers 2, 3's leaves at 5, 8 s".
 fn leaves_named(leaves: &[(u32, f64)]) -> String {
     let ids: Vec<u32> = leaves.iter().map(|l| l.0).collect();
@@ -198,19 +217,7 @@ pub async fn run(
             Error::Input(format!("scenario {} has no follower {id} (ids: {})", scenario.name, all.join(", ")))
         })?);
     }
-    let mut leave_at = leave_steps(&args.leave, ids, &scenario)?;
-    for &id in ids {
-        if let Some(k) = scenario.leave_step(id).filter(|_| !leave_at.iter().any(|l| l.0 == id)) {
-            leave_at.push((id, k));
-        }
-    }
-    let planned: Vec<(u32, f64)> = leave_at.iter().map(|&(id, k)| (id, k as f64 * scenario.dt_s)).collect();
-    if let Some(cut) = scenario.graph.cut_off_through(&[], &planned, &[]).filter(|_| !args.even_if_cut_off) {
-        return Err(Error::Input(format!(
-            "{}: {cut}: their estimates of the leader would drift (--even-if-cut-off to leave anyway)",
-            leaves_named(&planned)
-        )));
-    }
+    let leave_at = own_leaves(args, &scenario)?;
     if !args.stall_timeout.is_finite() || args.stall_timeout <= 0.0 {
         return Err(Error::Input("--stall-timeout must be positive".into()));
     }
@@ -463,6 +470,13 @@ fn not_absent(id: u32, start: &Start, keys: &Keys, scenario: &Scenario) -> Resul
     )))
 }
 
+/// What the start may refuse for this follower: to be absent from it in
+/// lock-step, and a leave that, with those absent, breaks Lemma 1.
+fn may_start(id: u32, opts: &FollowerOptions, start: &Start, keys: &Keys, scenario: &Scenario) -> Result<(), Error> {
+    not_absent(id, start, keys, scenario)?;
+    own_leave_keeps_lemma_1(id, opts, start, scenario)
+}
+
 /// A follower that will leave (--leave, a leave row) checks Lemma 1 again
 /// once the start says who is absent: with them out as well, its leave
 /// must not cut a present follower off from the leader.
@@ -544,8 +558,7 @@ pub async fn run_follower(
     let start =
         startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock, opts.quorum_wait)
             .await?;
-    not_absent(id, &start, keys, scenario)?;
-    own_leave_keeps_lemma_1(id, &opts, &start, scenario)?;
+    may_start(id, &opts, &start, keys, scenario)?;
     // Started: a later twin hears this follower's estimates from now on.
     drop(claiming);
     clock_sync::wait_for_estimate(&timebase, keys, &format!("follower {id}"), TIME_LIMIT).await?;
