@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
+use crate::deadlock::{point_speed, DeadlockState};
 use crate::dynamic::{self, DynamicGains, DynamicKind, DynamicState};
 use crate::estimator::{self, EstimatorGains};
 use crate::filter::{FilterParams, VelocityFilter};
@@ -147,6 +148,8 @@ pub struct Follower {
     /// message is not fresh (docs/model.md §14), and under `adopt` it is replaced as
     /// soon as the leader or a fresh neighbour is heard.
     stale: bool,
+    /// Steps held by the safety filter, or the sidestep under way (eq. G6).
+    deadlock: DeadlockState,
 }
 
 impl Follower {
@@ -168,6 +171,7 @@ impl Follower {
             silent_steps: 0,
             adopt_pending: false,
             stale: false,
+            deadlock: DeadlockState::default(),
         }
     }
 
@@ -212,6 +216,7 @@ impl Follower {
         self.last_torque = Torque::default();
         self.silent_steps = 0;
         self.stale = true;
+        self.deadlock = DeadlockState::default();
     }
 
     /// Still waiting for a source to take its estimate from (see
@@ -307,7 +312,7 @@ impl Follower {
         let (command, guard) = match cfg.guard.is_off() {
             true => (requested, None),
             false => {
-                let (c, g) = guard::apply(&cfg.guard, requested, pose, nearby);
+                let (c, g) = guarded(&cfg.guard, &mut self.deadlock, requested, pose, &body_error, nearby);
                 (c, Some(g))
             }
         };
@@ -375,6 +380,43 @@ impl Follower {
             None => Ok(()),
         }
     }
+}
+
+/// The guard's command and what it did (docs/model.md §16), with the
+/// deadlock rule (eq. G6) around it where the scenario has one: during a
+/// sidestep the wish is the point stepping right of the others, and each
+/// step says whether it was held.
+#[inline]
+fn guarded(
+    guard: &Guard,
+    deadlock: &mut DeadlockState,
+    requested: Velocity,
+    pose: &Pose,
+    body_error: &BodyError,
+    nearby: Nearby<'_>,
+) -> (Velocity, GuardStep) {
+    let Some((rule, s)) = guard.safety.and_then(|s| s.deadlock.map(|r| (r, s))) else {
+        return guard::apply(guard, requested, pose, nearby);
+    };
+    let clipped = guard.limits.map_or(requested, |l| l.clip(requested));
+    let mut wish = requested;
+    let sidestep = deadlock.sidestepping();
+    if sidestep {
+        let want = guard::point_velocity(&s, pose, clipped);
+        if let Some(u) = deadlock.wish(&rule, want, guard::crowd(&s, pose, nearby)) {
+            // Into the limits with its direction kept (clipped channel by
+            // channel, a sideways step, ω = u / l, would lose its way).
+            let c = guard::from_point_velocity(&s, pose, u);
+            wish = guard.limits.map_or(c, |l| l.scale(c));
+        }
+    }
+    let (command, mut step) = guard::apply(guard, wish, pose, nearby);
+    step.sidestep = sidestep;
+    let asked = guard.limits.map_or(wish, |l| l.clip(wish));
+    let cut = step.change / point_speed(asked, s.projection);
+    let to_slot = body_error.x.hypot(body_error.y);
+    step.deadlock = deadlock.after(&rule, to_slot, s.distance, cut, step.infeasible || step.blind);
+    (command, step)
 }
 
 /// A torque-driven robot's step k (section III-E, eq. 37–43): the filter

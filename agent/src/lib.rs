@@ -9,6 +9,7 @@
 //! never reads a clock, a socket, a file or an environment variable, and the
 //! step does not allocate.
 
+pub mod deadlock;
 pub mod dynamic;
 pub mod estimator;
 pub mod filter;
@@ -18,6 +19,7 @@ pub mod kinematic;
 pub mod links;
 pub mod math;
 
+pub use deadlock::DeadlockRule;
 pub use dynamic::{DynamicGains, DynamicKind};
 pub use estimator::EstimatorGains;
 pub use filter::{FilterKind, FilterParams, VelocityFilter};

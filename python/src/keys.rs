@@ -26,7 +26,7 @@ pub struct Source {
 
 impl Source {
     /// A file, or a built-in scenario by name (`paper`, `paper-velocity`,
-    /// `paper-tables`, `turtlebot`), as `formation sim` finds it.
+    /// `paper-tables`, `turtlebot`, `swap`, `rotation`), as `formation sim` finds it.
     pub fn load(path: &Path, overrides: Vec<String>) -> Result<Self, String> {
         let (label, text) = Scenario::source(path).map_err(|e| e.to_string())?;
         let stem = match built_in(path).filter(|_| !path.exists()) {

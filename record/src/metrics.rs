@@ -146,6 +146,11 @@ impl MetricsAccumulator {
         self.outages.iter().map(|o| o.finish()).collect()
     }
 
+    /// What the guard did so far (None without limits or a filter).
+    pub fn guard(&self) -> Option<&GuardTally> {
+        self.guard.as_ref()
+    }
+
     /// What the guard did at a step (docs/model.md §16): the sample's, where
     /// the scenario has a guard.
     #[inline]

@@ -258,6 +258,13 @@ impl Summary {
                     n => format!("; {n} stopped the robot beside one whose pose was stale"),
                 }
             );
+            if t.deadlocks > 0 {
+                out += &format!(
+                    "deadlocks: {} found (a robot held short of its slot), {:.2} s of sidestepping to the right\n",
+                    t.deadlocks,
+                    t.sidestep as f64 * self.dt
+                );
+            }
         }
         if let Some(p) = &self.safety {
             out += &p.line();
@@ -280,6 +287,8 @@ impl Summary {
             a.change_sum += t.change_sum;
             a.infeasible += t.infeasible;
             a.blind += t.blind;
+            a.deadlocks += t.deadlocks;
+            a.sidestep += t.sidestep;
             a
         }))
     }

@@ -10,7 +10,7 @@ use crate::error::Error;
 use formation_record::at_path;
 
 const HEADER: &str = "case,safety_distance_m,filter,closest_m,closest_pair,closest_t_s,steps_below,\
-                      first_below_t_s,follower_steps,saturated,filtered,change_max_m_s,infeasible,blind";
+                      first_below_t_s,follower_steps,saturated,filtered,change_max_m_s,infeasible,blind,deadlocks,sidestep_steps";
 
 /// Writes `safety.csv` and returns the section's markdown (empty when no
 /// case has limits or a safety distance).
@@ -29,7 +29,7 @@ pub fn write(out: &Path, cases: &[Case]) -> Result<String, Error> {
         "## Safety (docs/model.md §16)\n\nHow close any two robots' centres came, which pair and when, and what the \
          limits and the safety filter did to the commands, over every follower-step.\n\n\
          | case | safety distance | filter | closest (pair, t) | steps closer | a limit clipped | the filter changed \
-         (largest) | stopped |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n",
+         (largest) | stopped | deadlocks |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n",
     );
     for (c, _) in &rows {
         let s = c.summary();
@@ -45,13 +45,14 @@ pub fn write(out: &Path, cases: &[Case]) -> Result<String, Error> {
         });
         let _ = writeln!(
             md,
-            "| {} | {} | {} | {closest} | {below} | {} | {} | {} |",
+            "| {} | {} | {} | {closest} | {below} | {} | {} | {} | {} |",
             c.label,
             p.map_or("none".into(), |p| format!("{} m", p.distance)),
             if p.is_some_and(|p| p.filter) { "on" } else { "off" },
             g.map_or("n/a".into(), |g| format!("{} ({:.1} %)", g.saturated, pct(g.saturated))),
             g.map_or("n/a".into(), |g| format!("{} ({:.1} %, {:.3} m/s)", g.filtered, pct(g.filtered), g.change_max)),
             g.map_or("n/a".into(), |g| format!("{} infeasible, {} stale", g.infeasible, g.blind)),
+            g.map_or("n/a".into(), |g| format!("{} ({} steps sidestepping)", g.deadlocks, g.sidestep)),
         );
     }
     md += "\nData: [safety.csv](safety.csv).\n\n";
@@ -82,5 +83,7 @@ fn row(c: &Case) -> Option<Vec<String>> {
         opt(g.map(|g| g.change_max.to_string())),
         opt(g.map(|g| g.infeasible.to_string())),
         opt(g.map(|g| g.blind.to_string())),
+        opt(g.map(|g| g.deadlocks.to_string())),
+        opt(g.map(|g| g.sidestep.to_string())),
     ])
 }

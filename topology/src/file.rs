@@ -297,6 +297,17 @@ pub struct SafetyFile {
     /// [x_min, x_max, y_min, y_max], m: the robots stay inside.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub arena: Option<[f64; 4]>,
+    /// Held by the filter short of its slot this long, s, a robot is in a
+    /// deadlock and sidesteps to the right (0: never).
+    #[serde(default = "d::deadlock_after")]
+    pub deadlock_after: f64,
+    /// How long a sidestep lasts, s.
+    #[serde(default = "d::sidestep")]
+    pub sidestep: f64,
+    /// A sidestep's direction: the direction to the robots near turned
+    /// right by this much, rad (π/2: sideways).
+    #[serde(default = "d::sidestep_angle")]
+    pub sidestep_angle: f64,
 }
 
 /// How the robot takes its commands (`[robot] model`).
@@ -544,6 +555,15 @@ mod d {
     }
     pub fn safety_radius() -> f64 {
         1.0
+    }
+    pub fn deadlock_after() -> f64 {
+        1.0
+    }
+    pub fn sidestep() -> f64 {
+        2.0
+    }
+    pub fn sidestep_angle() -> f64 {
+        std::f64::consts::FRAC_PI_2
     }
     pub fn robots() -> String {
         "simulated".into()

@@ -4,8 +4,8 @@ use std::path::Path;
 use std::sync::Arc;
 
 use formation_agent::{
-    ControlParams, DynamicGains, EstimatorGains, Fault, FilterParams, FollowerConfig, Guard, KinematicGains, Limits,
-    LinkLoss, LossWindow, RejoinPolicy, RejoinRule, SafetyParams, Shunting,
+    ControlParams, DeadlockRule, DynamicGains, EstimatorGains, Fault, FilterParams, FollowerConfig, Guard,
+    KinematicGains, Limits, LinkLoss, LossWindow, RejoinPolicy, RejoinRule, SafetyParams, Shunting,
 };
 use formation_leader::LeaderState;
 use formation_leader::{Leader, Profile, Trajectory};
@@ -13,7 +13,7 @@ use formation_plant::{Disturbance, Drive, NoiseCov, Pose, RobotParams, Velocity}
 use serde::Serialize;
 
 use crate::error::ScenarioError;
-use crate::file::{exact, LeaderFile, RobotModel, ScenarioFile, DEFAULT_CMD_TIMEOUT_S, DEFAULT_LAG_S};
+use crate::file::{exact, LeaderFile, RobotModel, SafetyFile, ScenarioFile, DEFAULT_CMD_TIMEOUT_S, DEFAULT_LAG_S};
 use crate::graph::Graph;
 
 /// How followers initialise their leader estimate.
@@ -533,11 +533,13 @@ impl Scenario {
 
 /// The scenarios inside the binary: the files of `scenarios/` that the
 /// documentation runs, by name.
-pub const BUILT_IN: [(&str, &str); 4] = [
+pub const BUILT_IN: [(&str, &str); 6] = [
     ("paper", include_str!("../../scenarios/paper.toml")),
     ("paper-velocity", include_str!("../../scenarios/paper-velocity.toml")),
     ("paper-tables", include_str!("../../scenarios/paper-tables.toml")),
     ("turtlebot", include_str!("../../scenarios/turtlebot.toml")),
+    ("swap", include_str!("../../scenarios/swap.toml")),
+    ("rotation", include_str!("../../scenarios/rotation.toml")),
 ];
 
 /// The built-in scenario `path` names: `paper`, `paper.toml` or
@@ -1080,6 +1082,7 @@ fn validate_guard(c: &Check<'_>, file: &ScenarioFile, followers: &[FollowerSpec]
         projection: sf.projection,
         radius: sf.radius,
         arena: sf.arena,
+        deadlock: validate_deadlock(c, sf, file.dt)?,
     };
     if sf.radius <= params.barrier_radius() {
         return Err(c.fail_with(
@@ -1119,7 +1122,81 @@ fn validate_guard(c: &Check<'_>, file: &ScenarioFile, followers: &[FollowerSpec]
             ));
         }
     }
+    if sf.filter {
+        check_filter_start(c, followers, &params)?;
+    }
     Ok(Guard { limits, safety: sf.filter.then_some(params) })
+}
+
+/// The filter's own geometry at step 0 (docs/model.md §16): every two
+/// robots' points l ahead of the axle at least the barrier's radius r apart,
+/// and every point at least r / 2 inside each wall: the set the filter
+/// keeps the robots in (its guarantee holds from inside it only). The
+/// offending pair or wall is named.
+fn check_filter_start(c: &Check<'_>, followers: &[FollowerSpec], s: &SafetyParams) -> Result<(), ScenarioError> {
+    let r = s.barrier_radius();
+    let points: Vec<(u32, [f64; 2])> = followers.iter().map(|f| (f.id, s.point(&f.pose))).collect();
+    for (i, (a, p)) in points.iter().enumerate() {
+        for (b, q) in &points[i + 1..] {
+            let d = (p[0] - q[0]).hypot(p[1] - q[1]);
+            if d < r {
+                return Err(c.fail_with(
+                    "safety.distance",
+                    &["followers", "safety.projection"],
+                    format!(
+                        "followers {a} and {b} start with their filtered points ({} m ahead of the axle) {} m \
+                         apart, closer than the barrier's radius, distance + 2 × projection = {} m: they would \
+                         start outside the set the filter keeps them in",
+                        num(s.projection),
+                        num((d * 1e6).round() / 1e6),
+                        num(r)
+                    ),
+                ));
+            }
+        }
+    }
+    let Some([x0, x1, y0, y1]) = s.arena else { return Ok(()) };
+    for (id, p) in &points {
+        let walls = [(p[0] - x0, "x", x0), (x1 - p[0], "x", x1), (p[1] - y0, "y", y0), (y1 - p[1], "y", y1)];
+        if let Some((gap, axis, at)) = walls.into_iter().find(|(gap, _, _)| *gap < r / 2.0) {
+            return Err(c.fail_with(
+                "safety.arena",
+                &["followers", "safety.distance", "safety.projection"],
+                format!(
+                    "follower {id}'s filtered point starts {} m from the wall {axis} = {}, within the filter's \
+                     margin r / 2 = {} m: it would start outside the set the filter keeps it in",
+                    num((gap * 1e6).round() / 1e6),
+                    num(at),
+                    num(r / 2.0)
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// `[safety] deadlock_after`, `sidestep`, `sidestep_angle` (eq. G6) in
+/// steps: none with `deadlock_after = 0`.
+fn validate_deadlock(c: &Check<'_>, sf: &SafetyFile, dt: f64) -> Result<Option<DeadlockRule>, ScenarioError> {
+    c.non_negative("safety.deadlock_after", &[sf.deadlock_after])?;
+    c.bounded("safety.deadlock_after", &[sf.deadlock_after], 1e6, "s")?;
+    c.positive("safety.sidestep", &[sf.sidestep])?;
+    c.bounded("safety.sidestep", &[sf.sidestep], 1e6, "s")?;
+    let angle = sf.sidestep_angle;
+    if !(angle > 0.0 && angle < std::f64::consts::PI) {
+        return Err(
+            c.fail("safety.sidestep_angle", format!("{} rad must be in (0, π): a turn to the right", num(angle)))
+        );
+    }
+    if sf.deadlock_after == 0.0 {
+        return Ok(None);
+    }
+    let steps = |s: f64| ((s / dt).round() as u64).max(1);
+    Ok(Some(DeadlockRule {
+        after_steps: steps(sf.deadlock_after),
+        sidestep_steps: steps(sf.sidestep),
+        angle_rad: angle,
+    }))
 }
 
 /// The two followers whose initial positions are closest, and how far apart.
@@ -2176,6 +2253,16 @@ mod tests {
         let f = s.control.guard.safety.expect("the filter is on by default");
         assert_eq!((f.distance, f.gamma, f.projection, f.radius, f.arena), (0.3, 100.0, 0.05, 1.0, None));
         assert_eq!(s.safety_distance, Some(0.3));
+        // The deadlock rule (eq. G6) on by default: 1 s held, 2 s sidestep, sideways; in steps of dt.
+        let steps = |t: f64| (t / s.dt_s).round() as u64;
+        let rule = DeadlockRule {
+            after_steps: steps(1.0),
+            sidestep_steps: steps(2.0),
+            angle_rad: std::f64::consts::FRAC_PI_2,
+        };
+        assert_eq!(f.deadlock, Some(rule));
+        let s = load(ARRAYS, &["safety={distance=0.3,deadlock_after=0}"]).unwrap();
+        assert_eq!(s.control.guard.safety.unwrap().deadlock, None, "deadlock_after = 0: off");
         let s = load(ARRAYS, &["safety.distance=0.3", "safety.filter=false"]).unwrap();
         assert!(s.control.guard.is_off() && s.safety_distance == Some(0.3), "figures without the filter");
     }
@@ -2208,6 +2295,31 @@ mod tests {
                 "safety={distance=0.3,radius=0.35}",
                 "--set safety={distance=0.3,radius=0.35}: safety.radius: 0.35 m must exceed the barrier's radius, \
                  distance + 2 × projection = 0.4 m, or no robot is ever seen in time",
+            ),
+            (
+                "safety={distance=3.58,radius=5.0}",
+                "--set safety={distance=3.58,radius=5.0}: safety.distance: followers 1 and 2 start with their filtered points \
+                 (0.05 m ahead of the axle) 3.605551 m apart, closer than the barrier's radius, distance + 2 × \
+                 projection = 3.68 m: they would start outside the set the filter keeps them in",
+            ),
+            (
+                "safety={distance=0.3,arena=[-0.1,3.0,-1.0,4.0]}",
+                "--set safety={distance=0.3,arena=[-0.1,3.0,-1.0,4.0]}: safety.arena: follower 1's filtered point \
+                 starts 0.15 m from the wall x = -0.1, within the filter's margin r / 2 = 0.2 m: it would start \
+                 outside the set the filter keeps it in",
+            ),
+            (
+                "safety={distance=0.3,deadlock_after=-1}",
+                "--set safety={distance=0.3,deadlock_after=-1}: safety.deadlock_after: must not be negative, got -1",
+            ),
+            (
+                "safety={distance=0.3,sidestep=0}",
+                "--set safety={distance=0.3,sidestep=0}: safety.sidestep: must be positive, got 0",
+            ),
+            (
+                "safety={distance=0.3,sidestep_angle=4}",
+                "--set safety={distance=0.3,sidestep_angle=4}: safety.sidestep_angle: 4 rad must be in (0, π): a \
+                 turn to the right",
             ),
         ] {
             assert_eq!(message(ARRAYS, &[set]), want);
