@@ -398,21 +398,24 @@ fn guarded(
     let Some((rule, s)) = guard.safety.and_then(|s| s.deadlock.map(|r| (r, s))) else {
         return guard::apply(guard, requested, pose, nearby);
     };
-    let clipped = guard.limits.map_or(requested, |l| l.clip(requested));
+    let clip = |c: Velocity| guard.limits.map_or(c, |l| l.clip(c));
+    // What the filter is asked for (G1a applied, as `apply` applies it).
+    let mut asked = clip(requested);
     let mut wish = requested;
-    let sidestep = deadlock.sidestepping();
-    if sidestep {
-        let want = guard::point_velocity(&s, pose, clipped);
+    let mut sidestep = false;
+    if deadlock.sidestepping() {
+        let want = guard::point_velocity(&s, pose, asked);
         if let Some(u) = deadlock.wish(&rule, want, guard::crowd(&s, pose, nearby)) {
             // Into the limits with its direction kept (clipped channel by
             // channel, a sideways step, ω = u / l, would lose its way).
             let c = guard::from_point_velocity(&s, pose, u);
             wish = guard.limits.map_or(c, |l| l.scale(c));
+            asked = clip(wish);
+            sidestep = true;
         }
     }
     let (command, mut step) = guard::apply(guard, wish, pose, nearby);
     step.sidestep = sidestep;
-    let asked = guard.limits.map_or(wish, |l| l.clip(wish));
     let cut = step.change / point_speed(asked, s.projection);
     let to_slot = body_error.x.hypot(body_error.y);
     step.deadlock = deadlock.after(&rule, to_slot, s.distance, cut, step.infeasible || step.blind);

@@ -203,6 +203,20 @@ impl GuardTally {
         self.deadlocks += u64::from(g.deadlock);
         self.sidestep += u64::from(g.sidestep);
     }
+
+    /// Another tally added to this one (the largest change the largest):
+    /// a run's figures from its followers'.
+    pub fn merge(&mut self, t: &GuardTally) {
+        self.steps += t.steps;
+        self.saturated += t.saturated;
+        self.filtered += t.filtered;
+        self.change_max = self.change_max.max(t.change_max);
+        self.change_sum += t.change_sum;
+        self.infeasible += t.infeasible;
+        self.blind += t.blind;
+        self.deadlocks += t.deadlocks;
+        self.sidestep += t.sidestep;
+    }
 }
 
 /// The command the robot gets at step k from the controller's command, the
@@ -274,8 +288,7 @@ pub fn filter(s: &SafetyParams, speed: Option<f64>, command: Velocity, pose: &Po
     let (sin, cos) = pose.theta.sin_cos();
     let l = s.projection;
     let p = [pose.x + l * cos, pose.y + l * sin];
-    // G2: u = R(θ) diag(1, l) (v, ω).
-    let want = [cos * command.v - l * sin * command.w, sin * command.v + l * cos * command.w];
+    let want = g2(sin, cos, l, command);
     let mut program = Program::default();
     let r = s.barrier_radius();
     let r2 = r * r;
@@ -359,8 +372,7 @@ pub fn filter(s: &SafetyParams, speed: Option<f64>, command: Velocity, pose: &Po
         // The command was safe: passed on untouched (no round trip through G5).
         return Filtered { command, change: 0.0, feasible: true, retreating };
     }
-    // G5: (v, ω) = diag(1, 1/l) R(θ)ᵀ u.
-    let command = Velocity::new(cos * u[0] + sin * u[1], (-sin * u[0] + cos * u[1]) / l);
+    let command = g5(sin, cos, l, u);
     Filtered { command, change, feasible: true, retreating }
 }
 
@@ -368,15 +380,26 @@ pub fn filter(s: &SafetyParams, speed: Option<f64>, command: Velocity, pose: &Po
 #[inline]
 pub fn point_velocity(s: &SafetyParams, pose: &Pose, c: Velocity) -> [f64; 2] {
     let (sin, cos) = pose.theta.sin_cos();
-    [cos * c.v - s.projection * sin * c.w, sin * c.v + s.projection * cos * c.w]
+    g2(sin, cos, s.projection, c)
 }
 
-/// Eq. G5: (v, ω) = diag(1, 1/l) R(θ)ᵀ u, the command that moves the point
-/// l ahead of the axle at u.
+/// Eq. G5: the command (v, ω) that moves the point l ahead of the axle at u.
 #[inline]
 pub fn from_point_velocity(s: &SafetyParams, pose: &Pose, u: [f64; 2]) -> Velocity {
     let (sin, cos) = pose.theta.sin_cos();
-    Velocity::new(cos * u[0] + sin * u[1], (-sin * u[0] + cos * u[1]) / s.projection)
+    g5(sin, cos, s.projection, u)
+}
+
+/// G2: u = R(θ) diag(1, l) (v, ω), with (sin θ, cos θ).
+#[inline]
+fn g2(sin: f64, cos: f64, l: f64, c: Velocity) -> [f64; 2] {
+    [cos * c.v - l * sin * c.w, sin * c.v + l * cos * c.w]
+}
+
+/// G5: (v, ω) = diag(1, 1/l) R(θ)ᵀ u, with (sin θ, cos θ).
+#[inline]
+fn g5(sin: f64, cos: f64, l: f64, u: [f64; 2]) -> Velocity {
+    Velocity::new(cos * u[0] + sin * u[1], (-sin * u[0] + cos * u[1]) / l)
 }
 
 /// Where the other robots within `radius` lie, seen from this robot's

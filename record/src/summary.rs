@@ -280,15 +280,7 @@ impl Summary {
         let mut tallies = self.followers.values().filter_map(|m| m.guard).peekable();
         tallies.peek()?;
         Some(tallies.fold(formation_agent::GuardTally::default(), |mut a, t| {
-            a.steps += t.steps;
-            a.saturated += t.saturated;
-            a.filtered += t.filtered;
-            a.change_max = a.change_max.max(t.change_max);
-            a.change_sum += t.change_sum;
-            a.infeasible += t.infeasible;
-            a.blind += t.blind;
-            a.deadlocks += t.deadlocks;
-            a.sidestep += t.sidestep;
+            a.merge(&t);
             a
         }))
     }

@@ -153,16 +153,13 @@ impl Recorder {
     fn frame_safety(&self) -> Value {
         let Some(p) = &self.proximity else { return Value::Null };
         // Deadlocks found and the time spent sidestepping (eq. G6), over every follower.
-        let (deadlocks, sidestep) = self
-            .followers
-            .iter()
-            .filter_map(|f| f.metrics.guard())
-            .fold((0, 0), |(n, s), g| (n + g.deadlocks, s + g.sidestep));
+        let mut g = formation_agent::GuardTally::default();
+        self.followers.iter().filter_map(|f| f.metrics.guard()).for_each(|t| g.merge(t));
         json!({
             "distance": p.distance, "filter": p.filter, "steps_below": p.steps_below,
             "closest": p.closest.map(|c| json!({"d": c.distance, "pair": c.pair, "t": c.t})),
             "violation": p.violation_text(),
-            "deadlocks": deadlocks, "sidestep_s": sidestep as f64 * self.scenario.dt_s,
+            "deadlocks": g.deadlocks, "sidestep_s": g.sidestep as f64 * self.scenario.dt_s,
         })
     }
 
