@@ -115,6 +115,7 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_protocol::error::Error>
                 header: Header { version: FORMAT_VERSION, sender: 0, step: k, time_s: k as f64 * 1e-3, sent_ns: 0 },
                 state: Default::default(),
                 fresh: true,
+                term: 1,
             };
             let _ = publisher.put(wire::encode(&msg)).wait();
         }
@@ -216,6 +217,7 @@ fn floor_loop(
             header: Header { version: FORMAT_VERSION, sender: 0, step: k, time_s: k as f64 * dt, sent_ns: 0 },
             state: Default::default(),
             fresh: true,
+            term: 1,
         })
     };
     let (from, to) = (steps / 4, 3 * steps / 4);

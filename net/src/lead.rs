@@ -46,6 +46,37 @@ pub async fn watch_reached(
     Ok(subs)
 }
 
+/// A message on the leader's key from another process, for the machine
+/// (a standby's watch; a leader's check for a higher term): the loop wakes
+/// if the machine stood down.
+pub fn hear_leader(shared: &Shared<Machine>, bytes: &[u8], now: std::time::Duration) {
+    let mut m = shared.lock();
+    let before = m.outcome().is_some();
+    m.handle_leader(bytes, now);
+    let ended = !before && m.outcome().is_some();
+    drop(m);
+    if ended {
+        shared.wake();
+    }
+}
+
+/// Listens on the leader's key for another process's messages (a leader
+/// that took the run over in a higher term: this one stands down).
+pub async fn watch_leader_key(
+    session: &zenoh::Session,
+    keys: &Keys,
+    shared: &Arc<Shared<Machine>>,
+    timebase: &clock::Timebase,
+) -> Result<zenoh::pubsub::Subscriber<()>, Error> {
+    let (sh, tb) = (shared.clone(), timebase.clone());
+    session
+        .declare_subscriber(keys.estimate(formation_topology::wire::LEADER_ID))
+        .allowed_origin(zenoh::sample::Locality::Remote)
+        .callback(move |s| hear_leader(&sh, &s.payload().to_bytes(), tb.now()))
+        .await
+        .map_err(|e| zerr("listening on the leader's key", e))
+}
+
 /// The loop's side of the node: the machine, and where its answers go.
 pub struct Node {
     pub shared: Arc<Shared<Machine>>,

@@ -15,7 +15,7 @@ use formation_topology::{Scenario, Timing};
 
 use crate::clock;
 use crate::clock_sync;
-use crate::lead::{watch_reached, Node};
+use crate::lead::{watch_leader_key, watch_reached, Node};
 use crate::node::{NodeArgs, Shared};
 use crate::ros2::topics::LeaderTopics;
 use crate::startup;
@@ -186,6 +186,12 @@ pub async fn run_leader(
             m.handle_gone(id);
         }
     }
+    // From the start on: the claim to lead in this leader's term, and what
+    // tells it that a standby took the run over in a higher one.
+    drop(claiming);
+    let term = shared.lock().term();
+    let watcher = startup::Leading::claim(session, keys, clock, term).await?.watch(shared.clone(), keys.run.clone());
+    let key_watch = watch_leader_key(session, keys, &shared, &timebase).await?;
     let node = Node {
         shared: shared.clone(),
         publisher: estimate_pub,
@@ -204,9 +210,8 @@ pub async fn run_leader(
     telemetry::finish_delivery(delivery, "leader").await;
     drop(acks);
     announcer.abort();
-    // Said through the run: a standby that took over while this leader was
-    // cut off hears it, and defers.
-    drop(claiming);
+    watcher.abort();
+    drop(key_watch);
     drop(time_server);
     drop(subs);
     drop(done_subs);

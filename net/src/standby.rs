@@ -14,11 +14,13 @@
 //!   as every node does; at the takeover it stops asking and answers
 //!   `control/time` with that estimate, carried on by its own clock, and
 //!   announces the run's start as the leader did.
-//! - **Two leaders:** once it leads it says a claim on `control/claim/0`
-//!   and listens there; the leader says its claim through its run. Of two
-//!   processes that both lead (a leader cut off from the standby only, then
-//!   back), the one that began leading later defers: it ends, naming the
-//!   other in one line.
+//! - **Two leaders:** once it leads it is the leader of the next term: its
+//!   messages and its claim on `control/claim/0` carry it. The leader says
+//!   its claim (term 1) through its run and listens there and on its key.
+//!   Of two processes that both lead (a leader cut off, then back), the one
+//!   of the lower term stands down as soon as it hears the other's claim or
+//!   messages: it ends, naming the other in one line; the followers use the
+//!   highest term's messages only (docs/model.md §14). No clock is compared.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -26,7 +28,7 @@ use std::time::Duration;
 use formation_topology::{wire, Scenario, Timing};
 
 use crate::clock::{self, Clock};
-use crate::lead::{watch_reached, Node};
+use crate::lead::{watch_leader_key, watch_reached, Node};
 use crate::node::Shared;
 use crate::{clock_sync, startup, telemetry};
 use formation_protocol::barrier::Start;
@@ -81,13 +83,7 @@ pub async fn run(
         })
         .await
         .map_err(|e| zerr("declaring the start subscriber", e))?;
-    let (sh, tb) = (shared.clone(), timebase.clone());
-    let leader_sub = session
-        .declare_subscriber(keys.estimate(wire::LEADER_ID))
-        .allowed_origin(zenoh::sample::Locality::Remote)
-        .callback(move |s| sh.lock().handle_leader(&s.payload().to_bytes(), tb.now()))
-        .await
-        .map_err(|e| zerr("declaring the leader's subscriber", e))?;
+    let leader_sub = watch_leader_key(session, keys, &shared, &timebase).await?;
     let reached = watch_reached(session, keys, &hearing, &shared).await?;
     crate::node::say(&format!(
         "{me}: standing by for run {} (taking over after {} s of silence)",
@@ -198,7 +194,7 @@ struct Takeover<'a> {
 }
 
 /// What the standby holds while it leads: the time server, the start's
-/// announcer and its claim, watched for an earlier leader's.
+/// announcer and its claim, watched for a higher term's.
 struct Held {
     _time: zenoh::query::Queryable<()>,
     announcer: tokio::task::JoinHandle<()>,
@@ -214,27 +210,15 @@ impl Drop for Held {
 
 impl Takeover<'_> {
     /// Stops estimating the leader's clock and serves that estimate as the
-    /// run's timebase; announces the start; claims the lead and defers to
-    /// an earlier claim.
+    /// run's timebase; announces the start; claims the lead in its term and
+    /// stands down for a higher one.
     async fn lead(self, following: clock_sync::Following) -> Result<Held, Error> {
         drop(following);
         let time = clock_sync::serve_counted(self.session, self.keys, self.timebase.clone(), self.queries).await?;
         let announcer = startup::announce(self.session, self.keys, self.timebase, self.start);
-        let claim = startup::Leading::claim(self.session, self.keys, self.timebase.clock()).await?;
-        let (shared, run) = (self.shared.clone(), self.keys.run.clone());
-        let watcher = tokio::spawn(async move {
-            loop {
-                tokio::time::sleep(startup::CLAIM_EVERY).await;
-                if let Some(line) = claim.deferral(&run) {
-                    shared.lock().defer(line);
-                    shared.wake();
-                    return;
-                }
-                if shared.lock().outcome().is_some() {
-                    return;
-                }
-            }
-        });
+        let term = self.shared.lock().term();
+        let claim = startup::Leading::claim(self.session, self.keys, self.timebase.clock(), term).await?;
+        let watcher = claim.watch(self.shared.clone(), self.keys.run.clone());
         Ok(Held { _time: time, announcer, watcher })
     }
 }

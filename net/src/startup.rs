@@ -257,8 +257,9 @@ pub fn announce(
     })
 }
 
-/// A claim to lead said through the run (a standby that took over): the
-/// claims of other processes it hears, and its own.
+/// A claim to lead said through the run, with the leader's term (the
+/// leader from its start, a standby once it took over): the claims of
+/// other processes it hears, and its own.
 pub struct Leading {
     _saying: Claiming,
     _listening: zenoh::pubsub::Subscriber<()>,
@@ -267,12 +268,12 @@ pub struct Leading {
 }
 
 impl Leading {
-    /// Says this process's claim to lead on `control/claim/0`, made now,
+    /// Says this process's claim to lead in `term` on `control/claim/0`,
     /// every [`CLAIM_EVERY`], and listens there for the others'.
-    pub async fn claim(session: &zenoh::Session, keys: &Keys, clock: &Clock) -> Result<Self, Error> {
+    pub async fn claim(session: &zenoh::Session, keys: &Keys, clock: &Clock, term: u32) -> Result<Self, Error> {
         use formation_protocol::claim::Claim;
         let id = formation_topology::wire::LEADER_ID;
-        let mine = Claim::new(id, clock.unix_ns(), nonce(id), std::process::id(), &host());
+        let mine = Claim::new(id, clock.unix_ns(), nonce(id), std::process::id(), &host()).in_term(term);
         let (listening, heard) = listen_for_claims(session, keys, &mine).await?;
         let publisher =
             session.declare_publisher(keys.claim(id)).await.map_err(|e| zerr("declaring the claim to lead", e))?;
@@ -280,17 +281,39 @@ impl Leading {
         Ok(Self { _saying: saying, _listening: listening, heard, mine })
     }
 
-    /// The line this process ends with if another, leading since before it
-    /// took over, is heard: the later one defers.
+    /// The line this process ends with if another that outranks it (a
+    /// higher term; of one term, the lower nonce) is heard: it stands down.
     pub fn deferral(&self, run: &str) -> Option<String> {
         let heard = lock(&self.heard);
-        let first = formation_protocol::claim::winner(&self.mine, heard.iter())?;
+        let first = heard.iter().filter(|c| self.mine.outranked_by(c)).max_by_key(|c| c.term)?;
         Some(format!(
-            "run {run}: two leaders: another ({}) leads; this one (process {}, which took the run over later) \
-             defers and ends",
-            first.describe(&self.mine),
-            self.mine.pid
+            "run {run}: two leaders: another (process {} on host {}) leads in term {}; this one (process {}, term {}) \
+             stands down and ends",
+            first.pid, first.host, first.term, self.mine.pid, self.mine.term
         ))
+    }
+
+    /// Watches the claims heard every [`CLAIM_EVERY`]: on one that
+    /// outranks this process's, the leader machine stands down (and its
+    /// loop wakes). Ends with the run.
+    pub fn watch(
+        self,
+        shared: Arc<crate::node::Shared<formation_protocol::leader::Leader>>,
+        run: String,
+    ) -> tokio::task::JoinHandle<()> {
+        tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(CLAIM_EVERY).await;
+                if let Some(line) = self.deferral(&run) {
+                    shared.lock().stand_down(line);
+                    shared.wake();
+                    return;
+                }
+                if shared.lock().outcome().is_some() {
+                    return;
+                }
+            }
+        })
     }
 }
 

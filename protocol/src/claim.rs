@@ -9,6 +9,11 @@
 //! (whatever the hosts' clocks say, each twin sees the same two claims).
 //! A twin started after the run began is refused by the estimates it hears
 //! on its own key as well (`formation_net::startup::refuse_twin`).
+//!
+//! Through a run, the leader and a standby that took the run over say a
+//! claim to lead with their term (docs/model.md §14): of two that lead at
+//! once, the one of the lower term stands down ([`Claim::outranked_by`]);
+//! that decision compares no clock.
 
 use serde::{Deserialize, Serialize};
 
@@ -28,11 +33,29 @@ pub struct Claim {
     /// Where the process runs, for the line that names it.
     pub pid: u32,
     pub host: String,
+    /// A claim to lead during the run: the leader's term (0: a claim to an
+    /// identity at the start).
+    pub term: u32,
 }
 
 impl Claim {
     pub fn new(id: u32, since_unix_ns: u64, nonce: u64, pid: u32, host: &str) -> Self {
-        Self { id, since_unix_ns, nonce, pid, host: host.chars().take(MAX_HOST_CHARS).collect() }
+        Self { id, since_unix_ns, nonce, pid, host: host.chars().take(MAX_HOST_CHARS).collect(), term: 0 }
+    }
+
+    /// This claim, as a claim to lead in `term`.
+    pub fn in_term(self, term: u32) -> Self {
+        Self { term, ..self }
+    }
+
+    /// Whether `other`, another process's claim to lead heard during the
+    /// run, outranks this one: a higher term, or the same term (two
+    /// standbys that took over at once) and a lower nonce. No clock is
+    /// compared: both processes order the two claims alike.
+    pub fn outranked_by(&self, other: &Claim) -> bool {
+        other.id == self.id
+            && other.nonce != self.nonce
+            && (other.term, u64::MAX - other.nonce) > (self.term, u64::MAX - self.nonce)
     }
 
     /// Whether this process gives way to `other`, a claim heard on this
@@ -100,6 +123,29 @@ mod tests {
         assert!(!mine.yields_to(&mine.clone()));
         assert!(!mine.yields_to(&claim(4, 1, 1)));
         assert!(mine.yields_to(&claim(3, 9, 8)));
+    }
+
+    /// Of leaders that claim the lead at once, whatever their clocks say,
+    /// exactly one is outranked by none: the highest term, and of two of
+    /// one term, the lower nonce.
+    #[test]
+    fn of_leaders_of_several_terms_exactly_one_leads_whatever_their_clocks() {
+        let sets: [&[(u32, u64, u64)]; 4] = [
+            &[(1, 10, 7), (2, 90, 3)],
+            &[(1, 10, 3), (2, 5, 7)],
+            &[(2, 10, 7), (2, 10, 3), (1, 0, 1)],
+            &[(3, 99, 9), (1, 1, 1), (2, 50, 0)],
+        ];
+        for set in sets {
+            let claims: Vec<Claim> = set.iter().map(|&(t, since, n)| claim(0, since, n).in_term(t)).collect();
+            let lead: Vec<&Claim> = claims.iter().filter(|c| !claims.iter().any(|o| c.outranked_by(o))).collect();
+            assert_eq!(lead.len(), 1, "{set:?}: {lead:?} lead");
+            let best = claims.iter().max_by_key(|c| (c.term, u64::MAX - c.nonce)).expect("one");
+            assert_eq!(lead[0], best, "{set:?}: the highest term, then the lower nonce");
+        }
+        let mine = claim(0, 10, 7).in_term(2);
+        assert!(!mine.outranked_by(&mine.clone()), "its own claim heard back");
+        assert!(!mine.outranked_by(&claim(3, 1, 1).in_term(9)), "another identity's");
     }
 
     #[test]

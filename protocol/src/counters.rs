@@ -17,6 +17,10 @@ pub struct RejectCounts {
     /// A step further ahead of the receiver's than any genuine sender can be.
     #[serde(default)]
     pub future: u64,
+    /// From a leader of an older term than one already heard (a leader a
+    /// standby took the run over from): not bad, but not used.
+    #[serde(default)]
+    pub old_term: u64,
 }
 
 impl RejectCounts {
@@ -29,9 +33,11 @@ impl RejectCounts {
             Reject::NotNeighbour => self.not_neighbour += 1,
             Reject::Stale => self.stale += 1,
             Reject::Future => self.future += 1,
+            Reject::OldTerm => self.old_term += 1,
         }
     }
-    /// Everything but `stale` (which is lateness, not a bad message).
+    /// Everything but `stale` (which is lateness, not a bad message) and
+    /// `old_term` (a leader that was taken over from).
     pub fn invalid(&self) -> u64 {
         self.malformed + self.version + self.non_finite + self.wrong_sender + self.not_neighbour + self.future
     }
@@ -45,6 +51,7 @@ impl RejectCounts {
         self.not_neighbour += o.not_neighbour;
         self.stale += o.stale;
         self.future += o.future;
+        self.old_term += o.old_term;
     }
 }
 
@@ -53,7 +60,7 @@ impl RejectCounts {
 /// node hands the counts over with [`AtomicRejects::take`].
 #[derive(Debug, Default)]
 pub struct AtomicRejects {
-    counts: [std::sync::atomic::AtomicU64; 7],
+    counts: [std::sync::atomic::AtomicU64; 8],
 }
 
 impl AtomicRejects {
@@ -66,6 +73,7 @@ impl AtomicRejects {
             Reject::NotNeighbour => 4,
             Reject::Stale => 5,
             Reject::Future => 6,
+            Reject::OldTerm => 7,
         };
         self.counts[i].fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     }
@@ -81,6 +89,7 @@ impl AtomicRejects {
             not_neighbour: c[4],
             stale: c[5],
             future: c[6],
+            old_term: c[7],
         })
     }
 }

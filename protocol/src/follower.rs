@@ -1012,6 +1012,7 @@ impl Follower {
             },
             state: m.state,
             fresh: m.fresh,
+            term: self.inbox.term(),
         };
         let bytes = wire::encode(&msg);
         self.transmit.push_back(bytes.clone());

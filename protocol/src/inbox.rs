@@ -75,6 +75,8 @@ pub struct Inbox {
     meters: Vec<LinkMeter>,
     /// Real time, per source: evidence of a second sender on its key.
     twins: Vec<Twin>,
+    /// The highest term heard from the leader (0: none yet).
+    term: u32,
 }
 
 /// What a receiver has seen of a second sender on one source's key (real
@@ -125,7 +127,33 @@ impl Inbox {
             links: vec![LinkLoss::none(); sources],
             meters: vec![LinkMeter::default(); sources],
             twins: vec![Twin::default(); sources],
+            term: 0,
         }
+    }
+
+    /// The highest term heard from the leader (0: none yet).
+    pub fn term(&self) -> u32 {
+        self.term
+    }
+
+    /// The leader's message of `slot` is of `term`: whether it may be used
+    /// (docs/model.md §14). Of an older term than one heard: refused. Of a
+    /// newer one: taken from now on, in real time from its first message
+    /// on (the new leader's steps may be behind the old one's, and a second
+    /// stream on the key is not a twin).
+    fn leader_term(&mut self, slot: usize, term: u32) -> bool {
+        if term < self.term {
+            self.counters.rejected.add(Reject::OldTerm);
+            return false;
+        }
+        if term > self.term {
+            self.term = term;
+            if !self.lockstep {
+                (self.newest[slot], self.twins[slot]) = (None, Twin::default());
+                self.history[slot].clear();
+            }
+        }
+        true
     }
 
     /// Per source, what was seen of a second sender on its key.
@@ -265,6 +293,9 @@ impl Inbox {
     /// whether it was filed (and its latency worth measuring).
     pub fn accept(&mut self, slot: usize, msg: &EstimateMsg) -> bool {
         let step = msg.header.step;
+        if msg.header.sender == wire::LEADER_ID && !self.leader_term(slot, msg.term) {
+            return false;
+        }
         self.heard[slot] += 1;
         let seen = &mut self.heard_max[slot];
         *seen = Some(seen.map_or(step, |m| m.max(step)));
@@ -413,6 +444,41 @@ mod tests {
             header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
             state: formation_leader::LeaderState { v: step as f64, ..Default::default() },
             fresh: true,
+            term: u32::from(sender == wire::LEADER_ID),
+        }
+    }
+
+    fn in_term(term: u32, step: u64, v: f64) -> EstimateMsg {
+        let mut m = msg(wire::LEADER_ID, step);
+        (m.term, m.state.v) = (term, v);
+        m
+    }
+
+    /// Terms (docs/model.md §14): once a message of term 2 is heard on the
+    /// leader's key, term 1's are refused and counted, even for newer
+    /// steps (a leader cut off whose clock runs ahead); the new term is
+    /// taken from its first message on, even for steps behind the old
+    /// leader's, in real time and in lock-step alike. A follower's own
+    /// messages carry no term of their own (the rule is the leader's key's).
+    #[test]
+    fn the_leaders_messages_of_the_highest_term_heard_are_the_only_ones_used() {
+        for lockstep in [false, true] {
+            let mut inbox = Inbox::new(2, lockstep);
+            inbox.set_ahead(1, 1000);
+            assert_eq!(inbox.term(), 0);
+            assert!(inbox.accept(1, &in_term(1, 5, 1.0)), "lockstep {lockstep}");
+            assert!(inbox.accept(1, &in_term(1, 8, 1.0)));
+            assert_eq!(inbox.term(), 1);
+            assert!(inbox.accept(1, &in_term(2, 7, 2.0)), "lockstep {lockstep}: term 2 behind term 1's step 8");
+            assert!(!inbox.accept(1, &in_term(1, 9, 1.0)), "lockstep {lockstep}: term 1 after term 2");
+            assert_eq!((inbox.term(), inbox.counters.rejected.old_term), (2, 1), "lockstep {lockstep}");
+            assert_eq!(inbox.counters.rejected.invalid(), 0, "an old term is not a bad message");
+            let mut n = msg(3, 1);
+            n.term = 0;
+            assert!(inbox.accept(0, &n), "a neighbour's message is not the leader's");
+            if !lockstep {
+                assert_eq!(inbox.latest(1, 7, 10).map(|(s, m)| (s, m.state.v)), Some((7, 2.0)), "the new term's");
+            }
         }
     }
 

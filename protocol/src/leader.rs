@@ -32,7 +32,7 @@ use crate::barrier::Start;
 use crate::counters::Counters;
 use crate::gate::{self, Kept, Phase, WINDOW};
 use crate::loop_timing::{LoopStats, LoopTimer};
-use crate::telemetry::{Delivery, Handover, Telemetry};
+use crate::telemetry::{Delivery, Handover, Telemetry, Term};
 use crate::Now;
 
 /// Lock-step: how long the leader keeps repeating after its last step.
@@ -42,6 +42,10 @@ pub const LINGER: Duration = Duration::from_secs(2);
 /// run over, by default: 200 steps in real time at 1 kHz; in lock-step the
 /// leader, even while it waits, repeats every [`gate::LEADER_REPEAT_EVERY`].
 pub const TAKE_OVER_AFTER: Duration = Duration::from_millis(500);
+
+/// The term of the leader a run starts with; each standby that takes the
+/// run over leads the next one (docs/model.md §14).
+pub const FIRST_TERM: u32 = 1;
 
 /// How far back of the newest step heard from the leader a standby sends
 /// the leader's states to the monitor when it takes over (the steps the
@@ -56,6 +60,8 @@ struct Standby {
     heard: Option<u64>,
     /// When the leader was last heard (or the start, before that).
     heard_at: Now,
+    /// The highest term heard on the leader's key.
+    term: u32,
 }
 
 /// A telemetry batch as the machine knows it; the node adds how its
@@ -70,6 +76,7 @@ pub struct LeaderBatch {
     done: bool,
     loop_stats: Option<LoopStats>,
     handover: Option<Handover>,
+    term: Term,
 }
 
 impl LeaderBatch {
@@ -86,6 +93,7 @@ impl LeaderBatch {
             loop_stats: self.loop_stats,
             delivery,
             handover: self.handover,
+            term: self.term,
         }
     }
 }
@@ -132,6 +140,10 @@ pub struct Leader {
     standby: Option<Standby>,
     /// A standby that took the run over: when.
     took_over: Option<Handover>,
+    /// This leader's term (0: a standby that has not taken over).
+    term: u32,
+    /// The step at which it stood down, having heard a higher term.
+    stood_down_at: Option<u64>,
 }
 
 impl Leader {
@@ -170,6 +182,8 @@ impl Leader {
             latest: None,
             standby: None,
             took_over: None,
+            term: FIRST_TERM,
+            stood_down_at: None,
         }
     }
 
@@ -179,7 +193,8 @@ impl Leader {
     /// the run over at the step due, with the leader's own trajectory.
     pub fn standby(scenario: &Scenario, after: Duration) -> Self {
         let mut l = Self::new(scenario);
-        l.standby = Some(Standby { after, start: None, heard: None, heard_at: Now::ZERO });
+        l.standby = Some(Standby { after, start: None, heard: None, heard_at: Now::ZERO, term: 0 });
+        l.term = 0;
         l
     }
 
@@ -192,16 +207,40 @@ impl Leader {
         }
     }
 
-    /// A standby heard a message on the leader's key at `now`: the leader
-    /// is alive, and has published that step (a step of the run).
+    /// A message on the leader's key from another process, at `now`. A
+    /// standby: the leader is alive, and has published that step (a step of
+    /// the run), in that term. A leader: one of a higher term took the run
+    /// over while this one was cut off (or thought the leader gone): this
+    /// one stands down (docs/model.md §14).
     pub fn handle_leader(&mut self, bytes: &[u8], now: Now) {
-        let Some(s) = self.standby.as_mut() else { return };
         let Ok(m) = wire::decode(bytes) else { return };
         if m.header.sender != wire::LEADER_ID || m.header.step > self.steps {
             return;
         }
-        let k = s.heard.map_or(m.header.step, |h| h.max(m.header.step));
-        (s.heard, s.heard_at, self.published) = (Some(k), now, k);
+        let Some(s) = self.standby.as_mut() else {
+            if m.term > self.term {
+                let k = m.header.step;
+                self.stand_down(format!(
+                    "leader (term {}): a leader of term {} is heard on the run's key (its step {k}): this one \
+                     stands down and ends",
+                    self.term, m.term
+                ));
+            }
+            return;
+        };
+        if m.term < s.term {
+            return;
+        }
+        let k = match m.term > s.term {
+            true => m.header.step,
+            false => s.heard.map_or(m.header.step, |h| h.max(m.header.step)),
+        };
+        (s.heard, s.heard_at, s.term, self.published) = (Some(k), now, m.term, k);
+    }
+
+    /// This leader's term (0: a standby that has not taken over).
+    pub fn term(&self) -> u32 {
+        self.term
     }
 
     /// The step at which this standby took the run over, once it has.
@@ -214,12 +253,24 @@ impl Leader {
     /// 0 with nothing heard (no gap: no leader message was due).
     pub fn led_by_a_standby_from_the_start(&mut self) {
         self.took_over = Some(Handover { heard: None, at_k: 0 });
+        self.term = FIRST_TERM + 1;
     }
 
-    /// Another process leads (this one took over later): this one ends,
-    /// saying `why`.
-    pub fn defer(&mut self, why: String) {
+    /// Another process leads in a higher term (or the same term, and it
+    /// outranks this one): this one ends, saying `why`; its last batch to
+    /// the monitor says at which step it stood down. Once only, and not
+    /// after the run's end.
+    pub fn stand_down(&mut self, why: String) {
+        let k = match self.phase {
+            Phase::Stepping(k) => k,
+            Phase::Waiting => 0,
+            Phase::Lingering(_) | Phase::Done(_) => return,
+        };
         self.say.push_back(why);
+        self.stood_down_at = Some(k);
+        if self.standby.is_none() {
+            self.batch(k, false);
+        }
         self.phase = Phase::Done(Ok(()));
     }
 
@@ -262,8 +313,9 @@ impl Leader {
         let Some(s) = self.standby.as_ref() else { return };
         let Some(wake) = self.standby_wake() else { return };
         let Some(start) = s.start.clone().filter(|_| now >= wake) else { return };
-        let (heard, silent) = (s.heard, now - s.heard_at);
+        let (heard, silent, heard_term) = (s.heard, now - s.heard_at, s.term);
         self.standby = None;
+        self.term = heard_term.max(FIRST_TERM) + 1;
         self.pace(&start);
         let k = match self.lockstep {
             true => heard.unwrap_or(0),
@@ -279,9 +331,11 @@ impl Leader {
             return;
         }
         self.say.push_back(format!(
-            "leader (standby): the leader silent for {:.3} s ({heard_s}): taking the run over at step {k} (t = {} s)",
+            "leader (standby): the leader silent for {:.3} s ({heard_s}): taking the run over at step {k} (t = {} s) \
+             in term {}",
             silent.as_secs_f64(),
-            k as f64 * self.dt_s
+            k as f64 * self.dt_s,
+            self.term
         ));
         let back = (RECORD_BACK.as_secs_f64() / self.dt_s).round() as u64 + 2 * self.batch_len as u64;
         self.took_over = Some(Handover { heard, at_k: k });
@@ -468,6 +522,7 @@ impl Leader {
             },
             state: self.state,
             fresh: true,
+            term: self.term,
         });
         self.published = k;
         self.counters.sent += 1;
@@ -487,6 +542,7 @@ impl Leader {
             done: last,
             loop_stats: if last { self.timer.as_ref().map(LoopTimer::stats) } else { None },
             handover: self.took_over,
+            term: Term { number: self.term, stood_down_at: self.stood_down_at },
         });
         self.first_k = end_k;
     }
@@ -585,7 +641,7 @@ mod tests {
 
     /// A follower's message for `step`.
     fn from(id: u32, step: u64) -> Vec<u8> {
-        wire::encode(&EstimateMsg { header: header(id, step), state: LeaderState::default(), fresh: true })
+        wire::encode(&EstimateMsg { header: header(id, step), state: LeaderState::default(), fresh: true, term: 0 })
     }
 
     /// Hands the machine `now` as long as something is due at once.
@@ -770,6 +826,55 @@ mod tests {
         assert_eq!(from, 1_501 - 1_000 - 2 * s.network.telemetry_batch.max(1) as u64);
         let states: Vec<LeaderState> = batches.into_iter().flat_map(|b| b.states).collect();
         assert_eq!(&states[..], &reference_states[from as usize..], "the states sent the monitor");
+    }
+
+    /// One leader (docs/model.md §14): a leader cut off from its standby
+    /// for 1 s goes on stepping; the standby takes the run over in term 2;
+    /// when the cut ends, the leader hears term 2 on its key and stands
+    /// down at once (one line, a last batch that says at which step), and
+    /// the standby, hearing term 1, does not. Whatever the steps say: the
+    /// old leader's are ahead of the standby's here (its clock ran 0.5 s
+    /// ahead while cut off), and it still stands down.
+    #[test]
+    fn a_leader_cut_off_and_back_stands_down_for_the_standbys_higher_term() {
+        let s = paper(&["duration=4", "timing=realtime"]);
+        let epoch = Duration::from_nanos(start0().epoch_unix_ns);
+        let mut standby = Leader::standby(&s, Duration::from_millis(500));
+        let mut leader = Leader::new(&s);
+        assert_eq!((leader.term(), standby.term()), (FIRST_TERM, 0));
+        leader.start(&start0(), epoch);
+        standby.handle_start(&start0(), epoch);
+        let (_, cut) = run_rt(&mut leader, epoch, epoch + Duration::from_millis(1000), Some(&mut standby));
+        // Cut off: the leader steps on, unheard, with its clock 0.5 s ahead.
+        let ahead = Duration::from_millis(500);
+        let (unheard, _) = run_rt(&mut leader, cut + ahead, cut + ahead + Duration::from_millis(1000), None);
+        let wake = standby.poll_timeout().expect("watching");
+        let (sent, back) = run_rt(&mut standby, wake, cut + Duration::from_millis(1000), None);
+        assert_eq!(standby.term(), FIRST_TERM + 1, "the standby leads the next term");
+        let first = wire::decode(&sent[0]).expect("the standby's");
+        assert_eq!(first.term, 2);
+        let said: Vec<String> = std::iter::from_fn(|| standby.poll_say()).collect();
+        assert!(said[0].contains("in term 2"), "{said:?}");
+        // Back: each hears the other's messages.
+        let old = wire::decode(unheard.last().expect("sent")).expect("the leader's");
+        assert!(old.header.step > first.header.step + 500 && old.term == 1, "{:?} / {:?}", old.header, first.header);
+        standby.handle_leader(unheard.last().expect("sent"), back);
+        assert!(standby.outcome().is_none(), "the standby does not stand down for term 1");
+        leader.handle_leader(sent.last().expect("sent"), back);
+        assert_eq!(leader.outcome(), Some(&Ok(())), "the leader stands down");
+        let said: Vec<String> = std::iter::from_fn(|| leader.poll_say()).collect();
+        assert_eq!(said.len(), 1, "{said:?}");
+        assert!(said[0].contains("leader (term 1): a leader of term 2") && said[0].contains("stands down"), "{said:?}");
+        let last = std::iter::from_fn(|| leader.poll_telemetry()).last().expect("a last batch");
+        let at = last.term.stood_down_at.expect("says where it stood down");
+        assert_eq!((last.term.number, last.end_k), (1, at), "{:?}", last.term);
+        leader.stand_down("twice".into());
+        assert_eq!(leader.poll_say(), None, "once only");
+        // A leader's own term, or a lower one, changes nothing.
+        let mut other = Leader::new(&s);
+        other.start(&start0(), epoch);
+        other.handle_leader(unheard.last().expect("sent"), epoch);
+        assert!(other.outcome().is_none(), "term 1 beside term 1 (the claims' nonce decides)");
     }
 
     /// A standby whose leader ends the run does not take it over; one whose

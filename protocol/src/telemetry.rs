@@ -50,7 +50,19 @@ pub enum Telemetry {
         delivery: Delivery,
         /// Sent by a standby that took the run over: when.
         handover: Option<Handover>,
+        /// The sender's term, and whether it stood down.
+        term: Term,
     },
+}
+
+/// A leader's term (docs/model.md §14): 1 for the leader the run started
+/// with, one more for each standby that took the run over. A leader that
+/// hears one of a higher term stands down: its last batch says at which
+/// step (the first it did not take).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Term {
+    pub number: u32,
+    pub stood_down_at: Option<u64>,
 }
 
 /// A standby leader took the run over (docs/model.md §14): the newest step
@@ -230,6 +242,7 @@ mod tests {
             loop_stats: None,
             delivery: Delivery::default(),
             handover: None,
+            term: Term { number: 1, stood_down_at: None },
         };
         assert!(!leader.reports_final_step(0, steps));
     }

@@ -146,6 +146,7 @@ fn from_the_future_of(w: &mut World, sender: u32, step: u64) -> bool {
         header: Header { version: FORMAT_VERSION, sender, step, time_s: 0.0, sent_ns: 0 },
         state: LeaderState::default(),
         fresh: true,
+        term: u32::from(sender == 0),
     });
     let now = w.now;
     w.followers[0].handle_estimate(Some(sender), &bytes, Some(now));

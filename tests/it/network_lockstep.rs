@@ -93,6 +93,7 @@ fn msg(sender: u32, step: u64, v: f64) -> Vec<u8> {
         header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
         state: LeaderState { v, ..Default::default() },
         fresh: true,
+        term: u32::from(sender == 0),
     })
 }
 
@@ -143,6 +144,7 @@ async fn rogue_messages_are_rejected_and_counted() {
                 header: Header { version: FORMAT_VERSION + 7, sender: id, step: k, time_s: 0.0, sent_ns: 0 },
                 state: LeaderState::default(),
                 fresh: true,
+                term: u32::from(id == 0),
             };
             bad_version.header.version = FORMAT_VERSION + 7;
             for payload in [

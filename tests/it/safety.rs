@@ -182,6 +182,7 @@ fn garbage_and_forged_poses_are_counted_and_dropped_and_change_nothing() {
                 header: Header { version: FORMAT_VERSION, sender: 1, step: 1, time_s: 0.0, sent_ns: 0 },
                 state: Default::default(),
                 fresh: true,
+                term: 0,
             }),
         ),
     ];

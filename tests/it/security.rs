@@ -57,6 +57,7 @@ fn estimate(sender: u32, step: u64) -> Vec<u8> {
         header: Header { version: FORMAT_VERSION, sender, step, time_s: step as f64 * 1e-3, sent_ns: 0 },
         state: LeaderState { v: 1.0, ..Default::default() },
         fresh: true,
+        term: u32::from(sender == 0),
     })
 }
 

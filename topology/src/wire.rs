@@ -10,7 +10,7 @@ use formation_leader::LeaderState;
 use serde::{Deserialize, Serialize};
 
 /// Bumped on any change of the encoding.
-pub const FORMAT_VERSION: u16 = 4;
+pub const FORMAT_VERSION: u16 = 5;
 
 /// Leader id on the wire.
 pub const LEADER_ID: u32 = 0;
@@ -33,12 +33,18 @@ pub struct Header {
 /// An estimate message: from the leader, its true state; from follower i,
 /// (P_ir, Ṗ_ir, v_ir, ω_ir) and whether that estimate is fresh (docs/model.md §14:
 /// not held through an isolation since it last came from the leader; the
-/// leader's is always fresh). Format 2 added `fresh`.
+/// leader's is always fresh). Format 2 added `fresh`, format 5 `term`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EstimateMsg {
     pub header: Header,
     pub state: LeaderState,
     pub fresh: bool,
+    /// The leader's term (docs/model.md §14): from the leader, its own (1
+    /// for the leader the run started with, one more for each standby that
+    /// took it over); from a follower, the highest it has heard from the
+    /// leader (0: none yet). A follower uses the leader's messages of the
+    /// highest term it has heard only.
+    pub term: u32,
 }
 
 /// Why a received message was not used.
@@ -58,6 +64,9 @@ pub enum Reject {
     Stale,
     /// A step further ahead of the receiver's than any genuine sender can be.
     Future,
+    /// From a leader of an older term than one already heard: a leader
+    /// that a standby took the run over from (docs/model.md §14).
+    OldTerm,
 }
 
 fn config() -> bincode::config::Configuration {
@@ -182,6 +191,7 @@ mod tests {
             header: Header { version: FORMAT_VERSION, sender: 3, step: 42, time_s: 0.042, sent_ns: 0 },
             state: LeaderState { pose: Pose::new(1.0, 2.0, 0.5), pose_rate: Pose::new(0.1, 0.2, 0.3), v: 1.0, w: -0.5 },
             fresh: false,
+            term: 2,
         }
     }
 

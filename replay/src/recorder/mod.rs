@@ -41,7 +41,7 @@ use formation_protocol::codec;
 use formation_protocol::counters::Counters;
 use formation_protocol::loop_timing::LoopStats;
 use formation_protocol::telemetry::{
-    Ack, ClockReport, Delivery, EventKind, Handover, Left, LinkStats, NetEvent, Telemetry, MAX_LEFT_WHY,
+    Ack, ClockReport, Delivery, EventKind, Handover, Left, LinkStats, NetEvent, Telemetry, Term, MAX_LEFT_WHY,
 };
 use stream::{check_batch, Stream};
 
@@ -83,6 +83,54 @@ const MAX_RESCUED: usize = 1 << 20;
 const MAX_EVENTS_PER_BATCH: usize = 256;
 /// The most handovers a monitor keeps (a forger's flood of them is cut).
 const MAX_HANDOVERS: usize = 16;
+
+/// One leader's term as the monitor heard it (docs/model.md §14): the steps
+/// its telemetry covered, whether a standby led it (the handover), and the
+/// step at which it stood down, having heard a higher term.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TermRecord {
+    pub number: u32,
+    pub first_k: u64,
+    /// One past the last step its telemetry held.
+    pub end_k: u64,
+    pub handover: Option<Handover>,
+    pub stood_down_at: Option<u64>,
+}
+
+impl Recorder {
+    /// Notes a leader batch's term; whether its states are to be filed:
+    /// not those of a term lower than one heard (a leader that a standby
+    /// took the run over from, its record arriving late; the states of a
+    /// step are the same from either, bit for bit, as the trajectory is).
+    fn note_term(&mut self, term: Term, first_k: u64, end_k: u64, handover: Option<Handover>) -> bool {
+        let highest = self.terms.iter().map(|t| t.number).max().unwrap_or(0);
+        let room = self.terms.len() < MAX_HANDOVERS;
+        match self.terms.iter_mut().find(|t| t.number == term.number) {
+            Some(t) => {
+                (t.first_k, t.end_k) = (t.first_k.min(first_k), t.end_k.max(end_k));
+                t.handover = t.handover.or(handover);
+                t.stood_down_at = t.stood_down_at.or(term.stood_down_at);
+            }
+            None if room => {
+                let stood_down_at = term.stood_down_at;
+                self.terms.push(TermRecord { number: term.number, first_k, end_k, handover, stood_down_at });
+                self.terms.sort_by_key(|t| t.number);
+            }
+            None => {}
+        }
+        if let Some(k) = term.stood_down_at {
+            let line = format!(
+                "the leader of term {} stood down at t = {:.3} s, having heard a higher term",
+                term.number,
+                k as f64 * self.scenario.dt_s
+            );
+            if !self.news.contains(&line) {
+                self.news.push(line);
+            }
+        }
+        term.number >= highest
+    }
+}
 
 /// A checked batch's bookkeeping: what every node's telemetry carries
 /// besides its steps.
@@ -177,6 +225,8 @@ pub struct Recorder {
     leader_stream: Stream<LeaderState>,
     /// Standby leaders that took the run over (docs/model.md §14).
     pub(crate) handovers: Vec<Handover>,
+    /// The leaders' terms heard, lowest first (docs/model.md §14).
+    pub(crate) terms: Vec<TermRecord>,
     /// Who came and went, as it was learnt: one line each, until taken.
     news: Vec<String>,
     /// Followers taken for gone after `network.gone_after` of silence.
@@ -262,6 +312,7 @@ impl Recorder {
             followers,
             leader_stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
             handovers: Vec::new(),
+            terms: Vec::new(),
             news: Vec::new(),
             gone: BTreeSet::new(),
             absent_at_start: Vec::new(),
@@ -530,12 +581,24 @@ impl Recorder {
         };
         let bytes = bytes.len();
         match t {
-            Telemetry::Leader { first_k, states, counters, done, loop_stats, delivery, handover } => {
+            Telemetry::Leader { first_k, states, counters, done, loop_stats, delivery, handover, term } => {
                 if let Some(h) = handover.filter(|h| key_id == Some(0) && h.at_k <= self.scenario.steps()) {
                     if !self.handovers.iter().any(|x| x.at_k == h.at_k) && self.handovers.len() < MAX_HANDOVERS {
                         self.handovers.push(h);
                         self.news.push(crate::health::handover_line(h.heard, h.at_k, self.scenario.dt_s));
                     }
+                }
+                // Each handover makes one more term: none beyond (a forger's).
+                let genuine = (1..=1 + self.handovers.len() as u32).contains(&term.number);
+                if key_id == Some(0) && !genuine {
+                    self.refuse(key_id, 1);
+                    return self.process();
+                }
+                let end_k = first_k.saturating_add(states.len() as u64);
+                let current = key_id == Some(0) && self.note_term(term, first_k, end_k, handover);
+                if key_id == Some(0) && !current {
+                    // An old term's record: its bookkeeping, not its states.
+                    return self.process();
                 }
                 let batch = Batch { now, bytes, first_k, counters, done, loop_stats, delivery };
                 self.leader_batch(key_id, batch, states)?;
@@ -1231,6 +1294,7 @@ mod tests {
             loop_stats: None,
             delivery: Delivery::default(),
             handover: None,
+            term: Term { number: 1, stood_down_at: None },
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
@@ -1287,6 +1351,7 @@ mod tests {
                 loop_stats: None,
                 delivery: Delivery::default(),
                 handover: None,
+                term: Term { number: 1, stood_down_at: None },
             })
         };
         let follower = |id: u32, first_k: u64, samples: Vec<FollowerSample>, done: bool| {
@@ -1341,6 +1406,7 @@ mod tests {
             loop_stats: None,
             delivery: Delivery::default(),
             handover: None,
+            term: Term { number: 1, stood_down_at: None },
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         for f in &scenario.followers {
@@ -1425,6 +1491,7 @@ mod tests {
                 loop_stats: None,
                 delivery: Delivery { incarnation, available_from: first_k.min(5), ..Delivery::default() },
                 handover: if incarnation == 2 { handover } else { None },
+                term: Term { number: if incarnation == 2 { 2 } else { 1 }, stood_down_at: None },
             };
             r.telemetry(Some(0), &codec::encode(&b), Instant::now()).unwrap();
         }
@@ -1485,6 +1552,7 @@ mod tests {
                 loop_stats: None,
                 delivery: Delivery::default(),
                 handover: None,
+                term: Term { number: 1, stood_down_at: None },
             };
             r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
             for id in [1, 2, 3, 4] {
@@ -1520,6 +1588,7 @@ mod tests {
             loop_stats: None,
             delivery: Delivery::default(),
             handover: None,
+            term: Term { number: 1, stood_down_at: None },
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();
@@ -1580,6 +1649,7 @@ mod tests {
             loop_stats: None,
             delivery: Delivery::default(),
             handover: None,
+            term: Term { number: 1, stood_down_at: None },
         };
         r.telemetry(Some(0), &codec::encode(&leader), Instant::now()).unwrap();
         let ids: Vec<u32> = scenario.followers.iter().map(|f| f.id).collect();

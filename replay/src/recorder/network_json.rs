@@ -85,6 +85,15 @@ impl Recorder {
                 "heard_step": h.heard, "step": h.at_k, "t_s": h.at_k as f64 * self.scenario.dt_s,
                 "said": crate::health::handover_line(h.heard, h.at_k, self.scenario.dt_s),
             })).collect::<Vec<_>>(),
+            // The leaders' terms (docs/model.md §14): who led each, over
+            // which steps, and where one stood down for a higher term.
+            "terms": self.terms.iter().map(|t| json!({
+                "term": t.number,
+                "led_by": match t.handover { None => "the leader", Some(_) => "a standby" },
+                "from_step": t.handover.map_or(t.first_k, |h| h.at_k.max(t.first_k)),
+                "to_step": t.end_k.saturating_sub(1),
+                "stood_down_at_step": t.stood_down_at,
+            })).collect::<Vec<_>>(),
             // Messages zenoh's access control refused, by the node that refused them.
             "access_denied": self.denied.rows(),
             // Start-up (every node ready, from the monitor's start) and the
