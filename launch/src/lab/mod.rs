@@ -69,8 +69,16 @@ pub struct LabArgs {
     /// after --take-over-after s of silence (client mode).
     #[cfg_attr(feature = "clap", arg(long, value_name = "AT"))]
     pub kill_leader: Option<f64>,
-    /// With --kill-leader: the standby's wait (s) before it takes over.
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.5, value_name = "SECONDS", requires = "kill_leader"))]
+    /// Cut the leader's host off from every other (its cable unplugged) at
+    /// run time AT (s) for FOR s, e.g. `10:3`: a standby leader, started
+    /// with the others on a host of its own, takes the run over in the next
+    /// term; when the cable is back, the leader hears it and stands down
+    /// (docs/model.md §14; client mode).
+    #[cfg_attr(feature = "clap", arg(long, value_name = "AT:FOR", conflicts_with = "kill_leader"))]
+    pub cut_leader: Option<String>,
+    /// With --kill-leader or --cut-leader: the standby's wait (s) before it
+    /// takes over.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.5, value_name = "SECONDS"))]
     pub take_over_after: f64,
     /// Shift one node's wall clock by SECONDS (e.g. `3=+0.05`,
     /// `leader=-1`), as on a host without a time service: the node runs
@@ -95,6 +103,13 @@ pub struct LabArgs {
     /// `formation replay --explain` should find. E.g. `2:4=30`. Repeatable.
     #[cfg_attr(feature = "clap", arg(long = "slow-link", value_name = "A:B=PERCENT"))]
     pub slow_link: Vec<String>,
+}
+
+impl LabArgs {
+    /// Whether a standby leader runs beside the leader (--kill-leader, --cut-leader).
+    fn has_standby(&self) -> bool {
+        self.kill_leader.is_some() || self.cut_leader.is_some()
+    }
 }
 
 /// `--slow-link A:B=PERCENT`: the two followers' hosts and the loss.
@@ -473,6 +488,30 @@ fn membership_events(a: &LabArgs, s: &Scenario, t_end: f64) -> Result<Vec<Event>
         }
         events.push(Event { at_s: at, action: Action::KillAgent(id), what: format!("agent {id} killed for good") });
     }
+    if let Some(text) = &a.cut_leader {
+        if a.mode != LaunchMode::Client {
+            return Err(Error::Input(
+                "--cut-leader needs --mode client (the standby reaches every node through the router)".into(),
+            ));
+        }
+        let (at, dur) = at_for("--cut-leader", text)?;
+        if at + dur >= t_end {
+            return Err(Error::Input(format!(
+                "--cut-leader {text}: the cable is back at {} s, past the run's end ({t_end} s)",
+                at + dur
+            )));
+        }
+        let host = "leader".to_string();
+        let (down, up) = (Action::Link { host: host.clone(), up: false }, Action::Link { host, up: true });
+        events.push(Event { at_s: at, action: down, what: "the leader's link down".into() });
+        events.push(Event { at_s: at + dur, action: up, what: "the leader's link up".into() });
+    }
+    if a.has_standby() {
+        let after = a.take_over_after;
+        if !(after.is_finite() && after > 0.0) {
+            return Err(Error::Input(format!("--take-over-after {after}: expected a positive number of seconds")));
+        }
+    }
     if let Some(at) = a.kill_leader {
         if a.mode != LaunchMode::Client {
             return Err(Error::Input(
@@ -483,10 +522,6 @@ fn membership_events(a: &LabArgs, s: &Scenario, t_end: f64) -> Result<Vec<Event>
             return Err(Error::Input(format!(
                 "--kill-leader {at}: expected a run time from 0 to the run's end ({t_end} s)"
             )));
-        }
-        let after = a.take_over_after;
-        if !(after.is_finite() && after > 0.0) {
-            return Err(Error::Input(format!("--take-over-after {after}: expected a positive number of seconds")));
         }
         events.push(Event { at_s: at, action: Action::KillLeader, what: "leader killed (SIGKILL)".into() });
     }
@@ -649,7 +684,7 @@ fn lab_hosts(a: &LabArgs, scenario: &Scenario, sites: &Option<Sites>) -> Vec<Str
         hosts.extend(sites.routers[1..].iter().cloned());
     }
     hosts.extend(["monitor".to_string(), "leader".to_string()]);
-    if a.kill_leader.is_some() {
+    if a.has_standby() {
         hosts.push(STANDBY.into());
     }
     hosts.extend(scenario.graph.ids().iter().map(|&id| agent_host(id)));
@@ -894,7 +929,7 @@ impl Ctx<'_> {
         }
         let _socket = self.spawn_monitor(children).await?;
         let rx = self.spawn_leader(children)?;
-        if self.a.kill_leader.is_some() {
+        if self.a.has_standby() {
             let mut c = self.node(STANDBY, "leader");
             c.arg("--standby").arg("--take-over-after").arg(self.a.take_over_after.to_string());
             supervisor::spawn(children, STANDBY, c)?;
