@@ -4,6 +4,13 @@
 //! `control/leave/<id>` until the follower's last telemetry says it left,
 //! and says when. (With `--tls` it speaks with the monitor's certificate:
 //! the operator's console.)
+//!
+//! Before it asks, it learns who is not running: the followers absent at
+//! the start (the leader's start, repeated through the run, names them)
+//! and those whose telemetry it does not hear for five batches (at least
+//! 1 s: left, or gone). It refuses, in one line and before asking, a
+//! follower that is not running, and a leave that with those cuts a
+//! running follower off from the leader (Lemma 1).
 
 use std::time::Duration;
 
@@ -46,14 +53,32 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
     if !(a.timeout.is_finite() && a.timeout > 0.0) {
         return Err(Error::Input(format!("--timeout must be a positive number of seconds, not {}", a.timeout)));
     }
-    let cut = scenario.graph.cut_off_without(&[id]);
-    if let Some(cut) = cut.as_ref().filter(|_| !a.even_if_cut_off) {
+    // Alone (before anything is asked of the network), then beside those not running.
+    if let Some(cut) = scenario.graph.cut_off_without(&[id]).filter(|_| !a.even_if_cut_off) {
         return Err(Error::Input(format!(
             "formation leave --id {id}: {cut}: their estimates of the leader would drift (--even-if-cut-off to \
              leave anyway)"
         )));
     }
     let session = a.node.open(MONITOR, &scenario).await?;
+    let out = not_running(&session, &keys, &scenario).await?;
+    if out.contains(&id) {
+        let _ = tokio::time::timeout(Duration::from_secs(1), session.close()).await;
+        return Err(Error::Input(format!(
+            "formation leave --id {id}: follower {id} is not running in run {} (absent at the start, or its \
+             telemetry silent for {:.1} s: it left, or is gone)",
+            keys.run,
+            listen_for(&scenario).as_secs_f64()
+        )));
+    }
+    let cut = newly_cut_off(&scenario.graph, &out, id);
+    if let Some(cut) = cut.as_ref().filter(|_| !a.even_if_cut_off) {
+        let _ = tokio::time::timeout(Duration::from_secs(1), session.close()).await;
+        return Err(Error::Input(format!(
+            "formation leave --id {id}: {cut}: their estimates of the leader would drift (--even-if-cut-off to \
+             leave anyway)"
+        )));
+    }
     let (tx, mut rx) = tokio::sync::mpsc::channel::<(u64, String)>(4);
     let _sub = session
         .declare_subscriber(keys.telemetry(id))
@@ -94,4 +119,69 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
             keys.run, a.timeout
         ))),
     }
+}
+
+/// How long `formation leave` listens for the followers' telemetry: five
+/// batches of the scenario (on its time scale), at least 1 s.
+fn listen_for(scenario: &formation_topology::Scenario) -> Duration {
+    let batch_s =
+        scenario.network.telemetry_batch.max(1) as f64 * scenario.dt_s / scenario.network.time_scale.max(1e-3);
+    Duration::from_secs_f64((5.0 * batch_s).clamp(1.0, 10.0))
+}
+
+/// The followers not running in the run: absent at the start (the
+/// leader's start names them), or none of whose telemetry is heard for
+/// [`listen_for`]. Empty when nothing of the run is heard (then the ask
+/// itself says the run is not reachable).
+async fn not_running(
+    session: &zenoh::Session,
+    keys: &formation_protocol::names::Keys,
+    scenario: &formation_topology::Scenario,
+) -> Result<Vec<u32>, Error> {
+    use std::collections::BTreeSet;
+    use std::sync::{Arc, Mutex};
+    let heard: Arc<Mutex<(BTreeSet<u32>, Option<Vec<u32>>)>> = Arc::default();
+    let h = heard.clone();
+    let _telemetry = session
+        .declare_subscriber(keys.telemetry_all())
+        .callback(move |s| {
+            if let Some(Telemetry::Follower { id, left: None, .. }) =
+                codec::decode::<Telemetry>(&s.payload().to_bytes())
+            {
+                h.lock().unwrap_or_else(|p| p.into_inner()).0.insert(id);
+            }
+        })
+        .await
+        .map_err(|e| zerr("listening to the followers' telemetry", e))?;
+    let h = heard.clone();
+    let _start = session
+        .declare_subscriber(keys.start())
+        .callback(move |s| {
+            if let Some(start) = codec::decode::<formation_protocol::barrier::Start>(&s.payload().to_bytes()) {
+                h.lock().unwrap_or_else(|p| p.into_inner()).1 = Some(start.absent);
+            }
+        })
+        .await
+        .map_err(|e| zerr("listening to the run's start", e))?;
+    tokio::time::sleep(listen_for(scenario)).await;
+    let (running, absent) = heard.lock().unwrap_or_else(|p| p.into_inner()).clone();
+    if running.is_empty() && absent.is_none() {
+        return Ok(Vec::new());
+    }
+    let absent = absent.unwrap_or_default();
+    Ok(scenario.graph.ids().iter().copied().filter(|i| absent.contains(i) || !running.contains(i)).collect())
+}
+
+/// Lemma 1 for a leave beside those not running (`out`): the line naming
+/// the running followers that `id` leaving would cut off from the leader
+/// (those already cut off before are not its doing), or None.
+fn newly_cut_off(graph: &formation_topology::graph::Graph, out: &[u32], id: u32) -> Option<String> {
+    use formation_topology::graph::followers_named;
+    let before = graph.unreachable_without(out);
+    let all: Vec<u32> = out.iter().copied().chain([id]).collect();
+    let cut: Vec<u32> = graph.unreachable_without(&all).into_iter().filter(|i| !before.contains(i)).collect();
+    if cut.is_empty() {
+        return None;
+    }
+    Some(format!("without {}, {}", followers_named(&all), formation_topology::graph::no_longer_reach(&cut)))
 }

@@ -484,6 +484,67 @@ fn formation_leave_makes_a_running_follower_leave_and_bad_requests_are_refused()
     run.assert_group_empty();
 }
 
+/// `formation leave` knows who is not running (docs/model.md §14): with
+/// follower 2 absent at a quorum start, asking follower 2 to leave is
+/// refused as not running, and asking follower 3 as cutting follower 4 off
+/// (Lemma 1 with those out), each in one line, exit 2, and the run goes on;
+/// follower 4 may leave, and once it has, asking it again is refused as
+/// not running. The run completes without them.
+#[test]
+fn formation_leave_refuses_followers_not_running_and_leaves_that_with_them_cut_one_off() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("leave-known");
+    let sets = ["timing=realtime", "duration=12"];
+    let port = Ports::free(1).release();
+    let connect = format!("tcp/127.0.0.1:{port}");
+    let base = port.to_string();
+    let leave = |id: &str| {
+        Command::new(env!("CARGO_BIN_EXE_formation"))
+            .args(["leave", "--scenario", common::SCENARIO, "--run", "leave-known", "--mode", "client"])
+            .args(["--connect", &connect, "--set", sets[0], "--set", sets[1], "--id", id])
+            .stdin(std::process::Stdio::null())
+            .output()
+            .expect("formation leave")
+    };
+    let out_s = out.display().to_string();
+    let args = ["launch", common::SCENARIO, "--out", &out_s, "--set", sets[0], "--set", sets[1]];
+    let flags = ["--mode", "client", "--base-port", &base, "--run", "leave-known"];
+    let absent = ["--quorum", "3", "--quorum-wait", "1", "--absent", "2"];
+    let log = dir.path().join("launch.stderr");
+    let mut run = Group::spawn_logged(&[&args[..], &flags[..], &absent[..]].concat(), &log);
+    let said = || std::fs::read_to_string(&log).unwrap_or_default();
+    let t = Instant::now();
+    while !said().contains("started:") {
+        assert!(t.elapsed() < Duration::from_secs(60), "the run did not start: {}", said());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    for (id, says) in [
+        ("2", "follower 2 is not running in run leave-known (absent at the start, or its telemetry silent"),
+        ("3", "without followers 2, 3, follower 4 no longer reaches the leader (Lemma 1)"),
+    ] {
+        let o = leave(id);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "--id {id}: {stderr}");
+        assert!(stderr.contains(says), "--id {id}: {stderr}");
+        assert_eq!(stderr.lines().filter(|l| l.starts_with("error")).count(), 1, "--id {id}: one line: {stderr}");
+    }
+    let o = leave("4");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success() && stdout.starts_with("follower 4 left run leave-known"), "{stdout}{:?}", o.stderr);
+    let o = leave("4");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "--id 4 again: {stderr}");
+    assert!(stderr.contains("follower 4 is not running"), "--id 4 again: {stderr}");
+    let status = run.wait(common::LIMIT);
+    assert!(status.success(), "the formation: {status}");
+    let network = common::json(&out, "network.json");
+    assert_eq!(network["complete"], true, "the record: {}", network["ending"]);
+    assert_eq!(network["absent"], serde_json::json!([2]), "{}", network["absent"]);
+    let left = network["left"].as_array().cloned().unwrap_or_default();
+    assert!(left.iter().any(|l| l["follower"] == 4 && l["why"] == "formation leave"), "{left:?}");
+    run.assert_group_empty();
+}
+
 /// Two leaders: a standby that takes the run over while the leader still
 /// leads (its wait of 0.5 ms is shorter than the leader's step) leads the
 /// next term (docs/model.md §14); the leader hears it and stands down in

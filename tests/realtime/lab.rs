@@ -1117,7 +1117,8 @@ fn the_leader_cut_off_for_3_s_with_its_clock_ahead_stands_down_for_the_standby_o
     assert!(down > took, "{tag}: the leader stood down at step {down}, before the takeover at {took}");
     assert_eq!(terms[1]["to_step"].as_u64(), Some(20000), "{tag}: the standby led to the end: {terms:?}");
     let old: u64 = IDS.iter().map(|id| r.network["nodes"][id]["rejected"]["old_term"].as_u64().unwrap_or(0)).sum();
-    let hearing: Vec<&str> = IDS.iter().copied().filter(|id| r.network["nodes"][id]["rejected"]["old_term"].is_u64()).collect();
+    let hearing: Vec<&str> =
+        IDS.iter().copied().filter(|id| r.network["nodes"][id]["rejected"]["old_term"].is_u64()).collect();
     assert_eq!(hearing.len(), 4, "{tag}: every follower counts old-term messages: {}", r.network["nodes"]);
     eprintln!("{tag}: {old} messages of term 1 refused by the followers after term 2");
     let said = r.network["health"].to_string();
