@@ -59,15 +59,20 @@ pub struct SafetyParams {
     /// `safety.deadlock_after`), or not looked for.
     #[serde(default)]
     pub deadlock: Option<crate::deadlock::DeadlockRule>,
+    /// m the barrier's radius adds for the base's lag (eq. G3d,
+    /// `safety.lag_margin`): `robot.lag` × the point's top speed; 0 without.
+    #[serde(default)]
+    pub lag_margin: f64,
 }
 
 impl SafetyParams {
     /// r of eq. G3: the barrier's radius between the two projected points,
     /// `distance` + 2 l, so that the centres (each within l of its point)
-    /// stay at least `distance` apart whenever the points keep r.
+    /// stay at least `distance` apart whenever the points keep r; plus the
+    /// lag's margin where asked for (eq. G3d).
     #[inline]
     pub fn barrier_radius(&self) -> f64 {
-        self.distance + 2.0 * self.projection
+        self.distance + 2.0 * self.projection + self.lag_margin
     }
 
     /// Eq. G2: the point l ahead of the axle.
@@ -510,8 +515,15 @@ mod tests {
         assert_eq!(std::mem::size_of::<Option<GuardStep>>(), 16, "the Option takes a bool's niche");
     }
 
-    const SAFETY: SafetyParams =
-        SafetyParams { distance: 0.3, gamma: 100.0, projection: 0.05, radius: 2.0, arena: None, deadlock: None };
+    const SAFETY: SafetyParams = SafetyParams {
+        distance: 0.3,
+        gamma: 100.0,
+        projection: 0.05,
+        radius: 2.0,
+        arena: None,
+        deadlock: None,
+        lag_margin: 0.0,
+    };
 
     /// [`filter`] without a speed bound, as (command, change, feasible).
     fn f3(s: &SafetyParams, c: Velocity, pose: &Pose, nearby: Nearby<'_>) -> (Velocity, f64, bool) {

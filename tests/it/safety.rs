@@ -442,3 +442,48 @@ fn the_head_on_swap_in_lock_step_equals_formation_sim_byte_for_byte() {
         (1..=2).map(|id| summary["followers"][id.to_string()]["guard"]["deadlocks"].as_u64().unwrap()).sum();
     assert!(found >= 1, "no deadlock found in the lock-step swap");
 }
+
+/// The base's lag (docs/model.md §16, eq. G3d): the barrier assumes a
+/// command takes effect at once; a velocity-commanded base takes it in
+/// `robot.lag`. At a lag of 0.6 s the head-on swap and the four-robot
+/// rotation come closer than `safety.distance` (measured: 0.240 and 0.164
+/// m against 0.25 m); with `safety.lag_margin = true` the barrier's radius
+/// adds lag × the point's top speed and both keep the distance and still
+/// reach their slots. (`formation sim` exits 3 when a run comes closer:
+/// degraded.)
+#[test]
+fn a_slow_base_breaks_the_distance_and_the_lag_margin_keeps_it() {
+    for (scenario, near_without) in [("swap", 0.245), ("rotation", 0.2)] {
+        for margin in [false, true] {
+            let dir = tempfile::tempdir().expect("tempdir");
+            let out = dir.path().join("run");
+            let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+                .args(["sim", scenario, "-q", "--out"])
+                .arg(&out)
+                .args(["--set", "robot.lag=0.6", "--set", &format!("safety.lag_margin={margin}")])
+                .output()
+                .expect("formation sim");
+            let said = String::from_utf8_lossy(&o.stderr);
+            let s = common::json(&out, "summary.json");
+            let closest = s["safety"]["closest"]["distance"].as_f64().expect("closest");
+            let distance = s["safety"]["distance"].as_f64().expect("distance");
+            let worst = s["followers"]
+                .as_object()
+                .expect("followers")
+                .values()
+                .map(|f| f["formation_rms_last10"].as_f64().unwrap_or(f64::INFINITY))
+                .fold(0.0, f64::max);
+            eprintln!(
+                "{scenario}, lag 0.6 s, margin {margin}: closest {closest:.4} m, worst formation error {worst:.4} m"
+            );
+            if margin {
+                assert!(o.status.success(), "{scenario} with the margin: {}\n{said}", o.status);
+                assert!(closest >= distance, "{scenario} with the margin: {closest:.4} m apart ({distance} m)");
+                assert!(worst < 0.05, "{scenario} with the margin: a robot {worst:.4} m from its slot");
+            } else {
+                assert_eq!(o.status.code(), Some(3), "{scenario} without the margin: degraded\n{said}");
+                assert!(closest < near_without, "{scenario} without the margin came only {closest:.4} m close");
+            }
+        }
+    }
+}

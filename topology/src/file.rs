@@ -308,6 +308,10 @@ pub struct SafetyFile {
     /// right by this much, rad (π/2: sideways).
     #[serde(default = "d::sidestep_angle")]
     pub sidestep_angle: f64,
+    /// The barrier's radius adds `robot.lag` × the point's top speed (eq.
+    /// G3d): for a velocity-commanded base slow to take its commands.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub lag_margin: bool,
 }
 
 /// How the robot takes its commands (`[robot] model`).

@@ -1083,6 +1083,7 @@ fn validate_guard(c: &Check<'_>, file: &ScenarioFile, followers: &[FollowerSpec]
         radius: sf.radius,
         arena: sf.arena,
         deadlock: validate_deadlock(c, sf, file.dt)?,
+        lag_margin: lag_margin(c, file, sf)?,
     };
     if sf.radius <= params.barrier_radius() {
         return Err(c.fail_with(
@@ -1126,6 +1127,36 @@ fn validate_guard(c: &Check<'_>, file: &ScenarioFile, followers: &[FollowerSpec]
         check_filter_start(c, followers, &params)?;
     }
     Ok(Guard { limits, safety: sf.filter.then_some(params) })
+}
+
+/// Eq. G3d (docs/model.md §16), with `safety.lag_margin = true`: what the
+/// barrier's radius adds for a base that takes a velocity command in time,
+/// `robot.lag` × the point's top speed √(v_max² + (w_max l)²). It needs a
+/// velocity robot (a torque robot has no lag) and both limits (without
+/// them the margin has no bound): refused in one line otherwise.
+fn lag_margin(c: &Check<'_>, file: &ScenarioFile, sf: &SafetyFile) -> Result<f64, ScenarioError> {
+    let r = &file.robot;
+    if !sf.lag_margin {
+        return Ok(0.0);
+    }
+    if r.model != RobotModel::Velocity {
+        return Err(c.fail(
+            "safety.lag_margin",
+            "is for a velocity-commanded robot's lag (robot.model = \"velocity\"); a torque robot has none",
+        ));
+    }
+    let lag_s = r.lag.unwrap_or(DEFAULT_LAG_S);
+    let (Some(v), Some(w)) = (r.v_max, r.w_max) else {
+        return Err(c.fail(
+            "safety.lag_margin",
+            format!(
+                "robot.lag ({} s) × the point's top speed needs robot.v_max and robot.w_max (without them the \
+                 margin has no bound)",
+                num(lag_s)
+            ),
+        ));
+    };
+    Ok(lag_s * v.hypot(w * sf.projection))
 }
 
 /// The filter's own geometry at step 0 (docs/model.md §16): every two
@@ -2321,9 +2352,30 @@ mod tests {
                 "--set safety={distance=0.3,sidestep_angle=4}: safety.sidestep_angle: 4 rad must be in (0, π): a \
                  turn to the right",
             ),
+            (
+                "safety={distance=0.3,lag_margin=true}",
+                "--set safety={distance=0.3,lag_margin=true}: safety.lag_margin: is for a velocity-commanded robot's \
+                 lag (robot.model = \"velocity\"); a torque robot has none",
+            ),
         ] {
             assert_eq!(message(ARRAYS, &[set]), want);
         }
+        let velocity = ["robot.model=\"velocity\"", "robot.lag=0.2", "safety={distance=0.3,lag_margin=true}"];
+        assert!(
+            message(ARRAYS, &velocity).ends_with(
+                "safety.lag_margin: robot.lag (0.2 s) × the point's top speed needs robot.v_max and robot.w_max \
+                 (without them the margin has no bound)"
+            ),
+            "{}",
+            message(ARRAYS, &velocity)
+        );
+        // Eq. G3d: r = distance + 2 l + lag √(v_max² + (w_max l)²).
+        let s = load(ARRAYS, &[&velocity[..], &["robot.v_max=0.3", "robot.w_max=2"]].concat()).unwrap();
+        let safety = s.control.guard.safety.expect("the filter");
+        assert!((safety.lag_margin - 0.2 * 0.3f64.hypot(0.1)).abs() < 1e-15, "{}", safety.lag_margin);
+        assert!((safety.barrier_radius() - (0.3 + 0.1 + safety.lag_margin)).abs() < 1e-15);
+        let s = load(ARRAYS, &["robot.model=\"velocity\"", "safety.distance=0.3"]).unwrap();
+        assert_eq!(s.control.guard.safety.map(|g| g.lag_margin), Some(0.0), "no margin unless asked for");
     }
 
     /// docs/ros2.md: where each robot's odometry frame sits, and the frame it names.
