@@ -109,6 +109,8 @@ pub fn run(a: &LaunchArgs) -> Result<(), Error> {
         .build()
         .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
+    let realtime = scenario.timing == formation_topology::Timing::Realtime;
+    children.let_agents_die(realtime && scenario.network.gone_after_s.is_some());
     let logs = zenoh_log::start(&out)?;
     let result = runtime.block_on(launch(a, zfile.as_ref(), &scenario, &run, &out, &exe, &mut children));
     drop(children);

@@ -20,11 +20,20 @@ pub(crate) const STANDBY: &str = "standby";
 /// The child processes of a launch; every one still running is killed on drop.
 pub struct Children {
     list: Vec<(String, Child)>,
+    /// A real-time run with `network.gone_after`: an agent that dies (a
+    /// signal: SIGKILL, a crash) is the monitor's to take for gone; the
+    /// run goes on without it.
+    agents_may_die: bool,
 }
 
 impl Children {
     pub(crate) fn new() -> Self {
-        Self { list: Vec::new() }
+        Self { list: Vec::new(), agents_may_die: false }
+    }
+
+    /// For a real-time scenario with `network.gone_after`: see the field.
+    pub(crate) fn let_agents_die(&mut self, yes: bool) {
+        self.agents_may_die = yes;
     }
 
     pub(crate) fn push(&mut self, name: String, child: Child) {
@@ -252,7 +261,14 @@ pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summa
         // leader that died beside a standby is the standby's to replace
         // (the monitor names the handover, or the run's failure).
         let replaced = name == "leader" && children.running(STANDBY);
-        if status.success() || (name.starts_with("agent") && matches!(status.code(), Some(130 | 143))) || replaced {
+        let died = name.starts_with("agent") && children.agents_may_die && died_of_a_signal(&status);
+        if died {
+            eprintln!(
+                "{name} died ({status}): the monitor takes it for gone after network.gone_after; the run goes on"
+            );
+        }
+        let left = name.starts_with("agent") && matches!(status.code(), Some(130 | 143));
+        if status.success() || left || replaced || died {
             children.remove(&name);
             continue;
         }
@@ -264,6 +280,12 @@ pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summa
         ))));
     }
     None
+}
+
+/// Whether a child ended on a signal (killed, crashed), not with an exit code.
+fn died_of_a_signal(status: &std::process::ExitStatus) -> bool {
+    use std::os::unix::process::ExitStatusExt;
+    status.signal().is_some()
 }
 
 /// Ctrl-C / SIGTERM (`signal`): stop the nodes, let the monitor flush, kill

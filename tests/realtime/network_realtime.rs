@@ -181,3 +181,93 @@ fn a_realtime_run_with_a_communication_delay_is_the_one_the_simulator_predicts()
     let bad = common::unlike_the_simulator(&got, &reference, &network, 0.10, &common::COMPARED);
     common::judge_if_timely("real time with a delay of 2 steps, against the simulator (10 %)", &bad, &[&network], "");
 }
+
+/// A robot that is not running is still there, in real time (docs/model.md
+/// §14, §16): on `scenarios/turtlebot.toml` (filter on, `network.gone_after
+/// = 1`) at time scale 3, follower 4 absent at a quorum start, follower 3
+/// leaving at 10 s, and follower 2's agent killed with SIGKILL at 10 s.
+/// Always (what the filter promises whatever the timing): the run
+/// completes with every step of the others recorded, and no two robots
+/// came closer than `safety.distance`, the one not running included (the
+/// monitor's closest pair counts its last pose). Judged on a quiet machine:
+/// each other follower's formation error over the last 10 s within 0.15 m
+/// of the fault-free model's (the bound of the lock-step test,
+/// tests/it/safety.rs).
+#[test]
+fn a_robot_absent_leaving_or_killed_in_real_time_is_kept_clear_of_and_the_others_reach_their_slots() {
+    let _cores = common::cores(common::Load::Light);
+    let scenario = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/turtlebot.toml");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let free = tmp.path().join("free");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["sim", scenario, "-q", "--out"])
+        .arg(&free)
+        .output()
+        .expect("formation sim");
+    assert!(o.status.success(), "formation sim turtlebot: {}", String::from_utf8_lossy(&o.stderr));
+    let free = json(&free, "summary.json");
+    let cases: [(&str, &[&str], u32, bool); 3] = [
+        ("follower 4 absent", &["--quorum", "3", "--quorum-wait", "2", "--absent", "4"], 4, false),
+        ("follower 3 leaving at 10 s", &["--leave", "3@10"], 3, false),
+        ("follower 2 killed at 10 s", &[], 2, true),
+    ];
+    for (what, flags, out_id, kill) in cases {
+        let out = tmp.path().join(out_id.to_string());
+        let base = common::Ports::free(common::LAUNCH_PORTS).release().to_string();
+        let (out_s, log) = (out.display().to_string(), tmp.path().join(format!("launch-{out_id}.log")));
+        let mut args = vec!["launch", scenario, "--out", &out_s, "--set", "timing=\"realtime\"", "--time-scale", "3"];
+        args.extend(["--base-port", &base, "--run", "rt-members"]);
+        args.extend(flags);
+        let mut g = Group::spawn_logged(&args, &log);
+        let said = || std::fs::read_to_string(&log).unwrap_or_default();
+        if kill {
+            let t = std::time::Instant::now();
+            while !said().contains("started:") {
+                assert!(t.elapsed() < std::time::Duration::from_secs(60), "{what}: no start: {}", said());
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+            // 10 s of run time at time scale 3, after the 0.5 s start lead.
+            std::thread::sleep(std::time::Duration::from_secs_f64(0.5 + 10.0 / 3.0));
+            let pid = g.members().into_iter().find(|pid| {
+                let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+                let args: Vec<&[u8]> = cmd.split(|&b| b == 0).collect();
+                args.contains(&b"agent".as_slice()) && args.windows(2).any(|w| w[0] == b"--id" && w[1] == b"2")
+            });
+            let pid = pid.unwrap_or_else(|| panic!("{what}: agent 2 not found: {}", said()));
+            let _ = Command::new("kill").args(["-KILL", &pid.to_string()]).status();
+        }
+        let status = g.wait(common::LIMIT);
+        // A run worse than its model exits 3 (degraded): that is judged below.
+        assert!(status.success() || status.code() == Some(3), "{what}: {status}\n{}", said());
+        g.assert_group_empty();
+        let (summary, network) = (json(&out, "summary.json"), json(&out, "network.json"));
+        assert_eq!(network["complete"], true, "{what}: ending {}", network["ending"]);
+        let safety = &summary["safety"];
+        let (closest, distance) = (safety["closest"]["distance"].as_f64(), safety["distance"].as_f64());
+        let (Some(closest), Some(distance)) = (closest, distance) else { panic!("{what}: no safety figures") };
+        eprintln!(
+            "{what}: closest {closest:.4} m ({}), {}",
+            safety["closest"]["pair"],
+            said().lines().filter(|l| l.contains("members:")).collect::<String>()
+        );
+        assert!(
+            closest >= distance,
+            "{what}: robots {} came {closest:.4} m apart ({distance} m)",
+            safety["closest"]["pair"]
+        );
+        let mut wrong = Vec::new();
+        for id in (1..=4u32).filter(|&i| i != out_id) {
+            let f = &summary["followers"][id.to_string()];
+            assert_eq!(f["samples"], 3001, "{what}: follower {id}'s steps recorded");
+            let rms = f["formation_rms_last10"].as_f64().unwrap_or(f64::INFINITY);
+            let model = free["followers"][id.to_string()]["formation_rms_last10"].as_f64().unwrap_or(0.0);
+            eprintln!(
+                "{what}: follower {id}: formation error over the last 10 s {rms:.3} m (fault-free model {model:.3} m)"
+            );
+            if rms > model + 0.15 {
+                wrong.push(format!("{what}: follower {id} {rms:.3} m from its slot (fault-free model {model:.3} m)"));
+            }
+        }
+        common::judge_if_timely(what, &wrong, &[&network], "");
+    }
+}
