@@ -14,8 +14,6 @@
 
 use serde::{Deserialize, Serialize};
 
-use formation_plant::Velocity;
-
 /// Held means: the filter took away at least this share of the point's
 /// speed the controller asked for (‖u − û‖ ≥ share × ‖û‖, eq. G6a).
 pub const HELD_CUT: f64 = 0.5;
@@ -74,7 +72,10 @@ impl DeadlockState {
 
     /// After the guard at step k (eq. G6a): `to_slot_m` is the robot's
     /// distance to its slot, `distance` the safety distance, `cut` the
-    /// share of the asked point speed the filter took away (‖u − û‖ / ‖û‖),
+    /// share of the asked point velocity relative to the slot's the filter
+    /// took away (‖u − û‖ / ‖û − ṡ‖, ṡ the slot's velocity, Ṗ_r: two
+    /// robots held side by side while they move level with their slots are
+    /// held too),
     /// `stopped` whether the guard stopped the robot for another reason (no
     /// safe command, stale poses), which no sidestep can help. The robot is
     /// held while it is farther from its slot than `distance` and the
@@ -105,12 +106,6 @@ impl DeadlockState {
         self.sidestep_left = rule.sidestep_steps;
         true
     }
-}
-
-/// ‖u‖ of eq. G2 for (v, ω): u = R(θ) diag(1, l) (v, ω), R a rotation.
-#[inline]
-pub fn point_speed(c: Velocity, l: f64) -> f64 {
-    c.v.hypot(l * c.w)
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use crate::deadlock::{point_speed, DeadlockState};
+use crate::deadlock::DeadlockState;
 use crate::dynamic::{self, DynamicGains, DynamicKind, DynamicState};
 use crate::estimator::{self, EstimatorGains};
 use crate::filter::{FilterParams, VelocityFilter};
@@ -312,7 +312,8 @@ impl Follower {
         let (command, guard) = match cfg.guard.is_off() {
             true => (requested, None),
             false => {
-                let (c, g) = guarded(&cfg.guard, &mut self.deadlock, requested, pose, &body_error, nearby);
+                let slot_rate = [estimate.pose_rate.x, estimate.pose_rate.y];
+                let (c, g) = guarded(&cfg.guard, &mut self.deadlock, requested, pose, (&body_error, slot_rate), nearby);
                 (c, Some(g))
             }
         };
@@ -392,7 +393,7 @@ fn guarded(
     deadlock: &mut DeadlockState,
     requested: Velocity,
     pose: &Pose,
-    body_error: &BodyError,
+    (body_error, slot_rate): (&BodyError, [f64; 2]),
     nearby: Nearby<'_>,
 ) -> (Velocity, GuardStep) {
     let Some((rule, s)) = guard.safety.and_then(|s| s.deadlock.map(|r| (r, s))) else {
@@ -416,7 +417,10 @@ fn guarded(
     }
     let (command, mut step) = guard::apply(guard, wish, pose, nearby);
     step.sidestep = sidestep;
-    let cut = step.change / point_speed(asked, s.projection);
+    // Held against the slot, which moves (the leader's Ṗ_r): side by side
+    // and level with it, two robots kept from crossing are held too.
+    let asked_u = guard::point_velocity(&s, pose, asked);
+    let cut = step.change / (asked_u[0] - slot_rate[0]).hypot(asked_u[1] - slot_rate[1]);
     let to_slot = body_error.x.hypot(body_error.y);
     step.deadlock = deadlock.after(&rule, to_slot, s.distance, cut, step.infeasible || step.blind);
     (command, step)
