@@ -8,7 +8,7 @@
 //! Before it asks, it learns who is not running: the followers absent at
 //! the start (the leader's start, repeated through the run, names them)
 //! and those whose telemetry it does not hear for five batches (at least
-//! 1 s: left, or gone). It refuses, in one line and before asking, a
+//! 1 s), and then 2 s more (left, or gone). It refuses, in one line and before asking, a
 //! follower that is not running, and a leave that with those cuts a
 //! running follower off from the leader (Lemma 1).
 
@@ -68,7 +68,7 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
             "formation leave --id {id}: follower {id} is not running in run {} (absent at the start, or its \
              telemetry silent for {:.1} s: it left, or is gone)",
             keys.run,
-            listen_for(&scenario).as_secs_f64()
+            (listen_for(&scenario) + LISTEN_MORE).as_secs_f64()
         )));
     }
     let cut = newly_cut_off(&scenario.graph, &out, id);
@@ -121,6 +121,10 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
     }
 }
 
+/// How much longer `formation leave` listens when a follower is not heard
+/// within [`listen_for`].
+const LISTEN_MORE: Duration = Duration::from_secs(2);
+
 /// How long `formation leave` listens for the followers' telemetry: five
 /// batches of the scenario (on its time scale), at least 1 s.
 fn listen_for(scenario: &formation_topology::Scenario) -> Duration {
@@ -164,6 +168,15 @@ async fn not_running(
         .await
         .map_err(|e| zerr("listening to the run's start", e))?;
     tokio::time::sleep(listen_for(scenario)).await;
+    // A follower not heard yet may be slow rather than gone (a loaded
+    // host): it gets [`LISTEN_MORE`] more before it is counted out.
+    let unheard = |h: &(BTreeSet<u32>, Option<Vec<u32>>)| {
+        let absent = h.1.clone().unwrap_or_default();
+        scenario.graph.ids().iter().any(|i| !h.0.contains(i) && !absent.contains(i))
+    };
+    if unheard(&heard.lock().unwrap_or_else(|p| p.into_inner())) {
+        tokio::time::sleep(LISTEN_MORE).await;
+    }
     let (running, absent) = heard.lock().unwrap_or_else(|p| p.into_inner()).clone();
     if running.is_empty() && absent.is_none() {
         return Ok(Vec::new());
