@@ -174,11 +174,13 @@ async fn not_running(
         let absent = h.1.clone().unwrap_or_default();
         scenario.graph.ids().iter().any(|i| !h.0.contains(i) && !absent.contains(i))
     };
-    if unheard(&heard.lock().unwrap_or_else(|p| p.into_inner())) {
+    let nothing = |h: &(BTreeSet<u32>, Option<Vec<u32>>)| h.0.is_empty() && h.1.is_none();
+    let first = heard.lock().unwrap_or_else(|p| p.into_inner()).clone();
+    if !nothing(&first) && unheard(&first) {
         tokio::time::sleep(LISTEN_MORE).await;
     }
     let (running, absent) = heard.lock().unwrap_or_else(|p| p.into_inner()).clone();
-    if running.is_empty() && absent.is_none() {
+    if nothing(&(running.clone(), absent.clone())) {
         return Ok(Vec::new());
     }
     let absent = absent.unwrap_or_default();

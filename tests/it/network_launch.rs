@@ -436,7 +436,8 @@ fn a_twin_of_a_running_node_is_refused_and_the_run_goes_on() {
 fn formation_leave_makes_a_running_follower_leave_and_bad_requests_are_refused() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("leave");
-    let sets = ["timing=realtime", "duration=6"];
+    // Long enough for the two asks after 3 s (each listens 1 s first).
+    let sets = ["timing=realtime", "duration=10"];
     let port = Ports::free(1).release();
     let connect = format!("tcp/127.0.0.1:{port}");
     let base = port.to_string();
