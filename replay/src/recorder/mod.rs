@@ -1479,6 +1479,46 @@ mod tests {
     /// news, in network.json's handovers and the leader's timeline, and its
     /// gap is the model's row `{ node = 0, from, to }` (real time).
     #[test]
+    fn each_term_is_recorded_and_an_old_terms_late_record_files_no_states() {
+        let (_dir, _scenario, mut r) = recorder_with(&["timing=realtime", "duration=0.1"]);
+        let handover = Some(formation_protocol::telemetry::Handover { heard: Some(4), at_k: 7 });
+        let batch = |first_k: u64, number: u32, stood_down_at: Option<u64>, v: f64| {
+            let (incarnation, handover) = if number == 2 { (2, handover) } else { (1, None) };
+            codec::encode(&Telemetry::Leader {
+                first_k,
+                states: vec![LeaderState { v, ..LeaderState::default() }; 5],
+                counters: Counters::default(),
+                done: false,
+                loop_stats: None,
+                delivery: Delivery { incarnation, available_from: first_k.min(5), ..Delivery::default() },
+                handover,
+                term: Term { number, stood_down_at },
+            })
+        };
+        // Term 1 to step 5; the standby's term 2 from step 5; then term 1's
+        // record of steps 10–14, ahead of term 2's (other states: a
+        // forger's, or a bug), with its stand-down at step 12; a term no
+        // handover made.
+        let (old, forged) = (batch(10, 1, Some(12), 9.0), batch(15, 7, None, 9.0));
+        for bytes in [batch(0, 1, None, 1.0), batch(5, 2, None, 2.0), old, forged] {
+            r.telemetry(Some(0), &bytes, Instant::now()).unwrap();
+        }
+        let json: serde_json::Value = serde_json::from_str(&r.network_json(Ending::Complete)).expect("json");
+        let terms = &json["terms"];
+        assert_eq!(terms.as_array().map(Vec::len), Some(2), "{terms}");
+        assert_eq!((terms[0]["term"].as_u64(), terms[0]["led_by"].as_str()), (Some(1), Some("the leader")), "{terms}");
+        assert_eq!(terms[0]["stood_down_at_step"].as_u64(), Some(12), "{terms}");
+        assert_eq!(terms[0]["to_step"].as_u64(), Some(14), "its record counts in its own term's steps: {terms}");
+        assert_eq!((terms[1]["term"].as_u64(), terms[1]["led_by"].as_str()), (Some(2), Some("a standby")), "{terms}");
+        assert_eq!(terms[1]["from_step"].as_u64(), Some(7), "term 2 from its takeover");
+        let news = r.take_news();
+        assert!(news.iter().any(|n| n.contains("the leader of term 1 stood down at t = 0.012 s")), "{news:?}");
+        assert_eq!(r.malformed, 1, "the term no handover made is refused");
+        let filed: Vec<f64> = r.leader.iter().flatten().map(|s| s.v).collect();
+        assert_eq!(filed, [[1.0; 5], [2.0; 5]].concat(), "an old term's states and a forged term's are not filed");
+    }
+
+    #[test]
     fn a_handover_is_said_recorded_and_modelled() {
         let (_dir, scenario, mut r) = recorder_with(&["timing=realtime"]);
         let handover = Some(formation_protocol::telemetry::Handover { heard: Some(4), at_k: 7 });
