@@ -8,9 +8,9 @@
 //! Before it asks, it learns who is not running: the followers absent at
 //! the start (the leader's start, repeated through the run, names them)
 //! and those whose telemetry it does not hear for five batches (at least
-//! 1 s), and then 2 s more (left, or gone). It refuses, in one line and before asking, a
-//! follower that is not running, and a leave that with those cuts a
-//! running follower off from the leader (Lemma 1).
+//! 1 s), and then 2 s more (left, or gone). It refuses, in one line and
+//! before asking, a follower that is not running, and a leave that with
+//! those cuts a running follower off from the leader (Lemma 1).
 
 use std::time::Duration;
 
@@ -62,22 +62,25 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
     }
     let session = a.node.open(MONITOR, &scenario).await?;
     let out = not_running(&session, &keys, &scenario).await?;
-    if out.contains(&id) {
-        let _ = tokio::time::timeout(Duration::from_secs(1), session.close()).await;
-        return Err(Error::Input(format!(
+    let cut = newly_cut_off(&scenario.graph, &out, id);
+    let refusal = if out.contains(&id) {
+        Some(format!(
             "formation leave --id {id}: follower {id} is not running in run {} (absent at the start, or its \
              telemetry silent for {:.1} s: it left, or is gone)",
             keys.run,
             (listen_for(&scenario) + LISTEN_MORE).as_secs_f64()
-        )));
-    }
-    let cut = newly_cut_off(&scenario.graph, &out, id);
-    if let Some(cut) = cut.as_ref().filter(|_| !a.even_if_cut_off) {
+        ))
+    } else {
+        cut.as_ref().filter(|_| !a.even_if_cut_off).map(|cut| {
+            format!(
+                "formation leave --id {id}: {cut}: their estimates of the leader would drift (--even-if-cut-off to \
+                 leave anyway)"
+            )
+        })
+    };
+    if let Some(line) = refusal {
         let _ = tokio::time::timeout(Duration::from_secs(1), session.close()).await;
-        return Err(Error::Input(format!(
-            "formation leave --id {id}: {cut}: their estimates of the leader would drift (--even-if-cut-off to \
-             leave anyway)"
-        )));
+        return Err(Error::Input(line));
     }
     let (tx, mut rx) = tokio::sync::mpsc::channel::<(u64, String)>(4);
     let _sub = session

@@ -310,6 +310,16 @@ impl Group {
         found
     }
 
+    /// The pid of `formation node agent … --id <id>` among the group's processes.
+    pub fn agent_pid(&self, id: u32) -> Option<u32> {
+        self.members().into_iter().find(|pid| {
+            let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+            let args: Vec<&[u8]> = cmd.split(|&b| b == 0).collect();
+            args.contains(&b"agent".as_slice())
+                && args.windows(2).any(|w| w[0] == b"--id" && w[1] == id.to_string().as_bytes())
+        })
+    }
+
     /// Waits (bounded) until no process is left in the group.
     pub fn assert_group_empty(&self) {
         let t = Instant::now();
@@ -632,6 +642,17 @@ pub fn ros2_script(name: &str) -> std::path::PathBuf {
 pub const VELOCITY_SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper-velocity.toml");
 
 /// Waits (bounded) until something listens on 127.0.0.1:`port`.
+/// Until a launch logging to `log` says its run started (`started:`), for
+/// at most a minute (a hang guard, not a verdict on speed).
+pub fn wait_started(log: &Path) {
+    let said = || std::fs::read_to_string(log).unwrap_or_default();
+    let t = Instant::now();
+    while !said().contains("started:") {
+        assert!(t.elapsed() < Duration::from_secs(60), "the run did not start: {}", said());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 pub fn wait_listening(port: u16, limit: Duration) {
     let t = Instant::now();
     while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {

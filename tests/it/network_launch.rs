@@ -513,12 +513,7 @@ fn formation_leave_refuses_followers_not_running_and_leaves_that_with_them_cut_o
     let absent = ["--quorum", "3", "--quorum-wait", "1", "--absent", "2"];
     let log = dir.path().join("launch.stderr");
     let mut run = Group::spawn_logged(&[&args[..], &flags[..], &absent[..]].concat(), &log);
-    let said = || std::fs::read_to_string(&log).unwrap_or_default();
-    let t = Instant::now();
-    while !said().contains("started:") {
-        assert!(t.elapsed() < Duration::from_secs(60), "the run did not start: {}", said());
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    common::wait_started(&log);
     for (id, says) in [
         ("2", "follower 2 is not running in run leave-known (absent at the start, or its telemetry silent"),
         ("3", "without followers 2, 3, follower 4 no longer reaches the leader (Lemma 1)"),
@@ -566,11 +561,7 @@ fn a_standby_that_took_over_beside_a_live_leader_leads_the_next_term_and_the_lea
     let log = dir.path().join("launch.stderr");
     let mut first = Group::spawn_logged(&[&args[..], &more[..]].concat(), &log);
     let said = || std::fs::read_to_string(&log).unwrap_or_default();
-    let t = Instant::now();
-    while !said().contains("started:") {
-        assert!(t.elapsed() < Duration::from_secs(60), "the run did not start: {}", said());
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    common::wait_started(&log);
     // Into the run: the standby then sends the monitor the steps it took on.
     std::thread::sleep(Duration::from_secs(1));
     let standby = Command::new(env!("CARGO_BIN_EXE_leader"))
@@ -621,11 +612,7 @@ fn launch_standby_under_tls_takes_the_run_over_from_a_killed_leader() {
     let log = dir.path().join("launch.stderr");
     let mut g = Group::spawn_logged(&[&args[..], &more[..]].concat(), &log);
     let said = || std::fs::read_to_string(&log).unwrap_or_default();
-    let t = Instant::now();
-    while !said().contains("started:") {
-        assert!(t.elapsed() < Duration::from_secs(60), "the run did not start: {}", said());
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    common::wait_started(&log);
     std::thread::sleep(Duration::from_secs(2));
     kill_the_leader(&g);
     let status = g.wait(LIMIT);

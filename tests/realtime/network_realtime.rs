@@ -221,19 +221,10 @@ fn a_robot_absent_leaving_or_killed_in_real_time_is_kept_clear_of_and_the_others
         let mut g = Group::spawn_logged(&args, &log);
         let said = || std::fs::read_to_string(&log).unwrap_or_default();
         if kill {
-            let t = std::time::Instant::now();
-            while !said().contains("started:") {
-                assert!(t.elapsed() < std::time::Duration::from_secs(60), "{what}: no start: {}", said());
-                std::thread::sleep(std::time::Duration::from_millis(20));
-            }
+            common::wait_started(&log);
             // 10 s of run time at time scale 3, after the 0.5 s start lead.
             std::thread::sleep(std::time::Duration::from_secs_f64(0.5 + 10.0 / 3.0));
-            let pid = g.members().into_iter().find(|pid| {
-                let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
-                let args: Vec<&[u8]> = cmd.split(|&b| b == 0).collect();
-                args.contains(&b"agent".as_slice()) && args.windows(2).any(|w| w[0] == b"--id" && w[1] == b"2")
-            });
-            let pid = pid.unwrap_or_else(|| panic!("{what}: agent 2 not found: {}", said()));
+            let pid = g.agent_pid(2).unwrap_or_else(|| panic!("{what}: agent 2 not found: {}", said()));
             let _ = Command::new("kill").args(["-KILL", &pid.to_string()]).status();
         }
         let status = g.wait(common::LIMIT);

@@ -339,16 +339,6 @@ fn unix_ns() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
 }
 
-/// The pid of `formation node agent … --id <id>` among `group`'s processes.
-fn agent_pid(group: &Group, id: u32) -> Option<u32> {
-    group.members().into_iter().find(|pid| {
-        let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
-        let args: Vec<&[u8]> = cmd.split(|&b| b == 0).collect();
-        args.contains(&b"agent".as_slice())
-            && args.windows(2).any(|w| w[0] == b"--id" && w[1] == id.to_string().as_bytes())
-    })
-}
-
 /// Stand-in robots started by hand (the launch does not stop them), in real
 /// time on scenarios/turtlebot.toml, driven by `launch --robots external`
 /// for a few seconds; then `stop(launch)`. Returns each robot's log, the
@@ -440,7 +430,7 @@ fn a_robot_stops_when_its_launch_is_stopped() {
 fn a_robot_whose_agent_is_killed_stops_on_its_command_timeout() {
     let _cores = common::cores(common::Load::Light);
     let (logs, said, at) = drive_then(|run| {
-        let pid = agent_pid(run, 2).expect("follower 2's agent");
+        let pid = run.agent_pid(2).expect("follower 2's agent");
         let _ = Command::new("kill").args(["-KILL", &pid.to_string()]).status();
         std::thread::sleep(Duration::from_millis(1500));
         let _ = Command::new("kill").args(["-TERM", &run.0.id().to_string()]).status();
