@@ -127,7 +127,7 @@ fn fifty_agents_in_real_time_at_100_hz_behave_like_the_simulator() {
     let run = RingInRealTime::run(50, &["estimator.k=[0.5,0.5,0.5]"], "rt50");
     // Without real-time scheduling a few messages a run come a step late on
     // a busy 2-core machine (see above): 25 %, as before.
-    let allowed = if run.root { TORQUE_TV_MEDIAN } else { 0.25 };
+    let allowed = if run.fifo { TORQUE_TV_MEDIAN } else { 0.25 };
     run.judge(0.10, allowed);
 }
 
@@ -176,6 +176,26 @@ fn a_hundred_agents_in_real_time_at_100_hz_record_everything_and_follow_the_mode
     run.judge(0.03, TORQUE_TV_MEDIAN);
 }
 
+/// How many CPUs this process may run on (its affinity mask; 1 when it
+/// cannot be read). Under `taskset -c 0` it is 1: then no node runs under
+/// real-time scheduling, since 50 or 100 SCHED_FIFO processes at 100 Hz on
+/// one core leave the rest of the machine, this test's harness and the
+/// kernel's own threads included, its 5 % of RT throttling: the one-core
+/// acceptance run (`taskset -c 0 bash .ci/run`) sat 23 minutes at a load of
+/// 150 in this test, its processes deaf to SIGKILL until each thread was
+/// put back to SCHED_OTHER (2026-12-02).
+fn cpus_allowed() -> usize {
+    // SAFETY: a zeroed cpu_set_t is a valid empty set; sched_getaffinity
+    // writes at most its size into it.
+    unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        if libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) != 0 {
+            return 1;
+        }
+        usize::try_from(libc::CPU_COUNT(&set)).unwrap_or(1)
+    }
+}
+
 /// A generated ring of `followers` (chords: a fifth of them, seed 1) run
 /// by `formation launch` in real time at 100 Hz for 10 s with a one-step
 /// delay (plus `extra` settings), one process per agent, and by `formation
@@ -186,9 +206,9 @@ struct RingInRealTime {
     got: serde_json::Value,
     want: serde_json::Value,
     network: serde_json::Value,
-    /// As root (CI): every node under real-time scheduling (`--rt-priority
-    /// 10`), as a real-time deployment runs.
-    root: bool,
+    /// As root (CI) with two cores or more: every node under real-time
+    /// scheduling (`--rt-priority 10`), as a real-time deployment runs.
+    fifo: bool,
 }
 
 impl RingInRealTime {
@@ -212,8 +232,8 @@ impl RingInRealTime {
         let base = common::Ports::free(followers + 2).release().to_string();
         let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", &base, "--run", tag];
         // SAFETY: geteuid has no preconditions.
-        let root = unsafe { libc::geteuid() } == 0;
-        if root {
+        let fifo = unsafe { libc::geteuid() } == 0 && cpus_allowed() >= 2;
+        if fifo {
             args.extend(["--rt-priority", "10"]);
         }
         for s in &sets {
@@ -235,7 +255,7 @@ impl RingInRealTime {
             common::json(&sim, "summary.json"),
             common::json(&net, "network.json"),
         );
-        RingInRealTime { _dir: dir, net, got, want, network, root }
+        RingInRealTime { _dir: dir, net, got, want, network, fifo }
     }
 
     /// Asserts what holds whatever the timing, and, when the host kept the
