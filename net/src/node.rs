@@ -37,6 +37,18 @@ pub fn networked(scenario: &Scenario) -> Result<(), Error> {
              step's own messages (set timing = \"realtime\", or network.delay_steps = 0)"
         )));
     }
+    if let Some(f) = scenario.faults.iter().find(|f| f.died) {
+        let who = match f.target {
+            formation_topology::FaultTarget::Node(id) => id,
+            formation_topology::FaultTarget::Link(a, _) => a,
+        };
+        return Err(Error::Input(format!(
+            "the fault row killing follower {who} at {} s (died = true) is modelled by formation sim only; a \
+             networked run does not kill its agents from the scenario (formation lab --kill-agent {who}@{} kills \
+             one in real time)",
+            f.from_s, f.from_s
+        )));
+    }
     Ok(())
 }
 

@@ -352,19 +352,26 @@ pub struct Simulation<'s> {
 
 /// When a follower's robot is not running (docs/model.md §14, §16): absent
 /// at its initial pose before its join step; stopped at its pose of its
-/// leave step from then on (kept in `stopped`).
+/// leave step from then on (kept in `stopped`), or, when it died, at its
+/// pose of two steps before, the last it sent, from the step after that.
 #[derive(Clone, Copy, Debug)]
 struct Presence {
     join_k: Option<u64>,
     leave_k: Option<u64>,
+    died: bool,
     initial: Pose,
     stopped: Option<Pose>,
 }
 
 impl Presence {
+    /// The first step at which a robot that left stands still.
+    fn stops_at(&self) -> Option<u64> {
+        self.leave_k.map(|l| if self.died { l.saturating_sub(1) } else { l })
+    }
+
     /// Whether the robot stands still at step `s`.
     fn still(&self, s: u64) -> bool {
-        self.join_k.is_some_and(|j| s < j) || self.leave_k.is_some_and(|l| s >= l)
+        self.join_k.is_some_and(|j| s < j) || self.stops_at().is_some_and(|l| s >= l)
     }
 }
 
@@ -526,15 +533,21 @@ fn prefetch(x: &StepInputs, i: usize, f: Option<&SimFollower>) {
 }
 
 /// Robots that do not run (docs/model.md §16): at step k one absent stands
-/// at its initial pose and one that left at its pose of its leave step;
-/// step k's filters, which take the poses of step k − 1, see each that
-/// stood still then as [`Seen::Still`].
-fn hold_the_still(presence: &mut [Presence], poses_now: &mut [Pose], seen: &mut [Seen], k: u64) {
+/// at its initial pose, one that left at its pose of its leave step and one
+/// that died at its pose of the step before it stopped (`poses_before`, the
+/// last it sent); step k's filters, which take the poses of step k − 1, see
+/// each that stood still then as [`Seen::Still`].
+fn hold_the_still(presence: &mut [Presence], poses_before: &[Pose], poses_now: &mut [Pose], seen: &mut [Seen], k: u64) {
     for (i, p) in presence.iter_mut().enumerate() {
         if p.join_k.is_some_and(|j| k < j) {
             poses_now[i] = p.initial;
-        } else if let Some(l) = p.leave_k.filter(|&l| k >= l) {
-            poses_now[i] = *p.stopped.get_or_insert(if k == l { poses_now[i] } else { p.initial });
+        } else if let Some(l) = p.stops_at().filter(|&l| k >= l) {
+            let last = match (k == l, p.died && k > 0) {
+                (true, true) => poses_before[i],
+                (true, false) => poses_now[i],
+                (false, _) => p.initial,
+            };
+            poses_now[i] = *p.stopped.get_or_insert(last);
         }
         seen[i] = if p.still(k.saturating_sub(1)) { Seen::Still } else { Seen::Live };
     }
@@ -561,6 +574,7 @@ impl<'s> Simulation<'s> {
             .map(|f| Presence {
                 join_k: scenario.join_step(f.id),
                 leave_k: scenario.leave_step(f.id),
+                died: scenario.died(f.id),
                 initial: f.pose,
                 stopped: None,
             })
@@ -689,7 +703,7 @@ impl<'s> Simulation<'s> {
             for (p, f) in self.poses_now.iter_mut().zip(&self.followers) {
                 *p = f.robot.seen_pose();
             }
-            hold_the_still(&mut self.presence, &mut self.poses_now, &mut self.seen, k);
+            hold_the_still(&mut self.presence, &self.poses_before, &mut self.poses_now, &mut self.seen, k);
             if k == 0 {
                 self.poses_before.copy_from_slice(&self.poses_now);
             }
@@ -981,6 +995,66 @@ mod tests {
             assert_eq!(sample.k, 2000);
             assert_eq!((sample.pose, sample.velocity), (pose, Velocity::default()), "{overrides:?}");
             assert!(f.check_finite().is_ok());
+        }
+    }
+
+    /// A follower killed at 10 s (a `died = true` row, docs/model.md §14)
+    /// stands, for the others' filters, at its pose of step L − 2 (L its
+    /// leave step), the last it sent, from step L − 1 on; one that leaves
+    /// (`leave = true`) at its pose of step L, from step L on. Before then
+    /// each is seen where it is. With either, no two robots come closer than
+    /// `safety.distance` and the others end near their slots.
+    #[test]
+    fn a_robot_killed_stands_at_the_last_pose_it_sent_and_one_that_left_where_it_stopped() {
+        let died = scenario("turtlebot.toml", &["faults+={node=2, from=10, died=true}"]);
+        let left = scenario("turtlebot.toml", &["faults+={node=2, from=10, leave=true}"]);
+        let free = run(&scenario("turtlebot.toml", &[])).0;
+        let l = died.leave_step(2).expect("a leave step");
+        assert_eq!(Some(l), left.leave_step(2));
+        assert!(died.died(2) && !left.died(2), "died(2): {} and {}", died.died(2), left.died(2));
+        let i = died.graph.index_of(2).expect("follower 2");
+        for (what, s, stands_from, of_step) in [("killed", &died, l - 1, l - 2), ("left", &left, l, l)] {
+            let mut sim = Simulation::new(s);
+            let mut rows = Rows { t_end: s.duration_s, ..Rows::default() };
+            let mut own = Vec::new();
+            while sim.k <= s.steps() {
+                let k = sim.k;
+                own.push(sim.followers[i].robot.seen_pose());
+                sim.step(&mut rows).expect("step");
+                // After step k, the pose the filters of step k + 1 see.
+                let seen = sim.poses_before[i];
+                let want = if k >= stands_from { own[of_step as usize] } else { own[k as usize] };
+                assert!(
+                    (seen.x, seen.y, seen.theta) == (want.x, want.y, want.theta),
+                    "{what}: at step {k} (leave step {l}) follower 2 seen at ({}, {}), not its pose of step {} ({}, {})",
+                    seen.x,
+                    seen.y,
+                    if k >= stands_from { of_step } else { k },
+                    want.x,
+                    want.y
+                );
+            }
+            assert!(own[l as usize - 2] != own[l as usize], "{what}: follower 2 did not move over steps {}–{l}", l - 2);
+            let p = sim.proximity().expect("proximity");
+            let closest = p.closest.as_ref().expect("a closest pair");
+            assert!(
+                p.steps_below == 0 && closest.distance >= p.distance,
+                "{what}: {} steps below safety.distance {} m; the closest pair {:?} {:.4} m at {} s",
+                p.steps_below,
+                p.distance,
+                closest.pair,
+                closest.distance,
+                closest.t
+            );
+            for (j, (got, model)) in sim.metrics().iter().zip(&free).enumerate().filter(|&(j, _)| j != i) {
+                let (got, model) = (got.formation_rms_last10.expect("rms"), model.formation_rms_last10.expect("rms"));
+                assert!(
+                    got <= model + 0.15,
+                    "{what}: follower {} formation error over the last 10 s {got:.3} m, the fault-free model's \
+                     {model:.3} m",
+                    s.followers[j].id
+                );
+            }
         }
     }
 }

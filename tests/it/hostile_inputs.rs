@@ -578,6 +578,13 @@ fn cases() -> Vec<Case> {
             &["--rt-priority 10", "lock-step"],
         ),
         case(
+            "a died row in a networked run",
+            None,
+            &["launch", "{paper}", "--set", "faults+={node=2, from=5, died=true}", "--out", "{dir}/out"],
+            2,
+            &["killing follower 2 at 5 s", "formation sim only"],
+        ),
+        case(
             "real-time priority 0",
             None,
             &["launch", "{paper}", "--set", "timing=realtime", "--rt-priority", "0", "--out", "{dir}/out"],

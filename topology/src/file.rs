@@ -144,6 +144,13 @@ pub struct LinkFaultFile {
     /// §14, §16). Without it, such a row is a follower cut off but running.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub leave: bool,
+    /// A follower whose process is killed (SIGKILL, a crash) at `from`
+    /// (`node = ID`, no `to`): a leave without the last word. As a leave,
+    /// no estimate of step k = ⌈from/Δt⌉ or later comes from it; unlike
+    /// one, no last pose does: its robot stands at the last pose it sent,
+    /// of step k − 2 (docs/model.md §14). `leave` may be left out.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub died: bool,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -155,6 +155,9 @@ pub struct LinkFault {
     /// A leave (`leave = true`): the follower's process ends at `from_s`,
     /// its robot stopped where it is (docs/model.md §14).
     pub leave: bool,
+    /// A leave by death (`died = true`, `leave` then set too): no last
+    /// pose, its robot stands at its pose of two steps before `from_s`.
+    pub died: bool,
 }
 
 impl LinkFault {
@@ -435,6 +438,7 @@ impl Scenario {
                 loss: 1.0,
                 join: false,
                 leave: true,
+                died: false,
             });
         }
         s
@@ -457,6 +461,7 @@ impl Scenario {
                 loss: 1.0,
                 join: false,
                 leave: false,
+                died: false,
             });
         }
         self
@@ -476,6 +481,7 @@ impl Scenario {
                 loss: 1.0,
                 join: true,
                 leave: false,
+                died: false,
             });
         }
         self
@@ -493,6 +499,14 @@ impl Scenario {
     /// of that step.
     pub fn leave_step(&self, id: u32) -> Option<u64> {
         self.faults.iter().filter(|f| f.leave && f.target == FaultTarget::Node(id)).map(|f| f.steps(self.dt_s).0).min()
+    }
+
+    /// Whether follower `id`'s leave is a death (`died = true`, docs/model.md
+    /// §14): its robot then stands at its pose of [`Scenario::leave_step`]
+    /// − 2, the last it sent, from the step after that on.
+    pub fn died(&self, id: u32) -> bool {
+        let first = self.faults.iter().filter(|f| f.leave && f.target == FaultTarget::Node(id));
+        first.min_by_key(|f| f.steps(self.dt_s).0).is_some_and(|f| f.died)
     }
 
     /// The receiver's loss decisions for the link sender → receiver.
@@ -1712,10 +1726,11 @@ fn validate_faults(
         if f.join {
             check_join(c, &field, target, f)?;
         }
-        if f.leave {
+        let leave = f.leave || f.died;
+        if leave {
             check_leave(c, &field, target, f)?;
         }
-        let fault = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join, leave: f.leave };
+        let fault = LinkFault { target, from_s: f.from, to_s: to, loss: f.loss, join: f.join, leave, died: f.died };
         let (from_k, to_k) = fault.steps(file.dt);
         if from_k >= to_k {
             return Err(c.fail(
@@ -1794,6 +1809,9 @@ fn check_leave(
         }
         FaultTarget::Link(..) => Some(("link", "a leave is a follower's: give `node = ID`, not `link`".to_string())),
         FaultTarget::Node(_) if f.join => Some(("join", "a row is a join or a leave, not both".to_string())),
+        FaultTarget::Node(_) if f.died && f.from <= 0.0 => {
+            Some(("from", "a follower killed at the start is absent: give `from` after 0 (s)".to_string()))
+        }
         FaultTarget::Node(_) if f.to.is_some() => {
             Some(("to", "a follower that leaves does not come back: leave `to` out (the rest of the run)".to_string()))
         }
@@ -2007,6 +2025,12 @@ mod tests {
         let s = with_faults("[[faults]]\nnode = 3\nfrom = 5\nleave = true\n").expect("a leave row");
         assert_eq!((s.leave_step(3), s.leave_step(2), s.join_step(3)), (Some(5000), None, None));
         assert!(toml::to_string(&s.source.faults[0]).expect("toml").contains("leave = true"));
+        assert!(!s.died(3), "a leave is not a death");
+        // A death is a leave without the last word; `leave` may be left out.
+        for row in ["died = true", "died = true\nleave = true"] {
+            let d = with_faults(&format!("[[faults]]\nnode = 3\nfrom = 5\n{row}\n")).expect("a died row");
+            assert_eq!((d.leave_step(3), d.died(3), d.died(2)), (Some(5000), true, false), "{row}");
+        }
         let plain = with_faults("[[faults]]\nnode = 3\nfrom = 5\n").expect("cut off for good");
         assert_eq!(plain.leave_step(3), None, "a row without leave cuts a follower off that still runs");
         for (row, key, says) in [
@@ -2015,6 +2039,9 @@ mod tests {
             ("node = 3\nfrom = 5\nto = 6\nleave = true", "to", "does not come back"),
             ("node = 3\nfrom = 5\nloss = 0.5\nleave = true", "loss", "sends nothing"),
             ("node = 3\nfrom = 0\nto = 5\njoin = true\nleave = true", "join", "a join or a leave"),
+            ("node = 3\nfrom = 0\ndied = true", "from", "is absent"),
+            ("node = 0\nfrom = 5\ndied = true", "node", "the leader does not leave"),
+            ("node = 3\nfrom = 5\nto = 6\ndied = true", "to", "does not come back"),
         ] {
             let e = with_faults(&format!("[[faults]]\n{row}\n")).expect_err(row).to_string();
             assert!(e.contains(&format!("faults[0].{key}")) && e.contains(says), "{row}: {e}");
