@@ -8,11 +8,14 @@
 //! input is reported in hex), abort (the process would die), or make a
 //! single allocation larger than 32 × its length + 2 MiB (the bound of
 //! `formation_topology::wire::decode_bounded`): a counting global allocator
-//! measures every allocation of the decoding thread. Each decoder's loop is
-//! time-bounded (120 s, `FUZZ_SECONDS`; the slowest, hearing.bin's, takes
-//! some 45 s on a loaded 2-core machine); fewer than 1,000,000 inputs
-//! (`FUZZ_INPUTS`) in that time fails. Two threads (`FUZZ_THREADS`) take
-//! the decoders in turn. The attacks the issue names are refused
+//! measures every allocation of the decoding thread. Each decoder takes
+//! exactly 1,000,000 inputs (`FUZZ_INPUTS`, in batches of 1,000) from a
+//! generator seeded per decoder, the same inputs on every machine however
+//! slow: no clock decides how many (a 120 s bound did, and the one-core
+//! acceptance run of issue 64 failed on it: 953,004 checkpoint inputs in
+//! 120 s). The slowest, the checkpoint's and hearing.bin's, take some 45 s
+//! on a loaded 2-core machine. Two threads (`FUZZ_THREADS`) take the
+//! decoders in turn. The attacks the issue names are refused
 //! ([`the_issues_attack_inputs_are_refused`]); large inputs made of empty
 //! strings or lists, which mutation of the small corpus cannot reach, are
 //! measured apart ([`large_inputs_of_empty_elements`]: up to 48 × their
@@ -580,7 +583,7 @@ fn one(kind: Kind, input: &[u8], cx: &Context, seed: usize, t: &mut Tally) {
     }
 }
 
-fn fuzz(kind: Kind, target: u64, limit: Duration) -> Tally {
+fn fuzz(kind: Kind, target: u64) -> Tally {
     let seeds = corpus(kind);
     let cx = Context::new(kind, &seeds);
     let mut t = Tally { seeds: seeds.len(), ..Tally::default() };
@@ -598,7 +601,7 @@ fn fuzz(kind: Kind, target: u64, limit: Duration) -> Tally {
     let mut rng = Rng::new(0x5eed_0000 + kind as u64);
     let mut input = Vec::new();
     let began = Instant::now();
-    while t.inputs < target && began.elapsed() < limit {
+    while t.inputs < target {
         for _ in 0..1000 {
             let seed = mutate(&mut rng, &seeds, kind.json(), &mut input);
             if kind == Kind::Hearing && input.len() >= 4 && rng.chance(2) {
@@ -620,7 +623,6 @@ fn mib(bytes: usize) -> String {
 #[test]
 fn every_decoder_survives_a_million_mutated_inputs() {
     let target: u64 = env_or("FUZZ_INPUTS", 1_000_000);
-    let limit = Duration::from_secs(env_or("FUZZ_SECONDS", 120));
     let threads: usize = env_or("FUZZ_THREADS", 2);
     let began = Instant::now();
     // Two threads take the decoders in turn (the slowest first).
@@ -643,7 +645,7 @@ fn every_decoder_survives_a_million_mutated_inputs() {
             s.spawn(|| loop {
                 let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 let Some(&kind) = order.get(i) else { break };
-                let t = fuzz(kind, target, limit);
+                let t = fuzz(kind, target);
                 eprintln!(
                     "{:<10} {:<32} {:>9} inputs ({} seeds, {} decode): {:>7} decoded, {:>7} refused, {} panics; \
                      largest allocation {} bytes (a {}-byte input; {:.0}% of its bound), peak {} bytes (a {}-byte \
@@ -677,13 +679,6 @@ fn every_decoder_survives_a_million_mutated_inputs() {
         }
         if !t.over_bound.is_empty() {
             wrong.push(format!("{name}: allocations over 32 x length + 2 MiB: {:?}", t.over_bound));
-        }
-        if t.inputs < target {
-            wrong.push(format!(
-                "{name}: only {} inputs in {:.1} s (at least {target} wanted)",
-                t.inputs,
-                t.elapsed.as_secs_f64()
-            ));
         }
         if t.seeds_decoded != t.seeds {
             wrong.push(format!(
