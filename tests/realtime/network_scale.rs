@@ -176,26 +176,6 @@ fn a_hundred_agents_in_real_time_at_100_hz_record_everything_and_follow_the_mode
     run.judge(0.03, TORQUE_TV_MEDIAN);
 }
 
-/// How many CPUs this process may run on (its affinity mask; 1 when it
-/// cannot be read). Under `taskset -c 0` it is 1: then no node runs under
-/// real-time scheduling, since 50 or 100 SCHED_FIFO processes at 100 Hz on
-/// one core leave the rest of the machine, this test's harness and the
-/// kernel's own threads included, its 5 % of RT throttling: the one-core
-/// acceptance run (`taskset -c 0 bash .ci/run`) sat 23 minutes at a load of
-/// 150 in this test, its processes deaf to SIGKILL until each thread was
-/// put back to SCHED_OTHER (2026-12-02).
-fn cpus_allowed() -> usize {
-    // SAFETY: a zeroed cpu_set_t is a valid empty set; sched_getaffinity
-    // writes at most its size into it.
-    unsafe {
-        let mut set: libc::cpu_set_t = std::mem::zeroed();
-        if libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) != 0 {
-            return 1;
-        }
-        usize::try_from(libc::CPU_COUNT(&set)).unwrap_or(1)
-    }
-}
-
 /// A generated ring of `followers` (chords: a fifth of them, seed 1) run
 /// by `formation launch` in real time at 100 Hz for 10 s with a one-step
 /// delay (plus `extra` settings), one process per agent, and by `formation
@@ -231,8 +211,16 @@ impl RingInRealTime {
         // Ports: the monitor, the leader, one per agent.
         let base = common::Ports::free(followers + 2).release().to_string();
         let mut args = vec!["launch", &scenario, "-q", "--out", &net_s, "--base-port", &base, "--run", tag];
+        // Not on one CPU (`taskset -c 0`; std reads the affinity mask): 50
+        // or 100 SCHED_FIFO processes at 100 Hz on one core leave the rest of
+        // the machine, this test's harness and the kernel's own threads
+        // included, the 5 % of RT throttling. The one-core acceptance run
+        // (`taskset -c 0 bash .ci/run`) sat 23 minutes at a load of 150 in
+        // this test, its processes deaf to SIGKILL until each thread was put
+        // back to SCHED_OTHER (2026-12-02).
+        let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
         // SAFETY: geteuid has no preconditions.
-        let fifo = unsafe { libc::geteuid() } == 0 && cpus_allowed() >= 2;
+        let fifo = unsafe { libc::geteuid() } == 0 && cpus >= 2;
         if fifo {
             args.extend(["--rt-priority", "10"]);
         }
