@@ -3,6 +3,7 @@
 //! (see [`formation_protocol::courier`] for the rules it keeps).
 
 use formation_protocol::courier::{CourierStats, Store};
+use formation_protocol::patience::Patience;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Duration;
 
@@ -91,19 +92,38 @@ impl Courier {
         Some(out)
     }
 
-    /// Waits until the monitor has acknowledged everything handed over, at
-    /// most `limit`; true if so.
+    /// Waits until the monitor has acknowledged everything handed over;
+    /// true if so. It gives up, false, once the monitor has acknowledged
+    /// nothing new for `limit` as [`Patience`] counts it: an
+    /// acknowledgement of more starts the count again (a monitor that
+    /// files a backlog slowly is slow, not gone), and time this thread was
+    /// not run counts only a look's cap (issue 64: on one core a starved
+    /// monitor took more than ten seconds to file 100 followers' last
+    /// batches, and each follower gave its telemetry up).
     pub fn drain(&self, limit: Duration) -> bool {
-        let began = self.clock.mono();
+        self.drain_looking(limit, |_| ())
+    }
+
+    /// [`Courier::drain`], calling `between(now)` after each look (a test
+    /// acknowledges there, on a mock clock, with no thread to race).
+    fn drain_looking(&self, limit: Duration, mut between: impl FnMut(Duration)) -> bool {
+        const LOOK: Duration = Duration::from_millis(5);
+        let mut patience = Patience::new(self.clock.mono(), LOOK * 10);
         loop {
-            if self.lock().store.is_empty() {
+            let (empty, acknowledged) = {
+                let s = self.lock();
+                (s.store.is_empty(), s.store.acknowledged())
+            };
+            if empty {
                 return true;
             }
             let now = self.clock.mono();
-            if now.saturating_sub(began) >= limit {
+            patience.alive(now, acknowledged);
+            if patience.look(now) >= limit {
                 return false;
             }
-            self.clock.sleep_until_mono(now + Duration::from_millis(5));
+            between(now);
+            self.clock.sleep_until_mono(now + LOOK);
         }
     }
 }
@@ -183,5 +203,34 @@ mod tests {
         assert!(began.elapsed() < Duration::from_secs(2), "waited {:?} of wall time", began.elapsed());
         let waited = clock.mono();
         assert!(waited >= Duration::from_secs(10) && waited < Duration::from_millis(10_010), "{waited:?} on the mock");
+    }
+
+    /// Slow is not gone: a monitor that acknowledges one batch every 3 s
+    /// (each a sign it is filing a backlog) is waited for 27 s, past the
+    /// ten seconds of silence that end the wait; once it stops, the wait
+    /// ends ten seconds after its last acknowledgement, with the steps it
+    /// never acknowledged counted.
+    #[test]
+    fn a_monitor_that_acknowledges_slowly_is_waited_for_and_one_that_stops_is_not() {
+        let clock = Clock::mock(0);
+        let c = Courier::new(1000, clock.clone());
+        for i in 0..10u64 {
+            c.push(i * 5, i * 5 + 5, vec![0; 8]);
+        }
+        let every = Duration::from_secs(3);
+        let slow = |now: Duration| c.ack(5 * (now.as_millis() / every.as_millis()).min(10) as u64);
+        assert!(c.drain_looking(Duration::from_secs(10), slow), "{} steps left", c.unacknowledged_steps());
+        assert!((Duration::from_secs(30)..Duration::from_millis(30_010)).contains(&clock.mono()), "{:?}", clock.mono());
+
+        let clock = Clock::mock(0);
+        let c = Courier::new(1000, clock.clone());
+        for i in 0..10u64 {
+            c.push(i * 5, i * 5 + 5, vec![0; 8]);
+        }
+        let stops = |now: Duration| c.ack(5 * (now.as_millis() / every.as_millis()).min(3) as u64);
+        assert!(!c.drain_looking(Duration::from_secs(10), stops));
+        assert_eq!(c.unacknowledged_steps(), 35, "three batches acknowledged, seven not");
+        let gave_up = clock.mono();
+        assert!((Duration::from_secs(19)..Duration::from_millis(19_010)).contains(&gave_up), "gave up at {gave_up:?}");
     }
 }

@@ -92,16 +92,19 @@ pub async fn start_delivery(
     Ok((delivery, acks))
 }
 
-/// A finished node waits this long for the monitor to acknowledge its telemetry.
+/// A finished node gives its telemetry up once the monitor has acknowledged
+/// nothing new for this long (while the node itself ran: a monitor filing a
+/// backlog slowly is waited for, [`crate::courier::Courier::drain`]).
 pub const DRAIN: std::time::Duration = std::time::Duration::from_secs(10);
 
-/// Waits (off the async runtime) up to [`DRAIN`] for the monitor to
-/// acknowledge everything, and says how many steps it did not.
+/// Waits (off the async runtime) for the monitor to acknowledge
+/// everything, until it acknowledged nothing new for [`DRAIN`], and says
+/// how many steps it did not.
 pub async fn finish_delivery(delivery: crate::courier::Delivery, who: &str) {
     let unacknowledged = tokio::task::spawn_blocking(move || delivery.finish(DRAIN)).await.unwrap_or(0);
     if unacknowledged > 0 {
         crate::node::say(&format!(
-            "{who}: the monitor did not acknowledge {unacknowledged} steps of telemetry within {} s",
+            "{who}: the monitor did not acknowledge {unacknowledged} steps of telemetry (nothing new acknowledged for {} s)",
             DRAIN.as_secs()
         ));
     }

@@ -154,6 +154,13 @@ impl Store {
         self.held_steps
     }
 
+    /// The first step the monitor does not yet hold, as its newest
+    /// acknowledgement said (0 before any): it grows while the monitor
+    /// keeps up, however slowly.
+    pub fn acknowledged(&self) -> u64 {
+        self.acked
+    }
+
     pub fn is_empty(&self) -> bool {
         self.queue.is_empty()
     }

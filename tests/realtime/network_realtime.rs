@@ -179,7 +179,11 @@ fn a_realtime_run_with_a_communication_delay_is_the_one_the_simulator_predicts()
     }
     common::replays_byte_for_byte("real time with a delay of 2 steps", &out);
     let bad = common::unlike_the_simulator(&got, &reference, &network, 0.10, &common::COMPARED);
-    common::judge_if_timely("real time with a delay of 2 steps, against the simulator (10 %)", &bad, &[&network], "");
+    common::judge_fault_free_if_timely(
+        "real time with a delay of 2 steps, against the simulator (10 %)",
+        &bad,
+        &network,
+    );
 }
 
 /// A robot that is not running is still there, in real time (docs/model.md

@@ -319,7 +319,7 @@ fn stand_in_robots_in_real_time_behave_like_the_model() {
         assert_eq!(got["followers"][id]["samples"], 1501, "follower {id}: every step recorded");
     }
     let bad = common::unlike_the_simulator(&got, &reference, &network, 0.10, &common::COMPARED_CONVERGING);
-    common::judge_if_timely("stand-in robots in real time against the simulator (10 %)", &bad, &[&network], "");
+    common::judge_fault_free_if_timely("stand-in robots in real time against the simulator (10 %)", &bad, &network);
 }
 
 /// "robot 3: stopped at unix Y ns (…), told to at unix X ns by WHY, …": (X, Y, WHY) of each such line.
@@ -517,13 +517,17 @@ fn the_safety_filter_in_real_time_keeps_the_robots_apart_as_the_model_does() {
     // constraint binds when, and that one sample ranged from 0.78 to 1.91
     // times the model's over 11 real-time runs of this scenario (3 beyond
     // 10 %), while the last-10-s RMS ranged from 0.93 to 1.13 (measured
-    // 2026-11-28, this VM; docs/model.md §16).
+    // 2026-11-28, this VM; docs/model.md §16; 1.01–1.05 in 10 quiet runs
+    // of 2026-12-03, loops 0.05–0.10 of the period late at p99). Not
+    // judged where a loop woke more than a quarter period late at p99 (the
+    // stand-in robots move on wall time: a late step is a late command) or
+    // a source fell silent (a stall, which the model has none of).
     let compared = ["formation_rms_last10", "estimator_error_final"];
     let mut bad = common::unlike_the_simulator(&got, &reference, &network, 0.20, &compared);
     if (closest - model).abs() > 0.02 {
         bad.push(format!("the closest pair {closest:.3} m apart in real time, {model:.3} m in formation sim"));
     }
-    common::judge_if_timely("the safety filter in real time against the simulator", &bad, &[&network], "");
+    common::judge_fault_free_if_timely("the safety filter in real time against the simulator", &bad, &network);
 }
 
 /// docs/ros2.md, "Odometry in the robot's frame": robots that are not this
