@@ -565,6 +565,32 @@ impl Follower {
         self.inbox.set_link(slot, link);
     }
 
+    /// What this follower holds of follower `id`, which died (lock-step,
+    /// [`crate::died`]): the newest step of its estimate heard (if it is a
+    /// source) and of its pose (if the filter is on).
+    pub fn holding_of(&self, id: u32, fingerprint: u64) -> crate::died::Holding {
+        let slot = self.rules.source_ids.iter().position(|&s| s == id && s != wire::LEADER_ID);
+        crate::died::Holding {
+            fingerprint,
+            sender: self.rules.id,
+            died: id,
+            estimate: slot.and_then(|s| self.inbox.heard_max(s)),
+            pose: self.poses.as_ref().and_then(|p| p.newest_of(id)),
+        }
+    }
+
+    /// Follower `id` died, its links cut from step `at_k` as the monitor
+    /// named it (lock-step, [`crate::died`]): as a neighbour that left
+    /// ([`Follower::handle_gone`]), but with no last pose: its robot stands
+    /// at its pose of step `at_k` − 2 from step `at_k` − 1 on, for this
+    /// follower's filter.
+    pub fn handle_died(&mut self, id: u32, at_k: u64) {
+        self.handle_gone(id, at_k);
+        if let Some(p) = self.poses.as_mut() {
+            p.died(id, at_k);
+        }
+    }
+
     /// Follower `id` was absent at the start (a quorum start): its links
     /// are cut from step 0, as the row `{ node = id, from = 0 }`; in real
     /// time its first message, if it joins later, opens them again from

@@ -26,6 +26,7 @@ pub mod codec;
 pub mod counters;
 pub mod courier;
 pub mod denied;
+pub mod died;
 pub mod error;
 pub mod follower;
 pub mod gate;

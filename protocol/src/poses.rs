@@ -44,6 +44,12 @@ enum Presence {
         at_k: u64,
         pose: Pose,
     },
+    /// Killed (lock-step, crate::died): its robot stands from step
+    /// `from_k` on at its pose of step `from_k` − 1, the last it sent (the
+    /// initial pose if none before step 0).
+    Died {
+        from_k: u64,
+    },
 }
 
 /// The other robots' poses as one follower hears them.
@@ -118,6 +124,30 @@ impl Poses {
         }
     }
 
+    /// The newest step of follower `id`'s pose received (None: none, or
+    /// this follower's own).
+    pub fn newest_of(&self, id: u32) -> Option<u64> {
+        let j = self.ids.iter().position(|&i| i == id).filter(|&j| j != self.own)?;
+        self.newest[j].map(|(k, _)| k)
+    }
+
+    /// Follower `id` died, cut off from step `at_k` (lock-step,
+    /// [`crate::died`]): its robot stands at its pose of step `at_k` − 2,
+    /// the last it sent, from step `at_k` − 1 on (the filters of step
+    /// `at_k` − 1 see that pose as sent, those of `at_k` on as still), as
+    /// the simulator's died row has it. Before any pose, at its initial
+    /// pose.
+    ///
+    /// The pose of step `at_k` − 2 may still be on its way (someone holds
+    /// it, so the router forwards it here too): until it is in, the robot
+    /// is missing for step `at_k` − 1 on, as any pose not yet heard.
+    pub fn died(&mut self, id: u32, at_k: u64) {
+        let Some(j) = self.ids.iter().position(|&i| i == id).filter(|&j| j != self.own) else { return };
+        if self.presence[j] == Presence::Running {
+            self.presence[j] = Presence::Died { from_k: at_k.saturating_sub(1) };
+        }
+    }
+
     /// A message on `pose/<key_id>`, received at `now`: kept, or why not.
     pub fn handle(&mut self, key_id: Option<u32>, bytes: &[u8], now: Now, step: u64) -> Result<(), Reject> {
         let msg = wire::decode_pose(bytes)?;
@@ -178,6 +208,11 @@ impl Poses {
             Presence::Running => None,
             Presence::Absent => Some(self.initial[j]),
             Presence::Left { at_k, pose } => (s >= at_k).then_some(pose),
+            Presence::Died { from_k } if s >= from_k => match from_k.checked_sub(1) {
+                Some(last) => self.at(j, last),
+                None => Some(self.initial[j]),
+            },
+            Presence::Died { .. } => None,
         }
     }
 
@@ -291,6 +326,42 @@ mod tests {
         assert_eq!(view[1].x, ids[1] as f64);
         assert!(seen.iter().all(|s| *s == Seen::Live) && !lost, "{seen:?}");
         assert_eq!(p.view(0, Now::ZERO).0[1], s.followers[1].pose);
+    }
+
+    /// docs/model.md §14's died row, as follower 1's filter sees follower
+    /// 2 die before step 10 (the monitor named L = 10): its pose of step 8,
+    /// the last it sent, as sent at step 9 and as still from step 10 on;
+    /// waited for while it is on its way; never waited for after it.
+    #[test]
+    fn a_robot_that_died_stands_at_its_last_pose_sent_once_that_pose_is_in() {
+        let s = scenario("lockstep");
+        let ids = s.graph.ids().to_vec();
+        let dead = ids[1];
+        let mut p = Poses::new(&s, 0, initial(&s));
+        for k in 0..8 {
+            for &id in &ids[1..] {
+                p.handle(Some(id), &message(id, k, k as f64), Now::ZERO, k).unwrap();
+            }
+        }
+        assert_eq!(p.newest_of(dead), Some(7));
+        assert_eq!(p.newest_of(ids[0]), None, "its own");
+        p.died(dead, 10);
+        for &id in &ids[2..] {
+            p.handle(Some(id), &message(id, 8, 8.0), Now::ZERO, 8).unwrap();
+        }
+        assert_eq!(p.missing(9).collect::<Vec<_>>(), vec![dead], "its pose of step 8 is still on its way");
+        p.handle(Some(dead), &message(dead, 8, 8.5), Now::ZERO, 8).unwrap();
+        assert!(p.has_all(9));
+        let (view, seen, _) = p.view(9, Now::ZERO);
+        assert_eq!((view[1].x, seen[1]), (8.5, Seen::Live), "step 9: its pose of step 8, as sent");
+        for k in 9..12 {
+            for &id in &ids[2..] {
+                p.handle(Some(id), &message(id, k, k as f64), Now::ZERO, k).unwrap();
+            }
+            assert!(p.has_all(k + 1), "step {}: missing {:?}", k + 1, p.missing(k + 1).collect::<Vec<_>>());
+            let (view, seen, _) = p.view(k + 1, Now::ZERO);
+            assert_eq!((view[1].x, seen[1]), (8.5, Seen::Still), "step {}: standing at its pose of step 8", k + 1);
+        }
     }
 
     #[test]

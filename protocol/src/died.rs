@@ -1,0 +1,97 @@
+//! A follower killed in a lock-step run (docs/model.md §14, the died row):
+//! the rule by which the others agree on the step its messages stop.
+//!
+//! The network side is the next step (docs/model.md §14's plan): every
+//! agent holds a zenoh liveliness token for as long as its process lives;
+//! when one is lost, each other agent says what it holds of the one that
+//! died — the newest estimate and the newest pose it received
+//! ([`Holding`]) — and the monitor, once every follower still running has
+//! said so, names the step from which the killed follower's links are cut
+//! ([`Died`], computed by [`died_step`]); every node applies that one step
+//! ([`crate::follower::Follower::handle_died`]), so the run stays the model
+//! of the row `{ node = ID, from = L Δt, died = true }` whatever the timing.
+//!
+//! Why the monitor and not each neighbour on its own: zenoh forwards the
+//! loss of a token at its control priority, ahead of an estimate still
+//! queued at the real-time priority in a router (zenoh-protocol 1.10.2,
+//! `QoSType::DECLARE`), so a neighbour that decided on its own could miss
+//! the last message another received. What any one received, the router
+//! forwards to every other: the greatest step anyone holds is one every
+//! node will hold.
+
+use serde::{Deserialize, Serialize};
+
+/// What one follower holds of a follower that died: the newest step of its
+/// estimate and of its pose received (None: none, or not a source of it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Holding {
+    /// The scenario's fingerprint (a holding of another run is ignored).
+    pub fingerprint: u64,
+    /// Who says it.
+    pub sender: u32,
+    /// The follower that died.
+    pub died: u32,
+    pub estimate: Option<u64>,
+    pub pose: Option<u64>,
+}
+
+/// The step before which follower `follower` is cut off, as the monitor
+/// named it: its links are cut from `at_k`, and its robot stands at its
+/// pose of step `at_k` − 2 from step `at_k` − 1 on (the died row's model).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Died {
+    pub fingerprint: u64,
+    pub follower: u32,
+    pub at_k: u64,
+}
+
+/// The step L of a follower that died, from what the others hold of it.
+/// After its step m an agent sends its estimate of step m + 1, then its
+/// pose of step m: the first estimate that never comes is L, and its last
+/// pose is that of L − 2 (docs/model.md §14). A process killed between its
+/// estimate of step m + 1 and its pose of step m finished round m − 1: so
+/// L is the smaller of the newest estimate + 1 and the newest pose + 2,
+/// over every holding (0: nothing was heard of it).
+pub fn died_step(holdings: &[Holding]) -> u64 {
+    let newest_estimate = holdings.iter().filter_map(|h| h.estimate).max();
+    let newest_pose = holdings.iter().filter_map(|h| h.pose).max();
+    match (newest_estimate, newest_pose) {
+        (Some(e), Some(p)) => (e + 1).min(p + 2),
+        (Some(e), None) => e + 1,
+        (None, Some(p)) => p + 2,
+        (None, None) => 0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn h(sender: u32, estimate: Option<u64>, pose: Option<u64>) -> Holding {
+        Holding { fingerprint: 1, sender, died: 2, estimate, pose }
+    }
+
+    #[test]
+    fn a_process_killed_after_a_round_stops_at_its_next_estimate() {
+        // Round 497 done: the estimate of 498 and the pose of 497 are out.
+        assert_eq!(died_step(&[h(1, Some(498), Some(497)), h(3, Some(498), Some(497))]), 499);
+        // A robot that is no neighbour hears only poses: the same step.
+        assert_eq!(died_step(&[h(4, None, Some(497))]), 499);
+        assert_eq!(died_step(&[h(1, Some(498), None)]), 499, "without the filter: estimates only");
+    }
+
+    #[test]
+    fn a_process_killed_between_its_estimate_and_its_pose_stops_a_step_earlier() {
+        // The estimate of 498 is out, its pose of 497 never left.
+        assert_eq!(died_step(&[h(1, Some(498), Some(496)), h(4, None, Some(496))]), 498);
+    }
+
+    #[test]
+    fn the_greatest_step_anyone_holds_decides_not_the_first_holding() {
+        // Follower 3 has not yet received the last estimate, follower 1 has:
+        // the router forwards it to 3 too.
+        assert_eq!(died_step(&[h(3, Some(497), Some(496)), h(1, Some(498), Some(497))]), 499);
+        assert_eq!(died_step(&[h(3, Some(497), Some(497)), h(1, Some(498), Some(496))]), 499);
+        assert_eq!(died_step(&[]), 0, "nothing heard of it: cut off from step 0");
+    }
+}
