@@ -110,7 +110,11 @@ pub fn run(a: &LaunchArgs) -> Result<(), Error> {
         .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
     let realtime = scenario.timing == formation_topology::Timing::Realtime;
-    children.let_agents_die(realtime && scenario.network.gone_after_s.is_some());
+    children.let_agents_die(match (realtime, scenario.network.gone_after_s) {
+        (true, Some(_)) => Some("the monitor takes it for gone after network.gone_after"),
+        (true, None) => None,
+        (false, _) => Some("the others agree on its last step, and the monitor names it"),
+    });
     let logs = zenoh_log::start(&out)?;
     let result = runtime.block_on(launch(a, zfile.as_ref(), &scenario, &run, &out, &exe, &mut children));
     drop(children);

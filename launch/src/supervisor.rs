@@ -20,20 +20,21 @@ pub(crate) const STANDBY: &str = "standby";
 /// The child processes of a launch; every one still running is killed on drop.
 pub struct Children {
     list: Vec<(String, Child)>,
-    /// A real-time run with `network.gone_after`: an agent that dies (a
-    /// signal: SIGKILL, a crash) is the monitor's to take for gone; the
-    /// run goes on without it.
-    agents_may_die: bool,
+    /// An agent that dies (a signal: SIGKILL, a crash) is the monitor's to
+    /// take for gone (real time, with `network.gone_after`) or to name
+    /// killed (lock-step, formation_protocol::died); the run goes on
+    /// without it. What launch then says of it.
+    agents_may_die: Option<&'static str>,
 }
 
 impl Children {
     pub(crate) fn new() -> Self {
-        Self { list: Vec::new(), agents_may_die: false }
+        Self { list: Vec::new(), agents_may_die: None }
     }
 
-    /// For a real-time scenario with `network.gone_after`: see the field.
-    pub(crate) fn let_agents_die(&mut self, yes: bool) {
-        self.agents_may_die = yes;
+    /// See the field: `then`, what launch says after "agent 2 died (…)".
+    pub(crate) fn let_agents_die(&mut self, then: Option<&'static str>) {
+        self.agents_may_die = then;
     }
 
     pub(crate) fn push(&mut self, name: String, child: Child) {
@@ -261,11 +262,10 @@ pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summa
         // leader that died beside a standby is the standby's to replace
         // (the monitor names the handover, or the run's failure).
         let replaced = name == "leader" && children.running(STANDBY);
-        let died = name.starts_with("agent") && children.agents_may_die && died_of_a_signal(&status);
-        if died {
-            eprintln!(
-                "{name} died ({status}): the monitor takes it for gone after network.gone_after; the run goes on"
-            );
+        let then = children.agents_may_die.filter(|_| name.starts_with("agent") && died_of_a_signal(&status));
+        let died = then.is_some();
+        if let Some(then) = then {
+            eprintln!("{name} died ({status}): {then}; the run goes on");
         }
         let left = name.starts_with("agent") && matches!(status.code(), Some(130 | 143));
         if status.success() || left || replaced || died {

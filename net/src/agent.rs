@@ -157,7 +157,9 @@ pub fn planned_leaves(leave: &[String], scenario: &Scenario) -> Result<Vec<(u32,
 fn own_leaves(args: &AgentArgs, scenario: &Scenario) -> Result<Vec<(u32, u64)>, Error> {
     let mut leave_at = leave_steps(&args.leave, &args.id, scenario)?;
     for &id in &args.id {
-        if let Some(k) = scenario.leave_step(id).filter(|_| !leave_at.iter().any(|l| l.0 == id)) {
+        // A died row's follower does not leave: it is killed (Node::die).
+        let row = scenario.leave_step(id).filter(|_| !scenario.died(id));
+        if let Some(k) = row.filter(|_| !leave_at.iter().any(|l| l.0 == id)) {
             leave_at.push((id, k));
         }
     }
@@ -251,6 +253,7 @@ pub async fn run(
                 clock: args.node.clock.clone(),
                 leave: leave.clone(),
                 leave_at: leave_at.iter().find(|l| l.0 == id).map(|l| l.1),
+                die_at: scenario.died(id).then(|| scenario.leave_step(id)).flatten(),
                 even_if_cut_off: args.even_if_cut_off,
                 quorum_wait,
                 quiet: args.quiet,
@@ -424,6 +427,10 @@ pub struct FollowerOptions {
     pub leave: Leave,
     /// `--leave`: the step before which this follower leaves the run.
     pub leave_at: Option<u64>,
+    /// Lock-step, the fault table's died row: the first step L whose
+    /// estimate never comes; the process kills itself once every node
+    /// holds what it sent before (Node::die).
+    pub die_at: Option<u64>,
     /// `--even-if-cut-off`: its leave is not checked against those absent at the start.
     pub even_if_cut_off: bool,
     /// `--quorum-wait`: ready from then on without the neighbours not heard.
@@ -548,12 +555,8 @@ pub async fn run_follower(
     let estimate_pub = crate::node::control_publisher(session, keys.estimate(id), scenario, "estimate").await?;
 
     let lockstep = scenario.timing == Timing::Lockstep;
-    // Lock-step: which neighbours have completed the final step.
-    let (done_subs, neighbours_done) = if lockstep {
-        telemetry::watch_done(session, keys, &neighbours, scenario.steps()).await?
-    } else {
-        (Vec::new(), Default::default())
-    };
+    let Ends { done_subs, neighbours_done, token, deaths } =
+        watch_ends(session, keys, scenario, id, &neighbours).await?;
     let needs = start_needs(scenario, index, &sources);
     let start =
         startup::wait_for_start(session, keys, &id.to_string(), &needs, scenario, &opts.clock, opts.quorum_wait)
@@ -586,6 +589,8 @@ pub async fn run_follower(
         timebase: timebase.clone(),
         latest,
         neighbours_done,
+        deaths,
+        die_at: opts.die_at.filter(|_| lockstep),
         lockstep,
         incarnation: opts.clock.unix_ns(),
         topics: topics.clone(),
@@ -599,12 +604,58 @@ pub async fn run_follower(
     }
     .map_err(|e| Error::Run(format!("follower {id}: control loop panicked: {e}")))?;
     telemetry::finish_delivery(delivery, &format!("follower {id}")).await;
+    // Its token goes only once the monitor holds its last telemetry.
+    drop(token);
     wind_up(id, outcome.is_ok(), writer, checkpoint_path.as_deref(), opts.odometry.as_deref());
     drop((acks, sync, subscribers, pose_sub, done_subs, odometry, ros_node));
     if let Some(w) = watcher {
         w.abort();
     }
     outcome.map_err(|e| Error::Run(format!("follower {id}: {e}")))
+}
+
+/// Lock-step: how a follower learns that its neighbours are through.
+struct Ends {
+    done_subs: Vec<zenoh::pubsub::Subscriber<()>>,
+    /// Which neighbours completed the final step, left, or were killed.
+    neighbours_done: telemetry::Ends,
+    /// Its liveliness token, held while the process lives (crate::died).
+    token: Option<zenoh::liveliness::LivelinessToken>,
+    /// Followers killed without a word (crate::died).
+    deaths: Option<crate::died::Watch>,
+}
+
+/// [`Ends`] for follower `id` of a lock-step run (nothing in real time).
+async fn watch_ends(
+    session: &zenoh::Session,
+    keys: &formation_protocol::names::Keys,
+    scenario: &Scenario,
+    id: u32,
+    neighbours: &[u32],
+) -> Result<Ends, Error> {
+    if scenario.timing != Timing::Lockstep {
+        return Ok(Ends { done_subs: Vec::new(), neighbours_done: Default::default(), token: None, deaths: None });
+    }
+    let fingerprint = barrier::fingerprint(scenario);
+    let (done_subs, neighbours_done) =
+        telemetry::watch_done(session, keys, neighbours, scenario.steps(), fingerprint).await?;
+    let token = Some(crate::died::declare_token(session, keys, id).await?);
+    let deaths = Some(crate::died::Watch::start(session, keys, id, fingerprint).await?);
+    Ok(Ends { done_subs, neighbours_done, token, deaths })
+}
+
+/// The fault table's died row, performed (lock-step, docs/model.md §14):
+/// follower `id`'s process kills itself with SIGKILL, as a crash would end
+/// it, with no last word; its estimate of step `l` never comes.
+fn die(id: u32, l: u64) -> ! {
+    crate::node::say(&format!(
+        "follower {id}: killed before its estimate of step {l}, as the fault table's died row says (SIGKILL)"
+    ));
+    // SAFETY: raise has no preconditions; SIGKILL ends the process here.
+    unsafe {
+        libc::raise(libc::SIGKILL);
+    }
+    std::process::abort()
 }
 
 /// ROS 2 on: the agent's node `/follower_<id>/agent` and, for a driven
@@ -872,6 +923,10 @@ struct Node {
     latest: checkpoint::Latest,
     /// Lock-step: neighbours that reported their final step.
     neighbours_done: telemetry::Ends,
+    /// Lock-step: followers killed without a word (crate::died).
+    deaths: Option<crate::died::Watch>,
+    /// Lock-step, a died row: the step L its estimate never comes.
+    die_at: Option<u64>,
     lockstep: bool,
     /// This process's start (ns since the Unix epoch), sent with telemetry.
     incarnation: u64,
@@ -928,6 +983,19 @@ impl Node {
         let mut m = self.shared.lock();
         let t = self.timebase.now();
         self.tell(&mut m);
+        if let Some(l) = self.die_at {
+            // Round L − 2 is out: it takes no step more, and dies once
+            // every node holds that round.
+            if m.step().is_some_and(|k| k + 1 >= l) {
+                let held = m.heard_past(l.saturating_sub(1));
+                let id = m.id();
+                drop(m);
+                if held {
+                    die(id, l);
+                }
+                return None;
+            }
+        }
         m.handle_timeout(t);
         out.transmit.extend(std::iter::from_fn(|| m.poll_transmit()));
         out.poses.extend(std::iter::from_fn(|| m.poll_pose()));
@@ -988,6 +1056,9 @@ impl Node {
                     Some(k) => m.handle_gone(id, k),
                 }
             }
+        }
+        if let Some(d) = &self.deaths {
+            d.tell(m);
         }
         if let Some(why) = self.leave.get() {
             m.handle_leave(why);

@@ -35,6 +35,8 @@ pub fn export_crl(dir: &Path, name: &str) {
 /// in, `reply` out).
 struct Role {
     name: String,
+    /// Liveliness tokens it declares (crate::died).
+    tokens: Vec<String>,
     publish: Vec<String>,
     receive: Vec<String>,
     answer: Vec<String>,
@@ -51,6 +53,7 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
     let mut roles = vec![
         Role {
             name: LEADER.into(),
+            tokens: vec![],
             publish: vec![
                 any_run("estimate/0"),
                 any_run("telemetry/0"),
@@ -69,6 +72,7 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
         },
         Role {
             name: MONITOR.into(),
+            tokens: vec![],
             publish: vec![
                 any_run("control/hello/monitor"),
                 any_run("control/ready/monitor"),
@@ -76,6 +80,8 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
                 any_run("control/denied/monitor"),
                 // `formation leave`, an operator's command, speaks as the monitor.
                 any_run("control/leave/*"),
+                // Lock-step: the step a killed follower is cut off from (crate::died).
+                any_run("control/died"),
             ],
             receive: vec![any_run("telemetry/*"), control.clone()],
             answer: vec![],
@@ -100,13 +106,17 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
             any_run(&format!("control/ready/{id}")),
             any_run(&format!("control/claim/{id}")),
             any_run(&format!("control/denied/{}", agent_name(id))),
+            // Lock-step: what it holds of a follower killed (crate::died).
+            any_run(&format!("control/holds/{id}")),
         ];
         if scenario.control.guard.safety.is_some() {
             // Every robot's pose, for the safety filter (docs/model.md §16).
             receive.push(any_run("pose/*"));
             publish.insert(1, any_run(&format!("pose/{id}")));
         }
-        roles.push(Role { name: agent_name(id), publish, receive, answer: vec![], ask: vec![any_run("control/time")] });
+        let tokens = vec![any_run(&format!("alive/{id}"))];
+        let ask = vec![any_run("control/time")];
+        roles.push(Role { name: agent_name(id), tokens, publish, receive, answer: vec![], ask });
     }
     roles
 }
@@ -117,10 +127,18 @@ fn roles(scenario: &Scenario) -> Vec<Role> {
 /// reads; the router is trusted to forward. Enforced by every node that
 /// loads it: the router for its clients, each peer for its own links.
 pub fn policy(scenario: &Scenario) -> Value {
+    let liveliness = ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"];
     let mut rules = vec![
         json!({ "id": "router-forwards",
-                "messages": ["put", "declare_subscriber", "query", "declare_queryable", "reply"],
+                "messages": ["put", "declare_subscriber", "query", "declare_queryable", "reply",
+                             liveliness[0], liveliness[1], liveliness[2]],
                 "flows": ["ingress", "egress"], "permission": "allow", "key_exprs": ["formation/**"] }),
+        // Every node hears the agents' liveliness tokens (crate::died): who
+        // still runs, and who was killed; each agent declares only its own.
+        json!({ "id": "hears-tokens", "messages": [liveliness[1], liveliness[2]],
+                "flows": ["ingress", "egress"], "permission": "allow", "key_exprs": [any_run("alive/*")] }),
+        json!({ "id": "is-told-tokens", "messages": [liveliness[0]],
+                "flows": ["egress"], "permission": "allow", "key_exprs": [any_run("alive/*")] }),
         // Subscriber and queryable declarations travel to every node, so that
         // publishers and queriers know where to send; what is sent is what
         // the rules below allow.
@@ -139,6 +157,13 @@ pub fn policy(scenario: &Scenario) -> Value {
         rules.push(json!({ "id": receive, "messages": ["put"], "flows": ["egress"],
                            "permission": "allow", "key_exprs": r.receive }));
         let mut own = vec![publish, subscribe, receive, "declarations-out".to_string()];
+        own.extend(["hears-tokens".to_string(), "is-told-tokens".to_string()]);
+        if !r.tokens.is_empty() {
+            let t = format!("{}-is-alive", r.name);
+            rules.push(json!({ "id": t, "messages": ["liveliness_token"], "flows": ["ingress"],
+                               "permission": "allow", "key_exprs": r.tokens }));
+            own.push(t);
+        }
         if !r.answer.is_empty() {
             let (a_in, a_out) = (format!("{}-answers", r.name), format!("{}-is-asked", r.name));
             rules.push(json!({ "id": a_in, "messages": ["declare_queryable", "reply"], "flows": ["ingress"],

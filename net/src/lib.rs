@@ -24,6 +24,7 @@ pub mod clock;
 pub mod clock_sync;
 pub mod courier;
 pub mod denials;
+pub mod died;
 pub mod identity;
 pub mod lead;
 pub mod leader;

@@ -37,15 +37,17 @@ pub fn networked(scenario: &Scenario) -> Result<(), Error> {
              step's own messages (set timing = \"realtime\", or network.delay_steps = 0)"
         )));
     }
-    if let Some(f) = scenario.faults.iter().find(|f| f.died) {
+    // Lock-step performs a died row (the agent kills itself, crate::died).
+    let realtime = scenario.timing == formation_topology::Timing::Realtime;
+    if let Some(f) = scenario.faults.iter().find(|f| f.died && realtime) {
         let who = match f.target {
             formation_topology::FaultTarget::Node(id) => id,
             formation_topology::FaultTarget::Link(a, _) => a,
         };
         return Err(Error::Input(format!(
-            "the fault row killing follower {who} at {} s (died = true) is modelled by formation sim only; a \
-             networked run does not kill its agents from the scenario (formation lab --kill-agent {who}@{} kills \
-             one in real time)",
+            "the fault row killing follower {who} at {} s (died = true) is performed in lock-step and modelled by \
+             formation sim; a real-time run does not kill its agents from the scenario (formation lab --kill-agent \
+             {who}@{} kills one in real time)",
             f.from_s, f.from_s
         )));
     }

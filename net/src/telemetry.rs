@@ -8,17 +8,32 @@ use formation_protocol::names::Keys;
 use formation_protocol::telemetry::{Ack, Telemetry};
 
 /// Lock-step end of run: the followers among `ids` that have reported (on
-/// their telemetry key) that they completed the final step. Nodes that feed
-/// them keep republishing their last messages until then (bounded), so a
-/// message lost near the end is recovered.
+/// their telemetry key) that they completed the final step or left, or
+/// that the monitor named killed (`control/died`, crate::died: cut off
+/// from the step it names, as one that left). Nodes that feed them keep
+/// republishing their last messages until then (bounded), so a message
+/// lost near the end is recovered.
 pub async fn watch_done(
     session: &zenoh::Session,
     keys: &Keys,
     ids: &[u32],
     steps: u64,
+    fingerprint: u64,
 ) -> Result<(Vec<zenoh::pubsub::Subscriber<()>>, Ends), Error> {
     let ends: Ends = Default::default();
     let mut subs = Vec::new();
+    let (e, watched) = (ends.clone(), ids.to_vec());
+    let died = session
+        .declare_subscriber(keys.died())
+        .callback(move |s| {
+            let Some(d) = decode::<formation_protocol::died::Died>(&s.payload().to_bytes()) else { return };
+            if d.fingerprint == fingerprint && watched.contains(&d.follower) {
+                e.lock().unwrap_or_else(|p| p.into_inner()).entry(d.follower).or_insert(Some(d.at_k));
+            }
+        })
+        .await
+        .map_err(|e| Error::Run(format!("declaring the died subscriber: {e}")))?;
+    subs.push(died);
     for &id in ids {
         let e = ends.clone();
         let sub = session

@@ -1,15 +1,16 @@
 //! A follower killed in a lock-step run (docs/model.md §14, the died row):
 //! the rule by which the others agree on the step its messages stop.
 //!
-//! The network side is the next step (docs/model.md §14's plan): every
-//! agent holds a zenoh liveliness token for as long as its process lives;
-//! when one is lost, each other agent says what it holds of the one that
-//! died — the newest estimate and the newest pose it received
-//! ([`Holding`]) — and the monitor, once every follower still running has
-//! said so, names the step from which the killed follower's links are cut
-//! ([`Died`], computed by [`died_step`]); every node applies that one step
-//! ([`crate::follower::Follower::handle_died`]), so the run stays the model
-//! of the row `{ node = ID, from = L Δt, died = true }` whatever the timing.
+//! Every agent holds a zenoh liveliness token for as long as its process
+//! lives (`formation_net::died`); when one is lost, each other agent says
+//! what it holds of the one that died — the newest estimate and the newest
+//! pose it received ([`Holding`], on `control/holds/<its id>`) — and the
+//! monitor, once every follower still running has said so, names the step
+//! from which the killed follower's links are cut ([`Died`] on
+//! `control/died`, computed by [`died_step`]); every node applies that one
+//! step ([`crate::follower::Follower::handle_died`]), so the run stays the
+//! model of the row `{ node = ID, from = L Δt, died = true }` whatever the
+//! timing.
 //!
 //! Why the monitor and not each neighbour on its own: zenoh forwards the
 //! loss of a token at its control priority, ahead of an estimate still

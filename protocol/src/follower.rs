@@ -579,6 +579,20 @@ impl Follower {
         }
     }
 
+    /// Lock-step: whether every other node this follower's messages feed
+    /// has taken step `k`, by what it heard of them: each running
+    /// neighbour's estimate of step k + 1 (sent after its step k, which
+    /// took this follower's estimate of k) and, with the filter on, each
+    /// running robot's pose of step k (its step k took this one's pose of
+    /// k − 1). A fault-table death waits for it, so that what it sent up
+    /// to there is held by every node before it dies ([`crate::died`]).
+    pub fn heard_past(&self, k: u64) -> bool {
+        let estimates = self.rules.source_ids.iter().enumerate().all(|(slot, &s)| {
+            s == wire::LEADER_ID || self.done_neighbours.contains(&s) || self.inbox.heard_max(slot) > Some(k)
+        });
+        estimates && self.poses.as_ref().is_none_or(|p| p.heard_past(k))
+    }
+
     /// Follower `id` died, its links cut from step `at_k` as the monitor
     /// named it (lock-step, [`crate::died`]): as a neighbour that left
     /// ([`Follower::handle_gone`]), but with no last pose: its robot stands

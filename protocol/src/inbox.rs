@@ -348,8 +348,16 @@ impl Inbox {
             .collect()
     }
 
-    /// One source's loss decisions anew (a neighbour that left: its link cut from then on).
-    pub fn set_link(&mut self, slot: usize, link: LinkLoss) {
+    /// One source's loss decisions anew (a neighbour that left: its link
+    /// cut from then on). Lock-step: a message already held for a step the
+    /// link now loses is dropped, as if it had arrived after (a follower
+    /// killed between its estimate of step L and its pose of L − 1 is cut
+    /// off from L: that estimate, held by its neighbours, is never used,
+    /// as in the model).
+    pub fn set_link(&mut self, slot: usize, mut link: LinkLoss) {
+        if let Some(p) = self.pending.get_mut(slot) {
+            p.retain(|&k, _| !link.lost(k));
+        }
         if let Some(l) = self.links.get_mut(slot) {
             *l = link;
         }
@@ -452,6 +460,28 @@ mod tests {
         let mut m = msg(wire::LEADER_ID, step);
         (m.term, m.state.v) = (term, v);
         m
+    }
+
+    /// Lock-step, a follower killed between its estimate of step L and its
+    /// pose of L − 1 (formation_protocol::died): its neighbour holds that
+    /// estimate when the link is cut from L; it is dropped, never used,
+    /// and step L no longer waits for it (the model never delivers it).
+    #[test]
+    fn a_message_held_for_a_step_a_new_cut_loses_is_dropped() {
+        use formation_agent::LossWindow;
+        let mut inbox = Inbox::new(1, true);
+        inbox.set_ahead(0, 1000);
+        for k in 0..=10 {
+            assert!(inbox.accept(0, &msg(2, k)), "step {k}");
+        }
+        let cut = LinkLoss::new(1, 2, 1, &[LossWindow { from_k: 10, to_k: 100, loss: 1.0 }]);
+        inbox.set_link(0, cut);
+        let mut out = Vec::new();
+        inbox.take(9, &mut out);
+        assert_eq!(out[0].map(|m| m.state.v), Some(9.0), "step 9, before the cut, is used");
+        assert!(inbox.has_all(10), "step 10 does not wait for what the cut removes");
+        inbox.take(10, &mut out);
+        assert_eq!(out[0], None, "the estimate of step 10 held before the cut is never used");
     }
 
     /// Terms (docs/model.md §14): once a message of term 2 is heard on the

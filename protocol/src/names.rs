@@ -11,6 +11,9 @@
 //! | `control/start` | leader, every 100 ms during the run | `barrier::Start` |
 //! | `control/ack` | monitor, every 100 ms during the run | `telemetry::Ack` |
 //! | `control/time` | leader's queryable, asked by every agent every 250 ms | `clock_sync::TimeReply` |
+//! | `alive/<id>` | each agent's liveliness token (lock-step), while its process lives | (a token) |
+//! | `control/holds/<id>` | agents, lock-step, once a follower's token is lost | `died::Holding` |
+//! | `control/died` | monitor, lock-step, once every running follower said what it holds | `died::Died` |
 //!
 //! `<node>` is `0` for the leader, the follower id, or `monitor`.
 
@@ -127,6 +130,25 @@ impl Keys {
     /// The leader refuses the run before its start (the reason, UTF-8).
     pub fn abort(&self) -> String {
         key(&self.run, "control/abort")
+    }
+    /// Follower `id`'s liveliness token, held while its process lives
+    /// (`died`).
+    pub fn alive(&self, id: u32) -> String {
+        key(&self.run, &format!("alive/{id}"))
+    }
+    pub fn alive_all(&self) -> String {
+        key(&self.run, "alive/*")
+    }
+    /// What follower `id` holds of one that died (`died::Holding`).
+    pub fn holds(&self, id: u32) -> String {
+        key(&self.run, &format!("control/holds/{id}"))
+    }
+    pub fn holds_all(&self) -> String {
+        key(&self.run, "control/holds/*")
+    }
+    /// The monitor names the step a killed follower is cut off from (`died::Died`).
+    pub fn died(&self) -> String {
+        key(&self.run, "control/died")
     }
 }
 

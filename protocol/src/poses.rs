@@ -19,7 +19,9 @@
 //! at the start at its initial pose (until, in real time, it is heard); one
 //! that left the run before step k_L at the last pose it published, that
 //! of step k_L, marked `left` (where its robot stopped), from step k_L + 1
-//! on, as the simulator's leave row has it.
+//! on, as the simulator's leave row has it; one killed (lock-step, its
+//! links cut from L) at its pose of step L − 2, the last it sent, from
+//! step L on, as the died row has it ([`Poses::died`]).
 
 use std::time::Duration;
 
@@ -129,6 +131,16 @@ impl Poses {
     pub fn newest_of(&self, id: u32) -> Option<u64> {
         let j = self.ids.iter().position(|&i| i == id).filter(|&j| j != self.own)?;
         self.newest[j].map(|(k, _)| k)
+    }
+
+    /// Whether every other robot that runs was heard with a pose of step
+    /// `k` or later ([`crate::follower::Follower::heard_past`]).
+    pub fn heard_past(&self, k: u64) -> bool {
+        (0..self.ids.len()).all(|j| {
+            j == self.own
+                || self.presence[j] != Presence::Running
+                || self.newest[j].is_some_and(|(newest, _)| newest >= k)
+        })
     }
 
     /// Follower `id` died, cut off from step `at_k` (lock-step,

@@ -209,8 +209,15 @@ impl MetricsAccumulator {
         }
         self.prev_torque = Some((k, tau_l, tau_r));
         self.samples += 1;
-        self.next_k = k + 1;
+        self.next_k = self.next_k.max(k + 1);
         self.reached_final = k == self.steps;
+    }
+
+    /// Every step below `k` not pushed by now never will be (a follower
+    /// killed, its last telemetry lost with its process): counted as steps
+    /// in gaps, as a hole in the middle is.
+    pub fn gap_to(&mut self, k: u64) {
+        self.next_k = self.next_k.max(k);
     }
 
     /// Bytes this holds on the heap (one accumulator per fault window).

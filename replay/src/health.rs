@@ -326,6 +326,10 @@ fn valid_control(rel: &str, bytes: &[u8], fingerprint: u64) -> bool {
         }
         ("abort", []) => formation_protocol::barrier::abort_reason(bytes).is_some(),
         ("claim", [id]) => decode::<formation_protocol::claim::Claim>(bytes).is_some_and(|c| c.id.to_string() == *id),
+        // Lock-step: what a follower holds of one killed, on its own key.
+        ("holds", [id]) => decode::<formation_protocol::died::Holding>(bytes)
+            .is_some_and(|h| h.fingerprint == fingerprint && h.sender.to_string() == *id),
+        ("died", []) => decode::<formation_protocol::died::Died>(bytes).is_some_and(|d| d.fingerprint == fingerprint),
         // `formation leave --id ID`: empty, to a follower's id.
         ("leave", [id]) => bytes.is_empty() && id.parse::<u32>().is_ok_and(|i| i > 0),
         ("denied", [node]) => {

@@ -18,12 +18,12 @@ use std::path::{Path, PathBuf};
 use formation_agent::{LinkLoss, Message, Nearby};
 use formation_leader::LeaderState;
 use formation_plant::Pose;
-use formation_record::hearing::{Cursor, FollowerHearing, HearingRecord};
+use formation_record::hearing::{Cursor, End, FollowerHearing, HearingRecord};
 use formation_record::{FollowerSample, Heard, RecordOptions, HEARING_FILE};
 use formation_sim::SimFollower;
 use formation_topology::Scenario;
 
-use crate::recorder::Recorder;
+use crate::recorder::{Recorder, KILLED};
 use formation_protocol::error::Error;
 
 /// A run folder's scenario and hearing record, checked against each other.
@@ -43,16 +43,30 @@ impl Loaded {
     /// The scenario of the run's model: the run's, with each follower that
     /// left for good (its hearing record ends `Left`) cut off from then on.
     pub fn model_scenario(&self) -> Scenario {
-        let leaves: Vec<(u32, u64)> = self
-            .record
-            .followers
-            .iter()
-            .filter_map(|f| match f.end {
-                formation_record::hearing::End::Left { k, .. } => Some((f.id, k)),
-                _ => None,
-            })
-            .collect();
-        self.scenario.with_leaves(&leaves).with_handovers(&self.handover_gaps).with_joins(&self.joins)
+        let (mut leaves, mut died) = (Vec::new(), Vec::new());
+        for f in &self.record.followers {
+            match &f.end {
+                End::Left { k, why } if why == KILLED => died.push((f.id, *k)),
+                End::Left { k, .. } => leaves.push((f.id, *k)),
+                _ => {}
+            }
+        }
+        let s = self.scenario.with_leaves(&leaves).with_died(&died);
+        s.with_handovers(&self.handover_gaps).with_joins(&self.joins)
+    }
+
+    /// Lock-step: the step L before which follower `index` was killed
+    /// (its record ends `Left` with [`KILLED`]), if it was. A replay
+    /// computes its steps lost with its process, up to the last round it
+    /// finished (L − 2), with the model's hearing (lock-step hears nothing
+    /// else), so that its robot stands where the others' filters saw it;
+    /// they have no row (the run has none).
+    fn killed_at(&self, index: usize) -> Option<u64> {
+        let lockstep = self.scenario.timing == formation_topology::Timing::Lockstep;
+        match &self.record.followers[index].end {
+            End::Left { k, why } if why == KILLED && lockstep => Some(*k),
+            _ => None,
+        }
     }
 }
 
@@ -301,16 +315,8 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
         rec.rescued.iter().map(|r| ((r.source, r.stamp), Message { state: r.state, fresh: r.fresh })).collect();
     let ids: Vec<u32> = rec.followers.iter().map(|f| f.id).collect();
     let mut leader = s.leader();
-    let mut heard: Vec<Heard> = Vec::new();
-    let mut model: Vec<Heard> = Vec::new();
-    let mut inputs: Vec<Message> = Vec::new();
-    // The safety filter's view: every robot's pose of step k − 1 (step 0: its initial pose), as lock-step's.
-    let safety = s.control.guard.safety.is_some();
-    let mut poses_before: Vec<Pose> = match safety {
-        true => (0..n).map(|i| formation_sim::SimRobot::new(s, i).seen_pose()).collect(),
-        false => Vec::new(),
-    };
-    let mut poses_now = poses_before.clone();
+    let (mut heard, mut model, mut inputs): (Vec<Heard>, Vec<Heard>, Vec<Message>) = Default::default();
+    let mut views = Views::new(loaded);
     for k in 0..=steps {
         let t = k as f64 * dt;
         let state = leader.state(t);
@@ -330,23 +336,33 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
             model.clear();
             model.resize(slots, Heard::Silent);
             ears[i].hear(k, &mut model);
-            let Some(rec_heard) = recorded[i].at(k) else {
-                if track[i] == Track::Running {
-                    problems.extend(lost_for_good(&rec.followers[i], k));
-                }
-                track[i] = Track::Stopped;
-                continue;
-            };
-            if track[i] == Track::Stopped {
-                continue;
-            }
+            // A follower killed (lock-step): its steps lost with its process, up to
+            // L − 2, hear the model's (lock-step's own); no row (Loaded::killed_at).
+            let gap = track[i] == Track::Running
+                && loaded.killed_at(i).is_some_and(|l| k + 2 <= l)
+                && recorded[i].at(k).is_none();
             heard.clear();
-            heard.extend(
-                rec_heard
-                    .iter()
-                    .enumerate()
-                    .map(|(slot, &h)| if hearing.model_at(i, slot, k) { model[slot] } else { h }),
-            );
+            if gap {
+                heard.extend_from_slice(&model);
+            } else {
+                let Some(rec_heard) = recorded[i].at(k) else {
+                    if track[i] == Track::Running {
+                        problems.extend(lost_for_good(&rec.followers[i], k));
+                    }
+                    track[i] = Track::Stopped;
+                    continue;
+                };
+                if track[i] == Track::Stopped {
+                    continue;
+                }
+                heard.extend(rec_heard.iter().enumerate().map(|(slot, &h)| {
+                    if hearing.model_at(i, slot, k) {
+                        model[slot]
+                    } else {
+                        h
+                    }
+                }));
+            }
             // The messages the step uses, neighbours in ascending id, then the leader.
             let from = Sent { sent: &sent, leader: &leader_sent, rescued: &rescued, ids: &ids, ring };
             let (leader_in, missing) = from.inputs(k, &heard, &sources[i], &mut inputs);
@@ -355,16 +371,15 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
                 track[i] = Track::Stopped;
                 continue;
             }
-            let nearby = if safety { Nearby::fresh(&poses_before, i) } else { Nearby::NONE };
             let (sample, next) =
-                f.step_disturbed(f.robot.disturbance_at(t), dt, leader_in.as_ref(), &inputs, nearby, last);
-            if safety {
-                poses_now[i] = sample.pose;
-            }
+                f.step_disturbed(f.robot.disturbance_at(t), dt, leader_in.as_ref(), &inputs, views.nearby(i), last);
+            views.stepped(i, sample.pose);
             sent[i][((k + 1) as usize) % ring] = Some((k + 1, next));
-            sink.follower(i, k, &sample, &heard)?;
+            if !gap {
+                sink.follower(i, k, &sample, &heard)?;
+            }
         }
-        poses_before.copy_from_slice(&poses_now);
+        views.step_done(k);
         sink.step_done(k)?;
         if sink.stop() {
             break;
@@ -372,6 +387,58 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
         leader.advance(&state, dt);
     }
     Ok(problems)
+}
+
+/// The safety filter's view in a replay: every robot's pose of step k − 1
+/// (step 0: its initial pose), as lock-step's; a follower killed
+/// (lock-step) as still from its step L on, as the run's filters saw it
+/// (docs/model.md §16). Empty without the filter.
+struct Views {
+    on: bool,
+    before: Vec<Pose>,
+    now: Vec<Pose>,
+    seen: Vec<formation_agent::Seen>,
+    killed_at: Vec<Option<u64>>,
+}
+
+impl Views {
+    fn new(loaded: &Loaded) -> Self {
+        let s = &loaded.scenario;
+        let n = s.followers.len();
+        let on = s.control.guard.safety.is_some();
+        let before: Vec<Pose> = match on {
+            true => (0..n).map(|i| formation_sim::SimRobot::new(s, i).seen_pose()).collect(),
+            false => Vec::new(),
+        };
+        let killed_at = (0..n).map(|i| loaded.killed_at(i)).collect();
+        Self { on, now: before.clone(), before, seen: vec![formation_agent::Seen::Live; n], killed_at }
+    }
+
+    /// How follower `own`'s filter sees the others at this step.
+    fn nearby(&self, own: usize) -> Nearby<'_> {
+        match (self.on, self.killed_at.iter().any(Option::is_some)) {
+            (false, _) => Nearby::NONE,
+            (true, true) => Nearby { poses: &self.before, own, seen: &self.seen, lost: false },
+            (true, false) => Nearby::fresh(&self.before, own),
+        }
+    }
+
+    /// Follower `i` stepped to `pose`.
+    fn stepped(&mut self, i: usize, pose: Pose) {
+        if self.on {
+            self.now[i] = pose;
+        }
+    }
+
+    /// Every follower has done step k: the view of step k + 1.
+    fn step_done(&mut self, k: u64) {
+        self.before.copy_from_slice(&self.now);
+        for (j, l) in self.killed_at.iter().enumerate() {
+            if l.is_some_and(|l| k + 1 >= l) {
+                self.seen[j] = formation_agent::Seen::Still;
+            }
+        }
+    }
 }
 
 /// A follower's steps from `k` missing from the record: a problem unless a

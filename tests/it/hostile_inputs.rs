@@ -578,11 +578,20 @@ fn cases() -> Vec<Case> {
             &["--rt-priority 10", "lock-step"],
         ),
         case(
-            "a died row in a networked run",
+            "a died row in a real-time run",
             None,
-            &["launch", "{paper}", "--set", "faults+={node=2, from=5, died=true}", "--out", "{dir}/out"],
+            &[
+                "launch",
+                "{paper}",
+                "--set",
+                "timing=realtime",
+                "--set",
+                "faults+={node=2, from=5, died=true}",
+                "--out",
+                "{dir}/out",
+            ],
             2,
-            &["killing follower 2 at 5 s", "formation sim only"],
+            &["killing follower 2 at 5 s", "a real-time run does not kill"],
         ),
         case(
             "real-time priority 0",

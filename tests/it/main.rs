@@ -29,6 +29,7 @@ mod foxglove_live;
 mod fuzz_decoders;
 mod hostile_inputs;
 mod incomplete_runs;
+mod killed;
 mod layers;
 mod link_faults;
 mod mcap_recording;

@@ -205,9 +205,15 @@ fn certs_keeps_the_authority_apart_refuses_to_overwrite_and_never_follows_links(
             "formation/*/control/hello/3",
             "formation/*/control/ready/3",
             "formation/*/control/claim/3",
-            "formation/*/control/denied/agent-3"
+            "formation/*/control/denied/agent-3",
+            "formation/*/control/holds/3"
         ])
     );
+    // Its liveliness token (lock-step deaths, formation_protocol::died):
+    // its own only.
+    let alive = rules.iter().find(|r| r["id"] == "agent-3-is-alive").expect("agent-3-is-alive");
+    assert_eq!(alive["key_exprs"], serde_json::json!(["formation/*/alive/3"]));
+    assert_eq!(alive["messages"], serde_json::json!(["liveliness_token"]));
 }
 
 /// `formation launch --tls` in lock-step equals `formation sim` byte for

@@ -444,6 +444,17 @@ impl Scenario {
         s
     }
 
+    /// The scenario with each (follower, step L) killed: the died row
+    /// `{ node = id, from = L Δt, died = true }` (docs/model.md §14).
+    pub fn with_died(&self, died: &[(u32, u64)]) -> Scenario {
+        let mut s = self.with_leaves(died);
+        let rows = s.faults.len() - died.len();
+        for f in &mut s.faults[rows..] {
+            f.died = true;
+        }
+        s
+    }
+
     /// The model of handovers (docs/model.md §14): for each, the leader
     /// silent on every link over steps [from_k, to_k), the row `node = 0`
     /// (real time; in lock-step the followers wait for the standby and the

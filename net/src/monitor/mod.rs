@@ -15,6 +15,7 @@
 //! in `node`).
 
 mod args;
+mod deaths;
 mod node;
 
 pub use args::{MonitorArgs, WebArgs};

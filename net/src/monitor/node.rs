@@ -32,6 +32,9 @@ use formation_replay::watch::{Ending, Signal, Watch};
 
 /// How often the monitor acknowledges what it holds.
 const ACK_PERIOD: Duration = Duration::from_millis(100);
+/// Lock-step: how often the monitor looks for a follower killed (its
+/// token lost) whose step it can name.
+const DEATH_LOOK: Duration = Duration::from_millis(20);
 
 /// Telemetry received and not yet filed, bytes: beyond this a message is
 /// dropped and counted (its sender sends it again: it is not acknowledged).
@@ -170,6 +173,8 @@ struct Ears {
     /// Acknowledgements: what the monitor holds, so senders forget it and
     /// send again what it lacks (droppable: the next one says the same).
     acks: zenoh::pubsub::Publisher<'static>,
+    /// Lock-step: followers killed without a word (formation_protocol::died).
+    deaths: Option<super::deaths::Deaths>,
 }
 
 impl Ears {
@@ -218,7 +223,12 @@ impl Ears {
             .express(true)
             .await
             .map_err(|e| Error::Run(format!("declaring the acknowledgement publisher: {e}")))?;
+        let deaths = match scenario.timing == formation_topology::Timing::Lockstep {
+            true => Some(super::deaths::Deaths::declare(session, keys, scenario).await?),
+            false => None,
+        };
         Ok(Self {
+            deaths,
             telemetry,
             queue,
             telemetry_sub: Some(telemetry_sub),
@@ -306,6 +316,7 @@ impl Monitor<'_> {
         let mut frames = tokio::time::interval(web::FRAME_PERIOD);
         frames.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         let mut ack_tick = tokio::time::interval(ACK_PERIOD);
+        let mut death_tick = tokio::time::interval(DEATH_LOOK);
         let live = !self.args.quiet;
         let ending = loop {
             tokio::select! {
@@ -331,6 +342,15 @@ impl Monitor<'_> {
                 }
                 _ = ack_tick.tick(), if self.watch.started() => {
                     self.ears.acknowledge(&self.recorder).await;
+                }
+                _ = death_tick.tick(), if self.watch.started() && self.ears.deaths.is_some() => {
+                    if let Some(d) = self.ears.deaths.as_mut() {
+                        d.look(&mut self.recorder, self.args.node.clock.mono()).await;
+                    }
+                    self.say_news();
+                    if let Some(end) = self.watch.on_telemetry_check(self.recorder.complete()) {
+                        break end;
+                    }
                 }
                 _ = frames.tick(), if self.frames.web.is_some() => {
                     let state = if self.watch.started() { "running" } else { "waiting" };

@@ -208,6 +208,9 @@ const JOIN_WINDOW_S: f64 = 5.0;
 /// Why a follower absent from a quorum start "left" (before step 0).
 pub const ABSENT: &str = "absent at the start";
 
+/// Why a follower killed in lock-step left (formation_protocol::died).
+pub const KILLED: &str = "killed: its process ended unannounced";
+
 impl FollowerTrack {
     /// One past the last step it takes: the run's, or the one it left before.
     fn end_k(&self, steps: u64) -> u64 {
@@ -231,6 +234,9 @@ pub struct Recorder {
     news: Vec<String>,
     /// Followers taken for gone after `network.gone_after` of silence.
     gone: BTreeSet<u32>,
+    /// Lock-step: followers killed, and the step their links are cut from
+    /// (named by the monitor, formation_protocol::died).
+    died: BTreeMap<u32, u64>,
     /// Followers absent at the start (a quorum start).
     absent_at_start: Vec<u32>,
     /// Absent followers that joined later (real time): id, the first step
@@ -315,6 +321,7 @@ impl Recorder {
             terms: Vec::new(),
             news: Vec::new(),
             gone: BTreeSet::new(),
+            died: BTreeMap::new(),
             absent_at_start: Vec::new(),
             joined: Vec::new(),
             leader: VecDeque::new(),
@@ -390,9 +397,14 @@ impl Recorder {
         for r in resumes {
             f.hearing.resumed(*r);
         }
-        // A follower that left (or was absent) is one in the replay too.
+        // A follower that left (or was absent) is one in the replay too;
+        // one killed, with the steps lost with its process in a gap.
         if let End::Left { k, why } = &end {
             f.left = Some(Left { at_k: *k, why: why.clone() });
+            if why == KILLED {
+                f.metrics.gap_to(*k);
+                self.died.insert(f.id, *k);
+            }
         }
         f.hearing.end = end;
     }
@@ -1012,6 +1024,40 @@ impl Recorder {
         }
     }
 
+    /// Whether follower `id` has nothing more to send: it left (or was
+    /// absent, or taken for gone) or reported its final step.
+    pub fn through(&self, id: u32) -> bool {
+        let left = self.scenario.index_of(id).is_some_and(|i| self.followers[i].left.is_some());
+        left || self.nodes.get(&id).is_some_and(|n| n.done)
+    }
+
+    /// Lock-step: follower `id` was killed, its links cut from step `at_k`
+    /// as every node was told (formation_protocol::died): it left before
+    /// `at_k` as far as its record goes, its steps not received by now are
+    /// lost with its process (a gap, "killed"), nothing more is waited for
+    /// from it, and the run's model is the row `{ node = id, from = at_k
+    /// Δt, died = true }`. A follower that already left or finished is
+    /// not touched.
+    pub fn died(&mut self, id: u32, at_k: u64) {
+        let steps = self.scenario.steps();
+        let Some(i) = self.scenario.index_of(id) else { return };
+        let f = &mut self.followers[i];
+        if f.left.is_some() || self.nodes.get(&id).is_some_and(|n| n.done) {
+            return;
+        }
+        let at_k = at_k.min(steps + 1);
+        let why = KILLED.to_string();
+        f.hearing.end = End::Left { k: at_k, why: why.clone() };
+        f.left = Some(Left { at_k, why: why.clone() });
+        f.stream.lose_to(at_k, "killed");
+        f.metrics.gap_to(at_k);
+        self.nodes.entry(id).or_default().done = true;
+        self.died.insert(id, at_k);
+        let line = self.leave_line(id, at_k, &why);
+        self.news.push(line);
+        let _ = self.process();
+    }
+
     /// Telemetry from follower `index`, absent at the start: it joined the
     /// run at step `k` (real time; docs/model.md §14), and is waited for
     /// from now on.
@@ -1090,9 +1136,11 @@ impl Recorder {
     /// that left cut off from then on (docs/model.md §14's node fault), as
     /// its neighbours lived it.
     pub fn model_scenario(&self) -> Scenario {
-        let leaves: Vec<(u32, u64)> = self.left().iter().map(|&(id, k, _)| (id, k)).collect();
+        let leaves: Vec<(u32, u64)> =
+            self.left().iter().filter(|l| !self.died.contains_key(&l.0)).map(|&(id, k, _)| (id, k)).collect();
+        let died: Vec<(u32, u64)> = self.died.iter().map(|(&id, &k)| (id, k)).collect();
         let gaps: Vec<(u64, u64)> = self.handovers.iter().filter_map(Handover::gap).collect();
-        self.scenario.with_leaves(&leaves).with_handovers(&gaps).with_joins(&self.joined)
+        self.scenario.with_leaves(&leaves).with_died(&died).with_handovers(&gaps).with_joins(&self.joined)
     }
 
     /// Steps recorded by every follower still in the run (one that left, or

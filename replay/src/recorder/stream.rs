@@ -10,8 +10,9 @@ pub struct Gap {
     /// Steps from..to.
     pub from: u64,
     pub to: u64,
-    /// "restarted" (the node's process was replaced) or "dropped by the
-    /// sender" (its store of unacknowledged telemetry overflowed).
+    /// "restarted" (the node's process was replaced), "dropped by the
+    /// sender" (its store of unacknowledged telemetry overflowed) or
+    /// "killed" (its process ended without a word, lock-step).
     pub why: &'static str,
 }
 
@@ -151,6 +152,18 @@ impl<T> Stream<T> {
     pub(super) fn skip_to(&mut self, k: u64) {
         if self.end < k && self.ahead.is_empty() && self.gaps.is_empty() {
             self.end = k;
+        }
+    }
+
+    /// A sender whose process was killed (lock-step, docs/model.md §14):
+    /// every step below `k` not recorded by now never will be, a gap of
+    /// `why`. Batches held ahead stay held (they continue the stream when
+    /// what is before them is in).
+    pub(super) fn lose_to(&mut self, k: u64, why: &'static str) {
+        let to = self.ahead.keys().next().map_or(k, |&a| a.min(k));
+        if self.end < to {
+            self.gaps.push(Gap { from: self.end, to, why });
+            self.end = to;
         }
     }
 
