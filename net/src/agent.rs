@@ -637,8 +637,7 @@ async fn watch_ends(
         return Ok(Ends { done_subs: Vec::new(), neighbours_done: Default::default(), token: None, deaths: None });
     }
     let fingerprint = barrier::fingerprint(scenario);
-    let (done_subs, neighbours_done) =
-        telemetry::watch_done(session, keys, neighbours, scenario.steps(), fingerprint).await?;
+    let (done_subs, neighbours_done) = telemetry::watch_done(session, keys, neighbours, scenario).await?;
     let token = Some(crate::died::declare_token(session, keys, id).await?);
     let deaths = Some(crate::died::Watch::start(session, keys, id, fingerprint).await?);
     Ok(Ends { done_subs, neighbours_done, token, deaths })

@@ -27,6 +27,9 @@ use formation_protocol::names::{last_chunk, Keys};
 pub struct Tokens {
     pub alive: BTreeSet<u32>,
     pub lost: Vec<u32>,
+    /// Grows with every token heard or lost: a reader that saw this count
+    /// has nothing new to look at.
+    pub changes: u64,
 }
 
 pub type SharedTokens = Arc<Mutex<Tokens>>;
@@ -41,6 +44,7 @@ pub async fn hear_tokens(session: &zenoh::Session, keys: &Keys, tokens: SharedTo
         .callback(move |s| {
             let Ok(id) = last_chunk(s.key_expr().as_str()).parse::<u32>() else { return };
             let mut t = tokens.lock().unwrap_or_else(|p| p.into_inner());
+            t.changes += 1;
             match s.kind() {
                 SampleKind::Put => {
                     t.alive.insert(id);
@@ -70,6 +74,9 @@ pub struct Watch {
     named: Arc<Mutex<BTreeMap<u32, u64>>>,
     said: Mutex<BTreeSet<u32>>,
     applied: Mutex<BTreeSet<u32>>,
+    /// The token changes and the named steps already looked at (a turn
+    /// with nothing new costs two locks, no copy).
+    looked: Mutex<(u64, usize)>,
     holds: Publisher<'static>,
     _subscribers: (Subscriber<()>, Subscriber<()>),
 }
@@ -96,13 +103,20 @@ impl Watch {
             .congestion_control(zenoh::qos::CongestionControl::Block)
             .await
             .map_err(|e| zerr("declaring the holdings publisher", e))?;
-        let (said, applied) = Default::default();
-        Ok(Self { id, fingerprint, tokens, named, said, applied, holds, _subscribers: (losses, died) })
+        let (said, applied, looked) = Default::default();
+        Ok(Self { id, fingerprint, tokens, named, said, applied, looked, holds, _subscribers: (losses, died) })
     }
 
     /// Between two of the machine's turns: says what `m` holds of each
     /// follower newly lost, and applies each step the monitor named.
     pub fn tell(&self, m: &mut Follower) {
+        let mut looked = self.looked.lock().unwrap_or_else(|p| p.into_inner());
+        let changes = self.tokens.lock().unwrap_or_else(|p| p.into_inner()).changes;
+        let named = self.named.lock().unwrap_or_else(|p| p.into_inner()).len();
+        if (changes, named) == *looked {
+            return;
+        }
+        *looked = (changes, named);
         let (lost, alive) = {
             let t = self.tokens.lock().unwrap_or_else(|p| p.into_inner());
             (t.lost.clone(), t.alive.clone())

@@ -156,14 +156,7 @@ pub async fn run_leader(
     let lockstep = scenario.timing == Timing::Lockstep;
     // Lock-step: which hearing followers have completed the final step.
     let (done_subs, followers_done) = if lockstep {
-        telemetry::watch_done(
-            session,
-            keys,
-            &hearing,
-            scenario.steps(),
-            formation_protocol::barrier::fingerprint(scenario),
-        )
-        .await?
+        telemetry::watch_done(session, keys, &hearing, scenario).await?
     } else {
         (Vec::new(), Default::default())
     };

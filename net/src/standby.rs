@@ -101,16 +101,7 @@ pub async fn run(
 
     let lockstep = scenario.timing == Timing::Lockstep;
     let (done_subs, followers_done) = match lockstep {
-        true => {
-            telemetry::watch_done(
-                session,
-                keys,
-                &hearing,
-                scenario.steps(),
-                formation_protocol::barrier::fingerprint(scenario),
-            )
-            .await?
-        }
+        true => telemetry::watch_done(session, keys, &hearing, scenario).await?,
         false => (Vec::new(), Default::default()),
     };
     let estimate_pub =

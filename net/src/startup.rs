@@ -364,10 +364,12 @@ fn host() -> String {
 /// whether it began earlier or at the same moment. Called before the node
 /// publishes anything; for [`TWIN_LISTEN`] it says its claim on
 /// `control/claim/<id>` and listens there and on its own estimate key. A
-/// process that hears a claim made before its own
-/// ([`formation_protocol::claim::Claim::yields_to`]), or an estimate of its
-/// own id, gives way; the one that keeps the identity goes on saying its
-/// claim until the run starts (drop the [`Claiming`]). (A forged message
+/// process that hears a claim of one that holds the identity already, or
+/// of one claiming it at once with a lower nonce
+/// ([`formation_protocol::claim::Claim::yields_to`]: no clock is read), or
+/// an estimate of its own id, gives way; the one that keeps the identity
+/// goes on saying its claim, settled, until the run starts (drop the
+/// [`Claiming`]). (A forged message
 /// can still make a node refuse where traffic is not authenticated.)
 pub async fn refuse_twin(
     session: &zenoh::Session,
@@ -422,7 +424,8 @@ pub async fn refuse_twin(
             mine.pid
         )));
     }
-    Ok(Claiming::say(publisher, bytes))
+    // Kept: from now on a newcomer gives way to it.
+    Ok(Claiming::say(publisher, codec::encode(&mine.settled())))
 }
 
 /// The claims of other processes to `mine`'s identity heard on its key

@@ -17,9 +17,9 @@ pub async fn watch_done(
     session: &zenoh::Session,
     keys: &Keys,
     ids: &[u32],
-    steps: u64,
-    fingerprint: u64,
+    scenario: &formation_topology::Scenario,
 ) -> Result<(Vec<zenoh::pubsub::Subscriber<()>>, Ends), Error> {
+    let (steps, fingerprint) = (scenario.steps(), formation_protocol::barrier::fingerprint(scenario));
     let ends: Ends = Default::default();
     let mut subs = Vec::new();
     let (e, watched) = (ends.clone(), ids.to_vec());

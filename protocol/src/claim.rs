@@ -3,10 +3,14 @@
 //! Before a node publishes anything, and for as long as it runs, it says
 //! its [`Claim`] on `control/claim/<id>` (0: the leader) and listens there.
 //! Two processes started for one identity at the same moment hear each
-//! other's claims, and both apply the same rule ([`Claim::yields_to`]): the
-//! claim made first keeps the identity, the other process ends naming it.
-//! The rule is a total order, so of any number of twins exactly one runs
-//! (whatever the hosts' clocks say, each twin sees the same two claims).
+//! other's claims, and both apply the same rule ([`Claim::yields_to`]):
+//! one that holds the identity already (past its listening window, its
+//! claims settled) keeps it; of two that claim it at once, the lower
+//! random nonce; the other process ends naming it. The rule reads no
+//! clock (a claim's `since` is only said), so of any number of twins
+//! exactly one runs whatever the hosts' clocks say: each twin sees the same
+//! claims. (Before, the earlier `since` kept it: a newcomer whose clock ran
+//! behind could take an identity already held.)
 //! A twin started after the run began is refused by the estimates it hears
 //! on its own key as well (`formation_net::startup::refuse_twin`).
 //!
@@ -36,16 +40,26 @@ pub struct Claim {
     /// A claim to lead during the run: the leader's term (0: a claim to an
     /// identity at the start).
     pub term: u32,
+    /// Said by a process that holds the identity already (it kept it at
+    /// the end of its listening window, or leads): a newcomer gives way to
+    /// it, whatever the two hosts' clocks say.
+    pub settled: bool,
 }
 
 impl Claim {
     pub fn new(id: u32, since_unix_ns: u64, nonce: u64, pid: u32, host: &str) -> Self {
-        Self { id, since_unix_ns, nonce, pid, host: host.chars().take(MAX_HOST_CHARS).collect(), term: 0 }
+        let host = host.chars().take(MAX_HOST_CHARS).collect();
+        Self { id, since_unix_ns, nonce, pid, host, term: 0, settled: false }
     }
 
-    /// This claim, as a claim to lead in `term`.
+    /// This claim, as a claim to lead in `term` (the lead is held: settled).
     pub fn in_term(self, term: u32) -> Self {
-        Self { term, ..self }
+        Self { term, settled: true, ..self }
+    }
+
+    /// This claim, said once the process kept the identity.
+    pub fn settled(self) -> Self {
+        Self { settled: true, ..self }
     }
 
     /// Whether `other`, another process's claim to lead heard during the
@@ -58,13 +72,13 @@ impl Claim {
             && (other.term, u64::MAX - other.nonce) > (self.term, u64::MAX - self.nonce)
     }
 
-    /// Whether this process gives way to `other`, a claim heard on this
-    /// identity's key: another process's (another nonce) for the same id,
-    /// made earlier, or in the same nanosecond with a lower nonce.
+    /// Whether this process, still in its listening window, gives way to
+    /// `other`, a claim heard on this identity's key: another process's
+    /// (another nonce) for the same id that holds it already (settled), or
+    /// that claims it at the same time with a lower nonce. No clock is
+    /// read: both processes order the two claims alike.
     pub fn yields_to(&self, other: &Claim) -> bool {
-        other.id == self.id
-            && other.nonce != self.nonce
-            && (other.since_unix_ns, other.nonce) < (self.since_unix_ns, self.nonce)
+        other.id == self.id && other.nonce != self.nonce && (other.settled || other.nonce < self.nonce)
     }
 
     /// "process 4242 on host lab-3, claiming since 0.120 s before this one".
@@ -81,7 +95,7 @@ impl Claim {
 /// Of the claims heard, the one this process (`mine`) gives way to: the
 /// first of them all. None: this process keeps the identity.
 pub fn winner<'a>(mine: &Claim, heard: impl IntoIterator<Item = &'a Claim>) -> Option<&'a Claim> {
-    heard.into_iter().filter(|c| mine.yields_to(c)).min_by_key(|c| (c.since_unix_ns, c.nonce))
+    heard.into_iter().filter(|c| mine.yields_to(c)).min_by_key(|c| (!c.settled, c.nonce))
 }
 
 #[cfg(test)]
@@ -92,9 +106,9 @@ mod tests {
         Claim::new(id, since, nonce, 100 + nonce as u32, "h")
     }
 
-    /// Of any set of twins, each applying the rule to the claims of the
-    /// others, exactly one keeps the identity: the first claim, and of two
-    /// made in the same nanosecond, the lower nonce.
+    /// Of any set of twins that claim an identity at once, each applying
+    /// the rule to the claims of the others, exactly one keeps it: the
+    /// lower nonce, whatever their clocks say (`since` is only said).
     #[test]
     fn of_any_twins_exactly_one_keeps_the_identity() {
         let sets: [&[(u64, u64)]; 5] = [
@@ -108,12 +122,25 @@ mod tests {
             let claims: Vec<Claim> = set.iter().map(|&(s, n)| claim(3, s, n)).collect();
             let keep: Vec<&Claim> = claims.iter().filter(|c| winner(c, &claims).is_none()).collect();
             assert_eq!(keep.len(), 1, "{set:?}: {keep:?} keep the identity");
-            let first = claims.iter().min_by_key(|c| (c.since_unix_ns, c.nonce)).expect("one");
+            let first = claims.iter().min_by_key(|c| c.nonce).expect("one");
             assert_eq!(keep[0], first, "{set:?}");
             for c in claims.iter().filter(|c| *c != first) {
-                assert_eq!(winner(c, &claims), Some(first), "{set:?}: {c:?} names the first");
+                assert_eq!(winner(c, &claims), Some(first), "{set:?}: {c:?} names the lowest nonce");
             }
         }
+    }
+
+    /// A process that already holds the identity (past its window: its
+    /// claims are settled) keeps it against a newcomer whose clock runs
+    /// behind by any amount, and whatever its nonce.
+    #[test]
+    fn a_newcomer_gives_way_to_the_one_that_holds_it_whatever_the_clocks() {
+        let holder = claim(3, 10_000_000_000, 9).settled();
+        let newcomer = claim(3, 1, 1);
+        assert!(newcomer.yields_to(&holder), "a clock 10 s behind and a lower nonce change nothing");
+        assert_eq!(winner(&newcomer, [&holder, &claim(3, 5, 0)]), Some(&holder), "the holder before a twin");
+        assert!(claim(3, 0, 0).yields_to(&claim(0, 9, 9).in_term(1)) == false, "another id");
+        assert!(claim(0, 0, 0).yields_to(&claim(0, 9, 9).in_term(1)), "a leader that leads holds the identity");
     }
 
     /// A process's own claim heard back, and claims to other ids, are not twins.
@@ -122,7 +149,8 @@ mod tests {
         let mine = claim(3, 10, 7);
         assert!(!mine.yields_to(&mine.clone()));
         assert!(!mine.yields_to(&claim(4, 1, 1)));
-        assert!(mine.yields_to(&claim(3, 9, 8)));
+        assert!(mine.yields_to(&claim(3, 90, 6)), "a lower nonce, made later");
+        assert!(!mine.yields_to(&claim(3, 9, 8)), "a higher nonce, made earlier");
     }
 
     /// Of leaders that claim the lead at once, whatever their clocks say,

@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 
 /// What one follower holds of a follower that died: the newest step of its
 /// estimate and of its pose received (None: none, or not a source of it).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Holding {
     /// The scenario's fingerprint (a holding of another run is ignored).
     pub fingerprint: u64,
@@ -34,6 +34,10 @@ pub struct Holding {
     pub died: u32,
     pub estimate: Option<u64>,
     pub pose: Option<u64>,
+    /// Where that newest pose put its robot (x, y, θ): the monitor's
+    /// record of where a killed robot stands (its telemetry may end
+    /// earlier, lost with its process).
+    pub pose_at: Option<[f64; 3]>,
 }
 
 /// The step before which follower `follower` is cut off, as the monitor
@@ -52,7 +56,9 @@ pub struct Died {
 /// pose is that of L − 2 (docs/model.md §14). A process killed between its
 /// estimate of step m + 1 and its pose of step m finished round m − 1: so
 /// L is the smaller of the newest estimate + 1 and the newest pose + 2,
-/// over every holding (0: nothing was heard of it).
+/// over every holding (0: nothing was heard of it). With poses it is
+/// always the newest pose + 2 (an agent sends its pose of m after its
+/// estimate of m + 1): [`stands_at`] is then that pose.
 pub fn died_step(holdings: &[Holding]) -> u64 {
     let newest_estimate = holdings.iter().filter_map(|h| h.estimate).max();
     let newest_pose = holdings.iter().filter_map(|h| h.pose).max();
@@ -64,12 +70,19 @@ pub fn died_step(holdings: &[Holding]) -> u64 {
     }
 }
 
+/// Where the robot of a follower that died stands (its pose of step
+/// `at_k` − 2), if a holding has it.
+pub fn stands_at(holdings: &[Holding], at_k: u64) -> Option<[f64; 3]> {
+    let last = at_k.checked_sub(2)?;
+    holdings.iter().find(|h| h.pose == Some(last)).and_then(|h| h.pose_at)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn h(sender: u32, estimate: Option<u64>, pose: Option<u64>) -> Holding {
-        Holding { fingerprint: 1, sender, died: 2, estimate, pose }
+        Holding { fingerprint: 1, sender, died: 2, estimate, pose, pose_at: None }
     }
 
     #[test]
@@ -94,5 +107,17 @@ mod tests {
         assert_eq!(died_step(&[h(3, Some(497), Some(496)), h(1, Some(498), Some(497))]), 499);
         assert_eq!(died_step(&[h(3, Some(497), Some(497)), h(1, Some(498), Some(496))]), 499);
         assert_eq!(died_step(&[]), 0, "nothing heard of it: cut off from step 0");
+    }
+
+    #[test]
+    fn the_robot_stands_at_the_newest_pose_anyone_holds() {
+        let mut a = h(1, Some(498), Some(497));
+        a.pose_at = Some([1.0, 2.0, 0.5]);
+        let mut b = h(3, Some(498), Some(496));
+        b.pose_at = Some([0.9, 2.0, 0.5]);
+        let l = died_step(&[b, a]);
+        assert_eq!(stands_at(&[b, a], l), Some([1.0, 2.0, 0.5]), "the pose of step {}", l - 2);
+        assert_eq!(stands_at(&[b], died_step(&[b])), Some([0.9, 2.0, 0.5]));
+        assert_eq!(stands_at(&[h(4, Some(3), None)], 4), None, "no pose held");
     }
 }

@@ -570,12 +570,14 @@ impl Follower {
     /// source) and of its pose (if the filter is on).
     pub fn holding_of(&self, id: u32, fingerprint: u64) -> crate::died::Holding {
         let slot = self.rules.source_ids.iter().position(|&s| s == id && s != wire::LEADER_ID);
+        let newest = self.poses.as_ref().and_then(|p| p.newest_of(id));
         crate::died::Holding {
             fingerprint,
             sender: self.rules.id,
             died: id,
             estimate: slot.and_then(|s| self.inbox.heard_max(s)),
-            pose: self.poses.as_ref().and_then(|p| p.newest_of(id)),
+            pose: newest.map(|(k, _)| k),
+            pose_at: newest.map(|(_, p)| [p.x, p.y, p.theta]),
         }
     }
 

@@ -126,11 +126,12 @@ impl Poses {
         }
     }
 
-    /// The newest step of follower `id`'s pose received (None: none, or
-    /// this follower's own).
-    pub fn newest_of(&self, id: u32) -> Option<u64> {
+    /// The newest step of follower `id`'s pose received and that pose
+    /// (None: none, or this follower's own).
+    pub fn newest_of(&self, id: u32) -> Option<(u64, Pose)> {
         let j = self.ids.iter().position(|&i| i == id).filter(|&j| j != self.own)?;
-        self.newest[j].map(|(k, _)| k)
+        let (k, _) = self.newest[j]?;
+        self.at(j, k).map(|p| (k, p))
     }
 
     /// Whether every other robot that runs was heard with a pose of step
@@ -355,7 +356,7 @@ mod tests {
                 p.handle(Some(id), &message(id, k, k as f64), Now::ZERO, k).unwrap();
             }
         }
-        assert_eq!(p.newest_of(dead), Some(7));
+        assert_eq!(p.newest_of(dead).map(|(k, pose)| (k, pose.x)), Some((7, 7.0)));
         assert_eq!(p.newest_of(ids[0]), None, "its own");
         p.died(dead, 10);
         for &id in &ids[2..] {

@@ -266,6 +266,8 @@ pub trait Sink {
     fn step_done(&mut self, _k: u64) -> Result<(), Error> {
         Ok(())
     }
+    /// Follower `index`, killed (lock-step), stands at `pose` from now on.
+    fn stands(&mut self, _index: usize, _pose: Pose) {}
     /// Stop the replay here (a playback that seeks backwards starts again).
     fn stop(&self) -> bool {
         false
@@ -375,8 +377,10 @@ pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result
                 f.step_disturbed(f.robot.disturbance_at(t), dt, leader_in.as_ref(), &inputs, views.nearby(i), last);
             views.stepped(i, sample.pose);
             sent[i][((k + 1) as usize) % ring] = Some((k + 1, next));
-            if !gap {
-                sink.follower(i, k, &sample, &heard)?;
+            match gap {
+                false => sink.follower(i, k, &sample, &heard)?,
+                true if loaded.killed_at(i) == Some(k + 2) => sink.stands(i, sample.pose),
+                true => {}
             }
         }
         views.step_done(k);
@@ -551,6 +555,9 @@ impl Sink for Folder<'_> {
             (self.progress)(k);
         }
         self.recorder.step_done(k)
+    }
+    fn stands(&mut self, index: usize, pose: Pose) {
+        self.recorder.replayed_stands(index, pose);
     }
 }
 

@@ -87,6 +87,31 @@ fn assert_killed_as_the_model(
     let safety = &got["safety"];
     let (closest, distance) = (safety["closest"]["distance"].as_f64().unwrap(), safety["distance"].as_f64().unwrap());
     assert!(closest >= distance, "{tag}: robots {} came {closest} m apart", safety["closest"]["pair"]);
+    // The killed robot stands at its pose of step L − 2 (the model's row
+    // of it: the run's telemetry of it may end earlier): every other robot
+    // keeps clear of it, from the CSVs.
+    let stands = pose_at(&dir.join("sim").join("follower_2.csv"), at_k - 2);
+    let mut nearest_of_all = f64::INFINITY;
+    for f in ["follower_1.csv", "follower_3.csv", "follower_4.csv"] {
+        let text = std::fs::read_to_string(net.join(f)).expect("csv");
+        // Rows L − 1 on (the monitor counts it from L on, where it left).
+        let apart: Vec<f64> = text
+            .lines()
+            .skip(1 + at_k as usize - 1)
+            .map(|l| {
+                let c: Vec<f64> = l.split(',').take(3).map(|x| x.parse().unwrap_or(f64::NAN)).collect();
+                (c[1] - stands[0]).hypot(c[2] - stands[1])
+            })
+            .collect();
+        let nearest = apart.iter().copied().fold(f64::INFINITY, f64::min);
+        assert!(nearest >= distance, "{tag}: {f}'s robot came {nearest:.3} m from the killed one (at {stands:?})");
+        nearest_of_all = apart[1..].iter().copied().fold(nearest_of_all, f64::min);
+    }
+    // The monitor's closest pair counts the killed robot where it stands.
+    assert!(
+        closest <= nearest_of_all + 1e-9,
+        "{tag}: the monitor's closest {closest} m, {nearest_of_all} m to the killed robot"
+    );
     if !near_the_fault_free {
         return at_k;
     }
@@ -104,6 +129,14 @@ fn assert_killed_as_the_model(
         );
     }
     at_k
+}
+
+/// Row k of a follower's CSV: (x, y).
+fn pose_at(csv: &Path, k: u64) -> [f64; 2] {
+    let text = std::fs::read_to_string(csv).expect("csv");
+    let row = text.lines().nth(1 + k as usize).expect("the row");
+    let c: Vec<f64> = row.split(',').take(3).map(|x| x.parse().expect("a number")).collect();
+    [c[1], c[2]]
 }
 
 /// The fault table's died row performed: follower 2's agent kills itself

@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex};
 use zenoh::pubsub::{Publisher, Subscriber};
 
 use formation_protocol::codec::{decode, encode};
-use formation_protocol::died::{died_step, Died, Holding};
+use formation_protocol::died::{died_step, stands_at, Died, Holding};
 use formation_protocol::error::{zerr, Error};
 use formation_protocol::names::{last_chunk, Keys};
 use formation_protocol::patience::Patience;
@@ -121,9 +121,10 @@ impl Deaths {
             let said = self.holdings.lock().unwrap_or_else(|p| p.into_inner()).get(&j).cloned().unwrap_or_default();
             let running = self.followers.iter().filter(|&&f| f != j && alive.contains(&f) && !recorder.through(f));
             if running.clone().all(|f| said.contains_key(f)) {
-                let at_k = died_step(&said.values().copied().collect::<Vec<_>>());
+                let said: Vec<Holding> = said.values().copied().collect();
+                let at_k = died_step(&said);
                 self.named.insert(j, at_k);
-                recorder.died(j, at_k);
+                recorder.died(j, at_k, stands_at(&said, at_k));
             }
         }
         for (&follower, &at_k) in &self.named {

@@ -197,6 +197,9 @@ struct FollowerTrack {
     latest: Option<(Row, LeaderState)>,
     /// The robot's last recorded pose (with `[safety]`): where one that left stands.
     last_pose: Option<Pose>,
+    /// Where a killed one stands (its pose of L − 2, as the others heard
+    /// it; its telemetry may end earlier), preferred to `last_pose`.
+    stands: Option<Pose>,
     /// It left the run for good before this step, and why (its last batch said).
     left: Option<Left>,
 }
@@ -304,6 +307,7 @@ impl Recorder {
                 formation_error: f64::NAN,
                 latest: None,
                 last_pose: None,
+                stands: None,
                 left: None,
             })
             .collect();
@@ -407,6 +411,12 @@ impl Recorder {
             }
         }
         f.hearing.end = end;
+    }
+
+    /// A replay: where killed follower `index`'s robot stands (its pose of
+    /// L − 2, which the replay computed), as the run's monitor heard it.
+    pub fn replayed_stands(&mut self, index: usize, pose: Pose) {
+        self.followers[index].stands = Some(pose);
     }
 
     /// A replay: the followers that joined late, as the run recorded them.
@@ -906,7 +916,7 @@ impl Recorder {
             .zip(&self.scenario.followers)
             .map(|(f, spec)| {
                 let l = f.left.as_ref()?;
-                let pose = if l.at_k == 0 { Some(spec.pose) } else { f.last_pose };
+                let pose = if l.at_k == 0 { Some(spec.pose) } else { f.stands.or(f.last_pose) };
                 pose.map(|p| (l.at_k, p))
             })
             .collect();
@@ -1036,9 +1046,10 @@ impl Recorder {
     /// `at_k` as far as its record goes, its steps not received by now are
     /// lost with its process (a gap, "killed"), nothing more is waited for
     /// from it, and the run's model is the row `{ node = id, from = at_k
-    /// Δt, died = true }`. A follower that already left or finished is
-    /// not touched.
-    pub fn died(&mut self, id: u32, at_k: u64) {
+    /// Δt, died = true }`; its robot stands at `stands` (its pose of
+    /// `at_k` − 2, as its neighbours heard it) for the closest pair. A
+    /// follower that already left or finished is not touched.
+    pub fn died(&mut self, id: u32, at_k: u64, stands: Option<[f64; 3]>) {
         let steps = self.scenario.steps();
         let Some(i) = self.scenario.index_of(id) else { return };
         let f = &mut self.followers[i];
@@ -1051,6 +1062,7 @@ impl Recorder {
         f.left = Some(Left { at_k, why: why.clone() });
         f.stream.lose_to(at_k, "killed");
         f.metrics.gap_to(at_k);
+        f.stands = stands.map(|[x, y, theta]| Pose::new(x, y, theta));
         self.nodes.entry(id).or_default().done = true;
         self.died.insert(id, at_k);
         let line = self.leave_line(id, at_k, &why);
