@@ -99,8 +99,8 @@ fn assert_killed_as_the_model(
             .lines()
             .skip(1 + at_k as usize - 1)
             .map(|l| {
-                let c: Vec<f64> = l.split(',').take(3).map(|x| x.parse().unwrap_or(f64::NAN)).collect();
-                (c[1] - stands[0]).hypot(c[2] - stands[1])
+                let [x, y] = xy(l);
+                (x - stands[0]).hypot(y - stands[1])
             })
             .collect();
         let nearest = apart.iter().copied().fold(f64::INFINITY, f64::min);
@@ -134,9 +134,13 @@ fn assert_killed_as_the_model(
 /// Row k of a follower's CSV: (x, y).
 fn pose_at(csv: &Path, k: u64) -> [f64; 2] {
     let text = std::fs::read_to_string(csv).expect("csv");
-    let row = text.lines().nth(1 + k as usize).expect("the row");
-    let c: Vec<f64> = row.split(',').take(3).map(|x| x.parse().expect("a number")).collect();
-    [c[1], c[2]]
+    xy(text.lines().nth(1 + k as usize).expect("the row"))
+}
+
+/// A CSV row's (x, y): its second and third columns (NaN where unreadable).
+fn xy(row: &str) -> [f64; 2] {
+    let mut c = row.split(',').skip(1).map(|x| x.parse().unwrap_or(f64::NAN));
+    [c.next().unwrap_or(f64::NAN), c.next().unwrap_or(f64::NAN)]
 }
 
 /// The fault table's died row performed: follower 2's agent kills itself
