@@ -6,12 +6,12 @@ use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
 use formation_record::{RecordOptions, Summary};
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
-use crate::error::{at_least_one, CliError};
 use formation_bench::sim::BenchArgs;
+use formation_exit::{at_least_one, Error};
 use formation_report::progress::Progress;
-use formation_topology::args::ScenarioArgs;
+use formation_scenario::args::ScenarioArgs;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -95,10 +95,13 @@ pub enum Command {
     #[command(allow_negative_numbers = true)]
     Leave(formation_net::leave::LeaveArgs),
     /// Play a finished networked run again on the live page (--web) or to
-    /// Foxglove (--foxglove): --replay RUN_DIR, at --speed, with pause and
-    /// seek on the page.
+    /// Foxglove (--foxglove), at --speed, with pause and seek on the page.
     #[command(allow_negative_numbers = true)]
-    Monitor(crate::replay::PlaybackArgs),
+    Play(crate::replay::PlayArgs),
+    /// The old spelling of `formation play RUN_DIR`: `monitor --replay
+    /// RUN_DIR` (it says where it moved, then plays).
+    #[command(allow_negative_numbers = true, hide = true)]
+    Monitor(crate::replay::MonitorReplayArgs),
     /// A single node of a networked run (used by `launch`).
     #[command(hide = true)]
     Node(crate::node::NodeCommand),
@@ -137,9 +140,9 @@ pub struct GenerateArgs {
     pub force: bool,
 }
 
-fn generate(a: &GenerateArgs) -> Result<(), CliError> {
-    use formation_topology::generate::{self, GraphKind, Spec};
-    let graph = GraphKind::parse(&a.graph).ok_or_else(|| CliError::Input(format!("--graph {}: unknown", a.graph)))?;
+fn generate(a: &GenerateArgs) -> Result<(), Error> {
+    use formation_scenario::generate::{self, GraphKind, Spec};
+    let graph = GraphKind::parse(&a.graph).ok_or_else(|| Error::Input(format!("--graph {}: unknown", a.graph)))?;
     let spec = Spec {
         chords: a.chords,
         leader_links: a.leader_links,
@@ -148,25 +151,25 @@ fn generate(a: &GenerateArgs) -> Result<(), CliError> {
         ..Spec::new(a.followers, graph)
     };
     formation_record::out_path::check_out_path("--out", &a.out, formation_record::out_path::MAX_NAME_BYTES)
-        .map_err(CliError::Input)?;
+        .map_err(Error::Input)?;
     let text = generate::toml(&spec).map_err(|e| {
         let hint = match (&e, graph) {
-            (formation_topology::ScenarioError::GraphNotConnected { .. }, GraphKind::RandomGeometric) => {
+            (formation_scenario::ScenarioError::GraphNotConnected { .. }, GraphKind::RandomGeometric) => {
                 " (try a larger --radius, more --leader-links or another --seed)"
             }
-            (formation_topology::ScenarioError::GraphNotConnected { .. }, _) => " (try more --leader-links)",
+            (formation_scenario::ScenarioError::GraphNotConnected { .. }, _) => " (try more --leader-links)",
             _ => "",
         };
-        CliError::Input(format!("{e}{hint}"))
+        Error::Input(format!("{e}{hint}"))
     })?;
     if a.out.exists() && !a.force {
-        return Err(CliError::Input(format!("{} exists (--force to replace it)", a.out.display())));
+        return Err(Error::Input(format!("{} exists (--force to replace it)", a.out.display())));
     }
     if let Some(parent) = a.out.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
-        return Err(CliError::Input(format!("--out {}: there is no folder {}", a.out.display(), parent.display())));
+        return Err(Error::Input(format!("--out {}: there is no folder {}", a.out.display(), parent.display())));
     }
-    std::fs::write(&a.out, &text).map_err(|e| CliError::Run(format!("writing {}: {e}", a.out.display())))?;
-    let s = Scenario::load(&a.out, &[]).map_err(|e| CliError::Run(e.to_string()))?;
+    std::fs::write(&a.out, &text).map_err(|e| Error::Run(format!("writing {}: {e}", a.out.display())))?;
+    let s = Scenario::load(&a.out, &[]).map_err(|e| Error::Run(e.to_string()))?;
     let lambda = s.graph.lambda_min_h().map_or_else(|| "not computed at this size".to_string(), |l| format!("{l:.6}"));
     println!(
         "wrote {}: {}, {} graph with {}, {} hearing the leader, λ_min(H) = {lambda}",
@@ -220,10 +223,10 @@ pub const PARALLEL_FROM: usize = 256;
 pub const MAX_THREADS: usize = 256;
 
 /// `--threads N`: at most [`MAX_THREADS`].
-pub fn check_threads(threads: usize) -> Result<(), CliError> {
+pub fn check_threads(threads: usize) -> Result<(), Error> {
     if threads > MAX_THREADS {
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        return Err(CliError::Input(format!(
+        return Err(Error::Input(format!(
             "--threads {threads}: at most {MAX_THREADS} (this machine has {cores} cores; 0 picks for you)"
         )));
     }
@@ -249,7 +252,8 @@ pub fn main() -> ExitCode {
         Command::Certs(a) => formation_launch::certs::run(&a).map_err(Into::into),
         Command::Generate(a) => generate(&a),
         Command::Replay(a) => crate::replay::run(&a),
-        Command::Monitor(a) => crate::replay::playback(&a),
+        Command::Play(a) => crate::replay::playback(&a.run, &a.how, false),
+        Command::Monitor(a) => crate::replay::monitor_replay(&a),
         Command::Node(a) => return crate::node::run(a.node),
         Command::Leave(a) => return crate::node::run_leave(a),
         Command::Robot(a) => return crate::node::run_robot(a),
@@ -259,19 +263,19 @@ pub fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e}");
-            e.exit_code()
+            ExitCode::from(e.status())
         }
     }
 }
 
 /// `formation sim`: run, write the folder, print the table.
-pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
+pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), Error> {
     at_least_one("--every", a.every)?;
     check_threads(a.threads)?;
     let scenario = a.scenario.load()?;
     let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
     formation_record::out_path::check_out_path("--out", &dir, formation_record::out_path::MAX_OUT_NAME_BYTES)
-        .map_err(CliError::Input)?;
+        .map_err(Error::Input)?;
     formation_launch::runsize::check(
         &scenario,
         a.every,
@@ -296,7 +300,7 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), CliError> {
     }
     // docs/model.md §16: two robots closer than the safety distance is a degraded run.
     if let Some(v) = summary.safety.as_ref().and_then(|p| p.violation_text()) {
-        return Err(CliError::Degraded(format!("degraded: {v} ({})", dir.join("summary.json").display())));
+        return Err(Error::Degraded(format!("degraded: {v} ({})", dir.join("summary.json").display())));
     }
     Ok((summary, dir))
 }
@@ -308,74 +312,24 @@ pub fn run_to_folder(
     opts: &RecordOptions,
     quiet: bool,
     threads: usize,
-) -> Result<(Summary, PathBuf), CliError> {
+) -> Result<(Summary, PathBuf), Error> {
     let mut progress = Progress::new(scenario.steps() + 1, &scenario.name, quiet);
-    let stop = interrupt::catch();
+    let stop = formation_exit::shutdown::flag::catch();
     let result = formation_sim::run_to_folder_until(scenario, opts, threads, Some(stop), |k| progress.set(k));
-    interrupt::release();
+    formation_exit::shutdown::flag::release();
     progress.finish();
     match result {
         // Ctrl-C: what was recorded is kept, and said (it left a
         // `<out>.partial` without its last rows or a summary, silently).
         Err(formation_sim::SimError::Kept { source, kept }) => match *source {
             formation_sim::SimError::Io(e) if e.kind() == std::io::ErrorKind::Interrupted => {
-                Err(CliError::Interrupted(
-                    format!(
-                        "{e}: {} holds every step before it, and summary.json says `\"complete\": false`",
-                        kept.display()
-                    ),
-                    interrupt::signal() as u8,
-                ))
+                Err(formation_exit::shutdown::flag::signal().error(format!(
+                    "{e}: {} holds every step before it, and summary.json says `\"complete\": false`",
+                    kept.display()
+                )))
             }
             source => Err(formation_sim::SimError::Kept { source: Box::new(source), kept }.into()),
         },
         r => Ok(r?),
-    }
-}
-
-/// Ctrl-C and SIGTERM during an in-process run: a flag the run reads
-/// between steps, so it stops with its folder whole up to that step.
-mod interrupt {
-    use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
-
-    static STOP: AtomicBool = AtomicBool::new(false);
-    static SIGNAL: AtomicI32 = AtomicI32::new(libc::SIGINT);
-
-    extern "C" fn on_signal(signal: libc::c_int) {
-        // Async-signal-safe: two atomic stores.
-        SIGNAL.store(signal, Ordering::Relaxed);
-        STOP.store(true, Ordering::Relaxed);
-    }
-
-    /// Installs the handler for SIGINT and SIGTERM, once: a second Ctrl-C
-    /// ends the process as it always did (a run stuck writing). The flag
-    /// it sets.
-    pub fn catch() -> &'static AtomicBool {
-        for signal in [libc::SIGINT, libc::SIGTERM] {
-            // SAFETY: a zeroed sigaction filled in; the handler only stores
-            // to atomics.
-            unsafe {
-                let mut action: libc::sigaction = std::mem::zeroed();
-                action.sa_sigaction = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
-                action.sa_flags = libc::SA_RESETHAND;
-                libc::sigemptyset(&mut action.sa_mask);
-                libc::sigaction(signal, &action, std::ptr::null_mut());
-            }
-        }
-        &STOP
-    }
-
-    /// The default actions again once the run is over.
-    pub fn release() {
-        // SAFETY: restoring the default disposition.
-        unsafe {
-            libc::signal(libc::SIGINT, libc::SIG_DFL);
-            libc::signal(libc::SIGTERM, libc::SIG_DFL);
-        }
-    }
-
-    /// The signal that stopped the run.
-    pub fn signal() -> i32 {
-        SIGNAL.load(Ordering::Relaxed)
     }
 }

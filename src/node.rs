@@ -9,11 +9,12 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::Args;
+use formation_exit::shutdown::Signal;
 use formation_net::session;
 use formation_net::{agent, leader, monitor, router};
-use formation_replay::watch::{Ending, Signal};
+use formation_recorder::watch::Ending;
 
-use crate::error::Error;
+use formation_exit::Error;
 
 /// `formation node …`: the node binaries' work inside the `formation`
 /// executable, so that `formation launch` always starts nodes built from the
@@ -90,7 +91,7 @@ pub fn run_floor(f: formation_bench::floor::FloorArgs) -> ExitCode {
 pub fn run_robot(r: formation_net::ros2::robot::RobotArgs) -> ExitCode {
     let name = format!("robot-{}", r.id);
     shell(&r.node.zenoh.clone(), &name, true, async move {
-        let stop = formation_launch::shutdown::from_now();
+        let stop = formation_exit::shutdown::from_now();
         formation_net::ros2::robot::run(&r, async move {
             stop.await;
         })
@@ -107,12 +108,17 @@ pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
     shell(&a.node.zenoh.clone(), &name, true, async move {
         // The handlers from the process's first moment (a signal before its
         // loop began is a stop, not the default death).
-        agent::run(&a, formation_launch::shutdown::from_now()).await.map(|signal| match signal {
-            None => ExitCode::SUCCESS,
-            Some(Signal::Interrupt) => ExitCode::from(130),
-            Some(Signal::Terminate) => ExitCode::from(143),
-        })
+        agent::run(&a, formation_exit::shutdown::from_now()).await.map(stopped_by)
     })
+}
+
+/// A node's exit status: 0 for its run done, 128 + the signal's number
+/// (130, 143) for one stopped by a signal, as a shell says it.
+fn stopped_by(signal: Option<Signal>) -> ExitCode {
+    match signal {
+        None => ExitCode::SUCCESS,
+        Some(s) => ExitCode::from(s.error("").status()),
+    }
 }
 
 /// `formation leave`: the line that says when the follower left, on stdout.
@@ -127,14 +133,14 @@ pub fn run_leave(a: formation_net::leave::LeaveArgs) -> ExitCode {
 /// The `leader` binary.
 pub fn run_leader(a: leader::LeaderArgs) -> ExitCode {
     shell(&a.node.zenoh.clone(), formation_protocol::names::LEADER, true, async move {
-        leader::run(&a).await.map(|()| ExitCode::SUCCESS)
+        leader::run(&a, formation_exit::shutdown::from_now()).await.map(stopped_by)
     })
 }
 
 /// The `monitor` binary.
 pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
     shell(&a.node.zenoh.clone(), formation_protocol::names::MONITOR, true, async move {
-        monitor::run(&a, formation_launch::shutdown::from_now()).await.map(monitor_status)
+        monitor::run(&a, formation_exit::shutdown::from_now()).await.map(monitor_status)
     })
 }
 
@@ -144,7 +150,7 @@ pub fn run_monitor(a: monitor::MonitorArgs) -> ExitCode {
 /// empties it.
 pub fn run_router(r: router::RouterArgs) -> ExitCode {
     shell(&r.zenoh.clone(), formation_protocol::names::ROUTER, false, async move {
-        router::run(&r, formation_launch::shutdown::from_now()).await.map(|()| ExitCode::SUCCESS)
+        router::run(&r, formation_exit::shutdown::from_now()).await.map(|()| ExitCode::SUCCESS)
     })
 }
 
@@ -153,7 +159,7 @@ pub fn run_router(r: router::RouterArgs) -> ExitCode {
 /// runtime, and the end as one line and an exit status.
 fn shell<F>(zenoh: &formation_net::session::ZenohArgs, name: &str, shared_runtime: bool, work: F) -> ExitCode
 where
-    F: std::future::Future<Output = Result<ExitCode, formation_protocol::error::Error>>,
+    F: std::future::Future<Output = Result<ExitCode, formation_exit::Error>>,
 {
     // Before the runtime's threads start.
     if shared_runtime {
@@ -211,7 +217,7 @@ where
         Ok(code) => code,
         Err(e) => {
             formation_net::node::say(&format!("error: {e}"));
-            e.exit_code()
+            ExitCode::from(e.status())
         }
     }
 }
@@ -219,13 +225,11 @@ where
 /// A monitor's exit status: 0 for a run recorded to its end, 3 for one
 /// recorded to its end but degraded (network.json's `health`), 130 after
 /// SIGINT and 143 after SIGTERM (the shell's convention).
-fn monitor_status((ending, verdict): (Ending, Option<formation_replay::health::Verdict>)) -> ExitCode {
+fn monitor_status((ending, verdict): (Ending, Option<formation_recorder::health::Verdict>)) -> ExitCode {
     match ending {
-        Ending::Interrupted => ExitCode::from(130),
-        Ending::Terminated => ExitCode::from(143),
-        _ if verdict == Some(formation_replay::health::Verdict::Degraded) => {
-            ExitCode::from(formation_launch::error::DEGRADED)
-        }
+        Ending::Interrupted => stopped_by(Some(Signal::Interrupt)),
+        Ending::Terminated => stopped_by(Some(Signal::Terminate)),
+        _ if verdict == Some(formation_recorder::health::Verdict::Degraded) => ExitCode::from(formation_exit::DEGRADED),
         _ => ExitCode::SUCCESS,
     }
 }

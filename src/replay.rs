@@ -6,10 +6,10 @@
 use std::path::PathBuf;
 
 use clap::Args;
+use formation_exit::shutdown::Signal;
 use formation_replay::replay::{self, Loaded};
-use formation_replay::watch::Signal;
 
-use crate::error::Error as CliError;
+use formation_exit::Error;
 
 #[derive(Args, Debug)]
 pub struct ReplayArgs {
@@ -39,7 +39,7 @@ pub struct ReplayArgs {
     pub top: Option<usize>,
 }
 
-pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
+pub fn run(a: &ReplayArgs) -> Result<(), Error> {
     let given: Vec<&str> =
         [("--metric", a.metric.is_some()), ("--window", a.window.is_some()), ("--top", a.top.is_some())]
             .into_iter()
@@ -50,10 +50,10 @@ pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
         let (last, rest) = given.split_last().unwrap_or((&"", &[]));
         let flags = if rest.is_empty() { last.to_string() } else { format!("{} and {last}", rest.join(", ")) };
         let verb = if rest.is_empty() { "goes" } else { "go" };
-        return Err(CliError::Input(format!("{flags} {verb} with --explain: add --explain, or leave {flags} out")));
+        return Err(Error::Input(format!("{flags} {verb} with --explain: add --explain, or leave {flags} out")));
     }
     if let Some(top) = a.top {
-        crate::error::at_least_one("--top", top as u64)?;
+        formation_exit::at_least_one("--top", top as u64)?;
     }
     let loaded = replay::load(&a.run)?;
     if a.explain {
@@ -64,15 +64,15 @@ pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
     let (verdict, text) = check(&loaded, a.out.as_deref())?;
     print!("{text}");
     match verdict {
-        Verdict::Identical => Ok(()),
+        Comparison::Identical => Ok(()),
         // The run's own files are damaged: nothing to say about the replay.
-        Verdict::Damaged(what) => Err(CliError::Input(format!(
+        Comparison::Damaged(what) => Err(Error::Input(format!(
             "{} is a damaged run folder ({}): its hearing record replays, but there is nothing whole to compare \
              the replay with (--out DIR keeps the files the replay re-computes)",
             a.run.display(),
             what.join("; ")
         ))),
-        Verdict::Differs(damaged) => Err(CliError::Run(format!(
+        Comparison::Differs(damaged) => Err(Error::Run(format!(
             "the replay of {} differs from the run: a bug in the hearing record or in the step's purity{}",
             a.run.display(),
             match damaged.is_empty() {
@@ -85,7 +85,7 @@ pub fn run(a: &ReplayArgs) -> Result<(), CliError> {
 
 /// What the comparison of a replay with its run found.
 #[derive(Debug, PartialEq)]
-pub enum Verdict {
+pub enum Comparison {
     /// The CSVs and summary.json byte for byte.
     Identical,
     /// Whole files that differ (and which of the run's files are damaged
@@ -96,7 +96,7 @@ pub enum Verdict {
 }
 
 /// Replays a run and compares: the verdict, and the report.
-pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(Verdict, String), CliError> {
+pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(Comparison, String), Error> {
     let tmp;
     let dir = match out {
         Some(d) => {
@@ -104,14 +104,14 @@ pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(Verdict,
             d.to_path_buf()
         }
         None => {
-            tmp = tempfile::tempdir().map_err(|e| CliError::Run(format!("a temporary folder: {e}")))?;
+            tmp = tempfile::tempdir().map_err(|e| Error::Run(format!("a temporary folder: {e}")))?;
             tmp.path().join("replay")
         }
     };
     let began = std::time::Instant::now();
     let s = &loaded.scenario;
     let mut bar = formation_report::progress::Progress::new(s.steps() + 1, "replay", false);
-    let problems = replay::replay_to_folder_with(loaded, replay::Hearing::Recorded, &dir, &mut |k| bar.set(k))?;
+    let problems = replay::replay_to_folder_with(loaded, replay::HearingSource::Recorded, &dir, &mut |k| bar.set(k))?;
     bar.finish();
     let secs = began.elapsed().as_secs_f64();
     let diffs = replay::compare(&loaded.dir, &dir, &loaded.scenario);
@@ -146,16 +146,16 @@ pub fn check(loaded: &Loaded, out: Option<&std::path::Path>) -> Result<(Verdict,
     // Damage explains only the files it is in: a whole file that differs
     // besides still blames the program.
     let verdict = match (diffs.is_empty(), damaged.len() == diffs.len()) {
-        (true, _) => Verdict::Identical,
-        (false, true) => Verdict::Damaged(damaged),
-        (false, false) => Verdict::Differs(damaged),
+        (true, _) => Comparison::Identical,
+        (false, true) => Comparison::Damaged(damaged),
+        (false, false) => Comparison::Differs(damaged),
     };
     Ok((verdict, text))
 }
 
 /// `--out` may not be the run's folder, in it, or hold it: the replay
 /// would replace the record it is compared with.
-fn refuse_out_over_the_run(run: &std::path::Path, out: &std::path::Path) -> Result<(), CliError> {
+fn refuse_out_over_the_run(run: &std::path::Path, out: &std::path::Path) -> Result<(), Error> {
     let resolved = |p: &std::path::Path| -> std::path::PathBuf {
         // The deepest part that exists, resolved (links, `..`), and the rest.
         let abs = std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
@@ -176,7 +176,7 @@ fn refuse_out_over_the_run(run: &std::path::Path, out: &std::path::Path) -> Resu
     };
     let (r, o) = (resolved(run), resolved(out));
     if o.starts_with(&r) || r.starts_with(&o) {
-        return Err(CliError::Input(format!(
+        return Err(Error::Input(format!(
             "--out {}: the replay would replace the run {} it is compared with; choose a folder outside it",
             out.display(),
             run.display()
@@ -185,12 +185,30 @@ fn refuse_out_over_the_run(run: &std::path::Path, out: &std::path::Path) -> Resu
     Ok(())
 }
 
-/// `formation monitor --replay RUN_DIR`: a finished run played again.
+/// `formation play RUN_DIR`: a finished run played again.
 #[derive(Args, Debug)]
-pub struct PlaybackArgs {
+pub struct PlayArgs {
+    /// The networked run folder to play (its hearing.bin).
+    #[arg(value_name = "RUN_DIR")]
+    pub run: PathBuf,
+    #[command(flatten)]
+    pub how: PlayHow,
+}
+
+/// `formation monitor --replay RUN_DIR`: the old spelling of `formation
+/// play`, kept so that scripts go on working; it says where it moved.
+#[derive(Args, Debug)]
+pub struct MonitorReplayArgs {
     /// The networked run folder to play (its hearing.bin).
     #[arg(long = "replay", value_name = "RUN_DIR", required = true)]
     pub run: PathBuf,
+    #[command(flatten)]
+    pub how: PlayHow,
+}
+
+/// Where and how a finished run plays.
+#[derive(Args, Debug)]
+pub struct PlayHow {
     /// Play it on a live page at this address (open http://ADDR/): pause,
     /// speed and seek on the page. `--web` alone: 127.0.0.1:8765; port 0:
     /// any free port (the line `live page: http://…` says which).
@@ -210,6 +228,20 @@ pub struct PlaybackArgs {
     pub linger: f64,
 }
 
+/// Where `formation monitor --replay` moved.
+const MOVED: &str = "`formation monitor --replay RUN_DIR` is now `formation play RUN_DIR`";
+
+/// `formation monitor --replay`: plays, saying where it moved (in its one
+/// line when it fails, before the playback's lines when it plays).
+pub fn monitor_replay(a: &MonitorReplayArgs) -> Result<(), Error> {
+    let moved = |m: String| format!("{MOVED}: {m}");
+    playback(&a.run, &a.how, true).map_err(|e| match e {
+        Error::Input(m) => Error::Input(moved(m)),
+        Error::Run(m) => Error::Run(moved(m)),
+        other => other,
+    })
+}
+
 /// The longest `--linger`: a day.
 const MAX_LINGER_S: f64 = 86_400.0;
 
@@ -223,12 +255,11 @@ fn number(x: f64) -> String {
 }
 
 /// Plays a finished run on the live page and to Foxglove.
-pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
+/// `moved`: asked by the old spelling, which the first line says.
+pub fn playback(run: &std::path::Path, a: &PlayHow, moved: bool) -> Result<(), Error> {
     use formation_replay::playback::{self, Control, Outputs};
     if a.web.is_none() && a.foxglove.is_none() {
-        return Err(CliError::Input(
-            "formation monitor --replay: give --web, --foxglove or both (where to play it)".into(),
-        ));
+        return Err(Error::Input("formation play: give --web, --foxglove or both (where to play it)".into()));
     }
     let (speed, linger) = (number(a.speed), number(a.linger));
     if !(playback::MIN_SPEED..=playback::MAX_SPEED).contains(&a.speed) {
@@ -237,42 +268,45 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
         } else {
             format!("--speed must be positive, not {speed}")
         };
-        return Err(CliError::Input(format!(
+        return Err(Error::Input(format!(
             "{what} ({} to {} run seconds per second)",
             playback::MIN_SPEED,
             playback::MAX_SPEED
         )));
     }
     if !(0.0..=MAX_LINGER_S).contains(&a.linger) {
-        return Err(CliError::Input(format!("--linger must be 0 to {MAX_LINGER_S} seconds (a day), not {linger}")));
+        return Err(Error::Input(format!("--linger must be 0 to {MAX_LINGER_S} seconds (a day), not {linger}")));
     }
-    let loaded = replay::load(&a.run)?;
+    let loaded = replay::load(run)?;
+    if moved {
+        eprintln!("note: {MOVED} (the old spelling still works)");
+    }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
-        .map_err(|e| CliError::Run(format!("starting the async runtime: {e}")))?;
-    let run = a.run.file_name().map_or("run".to_string(), |n| n.to_string_lossy().into_owned());
+        .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
+    let name = run.file_name().map_or("run".to_string(), |n| n.to_string_lossy().into_owned());
     let s = loaded.scenario.clone();
     let result = runtime.block_on(async move {
         let (tx, rx) = std::sync::mpsc::channel::<Control>();
         let live = match a.web {
             Some(addr) => {
                 let mut scene: serde_json::Value =
-                    serde_json::from_str(&formation_replay::recorder::Recorder::scene_json(&s, &run)).unwrap_or_default();
+                    serde_json::from_str(&formation_recorder::Recorder::scene_json(&s, &name)).unwrap_or_default();
                 scene["playback"] =
-                    serde_json::json!({"duration": s.steps() as f64 * s.dt_s, "speed": a.speed, "from": a.run.display().to_string()});
+                    serde_json::json!({"duration": s.steps() as f64 * s.dt_s, "speed": a.speed, "from": run.display().to_string()});
                 let live = formation_view::web::Live::new(scene.to_string());
                 let at = formation_view::web::serve(formation_view::web::Bind::Tcp(addr), live.clone()).await?;
                 live.set_control(Box::new(move |body| Control::parse(body).is_some_and(|c| tx.send(c).is_ok())));
-                eprintln!("live page: {at} (playing {} at {}×)", a.run.display(), a.speed);
+                eprintln!("live page: {at} (playing {} at {}×)", run.display(), a.speed);
                 Some(live)
             }
             None => None,
         };
         let foxglove = match a.foxglove {
             Some(addr) => {
-                let f = formation_view::foxglove::FoxgloveLive::start(addr, &s, &run).await?;
+                let f = formation_view::foxglove::FoxgloveLive::start(addr, &s, &name).await?;
                 eprintln!("foxglove: ws://{}:{}", addr.ip(), f.port());
                 Some(std::sync::Arc::new(f))
             }
@@ -287,7 +321,7 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
         });
         tokio::select! {
             r = task => {
-                r.map_err(|e| CliError::Run(format!("the playback stopped: {e}")))??;
+                r.map_err(|e| Error::Run(format!("the playback stopped: {e}")))??;
                 if let Some(f) = foxglove {
                     f.stop().await;
                 }
@@ -296,9 +330,9 @@ pub fn playback(a: &PlaybackArgs) -> Result<(), CliError> {
             // The player's thread is left to the process's end (it was
             // waited for, and Ctrl-C ended the command only when the
             // playback did, with status 0).
-            s = formation_launch::shutdown::signalled() => match s {
-                Signal::Interrupt => Err(CliError::Interrupted("interrupted".into(), 2)),
-                Signal::Terminate => Err(CliError::Interrupted("terminated".into(), 15)),
+            s = formation_exit::shutdown::signalled() => match s {
+                Signal::Interrupt => Err(Error::Interrupted("interrupted".into(), 2)),
+                Signal::Terminate => Err(Error::Interrupted("terminated".into(), 15)),
             },
         }
     });

@@ -13,11 +13,11 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use formation_net::node::NodeArgs;
-use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_protocol::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use zenoh::Wait;
 
 use crate::hearing::median;
-use formation_launch::error::Error;
+use formation_exit::Error;
 
 /// `formation node floor`: one plain-zenoh stand-in for an agent (or, with
 /// `--id 0`, the leader), publishing every period for `--seconds`.
@@ -44,26 +44,24 @@ pub struct FloorArgs {
 /// folder `tmp`; its scenario file.
 pub fn ring_file(tmp: &std::path::Path, n: u32) -> Result<std::path::PathBuf, Error> {
     std::fs::create_dir_all(tmp).map_err(|e| Error::Run(format!("{}: {e}", tmp.display())))?;
-    let spec = formation_topology::generate::Spec {
+    let spec = formation_scenario::generate::Spec {
         chords: n / 5,
-        ..formation_topology::generate::Spec::new(n, formation_topology::generate::GraphKind::Ring)
+        ..formation_scenario::generate::Spec::new(n, formation_scenario::generate::GraphKind::Ring)
     };
-    let text = formation_topology::generate::toml(&spec).map_err(|e| Error::Input(e.to_string()))?;
+    let text = formation_scenario::generate::toml(&spec).map_err(|e| Error::Input(e.to_string()))?;
     let file = tmp.join(format!("ring{n}.toml"));
     std::fs::write(&file, text).map_err(|e| Error::Run(format!("{}: {e}", file.display())))?;
     Ok(file)
 }
 
 /// Runs one floor process.
-pub async fn node(a: &FloorArgs) -> Result<(), formation_protocol::error::Error> {
+pub async fn node(a: &FloorArgs) -> Result<(), formation_exit::Error> {
     let identity = if a.id == 0 { "leader".to_string() } else { formation_protocol::names::agent_name(a.id) };
     let (scenario, keys) = a.node.load(&identity)?;
     let session = a.node.open(&identity, &scenario).await?;
     let mut sources: Vec<u32> = Vec::new();
     if a.id != 0 {
-        let i = scenario
-            .index_of(a.id)
-            .ok_or_else(|| formation_protocol::error::Error::Input(format!("no follower {}", a.id)))?;
+        let i = scenario.index_of(a.id).ok_or_else(|| formation_exit::Error::Input(format!("no follower {}", a.id)))?;
         sources.extend(scenario.graph.neighbours(i).iter().map(|&j| scenario.graph.id(j)));
         if scenario.graph.hears_leader(i) {
             sources.push(wire::LEADER_ID);
@@ -84,7 +82,7 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_protocol::error::Error>
                 r.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             })
             .await
-            .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
+            .map_err(|e| formation_exit::Error::Run(e.to_string()))?;
         subs.push(sub);
     }
     let publisher = session
@@ -93,7 +91,7 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_protocol::error::Error>
         .priority(formation_net::node::priority::ESTIMATE)
         .express(formation_net::node::estimate_express(&scenario))
         .await
-        .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
+        .map_err(|e| formation_exit::Error::Run(e.to_string()))?;
     let period = Duration::from_secs_f64(scenario.dt_s);
     let steps = (a.seconds / scenario.dt_s) as u64;
     // As an agent's real-time loop: a task on zenoh's own thread woken by
@@ -123,7 +121,7 @@ pub async fn node(a: &FloorArgs) -> Result<(), formation_protocol::error::Error>
     })
     .await
     .and_then(|r| r)
-    .map_err(formation_protocol::error::Error::Run)?;
+    .map_err(formation_exit::Error::Run)?;
     drop(subs);
     let _ = session.close().await;
     Ok(())
@@ -145,9 +143,9 @@ async fn lockstep_node(
     a: &FloorArgs,
     session: &zenoh::Session,
     keys: &formation_protocol::names::Keys,
-    scenario: &formation_topology::Scenario,
+    scenario: &formation_scenario::Scenario,
     sources: Vec<u32>,
-) -> Result<(), formation_protocol::error::Error> {
+) -> Result<(), formation_exit::Error> {
     let leader = a.id == 0;
     // The leader waits for the followers that hear it; a follower for its sources.
     let waits: Vec<u32> = if leader {
@@ -177,7 +175,7 @@ async fn lockstep_node(
                 }
             })
             .await
-            .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
+            .map_err(|e| formation_exit::Error::Run(e.to_string()))?;
         subs.push(sub);
     }
     let publisher = session
@@ -186,13 +184,13 @@ async fn lockstep_node(
         .priority(formation_net::node::priority::ESTIMATE)
         .express(formation_net::node::estimate_express(scenario))
         .await
-        .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?;
+        .map_err(|e| formation_exit::Error::Run(e.to_string()))?;
     let steps = (a.seconds / scenario.dt_s).round() as u64;
     let dt = scenario.dt_s;
     let rate = tokio::task::spawn_blocking(move || floor_loop(leader, steps, dt, &heard, &publisher))
         .await
-        .map_err(|e| formation_protocol::error::Error::Run(e.to_string()))?
-        .map_err(|e| formation_protocol::error::Error::Run(format!("{}: {e}", a.id)))?;
+        .map_err(|e| formation_exit::Error::Run(e.to_string()))?
+        .map_err(|e| formation_exit::Error::Run(format!("{}: {e}", a.id)))?;
     println!("steps/s {rate:.1}");
     // A while before the session closes, so that the last steps reach the neighbours.
     tokio::time::sleep(Duration::from_millis(300)).await;
@@ -304,7 +302,7 @@ fn floor_processes(
         for set in sets {
             c.args(["--set", set]);
         }
-        formation_net::session::router_runtime(&mut c, formation_topology::Timing::Realtime);
+        formation_net::session::router_runtime(&mut c, formation_scenario::Timing::Realtime);
         quiet(&mut c);
         children.push(c.spawn().map_err(|e| Error::Run(format!("starting the floor's router: {e}")))?);
     }
@@ -361,7 +359,7 @@ pub fn lockstep_rate(
     port: u16,
 ) -> Result<f64, Error> {
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
-    let s = formation_topology::Scenario::load(scenario, sets).map_err(|e| Error::Input(e.to_string()))?;
+    let s = formation_scenario::Scenario::load(scenario, sets).map_err(|e| Error::Input(e.to_string()))?;
     let links = if clients { Links::Clients } else { Links::Peers };
     let run = format!("floorls{}", std::process::id());
     let extra = ["--lockstep".to_string(), "--seconds".into(), seconds.to_string()];
@@ -513,7 +511,7 @@ pub fn run(
     kind: formation_launch::options::Links,
 ) -> Result<(), Error> {
     let exe = std::env::current_exe().map_err(|e| Error::Run(format!("locating this executable: {e}")))?;
-    let s = formation_topology::Scenario::load(scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
+    let s = formation_scenario::Scenario::load(scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     let ids: Vec<u32> = s.graph.ids().to_vec();
     println!(
         "CPU per process and step in steady state (a 5 s window from 4 s into a 12 s run; 8 s into 16 s for rings), \
@@ -528,7 +526,7 @@ pub fn run(
     for (i, &n) in rings.iter().enumerate() {
         let tmp = std::env::temp_dir().join(format!("formation-bench-floor-{}-ring{n}", std::process::id()));
         let file = ring_file(&tmp, n)?;
-        let ring_ids: Vec<u32> = formation_topology::Scenario::load(&file, &[])
+        let ring_ids: Vec<u32> = formation_scenario::Scenario::load(&file, &[])
             .map_err(|e| Error::Input(e.to_string()))?
             .graph
             .ids()

@@ -6,7 +6,7 @@
 
 use std::time::Instant;
 
-use formation_launch::error::Error;
+use formation_exit::Error;
 use formation_launch::options::LaunchArgs;
 
 /// Runs of each kind; the medians are printed.

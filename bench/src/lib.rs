@@ -7,6 +7,22 @@
 //! ([`netns`]), and the networked formation at nominal timing against its
 //! model ([`verify`], `formation verify`). Every figure is measured here,
 //! never by timing a test.
+//!
+//! # Examples
+//!
+//! The simulator's speed, as `formation bench` measures it, for a short
+//! run of the paper's formation (the figure itself belongs to the command,
+//! never to a test):
+//!
+//! ```
+//! use std::path::Path;
+//! use formation_scenario::Scenario;
+//!
+//! let paper = Scenario::load(Path::new("paper"), &[]).expect("scenario");
+//! let m = formation_bench::sim::measure(&paper, 200, false, 1, 1).expect("measured");
+//! assert_eq!((m.followers, m.threads), (4, 1));
+//! assert!(m.follower_steps_per_second() > 0.0);
+//! ```
 
 pub mod floor;
 pub mod hearing;
@@ -16,7 +32,7 @@ pub mod ros2;
 pub mod sim;
 pub mod verify;
 
-use formation_launch::error::Error;
+use formation_exit::Error;
 
 /// Refuses 0 for a count option that must be at least 1.
 fn at_least_one(flag: &str, value: u64) -> Result<(), Error> {

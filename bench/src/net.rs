@@ -27,21 +27,21 @@ use std::path::PathBuf;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use formation_topology::wire;
+use formation_protocol::wire;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
 use crate::hearing::{network_json, worst_period};
 use crate::netns::estimate;
-use formation_launch::error::Error;
+use formation_exit::Error;
 use formation_launch::options::{LaunchArgs, LaunchMode, Links, RunOptions};
 use formation_net::session::{self, ZenohArgs};
 use formation_protocol::inbox::{self, Inbox, Source};
 use formation_protocol::loop_timing as timing;
 use formation_protocol::names;
+use formation_scenario::args::ScenarioArgs;
 use formation_sim::{NoRecord, Simulation};
-use formation_topology::args::ScenarioArgs;
 
 #[derive(Debug, Clone)]
 #[cfg_attr(feature = "clap", derive(clap::Args))]
@@ -217,7 +217,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     if a.echo.is_some() || a.ping.is_some() {
         return crate::netns::run_side(a.echo.as_deref(), a.ping.as_deref(), a.round_trips);
     }
-    let scenario = formation_topology::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
+    let scenario = formation_scenario::Scenario::load(&a.scenario, &[]).map_err(|e| Error::Input(e.to_string()))?;
     if a.floor {
         return crate::floor::run(&a.scenario, a.base_port, &a.agents.0, a.plain_links());
     }
@@ -235,7 +235,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
         formation_net::identity::check_all(dir, &scenario).map_err(|e| Error::Input(e.0))?;
     }
     let n = scenario.followers.len();
-    let sim_s = formation_topology::Scenario::load(&a.scenario, &lockstep_sets(a.lockstep_duration))
+    let sim_s = formation_scenario::Scenario::load(&a.scenario, &lockstep_sets(a.lockstep_duration))
         .map_err(|e| Error::Input(e.to_string()))?;
     let t = Instant::now();
     Simulation::new(&sim_s).run(&mut NoRecord, |_| {}).map_err(|e| Error::Run(e.to_string()))?;
@@ -391,7 +391,7 @@ fn lockstep_sets(d: f64) -> Vec<String> {
 /// with the certificates in `tls`, on ports from `port`.
 fn measure(
     a: &BenchNetArgs,
-    scenario: &formation_topology::Scenario,
+    scenario: &formation_scenario::Scenario,
     tls: Option<&std::path::Path>,
     port: u16,
 ) -> Result<Figures, Error> {

@@ -16,10 +16,10 @@ use formation_net::clock_sync;
 use formation_net::session::{self, ZenohArgs};
 use formation_protocol::loop_timing as timing;
 use formation_protocol::names::Keys;
-use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_protocol::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use zenoh::Wait;
 
-use formation_launch::error::Error;
+use formation_exit::Error;
 use formation_launch::lab::netns;
 
 const PORT: u16 = 7447;
@@ -74,7 +74,7 @@ pub async fn echo(listen: &str) -> Result<(), Error> {
     )
     .await?;
     println!("echo ready");
-    formation_launch::shutdown::signalled().await;
+    formation_exit::shutdown::signalled().await;
     Ok(())
 }
 

@@ -5,7 +5,7 @@
 //! real-time loop's period error side by side (median of the runs).
 
 use crate::hearing::{network_json, periods_side_by_side, worst_period};
-use formation_launch::error::Error;
+use formation_exit::Error;
 use formation_launch::options::LaunchArgs;
 
 /// Runs of each kind; the medians are printed.

@@ -7,9 +7,9 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use formation_topology::{generate, Scenario};
+use formation_scenario::{generate, Scenario};
 
-use formation_launch::error::Error;
+use formation_exit::Error;
 use formation_record::RecordOptions;
 use formation_sim::{NoRecord, Simulation};
 
@@ -154,15 +154,15 @@ fn fault_cases(a: &BenchArgs) -> Result<(), Error> {
 /// follower-steps.
 fn guard_cases(a: &BenchArgs) -> Result<(), Error> {
     let full = Scenario::load(std::path::Path::new("turtlebot"), &[]).map_err(|e| Error::Input(e.to_string()))?;
-    let with = |guard: formation_agent::Guard| {
+    let with = |guard: formation_control::Guard| {
         let mut s = full.clone();
-        s.control = std::sync::Arc::new(formation_agent::ControlParams { guard, ..(*full.control).clone() });
+        s.control = std::sync::Arc::new(formation_control::ControlParams { guard, ..(*full.control).clone() });
         s
     };
     let g = full.control.guard;
     let cases = [
-        ("no guard", with(formation_agent::Guard::default())),
-        ("limits", with(formation_agent::Guard { safety: None, ..g })),
+        ("no guard", with(formation_control::Guard::default())),
+        ("limits", with(formation_control::Guard { safety: None, ..g })),
         ("limits and safety filter", with(g)),
     ];
     println!(

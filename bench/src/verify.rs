@@ -20,8 +20,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use formation_launch::error::Error;
-use formation_replay::period::{Period, KEPT_LATE_SHARE};
+use formation_exit::Error;
+use formation_recorder::period::{Period, KEPT_LATE_SHARE};
 
 #[derive(Debug, Clone)]
 #[cfg_attr(feature = "clap", derive(clap::Args))]

@@ -13,21 +13,13 @@
 use std::net::IpAddr;
 use std::path::{Path, PathBuf};
 
-use crate::identity::{policy_digest_name, CA_CERT, CA_DIR, CA_KEY, CRL, POLICY, POLICY_CERT, POLICY_SUBJECT};
+use formation_exit::Error;
 
-/// Why a folder was not written: the input (an option, a folder that is
-/// there) or the writing itself. The message is one line.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum GenerateError {
-    #[error("{0}")]
-    Input(String),
-    #[error("{0}")]
-    Run(String),
-}
+use crate::identity::{policy_digest_name, CA_CERT, CA_DIR, CA_KEY, CRL, POLICY, POLICY_CERT, POLICY_SUBJECT};
 
 /// One node of the folder.
 #[derive(Clone, Debug)]
-pub struct Node {
+pub struct NodeCert {
     /// The node's name: its certificate's common name and its folder.
     pub name: String,
     /// Addresses its certificate is valid for besides loopback and the
@@ -41,7 +33,7 @@ pub struct Request<'a> {
     /// The folder to write.
     pub dir: &'a Path,
     /// Every node of the scenario, in the lab's host order.
-    pub nodes: &'a [Node],
+    pub nodes: &'a [NodeCert],
     /// The scenario's name, for the policy file's header.
     pub scenario: &'a str,
     /// The access-control policy of the scenario's topology.
@@ -72,19 +64,19 @@ pub struct Report {
 /// Writes the folder `r` asks for: everything is checked before anything
 /// is written, and the new folders are written beside the old ones, which
 /// they replace only once all of them are complete.
-pub fn write_folder(r: &Request<'_>) -> Result<Report, GenerateError> {
+pub fn write_folder(r: &Request<'_>) -> Result<Report, Error> {
     let validity = Validity::of(r.days, r.not_before)?;
     let names: Vec<String> = r.nodes.iter().map(|n| n.name.clone()).collect();
     for n in r.reissue.iter().chain(r.revoke) {
         if !names.contains(n) {
             let flag = if r.reissue.contains(n) { "--node" } else { "--revoke" };
-            return Err(GenerateError::Input(format!("{flag} {n}: the scenario's nodes are {}", names.join(", "))));
+            return Err(Error::Input(format!("{flag} {n}: the scenario's nodes are {}", names.join(", "))));
         }
     }
     let extra = r.san.iter().map(|s| san(s)).collect::<Result<Vec<_>, _>>()?;
     let changing = !r.reissue.is_empty() || !r.revoke.is_empty();
     if r.force && changing {
-        return Err(GenerateError::Input(
+        return Err(Error::Input(
             "--force makes everything new: leave out --node and --revoke (or --force to change a few nodes)".into(),
         ));
     }
@@ -152,14 +144,14 @@ struct Validity {
 
 impl Validity {
     /// From `--days` and `--not-before` (None: five minutes ago).
-    fn of(days: u32, not_before: Option<&str>) -> Result<Validity, GenerateError> {
+    fn of(days: u32, not_before: Option<&str>) -> Result<Validity, Error> {
         if days == 0 || days > MAX_DAYS {
-            return Err(GenerateError::Input(format!("--days {days}: must be from 1 to {MAX_DAYS} (100 years)")));
+            return Err(Error::Input(format!("--days {days}: must be from 1 to {MAX_DAYS} (100 years)")));
         }
         let not_before = match not_before {
             None => time::OffsetDateTime::now_utc() - time::Duration::minutes(5),
             Some(d) => parse_date(d).ok_or_else(|| {
-                GenerateError::Input(format!(
+                Error::Input(format!(
                     "--not-before {d:?}: expected a date YYYY-MM-DD from {FIRST_YEAR}-01-01 to {LAST_YEAR}-12-31"
                 ))
             })?,
@@ -168,7 +160,7 @@ impl Validity {
             .checked_add(time::Duration::days(i64::from(days)))
             .filter(|t| t.year() <= LAST_YEAR)
             .ok_or_else(|| {
-                GenerateError::Input(format!(
+                Error::Input(format!(
                     "--not-before {} with --days {days}: the certificates would end after {LAST_YEAR}-12-31, the last date a certificate can hold",
                     day(not_before),
                 ))
@@ -186,7 +178,7 @@ fn revocations(
     changing: bool,
     now: time::OffsetDateTime,
     said: &mut Vec<String>,
-) -> Result<Vec<Revoked>, GenerateError> {
+) -> Result<Vec<Revoked>, Error> {
     let mut revoked = if changing { read_revoked(ca_old)? } else { Vec::new() };
     for name in r.revoke.iter().chain(r.reissue) {
         let cert = r.dir.join(name).join(format!("{name}.pem"));
@@ -203,11 +195,11 @@ fn revocations(
 /// A new key and certificate for `node`, in `folder`.
 fn issue(
     folder: &Path,
-    node: &Node,
+    node: &NodeCert,
     extra: &[rcgen::SanType],
     validity: &Validity,
     issuer: &rcgen::Issuer<'static, rcgen::KeyPair>,
-) -> Result<(), GenerateError> {
+) -> Result<(), Error> {
     let name = &node.name;
     let mut sans: Vec<rcgen::SanType> = vec![
         rcgen::SanType::IpAddress("127.0.0.1".parse().expect("an address")),
@@ -226,9 +218,8 @@ fn issue(
     // A peer both listens and dials: it needs both.
     p.extended_key_usages =
         vec![rcgen::ExtendedKeyUsagePurpose::ServerAuth, rcgen::ExtendedKeyUsagePurpose::ClientAuth];
-    let key = rcgen::KeyPair::generate().map_err(|e| GenerateError::Run(format!("making {name}'s key: {e}")))?;
-    let cert =
-        p.signed_by(&key, issuer).map_err(|e| GenerateError::Run(format!("signing {name}'s certificate: {e}")))?;
+    let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making {name}'s key: {e}")))?;
+    let cert = p.signed_by(&key, issuer).map_err(|e| Error::Run(format!("signing {name}'s certificate: {e}")))?;
     write_private(&folder.join(format!("{name}.key")), &key.serialize_pem())?;
     write(&folder.join(format!("{name}.pem")), &cert.pem())
 }
@@ -254,10 +245,10 @@ struct Plan {
 /// them), a file where a folder must be, a folder inside one (certs
 /// replaces them whole), a folder it cannot read and write, or (for
 /// --node and --revoke) no authority to use.
-fn plan(dir: &Path, names: &[String], force: bool, changing: bool) -> Result<Plan, GenerateError> {
+fn plan(dir: &Path, names: &[String], force: bool, changing: bool) -> Result<Plan, Error> {
     let out_exists = no_symlink(dir)?;
     if out_exists && !changing && !force && std::fs::read_dir(dir).map_or(false, |mut d| d.next().is_some()) {
-        return Err(GenerateError::Input(format!(
+        return Err(Error::Input(format!(
             "{} exists: --force replaces it (a new authority and new keys for every node), --node NAME reissues \
              one node, --revoke NAME revokes one",
             dir.display()
@@ -271,7 +262,7 @@ fn plan(dir: &Path, names: &[String], force: bool, changing: bool) -> Result<Pla
             _ => Path::new("."),
         };
         if !parent.is_dir() {
-            return Err(GenerateError::Input(format!(
+            return Err(Error::Input(format!(
                 "{}: the folder it would go in, {}, is not there",
                 dir.display(),
                 parent.display()
@@ -286,17 +277,17 @@ fn plan(dir: &Path, names: &[String], force: bool, changing: bool) -> Result<Pla
             continue;
         }
         usable(&folder)?;
-        let entries = std::fs::read_dir(&folder)
-            .map_err(|e| GenerateError::Input(format!("reading {}: {e}", folder.display())))?;
+        let entries =
+            std::fs::read_dir(&folder).map_err(|e| Error::Input(format!("reading {}: {e}", folder.display())))?;
         for entry in entries {
-            let path = entry.map_err(|e| GenerateError::Input(format!("reading {}: {e}", folder.display())))?.path();
+            let path = entry.map_err(|e| Error::Input(format!("reading {}: {e}", folder.display())))?.path();
             let m = std::fs::symlink_metadata(&path)
-                .map_err(|e| GenerateError::Input(format!("reading {}: {e}", path.display())))?;
+                .map_err(|e| Error::Input(format!("reading {}: {e}", path.display())))?;
             if m.file_type().is_symlink() {
                 return Err(link_refused(&path));
             }
             if !m.is_file() {
-                return Err(GenerateError::Input(format!(
+                return Err(Error::Input(format!(
                     "{} is {} inside {sub}/, which certs replaces whole: nothing was changed (move it out of {sub}/, \
                      then run again)",
                     path.display(),
@@ -311,14 +302,14 @@ fn plan(dir: &Path, names: &[String], force: bool, changing: bool) -> Result<Pla
         match (cert.is_file(), key.is_file()) {
             (true, true) => {}
             (false, false) => {
-                return Err(GenerateError::Input(format!(
+                return Err(Error::Input(format!(
                     "{}: no authority there ({}/{CA_KEY}): --node and --revoke change a folder `formation certs` made",
                     dir.display(),
                     CA_DIR
                 )))
             }
             (true, false) => {
-                return Err(GenerateError::Input(format!(
+                return Err(Error::Input(format!(
                     "{} is there without its key {}: not replacing an authority (move the folder away to make a \
                      new one)",
                     cert.display(),
@@ -326,7 +317,7 @@ fn plan(dir: &Path, names: &[String], force: bool, changing: bool) -> Result<Pla
                 )))
             }
             (false, true) => {
-                return Err(GenerateError::Input(format!(
+                return Err(Error::Input(format!(
                     "{} is there without its certificate {}: not replacing an authority (move the folder away to \
                      make a new one)",
                     key.display(),
@@ -339,15 +330,15 @@ fn plan(dir: &Path, names: &[String], force: bool, changing: bool) -> Result<Pla
 }
 
 /// Refuses a folder this user cannot read, enter and write.
-fn usable(folder: &Path) -> Result<(), GenerateError> {
+fn usable(folder: &Path) -> Result<(), Error> {
     use std::os::unix::ffi::OsStrExt;
     let Ok(c) = std::ffi::CString::new(folder.as_os_str().as_bytes()) else {
-        return Err(GenerateError::Input(format!("{}: a path with a NUL byte", folder.display())));
+        return Err(Error::Input(format!("{}: a path with a NUL byte", folder.display())));
     };
     // SAFETY: `c` is a NUL-terminated string that lives across the call.
     if unsafe { libc::access(c.as_ptr(), libc::R_OK | libc::W_OK | libc::X_OK) } != 0 {
         let e = std::io::Error::last_os_error();
-        return Err(GenerateError::Input(format!(
+        return Err(Error::Input(format!(
             "{}: this user cannot read and write it ({e}): nothing was changed",
             folder.display()
         )));
@@ -356,9 +347,9 @@ fn usable(folder: &Path) -> Result<(), GenerateError> {
 }
 
 /// The one line for a symbolic link where certs would write or remove.
-fn link_refused(path: &Path) -> GenerateError {
+fn link_refused(path: &Path) -> Error {
     let to = std::fs::read_link(path).map(|t| format!(" (to {})", t.display())).unwrap_or_default();
-    GenerateError::Input(format!(
+    Error::Input(format!(
         "{}{to} is a symbolic link: certs never writes or removes anything through a link, and changed nothing \
          (move the link away, then run again)",
         path.display()
@@ -374,7 +365,7 @@ struct Staging {
 }
 
 impl Staging {
-    fn new(dir: &Path, make_out: bool) -> Result<Staging, GenerateError> {
+    fn new(dir: &Path, make_out: bool) -> Result<Staging, Error> {
         use std::os::unix::fs::DirBuilderExt;
         if make_out {
             make_dir(dir)?;
@@ -384,7 +375,7 @@ impl Staging {
             if make_out {
                 let _ = std::fs::remove_dir(dir);
             }
-            return Err(GenerateError::Run(format!("creating {}: {e} (nothing was changed)", path.display())));
+            return Err(Error::Run(format!("creating {}: {e} (nothing was changed)", path.display())));
         }
         Ok(Staging { path, made_out: make_out.then(|| dir.to_path_buf()) })
     }
@@ -408,23 +399,23 @@ impl Drop for Staging {
 /// (an untouched node's key and certificate, the authority's key with
 /// --node or --revoke, anything else someone put there), and gives `new`
 /// the permissions `old` had. Nothing if `old` is not there.
-fn carry(old: &Path, new: &Path) -> Result<(), GenerateError> {
+fn carry(old: &Path, new: &Path) -> Result<(), Error> {
     use std::io::Read;
     use std::os::unix::fs::{OpenOptionsExt, PermissionsExt};
     let entries = match std::fs::read_dir(old) {
         Ok(entries) => entries,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-        Err(e) => return Err(GenerateError::Input(format!("reading {}: {e}", old.display()))),
+        Err(e) => return Err(Error::Input(format!("reading {}: {e}", old.display()))),
     };
     for entry in entries {
-        let from = entry.map_err(|e| GenerateError::Input(format!("reading {}: {e}", old.display())))?.path();
+        let from = entry.map_err(|e| Error::Input(format!("reading {}: {e}", old.display())))?.path();
         let Some(file) = from.file_name() else { continue };
         let to = new.join(file);
         if std::fs::symlink_metadata(&to).is_ok() {
             continue;
         }
-        let m = std::fs::symlink_metadata(&from)
-            .map_err(|e| GenerateError::Input(format!("reading {}: {e}", from.display())))?;
+        let m =
+            std::fs::symlink_metadata(&from).map_err(|e| Error::Input(format!("reading {}: {e}", from.display())))?;
         if m.file_type().is_symlink() {
             return Err(link_refused(&from));
         }
@@ -434,25 +425,25 @@ fn carry(old: &Path, new: &Path) -> Result<(), GenerateError> {
             .custom_flags(libc::O_NOFOLLOW)
             .open(&from)
             .and_then(|mut f| f.read_to_end(&mut bytes))
-            .map_err(|e| GenerateError::Input(format!("reading {}: {e}", from.display())))?;
+            .map_err(|e| Error::Input(format!("reading {}: {e}", from.display())))?;
         write_mode(&to, &bytes, m.permissions().mode() & 0o777)?;
     }
-    let m = std::fs::metadata(old).map_err(|e| GenerateError::Input(format!("reading {}: {e}", old.display())))?;
+    let m = std::fs::metadata(old).map_err(|e| Error::Input(format!("reading {}: {e}", old.display())))?;
     std::fs::set_permissions(new, std::fs::Permissions::from_mode(m.permissions().mode() & 0o777))
-        .map_err(|e| GenerateError::Run(format!("setting the permissions of {}: {e}", new.display())))
+        .map_err(|e| Error::Run(format!("setting the permissions of {}: {e}", new.display())))
 }
 
 /// Puts the new `folders` (complete, in `stage`) in DIR: each old one is
 /// moved aside first (into DIR/.certs-old-<pid>), and the old ones are
 /// removed only once every new one is in place (if that fails, the warning
 /// is returned). If a move fails, the moves done are undone.
-fn swap(dir: &Path, stage: &Path, folders: &[String]) -> Result<Option<String>, GenerateError> {
+fn swap(dir: &Path, stage: &Path, folders: &[String]) -> Result<Option<String>, Error> {
     use std::os::unix::fs::DirBuilderExt;
     let aside = dir.join(format!(".certs-old-{}", std::process::id()));
     std::fs::DirBuilder::new()
         .mode(0o700)
         .create(&aside)
-        .map_err(|e| GenerateError::Run(format!("creating {}: {e} (nothing was changed)", aside.display())))?;
+        .map_err(|e| Error::Run(format!("creating {}: {e} (nothing was changed)", aside.display())))?;
     let mut moved: Vec<(PathBuf, PathBuf)> = Vec::new();
     let mut failed = None;
     'folders: for sub in folders {
@@ -474,9 +465,9 @@ fn swap(dir: &Path, stage: &Path, folders: &[String]) -> Result<Option<String>, 
         let undone = moved.iter().rev().all(|(from, to)| std::fs::rename(to, from).is_ok());
         if undone {
             let _ = std::fs::remove_dir(&aside);
-            return Err(GenerateError::Run(format!("{why}: every folder was put back as it was")));
+            return Err(Error::Run(format!("{why}: every folder was put back as it was")));
         }
-        return Err(GenerateError::Run(format!(
+        return Err(Error::Run(format!(
             "{why}, and putting the folders back failed: the old ones are in {}",
             aside.display()
         )));
@@ -492,7 +483,7 @@ fn sign_policy(
     issuer: &rcgen::Issuer<'static, rcgen::KeyPair>,
     policy: &[u8],
     not_after: time::OffsetDateTime,
-) -> Result<String, GenerateError> {
+) -> Result<String, Error> {
     let mut p = rcgen::CertificateParams::default();
     p.distinguished_name.push(rcgen::DnType::CommonName, POLICY_SUBJECT);
     let digest = policy_digest_name(policy);
@@ -500,31 +491,30 @@ fn sign_policy(
     p.not_before = time::OffsetDateTime::now_utc() - time::Duration::minutes(5);
     p.not_after = not_after.max(p.not_before + time::Duration::days(1));
     p.use_authority_key_identifier_extension = true;
-    let key = rcgen::KeyPair::generate().map_err(|e| GenerateError::Run(format!("making the policy's key: {e}")))?;
-    let cert = p.signed_by(&key, issuer).map_err(|e| GenerateError::Run(format!("signing the policy: {e}")))?;
+    let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making the policy's key: {e}")))?;
+    let cert = p.signed_by(&key, issuer).map_err(|e| Error::Run(format!("signing the policy: {e}")))?;
     Ok(cert.pem())
 }
 
 /// The serial of the certificate at `path`, if there is one.
-fn serial_of(path: &Path) -> Result<Option<Vec<u8>>, GenerateError> {
+fn serial_of(path: &Path) -> Result<Option<Vec<u8>>, Error> {
     use x509_parser::prelude::*;
     let Ok(bytes) = std::fs::read(path) else { return Ok(None) };
-    let (_, pem) = parse_x509_pem(&bytes)
-        .map_err(|e| GenerateError::Input(format!("{}: not a certificate: {e}", path.display())))?;
-    let x509 =
-        pem.parse_x509().map_err(|e| GenerateError::Input(format!("{}: not a certificate: {e}", path.display())))?;
+    let (_, pem) =
+        parse_x509_pem(&bytes).map_err(|e| Error::Input(format!("{}: not a certificate: {e}", path.display())))?;
+    let x509 = pem.parse_x509().map_err(|e| Error::Input(format!("{}: not a certificate: {e}", path.display())))?;
     Ok(Some(x509.raw_serial().to_vec()))
 }
 
 const REVOKED_LIST: &str = "revoked.txt";
 
-fn read_revoked(ca_dir: &Path) -> Result<Vec<Revoked>, GenerateError> {
+fn read_revoked(ca_dir: &Path) -> Result<Vec<Revoked>, Error> {
     let path = ca_dir.join(REVOKED_LIST);
     let Ok(text) = std::fs::read_to_string(&path) else { return Ok(Vec::new()) };
     text.lines()
         .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
         .map(|l| {
-            let bad = || GenerateError::Input(format!("{}: cannot read the line {l:?}", path.display()));
+            let bad = || Error::Input(format!("{}: cannot read the line {l:?}", path.display()));
             let mut f = l.split_whitespace();
             let (serial, name, at) = (f.next().ok_or_else(bad)?, f.next().ok_or_else(bad)?, f.next().ok_or_else(bad)?);
             let serial = (0..serial.len() / 2)
@@ -541,7 +531,7 @@ fn read_revoked(ca_dir: &Path) -> Result<Vec<Revoked>, GenerateError> {
         .collect()
 }
 
-fn write_revoked(ca_dir: &Path, revoked: &[Revoked]) -> Result<(), GenerateError> {
+fn write_revoked(ca_dir: &Path, revoked: &[Revoked]) -> Result<(), Error> {
     let mut text = String::from("# Certificates this authority revoked: serial (hex), node, when (unix seconds).\n");
     for r in revoked {
         let hex: String = r.serial.iter().map(|b| format!("{b:02x}")).collect();
@@ -555,7 +545,7 @@ fn revocation_list(
     issuer: &rcgen::Issuer<'static, rcgen::KeyPair>,
     revoked: &[Revoked],
     now: time::OffsetDateTime,
-) -> Result<String, GenerateError> {
+) -> Result<String, Error> {
     let params = rcgen::CertificateRevocationListParams {
         this_update: now - time::Duration::minutes(5),
         next_update: now + time::Duration::days(MAX_DAYS.into()),
@@ -572,17 +562,17 @@ fn revocation_list(
             .collect(),
         key_identifier_method: rcgen::KeyIdMethod::Sha256,
     };
-    let crl = params.signed_by(issuer).map_err(|e| GenerateError::Run(format!("signing the revocation list: {e}")))?;
-    crl.pem().map_err(|e| GenerateError::Run(format!("writing the revocation list: {e}")))
+    let crl = params.signed_by(issuer).map_err(|e| Error::Run(format!("signing the revocation list: {e}")))?;
+    crl.pem().map_err(|e| Error::Run(format!("writing the revocation list: {e}")))
 }
 
 /// Whether `path` exists (as a real folder); a symbolic link there is refused.
-fn no_symlink(path: &Path) -> Result<bool, GenerateError> {
+fn no_symlink(path: &Path) -> Result<bool, Error> {
     match std::fs::symlink_metadata(path) {
         Err(_) => Ok(false),
         Ok(m) if m.file_type().is_symlink() => Err(link_refused(path)),
         Ok(m) if m.is_dir() => Ok(true),
-        Ok(_) => Err(GenerateError::Input(format!(
+        Ok(_) => Err(Error::Input(format!(
             "{} is a file, not a folder: nothing was changed (move it away, then run again)",
             path.display()
         ))),
@@ -590,7 +580,7 @@ fn no_symlink(path: &Path) -> Result<bool, GenerateError> {
 }
 
 /// Creates a folder (0700) unless it is there; never through a symbolic link.
-fn make_dir(path: &Path) -> Result<(), GenerateError> {
+fn make_dir(path: &Path) -> Result<(), Error> {
     use std::os::unix::fs::DirBuilderExt;
     if no_symlink(path)? {
         return Ok(());
@@ -598,7 +588,7 @@ fn make_dir(path: &Path) -> Result<(), GenerateError> {
     std::fs::DirBuilder::new()
         .mode(0o700)
         .create(path)
-        .map_err(|e| GenerateError::Run(format!("creating {}: {e}", path.display())))
+        .map_err(|e| Error::Run(format!("creating {}: {e}", path.display())))
 }
 
 /// Longest validity `--days` accepts.
@@ -610,7 +600,7 @@ const LAST_YEAR: i32 = 9999;
 
 /// A `--san` value: an IP address, or a DNS name (labels of letters, digits
 /// and '-', at most 63 characters each and 253 in all).
-fn san(s: &str) -> Result<rcgen::SanType, GenerateError> {
+fn san(s: &str) -> Result<rcgen::SanType, Error> {
     if let Ok(ip) = s.parse::<IpAddr>() {
         return Ok(rcgen::SanType::IpAddress(ip));
     }
@@ -622,14 +612,14 @@ fn san(s: &str) -> Result<rcgen::SanType, GenerateError> {
             && l.chars().all(|c| c.is_ascii_alphanumeric() || c == '-')
     };
     if s.is_empty() || s.len() > 253 || !s.split('.').all(label_ok) {
-        return Err(GenerateError::Input(format!(
+        return Err(Error::Input(format!(
             "--san {s:?}: not an IP address or a DNS name (letters, digits, '-' and '.', e.g. robot-3.lab or 192.168.1.20)"
         )));
     }
     s.to_string()
         .try_into()
         .map(rcgen::SanType::DnsName)
-        .map_err(|e| GenerateError::Input(format!("--san {s}: not an address or DNS name: {e}")))
+        .map_err(|e| Error::Input(format!("--san {s}: not an address or DNS name: {e}")))
 }
 
 fn parse_date(s: &str) -> Option<time::OffsetDateTime> {
@@ -648,14 +638,14 @@ fn day(t: time::OffsetDateTime) -> String {
 
 /// The folder's authority (in `ca_dir`, both files there: [`plan`] checked),
 /// and its certificate, PEM.
-fn existing_authority(ca_dir: &Path) -> Result<(rcgen::Issuer<'static, rcgen::KeyPair>, String), GenerateError> {
+fn existing_authority(ca_dir: &Path) -> Result<(rcgen::Issuer<'static, rcgen::KeyPair>, String), Error> {
     let (cert_path, key_path) = (ca_dir.join(CA_CERT), ca_dir.join(CA_KEY));
     let key = read(&key_path)?;
     let key = rcgen::KeyPair::from_pem(&key)
-        .map_err(|e| GenerateError::Input(format!("{}: not a private key: {e}", key_path.display())))?;
+        .map_err(|e| Error::Input(format!("{}: not a private key: {e}", key_path.display())))?;
     let pem = read(&cert_path)?;
     let issuer = rcgen::Issuer::from_ca_cert_pem(&pem, key)
-        .map_err(|e| GenerateError::Input(format!("{}: not a certificate: {e}", cert_path.display())))?;
+        .map_err(|e| Error::Input(format!("{}: not a certificate: {e}", cert_path.display())))?;
     Ok((issuer, pem))
 }
 
@@ -663,7 +653,7 @@ fn existing_authority(ca_dir: &Path) -> Result<(rcgen::Issuer<'static, rcgen::Ke
 fn new_authority(
     ca_dir: &Path,
     not_before: time::OffsetDateTime,
-) -> Result<(rcgen::Issuer<'static, rcgen::KeyPair>, String), GenerateError> {
+) -> Result<(rcgen::Issuer<'static, rcgen::KeyPair>, String), Error> {
     let mut p = rcgen::CertificateParams::default();
     p.distinguished_name.push(rcgen::DnType::CommonName, "formation certificate authority");
     p.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
@@ -674,42 +664,39 @@ fn new_authority(
     ];
     p.not_before = not_before.min(time::OffsetDateTime::now_utc() - time::Duration::minutes(5));
     p.not_after = time::OffsetDateTime::now_utc() + time::Duration::days(10 * 365);
-    let key = rcgen::KeyPair::generate().map_err(|e| GenerateError::Run(format!("making the authority's key: {e}")))?;
-    let cert = p.self_signed(&key).map_err(|e| GenerateError::Run(format!("signing the authority: {e}")))?;
+    let key = rcgen::KeyPair::generate().map_err(|e| Error::Run(format!("making the authority's key: {e}")))?;
+    let cert = p.self_signed(&key).map_err(|e| Error::Run(format!("signing the authority: {e}")))?;
     write_private(&ca_dir.join(CA_KEY), &key.serialize_pem())?;
     let pem = cert.pem();
     write(&ca_dir.join(CA_CERT), &pem)?;
     Ok((rcgen::Issuer::new(p, key), pem))
 }
 
-fn read(path: &Path) -> Result<String, GenerateError> {
-    std::fs::read_to_string(path).map_err(|e| GenerateError::Input(format!("reading {}: {e}", path.display())))
+fn read(path: &Path) -> Result<String, Error> {
+    std::fs::read_to_string(path).map_err(|e| Error::Input(format!("reading {}: {e}", path.display())))
 }
 
-fn write(path: &Path, text: &str) -> Result<(), GenerateError> {
+fn write(path: &Path, text: &str) -> Result<(), Error> {
     write_mode(path, text.as_bytes(), 0o644)
 }
 
 /// Writes a private key readable by its owner only (created 0600, not
 /// chmod-ed after the fact).
-fn write_private(path: &Path, text: &str) -> Result<(), GenerateError> {
+fn write_private(path: &Path, text: &str) -> Result<(), Error> {
     write_mode(path, text.as_bytes(), 0o600)
 }
 
 /// Replaces the file at `path`: what was there (a file, or a symbolic link,
 /// which is removed, never followed) goes first, and the new file is
 /// created, never opened through a link (O_EXCL, O_NOFOLLOW).
-fn write_mode(path: &Path, bytes: &[u8], mode: u32) -> Result<(), GenerateError> {
+fn write_mode(path: &Path, bytes: &[u8], mode: u32) -> Result<(), Error> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
     if let Ok(m) = std::fs::symlink_metadata(path) {
         if m.is_dir() {
-            return Err(GenerateError::Input(format!(
-                "{} is a folder, not a file this command writes",
-                path.display()
-            )));
+            return Err(Error::Input(format!("{} is a folder, not a file this command writes", path.display())));
         }
-        std::fs::remove_file(path).map_err(|e| GenerateError::Run(format!("replacing {}: {e}", path.display())))?;
+        std::fs::remove_file(path).map_err(|e| Error::Run(format!("replacing {}: {e}", path.display())))?;
     }
     let mut f = std::fs::OpenOptions::new()
         .write(true)
@@ -717,6 +704,6 @@ fn write_mode(path: &Path, bytes: &[u8], mode: u32) -> Result<(), GenerateError>
         .custom_flags(libc::O_NOFOLLOW)
         .mode(mode)
         .open(path)
-        .map_err(|e| GenerateError::Run(format!("writing {}: {e}", path.display())))?;
-    f.write_all(bytes).map_err(|e| GenerateError::Run(format!("writing {}: {e}", path.display())))
+        .map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))?;
+    f.write_all(bytes).map_err(|e| Error::Run(format!("writing {}: {e}", path.display())))
 }

@@ -41,7 +41,7 @@ static GLOBAL: Counting = Counting;
 
 /// The largest single allocation a decoder may make for `len` bytes.
 pub fn bound(len: usize) -> usize {
-    2 * formation_topology::wire::ALLOCATION_FACTOR * len + (2 << 20)
+    2 * formation_record::bounded::ALLOCATION_FACTOR * len + (2 << 20)
 }
 
 /// Runs `decode` on `data` (what it returns is dropped inside) and panics

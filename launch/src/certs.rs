@@ -16,18 +16,18 @@
 use std::net::IpAddr;
 use std::path::PathBuf;
 
-use formation_certs::generate::{self, Node, Request};
+use formation_certs::generate::{self, NodeCert, Request};
 use formation_net::identity::policy;
 use formation_protocol::names::node_names;
 
-use crate::error::Error;
+use formation_exit::Error;
 
 /// `formation certs`.
 #[derive(Debug, Clone)]
 #[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct CertsArgs {
     #[cfg_attr(feature = "clap", command(flatten))]
-    pub scenario: formation_topology::args::ScenarioArgs,
+    pub scenario: formation_scenario::args::ScenarioArgs,
     /// Folder to write: `ca/` (the authority: keep its key off the nodes'
     /// hosts) and one folder per node (`router/`, `leader/`, `monitor/`,
     /// `agent-<id>/`) to copy to the host that runs it. An existing folder
@@ -85,10 +85,10 @@ pub fn run(a: &CertsArgs) -> Result<(), Error> {
     let Some(dir) = a.out.as_deref() else {
         return Err(Error::Input("--out DIR is required (or --policy to print the policy)".into()));
     };
-    let nodes: Vec<Node> = node_names(&scenario)
+    let nodes: Vec<NodeCert> = node_names(&scenario)
         .into_iter()
         .enumerate()
-        .map(|(index, name)| Node { name, addresses: lab_addresses(index) })
+        .map(|(index, name)| NodeCert { name, addresses: lab_addresses(index) })
         .collect();
     let report = generate::write_folder(&Request {
         dir,

@@ -34,16 +34,16 @@
 use std::path::Path;
 use std::time::Duration;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
 use formation_net::session;
 use formation_record::Summary;
 
-use crate::error::Error;
 use crate::options::{LaunchArgs, LaunchMode, Robots};
 use crate::plan::{self, ep, one_host_lease, ports, Endpoints, Wiring};
 use crate::supervisor::{spawn, start_router_with, supervise, Children};
 use crate::zenoh_log;
+use formation_exit::Error;
 
 /// Where a ROS 2 node (rmw_zenoh's nodes are clients of a router) sees
 /// the run's topics: the launch's own router, or the monitor (router-less
@@ -109,7 +109,7 @@ pub fn run(a: &LaunchArgs) -> Result<(), Error> {
         .build()
         .map_err(|e| Error::Run(format!("starting the async runtime: {e}")))?;
     let mut children = Children::new();
-    let realtime = scenario.timing == formation_topology::Timing::Realtime;
+    let realtime = scenario.timing == formation_scenario::Timing::Realtime;
     children.let_agents_die(match (realtime, scenario.network.gone_after_s) {
         (true, Some(_)) => Some("the monitor takes it for gone after network.gone_after"),
         (true, None) => None,
@@ -249,11 +249,11 @@ async fn launch(
     children: &mut Children,
 ) -> Result<Summary, Error> {
     // Signals first: from here on Ctrl-C must reach the children's cleanup.
-    let shutdown = crate::shutdown::from_now();
+    let shutdown = formation_exit::shutdown::from_now();
     let n = scenario.followers.len();
     let robots = match scenario.ros2.map(|r| r.robots) {
-        Some(formation_topology::RobotSource::StandIn) => Robots::StandIn,
-        Some(formation_topology::RobotSource::External) => Robots::External,
+        Some(formation_scenario::RobotSource::StandIn) => Robots::StandIn,
+        Some(formation_scenario::RobotSource::External) => Robots::External,
         _ => Robots::Simulated,
     };
     // Agent processes: followers by index, `group` consecutive ones each.
@@ -435,7 +435,7 @@ mod tests {
 
 /// "; follower 3 absent (--absent)", or nothing.
 fn absent_words(absent: &[u32]) -> String {
-    let list = formation_topology::graph::id_list(absent);
+    let list = formation_scenario::graph::id_list(absent);
     match absent.len() {
         0 => String::new(),
         1 => format!("; follower {list} absent (--absent)"),

@@ -5,10 +5,10 @@
 use std::path::{Path, PathBuf};
 
 use formation_protocol::barrier::{quorum_wait, Quorum};
-use formation_topology::args::ScenarioArgs;
-use formation_topology::Scenario;
+use formation_scenario::args::ScenarioArgs;
+use formation_scenario::Scenario;
 
-use crate::error::Error;
+use formation_exit::Error;
 
 /// How the launched nodes reach each other.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -190,7 +190,7 @@ impl RunOptions {
         // The monitor would refuse it too, but only once every node runs.
         formation_record::refuse_replacing_foreign(&out).map_err(|e| Error::Input(format!("--out: {e}")))?;
         if let Some(p) = self.rt_priority {
-            if scenario.timing != formation_topology::Timing::Realtime {
+            if scenario.timing != formation_scenario::Timing::Realtime {
                 return Err(Error::Input(format!(
                     "--rt-priority {p}: a lock-step run waits for its inputs and has no period to meet (set timing = \
                      \"realtime\")"
@@ -220,7 +220,7 @@ impl RunOptions {
     /// A scenario error in the user's words: the `--set` that --ros2 and
     /// --robots stand for named as the flag typed (it quoted
     /// `--set ros2.robots="stand-in"` to a user who typed `--robots stand-in`).
-    fn as_typed(&self, e: formation_topology::ScenarioError) -> String {
+    fn as_typed(&self, e: formation_scenario::ScenarioError) -> String {
         let mut text = e.to_string();
         if let Some(r) = self.robots {
             let (set, typed) = (format!("--set ros2.robots=\"{}\"", r.name()), format!("--robots {}", r.name()));
@@ -252,7 +252,7 @@ impl RunOptions {
         if let Some(id) = self.absent.iter().find(|id| !scenario.graph.ids().contains(id)) {
             return Err(Error::Input(format!("--absent {id}: no follower {id} in this scenario")));
         }
-        let list = formation_topology::graph::id_list;
+        let list = formation_scenario::graph::id_list;
         let present = scenario.graph.len() - self.absent.len();
         if present < followers {
             return Err(Error::Input(format!(
@@ -294,7 +294,7 @@ impl RunOptions {
         }
         let mut given: Vec<String> = Vec::new();
         if !self.absent.is_empty() {
-            given.push(format!("--absent {}", formation_topology::graph::id_list(&self.absent)));
+            given.push(format!("--absent {}", formation_scenario::graph::id_list(&self.absent)));
         }
         given.extend(self.leave.iter().map(|l| format!("--leave {l}")));
         given.extend(kills.iter().map(|k| format!("--kill-agent {}@{}", k.0, k.1)));

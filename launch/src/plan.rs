@@ -7,10 +7,10 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 
 use formation_net::session;
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
-use crate::error::Error;
 use crate::options::{LaunchArgs, LaunchMode, Links, Robots, RunOptions};
+use formation_exit::Error;
 
 /// The endpoints of the nodes of one launch, named by their loopback port:
 /// what a node listens on and what others dial to reach it. With unix
@@ -228,7 +228,7 @@ pub(crate) fn router(
     exe: &Path,
     listen: &[String],
     opts: &RunOptions,
-    timing: formation_topology::Timing,
+    timing: formation_scenario::Timing,
     lease: Option<u64>,
     zfile: Option<&session::SharedFile>,
 ) -> Command {

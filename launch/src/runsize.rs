@@ -2,9 +2,9 @@
 
 use std::path::Path;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
-use crate::error::Error;
+use formation_exit::Error;
 
 /// Bytes a run folder's time series take, measured on the paper scenario:
 /// a follower's CSV row, the leader's, and a follower's MCAP messages.

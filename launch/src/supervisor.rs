@@ -10,8 +10,8 @@ use std::time::{Duration, Instant};
 
 use formation_record::Summary;
 
-use crate::error::Error;
 use crate::zenoh_log;
+use formation_exit::Error;
 
 /// The standby leader's name among the children (`launch --standby`,
 /// `lab --kill-leader`).
@@ -219,7 +219,7 @@ pub(crate) async fn supervise(
     children: &mut Children,
     out: &Path,
     every: Duration,
-    shutdown: impl std::future::Future<Output = formation_replay::watch::Signal>,
+    shutdown: impl std::future::Future<Output = formation_exit::shutdown::Signal>,
     mut each: impl FnMut(&mut Children) -> Result<(), Error>,
 ) -> Result<Summary, Error> {
     tokio::pin!(shutdown);
@@ -227,7 +227,7 @@ pub(crate) async fn supervise(
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            s = &mut shutdown => return Err(interrupt(children, out, crate::shutdown::number(s))),
+            s = &mut shutdown => return Err(interrupt(children, out, s.number())),
         }
         each(children)?;
         if let Some(ended) = settle(children, out) {
@@ -242,7 +242,7 @@ pub(crate) async fn supervise(
 pub(crate) fn settle(children: &mut Children, out: &Path) -> Option<Result<Summary, Error>> {
     while let Some((name, status)) = children.poll() {
         if name == "monitor" {
-            let degraded = status.code() == Some(i32::from(crate::error::DEGRADED));
+            let degraded = status.code() == Some(i32::from(formation_exit::DEGRADED));
             if !status.success() && !degraded {
                 children.kill_all();
                 return Some(Err(Error::Run(format!("the monitor failed ({status})"))));

@@ -4,7 +4,7 @@
 //! `zenoh-log/` and the launch says in one line how many errors and
 //! warnings which nodes logged, with the first error.
 
-use crate::error::Error;
+use formation_exit::Error;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Mutex;

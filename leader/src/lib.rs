@@ -1,6 +1,26 @@
 //! The virtual leader (node 0): unicycle kinematics (eq. 6) driven by a
 //! velocity profile (v_r(t), ω_r(t)); the pose is integrated by forward Euler
 //! like every other state (docs/model.md §3, §9).
+//!
+//! # Examples
+//!
+//! The paper's leader (section IV) with its start-up ramp, stepped for one
+//! second at Δt = 10 ms:
+//!
+//! ```
+//! use formation_leader::{Leader, Profile, Trajectory};
+//! use formation_plant::Pose;
+//!
+//! let mut leader = Leader::new(Profile { trajectory: Trajectory::Paper, ramp_s: 0.5 }, Pose::new(0.0, 3.0, 0.0));
+//! let dt = 0.01;
+//! for k in 0..100 {
+//!     let state = leader.state(k as f64 * dt);
+//!     leader.advance(&state, dt);
+//! }
+//! let after = leader.state(1.0);
+//! assert!(after.pose.x > 0.5 && after.pose.x < 1.0, "x = {} m after the ramp", after.pose.x);
+//! assert!(after.v < std::f64::consts::SQRT_2, "v_r ≤ √2 (eq. 6's bound)");
+//! ```
 
 use serde::{Deserialize, Serialize};
 

@@ -1,6 +1,6 @@
 //! One follower as a networked node (the `agent` binary): a translation
 //! between zenoh and the follower's protocol machine
-//! ([`formation_protocol::follower::Follower`]), which holds every rule.
+//! ([`formation_protocol::follower::FollowerMachine`]), which holds every rule.
 //! The node subscribes only to its neighbours' estimate keys (and the
 //! leader's if a_i0 = 1), publishes what the machine says on its own key,
 //! and hands the machine's telemetry to a courier for the monitor.
@@ -16,9 +16,9 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use formation_plant::Pose;
-use formation_protocol::follower::{self, Batch, Follower, Joining};
-use formation_topology::wire;
-use formation_topology::{Scenario, Timing};
+use formation_protocol::follower::{self, Batch, FollowerMachine, Joining};
+use formation_protocol::wire;
+use formation_scenario::{Scenario, Timing};
 use zenoh::pubsub::Publisher;
 use zenoh::Wait;
 
@@ -28,14 +28,14 @@ use crate::clock_sync;
 use crate::courier::Courier;
 use crate::node::NodeArgs;
 use crate::ros2::driven::{self, DrivenRobot, OdomInbox};
+use crate::ros2::rmw_node::{RosNode, RosSubscription};
 use crate::ros2::topics::{FollowerTopics, Stamps};
-use crate::ros2::wire::{RosNode, RosSubscription};
 use crate::startup;
 use crate::telemetry;
+use formation_exit::{zerr, Error};
 use formation_protocol::barrier::{self, Start};
 use formation_protocol::codec;
 use formation_protocol::counters::AtomicRejects;
-use formation_protocol::error::{zerr, Error};
 use formation_protocol::names::{self, Keys};
 use formation_protocol::telemetry::{Delivery, EventKind};
 use formation_sim::SimFollower;
@@ -132,7 +132,7 @@ pub fn leave_steps(leave: &[String], ids: &[u32], scenario: &Scenario) -> Result
         if out.iter().any(|&(i, _)| i == id) {
             return Err(Error::Input(format!("--leave: follower {id} is given twice")));
         }
-        out.push((id, formation_agent::math::step_at(t, scenario.dt_s)));
+        out.push((id, formation_control::math::step_at(t, scenario.dt_s)));
     }
     Ok(out)
 }
@@ -179,7 +179,7 @@ fn leaves_named(leaves: &[(u32, f64)]) -> String {
     let at: Vec<String> = leaves.iter().map(|l| l.1.to_string()).collect();
     match leaves.len() {
         1 => format!("follower {}'s leave at {} s", ids[0], at[0]),
-        _ => format!("followers {}' leaves at {} s", formation_topology::graph::id_list(&ids), at.join(", ")),
+        _ => format!("followers {}' leaves at {} s", formation_scenario::graph::id_list(&ids), at.join(", ")),
     }
 }
 
@@ -199,7 +199,7 @@ pub fn check_leaves(leave: &[String], scenario: &Scenario) -> Result<(), Error> 
 /// Runs the follower(s) of `--id` to the end of the scenario.
 ///
 /// `shutdown` (SIGINT or SIGTERM in the binary) makes every follower leave
-/// the run at its next step ([`Follower::handle_leave`]: its last telemetry
+/// the run at its next step ([`FollowerMachine::handle_leave`]: its last telemetry
 /// says so, and the monitor waits for nothing more from it), within
 /// [`LEAVE_WITHIN`]; the signal is returned. With robots driven through
 /// ROS 2, every follower's robot is sent zero velocity before the process
@@ -207,8 +207,8 @@ pub fn check_leaves(leave: &[String], scenario: &Scenario) -> Result<(), Error> 
 /// signal).
 pub async fn run(
     args: &AgentArgs,
-    shutdown: impl std::future::Future<Output = formation_replay::watch::Signal>,
-) -> Result<Option<formation_replay::watch::Signal>, Error> {
+    shutdown: impl std::future::Future<Output = formation_exit::shutdown::Signal>,
+) -> Result<Option<formation_exit::shutdown::Signal>, Error> {
     let ids = &args.id;
     let first = first_id(args)?;
     let (scenario, keys) = args.node.load(&formation_protocol::names::agent_name(first))?;
@@ -278,8 +278,8 @@ pub async fn run(
         r = &mut work => (r, None),
         s = shutdown => {
             let why = match s {
-                formation_replay::watch::Signal::Interrupt => "Ctrl-C",
-                formation_replay::watch::Signal::Terminate => "SIGTERM",
+                formation_exit::shutdown::Signal::Interrupt => "Ctrl-C",
+                formation_exit::shutdown::Signal::Terminate => "SIGTERM",
             };
             // docs/ros2.md: a driven robot stops at once, not after the
             // leave below (a step and the last telemetry's acknowledgement);
@@ -328,7 +328,7 @@ async fn stop_robots(
 pub const ASKED_TO_LEAVE: &str = "formation leave";
 
 /// `formation leave --id ID` for a follower of this process: it leaves the
-/// run at its next step ([`Follower::handle_leave`]), and a robot driven
+/// run at its next step ([`FollowerMachine::handle_leave`]), and a robot driven
 /// through ROS 2 is sent zero velocity at once.
 async fn listen_for_leave(
     session: &zenoh::Session,
@@ -423,7 +423,7 @@ pub struct FollowerOptions {
     /// The node's clock.
     pub clock: Clock,
     /// Set when the process is told to stop (why: "SIGTERM", "Ctrl-C"):
-    /// the follower leaves the run at its next step ([`Follower::handle_leave`]).
+    /// the follower leaves the run at its next step ([`FollowerMachine::handle_leave`]).
     pub leave: Leave,
     /// `--leave`: the step before which this follower leaves the run.
     pub leave_at: Option<u64>,
@@ -449,14 +449,14 @@ pub const LEAVE_WITHIN: Duration = Duration::from_secs(3);
 
 /// The machine, shared by the subscriber callbacks and the loop's thread.
 struct Shared {
-    machine: crate::node::Shared<Follower>,
+    machine: crate::node::Shared<FollowerMachine>,
     /// Messages refused on arrival, counted without the machine's lock (a
     /// flood of garbage must not hold the loop); handed over each wake-up.
     refused: AtomicRejects,
 }
 
 impl Shared {
-    fn lock(&self) -> MutexGuard<'_, Follower> {
+    fn lock(&self) -> MutexGuard<'_, FollowerMachine> {
         self.machine.lock()
     }
 }
@@ -497,7 +497,7 @@ fn own_leave_keeps_lemma_1(id: u32, opts: &FollowerOptions, start: &Start, scena
             "follower {id}: {} with followers {} absent at the start: {cut}: not started (--even-if-cut-off \
              starts anyway)",
             leaves_named(&leave),
-            formation_topology::graph::id_list(&start.absent)
+            formation_scenario::graph::id_list(&start.absent)
         ))),
     }
 }
@@ -505,7 +505,13 @@ fn own_leave_keeps_lemma_1(id: u32, opts: &FollowerOptions, start: &Start, scena
 /// Starts the machine; the other followers absent from the start have
 /// their links cut from step 0, as the model's node fault (docs/model.md
 /// §14), until (real time) they join.
-fn start_machine(m: &mut Follower, start: &Start, resume: Option<(u64, Pose)>, now: formation_protocol::Now, me: u32) {
+fn start_machine(
+    m: &mut FollowerMachine,
+    start: &Start,
+    resume: Option<(u64, Pose)>,
+    now: formation_protocol::Now,
+    me: u32,
+) {
     m.start(start, resume, now);
     for &gone in start.absent.iter().filter(|&&g| g != me) {
         m.handle_absent(gone);
@@ -534,7 +540,7 @@ pub async fn run_follower(
         None => scenario.dt_s / barrier::positive_scale(scenario.network.time_scale) * 1e9 / 4.0,
     };
     let sync = clock_sync::follow(session.clone(), keys, timebase.clone(), format!("follower {id}"), quarter_step_ns);
-    let mut machine = Follower::new(scenario, index, body, &opts.protocol);
+    let mut machine = FollowerMachine::new(scenario, index, body, &opts.protocol);
     opts.leave_at.inspect(|&k| machine.schedule_leave(k));
     let sources = machine.source_ids().to_vec();
     let neighbours: Vec<u32> = sources.iter().copied().filter(|&s| s != wire::LEADER_ID).collect();
@@ -1041,7 +1047,7 @@ impl Node {
 
     /// What the node noticed that the machine cannot see: messages refused
     /// on arrival, a second clock on `control/time`, neighbours done (lock-step).
-    fn tell(&self, m: &mut Follower) {
+    fn tell(&self, m: &mut FollowerMachine) {
         if let Some(refused) = self.shared.refused.take() {
             m.handle_rejected(&refused);
         }

@@ -2,7 +2,7 @@
 //! robot's pose, written every [`PERIOD`] to a small file where the next
 //! process with the same run, id and scenario finds it.
 
-use formation_protocol::error::Error;
+use formation_exit::Error;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;

@@ -115,6 +115,18 @@ impl Clock {
         }
     }
 
+    /// Waits `d` in a task: a real clock sleeps; a mock moves on by `d` at
+    /// once, after letting the other tasks run.
+    pub async fn pause(&self, d: Duration) {
+        match &*self.0 {
+            Source::Real => tokio::time::sleep(d).await,
+            Source::Mock { .. } => {
+                self.advance(d);
+                tokio::task::yield_now().await;
+            }
+        }
+    }
+
     /// Sleeps until [`Clock::mono`] reads `at`.
     pub fn sleep_until_mono(&self, at: Duration) {
         self.sleep_until(self.instant_of(at.as_nanos() as i64));

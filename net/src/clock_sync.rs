@@ -10,9 +10,9 @@ use serde::{Deserialize, Serialize};
 use zenoh::Wait;
 
 use crate::clock::{Clock, Timebase};
+use formation_exit::{zerr, Error};
 use formation_protocol::clock_estimate::Exchange;
 use formation_protocol::codec;
-use formation_protocol::error::{zerr, Error};
 use formation_protocol::names::Keys;
 
 /// The leader's answer: its timebase when the question arrived (`t2`) and

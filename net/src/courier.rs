@@ -132,12 +132,12 @@ impl Courier {
 /// may block on a slow or dead link; the loop never notices). A put that
 /// fails is like a lost one: sent again after the resend back-off, so
 /// `publish` returns nothing.
-pub struct Delivery {
+pub struct CourierThread {
     pub courier: Arc<Courier>,
     thread: std::thread::JoinHandle<()>,
 }
 
-impl Delivery {
+impl CourierThread {
     pub fn start(capacity_steps: u64, clock: Clock, publish: impl FnMut(&[u8]) + Send + 'static) -> Self {
         let courier = Arc::new(Courier::new(capacity_steps, clock));
         let c = courier.clone();
@@ -180,7 +180,7 @@ mod tests {
     /// reported.
     #[test]
     fn a_publisher_stuck_for_good_does_not_hold_the_end_of_the_run() {
-        let d = Delivery::start(1000, Clock::real(), |_| loop {
+        let d = CourierThread::start(1000, Clock::real(), |_| loop {
             std::thread::sleep(Duration::from_secs(60));
         });
         for i in 0..10u64 {
@@ -195,7 +195,7 @@ mod tests {
     #[test]
     fn on_a_mock_clock_the_wait_for_acknowledgements_takes_no_wall_time() {
         let clock = Clock::mock(0);
-        let d = Delivery::start(1000, clock.clone(), |_| {});
+        let d = CourierThread::start(1000, clock.clone(), |_| {});
         d.courier.push(0, 5, vec![0; 8]);
         let began = std::time::Instant::now();
         let lost = d.finish(Duration::from_secs(10));

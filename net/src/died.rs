@@ -15,10 +15,10 @@ use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::sample::SampleKind;
 use zenoh::Wait;
 
+use formation_exit::{zerr, Error};
 use formation_protocol::codec::{decode, encode};
 use formation_protocol::died::{Died, Holding};
-use formation_protocol::error::{zerr, Error};
-use formation_protocol::follower::Follower;
+use formation_protocol::follower::FollowerMachine;
 use formation_protocol::names::{last_chunk, Keys};
 
 /// Liveliness as one node hears it: the followers whose tokens it has
@@ -109,7 +109,7 @@ impl Watch {
 
     /// Between two of the machine's turns: says what `m` holds of each
     /// follower newly lost, and applies each step the monitor named.
-    pub fn tell(&self, m: &mut Follower) {
+    pub fn tell(&self, m: &mut FollowerMachine) {
         let mut looked = self.looked.lock().unwrap_or_else(|p| p.into_inner());
         let changes = self.tokens.lock().unwrap_or_else(|p| p.into_inner()).changes;
         let named = self.named.lock().unwrap_or_else(|p| p.into_inner()).len();

@@ -10,7 +10,7 @@
 
 use std::path::Path;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use serde_json::{json, Value};
 
 use formation_certs::{identity, node_dir, Identity, IdentityError, CRL, POLICY};

@@ -1,5 +1,5 @@
 //! The virtual leader as a networked node (the `leader` binary): a
-//! translation between zenoh and [`formation_protocol::leader::Leader`],
+//! translation between zenoh and [`formation_protocol::leader::LeaderMachine`],
 //! which holds every rule (the trajectory, the lock-step window, pacing,
 //! stamping, repeats, the linger, telemetry batches). Subscriber callbacks
 //! feed it the estimates of the followers that hear it; a loop on a thread
@@ -10,20 +10,20 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use formation_topology::wire;
-use formation_topology::{Scenario, Timing};
+use formation_protocol::wire;
+use formation_scenario::{Scenario, Timing};
 
 use crate::clock;
 use crate::clock_sync;
-use crate::lead::{watch_leader_key, watch_reached, Node};
+use crate::lead_loop::{watch_leader_key, watch_reached, LeadLoop};
 use crate::node::{NodeArgs, Shared};
 use crate::ros2::topics::LeaderTopics;
 use crate::startup;
 use crate::telemetry;
+use formation_exit::Error;
 use formation_protocol::barrier::{Quorum, Start};
 use formation_protocol::counters::QueryCount;
-use formation_protocol::error::Error;
-use formation_protocol::leader::Leader as Machine;
+use formation_protocol::leader::LeaderMachine as Machine;
 use formation_protocol::names::{self, Keys, MONITOR};
 
 /// `leader` arguments.
@@ -80,7 +80,13 @@ impl LeaderArgs {
     }
 }
 
-pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
+/// The leader node from its arguments to the end of its run, or until
+/// `shutdown` (SIGINT or SIGTERM in the binary), which it returns: it stops
+/// announcing the run's state at once and closes its session.
+pub async fn run(
+    args: &LeaderArgs,
+    shutdown: impl std::future::Future<Output = formation_exit::shutdown::Signal>,
+) -> Result<Option<formation_exit::shutdown::Signal>, Error> {
     let (scenario, keys) = args.node.load(names::LEADER)?;
     let time_scale = args.time_scale.unwrap_or(scenario.network.time_scale);
     if !(time_scale.is_finite() && time_scale > 0.0) {
@@ -99,15 +105,23 @@ pub async fn run(args: &LeaderArgs) -> Result<(), Error> {
     let lead = Duration::from_secs_f64(args.start_lead);
     let mut start = StartAs { time_scale, lead, print: args.print_start, quorum, standby: false, timebase: None };
     let clock = &args.node.clock;
-    let result = match args.standby {
-        true => match crate::standby::run(&session, &scenario, &keys, Duration::from_secs_f64(after), clock).await {
-            Ok(crate::standby::Ended::GoneBeforeStart(timebase)) => {
-                (start.standby, start.timebase) = (true, timebase);
-                run_leader(&session, &scenario, &keys, start, clock).await
+    let leading = async {
+        match args.standby {
+            true => {
+                match crate::standby::run(&session, &scenario, &keys, Duration::from_secs_f64(after), clock).await {
+                    Ok(crate::standby::Ended::GoneBeforeStart(timebase)) => {
+                        (start.standby, start.timebase) = (true, timebase);
+                        run_leader(&session, &scenario, &keys, start, clock).await
+                    }
+                    other => other.map(drop),
+                }
             }
-            other => other.map(drop),
-        },
-        false => run_leader(&session, &scenario, &keys, start, clock).await,
+            false => run_leader(&session, &scenario, &keys, start, clock).await,
+        }
+    };
+    let result = tokio::select! {
+        r = leading => r.map(|()| None),
+        s = shutdown => Ok(Some(s)),
     };
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     result
@@ -192,7 +206,7 @@ pub async fn run_leader(
     let term = shared.lock().term();
     let watcher = startup::Leading::claim(session, keys, clock, term).await?.watch(shared.clone(), keys.run.clone());
     let key_watch = watch_leader_key(session, keys, &shared, &timebase).await?;
-    let node = Node {
+    let node = LeadLoop {
         shared: shared.clone(),
         publisher: estimate_pub,
         courier: delivery.courier.clone(),
@@ -221,7 +235,7 @@ pub async fn run_leader(
 /// The leader's one line on a quorum start: who is absent, and whether the
 /// others still reach the leader (Lemma 1).
 fn absent_line(absent: &[u32], scenario: &Scenario) -> String {
-    use formation_topology::graph::followers_named;
+    use formation_scenario::graph::followers_named;
     let cut = scenario.graph.unreachable_without(absent);
     let reach = match cut.len() {
         0 => "every present follower reaches the leader".to_string(),

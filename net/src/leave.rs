@@ -14,8 +14,8 @@
 
 use std::time::Duration;
 
+use formation_exit::{zerr, Error};
 use formation_protocol::codec;
-use formation_protocol::error::{zerr, Error};
 use formation_protocol::names::MONITOR;
 use formation_protocol::telemetry::{Telemetry, MAX_LEFT_WHY};
 
@@ -47,7 +47,7 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
     let (scenario, keys) = a.node.load(MONITOR)?;
     let id = a.id;
     if scenario.index_of(id).is_none() {
-        let ids = formation_topology::graph::id_list(scenario.graph.ids());
+        let ids = formation_scenario::graph::id_list(scenario.graph.ids());
         return Err(Error::Input(format!("scenario {} has no follower {id} (ids: {ids})", scenario.name)));
     }
     if !(a.timeout.is_finite() && a.timeout > 0.0) {
@@ -97,14 +97,15 @@ pub async fn run(a: &LeaveArgs) -> Result<String, Error> {
         })
         .await
         .map_err(|e| zerr("listening to the follower's telemetry", e))?;
-    let limit = tokio::time::Instant::now() + Duration::from_secs_f64(a.timeout);
+    let clock = &a.node.clock;
+    let limit = clock.mono() + Duration::from_secs_f64(a.timeout);
     let left = loop {
         session.put(keys.leave(id), Vec::<u8>::new()).await.map_err(|e| zerr("asking the follower to leave", e))?;
         tokio::select! {
             l = rx.recv() => break l,
-            _ = tokio::time::sleep(ASK_EVERY) => {}
+            _ = clock.pause(ASK_EVERY) => {}
         }
-        if tokio::time::Instant::now() >= limit {
+        if clock.mono() >= limit {
             break None;
         }
     };
@@ -130,7 +131,7 @@ const LISTEN_MORE: Duration = Duration::from_secs(2);
 
 /// How long `formation leave` listens for the followers' telemetry: five
 /// batches of the scenario (on its time scale), at least 1 s.
-fn listen_for(scenario: &formation_topology::Scenario) -> Duration {
+fn listen_for(scenario: &formation_scenario::Scenario) -> Duration {
     let batch_s =
         scenario.network.telemetry_batch.max(1) as f64 * scenario.dt_s / scenario.network.time_scale.max(1e-3);
     Duration::from_secs_f64((5.0 * batch_s).clamp(1.0, 10.0))
@@ -143,7 +144,7 @@ fn listen_for(scenario: &formation_topology::Scenario) -> Duration {
 async fn not_running(
     session: &zenoh::Session,
     keys: &formation_protocol::names::Keys,
-    scenario: &formation_topology::Scenario,
+    scenario: &formation_scenario::Scenario,
 ) -> Result<Vec<u32>, Error> {
     use std::collections::BTreeSet;
     use std::sync::{Arc, Mutex};
@@ -193,13 +194,13 @@ async fn not_running(
 /// Lemma 1 for a leave beside those not running (`out`): the line naming
 /// the running followers that `id` leaving would cut off from the leader
 /// (those already cut off before are not its doing), or None.
-fn newly_cut_off(graph: &formation_topology::graph::Graph, out: &[u32], id: u32) -> Option<String> {
-    use formation_topology::graph::followers_named;
+fn newly_cut_off(graph: &formation_scenario::graph::Graph, out: &[u32], id: u32) -> Option<String> {
+    use formation_scenario::graph::followers_named;
     let before = graph.unreachable_without(out);
     let all: Vec<u32> = out.iter().copied().chain([id]).collect();
     let cut: Vec<u32> = graph.unreachable_without(&all).into_iter().filter(|i| !before.contains(i)).collect();
     if cut.is_empty() {
         return None;
     }
-    Some(format!("without {}, {}", followers_named(&all), formation_topology::graph::no_longer_reach(&cut)))
+    Some(format!("without {}, {}", followers_named(&all), formation_scenario::graph::no_longer_reach(&cut)))
 }

@@ -17,6 +17,23 @@
 //! | shared node parts | [`startup`] (the barrier on zenoh), [`telemetry`] (delivery and acknowledgements), [`courier`] (its thread), [`checkpoint`], [`denials`] |
 //! | nodes | [`agent`], [`leader`], [`monitor`], [`router`] |
 //! | ROS 2 (rmw_zenoh's wire) | [`ros2`]: the formation's topics, robots driven through `cmd_vel` and `odom`, the stand-in robot |
+//!
+//! # Examples
+//!
+//! A node's one clock ([`clock::Clock`]), mocked as a test of a node's loop
+//! does: an hour passes in no wall time, to the nanosecond.
+//!
+//! ```
+//! use std::time::Duration;
+//! use formation_net::clock::Clock;
+//!
+//! let clock = Clock::mock(1_700_000_000_000_000_000);
+//! let began = std::time::Instant::now();
+//! clock.sleep_until_mono(Duration::from_secs(3600));
+//! assert_eq!(clock.mono(), Duration::from_secs(3600));
+//! assert_eq!(clock.unix_ns(), 1_700_003_600_000_000_000);
+//! assert!(began.elapsed() < Duration::from_secs(1));
+//! ```
 
 pub mod agent;
 pub mod checkpoint;
@@ -26,7 +43,7 @@ pub mod courier;
 pub mod denials;
 pub mod died;
 pub mod identity;
-pub mod lead;
+pub mod lead_loop;
 pub mod leader;
 pub mod leave;
 pub mod limits;

@@ -32,7 +32,7 @@
 
 use serde_json::{json, Value};
 
-use formation_topology::{Scenario, Timing};
+use formation_scenario::{Scenario, Timing};
 
 /// Largest estimate put, bytes (one is about 83).
 pub const ESTIMATE_BYTES: u64 = 1024;

@@ -6,10 +6,10 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
 use crate::session::{self, ZenohArgs};
-use formation_protocol::error::Error;
+use formation_exit::Error;
 use formation_protocol::names::Keys;
 
 /// Said once at the start of a run without `--tls`.
@@ -31,18 +31,18 @@ pub fn warn_if_unauthenticated(zenoh: &ZenohArgs) {
 /// What a networked run refuses of a scenario that `formation sim` runs.
 pub fn networked(scenario: &Scenario) -> Result<(), Error> {
     let d = scenario.network.delay_steps;
-    if d > 0 && scenario.timing == formation_topology::Timing::Lockstep {
+    if d > 0 && scenario.timing == formation_scenario::Timing::Lockstep {
         return Err(Error::Input(format!(
             "network.delay_steps = {d} applies to formation sim and real-time runs; a lock-step run uses each \
              step's own messages (set timing = \"realtime\", or network.delay_steps = 0)"
         )));
     }
     // Lock-step performs a died row (the agent kills itself, crate::died).
-    let realtime = scenario.timing == formation_topology::Timing::Realtime;
+    let realtime = scenario.timing == formation_scenario::Timing::Realtime;
     if let Some(f) = scenario.faults.iter().find(|f| f.died && realtime) {
         let who = match f.target {
-            formation_topology::FaultTarget::Node(id) => id,
-            formation_topology::FaultTarget::Link(a, _) => a,
+            formation_scenario::FaultTarget::Node(id) => id,
+            formation_scenario::FaultTarget::Link(a, _) => a,
         };
         return Err(Error::Input(format!(
             "the fault row killing follower {who} at {} s (died = true) is performed in lock-step and modelled by \
@@ -56,7 +56,7 @@ pub fn networked(scenario: &Scenario) -> Result<(), Error> {
 
 /// A real-time run without a communication delay: what it will not match.
 pub fn realtime_hint(scenario: &Scenario) -> Option<String> {
-    (scenario.timing == formation_topology::Timing::Realtime && scenario.network.delay_steps == 0).then(|| {
+    (scenario.timing == formation_scenario::Timing::Realtime && scenario.network.delay_steps == 0).then(|| {
         "note: real time with network.delay_steps = 0: each step uses whichever of its sources' step-k and \
          step-(k−1) messages has arrived, which formation sim does not model; with network.delay_steps = 1 the run \
          is the one `formation sim --set network.delay_steps=1` predicts"
@@ -174,8 +174,8 @@ impl NodeArgs {
 /// waits for its peers by design (lost start-up messages are re-sent).
 pub fn estimate_congestion(scenario: &Scenario) -> zenoh::qos::CongestionControl {
     match scenario.timing {
-        formation_topology::Timing::Realtime => zenoh::qos::CongestionControl::Drop,
-        formation_topology::Timing::Lockstep => zenoh::qos::CongestionControl::Block,
+        formation_scenario::Timing::Realtime => zenoh::qos::CongestionControl::Drop,
+        formation_scenario::Timing::Lockstep => zenoh::qos::CongestionControl::Block,
     }
 }
 
@@ -187,7 +187,7 @@ pub fn estimate_congestion(scenario: &Scenario) -> zenoh::qos::CongestionControl
 /// kilobytes of queue and nothing is dropped. Without back-pressure a
 /// batched message leaves at once.
 pub fn estimate_express(scenario: &Scenario) -> bool {
-    scenario.timing == formation_topology::Timing::Lockstep
+    scenario.timing == formation_scenario::Timing::Lockstep
 }
 
 /// A publisher of control traffic on `key` (estimates, poses): the
@@ -198,14 +198,14 @@ pub async fn control_publisher(
     key: String,
     scenario: &Scenario,
     what: &str,
-) -> Result<zenoh::pubsub::Publisher<'static>, formation_protocol::error::Error> {
+) -> Result<zenoh::pubsub::Publisher<'static>, formation_exit::Error> {
     session
         .declare_publisher(key)
         .congestion_control(estimate_congestion(scenario))
         .priority(priority::ESTIMATE)
         .express(estimate_express(scenario))
         .await
-        .map_err(|e| formation_protocol::error::zerr(&format!("declaring the {what} publisher"), e))
+        .map_err(|e| formation_exit::zerr(&format!("declaring the {what} publisher"), e))
 }
 
 /// Zenoh priorities of a run's traffic. Each priority has a queue of its own

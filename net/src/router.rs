@@ -5,7 +5,7 @@ use std::future::Future;
 use std::time::Duration;
 
 use crate::session::{self, ZenohArgs, ZenohMode};
-use formation_protocol::error::Error;
+use formation_exit::Error;
 use formation_protocol::names::ROUTER;
 
 /// `router` arguments.
@@ -33,7 +33,7 @@ pub async fn run(router: &RouterArgs, shutdown: impl Future) -> Result<(), Error
     args.identity = Some(ROUTER.to_string());
     if let Some(path) = &router.scenario {
         let scenario =
-            formation_topology::Scenario::load(path, &router.overrides).map_err(|e| Error::Input(e.to_string()))?;
+            formation_scenario::Scenario::load(path, &router.overrides).map_err(|e| Error::Input(e.to_string()))?;
         args.traffic = Some(crate::limits::Traffic { router: true, ..crate::limits::Traffic::of(&scenario) });
     }
     let listen = args.to_config()?.get_json("listen/endpoints").unwrap_or_default();

@@ -17,9 +17,9 @@
 //!    router instead of failing at once), `connect/exit_on_failure = false`,
 //!    and `connect/retry/{period_init_ms: 50, period_max_ms: 50,
 //!    period_increase_factor: 2}` (per field). The retry settings are what
-//!    makes a client reconnect about 0.12 s after its link or router is
-//!    back (measured in the lab; 0.16-0.21 s with 100-200 ms, and zenoh's
-//!    default retry is 1 s ×2 up to 4 s): a follower that reconnects later
+//!    makes a client reconnect within a few tenths of a second after its
+//!    link or router is back (docs/lab.md; zenoh's default retry is 1 s ×2
+//!    up to 4 s): a follower that reconnects later
 //!    has dead-reckoned longer, and pulls its neighbours harder. And
 //!    `transport/link/tx/lease = 1000` where the file leaves zenoh's
 //!    10 000 (with zenoh's 4 keep-alives per lease): a link cut without a
@@ -125,22 +125,18 @@ pub const LAUNCH_LEASE_MS: u64 = 10_000;
 /// application runtime of one worker. Zenoh's default (six threads, two of
 /// them receiving) spreads one message over several thread wake-ups; on a
 /// host shared by many nodes that costs CPU and, worse, late messages.
-/// Measured on the 2-core VM (release): one-hop latency of an estimate p50
-/// 20 µs against 36 µs, p99 29 µs against 65 µs; about 11 % less CPU with 50
-/// agents. Nodes that forward nothing only: see [`router_runtime`].
+/// Lower one-hop latency and less CPU than zenoh's default
+/// (docs/performance.md, "Zenoh's threads"). Nodes that forward nothing
+/// only: see [`router_runtime`].
 pub const RUNTIME: &str = "(rx: (handover: app), acc: (handover: app), tx: (handover: app), net: (handover: app), \
                            app: (worker_threads: 1))";
 
 /// A router's zenoh threads in real time: as [`RUNTIME`] but with two
 /// workers, so that one client that floods it cannot hold the only thread
-/// that forwards (measured: a flood of 100,000 puts/s with `Block` took a
-/// one-worker router down; with two the formation was unharmed), and its
-/// transmit tasks on zenoh's own TX thread, not handed over: a forwarding
-/// thread that waits for room in one client's full queue must never be a
-/// thread that empties the queues. With them handed over, a flood on a
-/// loaded 2-core VM (one core kept busy) left every follower hearing
-/// nothing for 4.4-7.3 s in 4 of 7 runs, the router closing a follower's
-/// transport after zenoh's 5 s wait; with its own TX thread, 0 of 4.
+/// that forwards, and its transmit tasks on zenoh's own TX thread, not
+/// handed over: a forwarding thread that waits for room in one client's
+/// full queue must never be a thread that empties the queues (a flood of
+/// puts showed both: docs/performance.md, "Zenoh's threads").
 pub const ROUTER_RUNTIME: &str =
     "(rx: (handover: app), acc: (handover: app), net: (handover: app), app: (worker_threads: 2))";
 
@@ -149,14 +145,13 @@ pub const ROUTER_RUNTIME: &str =
 /// non-droppable, and a forwarding task that waits for room in a full
 /// transmit queue would hold the one thread that empties it (50 agents in
 /// lock-step stalled at their first step that way). Real-time traffic is
-/// droppable and never waits. Measured (paper scenario, clients, 1 kHz, 10
-/// s): one-step-old estimates 54–137 with the router on one thread, 499–549
-/// with zenoh's threads.
-pub fn router_runtime(c: &mut std::process::Command, timing: formation_topology::Timing) {
+/// droppable and never waits; and on one thread the router delivers far
+/// fewer estimates a step late (docs/performance.md, "Zenoh's threads").
+pub fn router_runtime(c: &mut std::process::Command, timing: formation_scenario::Timing) {
     if user_runtime() {
         return;
     }
-    if timing == formation_topology::Timing::Realtime {
+    if timing == formation_scenario::Timing::Realtime {
         c.env("ZENOH_RUNTIME", ROUTER_RUNTIME);
     } else {
         // This process may have set it for itself (bench-net).
@@ -196,11 +191,11 @@ pub enum SessionError {
     Open(String),
 }
 
-impl From<SessionError> for formation_protocol::error::Error {
+impl From<SessionError> for formation_exit::Error {
     fn from(e: SessionError) -> Self {
         match e {
-            SessionError::Config(m) => formation_protocol::error::Error::Input(m),
-            SessionError::Open(m) => formation_protocol::error::Error::Run(m),
+            SessionError::Config(m) => formation_exit::Error::Input(m),
+            SessionError::Open(m) => formation_exit::Error::Run(m),
         }
     }
 }

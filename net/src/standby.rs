@@ -1,6 +1,6 @@
 //! A standby leader (`leader --standby`; docs/model.md §14): a second
 //! leader process, on this host or another, that takes the run over when
-//! the leader is gone. It is [`formation_protocol::leader::Leader`] made
+//! the leader is gone. It is [`formation_protocol::leader::LeaderMachine`] made
 //! with [`Machine::standby`], translated to zenoh as the leader is
 //! ([`crate::leader`]), with what changes hands at the takeover:
 //!
@@ -25,17 +25,18 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use formation_topology::{wire, Scenario, Timing};
+use formation_protocol::wire;
+use formation_scenario::{Scenario, Timing};
 
 use crate::clock::{self, Clock};
-use crate::lead::{watch_leader_key, watch_reached, Node};
+use crate::lead_loop::{watch_leader_key, watch_reached, LeadLoop};
 use crate::node::Shared;
 use crate::{clock_sync, startup, telemetry};
+use formation_exit::{zerr, Error};
 use formation_protocol::barrier::Start;
 use formation_protocol::codec;
 use formation_protocol::counters::QueryCount;
-use formation_protocol::error::{zerr, Error};
-use formation_protocol::leader::Leader as Machine;
+use formation_protocol::leader::LeaderMachine as Machine;
 use formation_protocol::names::Keys;
 
 /// How long a standby waits to hear the run's start.
@@ -109,7 +110,7 @@ pub async fn run(
     let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, scenario, clock).await?;
     let queries = Arc::new(QueryCount::default());
     let (tell, took_over) = tokio::sync::oneshot::channel();
-    let node = Node {
+    let node = LeadLoop {
         shared: shared.clone(),
         publisher: estimate_pub,
         courier: delivery.courier.clone(),

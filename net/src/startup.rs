@@ -6,14 +6,14 @@
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
 use crate::clock::{self, Clock};
+use formation_exit::{zerr, Error};
 use formation_protocol::barrier::{
     fingerprint, key_digests, Hears, Join, JoinStep, Lead, LeadStep, Quorum, Ready, ReadyForm, Start, TICK,
 };
 use formation_protocol::codec;
-use formation_protocol::error::{zerr, Error};
 use formation_protocol::names::{self, Keys};
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -272,7 +272,7 @@ impl Leading {
     /// every [`CLAIM_EVERY`], and listens there for the others'.
     pub async fn claim(session: &zenoh::Session, keys: &Keys, clock: &Clock, term: u32) -> Result<Self, Error> {
         use formation_protocol::claim::Claim;
-        let id = formation_topology::wire::LEADER_ID;
+        let id = formation_protocol::wire::LEADER_ID;
         let mine = Claim::new(id, clock.unix_ns(), nonce(id), std::process::id(), &host()).in_term(term);
         let (listening, heard) = listen_for_claims(session, keys, &mine).await?;
         let publisher =
@@ -298,7 +298,7 @@ impl Leading {
     /// loop wakes). Ends with the run.
     pub fn watch(
         self,
-        shared: Arc<crate::node::Shared<formation_protocol::leader::Leader>>,
+        shared: Arc<crate::node::Shared<formation_protocol::leader::LeaderMachine>>,
         run: String,
     ) -> tokio::task::JoinHandle<()> {
         tokio::spawn(async move {
@@ -388,7 +388,7 @@ pub async fn refuse_twin(
             // Only a well-formed estimate from this very id, of a step of
             // the run, counts (garbage on the key is the inbox's business).
             let bytes = sample.payload().to_bytes();
-            if formation_topology::wire::decode(&bytes).is_ok_and(|m| m.header.sender == id && m.header.step <= steps) {
+            if formation_protocol::wire::decode(&bytes).is_ok_and(|m| m.header.sender == id && m.header.step <= steps) {
                 h.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             }
         })
@@ -398,10 +398,10 @@ pub async fn refuse_twin(
     let publisher =
         session.declare_publisher(keys.claim(id)).await.map_err(|e| zerr("declaring this node's claim", e))?;
     let bytes = codec::encode(&mine);
-    let until = tokio::time::Instant::now() + TWIN_LISTEN;
-    while tokio::time::Instant::now() < until {
+    let until = clock.mono() + TWIN_LISTEN;
+    while clock.mono() < until {
         publisher.put(bytes.clone()).await.map_err(|e| zerr("saying this node's claim", e))?;
-        tokio::time::sleep(CLAIM_EVERY.min(until.saturating_duration_since(tokio::time::Instant::now()))).await;
+        clock.pause(CLAIM_EVERY.min(until.saturating_sub(clock.mono()))).await;
     }
     drop((sub, claim_sub));
     let who = if id == 0 { "the leader".to_string() } else { format!("follower {id}") };

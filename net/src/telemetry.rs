@@ -2,8 +2,8 @@
 //! acknowledgements, and each node's telemetry delivery. The messages
 //! themselves are [`formation_protocol::telemetry`]'s.
 
+use formation_exit::Error;
 use formation_protocol::codec::decode;
-use formation_protocol::error::Error;
 use formation_protocol::names::Keys;
 use formation_protocol::telemetry::{Ack, Telemetry};
 
@@ -17,7 +17,7 @@ pub async fn watch_done(
     session: &zenoh::Session,
     keys: &Keys,
     ids: &[u32],
-    scenario: &formation_topology::Scenario,
+    scenario: &formation_scenario::Scenario,
 ) -> Result<(Vec<zenoh::pubsub::Subscriber<()>>, Ends), Error> {
     let (steps, fingerprint) = (scenario.steps(), formation_protocol::barrier::fingerprint(scenario));
     let ends: Ends = Default::default();
@@ -80,16 +80,16 @@ pub async fn subscribe_acks(
         .map_err(|e| Error::Run(format!("declaring the acknowledgement subscriber: {e}")))
 }
 
-/// The telemetry of `node` (0: the leader) leaves through a [`Delivery`]:
+/// The telemetry of `node` (0: the leader) leaves through a [`CourierThread`]:
 /// its publisher (droppable in real time: the courier sends again what is
 /// lost) and the subscriber that feeds it the monitor's acknowledgements.
 pub async fn start_delivery(
     session: &zenoh::Session,
     keys: &Keys,
     node: u32,
-    scenario: &formation_topology::Scenario,
+    scenario: &formation_scenario::Scenario,
     clock: &crate::clock::Clock,
-) -> Result<(crate::courier::Delivery, zenoh::pubsub::Subscriber<()>), Error> {
+) -> Result<(crate::courier::CourierThread, zenoh::pubsub::Subscriber<()>), Error> {
     use zenoh::Wait;
     let publisher = session
         .declare_publisher(keys.telemetry(node))
@@ -98,7 +98,7 @@ pub async fn start_delivery(
         .await
         .map_err(|e| Error::Run(format!("declaring the telemetry publisher: {e}")))?;
     let capacity = formation_protocol::courier::CAPACITY_STEPS;
-    let delivery = crate::courier::Delivery::start(capacity, clock.clone(), move |bytes| {
+    let delivery = crate::courier::CourierThread::start(capacity, clock.clone(), move |bytes| {
         // A failed put is like a lost one: the courier sends it again.
         let _ = publisher.put(bytes.to_vec()).wait();
     });
@@ -115,7 +115,7 @@ pub const DRAIN: std::time::Duration = std::time::Duration::from_secs(10);
 /// Waits (off the async runtime) for the monitor to acknowledge
 /// everything, until it acknowledged nothing new for [`DRAIN`], and says
 /// how many steps it did not.
-pub async fn finish_delivery(delivery: crate::courier::Delivery, who: &str) {
+pub async fn finish_delivery(delivery: crate::courier::CourierThread, who: &str) {
     let unacknowledged = tokio::task::spawn_blocking(move || delivery.finish(DRAIN)).await.unwrap_or(0);
     if unacknowledged > 0 {
         crate::node::say(&format!(

@@ -8,6 +8,22 @@
 //! Everything here is pure: the noise comes from a generator the caller
 //! seeds, so the same (seed, follower id) draws the same numbers whether the
 //! robot runs in the simulator or alone in its own process.
+//!
+//! # Examples
+//!
+//! A velocity-commanded base told to drive at 1 m/s, one step of 10 ms: its
+//! velocity follows the command through its first-order lag, and its pose
+//! moves by eq. 3.
+//!
+//! ```
+//! use formation_plant::{NoiseDraw, Pose, Velocity, VelocityRobot};
+//!
+//! let mut robot = VelocityRobot::new(0.1, Pose::new(0.0, 0.0, 0.0), Velocity::new(0.0, 0.0));
+//! robot.advance(Velocity::new(1.0, 0.0), 0.01, NoiseDraw::default());
+//! let (pose, velocity) = robot.odometry();
+//! assert!(velocity.v > 0.0 && velocity.v < 1.0, "lagging the command: {velocity:?}");
+//! assert_eq!((pose.y, pose.theta), (0.0, 0.0), "straight ahead");
+//! ```
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

@@ -25,10 +25,10 @@ use std::time::Duration;
 
 use crate::Now;
 
-use formation_topology::{Graph, Scenario};
+use formation_scenario::{Graph, Scenario};
 use serde::{Deserialize, Serialize};
 
-use crate::error::Error;
+use formation_exit::Error;
 
 /// "I can hear everyone I need": sent by agents and the monitor.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]

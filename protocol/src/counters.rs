@@ -1,7 +1,7 @@
 //! What a node counts about the estimate messages it sends and receives;
 //! sent with its telemetry and written to `network.json`.
 
-use formation_topology::wire::Reject;
+use crate::wire::Reject;
 use serde::{Deserialize, Serialize};
 
 /// Per-reason counts of received estimate messages that were not used.

@@ -8,7 +8,7 @@
 //! monitor, once every follower still running has said so, names the step
 //! from which the killed follower's links are cut ([`Died`] on
 //! `control/died`, computed by [`died_step`]); every node applies that one
-//! step ([`crate::follower::Follower::handle_died`]), so the run stays the
+//! step ([`crate::follower::FollowerMachine::handle_died`]), so the run stays the
 //! model of the row `{ node = ID, from = L Δt, died = true }` whatever the
 //! timing.
 //!

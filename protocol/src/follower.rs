@@ -2,12 +2,12 @@
 //! is the model): it owns the inbox, the lock-step gate, the real-time
 //! pacing on the run's timebase, the freshness and silence rules, the
 //! hearing record, the publish rule and what goes to telemetry. It is fed
-//! the messages that arrive ([`Follower::handle_estimate`]), what the node
-//! noticed ([`Follower::handle_event`], [`Follower::handle_done`]) and the
-//! time ([`Follower::handle_timeout`]); it answers what to publish
-//! ([`Follower::poll_transmit`]), what to send to the monitor
-//! ([`Follower::poll_telemetry`]), what to say on stderr
-//! ([`Follower::poll_say`]) and when to be woken ([`Follower::poll_timeout`]).
+//! the messages that arrive ([`FollowerMachine::handle_estimate`]), what the node
+//! noticed ([`FollowerMachine::handle_event`], [`FollowerMachine::handle_done`]) and the
+//! time ([`FollowerMachine::handle_timeout`]); it answers what to publish
+//! ([`FollowerMachine::poll_transmit`]), what to send to the monitor
+//! ([`FollowerMachine::poll_telemetry`]), what to say on stderr
+//! ([`FollowerMachine::poll_say`]) and when to be woken ([`FollowerMachine::poll_timeout`]).
 //!
 //! The follower's step itself is the simulator's ([`SimFollower::step`],
 //! behind the [`Body`] seam), so a lock-step run gives the simulator's
@@ -20,14 +20,14 @@
 use std::collections::VecDeque;
 use std::time::Duration;
 
-use formation_agent::{Hearing, LinkLoss, LossWindow, Message, Nearby};
+use crate::wire::{self, EstimateMsg, Header, Reject, FORMAT_VERSION};
+use formation_control::{Hearing, LinkLoss, LossWindow, Message, Nearby};
 use formation_leader::LeaderState;
 use formation_plant::Pose;
 use formation_record::hearing::{HeardRuns, Rescued, Resume};
 use formation_record::{FollowerSample, Heard};
+use formation_scenario::{FaultTarget, Scenario, Timing};
 use formation_sim::{SimFollower, SimRobot};
-use formation_topology::wire::{self, EstimateMsg, Header, Reject, FORMAT_VERSION};
-use formation_topology::{FaultTarget, Scenario, Timing};
 
 use crate::barrier::{self, Start};
 use crate::counters::{Counters, RejectCounts};
@@ -43,7 +43,7 @@ use crate::Now;
 ///
 /// [`SimFollower`] (brain + simulated robot + noise) is the implementation
 /// the simulator uses too. A real robot's driver implements this with the
-/// same brain ([`formation_agent::Follower::step`]) fed by its own pose and
+/// same brain ([`formation_control::Follower::step`]) fed by its own pose and
 /// wheel-speed measurement, and applies the torques to the motors.
 pub trait Body: Send {
     /// Step k at t = k Δt with the leader's state (if heard), the
@@ -152,7 +152,7 @@ pub const LINGER: Duration = Duration::from_secs(1);
 /// A process that hears a start older than this is a restart.
 pub const LATE: Duration = Duration::from_millis(200);
 
-/// The arrival checks of one follower ([`Follower::checker`]).
+/// The arrival checks of one follower ([`FollowerMachine::checker`]).
 #[derive(Clone, Debug)]
 pub struct Checker {
     hears_leader: bool,
@@ -246,13 +246,13 @@ struct Rules {
     /// lock-step look-ahead.
     faulted_ahead: Option<u64>,
     /// The fault table's seed and, per slot, its windows for the link
-    /// (a neighbour that leaves adds one: [`Follower::handle_gone`]).
+    /// (a neighbour that leaves adds one: [`FollowerMachine::handle_gone`]).
     seed: u64,
     fault_windows: Vec<Vec<LossWindow>>,
 }
 
 /// One follower: see the module documentation.
-pub struct Follower {
+pub struct FollowerMachine {
     rules: Rules,
     body: Box<dyn Body>,
     inbox: Inbox,
@@ -298,17 +298,17 @@ pub struct Follower {
     /// The other robots' poses, with the safety filter on.
     poses: Option<Poses>,
     pose_transmit: VecDeque<Vec<u8>>,
-    /// This follower left the run for good ([`Follower::handle_leave`]).
+    /// This follower left the run for good ([`FollowerMachine::handle_leave`]).
     left: Option<Left>,
-    /// It leaves before this step ([`Follower::schedule_leave`]), and why.
+    /// It leaves before this step ([`FollowerMachine::schedule_leave`]), and why.
     leave_at: Option<u64>,
     leave_why: &'static str,
 }
 
-impl Follower {
+impl FollowerMachine {
     /// The follower at `index` of `scenario`, stepping `body`. It accepts
     /// messages from now on (a leader may run ahead before this node hears
-    /// the start) and steps once [`Follower::start`] is called.
+    /// the start) and steps once [`FollowerMachine::start`] is called.
     pub fn new(scenario: &Scenario, index: usize, body: Box<dyn Body>, opts: &Options) -> Self {
         let id = scenario.graph.id(index);
         let hears_leader = scenario.graph.hears_leader(index);
@@ -540,7 +540,7 @@ impl Follower {
 
     /// This follower leaves the run before step `at_k` (`agent --leave
     /// ID@SECONDS`): it takes step `at_k` − 1 but sends no message for
-    /// step `at_k`, then leaves as [`Follower::handle_leave`] says. So a
+    /// step `at_k`, then leaves as [`FollowerMachine::handle_leave`] says. So a
     /// leave is as repeatable as the fault table: lock-step runs with it
     /// equal the simulator with the follower's node cut off from `at_k` on.
     pub fn schedule_leave(&mut self, at_k: u64) {
@@ -597,7 +597,7 @@ impl Follower {
 
     /// Follower `id` died, its links cut from step `at_k` as the monitor
     /// named it (lock-step, [`crate::died`]): as a neighbour that left
-    /// ([`Follower::handle_gone`]), but with no last pose: its robot stands
+    /// ([`FollowerMachine::handle_gone`]), but with no last pose: its robot stands
     /// at its pose of step `at_k` − 2 from step `at_k` − 1 on, for this
     /// follower's filter.
     pub fn handle_died(&mut self, id: u32, at_k: u64) {
@@ -610,7 +610,7 @@ impl Follower {
     /// Follower `id` was absent at the start (a quorum start): its links
     /// are cut from step 0, as the row `{ node = id, from = 0 }`; in real
     /// time its first message, if it joins later, opens them again from
-    /// that message's step ([`Follower::handle_checked`]).
+    /// that message's step ([`FollowerMachine::handle_checked`]).
     pub fn handle_absent(&mut self, id: u32) {
         self.handle_gone(id, 0);
         if let Some(p) = self.poses.as_mut() {
@@ -641,7 +641,7 @@ impl Follower {
     /// This follower leaves the run for good: its process was told to stop
     /// (`why`: "SIGTERM", "Ctrl-C"). Its message for the step it takes next
     /// is already out, so it takes that step, sends nothing for the one
-    /// after, and leaves before it ([`Follower::schedule_leave`]'s rule):
+    /// after, and leaves before it ([`FollowerMachine::schedule_leave`]'s rule):
     /// what it computed goes out in a last batch marked done and [`Left`]
     /// (the monitor then waits for nothing more from it; its neighbours in
     /// lock-step and the run's model cut its links from that step on, as
@@ -739,7 +739,7 @@ impl Follower {
         }
     }
 
-    /// When the machine next wants [`Follower::handle_timeout`]: None
+    /// When the machine next wants [`FollowerMachine::handle_timeout`]: None
     /// before the start and after the end; `Now::ZERO` (at once) when a
     /// lock-step step's inputs are in.
     pub fn poll_timeout(&mut self) -> Option<Now> {
@@ -1128,7 +1128,7 @@ pub enum Joining {
     /// Real time, a restart: at this step ([`rejoin_step`]).
     At(u64),
     /// Lock-step, a restart: listen this long to the neighbours' repeats,
-    /// then resume where they wait ([`Follower::lockstep_resume_step`]).
+    /// then resume where they wait ([`FollowerMachine::lockstep_resume_step`]).
     ListenFirst(Duration),
 }
 

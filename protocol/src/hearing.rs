@@ -9,7 +9,7 @@
 
 use std::collections::VecDeque;
 
-use formation_agent::Message;
+use formation_control::Message;
 use formation_record::hearing::{HeardRuns, Rescued};
 use formation_record::Heard;
 

@@ -8,8 +8,8 @@ use std::time::Duration;
 
 use crate::Now;
 
-use formation_agent::{LinkLoss, Message};
-use formation_topology::wire::{self, EstimateMsg, Reject};
+use crate::wire::{self, EstimateMsg, Reject};
+use formation_control::{LinkLoss, Message};
 
 use crate::counters::Counters;
 
@@ -445,7 +445,7 @@ fn same(a: &Message, b: &Message) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use formation_topology::wire::{Header, FORMAT_VERSION};
+    use crate::wire::{Header, FORMAT_VERSION};
 
     fn msg(sender: u32, step: u64) -> EstimateMsg {
         EstimateMsg {
@@ -468,7 +468,7 @@ mod tests {
     /// and step L no longer waits for it (the model never delivers it).
     #[test]
     fn a_message_held_for_a_step_a_new_cut_loses_is_dropped() {
-        use formation_agent::LossWindow;
+        use formation_control::LossWindow;
         let mut inbox = Inbox::new(1, true);
         inbox.set_ahead(0, 1000);
         for k in 0..=10 {

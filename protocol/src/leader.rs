@@ -1,13 +1,13 @@
 //! The leader of the formation as one machine, with the follower's surface
-//! ([`crate::follower::Follower`]): it owns the virtual leader's trajectory,
+//! ([`crate::follower::FollowerMachine`]): it owns the virtual leader's trajectory,
 //! the lock-step window, the real-time pacing on the run's timebase, the
 //! stamping of its messages, what it repeats and for how long it lingers,
 //! and its telemetry batches. It is fed what arrives from the followers
-//! that hear it ([`Leader::handle_estimate`], [`Leader::handle_done`]) and
-//! the time ([`Leader::handle_timeout`]); it answers what to publish
-//! ([`Leader::poll_transmit`]), what to send to the monitor
-//! ([`Leader::poll_telemetry`]), what to say ([`Leader::poll_say`]) and when
-//! to be woken ([`Leader::poll_timeout`]). No socket, no clock, no thread.
+//! that hear it ([`LeaderMachine::handle_estimate`], [`LeaderMachine::handle_done`]) and
+//! the time ([`LeaderMachine::handle_timeout`]); it answers what to publish
+//! ([`LeaderMachine::poll_transmit`]), what to send to the monitor
+//! ([`LeaderMachine::poll_telemetry`]), what to say ([`LeaderMachine::poll_say`]) and when
+//! to be woken ([`LeaderMachine::poll_timeout`]). No socket, no clock, no thread.
 //!
 //! The leader's rules (docs/model.md §13):
 //!
@@ -24,9 +24,9 @@
 use std::collections::{BTreeSet, VecDeque};
 use std::time::Duration;
 
+use crate::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use formation_leader::{Leader as Trajectory, LeaderState};
-use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
-use formation_topology::{Scenario, Timing};
+use formation_scenario::{Scenario, Timing};
 
 use crate::barrier::Start;
 use crate::counters::Counters;
@@ -99,7 +99,7 @@ impl LeaderBatch {
 }
 
 /// The leader: see the module documentation.
-pub struct Leader {
+pub struct LeaderMachine {
     steps: u64,
     dt_s: f64,
     batch_len: usize,
@@ -146,8 +146,8 @@ pub struct Leader {
     stood_down_at: Option<u64>,
 }
 
-impl Leader {
-    /// The leader of `scenario`; it steps once [`Leader::start`] is called.
+impl LeaderMachine {
+    /// The leader of `scenario`; it steps once [`LeaderMachine::start`] is called.
     pub fn new(scenario: &Scenario) -> Self {
         let g = &scenario.graph;
         let hearing: Vec<u32> = (0..g.len()).filter(|&i| g.hears_leader(i)).map(|i| g.id(i)).collect();
@@ -189,7 +189,7 @@ impl Leader {
 
     /// A standby leader of `scenario` (docs/model.md §14): it publishes
     /// nothing until the leader of the run has been silent for `after`
-    /// ([`Leader::handle_start`], [`Leader::handle_leader`]); then it takes
+    /// ([`LeaderMachine::handle_start`], [`LeaderMachine::handle_leader`]); then it takes
     /// the run over at the step due, with the leader's own trajectory.
     pub fn standby(scenario: &Scenario, after: Duration) -> Self {
         let mut l = Self::new(scenario);
@@ -408,7 +408,7 @@ impl Leader {
         }
     }
 
-    /// When the machine next wants [`Leader::handle_timeout`]: None before
+    /// When the machine next wants [`LeaderMachine::handle_timeout`]: None before
     /// the start and after the end; `Now::ZERO` (at once) when a lock-step
     /// step may go.
     pub fn poll_timeout(&self) -> Option<Now> {
@@ -645,7 +645,7 @@ mod tests {
     }
 
     /// Hands the machine `now` as long as something is due at once.
-    fn run_while_due(l: &mut Leader, now: Now) {
+    fn run_while_due(l: &mut LeaderMachine, now: Now) {
         for _ in 0..100_000 {
             l.handle_timeout(now);
             if l.poll_timeout() != Some(Now::ZERO) {
@@ -655,7 +655,7 @@ mod tests {
     }
 
     /// Every message the leader publishes, by step.
-    fn steps_sent(l: &mut Leader) -> Vec<u64> {
+    fn steps_sent(l: &mut LeaderMachine) -> Vec<u64> {
         std::iter::from_fn(|| l.poll_transmit())
             .map(|b| wire::decode(&b).expect("the leader's own").header.step)
             .collect()
@@ -680,7 +680,7 @@ mod tests {
     /// the rule by one step either way fails here.
     #[test]
     fn in_lockstep_the_leader_runs_exactly_its_window_ahead_of_the_slowest() {
-        let mut l = Leader::new(&paper(&["duration=2", "timing=lockstep"]));
+        let mut l = LeaderMachine::new(&paper(&["duration=2", "timing=lockstep"]));
         assert_eq!(l.hearing(), [1], "in the paper's graph only follower 1 hears the leader");
         let t0 = Duration::from_secs(1);
         l.start(&start0(), t0);
@@ -707,7 +707,7 @@ mod tests {
     /// naming the step.
     #[test]
     fn a_shut_window_repeats_warns_and_gives_up() {
-        let mut l = Leader::new(&paper(&["duration=2", "timing=lockstep"]));
+        let mut l = LeaderMachine::new(&paper(&["duration=2", "timing=lockstep"]));
         let t0 = Duration::from_secs(1);
         l.start(&start0(), t0);
         l.handle_estimate(Some(1), &from(1, 0));
@@ -732,7 +732,7 @@ mod tests {
     /// every message is stamped with the time it was published.
     #[test]
     fn in_real_time_a_step_goes_when_due_and_is_stamped_then() {
-        let mut l = Leader::new(&paper(&["duration=1", "timing=realtime"]));
+        let mut l = LeaderMachine::new(&paper(&["duration=1", "timing=realtime"]));
         let epoch = Duration::from_nanos(start0().epoch_unix_ns);
         l.start(&start0(), epoch - Duration::from_millis(500));
         assert_eq!(steps_sent(&mut l), [0], "step 0's message goes at the start");
@@ -762,7 +762,12 @@ mod tests {
 
     /// Runs a real-time leader machine from `t` until `until` (or its end),
     /// feeding `standby` what it publishes; every message and batch.
-    fn run_rt(l: &mut Leader, mut t: Now, until: Now, mut standby: Option<&mut Leader>) -> (Vec<Vec<u8>>, Now) {
+    fn run_rt(
+        l: &mut LeaderMachine,
+        mut t: Now,
+        until: Now,
+        mut standby: Option<&mut LeaderMachine>,
+    ) -> (Vec<Vec<u8>>, Now) {
         let mut sent = Vec::new();
         while l.outcome().is_none() && t <= until {
             l.handle_timeout(t);
@@ -790,15 +795,15 @@ mod tests {
     fn a_standby_takes_a_real_time_run_over_with_the_leaders_own_trajectory() {
         let s = paper(&["duration=3", "timing=realtime"]);
         let epoch = Duration::from_nanos(start0().epoch_unix_ns);
-        let mut whole = Leader::new(&s);
+        let mut whole = LeaderMachine::new(&s);
         whole.start(&start0(), epoch);
         let (reference, _) = run_rt(&mut whole, epoch, epoch + Duration::from_secs(10), None);
         let reference_states: Vec<LeaderState> =
             std::iter::from_fn(|| whole.poll_telemetry()).flat_map(|b| b.states).collect();
 
         let after = Duration::from_millis(200);
-        let mut standby = Leader::standby(&s, after);
-        let mut leader = Leader::new(&s);
+        let mut standby = LeaderMachine::standby(&s, after);
+        let mut leader = LeaderMachine::new(&s);
         leader.start(&start0(), epoch);
         standby.handle_start(&start0(), epoch);
         assert_eq!(standby.poll_timeout(), Some(epoch + after), "the leader's silence counts from the start");
@@ -839,8 +844,8 @@ mod tests {
     fn a_leader_cut_off_and_back_stands_down_for_the_standbys_higher_term() {
         let s = paper(&["duration=4", "timing=realtime"]);
         let epoch = Duration::from_nanos(start0().epoch_unix_ns);
-        let mut standby = Leader::standby(&s, Duration::from_millis(500));
-        let mut leader = Leader::new(&s);
+        let mut standby = LeaderMachine::standby(&s, Duration::from_millis(500));
+        let mut leader = LeaderMachine::new(&s);
         assert_eq!((leader.term(), standby.term()), (FIRST_TERM, 0));
         leader.start(&start0(), epoch);
         standby.handle_start(&start0(), epoch);
@@ -871,7 +876,7 @@ mod tests {
         leader.stand_down("twice".into());
         assert_eq!(leader.poll_say(), None, "once only");
         // A leader's own term, or a lower one, changes nothing.
-        let mut other = Leader::new(&s);
+        let mut other = LeaderMachine::new(&s);
         other.start(&start0(), epoch);
         other.handle_leader(unheard.last().expect("sent"), epoch);
         assert!(other.outcome().is_none(), "term 1 beside term 1 (the claims' nonce decides)");
@@ -883,11 +888,11 @@ mod tests {
     fn a_standby_does_not_take_over_a_run_that_ended_or_has_not_started() {
         let s = paper(&["duration=0.5", "timing=realtime"]);
         let epoch = Duration::from_nanos(start0().epoch_unix_ns);
-        let mut standby = Leader::standby(&s, Duration::from_millis(200));
+        let mut standby = LeaderMachine::standby(&s, Duration::from_millis(200));
         assert_eq!(standby.poll_timeout(), None, "no start heard: nothing to watch");
         standby.handle_timeout(epoch + Duration::from_secs(100));
         assert!(standby.took_over().is_none() && standby.outcome().is_none());
-        let mut leader = Leader::new(&s);
+        let mut leader = LeaderMachine::new(&s);
         leader.start(&start0(), epoch);
         // Heard 0.5 s before the epoch (the leader's step 0 then, its step 1
         // at the epoch): the silence counts from the epoch.
@@ -911,8 +916,8 @@ mod tests {
     fn in_lockstep_a_standby_takes_over_at_the_newest_step_heard_and_keeps_the_window() {
         let s = paper(&["duration=2", "timing=lockstep"]);
         let t0 = Duration::from_secs(1);
-        let mut leader = Leader::new(&s);
-        let mut standby = Leader::standby(&s, Duration::from_millis(500));
+        let mut leader = LeaderMachine::new(&s);
+        let mut standby = LeaderMachine::standby(&s, Duration::from_millis(500));
         leader.start(&start0(), t0);
         standby.handle_start(&start0(), t0);
         // Follower 1 reaches step 99; the standby hears both.
@@ -954,7 +959,7 @@ mod tests {
     #[test]
     fn in_lockstep_the_leader_lingers_until_its_followers_are_done() {
         let s = paper(&["duration=0.01", "timing=lockstep"]);
-        let mut l = Leader::new(&s);
+        let mut l = LeaderMachine::new(&s);
         let t0 = Duration::from_secs(1);
         l.start(&start0(), t0);
         for _ in 0..=s.steps() {

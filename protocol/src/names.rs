@@ -3,8 +3,8 @@
 //!
 //! | key | who publishes | payload |
 //! | --- | --- | --- |
-//! | `estimate/<id>` | leader (id 0), follower id | `formation_topology::wire::EstimateMsg` (docs/model.md §13) |
-//! | `pose/<id>` | follower id, only with the safety filter on | `formation_topology::wire::PoseMsg` (docs/model.md §16) |
+//! | `estimate/<id>` | leader (id 0), follower id | `crate::wire::EstimateMsg` (docs/model.md §13) |
+//! | `pose/<id>` | follower id, only with the safety filter on | `crate::wire::PoseMsg` (docs/model.md §16) |
 //! | `telemetry/<id>` | leader (id 0), follower id | `telemetry::Telemetry` |
 //! | `control/hello/<node>` | every node, until the start | empty |
 //! | `control/ready/<node>` | agents and monitor, until the start | `barrier::Ready` |
@@ -17,7 +17,7 @@
 //!
 //! `<node>` is `0` for the leader, the follower id, or `monitor`.
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
 /// The router's node name (its certificate's common name).
 pub const ROUTER: &str = "router";
@@ -57,7 +57,7 @@ pub fn validate_run_name(run: &str) -> Result<(), BadRunName> {
     if run.is_empty() {
         return Err(BadRunName("run name is empty (allowed: letters, digits, '_' and '-')".into()));
     }
-    let (chars, most) = (run.chars().count(), formation_topology::scenario::MAX_NAME_CHARS);
+    let (chars, most) = (run.chars().count(), formation_scenario::scenario::MAX_NAME_CHARS);
     if chars > most {
         let start: String = run.chars().take(20).collect();
         return Err(BadRunName(format!("run name `{start}…` is {chars} characters long, at most {most}")));

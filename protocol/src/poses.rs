@@ -25,10 +25,10 @@
 
 use std::time::Duration;
 
-use formation_agent::Seen;
+use crate::wire::{self, Header, PoseMsg, Reject, FORMAT_VERSION};
+use formation_control::Seen;
 use formation_plant::Pose;
-use formation_topology::wire::{self, Header, PoseMsg, Reject, FORMAT_VERSION};
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
 use crate::Now;
 
@@ -91,7 +91,7 @@ impl Poses {
             own: index,
             id: scenario.graph.id(index),
             ids: scenario.graph.ids().to_vec(),
-            lockstep: scenario.timing == formation_topology::Timing::Lockstep,
+            lockstep: scenario.timing == formation_scenario::Timing::Lockstep,
             ring: vec![[None; RING]; n],
             newest: vec![None; n],
             presence: vec![Presence::Running; n],
@@ -135,7 +135,7 @@ impl Poses {
     }
 
     /// Whether every other robot that runs was heard with a pose of step
-    /// `k` or later ([`crate::follower::Follower::heard_past`]).
+    /// `k` or later ([`crate::follower::FollowerMachine::heard_past`]).
     pub fn heard_past(&self, k: u64) -> bool {
         (0..self.ids.len()).all(|j| {
             j == self.own

@@ -1,7 +1,7 @@
 //! The formation's own machines on virtual time, for tests (quinn's
 //! `tests/util.rs` `Pair` is the model): the real leader
-//! ([`crate::leader::Leader`]) and one real follower machine
-//! ([`crate::follower::Follower`]) per follower of a scenario, with the
+//! ([`crate::leader::LeaderMachine`]) and one real follower machine
+//! ([`crate::follower::FollowerMachine`]) per follower of a scenario, with the
 //! simulator's bodies, over a network of queues that can lose packets,
 //! close a node's links or delay them. No sockets, no threads, no clock.
 //!
@@ -15,15 +15,15 @@ use std::collections::BTreeMap;
 use std::ops::Range;
 use std::time::Duration;
 
+use crate::wire::{self, LEADER_ID};
 use formation_record::FollowerSample;
+use formation_scenario::Scenario;
 use formation_sim::SimFollower;
-use formation_topology::wire::{self, LEADER_ID};
-use formation_topology::Scenario;
 
 use crate::barrier::Start;
 use crate::counters::Counters;
-use crate::follower::{Follower, Options};
-use crate::leader::Leader;
+use crate::follower::{FollowerMachine, Options};
+use crate::leader::LeaderMachine;
 use crate::telemetry::{Delivery, NetEvent, Telemetry};
 use crate::Now;
 
@@ -126,8 +126,8 @@ impl Network {
 /// A scenario's leader and followers and the network, on virtual time.
 pub struct World {
     pub scenario: Scenario,
-    pub followers: Vec<Follower>,
-    pub leader: Leader,
+    pub followers: Vec<FollowerMachine>,
+    pub leader: LeaderMachine,
     net: Network,
     pub now: Now,
     pub start: Start,
@@ -147,11 +147,11 @@ impl World {
     pub fn new(scenario: Scenario, faults: Faults) -> Self {
         let opts = Options { stall_timeout: Duration::from_secs(60), physical_node_faults: false };
         let followers = (0..scenario.followers.len())
-            .map(|i| Follower::new(&scenario, i, Box::new(SimFollower::new(&scenario, i)), &opts))
+            .map(|i| FollowerMachine::new(&scenario, i, Box::new(SimFollower::new(&scenario, i)), &opts))
             .collect();
         let start = start_at_epoch();
         Self {
-            leader: Leader::new(&scenario),
+            leader: LeaderMachine::new(&scenario),
             net: Network { queues: BTreeMap::new(), draws: Draws(0x9e37_79b9_7f4a_7c15), faults },
             now: EPOCH,
             start,

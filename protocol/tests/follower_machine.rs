@@ -1,4 +1,4 @@
-//! The agents' own follower machine ([`Follower`]) on virtual time: four of
+//! The agents' own follower machine ([`FollowerMachine`]) on virtual time: four of
 //! them in the paper's ring with the real leader machine, over a network of
 //! queues that can lose packets, close a node's links, delay them or forge
 //! one (`formation_protocol::testing`). No sockets, no threads, no clock:
@@ -18,14 +18,14 @@ use std::path::Path;
 use std::time::Duration;
 
 use formation_leader::LeaderState;
-use formation_protocol::follower::{self, Follower, Options};
+use formation_protocol::follower::{self, FollowerMachine, Options};
 use formation_protocol::telemetry::{EventKind, Telemetry};
 use formation_protocol::testing::{start_at_epoch, Faults, World, EPOCH};
+use formation_protocol::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 use formation_protocol::Now;
 use formation_record::FollowerSample;
+use formation_scenario::Scenario;
 use formation_sim::{Observer, SimFollower, Simulation};
-use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
-use formation_topology::Scenario;
 
 fn paper(sets: &[&str]) -> Scenario {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
@@ -271,7 +271,7 @@ fn realtime_a_restart_rejoins_ahead_of_the_run_and_adopts_before_publishing() {
     let i4 = w.scenario.index_of(4).unwrap();
     let opts = Options { stall_timeout: Duration::from_secs(60), physical_node_faults: false };
     let body = Box::new(SimFollower::new(&w.scenario, i4));
-    w.followers[i4] = Follower::new(&w.scenario, i4, body, &opts);
+    w.followers[i4] = FollowerMachine::new(&w.scenario, i4, body, &opts);
     w.telemetry[i4].clear();
     let pose = w.scenario.followers[i4].pose;
     let now = w.now;
@@ -304,7 +304,7 @@ fn a_late_process_joins_by_one_rule_in_both_timings() {
     let listen = follower::joining(&start, 1.5, &ls, 0);
     assert_eq!(listen, Ok(follower::Joining::ListenFirst(Duration::from_millis(300))));
     let mut alone = paper(LOCKSTEP);
-    alone.graph = formation_topology::Graph::new(vec![1, 2, 3, 4], &[], vec![true; 4]);
+    alone.graph = formation_scenario::Graph::new(vec![1, 2, 3, 4], &[], vec![true; 4]);
     assert_eq!(follower::joining(&start, 1.5, &alone, 0), Ok(follower::Joining::Fresh), "no neighbour to listen to");
     assert!(follower::joining(&start, 5.0, &rt, 0).is_err(), "a 3 s run is over after 5 s");
 }

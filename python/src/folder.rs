@@ -65,11 +65,11 @@ pub fn read(dir: &Path) -> Result<FolderRun, String> {
 /// model says it would have heard; read back as a [`FolderRun`], with what
 /// could not be re-computed, one line each.
 pub fn replay(dir: &Path, model: bool) -> Result<(FolderRun, Vec<String>), String> {
-    use formation_replay::replay::{load, replay_to_folder_with, Hearing};
+    use formation_replay::replay::{load, replay_to_folder_with, HearingSource};
     let loaded = load(dir).map_err(|e| e.to_string())?;
     let tmp = tempfile::tempdir().map_err(|e| format!("a temporary folder: {e}"))?;
     let out = tmp.path().join("replay");
-    let hearing = if model { Hearing::Model } else { Hearing::Recorded };
+    let hearing = if model { HearingSource::Model } else { HearingSource::Recorded };
     let problems = replay_to_folder_with(&loaded, hearing, &out, &mut |_| {}).map_err(|e| e.to_string())?;
     let problems = problems.iter().map(|p| format!("follower {} at step {}: {}", p.follower, p.k, p.what)).collect();
     Ok((read(&out)?, problems))
@@ -79,7 +79,7 @@ pub fn replay(dir: &Path, model: bool) -> Result<(FolderRun, Vec<String>), Strin
 mod tests {
     use super::*;
     use formation_record::RecordOptions;
-    use formation_topology::Scenario;
+    use formation_scenario::Scenario;
 
     #[test]
     fn a_simulated_folder_reads_back_as_the_run_in_memory() {

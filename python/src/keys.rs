@@ -4,9 +4,9 @@
 
 use std::path::{Path, PathBuf};
 
-use formation_topology::generate::{self, GraphKind, Spec};
-use formation_topology::scenario::built_in;
-use formation_topology::Scenario;
+use formation_scenario::generate::{self, GraphKind, Spec};
+use formation_scenario::load::built_in;
+use formation_scenario::Scenario;
 
 /// A scenario file's text, where it came from, and the assignments made to it.
 #[derive(Clone, Debug)]

@@ -9,6 +9,20 @@
 //! - [`keys`]: a scenario's keys as the file gives them, with `--set`'s
 //!   names and checks;
 //! - [`paper`]: the paper's Tables I and II over seeds, as numbers.
+//!
+//! # Examples
+//!
+//! The names the Python package takes are the command line's: a graph as
+//! `formation generate --graph` names it, and an unknown one refused with
+//! the list.
+//!
+//! ```
+//! use _formation::keys::graph_kind;
+//!
+//! assert!(graph_kind("ring").is_ok());
+//! let refused = graph_kind("star").unwrap_err();
+//! assert!(refused.contains("ring") && refused.contains("grid"), "{refused}");
+//! ```
 
 pub mod folder;
 pub mod keys;

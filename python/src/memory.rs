@@ -4,8 +4,8 @@
 
 use formation_leader::LeaderState;
 use formation_record::{leader_csv_fields, Row, Summary, FOLLOWER_HEADER, LEADER_HEADER};
+use formation_scenario::Scenario;
 use formation_sim::{Observer, Simulation};
-use formation_topology::Scenario;
 
 /// One CSV's columns: `names[i]` holds `data[i]`, every column as long.
 #[derive(Clone, Debug, PartialEq)]

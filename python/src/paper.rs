@@ -9,7 +9,7 @@ use formation_record::FollowerMetrics;
 use formation_report::paper::{case_scenario, run_seed, PaperCase, CASES};
 use formation_report::tables::{claims as check_claims, Check, PAPER_TABLE_I, PAPER_TABLE_II};
 use formation_report::{Case, ClaimParams, Role, SeedRecord};
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use rayon::prelude::*;
 
 /// One table: `values[s][f]` is seed `seeds[s]`'s row for follower

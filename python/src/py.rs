@@ -8,10 +8,10 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
-use formation_topology::generate::Spec;
+use formation_scenario::generate::Spec;
 
-use crate::keys::{graph_kind, Source};
 use crate::memory::Columns;
+use crate::rmw_keys::{graph_kind, Source};
 
 fn value_error(e: String) -> PyErr {
     PyValueError::new_err(e)

@@ -15,6 +15,14 @@ pub enum RecordError {
     Io { path: PathBuf, source: std::io::Error },
 }
 
+/// A run folder that cannot be read or written as one is the user's input
+/// (a folder that is not a run folder, or one from another version).
+impl From<RecordError> for formation_exit::Error {
+    fn from(e: RecordError) -> Self {
+        formation_exit::Error::Input(e.to_string())
+    }
+}
+
 /// Reads the named columns of a CSV file with a header row. Every field of
 /// the file must be a number: an error names the file, the line and the
 /// column of the first that is not.

@@ -365,14 +365,14 @@ impl HearingRecord {
     /// refusing one whose checksum does not match.
     pub fn decode(bytes: &[u8], label: &str) -> Result<Self, HearingError> {
         let body = bytes.len().checked_sub(4).map(|n| bytes.split_at(n));
-        let r: Self = match body.and_then(|(b, _)| formation_topology::wire::decode_bounded::<Self>(b)) {
+        let r: Self = match body.and_then(|(b, _)| crate::bounded::decode_bounded::<Self>(b)) {
             Some(r) => r,
             None => {
                 // The format number comes first: name a record of another format as such.
                 let limited = config().with_limit::<64>();
                 return match bincode::serde::decode_from_slice::<u32, _>(bytes, limited) {
                     // Format 1 had no checksum: a format-1 record decodes whole.
-                    Ok((1, _)) if formation_topology::wire::decode_bounded::<Self>(bytes).is_none() => {
+                    Ok((1, _)) if crate::bounded::decode_bounded::<Self>(bytes).is_none() => {
                         Err(HearingError::Malformed(label.into()))
                     }
                     Ok((found, _)) if found != HEARING_FORMAT && found < 1000 => {
@@ -397,7 +397,7 @@ impl HearingRecord {
     pub fn read(dir: &std::path::Path) -> Result<Self, HearingError> {
         let path = dir.join(HEARING_FILE);
         let label = path.display().to_string();
-        let bytes = read_regular(&path, formation_topology::wire::MAX_INPUT)?;
+        let bytes = read_regular(&path, crate::bounded::MAX_INPUT)?;
         Self::decode(&bytes, &label)
     }
 

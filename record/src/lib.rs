@@ -8,7 +8,28 @@
 //! Modules, each using only those listed before it: [`row`], [`columns`],
 //! [`outage`], [`metrics`], [`summary`], [`hearing`], [`mcap`], [`folder`],
 //! [`live`].
+//!
+//! # Examples
+//!
+//! A run folder's CSV read back by column, and a damaged one refused with
+//! its line and column:
+//!
+//! ```
+//! use formation_record::read_columns;
+//!
+//! let dir = std::env::temp_dir().join(format!("formation-record-doc-{}", std::process::id()));
+//! std::fs::create_dir_all(&dir).unwrap();
+//! let csv = dir.join("follower_1.csv");
+//! std::fs::write(&csv, "t,e_x,e_y\n0,0.5,0.1\n0.01,0.25,0.05\n").unwrap();
+//! assert_eq!(read_columns(&csv, &["e_x", "t"]).unwrap(), [vec![0.5, 0.25], vec![0.0, 0.01]]);
+//!
+//! std::fs::write(&csv, "t,e_x\n0,0.5\n0.01,oops\n").unwrap();
+//! let refused = read_columns(&csv, &["e_x"]).unwrap_err().to_string();
+//! assert!(refused.contains("line 3"), "{refused}");
+//! std::fs::remove_dir_all(&dir).unwrap();
+//! ```
 
+pub mod bounded;
 pub mod columns;
 pub mod folder;
 pub mod hearing;
@@ -37,7 +58,7 @@ pub use summary::{name, Shortfall, Summary};
 mod tests {
     use std::path::Path;
 
-    use formation_topology::Scenario;
+    use formation_scenario::Scenario;
 
     use super::*;
 

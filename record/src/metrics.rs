@@ -1,9 +1,9 @@
 //! The per-follower metrics of docs/model.md §11, accumulated sample by
 //! sample in O(1) memory (and, per fault window, those of §14).
 
-use formation_agent::{GuardStep, GuardTally};
+use formation_control::{GuardStep, GuardTally};
 use formation_leader::LeaderState;
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use serde::{Deserialize, Serialize};
 
 use crate::outage::{OutageAccumulator, OutageMetrics, Window};
@@ -47,7 +47,7 @@ pub struct FollowerMetrics {
     /// What the limits and the safety filter did to the commands
     /// (docs/model.md §16); absent when the scenario has neither.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub guard: Option<formation_agent::GuardTally>,
+    pub guard: Option<formation_control::GuardTally>,
 }
 
 impl FollowerMetrics {
@@ -83,7 +83,7 @@ impl FollowerMetrics {
 pub fn last10_from_k(steps: u64, dt_s: f64) -> u64 {
     let duration_s = steps as f64 * dt_s;
     if duration_s > 10.0 {
-        formation_agent::math::step_at(duration_s - 10.0, dt_s)
+        formation_control::math::step_at(duration_s - 10.0, dt_s)
     } else {
         0
     }

@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use formation_topology::{LinkFault, Scenario};
+use formation_scenario::{LinkFault, Scenario};
 use serde::{Deserialize, Serialize};
 
 use crate::row::Row;

@@ -20,9 +20,9 @@
 use std::path::Path;
 
 use formation_ros2::bag::BagWriter;
-use formation_ros2::keys::Qos;
 use formation_ros2::msgs::{Clock, Message, Odometry, PoseStamped, TFMessage, Time, Twist};
 use formation_ros2::planar::{self, Frames};
+use formation_ros2::rmw_keys::Qos;
 
 /// The bag's folder name in a run folder.
 pub const DIR: &str = "rosbag2";

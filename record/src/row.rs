@@ -2,8 +2,8 @@
 //! reports and the CSV [`Row`] made of it against the true leader
 //! (docs/model.md §11).
 
-use formation_agent::math::wrap;
-use formation_agent::StepOutput;
+use formation_control::math::wrap;
+use formation_control::StepOutput;
 use formation_leader::LeaderState;
 use formation_plant::{Pose, Velocity};
 use serde::{Deserialize, Serialize};
@@ -22,7 +22,7 @@ pub struct FollowerSample {
     pub torque_r: f64,
     /// What the limits and the safety filter did (docs/model.md §16);
     /// None where the scenario has neither.
-    pub guard: Option<formation_agent::GuardStep>,
+    pub guard: Option<formation_control::GuardStep>,
 }
 
 impl FollowerSample {

@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::FollowerMetrics;
@@ -276,10 +276,10 @@ impl Summary {
 impl Summary {
     /// Every follower's guard tally summed (the largest change the
     /// largest); None without limits or a filter.
-    pub fn guard_total(&self) -> Option<formation_agent::GuardTally> {
+    pub fn guard_total(&self) -> Option<formation_control::GuardTally> {
         let mut tallies = self.followers.values().filter_map(|m| m.guard).peekable();
         tallies.peek()?;
-        Some(tallies.fold(formation_agent::GuardTally::default(), |mut a, t| {
+        Some(tallies.fold(formation_control::GuardTally::default(), |mut a, t| {
             a.merge(&t);
             a
         }))

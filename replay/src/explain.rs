@@ -12,8 +12,8 @@
 
 use formation_record::{FollowerMetrics, Heard};
 
-use crate::replay::{self, Hearing, Loaded, Metrics, ModelEar};
-use formation_protocol::error::Error;
+use crate::replay::{self, HearingSource, Loaded, Metrics, ModelEar};
+use formation_exit::Error;
 
 /// One link of the graph: `sender` → follower `receiver` (its slot `slot`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -175,7 +175,7 @@ pub fn compare_hearing(loaded: &Loaded) -> (Vec<LinkHearing>, Option<Departure>)
 }
 
 /// The metric per follower of a replay with `hearing`.
-fn metrics_with(loaded: &Loaded, hearing: Hearing, name: &str) -> Result<Vec<Option<f64>>, Error> {
+fn metrics_with(loaded: &Loaded, hearing: HearingSource, name: &str) -> Result<Vec<Option<f64>>, Error> {
     let mut sink = Metrics::new(&loaded.scenario);
     replay::replay(loaded, hearing, &mut sink)?;
     Ok(sink.acc.iter().map(|a| metric(&a.finish(), name)).collect())
@@ -204,17 +204,17 @@ pub fn explain(
     // Only links that heard differently can explain anything.
     let differing: Vec<Link> = hearing.iter().filter(|h| h.differing > 0).map(|h| h.link).collect();
     let s = &loaded.scenario;
-    let stalls = if s.timing == formation_topology::Timing::Realtime && s.network.delay_steps > 0 && s.faults.is_empty()
+    let stalls = if s.timing == formation_scenario::Timing::Realtime && s.network.delay_steps > 0 && s.faults.is_empty()
     {
         let heard: Vec<&formation_record::hearing::FollowerHearing> = loaded.record.followers.iter().collect();
         formation_record::stall::stalls(&heard, s.network.delay_steps)
     } else {
         Vec::new()
     };
-    let mut jobs: Vec<Hearing> = vec![Hearing::Recorded, Hearing::Model];
-    jobs.extend(differing.iter().map(|l| Hearing::Link { index: l.index, slot: l.slot }));
-    jobs.extend(windows.iter().map(|&(from_k, to_k)| Hearing::Window { from_k, to_k }));
-    jobs.extend(stalls.iter().map(|st| Hearing::Window { from_k: st.from_k, to_k: st.to_k }));
+    let mut jobs: Vec<HearingSource> = vec![HearingSource::Recorded, HearingSource::Model];
+    jobs.extend(differing.iter().map(|l| HearingSource::Link { index: l.index, slot: l.slot }));
+    jobs.extend(windows.iter().map(|&(from_k, to_k)| HearingSource::Window { from_k, to_k }));
+    jobs.extend(stalls.iter().map(|st| HearingSource::Window { from_k: st.from_k, to_k: st.to_k }));
     let total = jobs.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let results: Vec<Result<Vec<Option<f64>>, Error>> = {

@@ -1,20 +1,33 @@
-//! A networked run's record, and the same record again. The monitor node
-//! feeds the [`recorder::Recorder`] with telemetry payloads and the time;
-//! it writes the run folder, judges the run ([`health`]) and says when it
-//! ended ([`watch`]), and whether a real-time run kept its period
-//! ([`period`]). `formation replay` runs the hearing record through
-//! the same steps ([`replay`]), sets each fault beside its model
-//! ([`explain`]) and plays a finished run to the live page or Foxglove
-//! ([`playback`]).
+//! A finished networked run again, offline: `formation replay` runs the
+//! hearing record through the follower's steps and writes the same folder
+//! with the same [`formation_recorder::Recorder`] ([`replay`]), `--explain`
+//! sets each fault beside its model ([`explain`]), and `formation play`
+//! shows a finished run on the live page or in Foxglove ([`playback`]).
 //!
 //! This crate must never import zenoh, tokio or a node of `formation-net`:
 //! an offline command reads a run without a network stack.
+//!
+//! # Examples
+//!
+//! A folder written by the in-process simulator has no hearing record:
+//! there is nothing to replay, and [`replay::load`] says so instead of
+//! computing anything.
+//!
+//! ```
+//! use std::path::Path;
+//! use formation_record::RecordOptions;
+//! use formation_scenario::Scenario;
+//!
+//! let dir = std::env::temp_dir().join(format!("formation-replay-doc-{}", std::process::id()));
+//! let scenario = Scenario::load(Path::new("paper"), &["duration=0.5".to_string()]).expect("scenario");
+//! let opts = RecordOptions { dir: dir.clone(), every: 1, csv: true, mcap: false, rosbag2: false };
+//! formation_sim::run_to_folder(&scenario, &opts, 1, |_| {}).expect("simulated");
+//! let refused = formation_replay::replay::load(&dir).err().expect("not a networked run");
+//! assert!(refused.to_string().contains("hearing"), "{refused}");
+//! std::fs::remove_dir_all(&dir).unwrap();
+//! ```
 
 pub mod explain;
-pub mod health;
-pub mod period;
 #[cfg(feature = "playback")]
 pub mod playback;
-pub mod recorder;
 pub mod replay;
-pub mod watch;

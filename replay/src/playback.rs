@@ -1,4 +1,4 @@
-//! `formation monitor --replay RUN_DIR`: a finished networked run played on
+//! `formation play RUN_DIR`: a finished networked run played on
 //! the live page (`--web`) and to Foxglove (`--foxglove`) at a chosen
 //! speed, with pause and seek, re-computed from its hearing record through
 //! the monitor's recorder (so the page shows what the run recorded).
@@ -17,9 +17,9 @@ use formation_leader::LeaderState;
 use formation_record::{FollowerSample, Heard, LiveSink, RecordOptions};
 use formation_view::web::{Live, FRAME_PERIOD};
 
-use crate::recorder::Recorder;
-use crate::replay::{self, Hearing, Loaded, Sink};
-use formation_protocol::error::Error;
+use crate::replay::{self, HearingSource, Loaded, Sink};
+use formation_exit::Error;
+use formation_recorder::Recorder;
 
 /// What the page (or a test) asks of a playback.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -213,7 +213,7 @@ pub fn play(
             recorder.add_sink(sink.clone());
         }
         let mut p = Player { recorder, loaded, out, controls, clock: &mut clock, target: from, restart: None, began };
-        replay::replay(loaded, Hearing::Recorded, &mut p)?;
+        replay::replay(loaded, HearingSource::Recorded, &mut p)?;
         let restart = p.restart;
         if restart.is_none() {
             p.publish("complete");

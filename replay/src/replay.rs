@@ -9,22 +9,22 @@
 //! gives the run's CSVs and `summary.json` byte for byte.
 //!
 //! The hearing can be replaced, wholly or for one link or one window of
-//! steps, by the model's ([`Hearing`]): every message used exactly
+//! steps, by the model's ([`HearingSource`]): every message used exactly
 //! `network.delay_steps` after it was sent, the fault table applied, as
 //! `formation sim` assumes. That is what `--explain` compares with.
 
 use std::path::{Path, PathBuf};
 
-use formation_agent::{LinkLoss, Message, Nearby};
+use formation_control::{LinkLoss, Message, Nearby};
 use formation_leader::LeaderState;
 use formation_plant::Pose;
 use formation_record::hearing::{Cursor, End, FollowerHearing, HearingRecord};
 use formation_record::{FollowerSample, Heard, RecordOptions, HEARING_FILE};
+use formation_scenario::Scenario;
 use formation_sim::SimFollower;
-use formation_topology::Scenario;
 
-use crate::recorder::{Recorder, KILLED};
-use formation_protocol::error::Error;
+use formation_exit::Error;
+use formation_recorder::{Recorder, KILLED};
 
 /// A run folder's scenario and hearing record, checked against each other.
 pub struct Loaded {
@@ -62,7 +62,7 @@ impl Loaded {
     /// else), so that its robot stands where the others' filters saw it;
     /// they have no row (the run has none).
     fn killed_at(&self, index: usize) -> Option<u64> {
-        let lockstep = self.scenario.timing == formation_topology::Timing::Lockstep;
+        let lockstep = self.scenario.timing == formation_scenario::Timing::Lockstep;
         match &self.record.followers[index].end {
             End::Left { k, why } if why == KILLED && lockstep => Some(*k),
             _ => None,
@@ -109,7 +109,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
     let s = &record.scenario;
     let scenario = Scenario::from_toml(&s.text, &s.label, "run", &s.overrides)
         .map_err(|e| Error::Input(format!("{}: the scenario it carries: {e}", dir.display())))?;
-    if scenario.control.guard.safety.is_some() && scenario.timing == formation_topology::Timing::Realtime {
+    if scenario.control.guard.safety.is_some() && scenario.timing == formation_scenario::Timing::Realtime {
         // docs/model.md §16: in real time each filter took the newest pose
         // it had heard, which hearing.bin does not hold (lock-step's are
         // every robot's pose of the step before, which it does).
@@ -186,7 +186,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
 /// Which hearing a replay uses: the record's, except where the model's
 /// replaces it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Hearing {
+pub enum HearingSource {
     /// The run as recorded.
     Recorded,
     /// The model everywhere.
@@ -197,13 +197,13 @@ pub enum Hearing {
     Window { from_k: u64, to_k: u64 },
 }
 
-impl Hearing {
+impl HearingSource {
     fn model_at(self, index: usize, slot: usize, k: u64) -> bool {
         match self {
-            Hearing::Recorded => false,
-            Hearing::Model => true,
-            Hearing::Link { index: i, slot: s } => i == index && s == slot,
-            Hearing::Window { from_k, to_k } => from_k <= k && k < to_k,
+            HearingSource::Recorded => false,
+            HearingSource::Model => true,
+            HearingSource::Link { index: i, slot: s } => i == index && s == slot,
+            HearingSource::Window { from_k, to_k } => from_k <= k && k < to_k,
         }
     }
 }
@@ -292,7 +292,7 @@ enum Track {
 
 /// Re-computes the run with `hearing`, in step order, into `sink`.
 /// Returns what could not be re-computed.
-pub fn replay(loaded: &Loaded, hearing: Hearing, sink: &mut impl Sink) -> Result<Vec<Problem>, Error> {
+pub fn replay(loaded: &Loaded, hearing: HearingSource, sink: &mut impl Sink) -> Result<Vec<Problem>, Error> {
     let s = &loaded.scenario;
     let rec = &loaded.record;
     let n = s.followers.len();
@@ -401,7 +401,7 @@ struct Views {
     on: bool,
     before: Vec<Pose>,
     now: Vec<Pose>,
-    seen: Vec<formation_agent::Seen>,
+    seen: Vec<formation_control::Seen>,
     killed_at: Vec<Option<u64>>,
 }
 
@@ -415,7 +415,7 @@ impl Views {
             false => Vec::new(),
         };
         let killed_at = (0..n).map(|i| loaded.killed_at(i)).collect();
-        Self { on, now: before.clone(), before, seen: vec![formation_agent::Seen::Live; n], killed_at }
+        Self { on, now: before.clone(), before, seen: vec![formation_control::Seen::Live; n], killed_at }
     }
 
     /// How follower `own`'s filter sees the others at this step.
@@ -439,7 +439,7 @@ impl Views {
         self.before.copy_from_slice(&self.now);
         for (j, l) in self.killed_at.iter().enumerate() {
             if l.is_some_and(|l| k + 1 >= l) {
-                self.seen[j] = formation_agent::Seen::Still;
+                self.seen[j] = formation_control::Seen::Still;
             }
         }
     }
@@ -564,7 +564,7 @@ impl Sink for Folder<'_> {
 /// Re-computes the run into the folder `out` (CSVs, `summary.json`, and a
 /// copy of the hearing record); returns what could not be re-computed.
 pub fn replay_to_folder(loaded: &Loaded, out: &Path) -> Result<Vec<Problem>, Error> {
-    replay_to_folder_with(loaded, Hearing::Recorded, out, &mut |_| {})
+    replay_to_folder_with(loaded, HearingSource::Recorded, out, &mut |_| {})
 }
 
 /// [`replay_to_folder`] with another hearing (the model's: the folder
@@ -572,7 +572,7 @@ pub fn replay_to_folder(loaded: &Loaded, out: &Path) -> Result<Vec<Problem>, Err
 /// `progress(k)` every 1000 steps.
 pub fn replay_to_folder_with(
     loaded: &Loaded,
-    hearing: Hearing,
+    hearing: HearingSource,
     out: &Path,
     progress: &mut dyn FnMut(u64),
 ) -> Result<Vec<Problem>, Error> {
@@ -586,7 +586,7 @@ pub fn replay_to_folder_with(
     recorder.replayed_joins(&loaded.joins);
     let mut sink = Folder { recorder, progress };
     let problems = replay(loaded, hearing, &mut sink)?;
-    sink.recorder.finish(crate::watch::Ending::Complete)?;
+    sink.recorder.finish(formation_recorder::watch::Ending::Complete)?;
     Ok(problems)
 }
 

@@ -33,14 +33,14 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
-use crate::error::{at_least_one, Error};
 use crate::paper::{case_scenario, run_seed, CASES};
 use crate::tables::{PAPER_TABLE_I, PAPER_TABLE_II};
+use formation_exit::{at_least_one, Error};
 use formation_record::at_path;
 
 #[derive(Debug)]

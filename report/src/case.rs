@@ -7,12 +7,12 @@ use std::collections::BTreeMap;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use formation_agent::{kinematic, KinematicKind};
+use formation_control::{kinematic, KinematicKind};
 use formation_record::{at_path, read_columns_checked, Summary};
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use serde::{Deserialize, Serialize};
 
-use crate::error::Error;
+use formation_exit::Error;
 
 pub use crate::outdir::SEEDS_FILE;
 

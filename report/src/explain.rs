@@ -10,8 +10,8 @@ use formation_replay::explain::{self, Explanation};
 use formation_replay::replay::Loaded;
 
 use crate::case::Case;
-use crate::error::Error;
 use crate::plots::{self, Figure, FigureSpec, Line, Panel};
+use formation_exit::Error;
 
 /// Explains `loaded`'s `metric` over windows of `window` seconds and prints
 /// the `top` links and windows.
@@ -49,8 +49,8 @@ pub fn table(loaded: &Loaded, e: &Explanation, top: usize) -> String {
         loaded.dir.display(),
         s.followers.len(),
         match s.timing {
-            formation_topology::Timing::Lockstep => "lock-step",
-            formation_topology::Timing::Realtime => "real-time",
+            formation_scenario::Timing::Lockstep => "lock-step",
+            formation_scenario::Timing::Realtime => "real-time",
         },
         dt,
         s.network.delay_steps,

@@ -11,10 +11,10 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use crate::case::{Case, Study};
-use crate::error::Error;
 use crate::plots::{self, Figure, FigureSpec, Line, Panel};
 use crate::stats::Stat;
 use crate::tables::{csv_field, md_cell, sig, stat_fields, stat_text, Table, STAT_HEADER};
+use formation_exit::Error;
 use formation_record::outage::{OutageMetrics, AFTER_S, RECOVERED_M, STAY_S};
 use formation_record::{at_path, Summary};
 

@@ -14,6 +14,21 @@
 //! such: a metric whose window it did not reach is n/a (null, never 0), cells
 //! say how many seeds measured them, and every claim that uses the run is
 //! N/A with the reason, never PASS.
+//!
+//! # Examples
+//!
+//! The tables' cells: a mean over seeds with its 95 % confidence interval
+//! (Student's t), as `formation paper` prints it.
+//!
+//! ```
+//! use formation_report::stats::Stat;
+//!
+//! let rms = Stat::of(&[0.010, 0.012, 0.011, 0.013, 0.009]).expect("five seeds");
+//! assert_eq!(rms.n, 5);
+//! assert!((rms.mean - 0.011).abs() < 1e-12);
+//! assert!(rms.ci_low < rms.mean && rms.mean < rms.ci_high);
+//! assert!(Stat::of(&[]).is_none());
+//! ```
 
 //!
 //! No network, no async runtime: this crate reads run folders and runs the
@@ -40,7 +55,7 @@ use std::fmt::Write as _;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use crate::error::Error;
+use formation_exit::Error;
 use formation_record::at_path;
 
 pub use case::{Case, ClaimParams, Context, Role, SeedRecord, Study, ESTIMATOR_CHECK_TIMES_S, SEEDS_FILE};

@@ -8,8 +8,8 @@ use plotters::style::RGBColor;
 use serde_json::Value;
 
 use crate::case::Case;
-use crate::error::Error;
 use crate::plots::{self, Figure, FigureSpec, Line, Panel};
+use formation_exit::Error;
 use formation_record::at_path;
 
 /// A follower's hearing: all sources, some, none (y offsets around its id).

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use formation_record::at_path;
 use formation_record::folder::names_in;
 
-use crate::error::Error;
+use formation_exit::Error;
 
 /// File, in a case folder, with every seed's record (written by
 /// `formation paper`, read by `formation report`).

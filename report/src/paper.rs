@@ -11,13 +11,13 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 
-use crate::error::{at_least_one, Error};
 use crate::study;
 use crate::{tables, Case, ClaimParams, Context, SeedRecord, ESTIMATOR_CHECK_TIMES_S, SEEDS_FILE};
+use formation_exit::{at_least_one, Error};
 use formation_record::{at_path, RecordOptions, Row, RunWriter, Summary};
 use formation_sim::{FolderObserver, Observer, Simulation};
 

@@ -6,7 +6,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use crate::case::Case;
-use crate::error::Error;
+use formation_exit::Error;
 use formation_record::at_path;
 
 const HEADER: &str = "case,safety_distance_m,filter,closest_m,closest_pair,closest_t_s,steps_below,\

@@ -8,7 +8,7 @@
 //! rejoin policy; the user's `--set` overrides apply first, as for the
 //! paper's cases.
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
 use crate::case::Study;
 use crate::faults::STUDY_NODE;

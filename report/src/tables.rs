@@ -927,7 +927,7 @@ pub fn claims_csv(checks: &[Check]) -> String {
 mod tests {
     use std::path::{Path, PathBuf};
 
-    use formation_topology::Scenario;
+    use formation_scenario::Scenario;
 
     use super::*;
     use formation_record::{MetricsAccumulator, Row};

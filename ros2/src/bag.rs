@@ -18,8 +18,8 @@
 //! (9223372036 s, 854775807 ns), as Jazzy's rosbag2 does.
 
 use crate::cdr::Reader;
-use crate::keys::{validate_topic, Qos};
 use crate::msgs::Message;
+use crate::rmw_keys::{validate_topic, Qos};
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{self, BufWriter};

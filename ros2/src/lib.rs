@@ -25,13 +25,30 @@
 //! The tests check these facts twice: against golden bytes and strings
 //! worked out for issue 32, and (in `tests/python_cross_check.rs`) against
 //! rosbags and mcap-ros2-support, independent Python implementations.
+//!
+//! # Examples
+//!
+//! A velocity command as rmw_zenoh carries it: CDR with its encapsulation
+//! header, read back to the same value, and a truncated payload refused.
+//!
+//! ```
+//! use formation_ros2::msgs::{Twist, Vector3};
+//! use formation_ros2::Message;
+//!
+//! let cmd = Twist { linear: Vector3 { x: 0.2, ..Default::default() }, angular: Vector3 { z: -0.5, ..Default::default() } };
+//! let bytes = cmd.encode();
+//! assert_eq!(Twist::TYPE, "geometry_msgs/msg/Twist");
+//! assert_eq!(&bytes[..4], [0, 1, 0, 0], "CDR little-endian");
+//! assert_eq!(Twist::decode(&bytes), Ok(cmd));
+//! assert!(Twist::decode(&bytes[..bytes.len() - 8]).is_err());
+//! ```
 
 pub mod attachment;
 pub mod bag;
 pub mod cdr;
-pub mod keys;
 pub mod msgs;
 pub mod planar;
+pub mod rmw_keys;
 #[cfg(test)]
 mod type_hash;
 

@@ -10,8 +10,8 @@
 //! `FORMATION_PYTHON=/work/ros2-venv/bin/python FORMATION_ROS2_REQUIRED=1 cargo test -p formation-ros2`.
 
 use formation_ros2::bag::BagWriter;
-use formation_ros2::keys::Qos;
 use formation_ros2::msgs::*;
+use formation_ros2::rmw_keys::Qos;
 use formation_ros2::Message;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};

@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use formation_leader::LeaderState;
 use formation_record::{RecordOptions, Row, RunWriter, Summary};
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
 use crate::simulation::{Observer, SimError, Simulation};
 

@@ -4,6 +4,24 @@
 //!
 //! [`simulation`] holds the formation and its step; [`folder`] runs it into
 //! a run folder through [`formation_record`].
+//!
+//! # Examples
+//!
+//! One simulated second of the paper's formation, stepped in process
+//! without recording rows:
+//!
+//! ```
+//! use std::path::Path;
+//! use formation_scenario::Scenario;
+//! use formation_sim::{NoRecord, Simulation};
+//!
+//! let scenario = Scenario::load(Path::new("paper"), &["duration=1".to_string()]).expect("scenario");
+//! let mut sim = Simulation::new(&scenario);
+//! sim.step(&mut NoRecord).expect("step 0");
+//! assert_eq!(sim.step_index(), 1);
+//! let metrics = sim.run(&mut NoRecord, |_| {}).expect("the rest");
+//! assert_eq!((metrics.len(), sim.step_index()), (4, scenario.steps() + 1));
+//! ```
 
 pub mod folder;
 pub mod simulation;

@@ -2,11 +2,11 @@
 //! stepped in lock-step in docs/model.md §9's order. Deterministic: the same scenario
 //! gives the same numbers, bit for bit.
 
-use formation_agent::{Follower, Hearing, LinkLoss, Message, Nearby, Seen, StepOutput};
+use formation_control::{Follower, Hearing, LinkLoss, Message, Nearby, Seen, StepOutput};
 use formation_leader::Leader;
 use formation_leader::LeaderState;
 use formation_plant::{Drive, NoiseSource, Pose, Robot, Velocity, VelocityRobot};
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 
 use formation_record::{FollowerMetrics, FollowerSample, MetricsAccumulator, OutageMetrics, Proximity, Row};
 
@@ -133,14 +133,14 @@ pub struct SimFollower {
     pub metrics: MetricsAccumulator,
     /// A late join (a `join = true` fault row): until then its links are
     /// down; then it starts as its new process does.
-    pub join_at: Option<Box<Join>>,
+    pub join_at: Option<Box<LateJoin>>,
 }
 
 /// A follower's late join (docs/model.md §14): at step `k` it starts as its
 /// new process does: [`SimFollower::resume`] at its initial `pose`, its
 /// noise drawn from the start of its stream.
 #[derive(Clone, Debug)]
-pub struct Join {
+pub struct LateJoin {
     pub k: u64,
     pub pose: Pose,
     pub noise: NoiseSource,
@@ -155,7 +155,9 @@ impl SimFollower {
         let brain = Follower::new(scenario.follower_config(index), scenario.initial_estimate(), spec.velocity);
         let noise = NoiseSource::new(scenario.covariance, scenario.noise, scenario.seed, spec.id);
         Self {
-            join_at: scenario.join_step(spec.id).map(|k| Box::new(Join { k, pose: spec.pose, noise: noise.clone() })),
+            join_at: scenario
+                .join_step(spec.id)
+                .map(|k| Box::new(LateJoin { k, pose: spec.pose, noise: noise.clone() })),
             brain,
             robot: SimRobot::new(scenario, index),
             noise,
@@ -317,6 +319,17 @@ pub enum SimError {
     /// rayon could not start the threads asked for.
     #[error("starting {threads} threads: {what}")]
     Threads { threads: usize, what: String },
+}
+
+/// A simulation that failed: its input and output errors by their kind,
+/// everything else a failed run.
+impl From<SimError> for formation_exit::Error {
+    fn from(e: SimError) -> Self {
+        match e {
+            SimError::Io(e) => e.into(),
+            e => formation_exit::Error::Run(e.to_string()),
+        }
+    }
 }
 
 /// The whole formation in one process.

@@ -481,7 +481,7 @@ pub fn judge_fault_free_if_timely(tag: &str, wrong: &[String], network: &serde_j
 /// The verdict of a real-time run's comparison with the nominal,
 /// timing-free model (`formation sim`): judged only when the runs' own
 /// records (`network.json` of each, parsed) say they kept the period
-/// ([`formation_replay::period::Period::kept`]: at most 1.25 % of the
+/// ([`formation_recorder::period::Period::kept`]: at most 1.25 % of the
 /// source-steps late; with robots driven over ROS 2, loops late by at most
 /// a quarter period at p99), whatever the machine. Then `wrong` fails
 /// the test, with the runs' timing in the message; otherwise it is printed,
@@ -522,7 +522,7 @@ pub fn judge_unless(tag: &str, wrong: &[String], why_not: Option<String>, contex
     }
 }
 
-pub use formation_replay::period::Period;
+pub use formation_recorder::period::Period;
 
 /// A test's verdict as the binary's last line counts it.
 enum Verdict {

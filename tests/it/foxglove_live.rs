@@ -191,13 +191,13 @@ async fn foxglove_sees_the_channels_of_a_lockstep_run_as_recorded_and_the_run_st
     plays_again_to_foxglove(&out).await;
 }
 
-/// `formation monitor --replay RUN_DIR --foxglove` (issue 25): the finished
+/// `formation play RUN_DIR --foxglove` (issue 25): the finished
 /// run played again at 10× from its hearing record; what Foxglove receives
 /// of follower 1 is its recorded rows, step by step, to the final step.
 async fn plays_again_to_foxglove(out: &Path) {
     let addr = format!("127.0.0.1:{}", common::Ports::free(1).release());
     let run = out.display().to_string();
-    let mut g = Group::spawn(&["monitor", "--replay", &run, "--foxglove", &addr, "--speed", "10", "--linger", "0"]);
+    let mut g = Group::spawn(&["play", &run, "--foxglove", &addr, "--speed", "10", "--linger", "0"]);
     let mut ws = connect(&addr, &mut g).await;
     let channel = loop {
         let m = tokio::time::timeout(Duration::from_secs(20), ws.next()).await.expect("advertise").expect("open");
@@ -221,7 +221,7 @@ async fn plays_again_to_foxglove(out: &Path) {
             Err(_) => panic!("nothing from the Foxglove playback for 30 s"),
         }
     }
-    assert!(g.wait(Duration::from_secs(60)).success(), "formation monitor --replay --foxglove failed");
+    assert!(g.wait(Duration::from_secs(60)).success(), "formation play --foxglove failed");
     let (names, f1) = csv(out, "follower_1.csv");
     // 20 s at 10×: 2 s of wall time, at up to 50 messages per run second.
     assert!(got.len() >= 200, "only {} messages of /follower_1/state in the playback", got.len());
@@ -238,7 +238,7 @@ async fn plays_again_to_foxglove(out: &Path) {
     // scratch folder (Ctrl-C waited for the playback's end and said 0).
     for (signal, code) in [("-INT", 130), ("-TERM", 143)] {
         let addr = format!("127.0.0.1:{}", common::Ports::free(1).release());
-        let mut g = Group::spawn(&["monitor", "--replay", &run, "--foxglove", &addr, "--speed", "0.1"]);
+        let mut g = Group::spawn(&["play", &run, "--foxglove", &addr, "--speed", "0.1"]);
         let _ws = connect(&addr, &mut g).await;
         let pid = g.0.id();
         let sent = std::process::Command::new("kill").args([signal, &pid.to_string()]).status().expect("kill");

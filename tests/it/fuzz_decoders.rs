@@ -7,7 +7,7 @@
 //! No input may panic (each decode runs under `catch_unwind`, a panicking
 //! input is reported in hex), abort (the process would die), or make a
 //! single allocation larger than 32 × its length + 2 MiB (the bound of
-//! `formation_topology::wire::decode_bounded`): a counting global allocator
+//! `formation_record::bounded::decode_bounded`): a counting global allocator
 //! measures every allocation of the decoding thread. Each decoder takes
 //! exactly 1,000,000 inputs (`FUZZ_INPUTS`, in batches of 1,000) from a
 //! generator seeded per decoder, the same inputs on every machine however
@@ -125,7 +125,7 @@ fn measure<R>(f: impl FnOnce() -> R) -> Allocated {
 
 /// The allocation bound of `decode_bounded` for an input of `len` bytes.
 fn bound(len: usize) -> usize {
-    2 * formation_topology::wire::ALLOCATION_FACTOR * len + (2 << 20)
+    2 * formation_record::bounded::ALLOCATION_FACTOR * len + (2 << 20)
 }
 
 // ---------------------------------------------------------------------------
@@ -433,7 +433,7 @@ impl Kind {
     }
     fn decoder(self) -> &'static str {
         match self {
-            Kind::Estimate => "formation_topology::wire::decode",
+            Kind::Estimate => "formation_protocol::wire::decode",
             Kind::Telemetry => "codec::decode::<Telemetry>",
             Kind::Ack => "codec::decode::<Ack>",
             Kind::Ready => "codec::decode::<Ready>",
@@ -488,7 +488,7 @@ fn decode(kind: Kind, bytes: &[u8], cx: &Context, seed: usize) -> bool {
     let (node, fingerprint, epoch) = &cx.who[seed];
     use formation_protocol::codec;
     match kind {
-        Kind::Estimate => formation_topology::wire::decode(bytes).is_ok(),
+        Kind::Estimate => formation_protocol::wire::decode(bytes).is_ok(),
         Kind::Telemetry => codec::decode::<Telemetry>(bytes).is_some(),
         Kind::Ack => codec::decode::<Ack>(bytes).is_some(),
         Kind::Ready => codec::decode::<Ready>(bytes).is_some(),

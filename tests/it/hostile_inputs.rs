@@ -530,9 +530,9 @@ fn cases() -> Vec<Case> {
         case(
             "a run larger than the disk's free space (it started and filled the disk)",
             Some(
-                formation_topology::generate::toml(&formation_topology::generate::Spec::new(
+                formation_scenario::generate::toml(&formation_scenario::generate::Spec::new(
                     1000,
-                    formation_topology::generate::GraphKind::Ring,
+                    formation_scenario::generate::GraphKind::Ring,
                 ))
                 .expect("a ring of 1000"),
             ),
@@ -634,7 +634,7 @@ fn cases() -> Vec<Case> {
         case(
             "playback of a record declaring 2^62 bytes",
             None,
-            &["monitor", "--replay", "{dir}/h-huge", "--web", "127.0.0.1:0"],
+            &["play", "{dir}/h-huge", "--web", "127.0.0.1:0"],
             2,
             &["not a hearing record"],
         ),
@@ -667,21 +667,22 @@ fn cases() -> Vec<Case> {
             2,
             &["--lease-ms", "5 is not in 100..=3600000"],
         ),
-        case("playback without a page", None, &["monitor", "--replay", "{dir}/garbage"], 2, &["--web, --foxglove"]),
+        case("playback without a page", None, &["play", "{dir}/garbage"], 2, &["--web, --foxglove"]),
+        case(
+            "playback by its old spelling, without a page",
+            None,
+            &["monitor", "--replay", "{dir}/garbage"],
+            2,
+            &["is now `formation play RUN_DIR`", "--web, --foxglove"],
+        ),
         case(
             "playback at speed 0",
             None,
-            &["monitor", "--replay", "{dir}/garbage", "--web", "--speed", "0"],
+            &["play", "{dir}/garbage", "--web", "--speed", "0"],
             2,
             &["--speed", "not 0"],
         ),
-        case(
-            "playback of no folder",
-            None,
-            &["monitor", "--replay", "{dir}/missing", "--web"],
-            2,
-            &["no such run folder"],
-        ),
+        case("playback of no folder", None, &["play", "{dir}/missing", "--web"], 2, &["no such run folder"]),
         case(
             "a slow link in client mode",
             None,
@@ -722,28 +723,28 @@ fn cases() -> Vec<Case> {
         case(
             "playback at speed 1e-300",
             None,
-            &["monitor", "--replay", "{dir}/garbage", "--web", "--speed", "1e-300"],
+            &["play", "{dir}/garbage", "--web", "--speed", "1e-300"],
             2,
             &["--speed 1e-300 is out of range", "0.01 to 1000"],
         ),
         case(
             "playback at speed 1e-12",
             None,
-            &["monitor", "--replay", "{dir}/garbage", "--web", "--speed", "1e-12"],
+            &["play", "{dir}/garbage", "--web", "--speed", "1e-12"],
             2,
             &["--speed 1e-12 is out of range"],
         ),
         case(
             "playback at speed -1",
             None,
-            &["monitor", "--replay", "{dir}/garbage", "--web", "--speed", "-1"],
+            &["play", "{dir}/garbage", "--web", "--speed", "-1"],
             2,
             &["--speed must be positive, not -1"],
         ),
         case(
             "playback lingering 1e300 s",
             None,
-            &["monitor", "--replay", "{dir}/garbage", "--web", "--linger", "1e300"],
+            &["play", "{dir}/garbage", "--web", "--linger", "1e300"],
             2,
             &["--linger must be 0 to 86400 seconds", "1e300"],
         ),
@@ -1003,7 +1004,7 @@ fn hearing_folders(d: &Path) {
     assert!(made.success(), "mkfifo {}", fifo.display());
     std::os::unix::fs::symlink("/dev/zero", dir("h-zero").join("hearing.bin")).unwrap();
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
-    let scenario = formation_topology::Scenario::load(&path, &[]).expect("paper.toml");
+    let scenario = formation_scenario::Scenario::load(&path, &[]).expect("paper.toml");
     let record = HearingRecord {
         format: HEARING_FORMAT,
         scenario: ScenarioSource { label: path.display().to_string(), text: paper(), overrides: vec![] },

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use formation_record::{FollowerMetrics, MetricsAccumulator, Row, Summary};
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use serde_json::{json, Value};
 
 fn bin() -> Command {

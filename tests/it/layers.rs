@@ -8,18 +8,23 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The layers, lowest first: a crate may use only crates listed before it.
-const LAYERS: [&str; 17] = [
+const LAYERS: [&str; 19] = [
+    // How every command ends: the error kinds, exit statuses, the shutdown.
+    "formation-exit",
     // ROS 2's wire and bags: uses no other formation crate.
     "formation-ros2",
     "formation-plant",
     "formation-leader",
-    "formation-agent",
-    "formation-topology",
+    "formation-control",
+    "formation-scenario",
     "formation-record",
     "formation-sim",
     "formation-protocol",
     "formation-certs",
     "formation-view",
+    // The live run's record, health and watch; below the offline replay,
+    // which writes its folder with the same Recorder.
+    "formation-recorder",
     "formation-replay",
     // Reports, the paper's tables, calibration: no network, no runtime.
     "formation-report",
@@ -386,7 +391,9 @@ fn the_circle_reader_finds_a_planted_circle() {
     assert_eq!(circle(&module_graph(dir.path())), None, "no circle once b no longer names a");
 }
 
-/// Exit statuses are decided in one place: the `formation` crate.
+/// Exit statuses are decided in one place: `formation_exit::Error::status`
+/// gives the number, and only the `formation` crate turns it into the
+/// process's exit code.
 #[test]
 fn only_the_binary_crate_knows_exit_statuses() {
     let mut wrong = Vec::new();
@@ -396,7 +403,7 @@ fn only_the_binary_crate_knows_exit_statuses() {
         }
         for f in sources(&dir) {
             let text = code(&std::fs::read_to_string(&f).expect("source"));
-            for needle in ["ExitCode", "exit_code", "process::exit"] {
+            for needle in ["ExitCode", "exit_code", "process::exit", "fn exit_status"] {
                 if text.contains(needle) {
                     wrong.push(format!("{}: {needle}", f.display()));
                 }
@@ -537,4 +544,104 @@ fn the_crates_built_unoptimised_are_exactly_the_host_only_ones() {
     assert!(cold.len() >= 5, "Cargo.toml lists only {} cold crates: the list's form changed?", cold.len());
     let gone: Vec<&String> = cold.difference(&target).collect();
     assert!(gone.is_empty(), "Cargo.toml builds {gone:?} unoptimised as linked but cold, but no node links them");
+}
+
+/// Every member's library sources with their code (comments, strings and
+/// the test module removed), except those of `skip`.
+fn member_code(skip: &[&str]) -> Vec<(PathBuf, String)> {
+    let mut out = Vec::new();
+    for (_, dir) in members() {
+        for f in sources(&dir) {
+            let rel = f.strip_prefix(root()).unwrap_or(&f).to_path_buf();
+            if skip.iter().any(|s| rel == Path::new(s)) {
+                continue;
+            }
+            out.push((rel, code(&std::fs::read_to_string(&f).expect("source"))));
+        }
+    }
+    out
+}
+
+/// One shutdown: no source but `exit/src/shutdown.rs` installs a signal
+/// handler (tokio's signal streams, `sigaction`, `libc::signal`, a crate
+/// for it). A node, a launch, a lab and the simulator all stop on the
+/// shutdown that module gives them.
+#[test]
+fn only_the_shutdown_module_installs_a_signal_handler() {
+    let mut wrong = Vec::new();
+    for (f, text) in member_code(&["exit/src/shutdown.rs"]) {
+        for needle in ["tokio::signal", "sigaction", "libc::signal(", "signal_hook", "ctrlc::"] {
+            if text.contains(needle) {
+                wrong.push(format!("{}: {needle}", f.display()));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "a second shutdown handler:\n{}", wrong.join("\n"));
+}
+
+/// The enums of `code` (name, body) whose variants include every one of `kinds`.
+fn enums_with(code: &str, kinds: &[&str]) -> Vec<String> {
+    let mut found = Vec::new();
+    let mut rest = code;
+    while let Some(i) = rest.find("enum ") {
+        let after = &rest[i + 5..];
+        let name: String = after.chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect();
+        let Some(open) = after.find('{') else { break };
+        let mut depth = 0;
+        let mut end = after.len();
+        for (j, c) in after[open..].char_indices() {
+            depth += (c == '{') as i32 - (c == '}') as i32;
+            if depth == 0 {
+                end = open + j;
+                break;
+            }
+        }
+        let body: String = after[open..end].split_whitespace().collect();
+        if kinds.iter().all(|k| body.contains(k)) {
+            found.push(name);
+        }
+        rest = &after[open..];
+    }
+    found
+}
+
+/// One error kind: no enum but `formation_exit::Error` has both a bad-input
+/// and a failed-run variant (`Input(String)`, `Run(String)`); the
+/// libraries' own errors say what went wrong in their words and convert
+/// into it.
+#[test]
+fn only_one_error_enum_has_the_kinds_every_command_reports() {
+    let kinds = ["Input(String)", "Run(String)"];
+    assert_eq!(
+        enums_with("pub enum E { Input(String), Run(String), Other }", &kinds),
+        ["E"],
+        "the reader finds a planted enum"
+    );
+    let mut wrong = Vec::new();
+    for (f, text) in member_code(&["exit/src/error.rs"]) {
+        for name in enums_with(&text, &kinds) {
+            wrong.push(format!("{}: enum {name}", f.display()));
+        }
+    }
+    assert!(wrong.is_empty(), "a second error enum with the kinds of formation_exit::Error:\n{}", wrong.join("\n"));
+}
+
+/// One clock: a node's code reads the time only through `Clock`
+/// (net/src/clock.rs) or its precise sleep (net/src/timer.rs), so that
+/// every deadline in it (a time-out, a listening window) runs on
+/// `Clock::mock` in a test.
+#[test]
+fn the_network_crate_reads_time_only_through_its_clock() {
+    let mut wrong = Vec::new();
+    for (f, text) in member_code(&["net/src/clock.rs", "net/src/timer.rs"]) {
+        if !f.starts_with("net") {
+            continue;
+        }
+        for needle in ["Instant::now", "SystemTime::now", ".elapsed()"] {
+            if text.contains(needle) {
+                wrong.push(format!("{}: {needle}", f.display()));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "a clock read outside Clock:\n{}", wrong.join("\n"));
 }

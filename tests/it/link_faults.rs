@@ -4,8 +4,8 @@
 
 use formation_record::outage::OutageMetrics;
 use formation_record::Row;
+use formation_scenario::Scenario;
 use formation_sim::{Observer, Simulation};
-use formation_topology::Scenario;
 
 const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper.toml");
 const OUTAGE: &str = "faults+={node=3, from=10, to=13}";

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use common::{Group, Ports, LAUNCH_PORTS, LIMIT, SCENARIO};
 use formation_leader::LeaderState;
 use formation_net::session::{self, ZenohArgs};
-use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_protocol::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 
 fn sim(dir: &Path, sets: &[&str]) -> String {
     let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));

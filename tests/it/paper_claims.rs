@@ -5,8 +5,8 @@
 use std::path::Path;
 
 use formation_record::{FollowerMetrics, Row};
+use formation_scenario::Scenario;
 use formation_sim::{NoRecord, Observer, Simulation};
-use formation_topology::Scenario;
 
 fn scenario(overrides: &[&str]) -> Scenario {
     let overrides: Vec<String> = overrides.iter().map(|s| s.to_string()).collect();

@@ -13,7 +13,7 @@ use std::time::Duration;
 use common::Group;
 use formation_record::hearing::{Density, FollowerHearing, HeardRuns, HearingRecord, ScenarioSource, Segment};
 use formation_record::{Heard, HEARING_FILE};
-use formation_replay::replay::{self, Hearing, Loaded};
+use formation_replay::replay::{self, HearingSource, Loaded};
 
 fn replay_cli(args: &[&str], dir: &Path) -> (bool, String) {
     let o = Command::new(env!("CARGO_BIN_EXE_formation")).arg("replay").arg(dir).args(args).output().expect("replay");
@@ -126,14 +126,14 @@ fn frames(port: u16, ms: u64) -> Vec<(f64, bool, u64)> {
         .collect()
 }
 
-/// `formation monitor --replay RUN_DIR --web`: the run plays on the live
+/// `formation play RUN_DIR --web`: the run plays on the live
 /// page at the speed asked; it pauses, seeks back (a new epoch, from the
 /// time asked) and forward, and refuses a control it does not know.
 fn plays_on_the_live_page(run: &Path) {
     let port = common::Ports::free(1).release();
     let run_s = run.display().to_string();
     let addr = format!("127.0.0.1:{port}");
-    let _g = Group::spawn(&["monitor", "--replay", &run_s, "--web", &addr, "--speed", "0.5", "--linger", "30"]);
+    let _g = Group::spawn(&["play", &run_s, "--web", &addr, "--speed", "0.5", "--linger", "30"]);
     let t = std::time::Instant::now();
     let mut scene = String::new();
     while t.elapsed() < Duration::from_secs(10) && !scene.contains("playback") {
@@ -347,7 +347,7 @@ fn the_models_hearing_replays_into_the_simulators_folder() {
     ]
     .map(String::from)
     .to_vec();
-    let scenario = formation_topology::Scenario::from_toml(&text, "paper.toml", "paper", &sets).expect("scenario");
+    let scenario = formation_scenario::Scenario::from_toml(&text, "paper.toml", "paper", &sets).expect("scenario");
     let steps = scenario.steps();
     let followers = (0..scenario.followers.len())
         .map(|i| {
@@ -371,7 +371,7 @@ fn the_models_hearing_replays_into_the_simulators_folder() {
     let loaded =
         Loaded { dir: dir.path().join("none"), scenario, record, handover_gaps: Vec::new(), joins: Vec::new() };
     let model = dir.path().join("model");
-    let problems = replay::replay_to_folder_with(&loaded, Hearing::Model, &model, &mut |_| {}).expect("replay");
+    let problems = replay::replay_to_folder_with(&loaded, HearingSource::Model, &model, &mut |_| {}).expect("replay");
     assert!(problems.is_empty(), "{problems:?}");
     let opts = formation_record::RecordOptions {
         dir: dir.path().join("sim"),

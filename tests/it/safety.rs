@@ -150,7 +150,7 @@ fn the_report_shows_how_close_the_robots_came_with_and_without_the_filter() {
 #[test]
 fn garbage_and_forged_poses_are_counted_and_dropped_and_change_nothing() {
     use formation_net::session::{self, ZenohArgs, ZenohMode};
-    use formation_topology::wire::{self, Header, PoseMsg, FORMAT_VERSION};
+    use formation_protocol::wire::{self, Header, PoseMsg, FORMAT_VERSION};
     use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
     use std::sync::Arc;
     use std::time::{Duration, Instant};
@@ -313,7 +313,7 @@ fn in_lock_step_a_robot_absent_or_gone_is_an_obstacle_where_it_stands_and_the_ru
         let still = match tracks[gone as usize - 1].last() {
             Some(&(_, x, y)) => (x, y),
             None => {
-                let s = formation_topology::Scenario::load(Path::new(TURTLEBOT), &[]).expect("turtlebot");
+                let s = formation_scenario::Scenario::load(Path::new(TURTLEBOT), &[]).expect("turtlebot");
                 let p = s.followers[gone as usize - 1].pose;
                 (p.x, p.y)
             }

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use common::{Group, Ports, LAUNCH_PORTS, LIMIT, SCENARIO};
 use formation_leader::LeaderState;
 use formation_net::session::{self, ZenohArgs, ZenohMode};
-use formation_topology::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
+use formation_protocol::wire::{self, EstimateMsg, Header, FORMAT_VERSION};
 
 /// A TLS router child on a free port, up and listening; the port.
 fn router(dir: &Path) -> (u16, Group) {

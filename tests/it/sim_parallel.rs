@@ -80,15 +80,15 @@ fn metrics_without_rows_equal_metrics_from_rows_on_one_and_two_threads() {
     use formation_sim::{NoRecord, Simulation};
     let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenarios/paper.toml");
     // The paper's 4 followers for 12 s: the last 10 s start after step 0.
-    let mut cases = vec![formation_topology::Scenario::load(&paper, &["duration=12".to_string()]).expect("paper")];
+    let mut cases = vec![formation_scenario::Scenario::load(&paper, &["duration=12".to_string()]).expect("paper")];
     for delay in ["0", "2"] {
-        let mut s = formation_topology::generate::ring_with_chords(1000, 200, 3).expect("ring");
+        let mut s = formation_scenario::generate::ring_with_chords(1000, 200, 3).expect("ring");
         s.duration_s = 0.3;
         cases.push(s);
         let sets = ["duration=12", "faults+={node=3, from=1, to=2}", "faults+={link=[1, 2], from=0, to=3, loss=0.3}"];
         let mut sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
         sets.push(format!("network.delay_steps={delay}"));
-        cases.push(formation_topology::Scenario::load(&paper, &sets).expect("paper"));
+        cases.push(formation_scenario::Scenario::load(&paper, &sets).expect("paper"));
     }
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().expect("pool");
     for s in &cases {

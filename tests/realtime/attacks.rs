@@ -140,7 +140,7 @@ async fn attack(kind: Attack, certs: &Path, port: u16, run: &str, done: &Done, s
             }
         }
         Attack::Twin => {
-            use formation_topology::wire;
+            use formation_protocol::wire;
             let key = format!("formation/{run}/estimate/2");
             let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel::<Vec<u8>>();
             // Only the genuine agent 2's messages (not its own copies).

@@ -182,7 +182,7 @@ fn python_unicycles_are_driven_and_one_that_stops_is_sent_zero_velocity() {
     let Some(py) = common::ros2_python() else { return };
     let tmp = tempfile::tempdir().expect("tempdir");
     let (_router, ep) = router();
-    let scenario = formation_topology::Scenario::load(Path::new(VELOCITY_SCENARIO), &[]).expect("scenario");
+    let scenario = formation_scenario::Scenario::load(Path::new(VELOCITY_SCENARIO), &[]).expect("scenario");
     // Four robots that are not this project's, at the scenario's initial poses.
     let mut robots = Vec::new();
     for (i, f) in scenario.followers.iter().enumerate() {
@@ -543,7 +543,7 @@ fn robots_whose_odometry_starts_at_zero_in_their_own_frame_end_in_their_slots() 
     let Some(py) = common::ros2_python() else { return };
     let tmp = tempfile::tempdir().expect("tempdir");
     let (_router, ep) = router();
-    let scenario = formation_topology::Scenario::load(Path::new(VELOCITY_SCENARIO), &[]).expect("scenario");
+    let scenario = formation_scenario::Scenario::load(Path::new(VELOCITY_SCENARIO), &[]).expect("scenario");
     let mut robots = Vec::new();
     for f in &scenario.followers {
         let id = f.id.to_string();

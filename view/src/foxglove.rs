@@ -14,12 +14,12 @@
 //! The crate is built without its default features: no aws-lc (a C and
 //! CMake build), no lz4, no derive macro; plain `ws://` only.
 
-use crate::error::ViewError;
+use formation_exit::Error;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 
 use formation_leader::LeaderState;
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHandle};
 use serde_json::json;
 
@@ -53,12 +53,12 @@ pub struct FoxgloveLive {
     dt_s: f64,
 }
 
-fn channel(ctx: &Arc<Context>, topic: &str, schema: &str, data: &str) -> Result<Arc<RawChannel>, ViewError> {
+fn channel(ctx: &Arc<Context>, topic: &str, schema: &str, data: &str) -> Result<Arc<RawChannel>, Error> {
     ctx.channel_builder(topic)
         .message_encoding("json")
         .schema(Schema::new(schema.to_string(), "jsonschema", data.as_bytes().to_vec()))
         .build_raw()
-        .map_err(|e| ViewError::Input(format!("foxglove channel {topic}: {e}")))
+        .map_err(|e| Error::Input(format!("foxglove channel {topic}: {e}")))
 }
 
 fn send(ch: &RawChannel, ns: u64, v: &serde_json::Value) {
@@ -67,7 +67,7 @@ fn send(ch: &RawChannel, ns: u64, v: &serde_json::Value) {
 
 impl FoxgloveLive {
     /// Serves the channels of `scenario`'s run at `addr` (port 0: any free port).
-    pub async fn start(addr: SocketAddr, scenario: &Scenario, run: &str) -> Result<Self, ViewError> {
+    pub async fn start(addr: SocketAddr, scenario: &Scenario, run: &str) -> Result<Self, Error> {
         let ctx = Context::new();
         let server = ctx
             .websocket_server()
@@ -75,7 +75,7 @@ impl FoxgloveLive {
             .bind(addr.ip().to_string(), addr.port())
             .start()
             .await
-            .map_err(|e| ViewError::Input(format!("--foxglove {addr}: {e}")))?;
+            .map_err(|e| Error::Input(format!("--foxglove {addr}: {e}")))?;
         let port = server.port();
         let leader_names = names(LEADER_HEADER);
         let follower_names = names(FOLLOWER_HEADER);

@@ -7,9 +7,19 @@
 //!
 //! This crate never imports zenoh or a node: it knows a run only as rows,
 //! events and JSON frames.
+//!
+//! # Examples
+//!
+//! The live page's state ([`web::Live`]): the scene once, then a frame per
+//! update; no viewer is connected until a browser opens the page.
+//!
+//! ```
+//! use formation_view::web::Live;
+//!
+//! let live = Live::new(r#"{"followers":[1,2,3,4]}"#.to_string());
+//! live.publish(r#"{"k":0}"#.to_string(), String::new());
+//! assert_eq!(live.viewers(), 0);
+//! ```
 
-pub mod error;
 pub mod foxglove;
 pub mod web;
-
-pub use error::ViewError;

@@ -25,7 +25,7 @@ use axum::routing::get;
 use tokio::sync::watch;
 use tokio_stream::StreamExt;
 
-use crate::error::ViewError;
+use formation_exit::Error;
 
 /// How often the monitor publishes a frame (20 Hz).
 pub const FRAME_PERIOD: Duration = Duration::from_millis(50);
@@ -131,7 +131,7 @@ pub enum Bind {
 
 /// Starts serving; what was bound (a TCP port 0 becomes the port taken).
 /// The server lives as long as the runtime.
-pub async fn serve(bind: Bind, live: Arc<Live>) -> Result<String, ViewError> {
+pub async fn serve(bind: Bind, live: Arc<Live>) -> Result<String, Error> {
     let app = axum::Router::new()
         .route("/", get(page))
         .route("/api/scene", get(scene))
@@ -143,8 +143,8 @@ pub async fn serve(bind: Bind, live: Arc<Live>) -> Result<String, ViewError> {
         Bind::Tcp(addr) => {
             let listener = tokio::net::TcpListener::bind(addr)
                 .await
-                .map_err(|e| ViewError::Input(format!("--web {addr}: cannot listen there: {e}")))?;
-            let bound = listener.local_addr().map_err(|e| ViewError::Run(format!("--web {addr}: {e}")))?;
+                .map_err(|e| Error::Input(format!("--web {addr}: cannot listen there: {e}")))?;
+            let bound = listener.local_addr().map_err(|e| Error::Run(format!("--web {addr}: {e}")))?;
             tokio::spawn(async move {
                 if let Err(e) = axum::serve(listener, app).await {
                     eprintln!("live page: the server stopped: {e}");
@@ -155,7 +155,7 @@ pub async fn serve(bind: Bind, live: Arc<Live>) -> Result<String, ViewError> {
         Bind::Unix(path) => {
             let _ = std::fs::remove_file(&path);
             let listener = tokio::net::UnixListener::bind(&path)
-                .map_err(|e| ViewError::Run(format!("live page: listening on {}: {e}", path.display())))?;
+                .map_err(|e| Error::Run(format!("live page: listening on {}: {e}", path.display())))?;
             tokio::spawn(async move {
                 if let Err(e) = axum::serve(listener, app).await {
                     eprintln!("live page: the server stopped: {e}");
@@ -168,11 +168,11 @@ pub async fn serve(bind: Bind, live: Arc<Live>) -> Result<String, ViewError> {
 
 /// Accepts TCP connections on `addr` and joins each to the Unix socket
 /// `to` (the lab's monitor in its namespace); the address bound.
-pub async fn forward(addr: SocketAddr, to: std::path::PathBuf) -> Result<SocketAddr, ViewError> {
+pub async fn forward(addr: SocketAddr, to: std::path::PathBuf) -> Result<SocketAddr, Error> {
     let listener = tokio::net::TcpListener::bind(addr)
         .await
-        .map_err(|e| ViewError::Input(format!("--web {addr}: cannot listen there: {e}")))?;
-    let bound = listener.local_addr().map_err(|e| ViewError::Run(format!("--web {addr}: {e}")))?;
+        .map_err(|e| Error::Input(format!("--web {addr}: cannot listen there: {e}")))?;
+    let bound = listener.local_addr().map_err(|e| Error::Run(format!("--web {addr}: {e}")))?;
     tokio::spawn(async move {
         while let Ok((mut tcp, _)) = listener.accept().await {
             let to = to.clone();

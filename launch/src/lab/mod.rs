@@ -25,14 +25,14 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use formation_topology::{FaultTarget, Scenario};
+use formation_scenario::{FaultTarget, Scenario};
 use serde_json::json;
 
-use crate::error::Error;
 use crate::launch;
 use crate::options::{LaunchMode, RunOptions};
 use crate::plan;
 use crate::supervisor::{self, Children, STANDBY};
+use formation_exit::Error;
 use formation_record::Summary;
 
 /// The port every node listens on, on its own address.
@@ -463,7 +463,7 @@ fn membership_events(a: &LabArgs, s: &Scenario, t_end: f64) -> Result<Vec<Event>
                 "--join {r}: follower {id} must be absent at the start to join later (--quorum N --absent {id})"
             )));
         }
-        if s.timing != formation_topology::Timing::Realtime {
+        if s.timing != formation_scenario::Timing::Realtime {
             return Err(Error::Input(format!(
                 "--join {r}: a process started late joins a running formation in real time only (timing = \
                  \"realtime\"; in lock-step its neighbours would have to agree on the step first); the join row \
@@ -480,7 +480,7 @@ fn membership_events(a: &LabArgs, s: &Scenario, t_end: f64) -> Result<Vec<Event>
         let (id, at) = r.split_once('@').ok_or_else(bad)?;
         let (id, at): (u32, f64) = (id.trim().parse().map_err(|_| bad())?, at.trim().parse().map_err(|_| bad())?);
         if s.index_of(id).is_none() {
-            let ids = formation_topology::graph::id_list(s.graph.ids());
+            let ids = formation_scenario::graph::id_list(s.graph.ids());
             return Err(Error::Input(format!("--kill-agent {r}: no follower {id} (ids: {ids})")));
         }
         if !(at.is_finite() && at >= 0.0 && at < t_end) {
@@ -802,7 +802,7 @@ impl Ctx<'_> {
         // Real time: the network performs the node rows. Lock-step keeps the
         // table in software (its numbers are the simulator's); the physical
         // outage then only delays the run.
-        if self.scenario.timing == formation_topology::Timing::Realtime {
+        if self.scenario.timing == formation_scenario::Timing::Realtime {
             c.arg("--physical-node-faults");
         }
         c
@@ -918,7 +918,7 @@ impl Ctx<'_> {
         events: Vec<Event>,
     ) -> Result<(Summary, Vec<serde_json::Value>), Error> {
         // Signals first: from here on Ctrl-C must reach the children's cleanup.
-        let shutdown = crate::shutdown::from_now();
+        let shutdown = formation_exit::shutdown::from_now();
         if self.a.mode == LaunchMode::Client {
             supervisor::start_router_with(children, self.router())?;
         }

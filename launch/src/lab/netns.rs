@@ -32,10 +32,10 @@ use std::time::Duration;
 #[error("{0}")]
 pub struct LabError(pub String);
 
-impl From<LabError> for crate::error::Error {
+impl From<LabError> for formation_exit::Error {
     /// The lab's network could not be built or changed: the run failed.
     fn from(e: LabError) -> Self {
-        crate::error::Error::Run(e.0)
+        formation_exit::Error::Run(e.0)
     }
 }
 

@@ -9,13 +9,13 @@ use std::sync::{Arc, Mutex};
 
 use zenoh::pubsub::{Publisher, Subscriber};
 
+use formation_exit::{zerr, Error};
 use formation_protocol::codec::{decode, encode};
 use formation_protocol::died::{died_step, stands_at, Died, Holding};
-use formation_protocol::error::{zerr, Error};
 use formation_protocol::names::{last_chunk, Keys};
 use formation_protocol::patience::Patience;
-use formation_replay::recorder::Recorder;
-use formation_topology::Scenario;
+use formation_recorder::Recorder;
+use formation_scenario::Scenario;
 
 /// How often the monitor looks (its node's tick; a longer gap is time it
 /// was not run, [`Patience`]).

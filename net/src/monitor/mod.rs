@@ -9,7 +9,7 @@
 //! `network.json` names the signal (the binary then exits with status 130
 //! for SIGINT or 143 for SIGTERM).
 //!
-//! What it records is [`formation_replay::recorder::Recorder`]'s job (the same
+//! What it records is [`formation_recorder::Recorder`]'s job (the same
 //! recorder replays and playbacks use); this module is the node around
 //! it: its arguments ([`args`]), and the zenoh side ([`run`] and its loop,
 //! in `node`).

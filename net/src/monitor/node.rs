@@ -15,20 +15,21 @@ use std::time::{Duration, Instant};
 
 use formation_record::hearing::ScenarioSource;
 use formation_record::RecordOptions;
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use formation_view::foxglove::FoxgloveLive;
 use formation_view::web::{self, Live};
 use tokio::sync::mpsc;
 
 use super::args::MonitorArgs;
 use crate::startup;
+use formation_exit::shutdown::Signal;
+use formation_exit::Error;
 use formation_protocol::barrier::{self, Start};
 use formation_protocol::codec;
-use formation_protocol::error::Error;
 use formation_protocol::names::{self, Keys, MONITOR};
-use formation_replay::health::{ControlWatch, Verdict};
-use formation_replay::recorder::Recorder;
-use formation_replay::watch::{Ending, Signal, Watch};
+use formation_recorder::health::{ControlWatch, Verdict};
+use formation_recorder::watch::{Ending, Watch};
+use formation_recorder::Recorder;
 
 /// How often the monitor acknowledges what it holds.
 const ACK_PERIOD: Duration = Duration::from_millis(100);
@@ -55,7 +56,7 @@ pub async fn run(
     let web = serve_live_page(args, &scenario, &keys.run).await?;
     let foxglove = match args.web.foxglove {
         Some(addr) => {
-            let live = FoxgloveLive::start(addr, &scenario, &keys.run).await.map_err(view_error)?;
+            let live = FoxgloveLive::start(addr, &scenario, &keys.run).await?;
             crate::node::say(&format!("foxglove: ws://{}:{}", addr.ip(), live.port()));
             Some(Arc::new(live))
         }
@@ -101,7 +102,7 @@ async fn serve_live_page(args: &MonitorArgs, scenario: &Scenario, run: &str) -> 
         (None, None) => return Ok(None),
     };
     let live = Live::new(Recorder::scene_json(scenario, run));
-    let at = web::serve(bind, live.clone()).await.map_err(view_error)?;
+    let at = web::serve(bind, live.clone()).await?;
     if args.web_unix.is_none() {
         crate::node::say(&format!("live page: {at}"));
     }
@@ -223,7 +224,7 @@ impl Ears {
             .express(true)
             .await
             .map_err(|e| Error::Run(format!("declaring the acknowledgement publisher: {e}")))?;
-        let deaths = match scenario.timing == formation_topology::Timing::Lockstep {
+        let deaths = match scenario.timing == formation_scenario::Timing::Lockstep {
             true => Some(super::deaths::Deaths::declare(session, keys, scenario).await?),
             false => None,
         };
@@ -496,7 +497,7 @@ fn started_line(nodes: usize, absent: &[u32], startup: f64) -> String {
         "started: {} of {nodes} nodes ready {startup:.1} s after the monitor's start; absent: {} (a quorum start: \
          cut off from the start in the run and in its model)",
         nodes - absent.len(),
-        formation_topology::graph::followers_named(absent)
+        formation_scenario::graph::followers_named(absent)
     )
 }
 
@@ -563,13 +564,5 @@ pub fn model_errors(scenario: &Scenario) -> Result<BTreeMap<u32, Option<f64>>, S
             Ok(scenario.followers.iter().zip(metrics).map(|(f, m)| (f.id, m.formation_rms_last10)).collect())
         }
         Err(e) => Err(format!("the model did not finish: {e}")),
-    }
-}
-
-/// A viewer's error as the node's (the same kind, the same words).
-fn view_error(e: formation_view::ViewError) -> Error {
-    match e {
-        formation_view::ViewError::Input(m) => Error::Input(m),
-        formation_view::ViewError::Run(m) => Error::Run(m),
     }
 }

@@ -22,17 +22,17 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use formation_agent::{Follower, Message};
+use formation_control::{Follower, Message};
 use formation_leader::LeaderState;
 use formation_plant::{Pose, Velocity};
 use formation_record::FollowerSample;
 use formation_ros2::msgs::Odometry;
-use formation_topology::{Scenario, Timing};
+use formation_scenario::{Scenario, Timing};
 
+use super::rmw_node::{RosNode, RosSubscription};
 use super::topics::{OdomFrame, Stamps, QOS};
-use super::wire::{RosNode, RosSubscription};
 use crate::clock::{Clock, Timebase};
-use formation_protocol::error::Error;
+use formation_exit::Error;
 use formation_protocol::follower::Body;
 
 /// A move between two odometry messages longer than this (m) is a jump
@@ -289,7 +289,7 @@ impl Body for DrivenRobot {
         dt_s: f64,
         leader: Option<&LeaderState>,
         neighbours: &[Message],
-        nearby: formation_agent::Nearby<'_>,
+        nearby: formation_control::Nearby<'_>,
         last: bool,
     ) -> (FollowerSample, Message) {
         let k = (t_s / dt_s).round() as u64;

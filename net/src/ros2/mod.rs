@@ -12,9 +12,9 @@
 //! - [`robot`]: `formation robot`, the stand-in robot that speaks ROS 2.
 
 pub mod driven;
+pub mod rmw_node;
 pub mod robot;
 pub mod topics;
-pub mod wire;
 
 /// The namespace of follower `id`'s topics (`/follower_<id>`).
 pub fn follower_namespace(id: u32) -> String {

@@ -26,13 +26,13 @@ use std::time::Duration;
 
 use formation_plant::{Drive, NoiseSource, Velocity, VelocityRobot};
 use formation_ros2::msgs::{Odometry, TFMessage, Twist};
-use formation_topology::{Scenario, Timing};
+use formation_scenario::{Scenario, Timing};
 
+use super::rmw_node::{RosNode, RosPublisher};
 use super::topics::{odometry, OdomFrame, Stamps, QOS};
-use super::wire::{RosNode, RosPublisher};
 use crate::clock::Clock;
 use crate::node::NodeArgs;
-use formation_protocol::error::Error;
+use formation_exit::Error;
 use formation_ros2::planar::Frames;
 
 /// Lock-step: odometry is said again this often while its command is awaited.

@@ -17,14 +17,14 @@
 use formation_leader::LeaderState;
 use formation_plant::{Pose, Velocity};
 use formation_record::FollowerSample;
-use formation_ros2::keys::Qos;
 use formation_ros2::msgs::{Clock, Message, Odometry, PoseStamped, TFMessage, Time, Twist};
 use formation_ros2::planar::{self, Frames};
-use formation_topology::{Scenario, Timing};
+use formation_ros2::rmw_keys::Qos;
+use formation_scenario::{Scenario, Timing};
 use zenoh::qos::CongestionControl;
 
-use super::wire::{RosNode, RosPublisher};
-use formation_protocol::error::Error;
+use super::rmw_node::{RosNode, RosPublisher};
+use formation_exit::Error;
 
 /// The QoS of the formation's topics: reliable, volatile, the last 10.
 pub const QOS: Qos = Qos { reliable: true, transient_local: false, depth: 10 };
@@ -160,7 +160,7 @@ impl FollowerTopics {
         };
         let index = scenario.index_of(id).ok_or_else(|| Error::Input(format!("no follower {id}")))?;
         let frame = OdomFrame::of(scenario, index);
-        let external = scenario.ros2.is_some_and(|r| r.robots == formation_topology::RobotSource::External);
+        let external = scenario.ros2.is_some_and(|r| r.robots == formation_scenario::RobotSource::External);
         let odom_in_world = match external && frame.origin.is_some() {
             true => Some(node.publisher("/tf", QOS, c).await?),
             false => None,

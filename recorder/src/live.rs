@@ -5,7 +5,7 @@
 use std::collections::BTreeSet;
 use std::time::Instant;
 
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use serde_json::{json, Value};
 
 use super::{NodeStats, Recorder};
@@ -60,8 +60,8 @@ impl Recorder {
         }
         let leader_links: Vec<u32> = (0..g.len()).filter(|&i| g.hears_leader(i)).map(|i| g.id(i)).collect();
         let mode = match s.timing {
-            formation_topology::Timing::Lockstep => "lockstep",
-            formation_topology::Timing::Realtime => "realtime",
+            formation_scenario::Timing::Lockstep => "lockstep",
+            formation_scenario::Timing::Realtime => "realtime",
         };
         json!({
             "run": run,
@@ -153,7 +153,7 @@ impl Recorder {
     fn frame_safety(&self) -> Value {
         let Some(p) = &self.proximity else { return Value::Null };
         // Deadlocks found and the time spent sidestepping (eq. G6), over every follower.
-        let mut g = formation_agent::GuardTally::default();
+        let mut g = formation_control::GuardTally::default();
         self.followers.iter().filter_map(|f| f.metrics.guard()).for_each(|t| g.merge(t));
         json!({
             "distance": p.distance, "filter": p.filter, "steps_below": p.steps_below,

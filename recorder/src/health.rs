@@ -176,7 +176,7 @@ fn who_ran(e: &Evidence, degraded: &mut Vec<String>, disturbed: &mut Vec<String>
     if !e.cut_off.is_empty() {
         disturbed.push(format!(
             "without the followers that left, {}",
-            formation_topology::graph::no_longer_reach(&e.cut_off)
+            formation_scenario::graph::no_longer_reach(&e.cut_off)
         ));
     }
 }

@@ -9,15 +9,15 @@ use std::marker::PhantomData;
 use std::sync::atomic::{AtomicU32, Ordering};
 
 use formation_ros2::attachment::{self, Attachment};
-use formation_ros2::keys::{self, EntityKind, Qos};
 use formation_ros2::msgs::Message;
+use formation_ros2::rmw_keys::{self, EntityKind, Qos};
 use formation_ros2::DecodeError;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
-use formation_protocol::error::{zerr, Error};
+use formation_exit::{zerr, Error};
 
 /// Node and entity ids, unique in this process (its zenoh session id
 /// tells processes apart), as rmw_zenoh's context counts them.
@@ -46,8 +46,8 @@ impl RosNode {
     pub async fn declare(session: &zenoh::Session, domain: u32, namespace: &str, name: &str) -> Result<Self, Error> {
         let zid = session.zid().to_string();
         let id = next_id();
-        let key =
-            keys::node_token(domain, &zid, id, ENCLAVE, namespace, name).map_err(|e| Error::Input(e.to_string()))?;
+        let key = rmw_keys::node_token(domain, &zid, id, ENCLAVE, namespace, name)
+            .map_err(|e| Error::Input(e.to_string()))?;
         let token = session
             .liveliness()
             .declare_token(key)
@@ -83,8 +83,8 @@ impl RosNode {
         topic: &str,
         qos: Qos,
     ) -> Result<(LivelinessToken, String, String), Error> {
-        let bad = |e: formation_ros2::keys::NameError| Error::Input(e.to_string());
-        let token_key = keys::endpoint_token(
+        let bad = |e: formation_ros2::rmw_keys::NameError| Error::Input(e.to_string());
+        let token_key = rmw_keys::endpoint_token(
             self.domain,
             &self.zid,
             self.id,
@@ -105,7 +105,7 @@ impl RosNode {
             .declare_token(token_key.clone())
             .await
             .map_err(|e| zerr(&format!("declaring the liveliness token of {topic}"), e))?;
-        let data_key = keys::data_key_of::<M>(self.domain, topic).map_err(bad)?;
+        let data_key = rmw_keys::data_key_of::<M>(self.domain, topic).map_err(bad)?;
         Ok((token, token_key, data_key))
     }
 

@@ -8,6 +8,25 @@
 //! [`Follower::step`] takes one step's inputs and returns its outputs. It
 //! never reads a clock, a socket, a file or an environment variable, and the
 //! step does not allocate.
+//!
+//! # Examples
+//!
+//! The bioinspired neural dynamics behind both controllers (eq. 34): the
+//! shunting model's state follows its input, yet stays in [−D, B] however
+//! large the input, which is what keeps the paper's commands smooth and
+//! bounded.
+//!
+//! ```
+//! use formation_control::Shunting;
+//!
+//! let model = Shunting { a: 5.0, b: 2.0, d: 2.0 };
+//! let (mut v, dt) = (0.0, 0.01);
+//! for _ in 0..1000 {
+//!     v = model.advance(v, 1e6, dt); // an error a million times too large
+//! }
+//! assert!(v <= 2.0 && v > 1.99, "saturates at B, not at the input: {v}");
+//! assert!(model.advance(0.0, -1.0, dt) < 0.0, "a negative input pulls it down");
+//! ```
 
 pub mod deadlock;
 pub mod dynamic;

@@ -5,6 +5,8 @@
 
 use std::time::{Duration, Instant};
 
+use formation_exit::shutdown::Signal;
+
 /// How a monitored run ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Ending {
@@ -28,17 +30,6 @@ impl Ending {
             Ending::Idle => "idle",
         }
     }
-}
-
-/// The signal that stops a monitored run: what the monitor's shutdown
-/// future resolves to. The binary installs the handlers (`src/node.rs`); a
-/// test passes a future of its own.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Signal {
-    /// SIGINT (Ctrl-C).
-    Interrupt,
-    /// SIGTERM.
-    Terminate,
 }
 
 impl From<Signal> for Ending {

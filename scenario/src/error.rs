@@ -36,3 +36,11 @@ fn location(file: &str, line: Option<usize>) -> String {
 }
 
 use crate::graph::id_list as list;
+
+/// A scenario that cannot be used is the user's input, whichever command
+/// read it.
+impl From<ScenarioError> for formation_exit::Error {
+    fn from(e: ScenarioError) -> Self {
+        formation_exit::Error::Input(e.to_string())
+    }
+}

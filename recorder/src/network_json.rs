@@ -36,7 +36,7 @@ impl Recorder {
             // Real time: the wall-clock period (dt / time scale), and whether
             // the robots are driven over ROS 2, their motion on wall time
             // (a late step is then a late command, crate::period).
-            "period_s": (self.scenario.timing == formation_topology::Timing::Realtime)
+            "period_s": (self.scenario.timing == formation_scenario::Timing::Realtime)
                 .then(|| self.scenario.dt_s / barrier::positive_scale(self.scenario.network.time_scale)),
             "robots_driven": self.scenario.ros2.is_some_and(|r| r.robots.driven()),
             // Every step of every node recorded, none lost.

@@ -6,7 +6,7 @@
 
 use serde::{Deserialize, Deserializer, Serialize};
 
-use formation_agent::{DynamicKind, FilterKind, KinematicKind, Shunting};
+use formation_control::{DynamicKind, FilterKind, KinematicKind, Shunting};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -11,9 +11,34 @@
 //! | `stream` | one node's batches put back in step order, and checked |
 //! | `network_json` | `network.json` |
 //! | `live` | the monitor's live line and the live page's JSON |
+//! | [`health`] | the run's verdict: healthy, degraded, and why |
+//! | [`watch`] | when the run started, when it is over and how it ended |
+//! | [`period`] | whether a real-time run kept its period (judged or not) |
 //!
-//! It never imports a node ([`crate::monitor`], the agent, the leader) or
-//! zenoh.
+//! It never imports a node (the monitor, the agent, the leader), zenoh or
+//! tokio: `formation replay` writes its folder with the same code, without
+//! a network stack.
+//!
+//! # Examples
+//!
+//! When a monitored run is over ([`watch::Watch`]): complete once the
+//! record holds every node's last step; idle only after its timeout of
+//! silence, where a gap between two looks counts at most [`watch::LOOK_CAP`]
+//! (a monitor that was not scheduled for a minute says nothing of the others).
+//!
+//! ```
+//! use std::time::{Duration, Instant};
+//! use formation_recorder::watch::{Ending, Watch};
+//!
+//! let t0 = Instant::now();
+//! let s = |secs: f64| t0 + Duration::from_secs_f64(secs);
+//! let mut watch = Watch::new(t0, t0, Duration::from_secs(10));
+//! assert_eq!(watch.on_start(s(1.5)), 1.5, "startup_s");
+//! assert_eq!(watch.on_tick(s(61.5)), None, "a minute unscheduled counts 4 s");
+//! assert_eq!(watch.on_tick(s(65.0)), None);
+//! assert_eq!(watch.on_tick(s(69.0)), Some(Ending::Idle), "11.5 s of silence");
+//! assert_eq!(watch.on_telemetry(s(70.0), true), Some(Ending::Complete));
+//! ```
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::path::PathBuf;
@@ -31,7 +56,7 @@ use formation_record::{
 /// A step some follower's pose is missing from is measured with the poses
 /// that are in once it is this far behind the newest.
 const PROXIMITY_BEHIND: u64 = 10_000;
-use formation_topology::Scenario;
+use formation_scenario::Scenario;
 use serde_json::json;
 
 use crate::health::{ControlWatch, Evidence, Health, HearingEvidence};
@@ -45,9 +70,12 @@ use formation_protocol::telemetry::{
 };
 use stream::{check_batch, Stream};
 
+pub mod health;
 mod live;
 mod network_json;
+pub mod period;
 mod stream;
+pub mod watch;
 
 pub use stream::Gap;
 
@@ -222,7 +250,7 @@ impl FollowerTrack {
 }
 
 /// The monitor's bookkeeping, independent of zenoh (fed with telemetry payloads).
-/// [`super::network_json`] writes its `network.json`, [`super::live`] its
+/// `network_json` writes its `network.json`, `live` its
 /// live page's frames.
 pub struct Recorder {
     scenario: Scenario,
@@ -283,7 +311,7 @@ pub struct Recorder {
     density: Density,
     /// How close the robots came (a scenario with `safety.distance`), and
     /// each step's poses until every follower's is in.
-    pub(super) proximity: Option<Proximity>,
+    pub(crate) proximity: Option<Proximity>,
     step_poses: BTreeMap<u64, Vec<Option<Pose>>>,
 }
 
@@ -536,7 +564,7 @@ impl Recorder {
     /// and no fault table, how the followers' hearing departed from the model.
     fn realtime_evidence(&self, e: &mut Evidence) {
         let (dt, delay_steps) = (self.scenario.dt_s, self.scenario.network.delay_steps);
-        if self.scenario.timing == formation_topology::Timing::Realtime {
+        if self.scenario.timing == formation_scenario::Timing::Realtime {
             // As each follower judges its own (net's agent).
             let scale = formation_protocol::barrier::positive_scale(self.scenario.network.time_scale);
             e.quarter_step_us = dt / scale * 1e6 / 4.0;
@@ -999,7 +1027,7 @@ impl Recorder {
             0 => "every remaining follower still reaches the leader".to_string(),
             n => format!(
                 "{}: {} estimates drift",
-                formation_topology::graph::no_longer_reach(&cut),
+                formation_scenario::graph::no_longer_reach(&cut),
                 if n == 1 { "its" } else { "their" }
             ),
         };
@@ -1117,7 +1145,7 @@ impl Recorder {
         }
         let stayed: Vec<u32> =
             self.followers.iter().map(|f| f.id).filter(|id| !left.iter().any(|l| l.0 == *id)).collect();
-        let mut parts = vec![format!("{} to the end", formation_topology::graph::followers_named(&stayed))];
+        let mut parts = vec![format!("{} to the end", formation_scenario::graph::followers_named(&stayed))];
         for &(id, k) in &self.joined {
             parts.push(format!("follower {id} joined at t = {:.3} s", k as f64 * dt));
         }
@@ -1224,7 +1252,7 @@ impl Recorder {
     /// last messages, and kept whole they were about 65 KB of the paper's
     /// 72 KB `hearing.bin`.
     fn rescue_needed(&self, r: &Rescued) -> bool {
-        r.source != formation_topology::wire::LEADER_ID
+        r.source != formation_protocol::wire::LEADER_ID
             && r.stamp > 0
             && self
                 .scenario
@@ -1603,7 +1631,7 @@ mod tests {
         let model = r.model_scenario();
         let row = model.faults.last().expect("the gap's row");
         let dt = scenario.dt_s;
-        assert_eq!((row.target, row.from_s, row.to_s), (formation_topology::FaultTarget::Node(0), 5.0 * dt, 7.0 * dt));
+        assert_eq!((row.target, row.from_s, row.to_s), (formation_scenario::FaultTarget::Node(0), 5.0 * dt, 7.0 * dt));
         let json: serde_json::Value = serde_json::from_str(&r.network_json(Ending::Complete)).expect("json");
         assert_eq!(
             (json["handovers"][0]["heard_step"].as_u64(), json["handovers"][0]["step"].as_u64()),
@@ -1626,7 +1654,7 @@ mod tests {
         let lockstep = scenario.clone().with_handovers(&[]);
         assert_eq!(lockstep.faults.len(), scenario.faults.len());
         let mut ls = scenario.clone();
-        ls.timing = formation_topology::Timing::Lockstep;
+        ls.timing = formation_scenario::Timing::Lockstep;
         assert_eq!(ls.with_handovers(&[(5, 7)]).faults.len(), scenario.faults.len());
     }
 
@@ -1725,7 +1753,7 @@ mod tests {
         assert_eq!(frame["membership"], serde_json::json!({"1": "left at 0.004 s (SIGTERM)"}), "{frame}");
         let model = r.model_scenario();
         let cut = model.faults.last().expect("a fault");
-        assert_eq!((cut.target, cut.from_s), (formation_topology::FaultTarget::Node(ids[0]), 4.0 * scenario.dt_s));
+        assert_eq!((cut.target, cut.from_s), (formation_scenario::FaultTarget::Node(ids[0]), 4.0 * scenario.dt_s));
         let json: serde_json::Value = serde_json::from_str(&r.network_json(Ending::Complete)).expect("json");
         assert_eq!(json["left"][0]["follower"], ids[0], "{}", json["left"]);
         assert_eq!((json["left"][0]["step"].as_u64(), json["left"][0]["why"].as_str()), (Some(4), Some("SIGTERM")));

@@ -13,10 +13,10 @@ use crate::courier::Courier;
 use crate::node::Shared;
 use crate::ros2::topics::LeaderTopics;
 use crate::telemetry;
+use formation_exit::{zerr, Error};
 use formation_protocol::codec;
 use formation_protocol::counters::QueryCount;
-use formation_protocol::error::{zerr, Error};
-use formation_protocol::leader::{Leader as Machine, LeaderBatch};
+use formation_protocol::leader::{LeaderBatch, LeaderMachine as Machine};
 use formation_protocol::names::{self, Keys};
 use formation_protocol::telemetry::Delivery;
 
@@ -70,7 +70,7 @@ pub async fn watch_leader_key(
 ) -> Result<zenoh::pubsub::Subscriber<()>, Error> {
     let (sh, tb) = (shared.clone(), timebase.clone());
     session
-        .declare_subscriber(keys.estimate(formation_topology::wire::LEADER_ID))
+        .declare_subscriber(keys.estimate(formation_protocol::wire::LEADER_ID))
         .allowed_origin(zenoh::sample::Locality::Remote)
         .callback(move |s| hear_leader(&sh, &s.payload().to_bytes(), tb.now()))
         .await
@@ -78,7 +78,7 @@ pub async fn watch_leader_key(
 }
 
 /// The loop's side of the node: the machine, and where its answers go.
-pub struct Node {
+pub struct LeadLoop {
     pub shared: Arc<Shared<Machine>>,
     pub publisher: Publisher<'static>,
     pub courier: Arc<Courier>,
@@ -94,7 +94,7 @@ pub struct Node {
     pub on_take_over: Option<tokio::sync::oneshot::Sender<u64>>,
 }
 
-impl Node {
+impl LeadLoop {
     /// Feeds the machine the time until it is done, sleeping between turns
     /// until its next deadline (real time) or until the window opens
     /// (lock-step), on a thread of its own.
