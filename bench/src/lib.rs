@@ -31,13 +31,3 @@ pub mod netns;
 pub mod ros2;
 pub mod sim;
 pub mod verify;
-
-use formation_exit::Error;
-
-/// Refuses 0 for a count option that must be at least 1.
-fn at_least_one(flag: &str, value: u64) -> Result<(), Error> {
-    match value {
-        0 => Err(Error::Input(format!("{flag} must be at least 1, not 0"))),
-        _ => Ok(()),
-    }
-}

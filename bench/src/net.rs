@@ -242,7 +242,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
     let sim_rate = sim_s.steps() as f64 / t.elapsed().as_secs_f64();
 
     for &n in &a.agents.0 {
-        crate::at_least_one("--agents", u64::from(n))?;
+        formation_exit::at_least_one("--agents", u64::from(n))?;
     }
     let mut tcp = measure(a, &scenario, None, a.base_port)?;
     let mut tls = a.tls.as_deref().map(|d| measure(a, &scenario, Some(d), a.base_port + 50)).transpose()?;
@@ -277,7 +277,7 @@ pub fn run(a: &BenchNetArgs) -> Result<(), Error> {
 
 /// The lengths and counts `bench-net` cannot run with, in one line each.
 fn check_args(a: &BenchNetArgs) -> Result<(), Error> {
-    crate::at_least_one("--round-trips", a.round_trips as u64)?;
+    formation_exit::at_least_one("--round-trips", a.round_trips as u64)?;
     // The lock-step rate is the difference between the short run and this one.
     if !(a.lockstep_duration.is_finite() && a.lockstep_duration > SHORT_LOCKSTEP_S) {
         return Err(Error::Input(format!(

@@ -185,7 +185,7 @@ pub fn run(a: &BenchArgs) -> Result<(), Error> {
     if a.guard {
         return guard_cases(a);
     }
-    crate::at_least_one("--repeat", a.repeat.into())?;
+    formation_exit::at_least_one("--repeat", a.repeat.into())?;
     let mut threads = a.threads.clone();
     threads.dedup();
     // Every scenario before the table starts: an error is one line, not a

@@ -1,6 +1,7 @@
 //! A finished networked run again, offline: `formation replay` runs the
 //! hearing record through the follower's steps and writes the same folder
-//! with the same [`formation_recorder::Recorder`] ([`replay`]), `--explain`
+//! with the same [`formation_recorder::Recorder`] ([`replay`]) and sets it
+//! against the run ([`check`]), `--explain`
 //! sets each fault beside its model ([`explain`]), and `formation play`
 //! shows a finished run on the live page or in Foxglove ([`playback`]).
 //!
@@ -27,6 +28,7 @@
 //! std::fs::remove_dir_all(&dir).unwrap();
 //! ```
 
+pub mod check;
 pub mod explain;
 #[cfg(feature = "playback")]
 pub mod playback;
