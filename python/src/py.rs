@@ -11,7 +11,7 @@ use pyo3::types::{PyDict, PyList};
 use formation_scenario::generate::Spec;
 
 use crate::memory::Columns;
-use crate::rmw_keys::{graph_kind, Source};
+use crate::keys::{graph_kind, Source};
 
 fn value_error(e: String) -> PyErr {
     PyValueError::new_err(e)
