@@ -10,8 +10,8 @@ use pyo3::types::{PyDict, PyList};
 
 use formation_scenario::generate::Spec;
 
-use crate::memory::Columns;
 use crate::keys::{graph_kind, Source};
+use crate::memory::Columns;
 
 fn value_error(e: String) -> PyErr {
     PyValueError::new_err(e)
