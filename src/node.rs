@@ -117,7 +117,7 @@ pub fn run_agent(a: agent::AgentArgs) -> ExitCode {
 fn stopped_by(signal: Option<Signal>) -> ExitCode {
     match signal {
         None => ExitCode::SUCCESS,
-        Some(s) => ExitCode::from(s.error("").status()),
+        Some(s) => ExitCode::from(s.status()),
     }
 }
 

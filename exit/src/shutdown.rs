@@ -15,6 +15,7 @@
 //!
 //! let stopped = Signal::Terminate;
 //! assert_eq!(stopped.number(), libc::SIGTERM);
+//! assert_eq!(stopped.status(), 143);
 //! assert_eq!(stopped.error("monitor: stopped").status(), 143);
 //! assert_eq!(Signal::from_number(libc::SIGINT), Some(Signal::Interrupt));
 //! ```
@@ -35,6 +36,12 @@ impl Signal {
             Signal::Interrupt => libc::SIGINT,
             Signal::Terminate => libc::SIGTERM,
         }
+    }
+
+    /// The exit status of a process it stopped: 128 + its number (130,
+    /// 143), as a shell says it.
+    pub fn status(self) -> u8 {
+        self.error("").status()
     }
 
     /// The signal of a number, if it is one of the two.
