@@ -437,12 +437,9 @@ fn study(exe: &Path, a: &VerifyArgs, s: &Study) -> Result<Outcome, String> {
         Kind::Lab => {
             c.arg("lab").arg(&scenario);
         }
+        // The launch claims free ports of its own (formation_launch::ports).
         Kind::Launch | Kind::Ring(_) => {
-            let followers = match s.kind {
-                Kind::Ring(n) => n as usize,
-                _ => 4,
-            };
-            c.arg("launch").arg(&scenario).arg("--base-port").arg(free_ports(followers + 2)?.to_string());
+            c.arg("launch").arg(&scenario);
         }
     }
     c.args(["-q", "--run", &format!("verify-{}", s.name), "--out"]).arg(&run_dir);
@@ -490,20 +487,6 @@ fn study(exe: &Path, a: &VerifyArgs, s: &Study) -> Result<Outcome, String> {
 fn read_json(p: &Path) -> Result<serde_json::Value, String> {
     let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
     serde_json::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))
-}
-
-/// `count` consecutive free loopback ports from 20,000 up.
-fn free_ports(count: usize) -> Result<u16, String> {
-    let mut base = 20_000u16;
-    while usize::from(base) + count < 32_000 {
-        let held: Vec<_> =
-            (0..count).map_while(|i| std::net::TcpListener::bind(("127.0.0.1", base + i as u16)).ok()).collect();
-        if held.len() == count {
-            return Ok(base);
-        }
-        base += count as u16;
-    }
-    Err(format!("no {count} consecutive free loopback ports in 20000..32000"))
 }
 
 fn verdict(o: &Outcome) -> String {

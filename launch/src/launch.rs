@@ -263,7 +263,9 @@ async fn launch(
     let mode = if a.router.is_some() { LaunchMode::Client } else { a.mode };
     let own_router = mode == LaunchMode::Client && a.router.is_none();
     let count = if mode == LaunchMode::Peer { groups.len() + 2 } else { 1 };
-    let p = ports(a.base_port, count)?;
+    // Claimed until the run ends: no other launch takes them meanwhile.
+    let lease = ports(a.base_port, count)?;
+    let p = &lease.ports;
     let links = a.links()?;
     let eps = Endpoints::new(links)?;
     let router_ep = a.router.clone().unwrap_or_else(|| eps.dial(p[0]));
@@ -272,7 +274,7 @@ async fn launch(
         announce(a, scenario, run, groups.len(), own_router, robots, &wiring, p[0]);
     }
     if !a.opts.quiet && robots == Robots::External {
-        for line in plan::external_robot_lines(a, scenario, &wiring, &groups, &p) {
+        for line in plan::external_robot_lines(a, scenario, &wiring, &groups, p) {
             eprintln!("{line}");
         }
     }
@@ -283,11 +285,13 @@ async fn launch(
     let node_ports = if mode == LaunchMode::Peer { (p[0], p[1]) } else { (0, 0) };
     let monitor_and_leader = plan::monitor_and_leader(a, run, out, exe, &wiring, node_ports);
     let standby = a.standby.then(|| plan::standby(a, run, exe, &wiring));
-    let agents = plan::agents(a, scenario, run, exe, &wiring, &groups, &p, robots);
+    let agents = plan::agents(a, scenario, run, exe, &wiring, &groups, p, robots);
     for node in monitor_and_leader.into_iter().chain(standby).chain(agents) {
         spawn(children, &node.name, node.command)?;
     }
-    supervise(children, out, Duration::from_millis(50), shutdown, |_| Ok(())).await
+    let ended = supervise(children, out, Duration::from_millis(50), shutdown, |_| Ok(())).await;
+    drop(lease);
+    ended
 }
 
 #[cfg(test)]
@@ -428,7 +432,7 @@ mod tests {
     #[test]
     fn base_port_range_is_checked_up_front() {
         assert!(matches!(ports(Some(0), 3), Err(Error::Input(_))));
-        assert_eq!(ports(Some(65533), 3).ok(), Some(vec![65533, 65534, 65535]));
+        assert_eq!(ports(Some(65533), 3).ok().map(|l| l.ports), Some(vec![65533, 65534, 65535]));
         assert!(matches!(ports(Some(65534), 3), Err(Error::Input(_))));
     }
 }

@@ -27,6 +27,7 @@ pub mod lab;
 pub mod launch;
 pub mod options;
 pub mod plan;
+pub mod ports;
 pub mod runsize;
 pub mod supervisor;
 pub mod zenoh_log;

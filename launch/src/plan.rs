@@ -2,7 +2,6 @@
 //! line, computed before anything starts ([`monitor_and_leader`],
 //! [`agents`]). Nothing here starts a process; [`crate::supervisor`] does.
 
-use std::net::TcpListener;
 use std::path::Path;
 use std::process::{Command, Stdio};
 
@@ -10,6 +9,7 @@ use formation_net::session;
 use formation_scenario::Scenario;
 
 use crate::options::{LaunchArgs, LaunchMode, Links, Robots, RunOptions};
+use crate::ports::Lease;
 use formation_exit::Error;
 
 /// The endpoints of the nodes of one launch, named by their loopback port:
@@ -93,31 +93,21 @@ pub(crate) fn ep(port: u16) -> String {
     format!("tcp/127.0.0.1:{port}")
 }
 
-/// `count` loopback ports: consecutive from `base`, or free ones.
-pub(crate) fn ports(base: Option<u16>, count: usize) -> Result<Vec<u16>, Error> {
-    if let Some(b) = base {
-        if b == 0 {
-            return Err(Error::Input(
-                "--base-port 0: give a port of 1 or more (or leave --base-port out for free ports)".into(),
-            ));
-        }
-        // The ports are b, b + 1, …, b + count − 1.
-        let last = u32::from(b) + count.saturating_sub(1) as u32;
-        if last > u32::from(u16::MAX) {
-            return Err(Error::Input(format!("--base-port {b}: not enough ports above it for {count} nodes")));
-        }
-        return Ok((0..count as u16).map(|i| b + i).collect());
+/// `count` loopback ports: consecutive from `base`, or free ones
+/// ([`crate::ports::free`]), claimed while the lease lives.
+pub(crate) fn ports(base: Option<u16>, count: usize) -> Result<Lease, Error> {
+    let Some(b) = base else { return crate::ports::free(count) };
+    if b == 0 {
+        return Err(Error::Input(
+            "--base-port 0: give a port of 1 or more (or leave --base-port out for free ports)".into(),
+        ));
     }
-    // Hold every listener until all are chosen, so no port is handed out twice.
-    let listeners: Vec<TcpListener> = (0..count)
-        .map(|_| TcpListener::bind("127.0.0.1:0"))
-        .collect::<Result<_, _>>()
-        .map_err(|e| Error::Run(format!("finding free loopback ports: {e}")))?;
-    listeners
-        .iter()
-        .map(|l| l.local_addr().map(|a| a.port()))
-        .collect::<Result<_, _>>()
-        .map_err(|e| Error::Run(format!("finding free loopback ports: {e}")))
+    // The ports are b, b + 1, …, b + count − 1.
+    let last = u32::from(b) + count.saturating_sub(1) as u32;
+    if last > u32::from(u16::MAX) {
+        return Err(Error::Input(format!("--base-port {b}: not enough ports above it for {count} nodes")));
+    }
+    Ok(Lease::given((0..count as u16).map(|i| b + i).collect()))
 }
 
 /// The links' lease of a launch whose nodes all run on this host (none
@@ -424,7 +414,7 @@ mod tests {
         let a = Cli::try_parse_from(["launch", path, "--links", "tcp", "--base-port", "41000"]).expect("parses").l;
         let s = a.opts.scenario.load().expect("scenario");
         let n = s.followers.len();
-        let p = ports(a.base_port, n + 2).expect("ports");
+        let p = ports(a.base_port, n + 2).expect("ports").ports;
         let wiring = Wiring {
             mode: LaunchMode::Peer,
             links: Links::Tcp,

@@ -71,7 +71,7 @@ pub struct Watch {
     id: u32,
     fingerprint: u64,
     tokens: SharedTokens,
-    named: Arc<Mutex<BTreeMap<u32, u64>>>,
+    named: Arc<Mutex<BTreeMap<u32, Died>>>,
     said: Mutex<BTreeSet<u32>>,
     applied: Mutex<BTreeSet<u32>>,
     /// The token changes and the named steps already looked at (a turn
@@ -86,14 +86,14 @@ impl Watch {
     pub async fn start(session: &zenoh::Session, keys: &Keys, id: u32, fingerprint: u64) -> Result<Self, Error> {
         let tokens: SharedTokens = Default::default();
         let losses = hear_tokens(session, keys, tokens.clone()).await?;
-        let named: Arc<Mutex<BTreeMap<u32, u64>>> = Default::default();
+        let named: Arc<Mutex<BTreeMap<u32, Died>>> = Default::default();
         let n = named.clone();
         let died = session
             .declare_subscriber(keys.died())
             .callback(move |s| {
                 let Some(d) = decode::<Died>(&s.payload().to_bytes()) else { return };
                 if d.fingerprint == fingerprint {
-                    n.lock().unwrap_or_else(|p| p.into_inner()).entry(d.follower).or_insert(d.at_k);
+                    n.lock().unwrap_or_else(|p| p.into_inner()).entry(d.follower).or_insert(d);
                 }
             })
             .await
@@ -132,12 +132,11 @@ impl Watch {
                 }
             }
         }
-        let named: Vec<(u32, u64)> =
-            self.named.lock().unwrap_or_else(|p| p.into_inner()).iter().map(|(&j, &k)| (j, k)).collect();
+        let named: Vec<Died> = self.named.lock().unwrap_or_else(|p| p.into_inner()).values().copied().collect();
         let mut applied = self.applied.lock().unwrap_or_else(|p| p.into_inner());
-        for (j, at_k) in named {
-            if j != self.id && applied.insert(j) {
-                m.handle_died(j, at_k);
+        for d in named {
+            if d.follower != self.id && applied.insert(d.follower) {
+                m.handle_died(&d);
             }
         }
     }

@@ -16,11 +16,20 @@
 //! loss of a token at its control priority, ahead of an estimate still
 //! queued at the real-time priority in a router (zenoh-protocol 1.10.2,
 //! `QoSType::DECLARE`), so a neighbour that decided on its own could miss
-//! the last message another received. What any one received, the router
-//! forwards to every other: the greatest step anyone holds is one every
-//! node will hold.
+//! the last message another received.
+//!
+//! The greatest step anyone holds decides, and the monitor's [`Died`]
+//! carries the killed follower's last messages, those of the steps before
+//! it, to every node: with a router, what one node received the router
+//! forwards to every other; between peers, each link has its own queue in
+//! the sender, and a process killed while its last messages were on the
+//! way reached some peers and not others (a test beside a busy core: two
+//! followers waited the 60 s stall timeout for a pose a third had used).
+//! A follower that lacks one takes it from the [`Died`] it applies.
 
 use serde::{Deserialize, Serialize};
+
+use crate::wire::EstimateMsg;
 
 /// What one follower holds of a follower that died: the newest step of its
 /// estimate and of its pose received (None: none, or not a source of it).
@@ -38,16 +47,34 @@ pub struct Holding {
     /// record of where a killed robot stands (its telemetry may end
     /// earlier, lost with its process).
     pub pose_at: Option<[f64; 3]>,
+    /// Its two newest estimate messages heard, newest first.
+    pub estimates: [Option<EstimateMsg>; 2],
 }
 
 /// The step before which follower `follower` is cut off, as the monitor
 /// named it: its links are cut from `at_k`, and its robot stands at its
 /// pose of step `at_k` − 2 from step `at_k` − 1 on (the died row's model).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Died {
     pub fingerprint: u64,
     pub follower: u32,
     pub at_k: u64,
+    /// Its estimate of step `at_k` − 1, its last, as a holding has it
+    /// (None: none does, or it sent none).
+    pub estimate: Option<EstimateMsg>,
+    /// Its robot's pose of step `at_k` − 2, where it stands ([`stands_at`]).
+    pub pose: Option<[f64; 3]>,
+}
+
+impl Died {
+    /// The step named from what the running followers hold of `follower`
+    /// ([`died_step`]), with its last messages for those that lack them.
+    pub fn named(fingerprint: u64, follower: u32, holdings: &[Holding]) -> Self {
+        let at_k = died_step(holdings);
+        let last = at_k.checked_sub(1);
+        let estimate = holdings.iter().flat_map(|h| h.estimates).flatten().find(|m| Some(m.header.step) == last);
+        Died { fingerprint, follower, at_k, estimate, pose: stands_at(holdings, at_k) }
+    }
 }
 
 /// The step L of a follower that died, from what the others hold of it.
@@ -82,7 +109,36 @@ mod tests {
     use super::*;
 
     fn h(sender: u32, estimate: Option<u64>, pose: Option<u64>) -> Holding {
-        Holding { fingerprint: 1, sender, died: 2, estimate, pose, pose_at: None }
+        Holding { fingerprint: 1, sender, died: 2, estimate, pose, pose_at: None, estimates: [None; 2] }
+    }
+
+    fn estimate(step: u64) -> EstimateMsg {
+        let header =
+            crate::wire::Header { version: crate::wire::FORMAT_VERSION, sender: 2, step, time_s: 0.0, sent_ns: 0 };
+        EstimateMsg { header, state: Default::default(), fresh: true, term: 1 }
+    }
+
+    /// Killed while its last fan-out was on the way: follower 1 got the
+    /// estimate of 498 and the pose of 497, followers 3 and 4 neither. The
+    /// step named is 1's (499), and the Died carries both messages to them.
+    #[test]
+    fn the_last_messages_one_follower_got_reach_the_others_with_the_step() {
+        let mut first = h(1, Some(498), Some(497));
+        (first.estimates, first.pose_at) = ([Some(estimate(498)), Some(estimate(497))], Some([1.0, 2.0, 0.5]));
+        let mut third = h(3, Some(497), Some(496));
+        third.estimates = [Some(estimate(497)), Some(estimate(496))];
+        let fourth = h(4, None, Some(496));
+        let d = Died::named(9, 2, &[third, fourth, first]);
+        assert_eq!((d.fingerprint, d.follower, d.at_k), (9, 2, 499));
+        assert_eq!(d.estimate.map(|m| m.header.step), Some(498), "the estimate of step L − 1");
+        assert_eq!(d.pose, Some([1.0, 2.0, 0.5]), "the pose of step L − 2");
+        // Killed between its estimate of 498 and its pose of 497: L = 498,
+        // its last estimate (497) is the older of the newest two.
+        let mut held = h(1, Some(498), Some(496));
+        held.estimates = [Some(estimate(498)), Some(estimate(497))];
+        let d = Died::named(9, 2, &[held, fourth]);
+        assert_eq!((d.at_k, d.estimate.map(|m| m.header.step)), (498, Some(497)));
+        assert_eq!(d.pose, None, "no holding has a pose_at for step 496");
     }
 
     #[test]

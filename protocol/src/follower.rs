@@ -578,6 +578,7 @@ impl FollowerMachine {
             estimate: slot.and_then(|s| self.inbox.heard_max(s)),
             pose: newest.map(|(k, _)| k),
             pose_at: newest.map(|(_, p)| [p.x, p.y, p.theta]),
+            estimates: slot.map_or([None; 2], |s| self.inbox.newest_heard(s)),
         }
     }
 
@@ -599,10 +600,22 @@ impl FollowerMachine {
     /// named it (lock-step, [`crate::died`]): as a neighbour that left
     /// ([`FollowerMachine::handle_gone`]), but with no last pose: its robot stands
     /// at its pose of step `at_k` − 2 from step `at_k` − 1 on, for this
-    /// follower's filter.
-    pub fn handle_died(&mut self, id: u32, at_k: u64) {
+    /// follower's filter. Its last messages, those of the steps before
+    /// `at_k` that this follower lacks, come with `died` (a peer's last
+    /// fan-out may have reached some nodes only).
+    pub fn handle_died(&mut self, died: &crate::died::Died) {
+        let (id, at_k) = (died.follower, died.at_k);
+        let slot = self.rules.source_ids.iter().position(|&s| s == id && s != wire::LEADER_ID);
+        if let (Some(slot), Some(m)) = (slot, died.estimate) {
+            if m.header.sender == id && m.header.step < at_k && !self.inbox.holds(slot, m.header.step) {
+                let _ = self.handle_checked(Source::Neighbour(slot), &m, None);
+            }
+        }
         self.handle_gone(id, at_k);
         if let Some(p) = self.poses.as_mut() {
+            if let (Some(k), Some(pose)) = (at_k.checked_sub(2), died.pose) {
+                p.fill(id, k, pose, self.last_now);
+            }
             p.died(id, at_k);
         }
     }

@@ -53,6 +53,9 @@ pub struct Inbox {
     newest: Vec<Option<u64>>,
     /// Per source, the furthest step heard (see [`Inbox::heard_max`]).
     heard_max: Vec<Option<u64>>,
+    /// Per source, its two newest messages heard, newest first (see
+    /// [`Inbox::newest_heard`]).
+    newest_two: Vec<[Option<EstimateMsg>; 2]>,
     /// Per source, the checked messages heard, accepted or not (see
     /// [`Inbox::signs_of_life`]).
     heard: Vec<u64>,
@@ -116,6 +119,7 @@ impl Inbox {
             pending: vec![BTreeMap::new(); sources],
             newest: vec![None; sources],
             heard_max: vec![None; sources],
+            newest_two: vec![[None; 2]; sources],
             heard: vec![0; sources],
             history: vec![VecDeque::new(); sources],
             counters: Counters::default(),
@@ -197,6 +201,18 @@ impl Inbox {
     /// neighbours wait).
     pub fn heard_max(&self, slot: usize) -> Option<u64> {
         self.heard_max[slot]
+    }
+
+    /// The two newest messages heard from `slot` (by step, newest first),
+    /// accepted or not: what a follower says it holds of one that died, so
+    /// that a node its last fan-out missed gets them ([`crate::died`]).
+    pub fn newest_heard(&self, slot: usize) -> [Option<EstimateMsg>; 2] {
+        self.newest_two[slot]
+    }
+
+    /// Lock-step: whether `slot`'s message of `step` is held or was used.
+    pub fn holds(&self, slot: usize, step: u64) -> bool {
+        self.pending[slot].contains_key(&step) || self.newest[slot].is_some_and(|n| n >= step)
     }
 
     /// Lock-step: how many checked messages the sources whose step-k
@@ -299,6 +315,16 @@ impl Inbox {
         self.heard[slot] += 1;
         let seen = &mut self.heard_max[slot];
         *seen = Some(seen.map_or(step, |m| m.max(step)));
+        let two = &mut self.newest_two[slot];
+        match two[0].map(|m| m.header.step) {
+            Some(s) if s == step => {}
+            Some(s) if s > step => {
+                if two[1].is_none_or(|m| m.header.step < step) {
+                    two[1] = Some(*msg);
+                }
+            }
+            _ => *two = [Some(*msg), two[0]],
+        }
         if step > self.limit(slot) {
             self.counters.rejected.add(Reject::Future);
             return false;

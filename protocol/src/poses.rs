@@ -161,6 +161,18 @@ impl Poses {
         }
     }
 
+    /// Follower `id`'s pose of step `k`, where no message of it came (the
+    /// last of one that died, from the monitor's [`crate::died::Died`]):
+    /// kept if nothing as new is held.
+    pub fn fill(&mut self, id: u32, k: u64, pose: [f64; 3], now: Now) {
+        let Some(j) = self.ids.iter().position(|&i| i == id).filter(|&j| j != self.own) else { return };
+        if self.newest[j].is_some_and(|(newest, _)| newest >= k) {
+            return;
+        }
+        self.ring[j][(k as usize) % RING] = Some((k, Pose::new(pose[0], pose[1], pose[2])));
+        self.newest[j] = Some((k, now));
+    }
+
     /// A message on `pose/<key_id>`, received at `now`: kept, or why not.
     pub fn handle(&mut self, key_id: Option<u32>, bytes: &[u8], now: Now, step: u64) -> Result<(), Reject> {
         let msg = wire::decode_pose(bytes)?;

@@ -26,6 +26,9 @@ pub const LAUNCH_PORTS: usize = 6;
 /// Every port `Ports::free` has handed out in this process: never twice.
 static HANDED_OUT: Mutex<BTreeSet<u16>> = Mutex::new(BTreeSet::new());
 
+/// The claims on them (open, locked files), held until the binary exits.
+static CLAIMS: Mutex<Vec<std::fs::File>> = Mutex::new(Vec::new());
+
 /// `count` consecutive TCP ports on 127.0.0.1 that are free, for one test:
 /// `launch --base-port` takes consecutive ports, and a test that starts a
 /// router or a listening session needs to know its port.
@@ -47,6 +50,10 @@ static HANDED_OUT: Mutex<BTreeSet<u16>> = Mutex::new(BTreeSet::new());
 ///   process that binds them (it cannot bind them while we hold them).
 /// - A port is handed out at most once per process (`HANDED_OUT`): another
 ///   test of this binary is never given it, however its timing goes.
+/// - Each port is claimed as a launch claims its own free ports
+///   (`formation_launch::ports::claim`), for as long as this test binary
+///   runs: a launch choosing its own ports at the same time (one without
+///   `--base-port`) skips them, even between `release` and the bind.
 ///
 /// Tests whose processes run in network namespaces (`formation lab`, the
 /// containers) need none of this: each node listens on its own address in
@@ -61,11 +68,8 @@ impl Ports {
     pub fn free(count: usize) -> Self {
         assert!((1..=1000).contains(&count), "{count} ports");
         let count = count as u16;
-        let ephemeral_low = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
-            .ok()
-            .and_then(|t| t.split_whitespace().next().and_then(|x| x.parse::<u16>().ok()))
-            .unwrap_or(32768);
-        let (low, high) = (10_000u16, ephemeral_low.saturating_sub(count));
+        let ephemeral_low = formation_launch::ports::ephemeral_low();
+        let (low, high) = (formation_launch::ports::LOWEST, ephemeral_low.saturating_sub(count));
         assert!(low < high, "no room below the ephemeral ports ({ephemeral_low})");
         let mut handed_out = HANDED_OUT.lock().unwrap_or_else(|e| e.into_inner());
         // Start where this process's id says, so that test binaries run at
@@ -98,11 +102,16 @@ impl Ports {
         if block.clone().any(|p| handed_out.contains(&p)) {
             return None;
         }
+        let claims: Vec<_> = block.clone().map_while(formation_launch::ports::claim).collect();
+        if claims.len() != usize::from(count) {
+            return None;
+        }
         let held: Vec<TcpListener> = block.clone().map_while(|p| TcpListener::bind(("127.0.0.1", p)).ok()).collect();
         if held.len() != usize::from(count) {
             return None;
         }
         handed_out.extend(block);
+        CLAIMS.lock().unwrap_or_else(|e| e.into_inner()).extend(claims.into_iter().flatten());
         Some(Ports { first: base, held })
     }
 
@@ -291,6 +300,16 @@ impl Group {
             assert!(t.elapsed() < limit, "formation did not finish within {limit:?}");
             std::thread::sleep(Duration::from_millis(20));
         }
+    }
+
+    /// Asks the leader of the group to end (SIGTERM), as a test does once
+    /// the run a helper served is over, and waits for it (bounded).
+    pub fn terminate(&mut self, limit: Duration) -> ExitStatus {
+        // SAFETY: kill has no preconditions; the pid is our child's, not yet reaped.
+        unsafe {
+            libc::kill(self.0.id() as libc::pid_t, libc::SIGTERM);
+        }
+        self.wait(limit)
     }
 
     /// Processes (other than zombies) still in the group.

@@ -10,6 +10,7 @@ and writes what it saw as JSON.
 import argparse
 import json
 import struct
+import signal
 import sys
 import threading
 import time
@@ -29,7 +30,7 @@ def main():
     ap.add_argument("--domain", type=int, default=0)
     ap.add_argument("--topic", required=True)
     ap.add_argument("--type", required=True)
-    ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--seconds", type=float, default=30.0, help="at most this long (SIGTERM ends it earlier)")
     ap.add_argument("--quiet-after", type=float, default=3.0, help="stop once samples stop for this long")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
@@ -76,8 +77,11 @@ def main():
     print(f"listening on {key}", file=sys.stderr, flush=True)
     tokens = set()
     began = time.monotonic()
-    while time.monotonic() - began < a.seconds:
-        time.sleep(0.5)
+    # Until SIGTERM (the test's, once the run it listens to is over), or --seconds.
+    ended = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: ended.set())
+    while time.monotonic() - began < a.seconds and not ended.is_set():
+        ended.wait(0.5)
         for reply in session.liveliness().get(f"@ros2_lv/{a.domain}/**", timeout=2.0):
             if reply.ok is not None:
                 tokens.add(str(reply.ok.key_expr))

@@ -3,7 +3,9 @@
 rosbags' CDR, with the 33-byte attachment and liveliness tokens). After
 --stop-after seconds of driving it stops publishing odometry but keeps
 listening, and counts the commands it still receives (an agent should send
-zero velocity).
+zero velocity). It drives until SIGTERM (or --seconds, a guard), so that a
+slow start of the formation never outlasts it; --out then holds its last
+pose and every pose it published.
 
     python unicycle.py --connect tcp/127.0.0.1:7447 --id 1 --pose 0 0 0 \
         --dt 0.01 --seconds 20 --stop-after 8 --out robot.json
@@ -12,6 +14,7 @@ import argparse
 import hashlib
 import json
 import math
+import signal
 import struct
 import sys
 import threading
@@ -29,7 +32,7 @@ def main():
     ap.add_argument("--id", type=int, required=True)
     ap.add_argument("--pose", type=float, nargs=3, default=[0.0, 0.0, 0.0])
     ap.add_argument("--dt", type=float, default=0.01)
-    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--seconds", type=float, default=20.0, help="at most this long (SIGTERM ends it earlier)")
     ap.add_argument("--stop-after", type=float, default=1e9, help="s after the first command")
     ap.add_argument("--frame", default=None, help="odometry frame_id (default follower_<id>/odom)")
     ap.add_argument("--wrong-frame-every", type=int, default=0,
@@ -80,15 +83,18 @@ def main():
                 state["after_stop"].append([m.linear.x, m.angular.z])
 
     sub = session.declare_subscriber(key("cmd_vel", twist_t), on_cmd)
+    ended = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: ended.set())
+    trail = []
     x, y, th = a.pose
     v = w = 0.0
     seq = 1
     began = time.monotonic()
     published = 0
     tick = began
-    while time.monotonic() - began < a.seconds:
+    while time.monotonic() - began < a.seconds and not ended.is_set():
         tick += a.dt
-        time.sleep(max(0.0, tick - time.monotonic()))
+        ended.wait(max(0.0, tick - time.monotonic()))
         with lock:
             v, w = state["cmd"]
             first = state["first"]
@@ -115,6 +121,7 @@ def main():
         )
         att = struct.pack("<qq", seq, now) + bytes([16]) + gid
         pub.put(bytes(store.serialize_cdr(msg, odom_t)), attachment=att)
+        trail.append([x, y, th])
         seq += 1
         published += 1
         if first is None and published == 1:
@@ -125,7 +132,7 @@ def main():
     session.close()
     with lock:
         out = {"published": published, "commands": state["commands"], "after_stop": state["after_stop"],
-               "pose": [x, y, th]}
+               "pose": [x, y, th], "published_poses": trail}
     with open(a.out, "w") as f:
         json.dump(out, f)
     print(f"unicycle {a.id}: {published} odometry messages, {out['commands']} commands, "

@@ -11,7 +11,7 @@ use zenoh::pubsub::{Publisher, Subscriber};
 
 use formation_exit::{zerr, Error};
 use formation_protocol::codec::{decode, encode};
-use formation_protocol::died::{died_step, stands_at, Died, Holding};
+use formation_protocol::died::{Died, Holding};
 use formation_protocol::names::{last_chunk, Keys};
 use formation_protocol::patience::Patience;
 use formation_recorder::Recorder;
@@ -40,9 +40,9 @@ pub struct Deaths {
     /// Since when each token lost and not back is waited on.
     lost_since: BTreeMap<u32, Patience>,
     holdings: Holdings,
-    /// Followers named killed, and the step (said again on every look, so
-    /// that a node that missed it hears it).
-    named: BTreeMap<u32, u64>,
+    /// Followers named killed, with the step and their last messages (said
+    /// again on every look, so that a node that missed it hears it).
+    named: BTreeMap<u32, Died>,
     /// Tokens lost of followers that left or finished first: not deaths.
     through: BTreeSet<u32>,
     followers: Vec<u32>,
@@ -122,14 +122,13 @@ impl Deaths {
             let running = self.followers.iter().filter(|&&f| f != j && alive.contains(&f) && !recorder.through(f));
             if running.clone().all(|f| said.contains_key(f)) {
                 let said: Vec<Holding> = said.values().copied().collect();
-                let at_k = died_step(&said);
-                self.named.insert(j, at_k);
-                recorder.died(j, at_k, stands_at(&said, at_k));
+                let d = Died::named(self.fingerprint, j, &said);
+                self.named.insert(j, d);
+                recorder.died(j, d.at_k, d.pose);
             }
         }
-        for (&follower, &at_k) in &self.named {
-            let d = Died { fingerprint: self.fingerprint, follower, at_k };
-            let _ = self.died.put(encode(&d)).await;
+        for d in self.named.values() {
+            let _ = self.died.put(encode(d)).await;
         }
     }
 }
