@@ -123,6 +123,11 @@ fn record(c: &Checkpoint) -> Vec<u8> {
 /// the old one: at 100 agents, 1,000 renames a second in one folder, each
 /// of which made ext4 start writing the file to disk. Errors are said once.
 pub fn start_writer(path: PathBuf, fingerprint: u64, epoch_unix_ns: u64, latest: Latest) -> Writer {
+    start_writer_every(PERIOD, path, fingerprint, epoch_unix_ns, latest)
+}
+
+/// [`start_writer`] with a period of its own (a test's).
+fn start_writer_every(period: Duration, path: PathBuf, fingerprint: u64, epoch_unix_ns: u64, latest: Latest) -> Writer {
     let (stop, stopped) = std::sync::mpsc::channel::<()>();
     let thread = std::thread::spawn(move || {
         use std::os::unix::fs::FileExt;
@@ -130,7 +135,7 @@ pub fn start_writer(path: PathBuf, fingerprint: u64, epoch_unix_ns: u64, latest:
         let mut file: Option<std::fs::File> = None;
         let mut written = None;
         // Sleeps a period, or ends as soon as the sender is dropped.
-        while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = stopped.recv_timeout(PERIOD) {
+        while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = stopped.recv_timeout(period) {
             let Some((k, pose)) = *latest.lock().unwrap_or_else(|p| p.into_inner()) else { continue };
             if written == Some(k) {
                 continue;
@@ -163,22 +168,46 @@ pub fn start_writer(path: PathBuf, fingerprint: u64, epoch_unix_ns: u64, latest:
 mod tests {
     use super::*;
 
+    /// How long a test waits for what the writer must do: a guard against
+    /// a hang, not a verdict on speed (a starved host takes longer).
+    const GUARD: Duration = Duration::from_secs(60);
+
+    /// Waits (bounded by [`GUARD`]) until `path` holds the checkpoint of step `k`.
+    fn wait_for_step(path: &Path, fingerprint: u64, epoch: u64, k: u64) -> Checkpoint {
+        let began = std::time::Instant::now();
+        loop {
+            match read(path, fingerprint, epoch) {
+                Ok(c) if c.k == k => return c,
+                _ if began.elapsed() > GUARD => panic!("no checkpoint of step {k} in {:?}", GUARD),
+                _ => std::thread::sleep(PERIOD / 4),
+            }
+        }
+    }
+
     #[test]
     fn a_checkpoint_is_used_only_by_its_own_run() {
         let dir = tempfile::tempdir().expect("tempdir");
         let p = path(dir.path(), "paper", 3);
         let latest: Latest = Arc::new(Mutex::new(Some((1234, Pose::new(1.0, 2.0, 0.5)))));
         let w = start_writer(p.clone(), 7, 99, latest);
-        std::thread::sleep(PERIOD * 3);
-        let stopping = std::time::Instant::now();
+        let c = wait_for_step(&p, 7, 99, 1234);
         w.stop();
-        // A stop wakes the writer: it does not sleep out its period.
-        assert!(stopping.elapsed() < PERIOD / 2, "stop took {:?}", stopping.elapsed());
-        let c = read(&p, 7, 99).expect("the run's own checkpoint");
         assert_eq!((c.k, c.pose()), (1234, Pose::new(1.0, 2.0, 0.5)));
         assert!(read(&p, 8, 99).is_err(), "another scenario");
         assert!(read(&p, 7, 100).is_err(), "another run");
         assert!(read(&path(dir.path(), "paper", 4), 7, 99).is_err(), "no file");
+    }
+
+    /// A stop wakes the writer: it does not sleep out its period (an hour
+    /// here: a writer that slept it out would fail the guard).
+    #[test]
+    fn a_stop_wakes_the_writer() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let latest: Latest = Arc::new(Mutex::new(Some((1, Pose::new(1.0, 2.0, 0.5)))));
+        let w = start_writer_every(Duration::from_secs(3600), path(dir.path(), "paper", 3), 7, 99, latest);
+        let stopping = std::time::Instant::now();
+        w.stop();
+        assert!(stopping.elapsed() < GUARD, "stop took {:?} of an hour's period", stopping.elapsed());
     }
 
     /// Each checkpoint is written over the last in place: a shorter one
@@ -189,11 +218,10 @@ mod tests {
         let p = path(dir.path(), "paper", 3);
         let latest: Latest = Arc::new(Mutex::new(Some((123_456_789, Pose::new(-1.234567891234, 2.5e-7, 3.0)))));
         let w = start_writer(p.clone(), u64::MAX, u64::MAX - 1, latest.clone());
-        std::thread::sleep(PERIOD * 2);
+        wait_for_step(&p, u64::MAX, u64::MAX - 1, 123_456_789);
         *latest.lock().unwrap() = Some((7, Pose::new(0.0, 1.0, 0.5)));
-        std::thread::sleep(PERIOD * 2);
+        let c = wait_for_step(&p, u64::MAX, u64::MAX - 1, 7);
         w.stop();
-        let c = read(&p, u64::MAX, u64::MAX - 1).expect("the latest checkpoint");
         assert_eq!((c.k, c.pose()), (7, Pose::new(0.0, 1.0, 0.5)));
         let len = std::fs::metadata(&p).expect("the file").len();
         assert_eq!(len, RECORD_BYTES as u64, "one record, written in place");
@@ -221,9 +249,10 @@ mod tests {
         assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0, "mkfifo");
         let w = start_writer(fifo.clone(), 7, 99, latest);
         std::thread::sleep(PERIOD * 2);
+        // A writer stuck opening the FIFO would never end: the guard fails.
         let stopping = std::time::Instant::now();
         w.stop();
-        assert!(stopping.elapsed() < PERIOD, "the writer is not stuck on the FIFO: {:?}", stopping.elapsed());
+        assert!(stopping.elapsed() < GUARD, "the writer is stuck on the FIFO: {:?}", stopping.elapsed());
         assert!(read(&fifo, 7, 99).is_err(), "a FIFO is no checkpoint");
     }
 }

@@ -365,14 +365,15 @@ mod tests {
         clock.advance(Duration::from_millis(250));
         assert_eq!(tb.now_ns(), Some(1_700_000_000_250_000_000));
         assert_eq!(clock.unix_ns(), 1_700_000_000_250_000_000);
-        // A sleep until a second later takes no wall time and moves the clock there.
+        // A sleep until an hour later takes no wall time (a minute's guard:
+        // a real one would take the hour) and moves the clock there.
         let began = Instant::now();
-        tb.sleep_until(Duration::from_nanos(1_700_000_001_250_000_000));
-        assert!(began.elapsed() < Duration::from_millis(50), "a mock sleep waited {:?}", began.elapsed());
-        assert_eq!(tb.now(), Duration::from_nanos(1_700_000_001_250_000_000));
-        assert_eq!(clock.mono(), Duration::from_millis(1_250));
+        tb.sleep_until(Duration::from_nanos(1_700_003_600_250_000_000));
+        assert!(began.elapsed() < Duration::from_secs(60), "a mock sleep waited {:?}", began.elapsed());
+        assert_eq!(tb.now(), Duration::from_nanos(1_700_003_600_250_000_000));
+        assert_eq!(clock.mono(), Duration::from_millis(3_600_250));
         // A copy is the same clock.
         clock.clone().advance(Duration::from_nanos(1));
-        assert_eq!(clock.mono_ns(), 1_250_000_001);
+        assert_eq!(clock.mono_ns(), 3_600_250_000_001);
     }
 }

@@ -48,10 +48,7 @@ impl Timer {
             clock.sleep_until(at);
             return Ok(());
         }
-        let spec = libc::itimerspec {
-            it_interval: libc::timespec { tv_sec: 0, tv_nsec: 0 },
-            it_value: libc::timespec { tv_sec: d.as_secs() as libc::time_t, tv_nsec: d.subsec_nanos() as _ },
-        };
+        let spec = setting(d);
         // SAFETY: a valid descriptor and a pointer to a local; no old value asked.
         if unsafe { libc::timerfd_settime(self.fd.as_raw_fd(), 0, &spec, std::ptr::null_mut()) } < 0 {
             return Err(io::Error::last_os_error());
@@ -77,6 +74,14 @@ impl Timer {
     }
 }
 
+/// The timer's setting for a sleep of `d`: once, to the nanosecond.
+fn setting(d: std::time::Duration) -> libc::itimerspec {
+    libc::itimerspec {
+        it_interval: libc::timespec { tv_sec: 0, tv_nsec: 0 },
+        it_value: libc::timespec { tv_sec: d.as_secs() as libc::time_t, tv_nsec: d.subsec_nanos() as _ },
+    }
+}
+
 /// Runs `task` on zenoh's application thread, where an agent's real-time
 /// loop runs (and `formation node floor`'s, measured against it), and
 /// waits for it; Err if it panicked.
@@ -93,24 +98,34 @@ mod tests {
     use super::*;
     use std::time::Duration;
 
-    /// It sleeps until the instant, not a whole millisecond past it (the
-    /// loop's period at 1 kHz), and returns at once for an instant passed.
+    /// Armed to the nanosecond, once (tokio's timer counts whole
+    /// milliseconds, a whole period at 1 kHz); how late it wakes on this
+    /// machine is a figure, not a verdict (docs/performance.md, the loop's
+    /// lateness that `network.json` reports).
+    #[test]
+    fn it_is_armed_to_the_nanosecond_once() {
+        let s = setting(Duration::from_nanos(300_007));
+        assert_eq!((s.it_value.tv_sec, s.it_value.tv_nsec), (0, 300_007));
+        let s = setting(Duration::from_millis(2_500));
+        assert_eq!((s.it_value.tv_sec, s.it_value.tv_nsec), (2, 500_000_000));
+        assert_eq!((s.it_interval.tv_sec, s.it_interval.tv_nsec), (0, 0), "no repeat");
+    }
+
+    /// It never wakes before the instant, however loaded the machine; an
+    /// instant passed returns without arming the timer.
     #[tokio::test(flavor = "current_thread")]
-    async fn it_wakes_at_the_instant_not_the_next_millisecond() {
+    async fn it_never_wakes_early_and_a_passed_instant_arms_nothing() {
         let t = Timer::new().expect("timerfd");
-        let mut late = Vec::new();
-        for _ in 0..50 {
+        for _ in 0..20 {
             let at = Instant::now() + Duration::from_micros(300);
             t.sleep_until(at, &Clock::real()).await.expect("sleep");
             let now = Instant::now();
             assert!(now >= at, "woke {:?} early", at - now);
-            late.push(now - at);
         }
-        late.sort();
-        let median = late[late.len() / 2];
-        assert!(median < Duration::from_micros(500), "median lateness {median:?} (tokio's timer would be ~1 ms)");
-        let began = Instant::now();
-        t.sleep_until(began - Duration::from_millis(5), &Clock::real()).await.expect("past");
-        assert!(began.elapsed() < Duration::from_millis(1), "an instant passed: at once");
+        t.sleep_until(Instant::now() - Duration::from_millis(5), &Clock::real()).await.expect("past");
+        let mut armed = setting(Duration::from_secs(1));
+        // SAFETY: a valid descriptor and a pointer to a local.
+        assert_eq!(unsafe { libc::timerfd_gettime(t.fd.as_raw_fd(), &mut armed) }, 0);
+        assert_eq!((armed.it_value.tv_sec, armed.it_value.tv_nsec), (0, 0), "a passed instant armed the timer");
     }
 }

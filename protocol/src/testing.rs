@@ -135,6 +135,8 @@ pub struct World {
     pub telemetry: Vec<Vec<Telemetry>>,
     /// The leader's telemetry so far.
     pub leader_telemetry: Vec<Telemetry>,
+    /// Followers killed ([`World::kill`]), by index: no longer driven.
+    dead: Vec<bool>,
 }
 
 /// The leader's start of a complete run at [`EPOCH`], time scale 1.
@@ -158,6 +160,7 @@ impl World {
             followers,
             telemetry: vec![Vec::new(); scenario.followers.len()],
             leader_telemetry: Vec::new(),
+            dead: vec![false; scenario.followers.len()],
             scenario,
         }
     }
@@ -181,7 +184,7 @@ impl World {
     /// it is, and the leader for a follower that hears it (the lock-step window).
     fn listeners(&self, from: u32) -> Vec<u32> {
         let mut to: Vec<u32> = (0..self.followers.len())
-            .filter(|&i| self.followers[i].source_ids().contains(&from))
+            .filter(|&i| !self.dead[i] && self.followers[i].source_ids().contains(&from))
             .map(|i| self.id(i))
             .collect();
         if from != LEADER_ID && self.leader.hearing().contains(&from) {
@@ -205,6 +208,9 @@ impl World {
         }
         while self.leader.poll_say().is_some() {}
         for i in 0..self.followers.len() {
+            if self.dead[i] {
+                continue;
+            }
             let from = self.id(i);
             let to = self.listeners(from);
             while let Some(bytes) = self.followers[i].poll_transmit() {
@@ -239,6 +245,9 @@ impl World {
             self.flush();
         }
         for i in 0..self.followers.len() {
+            if self.dead[i] {
+                continue;
+            }
             let id = self.id(i);
             for (from, bytes) in self.net.deliver(id, now) {
                 self.followers[i].handle_estimate(Some(from), &bytes, Some(now));
@@ -271,7 +280,9 @@ impl World {
 
     /// The next moment something is due: a machine's wake-up or an arrival.
     fn next_due(&mut self) -> Option<Now> {
-        let wakes = self.followers.iter_mut().filter_map(|f| f.poll_timeout());
+        let dead = &self.dead;
+        let wakes =
+            self.followers.iter_mut().enumerate().filter(|(i, _)| !dead[*i]).filter_map(|(_, f)| f.poll_timeout());
         let leader = self.leader.poll_timeout();
         wakes.chain(leader).chain(self.net.next_arrival()).min()
     }
@@ -319,7 +330,41 @@ impl World {
     }
 
     fn all_done(&self) -> bool {
-        self.leader.outcome().is_some() && self.followers.iter().all(|f| f.outcome().is_some())
+        self.leader.outcome().is_some() && self.living().all(|f| f.outcome().is_some())
+    }
+
+    /// The followers not killed.
+    fn living(&self) -> impl Iterator<Item = &FollowerMachine> {
+        self.followers.iter().zip(&self.dead).filter(|(_, d)| !**d).map(|(f, _)| f)
+    }
+
+    /// Who hears follower `id`'s estimates (0: the leader).
+    pub fn listeners_of(&self, id: u32) -> Vec<u32> {
+        self.listeners(id)
+    }
+
+    /// Follower `id`'s process killed now, its last messages on the way
+    /// to `reached` only (a peer's fan-out cut mid-way: each link has its
+    /// own queue): the rest of what it sent is lost, and it is no longer
+    /// driven.
+    pub fn kill(&mut self, id: u32, reached: &[u32]) {
+        let i = (0..self.followers.len()).find(|&i| self.id(i) == id).expect("a follower of the scenario");
+        self.dead[i] = true;
+        self.net.queues.retain(|&(from, to), _| to != id && (from != id || reached.contains(&to)));
+    }
+
+    /// The monitor's part of a death (`formation_protocol::died`): what
+    /// every follower still running holds of `id`, the step named from it
+    /// with its last messages, applied by each of them and the leader.
+    pub fn name_death(&mut self, id: u32) -> crate::died::Died {
+        let holdings: Vec<crate::died::Holding> = self.living().map(|f| f.holding_of(id, 0)).collect();
+        let died = crate::died::Died::named(0, id, &holdings);
+        for (f, _) in self.followers.iter_mut().zip(&self.dead).filter(|(_, d)| !**d) {
+            f.handle_died(&died);
+        }
+        self.leader.handle_gone(id);
+        self.flush();
+        died
     }
 
     /// Every follower's outcome, by index (None: still running).
@@ -327,10 +372,9 @@ impl World {
         self.followers.iter().map(|f| f.outcome().cloned()).collect()
     }
 
-    /// Whether the leader and every follower completed.
+    /// Whether the leader and every follower not killed completed.
     pub fn all_ok(&self) -> bool {
-        matches!(self.leader.outcome(), Some(Ok(())))
-            && self.followers.iter().all(|f| matches!(f.outcome(), Some(Ok(()))))
+        matches!(self.leader.outcome(), Some(Ok(()))) && self.living().all(|f| matches!(f.outcome(), Some(Ok(()))))
     }
 
     /// Follower `i`'s samples, in step order.

@@ -11,6 +11,8 @@
 //! - the fault table lets a follower run ahead of a neighbour whose
 //!   messages it removes, and 30 % physical loss on top does not stall;
 //! - the look-ahead window is the documented one, to the step;
+//! - a follower killed mid-way through its last fan-out is the died row
+//!   for every other, its last estimate carried by the step named;
 //! - real time: a delay, a silent source, a message from the future, a
 //!   restart's rejoin step, and a step of the leader's clock.
 
@@ -80,6 +82,57 @@ fn lockstep_machines_equal_the_simulator_bit_for_bit() {
     w.drive(Duration::from_secs(600));
     assert!(w.all_ok(), "not every follower completed: {:?}", w.outcomes());
     assert_eq!(first_difference(&w, &sim), None);
+}
+
+/// Follower 2 killed mid-way through the fan-out of its estimate of step
+/// 41, sent as it turned to step 41 (peers: one link's queue was written,
+/// the others' not): one listener gets it, the others never will. The
+/// step named is 42 (the greatest anyone holds, + 1), that last estimate
+/// goes to every node with it, and every other follower completes as the
+/// simulator's died row `{ node = 2, from = 42 Δt, died = true }`, bit for
+/// bit. Without the estimate carried, the others waited for it until the
+/// stall timeout.
+#[test]
+fn a_follower_killed_mid_way_through_its_last_fan_out_is_the_died_row_for_every_other() {
+    let s = paper(LOCKSTEP);
+    // (A packet takes 1 ms: the kill lands between the send and the arrival.)
+    let mut w = World::new(s.clone(), Faults { latency: Duration::from_millis(1), ..Faults::default() });
+    w.start_all();
+    let i2 = (0..4).find(|&i| w.id(i) == 2).expect("follower 2");
+    while w.followers[i2].step().is_none_or(|k| k < 41) {
+        assert!(w.step(), "the run ended before follower 2's step 41");
+    }
+    let listeners: Vec<u32> = w.listeners_of(2).into_iter().filter(|&l| l != wire::LEADER_ID).collect();
+    assert!(listeners.len() >= 2, "follower 2's estimates reach {listeners:?}: no fan-out to cut");
+    w.kill(2, &listeners[..1]);
+    // What was on the way to the one listener arrives before it says what it holds.
+    let first = (0..4).find(|&i| w.id(i) == listeners[0]).expect("the listener");
+    while w.followers[first].holding_of(2, 0).estimate < Some(41) {
+        assert!(w.step(), "follower {}'s last estimate from 2 never arrived", listeners[0]);
+    }
+    let died = w.name_death(2);
+    assert_eq!(died.at_k, 42, "{died:?}");
+    assert_eq!(died.estimate.map(|m| m.header.step), Some(41), "its last estimate goes with the step");
+    w.drive(Duration::from_secs(600));
+    assert!(w.all_ok(), "a follower that missed the last estimate stalled: {:?}", w.outcomes());
+    let dt = s.dt_s;
+    let model = simulate(&paper(
+        &[LOCKSTEP, &[format!("faults+={{node=2, from={}, died=true}}", 42.0 * dt).as_str()]].concat(),
+    ));
+    for i in (0..4).filter(|&i| i != i2) {
+        let (got, want) = (bits(&w.samples(i)), &model[i]);
+        let first = got
+            .iter()
+            .zip(want)
+            .position(|(a, b)| a.0 != b.0 || a.1.iter().zip(&b.1).any(|(x, y)| x.to_bits() != y.to_bits()));
+        assert!(
+            got.len() == want.len() && first.is_none(),
+            "follower {}: {} samples, the model {}; first difference at {first:?}",
+            w.id(i),
+            got.len(),
+            want.len()
+        );
+    }
 }
 
 /// Follower 3's links closed for 5 s of virtual time: what was queued is

@@ -18,6 +18,11 @@ pub const SCENARIO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenarios/paper
 /// 15 s here; a host many times slower still ends within this).
 pub const LIMIT: Duration = Duration::from_secs(300);
 
+/// How long a test waits for a process it started to listen, appear or
+/// go: a guard against a hang, not a verdict on speed (a process that
+/// takes 20 s to start on a starved host is slow, not wrong).
+pub const GUARD: Duration = Duration::from_secs(120);
+
 /// Loopback ports a paper-scenario `formation launch --base-port P` uses:
 /// P, P + 1, …, P + 5 in peer mode (monitor, leader, four agents); in
 /// client mode only P (the router).

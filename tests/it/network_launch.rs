@@ -279,8 +279,9 @@ fn a_killed_launch_takes_its_nodes_with_it() {
     let t = Instant::now();
     while !g.members().is_empty() {
         assert!(
-            t.elapsed() < Duration::from_secs(20),
-            "nodes still running 20 s after the launch died: {:?}",
+            t.elapsed() < common::GUARD,
+            "nodes still running {:?} after the launch died: {:?}",
+            common::GUARD,
             g.members()
         );
         std::thread::sleep(Duration::from_millis(100));
@@ -642,7 +643,7 @@ fn kill_the_leader(g: &Group) {
         if let Some(p) = g.members().into_iter().find(|&p| is_leader(&cmdline(p))) {
             break p;
         }
-        assert!(t.elapsed() < Duration::from_secs(20), "no leader process in the launch");
+        assert!(t.elapsed() < common::GUARD, "no leader process in the launch within {:?}", common::GUARD);
         std::thread::sleep(Duration::from_millis(20));
     };
     common::run_ok(Command::new("kill").args(["-KILL", &leader.to_string()]));

@@ -24,7 +24,7 @@ fn router(dir: &Path) -> (u16, Group) {
     let g = Group::spawn(&["node", "router", "--listen", &ep, "--tls", &d]);
     let t = Instant::now();
     while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(t.elapsed() < Duration::from_secs(20), "the TLS router did not listen on {port} within 20 s");
+        assert!(t.elapsed() < common::GUARD, "the TLS router did not listen on {port} within {:?}", common::GUARD);
         std::thread::sleep(Duration::from_millis(50));
     }
     (port, g)

@@ -65,7 +65,11 @@ impl Browser {
         let mut b = Browser { driver, url, session: None, _profile: tempfile::tempdir().expect("tempdir") };
         let t = Instant::now();
         while ureq::get(&format!("{}/status", b.url)).call().is_err() {
-            assert!(t.elapsed() < Duration::from_secs(20), "chromedriver on port {port} did not answer within 20 s");
+            assert!(
+                t.elapsed() < common::GUARD,
+                "chromedriver on port {port} did not answer within {:?}",
+                common::GUARD
+            );
             std::thread::sleep(Duration::from_millis(100));
         }
         let profile = b._profile.path().display().to_string();
