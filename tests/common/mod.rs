@@ -72,6 +72,20 @@ pub struct Ports {
 impl Ports {
     pub fn free(count: usize) -> Self {
         assert!((1..=1000).contains(&count), "{count} ports");
+        // Each claim is an open file for the binary's life: a few hundred
+        // in all, more than a soft limit of 1,024 leaves beside the
+        // in-process sessions' sockets; raised to the hard limit once.
+        static RAISED: std::sync::Once = std::sync::Once::new();
+        RAISED.call_once(|| {
+            let mut l = libc::rlimit { rlim_cur: 0, rlim_max: 0 };
+            // SAFETY: pointers to a local of the right type.
+            unsafe {
+                if libc::getrlimit(libc::RLIMIT_NOFILE, &mut l) == 0 && l.rlim_cur < l.rlim_max {
+                    l.rlim_cur = l.rlim_cur.max(l.rlim_max.min(1 << 16));
+                    libc::setrlimit(libc::RLIMIT_NOFILE, &l);
+                }
+            }
+        });
         let count = count as u16;
         let ephemeral_low = formation_launch::ports::ephemeral_low();
         let (low, high) = (formation_launch::ports::LOWEST, ephemeral_low.saturating_sub(count));
