@@ -43,12 +43,15 @@ pub fn ephemeral_low() -> u16 {
 /// process cannot write (another user's) claims nothing and refuses
 /// nothing: the bind check alone then guards the port.
 pub fn claim(port: u16) -> Option<Option<File>> {
+    static MADE: std::sync::Once = std::sync::Once::new();
     let dir = claims_folder();
-    if std::fs::create_dir_all(&dir).is_ok() {
-        use std::os::unix::fs::PermissionsExt;
-        // Every user's launches share the folder, as they share the ports.
-        let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o1777));
-    }
+    MADE.call_once(|| {
+        if std::fs::create_dir_all(&dir).is_ok() {
+            use std::os::unix::fs::PermissionsExt;
+            // Every user's launches share the folder, as they share the ports.
+            let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o1777));
+        }
+    });
     let Ok(file) = OpenOptions::new().create(true).truncate(false).write(true).open(dir.join(format!("{port}.lock")))
     else {
         return Some(None);

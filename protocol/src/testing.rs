@@ -182,7 +182,7 @@ impl World {
 
     /// Who hears node `from` (0: the leader): the followers whose sources
     /// it is, and the leader for a follower that hears it (the lock-step window).
-    fn listeners(&self, from: u32) -> Vec<u32> {
+    pub fn listeners(&self, from: u32) -> Vec<u32> {
         let mut to: Vec<u32> = (0..self.followers.len())
             .filter(|&i| !self.dead[i] && self.followers[i].source_ids().contains(&from))
             .map(|i| self.id(i))
@@ -336,11 +336,6 @@ impl World {
     /// The followers not killed.
     fn living(&self) -> impl Iterator<Item = &FollowerMachine> {
         self.followers.iter().zip(&self.dead).filter(|(_, d)| !**d).map(|(f, _)| f)
-    }
-
-    /// Who hears follower `id`'s estimates (0: the leader).
-    pub fn listeners_of(&self, id: u32) -> Vec<u32> {
-        self.listeners(id)
     }
 
     /// Follower `id`'s process killed now, its last messages on the way

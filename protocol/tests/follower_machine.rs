@@ -102,7 +102,7 @@ fn a_follower_killed_mid_way_through_its_last_fan_out_is_the_died_row_for_every_
     while w.followers[i2].step().is_none_or(|k| k < 41) {
         assert!(w.step(), "the run ended before follower 2's step 41");
     }
-    let listeners: Vec<u32> = w.listeners_of(2).into_iter().filter(|&l| l != wire::LEADER_ID).collect();
+    let listeners: Vec<u32> = w.listeners(2).into_iter().filter(|&l| l != wire::LEADER_ID).collect();
     assert!(listeners.len() >= 2, "follower 2's estimates reach {listeners:?}: no fan-out to cut");
     w.kill(2, &listeners[..1]);
     // What was on the way to the one listener arrives before it says what it holds.
