@@ -16,6 +16,7 @@ use crate::filter::{FilterParams, VelocityFilter};
 use crate::guard::{self, Guard, GuardStep, Nearby};
 use crate::kinematic::{self, BodyError, KinematicGains, KinematicKind};
 use crate::links::{self, Message, RejoinPolicy, RejoinRule};
+use crate::slot::{self, Frame, Slots};
 use formation_leader::LeaderState;
 use formation_plant::{Drive, Pose, RobotParams, Torque, Velocity};
 
@@ -53,14 +54,17 @@ pub struct ControlParams {
     /// The base's limits and the safety filter between the kinematic
     /// command and the robot (docs/model.md §16; off in the paper's scenario).
     pub guard: Guard,
+    /// The frame the followers' offsets are written in (docs/model.md §17).
+    pub frame: Frame,
 }
 
 /// One follower's place in the formation and the shared control parameters.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FollowerConfig {
     pub id: u32,
-    /// Formation offset (Δx_i, Δy_i), m, in the world frame.
-    pub offset: [f64; 2],
+    /// Formation offset (Δx_i, Δy_i), m, in `control.frame`, over the run
+    /// (one, or one per shape; docs/model.md §17).
+    pub slots: Slots,
     /// a_i0: does this follower hear the leader?
     pub hears_leader: bool,
     pub control: Arc<ControlParams>,
@@ -304,15 +308,23 @@ impl Follower {
         let only_fresh = cfg.rejoin.policy == RejoinPolicy::Adopt && !self.stale;
         let neighbours = neighbours.filter(move |m| m.fresh || !only_fresh);
 
-        // Kinematic controller (eq. 29, 35–36).
-        let body_error = kinematic::body_error_with(&estimate.pose, self.config.offset, pose, heading);
-        let requested =
-            kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, estimate.v, estimate.w);
+        // Kinematic controller (eq. 29, 35–36) on the slot (docs/model.md §17).
+        let offset = self.config.slots.at(k);
+        let (body_error, v_ir, w_ir, slot_rate) = match cfg.frame {
+            Frame::World => {
+                let e = kinematic::body_error_with(&estimate.pose, offset, pose, heading);
+                (e, estimate.v, estimate.w, [estimate.pose_rate.x, estimate.pose_rate.y])
+            }
+            Frame::Leader => {
+                let r = slot::reference(Frame::Leader, &estimate, offset);
+                (kinematic::body_error_to(&r.pose, pose, heading), r.v, r.w, r.rate)
+            }
+        };
+        let requested = kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, v_ir, w_ir);
         // Limits and safety filter (docs/model.md §16): what the robot gets.
         let (command, guard) = match cfg.guard.is_off() {
             true => (requested, None),
             false => {
-                let slot_rate = [estimate.pose_rate.x, estimate.pose_rate.y];
                 let (c, g) = guarded(&cfg.guard, &mut self.deadlock, requested, pose, (&body_error, slot_rate), nearby);
                 (c, Some(g))
             }
@@ -486,13 +498,14 @@ mod tests {
             dt_s,
             drive: Drive::Torque,
             guard: Guard::default(),
+            frame: Frame::World,
         }
     }
 
     fn follower(policy: RejoinPolicy, after_steps: u64) -> Follower {
         let mut c = config(100.0, 1e-3);
         c.rejoin = RejoinRule { policy, after_steps };
-        let cfg = FollowerConfig { id: 3, offset: [7.0, -7.0], hears_leader: false, control: Arc::new(c) };
+        let cfg = FollowerConfig { id: 3, slots: Slots::fixed([7.0, -7.0]), hears_leader: false, control: Arc::new(c) };
         let start = LeaderState { pose: Pose::new(0.0, 3.0, 0.0), pose_rate: Pose::default(), v: 1.0, w: 0.0 };
         Follower::new(cfg, start, Velocity::default())
     }

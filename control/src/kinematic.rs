@@ -50,6 +50,14 @@ pub fn body_error_with(leader_estimate: &Pose, offset: [f64; 2], pose: &Pose, (s
     BodyError { x: c * ex + s * ey, y: -s * ex + c * ey, theta: wrap(leader_estimate.theta - pose.theta) }
 }
 
+/// The body-frame error of `pose` against a reference pose given whole (a
+/// slot in the leader's frame, docs/model.md §17): e_x = x_d − x, e_y = y_d − y,
+/// e_θ = wrap(θ_d − θ), rotated as in [`body_error`].
+pub fn body_error_to(reference: &Pose, pose: &Pose, (s, c): (f64, f64)) -> BodyError {
+    let (ex, ey) = (reference.x - pose.x, reference.y - pose.y);
+    BodyError { x: c * ex + s * ey, y: -s * ex + c * ey, theta: wrap(reference.theta - pose.theta) }
+}
+
 /// The velocity command (v_c, ω_c).
 ///
 /// Bioinspired (eq. 35–36): v_c = C_1 V_s + v_ir cos θ̂, with V_s the shunting

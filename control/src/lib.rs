@@ -37,6 +37,7 @@ pub mod guard;
 pub mod kinematic;
 pub mod links;
 pub mod math;
+pub mod slot;
 
 pub use deadlock::DeadlockRule;
 pub use dynamic::{DynamicGains, DynamicKind};
@@ -47,3 +48,4 @@ pub use guard::{Guard, GuardStep, GuardTally, Limits, Nearby, SafetyParams, Seen
 pub use kinematic::{BodyError, KinematicGains, KinematicKind};
 pub use links::{Hearing, LinkLoss, LossWindow, Message, RejoinPolicy, RejoinRule};
 pub use math::Shunting;
+pub use slot::{Frame, Slots};

@@ -22,6 +22,8 @@
 //! assert!(after.v < std::f64::consts::SQRT_2, "v_r ≤ √2 (eq. 6's bound)");
 //! ```
 
+use std::sync::Arc;
+
 use serde::{Deserialize, Serialize};
 
 use formation_plant::{Pose, Velocity};
@@ -41,6 +43,12 @@ pub enum Trajectory {
     /// then one turning right, repeated (ω = ±speed / radius, switching
     /// every 2π radius / speed); the path closes after both loops.
     FigureEight { speed_mps: f64, radius_m: f64 },
+    /// Through the leader's route, point after point (docs/model.md §17,
+    /// eq. 17.6): it turns toward the next point at ω = k_θ α within
+    /// ±`turn_rate` (α the bearing of the point from its heading), drives at
+    /// `speed` cos α (none while the point is behind it), takes the next
+    /// point within `reach_m` of this one, and stops at the last.
+    Waypoints { speed_mps: f64, turn_rate: f64, turn_gain: f64, reach_m: f64 },
 }
 
 /// A trajectory with the paper's start-up ramp v_r = v_d (1 − e^(−t/τ)).
@@ -62,6 +70,8 @@ impl Profile {
             }
             Trajectory::Line { speed_mps } => (speed_mps, 0.0),
             Trajectory::Circle { speed_mps, radius_m } => (speed_mps, speed_mps / radius_m),
+            // The route's law needs the pose: `Leader::state`.
+            Trajectory::Waypoints { speed_mps, .. } => (speed_mps, 0.0),
             Trajectory::FigureEight { speed_mps, radius_m } => {
                 let loop_s = 2.0 * std::f64::consts::PI * radius_m.abs() / speed_mps.abs();
                 let turn = if (t_s / loop_s).floor() as i64 % 2 == 0 { 1.0 } else { -1.0 };
@@ -78,7 +88,8 @@ impl Profile {
             Trajectory::Paper => std::f64::consts::SQRT_2,
             Trajectory::Line { speed_mps }
             | Trajectory::Circle { speed_mps, .. }
-            | Trajectory::FigureEight { speed_mps, .. } => speed_mps.abs(),
+            | Trajectory::FigureEight { speed_mps, .. }
+            | Trajectory::Waypoints { speed_mps, .. } => speed_mps.abs(),
         }
     }
 }
@@ -99,32 +110,76 @@ impl LeaderState {
     }
 }
 
-/// The virtual leader: a profile and the pose integrated from it.
+/// The virtual leader: a profile and the pose integrated from it, and, for
+/// [`Trajectory::Waypoints`], its route and the point it drives to.
 #[derive(Clone, Debug)]
 pub struct Leader {
     pub profile: Profile,
     pub pose: Pose,
+    route: Arc<[[f64; 2]]>,
+    next: usize,
 }
 
 impl Leader {
     pub fn new(profile: Profile, pose: Pose) -> Self {
-        Self { profile, pose }
+        Self { profile, pose, route: Arc::from([]), next: 0 }
+    }
+
+    /// A leader that follows `route` (with [`Trajectory::Waypoints`]).
+    pub fn with_route(profile: Profile, pose: Pose, route: Arc<[[f64; 2]]>) -> Self {
+        Self { profile, pose, route, next: 0 }
+    }
+
+    /// The route's point the leader drives to (None: it has arrived, or has no route).
+    pub fn heading_for(&self) -> Option<[f64; 2]> {
+        self.route.get(self.next).copied()
     }
 
     /// The leader's outputs at time t from its pose at step k (docs/model.md §9,
     /// step 1): Ṗ_r = (v_r cos θ_r, v_r sin θ_r, ω_r) (eq. 6).
     pub fn state(&self, t_s: f64) -> LeaderState {
-        let Velocity { v, w } = self.profile.velocity(t_s);
+        let Velocity { v, w } = match self.profile.trajectory {
+            Trajectory::Waypoints { speed_mps, turn_rate, turn_gain, .. } => {
+                self.route_velocity(speed_mps, turn_rate, turn_gain, t_s)
+            }
+            _ => self.profile.velocity(t_s),
+        };
         let (s, c) = self.pose.theta.sin_cos();
         LeaderState { pose: self.pose, pose_rate: Pose::new(v * c, v * s, w), v, w }
     }
 
-    /// Advances the pose to k+1 with the rate of `state` (forward Euler).
+    /// eq. 17.6: toward the next point, slowing into the last (v ≤ k_θ d).
+    fn route_velocity(&self, speed: f64, turn_rate: f64, gain: f64, t_s: f64) -> Velocity {
+        let Some([gx, gy]) = self.heading_for() else { return Velocity::new(0.0, 0.0) };
+        let (dx, dy) = (gx - self.pose.x, gy - self.pose.y);
+        let bearing = wrap(dy.atan2(dx) - self.pose.theta);
+        let w = (gain * bearing).clamp(-turn_rate, turn_rate);
+        let ramp = if self.profile.ramp_s > 0.0 { 1.0 - (-t_s / self.profile.ramp_s).exp() } else { 1.0 };
+        let mut v = speed * bearing.cos().max(0.0) * ramp;
+        if self.next + 1 == self.route.len() {
+            v = v.min(gain * dx.hypot(dy));
+        }
+        Velocity::new(v, w)
+    }
+
+    /// Advances the pose to k+1 with the rate of `state` (forward Euler),
+    /// and a route to its next point once this one is within reach.
     pub fn advance(&mut self, state: &LeaderState, dt_s: f64) {
         self.pose.x += dt_s * state.pose_rate.x;
         self.pose.y += dt_s * state.pose_rate.y;
         self.pose.theta += dt_s * state.pose_rate.theta;
+        if let (Trajectory::Waypoints { reach_m, .. }, Some([gx, gy])) = (self.profile.trajectory, self.heading_for()) {
+            if (gx - self.pose.x).hypot(gy - self.pose.y) < reach_m {
+                self.next += 1;
+            }
+        }
     }
+}
+
+/// An angle brought into [−π, π) (docs/model.md §1).
+fn wrap(a: f64) -> f64 {
+    use std::f64::consts::{PI, TAU};
+    (a + PI).rem_euclid(TAU) - PI
 }
 
 #[cfg(test)]
@@ -184,6 +239,33 @@ mod tests {
         }
         assert!(leader.pose.x.hypot(leader.pose.y) < 5e-3, "end {:?}", leader.pose);
         assert!((farthest - 4.0).abs() < 1e-2, "each loop is 2 radii across: {farthest}");
+    }
+
+    #[test]
+    fn a_route_is_driven_point_after_point_and_ends_standing_at_the_last() {
+        let profile = Profile {
+            trajectory: Trajectory::Waypoints { speed_mps: 0.2, turn_rate: 1.0, turn_gain: 2.0, reach_m: 0.1 },
+            ramp_s: 1.0,
+        };
+        let route: Arc<[[f64; 2]]> = Arc::from([[1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]);
+        let mut leader = Leader::with_route(profile, Pose::default(), route);
+        let (dt, mut passed, mut fastest, mut sharpest) = (0.01, Vec::new(), 0.0f64, 0.0f64);
+        for k in 0..6000 {
+            let s = leader.state(k as f64 * dt);
+            (fastest, sharpest) = (fastest.max(s.v), sharpest.max(s.w.abs()));
+            let before = leader.heading_for();
+            leader.advance(&s, dt);
+            if leader.heading_for() != before {
+                passed.push((k, leader.pose));
+            }
+        }
+        assert_eq!(passed.len(), 3, "three points, each reached once: {passed:?}");
+        for ((_, at), goal) in passed.iter().zip([[1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]) {
+            assert!((at.x - goal[0]).hypot(at.y - goal[1]) < 0.1, "reached {goal:?} at {at:?}");
+        }
+        assert!(fastest <= 0.2 && sharpest <= 1.0, "limits: {fastest} m/s, {sharpest} rad/s");
+        let end = leader.state(60.0);
+        assert_eq!((end.v, end.w), (0.0, 0.0), "it stands at the last point");
     }
 
     #[test]

@@ -7,7 +7,8 @@ use formation_scenario::Scenario;
 use serde::{Deserialize, Serialize};
 
 use crate::outage::{OutageAccumulator, OutageMetrics, Window};
-use crate::row::{formation_error, FollowerSample, Row};
+use crate::row::{FollowerSample, Row};
+use formation_control::slot::{formation_error, Frame};
 
 /// The docs/model.md §11 metrics of one follower (SI units; RMSE not scaled). A
 /// metric is `None` (`null` in `summary.json`) when the samples it needs
@@ -50,6 +51,19 @@ pub struct FollowerMetrics {
     pub guard: Option<formation_control::GuardTally>,
 }
 
+/// The formation error, m, within which a follower counts as in its new
+/// slot after a shape change.
+pub const SETTLED_M: f64 = 0.1;
+
+/// One shape change's window [from_k, until_k) and the first step of the
+/// run of steps within [`SETTLED_M`] that the window's samples end on.
+#[derive(Clone, Copy, Debug, Default)]
+struct Settling {
+    from_k: u64,
+    until_k: u64,
+    within_from: Option<u64>,
+}
+
 impl FollowerMetrics {
     /// Nulls the metrics whose window `samples` (steps 0, 1, … in order)
     /// does not cover to its end in a run of `steps` steps. Older
@@ -89,7 +103,8 @@ pub fn last10_from_k(steps: u64, dt_s: f64) -> u64 {
     }
 }
 
-/// One sample's formation error (read in the last 10 s only) and its
+/// One sample's formation error (read in the last 10 s and after shape
+/// changes only) and its
 /// (estimate, true) velocities.
 struct Errors {
     formation: f64,
@@ -124,6 +139,8 @@ pub struct MetricsAccumulator {
     outages: Vec<OutageAccumulator>,
     /// What the guard did, where the scenario has one.
     guard: Option<GuardTally>,
+    /// One per shape change of the scenario.
+    settling: Vec<Settling>,
 }
 
 impl MetricsAccumulator {
@@ -138,6 +155,10 @@ impl MetricsAccumulator {
         let mut a = Self::new(s.steps(), s.dt_s);
         a.guard = (!s.control.guard.is_off()).then(GuardTally::default);
         a.outages = Window::all(s).into_iter().map(|w| OutageAccumulator::new(w, s.dt_s)).collect();
+        let starts: Vec<u64> = s.shapes.iter().map(|c| c.from_k).collect();
+        let ends = starts.iter().skip(1).copied().chain([s.steps() + 1]);
+        a.settling =
+            starts.iter().zip(ends).map(|(&from_k, until_k)| Settling { from_k, until_k, within_from: None }).collect();
         a
     }
 
@@ -176,17 +197,26 @@ impl MetricsAccumulator {
         }
     }
 
-    /// [`MetricsAccumulator::push`] of `Row::new(s, leader, offset, dt_s)`,
+    /// [`MetricsAccumulator::push`] of `Row::new(s, leader, frame, offset, dt_s)`,
     /// the same numbers, but computing only what the metrics read when no
     /// one else needs the row (the simulator without an observer).
     #[inline]
-    pub fn push_sample(&mut self, k: u64, s: &FollowerSample, leader: &LeaderState, offset: [f64; 2], dt_s: f64) {
+    pub fn push_sample(
+        &mut self,
+        k: u64,
+        s: &FollowerSample,
+        leader: &LeaderState,
+        frame: Frame,
+        offset: [f64; 2],
+        dt_s: f64,
+    ) {
         if k == self.steps || !self.outages.is_empty() {
-            return self.push(k, &Row::new(s, leader, offset, dt_s), s.guard.as_ref());
+            return self.push(k, &Row::new(s, leader, frame, offset, dt_s), s.guard.as_ref());
         }
         self.push_guard(s.guard.as_ref());
         // Row::new's formation error, needed only in the last 10 s.
-        let formation = if k >= self.last10_from_k { formation_error(&s.pose, leader, offset) } else { 0.0 };
+        let formation =
+            if k >= self.last10_from_k { formation_error(frame, &s.pose, &leader.pose, offset) } else { 0.0 };
         let errors =
             Errors { formation, v: [s.velocity_estimate.v, s.velocity.v], w: [s.velocity_estimate.w, s.velocity.w] };
         self.accumulate(k, &errors, s.command.v, s.torque_l, s.torque_r);
@@ -208,6 +238,9 @@ impl MetricsAccumulator {
             self.tv += (tau_l - l).abs() + (tau_r - rr).abs();
         }
         self.prev_torque = Some((k, tau_l, tau_r));
+        for w in self.settling.iter_mut().filter(|w| (w.from_k..w.until_k).contains(&k)) {
+            w.within_from = if e.formation < SETTLED_M { w.within_from.or(Some(k)) } else { None };
+        }
         self.samples += 1;
         self.next_k = self.next_k.max(k + 1);
         self.reached_final = k == self.steps;
@@ -250,6 +283,13 @@ impl MetricsAccumulator {
             gap_steps: self.next_k.saturating_sub(n),
             guard: self.guard,
         }
+    }
+
+    /// Per shape change (docs/model.md §17): how long after it, s, the
+    /// formation error came within [`SETTLED_M`] and stayed there until the
+    /// next change or the last sample pushed (None: it did not).
+    pub fn settled_after(&self) -> Vec<Option<f64>> {
+        self.settling.iter().map(|w| w.within_from.map(|k| (k - w.from_k) as f64 * self.dt_s)).collect()
     }
 }
 

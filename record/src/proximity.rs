@@ -31,11 +31,30 @@ pub struct Proximity {
     /// The first such step's closest pair.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_below: Option<PairAt>,
+    /// Per shape change (docs/model.md §17), the closest two robots came
+    /// from it to the next change or the end. Absent without changes.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub after_shapes: Vec<ShapeClosest>,
+}
+
+/// The closest pair after one shape change.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShapeClosest {
+    /// The change's time, s.
+    pub at: f64,
+    pub closest: Option<PairAt>,
 }
 
 impl Proximity {
     pub fn new(distance: f64, filter: bool) -> Self {
-        Self { distance, filter, closest: None, steps_below: 0, first_below: None }
+        Self { distance, filter, closest: None, steps_below: 0, first_below: None, after_shapes: Vec::new() }
+    }
+
+    /// Measuring also the closest pair after each shape change (times in s,
+    /// ascending; a step counts from `at − Δt/2` on, the change's own step).
+    pub fn with_shape_changes(mut self, at: impl IntoIterator<Item = f64>) -> Self {
+        self.after_shapes = at.into_iter().map(|at| ShapeClosest { at, closest: None }).collect();
+        self
     }
 
     /// One step: every robot's pose at t, by index, and their ids. O(n²).
@@ -52,6 +71,12 @@ impl Proximity {
         let Some(step) = step else { return };
         if self.closest.is_none_or(|c| step.distance < c.distance) {
             self.closest = Some(step);
+        }
+        // The last change at or before t (the step grid's: `at` is on it or rounds up to it).
+        if let Some(w) = self.after_shapes.iter_mut().rev().find(|w| w.at <= t + 1e-9) {
+            if w.closest.is_none_or(|c| step.distance < c.distance) {
+                w.closest = Some(step);
+            }
         }
         if step.distance < self.distance {
             self.steps_below += 1;

@@ -3,6 +3,7 @@
 //! (docs/model.md §11).
 
 use formation_control::math::wrap;
+use formation_control::slot::{formation_error, Frame};
 use formation_control::StepOutput;
 use formation_leader::LeaderState;
 use formation_plant::{Pose, Velocity};
@@ -117,7 +118,7 @@ impl Row {
 
     /// The row of a sample against the true leader state at the same step.
     #[inline]
-    pub fn new(s: &FollowerSample, leader: &LeaderState, offset: [f64; 2], dt_s: f64) -> Self {
+    pub fn new(s: &FollowerSample, leader: &LeaderState, frame: Frame, offset: [f64; 2], dt_s: f64) -> Self {
         let p = &s.pose;
         let e = &s.estimate;
         Self {
@@ -138,19 +139,13 @@ impl Row {
             w_c: s.command.w,
             tau_l: s.torque_l,
             tau_r: s.torque_r,
-            formation_error: formation_error(p, leader, offset),
+            formation_error: formation_error(frame, p, &leader.pose, offset),
             heading_error: wrap(p.theta - leader.pose.theta).abs(),
             estimator_error: norm(e.pose.x - leader.pose.x, e.pose.y - leader.pose.y),
             estimator_v_error: (e.v - leader.v).abs(),
             estimator_w_error: (e.w - leader.w).abs(),
         }
     }
-}
-
-/// [`Row::formation_error`].
-#[inline]
-pub(crate) fn formation_error(p: &Pose, leader: &LeaderState, offset: [f64; 2]) -> f64 {
-    norm(p.x - leader.pose.x - offset[0], p.y - leader.pose.y - offset[1])
 }
 
 /// ‖(a, b)‖. Plain sqrt(a² + b²): `hypot`'s overflow guard costs a third of

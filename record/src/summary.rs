@@ -44,6 +44,28 @@ pub struct Summary {
     /// How close the robots came, with `[safety]` (docs/model.md §16).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub safety: Option<Proximity>,
+    /// `formation.frame` when it is the leader's (docs/model.md §17).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<String>,
+    /// The shape changes and the slot each follower was assigned (eq. 17.4).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub shapes: Vec<ShapeAssigned>,
+}
+
+/// One shape change as run: when, which shape, each follower's new slot
+/// and the assignment's total squared distance from the slots before.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShapeAssigned {
+    pub at: f64,
+    pub shape: String,
+    /// m², Σ_i |Δ_i(before) − Δ_i(after)|².
+    pub cost: f64,
+    pub offsets: BTreeMap<u32, [f64; 2]>,
+    /// How long after the change, s, each follower's formation error came
+    /// within `SETTLED_M` (0.1 m) and stayed there until the next change or
+    /// the end (null: it did not).
+    #[serde(default)]
+    pub settled_after: BTreeMap<u32, Option<f64>>,
 }
 
 /// How many samples a follower of an incomplete run recorded, of how many.
@@ -127,6 +149,8 @@ impl Summary {
             rejoin: (!s.faults.is_empty()).then(|| name(&s.control.rejoin.policy)),
             faults: Vec::new(),
             safety: None,
+            frame: (s.control.frame == formation_control::Frame::Leader).then(|| "leader".to_string()),
+            shapes: shapes(s),
         };
         summary.mark_unreached();
         summary
@@ -187,6 +211,14 @@ impl Summary {
     /// Adds the metrics under faults (by follower id, one per fault window).
     pub fn with_outages(mut self, s: &Scenario, per_follower: &BTreeMap<u32, Vec<OutageMetrics>>) -> Self {
         self.faults = FaultSummary::all(s, per_follower);
+        self
+    }
+
+    /// [`ShapeAssigned::settled_after`] from each follower's accumulator.
+    pub fn with_settling(mut self, per_follower: &BTreeMap<u32, Vec<Option<f64>>>) -> Self {
+        for (i, change) in self.shapes.iter_mut().enumerate() {
+            change.settled_after = per_follower.iter().map(|(&id, s)| (id, s.get(i).copied().flatten())).collect();
+        }
         self
     }
 
@@ -269,6 +301,32 @@ impl Summary {
         if let Some(p) = &self.safety {
             out += &p.line();
         }
+        out += &self.shape_lines();
+        out
+    }
+
+    /// One line per shape change: when every follower was in its new slot
+    /// (within `SETTLED_M`) and the closest two robots after it.
+    fn shape_lines(&self) -> String {
+        let after = self.safety.as_ref().map_or(&[][..], |p| &p.after_shapes[..]);
+        let mut out = String::new();
+        for (i, c) in self.shapes.iter().enumerate() {
+            let slowest = c
+                .settled_after
+                .iter()
+                .map(|(&id, t)| (id, t.unwrap_or(f64::INFINITY)))
+                .max_by(|a, b| a.1.total_cmp(&b.1));
+            let settled = match slowest {
+                Some((_, t)) if t.is_finite() => format!("every robot within 0.1 m of its slot {t:.2} s after"),
+                Some((id, _)) => format!("follower {id} not within 0.1 m of its slot by the next change or the end"),
+                None => "no follower recorded".to_string(),
+            };
+            let closest = match after.get(i).and_then(|w| w.closest) {
+                Some(p) => format!(", closest robots {} and {} at {:.3} m", p.pair[0], p.pair[1], p.distance),
+                None => String::new(),
+            };
+            out += &format!("shape at t = {} s, {} ({:.3} m² moved): {settled}{closest}\n", c.at, c.shape, c.cost);
+        }
         out
     }
 }
@@ -312,4 +370,18 @@ fn is_true(b: &bool) -> bool {
 /// The name of an enum choice as scenario files write it (`super-twisting`).
 pub fn name<T: Serialize>(v: &T) -> String {
     serde_json::to_value(v).ok().and_then(|v| v.as_str().map(str::to_string)).unwrap_or_default()
+}
+
+/// [`Summary::shapes`] of a scenario.
+fn shapes(s: &Scenario) -> Vec<ShapeAssigned> {
+    let mut before: Vec<[f64; 2]> = s.followers.iter().map(|f| f.offset).collect();
+    s.shapes
+        .iter()
+        .map(|c| {
+            let cost = before.iter().zip(&c.offsets).map(|(a, b)| (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sum();
+            before.clone_from(&c.offsets);
+            let offsets = s.followers.iter().zip(&c.offsets).map(|(f, &o)| (f.id, o)).collect();
+            ShapeAssigned { at: c.at_s, shape: c.name.clone(), cost, offsets, settled_after: BTreeMap::new() }
+        })
+        .collect()
 }

@@ -45,6 +45,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
+use formation_control::Slots;
 use formation_leader::LeaderState;
 use formation_plant::Pose;
 use formation_record::hearing::{Density, End, FollowerHearing, HearingRecord, Rescued, Resume, ScenarioSource};
@@ -208,7 +209,8 @@ impl NodeStats {
 /// leader's state of their step.
 struct FollowerTrack {
     id: u32,
-    offset: [f64; 2],
+    /// Its offsets over the run (in the scenario's `control.frame`).
+    slots: Slots,
     /// Samples with what the follower heard at their step.
     stream: Stream<(FollowerSample, Box<[Heard]>)>,
     /// The hearing record of the steps recorded.
@@ -325,7 +327,7 @@ impl Recorder {
             .enumerate()
             .map(|(index, f)| FollowerTrack {
                 id: f.id,
-                offset: f.offset,
+                slots: scenario.slots(index),
                 stream: Stream::for_batches_of(scenario.network.telemetry_batch as usize),
                 hearing: FollowerHearing::new(f.id, scenario.sources_of(index)),
                 pending: VecDeque::new(),
@@ -374,7 +376,10 @@ impl Recorder {
             rescued: BTreeMap::new(),
             source: None,
             density: Density { every: opts.every.max(1), csv: opts.csv, mcap: opts.mcap },
-            proximity: scenario.safety_distance.map(|d| Proximity::new(d, scenario.control.guard.safety.is_some())),
+            proximity: scenario.safety_distance.map(|d| {
+                Proximity::new(d, scenario.control.guard.safety.is_some())
+                    .with_shape_changes(scenario.shapes.iter().map(|c| c.at_s))
+            }),
             step_poses: BTreeMap::new(),
         })
     }
@@ -882,7 +887,7 @@ impl Recorder {
                     f.unpaired += 1;
                     continue;
                 };
-                let row = Row::new(&sample, &l, f.offset, dt);
+                let row = Row::new(&sample, &l, self.scenario.control.frame, f.slots.at(k), dt);
                 f.metrics.push(k, &row, sample.guard.as_ref());
                 if self.proximity.is_some() {
                     let n = self.scenario.followers.len();
@@ -1273,7 +1278,9 @@ impl Recorder {
         self.measure_proximity(true);
         let metrics = self.followers.iter().map(|f| (f.id, f.metrics.finish())).collect();
         let outages = self.followers.iter().map(|f| (f.id, f.metrics.outages())).collect();
-        let mut summary = Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages);
+        let settling = self.followers.iter().map(|f| (f.id, f.metrics.settled_after())).collect();
+        let mut summary =
+            Summary::new(&self.scenario, metrics).with_outages(&self.scenario, &outages).with_settling(&settling);
         summary.safety = self.proximity.take();
         for (id, _, why) in self.left() {
             summary.mark_left(id, &why);

@@ -15,6 +15,7 @@
 
 use std::path::{Path, PathBuf};
 
+use formation_control::slot::{Frame, Slots};
 use formation_control::{LinkLoss, Message, Nearby};
 use formation_leader::LeaderState;
 use formation_plant::Pose;
@@ -705,7 +706,8 @@ fn damage(
 /// A replay's metrics only (no folder): per follower, the metrics of the
 /// steps the run recorded, against the leader's state.
 pub struct Metrics {
-    offsets: Vec<[f64; 2]>,
+    frame: Frame,
+    slots: Vec<Slots>,
     dt: f64,
     leader: Option<LeaderState>,
     pub acc: Vec<formation_record::MetricsAccumulator>,
@@ -714,7 +716,8 @@ pub struct Metrics {
 impl Metrics {
     pub fn new(s: &Scenario) -> Self {
         Self {
-            offsets: s.followers.iter().map(|f| f.offset).collect(),
+            frame: s.control.frame,
+            slots: (0..s.followers.len()).map(|i| s.slots(i)).collect(),
             dt: s.dt_s,
             leader: None,
             acc: s.followers.iter().map(|_| formation_record::MetricsAccumulator::for_scenario(s)).collect(),
@@ -730,7 +733,7 @@ impl Sink for Metrics {
     }
     fn follower(&mut self, index: usize, k: u64, sample: &FollowerSample, _heard: &[Heard]) -> Result<(), Error> {
         if let Some(l) = &self.leader {
-            self.acc[index].push_sample(k, sample, l, self.offsets[index], self.dt);
+            self.acc[index].push_sample(k, sample, l, self.frame, self.slots[index].at(k), self.dt);
         }
         Ok(())
     }

@@ -69,6 +69,50 @@ pub struct ScenarioFile {
     /// Robots kept apart (docs/model.md §16).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub safety: Option<SafetyFile>,
+    /// The frame of the offsets and the shape changes (docs/model.md §17).
+    #[serde(default, skip_serializing_if = "FormationFile::is_default")]
+    pub formation: FormationFile,
+}
+
+/// `[formation]`: the frame the followers' offsets are written in, and the
+/// shapes the formation takes during the run (docs/model.md §17).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FormationFile {
+    /// `world` (the paper's, the default) or `leader`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<String>,
+    /// The distance between neighbouring slots of a named shape, m (default:
+    /// twice `safety.distance`, or 1 m without `[safety]`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spacing: Option<f64>,
+    /// Shape changes, in time order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub shapes: Vec<ShapeFile>,
+}
+
+impl FormationFile {
+    fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+}
+
+/// One `[[formation.shapes]]`: from `at` s on, a named shape or one offset
+/// per follower; the robots are assigned to its slots at the least total
+/// squared distance (docs/model.md §17).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ShapeFile {
+    pub at: f64,
+    /// `line`, `column`, `wedge`, `diamond` or `circle`; or give `offsets`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shape: Option<String>,
+    /// This shape's spacing, m (default: `formation.spacing`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spacing: Option<f64>,
+    /// One (Δx, Δy) per follower, m, in `formation.frame`.
+    #[serde(default, deserialize_with = "exact::points", skip_serializing_if = "Vec::is_empty")]
+    pub offsets: Vec<[f64; 2]>,
 }
 
 /// `[ros2]`: the formation's topics on rmw_zenoh's wire, and robots driven
@@ -156,7 +200,7 @@ pub struct LinkFaultFile {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LeaderFile {
-    /// `paper`, `line`, `circle` or `figure-eight`.
+    /// `paper`, `line`, `circle`, `figure-eight` or `waypoints`.
     #[serde(default = "d::trajectory")]
     pub trajectory: String,
     /// P_r(0) = (x, y, θ).
@@ -171,6 +215,18 @@ pub struct LeaderFile {
     /// Radius of circle and figure eight, m.
     #[serde(default = "d::radius")]
     pub radius: f64,
+    /// `waypoints`: the route's points (x, y), m, driven in order at `speed`.
+    #[serde(default, deserialize_with = "exact::points", skip_serializing_if = "Vec::is_empty")]
+    pub waypoints: Vec<[f64; 2]>,
+    /// `waypoints`: the leader's greatest turn rate, rad/s (default 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub turn_rate: Option<f64>,
+    /// `waypoints`: k_θ, the turn rate per radian of bearing, 1/s (default 2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub turn_gain: Option<f64>,
+    /// `waypoints`: a point is passed within this distance, m (default 0.1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reach: Option<f64>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -502,6 +558,10 @@ pub(crate) mod exact {
     pub fn edges<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<[u32; 2]>, D::Error> {
         Vec::<Exact<u32, 2>>::deserialize(d).map(|v| v.into_iter().map(|e| e.0).collect())
     }
+
+    pub fn points<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<[f64; 2]>, D::Error> {
+        Vec::<Exact<f64, 2>>::deserialize(d).map(|v| v.into_iter().map(|e| e.0).collect())
+    }
 }
 
 macro_rules! default_impl {
@@ -516,7 +576,11 @@ default_impl!(LeaderFile {
     pose: d::leader_pose(),
     ramp: d::ramp(),
     speed: d::speed(),
-    radius: d::radius()
+    radius: d::radius(),
+    waypoints: Vec::new(),
+    turn_rate: None,
+    turn_gain: None,
+    reach: None
 });
 default_impl!(EstimatorFile { k: d::k(), ka: d::ka(), kb: d::kb() });
 default_impl!(BacksteppingFile { c1: d::c1(), c2: d::c2(), c3: d::c3(), shunting: d::kin_shunting() });

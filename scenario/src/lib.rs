@@ -32,6 +32,7 @@ pub mod graph;
 pub mod load;
 mod overrides;
 pub mod scenario;
+pub mod shape;
 mod syntax;
 mod validate;
 

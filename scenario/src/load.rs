@@ -14,13 +14,14 @@ use crate::validate::*;
 
 /// The scenarios inside the binary: the files of `scenarios/` that the
 /// documentation runs, by name.
-pub const BUILT_IN: [(&str, &str); 6] = [
+pub const BUILT_IN: [(&str, &str); 7] = [
     ("paper", include_str!("../../scenarios/paper.toml")),
     ("paper-velocity", include_str!("../../scenarios/paper-velocity.toml")),
     ("paper-tables", include_str!("../../scenarios/paper-tables.toml")),
     ("turtlebot", include_str!("../../scenarios/turtlebot.toml")),
     ("swap", include_str!("../../scenarios/swap.toml")),
     ("rotation", include_str!("../../scenarios/rotation.toml")),
+    ("doorway", include_str!("../../scenarios/doorway.toml")),
 ];
 
 /// The built-in scenario `path` names: `paper`, `paper.toml` or

@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use formation_control::{ControlParams, FollowerConfig, LinkLoss, LossWindow};
+use formation_control::{ControlParams, FollowerConfig, LinkLoss, LossWindow, Slots};
 use formation_leader::LeaderState;
 use formation_leader::{Leader, Profile};
 use formation_plant::{Disturbance, NoiseCov, Pose, RobotParams, Velocity};
@@ -193,6 +193,17 @@ impl LinkFault {
 
 use formation_control::math::step_at;
 
+/// One shape change, validated: from step `from_k` on, the follower at index
+/// i holds `offsets[i]` (in the scenario's frame).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ShapeChange {
+    pub at_s: f64,
+    pub from_k: u64,
+    /// The shape's name, or `offsets` for one given slot by slot.
+    pub name: String,
+    pub offsets: Vec<[f64; 2]>,
+}
+
 /// A validated scenario. Followers are in ascending id, indexed like the graph.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Scenario {
@@ -206,7 +217,11 @@ pub struct Scenario {
     pub timing: Timing,
     pub leader_profile: Profile,
     pub leader_pose: Pose,
+    /// `leader.waypoints` (empty unless the trajectory is `waypoints`).
+    pub leader_route: Arc<[[f64; 2]]>,
     pub followers: Vec<FollowerSpec>,
+    /// `[[formation.shapes]]`, each with its assignment (docs/model.md §17).
+    pub shapes: Vec<ShapeChange>,
     pub graph: Graph,
     /// Controllers, filter, the model they assume, the fault: shared by
     /// every follower.
@@ -296,7 +311,7 @@ impl Scenario {
     }
 
     pub fn leader(&self) -> Leader {
-        Leader::new(self.leader_profile, self.leader_pose)
+        Leader::with_route(self.leader_profile, self.leader_pose, Arc::clone(&self.leader_route))
     }
 
     /// Every follower's initial leader estimate.
@@ -310,7 +325,22 @@ impl Scenario {
     /// The brain configuration of the follower at `index`.
     pub fn follower_config(&self, index: usize) -> FollowerConfig {
         let f = &self.followers[index];
-        FollowerConfig { id: f.id, offset: f.offset, hears_leader: f.hears_leader, control: Arc::clone(&self.control) }
+        FollowerConfig {
+            id: f.id,
+            slots: self.slots(index),
+            hears_leader: f.hears_leader,
+            control: Arc::clone(&self.control),
+        }
+    }
+
+    /// The offsets the follower at `index` holds over the run (in
+    /// `control.frame`): its own, then each shape change's.
+    pub fn slots(&self, index: usize) -> Slots {
+        let first = self.followers[index].offset;
+        match self.shapes.is_empty() {
+            true => Slots::fixed(first),
+            false => Slots::changing(first, self.shapes.iter().map(|c| (c.from_k, c.offsets[index])).collect()),
+        }
     }
 
     pub fn index_of(&self, id: u32) -> Option<usize> {

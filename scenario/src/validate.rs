@@ -5,15 +5,16 @@
 use std::sync::Arc;
 
 use formation_control::{
-    ControlParams, DeadlockRule, DynamicGains, EstimatorGains, Fault, FilterParams, Guard, KinematicGains, Limits,
-    RejoinPolicy, RejoinRule, SafetyParams, Shunting,
+    ControlParams, DeadlockRule, DynamicGains, EstimatorGains, Fault, FilterParams, Frame, Guard, KinematicGains,
+    Limits, RejoinPolicy, RejoinRule, SafetyParams, Shunting,
 };
 use formation_leader::{Profile, Trajectory};
 use formation_plant::{Disturbance, Drive, NoiseCov, Pose, RobotParams, Velocity};
 
 use crate::error::ScenarioError;
-use crate::file::{LeaderFile, RobotModel, SafetyFile, ScenarioFile, DEFAULT_CMD_TIMEOUT_S, DEFAULT_LAG_S};
+use crate::file::{LeaderFile, RobotModel, SafetyFile, ScenarioFile, ShapeFile, DEFAULT_CMD_TIMEOUT_S, DEFAULT_LAG_S};
 use crate::graph::Graph;
+use crate::shape::{assign, closest, named, MAX_ASSIGNED, SHAPES};
 
 use crate::scenario::*;
 use crate::syntax::*;
@@ -30,13 +31,13 @@ pub(crate) struct Check<'a> {
 }
 
 impl Check<'_> {
-    fn fail(&self, field: &str, message: impl Into<String>) -> ScenarioError {
+    pub(crate) fn fail(&self, field: &str, message: impl Into<String>) -> ScenarioError {
         self.fail_with(field, &[], message)
     }
 
     /// A failure of `field` that also depends on the `related` fields: if
     /// any of them came from `--set`, the error names that assignment.
-    fn fail_with(&self, field: &str, related: &[&str], message: impl Into<String>) -> ScenarioError {
+    pub(crate) fn fail_with(&self, field: &str, related: &[&str], message: impl Into<String>) -> ScenarioError {
         let message = message.into();
         // Every `--set` among them, in the command line's order: with
         // `--set dt=0.3 --set duration=1` both are the cause.
@@ -66,7 +67,7 @@ impl Check<'_> {
         self.overridden.iter().rev().find(|(key, _)| covers(key)).map(|(_, a)| a.as_str())
     }
 
-    fn finite(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+    pub(crate) fn finite(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
         match values.iter().find(|v| !v.is_finite()) {
             Some(v) => Err(self.fail(field, format!("must be a finite number, got {v}"))),
             None => Ok(()),
@@ -76,7 +77,7 @@ impl Check<'_> {
     /// Finite and at most `limit` in size (a value beyond any robot's, whose
     /// square overflows the metrics: 1e300 m/s ran to an `inf` formation
     /// error with exit status 0).
-    fn bounded(&self, field: &str, values: &[f64], limit: f64, unit: &str) -> Result<(), ScenarioError> {
+    pub(crate) fn bounded(&self, field: &str, values: &[f64], limit: f64, unit: &str) -> Result<(), ScenarioError> {
         self.finite(field, values)?;
         match values.iter().find(|v| v.abs() > limit) {
             Some(v) => Err(self.fail(field, format!("{} is beyond ±{} {unit}", num(*v), num(limit)))),
@@ -84,7 +85,7 @@ impl Check<'_> {
         }
     }
 
-    fn positive(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+    pub(crate) fn positive(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
         self.finite(field, values)?;
         match values.iter().find(|&&v| v <= 0.0) {
             Some(v) => Err(self.fail(field, format!("must be positive, got {v}"))),
@@ -92,7 +93,7 @@ impl Check<'_> {
         }
     }
 
-    fn non_negative(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+    pub(crate) fn non_negative(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
         self.finite(field, values)?;
         match values.iter().find(|&&v| v < 0.0) {
             Some(v) => Err(self.fail(field, format!("must not be negative, got {v}"))),
@@ -139,6 +140,8 @@ pub(crate) fn validate(
     let (network, rejoin) = validate_network(&c, &file)?;
     let ros2 = validate_ros2(&c, &file, drive)?;
     let guard = validate_guard(&c, &file, &followers)?;
+    let (frame, shapes) = validate_formation(&c, &file, &followers)?;
+    validate_route(&c, &file)?;
     let cmd_timeout_s = file.robot.cmd_timeout.unwrap_or(DEFAULT_CMD_TIMEOUT_S);
     c.positive("robot.cmd_timeout", &[cmd_timeout_s])?;
     let odom_frame = file.ros2.odom_frame.clone().unwrap_or_else(|| DEFAULT_ODOM_FRAME.to_string());
@@ -163,9 +166,11 @@ pub(crate) fn validate(
         timing,
         leader_profile,
         leader_pose,
+        leader_route: file.leader.waypoints.clone().into(),
         followers,
+        shapes,
         graph,
-        control: Arc::new(ControlParams { guard, ..control_params(&file, robot, fault, rejoin, drive) }),
+        control: Arc::new(ControlParams { guard, frame, ..control_params(&file, robot, fault, rejoin, drive) }),
         robot,
         disturbance: Disturbance { linear_n: file.disturbance.dv, angular_nm: file.disturbance.dw },
         network,
@@ -486,13 +491,67 @@ pub(crate) fn validate_leader(c: &Check<'_>, l: &LeaderFile) -> Result<(Profile,
         "circle" | "figure-eight" if l.radius == 0.0 => return Err(c.fail("leader.radius", "must not be zero")),
         "circle" => Trajectory::Circle { speed_mps: l.speed, radius_m: l.radius },
         "figure-eight" => Trajectory::FigureEight { speed_mps: l.speed, radius_m: l.radius },
+        "waypoints" => validate_waypoints(c, l)?,
         other => {
-            return Err(
-                c.fail("leader.trajectory", format!("`{other}` is not one of: paper, line, circle, figure-eight"))
-            )
+            return Err(c.fail(
+                "leader.trajectory",
+                format!("`{other}` is not one of: paper, line, circle, figure-eight, waypoints"),
+            ))
         }
     };
+    let route_keys = [
+        ("waypoints", !l.waypoints.is_empty()),
+        ("turn_rate", l.turn_rate.is_some()),
+        ("turn_gain", l.turn_gain.is_some()),
+        ("reach", l.reach.is_some()),
+    ];
+    match route_keys.iter().find(|(_, given)| *given) {
+        Some((key, _)) if l.trajectory != "waypoints" => {
+            return Err(c.fail(&format!("leader.{key}"), "only for trajectory = \"waypoints\""))
+        }
+        _ => {}
+    }
     Ok((Profile { trajectory, ramp_s: l.ramp }, Pose::new(l.pose[0], l.pose[1], l.pose[2])))
+}
+
+/// `trajectory = "waypoints"` (docs/model.md §17, eq. 17.6): a route of at
+/// least one point, a positive speed, turn rate, gain and reach.
+fn validate_waypoints(c: &Check<'_>, l: &LeaderFile) -> Result<Trajectory, ScenarioError> {
+    if l.waypoints.is_empty() {
+        return Err(c.fail("leader.waypoints", "missing: give the route's points, waypoints = [[x, y], …]"));
+    }
+    for p in &l.waypoints {
+        c.bounded("leader.waypoints", p, MAX_DISTANCE_M, "m")?;
+    }
+    let (turn_rate, turn_gain, reach) =
+        (l.turn_rate.unwrap_or(1.0), l.turn_gain.unwrap_or(2.0), l.reach.unwrap_or(0.1));
+    c.positive("leader.speed", &[l.speed])?;
+    c.bounded("leader.speed", &[l.speed], MAX_SPEED, "m/s")?;
+    c.positive("leader.turn_rate", &[turn_rate])?;
+    c.positive("leader.turn_gain", &[turn_gain])?;
+    c.positive("leader.reach", &[reach])?;
+    Ok(Trajectory::Waypoints { speed_mps: l.speed, turn_rate, turn_gain, reach_m: reach })
+}
+
+/// The route inside `[safety] arena`, where one is given.
+fn validate_route(c: &Check<'_>, file: &ScenarioFile) -> Result<(), ScenarioError> {
+    let Some([x0, x1, y0, y1]) = file.safety.as_ref().and_then(|s| s.arena) else { return Ok(()) };
+    match file.leader.waypoints.iter().position(|p| p[0] < x0 || p[0] > x1 || p[1] < y0 || p[1] > y1) {
+        Some(i) => Err(c.fail(
+            "leader.waypoints",
+            format!(
+                "point {} ({}, {}) is outside the arena x ∈ [{}, {}], y ∈ [{}, {}]",
+                i + 1,
+                num(file.leader.waypoints[i][0]),
+                num(file.leader.waypoints[i][1]),
+                num(x0),
+                num(x1),
+                num(y0),
+                num(y1)
+            ),
+        )),
+        None => Ok(()),
+    }
 }
 
 /// The lengths of `followers`, `edges` and `faults`, before any is read.
@@ -551,7 +610,15 @@ pub(crate) fn validate_followers(
             }
             (None, Some(e)) => {
                 c.bounded(&field("body_error"), &e, MAX_DISTANCE_M, "(m, rad)")?;
-                pose_from_body_error(leader_pose, f.offset, e)
+                // Against the slot as `formation.frame` places it (§17).
+                let offset = match file.formation.frame.as_deref() == Some("leader") {
+                    true => {
+                        let [x, y] = formation_control::slot::position(Frame::Leader, &leader_pose, f.offset);
+                        [x - leader_pose.x, y - leader_pose.y]
+                    }
+                    false => f.offset,
+                };
+                pose_from_body_error(leader_pose, offset, e)
             }
             (Some(_), Some(_)) => return Err(c.fail(&field("pose"), "give either `pose` or `body_error`, not both")),
             (None, None) => return Err(c.fail(&field("pose"), "missing: give `pose` or `body_error`")),
@@ -804,6 +871,7 @@ pub(crate) fn control_params(
         dt_s: file.dt,
         drive,
         guard: Guard::default(),
+        frame: Frame::World,
     }
 }
 
@@ -991,5 +1059,85 @@ pub(crate) fn is_link(graph: &Graph, a: u32, b: u32) -> bool {
             (Some(ia), Some(ib)) => graph.neighbours(ia).contains(&ib),
             _ => false,
         },
+    }
+}
+/// `[formation]`: the frame, and each shape change with its assignment.
+pub(crate) fn validate_formation(
+    c: &Check<'_>,
+    file: &ScenarioFile,
+    followers: &[FollowerSpec],
+) -> Result<(Frame, Vec<ShapeChange>), ScenarioError> {
+    let f = &file.formation;
+    let frame = match f.frame.as_deref() {
+        None | Some("world") => Frame::World,
+        Some("leader") => Frame::Leader,
+        Some(other) => return Err(c.fail("formation.frame", format!("`{other}` is not one of: world, leader"))),
+    };
+    let safety = file.safety.as_ref().map(|s| s.distance);
+    let spacing = f.spacing.unwrap_or(safety.map_or(1.0, |d| 2.0 * d));
+    c.positive("formation.spacing", &[spacing])?;
+    c.bounded("formation.spacing", &[spacing], MAX_DISTANCE_M, "m")?;
+    if !f.shapes.is_empty() && followers.len() > MAX_ASSIGNED {
+        return Err(c.fail(
+            "formation.shapes",
+            format!("{} followers; a shape change assigns at most {MAX_ASSIGNED}", followers.len()),
+        ));
+    }
+    let mut held: Vec<[f64; 2]> = followers.iter().map(|f| f.offset).collect();
+    let mut changes = Vec::with_capacity(f.shapes.len());
+    for (i, row) in f.shapes.iter().enumerate() {
+        let field = |k: &str| format!("formation.shapes[{i}].{k}");
+        c.finite(&field("at"), &[row.at])?;
+        let after = changes.last().map_or(0.0, |p: &ShapeChange| p.at_s);
+        if row.at <= after || row.at >= file.duration {
+            let window = format!("after {} s and before the run's end ({} s)", num(after), num(file.duration));
+            return Err(c.fail(&field("at"), format!("{} s is not {window}", num(row.at))));
+        }
+        let slots = slots_of(c, row, i, followers.len(), row.spacing.unwrap_or(spacing))?;
+        if let (Some(d), Some((a, b, gap))) = (safety, closest(&slots)) {
+            if gap < d {
+                return Err(c.fail(
+                    &field(if row.offsets.is_empty() { "spacing" } else { "offsets" }),
+                    format!("slots {a} and {b} are {} m apart, closer than safety.distance ({} m)", num(gap), num(d)),
+                ));
+            }
+        }
+        let to = assign(&held, &slots);
+        held = to.iter().map(|&j| slots[j]).collect();
+        let name = row.shape.clone().unwrap_or_else(|| "offsets".to_string());
+        changes.push(ShapeChange {
+            at_s: row.at,
+            from_k: formation_control::math::step_at(row.at, file.dt),
+            name,
+            offsets: held.clone(),
+        });
+    }
+    Ok((frame, changes))
+}
+
+/// A row's slots: its named shape or its offsets, one per follower.
+fn slots_of(c: &Check<'_>, row: &ShapeFile, i: usize, n: usize, spacing: f64) -> Result<Vec<[f64; 2]>, ScenarioError> {
+    let field = |k: &str| format!("formation.shapes[{i}].{k}");
+    match (&row.shape, row.offsets.is_empty()) {
+        (Some(_), false) => Err(c.fail(&field("shape"), "give either `shape` or `offsets`, not both")),
+        (None, true) => Err(c.fail(
+            &format!("formation.shapes[{i}]"),
+            format!("missing: give `shape` ({}) or `offsets`, one per follower", SHAPES.join(", ")),
+        )),
+        (Some(name), true) => {
+            c.positive(&field("spacing"), &[spacing])?;
+            named(name, n, spacing)
+                .ok_or_else(|| c.fail(&field("shape"), format!("`{name}` is not one of: {}", SHAPES.join(", "))))
+        }
+        (None, false) if row.offsets.len() != n => Err(c.fail(
+            &field("offsets"),
+            format!("{} offsets for {n} followers: give one per follower", row.offsets.len()),
+        )),
+        (None, false) => {
+            for o in &row.offsets {
+                c.bounded(&field("offsets"), o, MAX_DISTANCE_M, "m")?;
+            }
+            Ok(row.offsets.clone())
+        }
     }
 }

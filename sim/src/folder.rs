@@ -100,7 +100,8 @@ fn run_folder(
     match result {
         Ok(metrics) => {
             let mut summary = Summary::new(scenario, ids.iter().copied().zip(metrics).collect())
-                .with_outages(scenario, &sim.outages());
+                .with_outages(scenario, &sim.outages())
+                .with_settling(&sim.settling());
             summary.safety = sim.proximity().cloned();
             let dir = writer.finish(&summary)?;
             Ok((summary, dir))
@@ -108,7 +109,8 @@ fn run_folder(
         Err(e) => {
             // Keep what was recorded up to the failure, with the summary of
             // an incomplete run (`complete: false`).
-            let mut summary = Summary::new(scenario, ids.iter().copied().zip(sim.metrics()).collect());
+            let mut summary =
+                Summary::new(scenario, ids.iter().copied().zip(sim.metrics()).collect()).with_settling(&sim.settling());
             summary.safety = sim.proximity().cloned();
             let _ = writer.flush();
             let _ = writer.write_file("summary.json", &summary.to_json());

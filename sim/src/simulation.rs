@@ -470,14 +470,14 @@ fn account(
     last: bool,
     observer: &mut impl Observer,
 ) -> Result<(), SimError> {
-    // (The brain's copy of the scenario's offset: already in cache.)
-    let offset = f.brain.config.offset;
+    // (The brain's copy of the scenario's slots: already in cache.)
+    let (frame, offset) = (f.brain.config.control.frame, f.brain.config.slots.at(k));
     if observer.wants_rows() {
-        let row = Row::new(sample, leader, offset, s.dt_s);
+        let row = Row::new(sample, leader, frame, offset, s.dt_s);
         f.metrics.push(k, &row, sample.guard.as_ref());
         observer.follower(i, k, &row, last)?;
     } else {
-        f.metrics.push_sample(k, sample, leader, offset, s.dt_s);
+        f.metrics.push_sample(k, sample, leader, frame, offset, s.dt_s);
     }
     f.check_finite().map_err(|quantity| diverged(s, i, k, quantity))?;
     Ok(())
@@ -507,7 +507,8 @@ fn par_step_metrics(
                 let (i, f) = (c * CHUNK + j, &mut fs[j]);
                 let sample;
                 (sample, nexts[j]) = step_follower(x, i, f, &mut rxs[j]);
-                f.metrics.push_sample(k, &sample, leader, f.brain.config.offset, x.dt);
+                let (frame, offset) = (f.brain.config.control.frame, f.brain.config.slots.at(k));
+                f.metrics.push_sample(k, &sample, leader, frame, offset, x.dt);
                 if first.is_none() {
                     first = f.check_finite().err().map(|quantity| (i, quantity));
                 }
@@ -576,7 +577,10 @@ impl<'s> Simulation<'s> {
             (0..scenario.followers.len()).map(|i| SimFollower::new(scenario, i)).collect();
         let messages: Vec<Message> = followers.iter().map(|f| f.brain.tagged_message()).collect();
         let receptions = (0..followers.len()).map(|i| Reception::new(scenario, i).map(Box::new)).collect();
-        let proximity = scenario.safety_distance.map(|d| Proximity::new(d, scenario.control.guard.safety.is_some()));
+        let proximity = scenario.safety_distance.map(|d| {
+            Proximity::new(d, scenario.control.guard.safety.is_some())
+                .with_shape_changes(scenario.shapes.iter().map(|c| c.at_s))
+        });
         let poses_before: Vec<Pose> = match proximity.is_some() || scenario.control.guard.safety.is_some() {
             true => followers.iter().map(|f| f.robot.seen_pose()).collect(),
             false => Vec::new(),
@@ -662,6 +666,11 @@ impl<'s> Simulation<'s> {
     /// Every follower's metrics around each fault window, by id.
     pub fn outages(&self) -> std::collections::BTreeMap<u32, Vec<OutageMetrics>> {
         self.followers.iter().map(|f| (f.brain.id(), f.metrics.outages())).collect()
+    }
+
+    /// Per follower, how long after each shape change it was in its new slot.
+    pub fn settling(&self) -> std::collections::BTreeMap<u32, Vec<Option<f64>>> {
+        self.followers.iter().map(|f| (f.brain.id(), f.metrics.settled_after())).collect()
     }
 
     /// Runs to t = T, calling `progress(k)` every 1000 steps.

@@ -430,6 +430,17 @@ pub fn assert_equals_the_simulator(out: &Path, sim: &Path, sets: &[&str], what: 
     }
 }
 
+/// The summary and CSVs of a four-follower run folder `run` are byte for
+/// byte those `formation sim` wrote into `sim`; `what` names the run.
+pub fn same_files(run: &Path, sim: &Path, what: &str) {
+    for f in ["summary.json", "leader.csv", "follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv"] {
+        let got = std::fs::read(run.join(f)).expect("run file");
+        let want = std::fs::read(sim.join(f)).expect("sim file");
+        let first = got.iter().zip(&want).position(|(a, b)| a != b);
+        assert!(got == want, "{f} of {what} differs from formation sim's (first differing byte {first:?})");
+    }
+}
+
 /// `formation certs SCENARIO --out DIR`: an authority and every node's
 /// identity for `--tls DIR`.
 pub fn certs(dir: &Path) {

@@ -43,6 +43,7 @@ mod ros2;
 mod safety;
 mod security;
 mod sim_parallel;
+mod steering;
 mod web_live;
 mod zenoh_transport;
 

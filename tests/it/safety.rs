@@ -38,15 +38,6 @@ fn sim(out: &Path, sets: &[&str]) -> std::process::Output {
     c.output().expect("formation sim")
 }
 
-fn same_files(run: &Path, sim: &Path, what: &str) {
-    for f in ["summary.json", "leader.csv", "follower_1.csv", "follower_2.csv", "follower_3.csv", "follower_4.csv"] {
-        let got = std::fs::read(run.join(f)).expect("run file");
-        let want = std::fs::read(sim.join(f)).expect("sim file");
-        let first = got.iter().zip(&want).position(|(a, b)| a != b);
-        assert!(got == want, "{f} of {what} differs from formation sim's (first differing byte {first:?})");
-    }
-}
-
 #[test]
 fn stand_in_robots_with_the_safety_filter_in_lock_step_equal_formation_sim() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -61,7 +52,7 @@ fn stand_in_robots_with_the_safety_filter_in_lock_step_equal_formation_sim() {
     let sim_dir = dir.path().join("sim");
     let s = sim(&sim_dir, &[]);
     assert!(s.status.success(), "formation sim turtlebot: {}", String::from_utf8_lossy(&s.stderr));
-    same_files(&out, &sim_dir, "the stand-in robots' lock-step run");
+    common::same_files(&out, &sim_dir, "the stand-in robots' lock-step run");
 
     // Every command each robot received was within the limits, counted by the robot.
     let s = common::json(&out, "summary.json");
@@ -105,7 +96,7 @@ fn without_the_filter_the_crossing_robots_come_too_close_and_the_launch_says_whi
     let sim_dir = dir.path().join("sim");
     let s = sim(&sim_dir, &[off]);
     assert_eq!(s.status.code(), Some(3), "formation sim: {}", String::from_utf8_lossy(&s.stderr));
-    same_files(&out, &sim_dir, "the filter-off lock-step run");
+    common::same_files(&out, &sim_dir, "the filter-off lock-step run");
     let safety = &common::json(&out, "summary.json")["safety"];
     let (closest, distance) = (safety["closest"]["distance"].as_f64().unwrap(), safety["distance"].as_f64().unwrap());
     assert!(closest < distance, "without the filter the closest pair kept {closest} m (distance {distance})");
@@ -225,7 +216,7 @@ fn garbage_and_forged_poses_are_counted_and_dropped_and_change_nothing() {
     g.assert_group_empty();
     let s = sim(&sim_dir, &sets);
     assert!(s.status.success(), "formation sim: {}", String::from_utf8_lossy(&s.stderr));
-    same_files(&out, &sim_dir, "the lock-step run with hostile poses");
+    common::same_files(&out, &sim_dir, "the lock-step run with hostile poses");
     let n = common::json(&out, "network.json");
     let refused: Vec<u64> =
         (1..=4).map(|id| n["nodes"][id.to_string()]["rejected_invalid"].as_u64().unwrap_or(0)).collect();
