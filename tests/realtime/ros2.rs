@@ -609,6 +609,10 @@ fn robots_whose_odometry_starts_at_zero_in_their_own_frame_end_in_their_slots() 
         .find(|l| l.starts_with("follower 2: odometry refused on /follower_2/odom: "))
         .unwrap_or_else(|| panic!("robot 2's odometry in frame `map` is not said to be refused: {said}"));
     assert!(refused.contains("in frame `map` (expected `odom`: ros2.odom_frame)"), "{refused}");
+    // Named at the first refused message, before the run's end.
+    let early = said.lines().position(|l| l.starts_with("follower 2: its robot's odometry in frame `map` is refused"));
+    let end = said.lines().position(|l| l.starts_with("follower 2: odometry refused on"));
+    assert!(early.is_some_and(|e| Some(e) < end), "the refusal is not said before the run's end: {said}");
     let summary = json(&out, "summary.json");
     let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
     sim.args(["sim", VELOCITY_SCENARIO, "-q", "--set", "robot.lag=1e-6", "--out"]).arg(tmp.path().join("sim"));

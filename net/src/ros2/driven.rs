@@ -105,6 +105,8 @@ pub struct OdomInbox {
     /// Lock-step: the step the body waits for next.
     awaited: AtomicU64,
     pub refused: Refused,
+    /// The follower whose robot this is.
+    id: u32,
     /// The frame_id the odometry must carry, and where that frame sits.
     frame_id: String,
     frame: OdomFrame,
@@ -116,6 +118,7 @@ impl OdomInbox {
     /// The inbox of follower `index`'s robot, on the node's clock.
     pub fn for_robot(scenario: &Scenario, index: usize, clock: &Clock) -> Self {
         Self {
+            id: scenario.graph.id(index),
             frame_id: scenario.odom_frame_of(scenario.graph.id(index)),
             frame: OdomFrame::of(scenario, index),
             clock: clock.clone(),
@@ -138,7 +141,15 @@ impl OdomInbox {
         future_ns: i64,
     ) -> Result<Option<u64>, ()> {
         if m.header.frame_id != self.frame_id {
-            self.refused.wrong_frame.fetch_add(1, Ordering::Relaxed);
+            // Said at the first one, not only at the run's end: a robot whose
+            // every message is refused gets commands and never moves.
+            if self.refused.wrong_frame.fetch_add(1, Ordering::Relaxed) == 0 {
+                crate::node::say(&format!(
+                    "follower {}: its robot's odometry in frame `{}` is refused (expected `{}`: ros2.odom_frame); \
+                     every such message is dropped and counted",
+                    self.id, m.header.frame_id, self.frame_id
+                ));
+            }
             *self.refused.frames.lock().unwrap_or_else(|p| p.into_inner()) =
                 Some((m.header.frame_id.clone(), self.frame_id.clone()));
             return Err(());
