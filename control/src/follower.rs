@@ -309,17 +309,7 @@ impl Follower {
         let neighbours = neighbours.filter(move |m| m.fresh || !only_fresh);
 
         // Kinematic controller (eq. 29, 35–36) on the slot (docs/model.md §17).
-        let offset = self.config.slots.at(k);
-        let (body_error, v_ir, w_ir, slot_rate) = match cfg.frame {
-            Frame::World => {
-                let e = kinematic::body_error_with(&estimate.pose, offset, pose, heading);
-                (e, estimate.v, estimate.w, [estimate.pose_rate.x, estimate.pose_rate.y])
-            }
-            Frame::Leader => {
-                let r = slot::reference(Frame::Leader, &estimate, offset);
-                (kinematic::body_error_to(&r.pose, pose, heading), r.v, r.w, r.rate)
-            }
-        };
+        let (body_error, v_ir, w_ir, slot_rate) = tracked(cfg.frame, &estimate, self.config.slots.at(k), pose, heading);
         let requested = kinematic::command(cfg.kinematic, &cfg.kinematic_gains, self.v_s, &body_error, v_ir, w_ir);
         // Limits and safety filter (docs/model.md §16): what the robot gets.
         let (command, guard) = match cfg.guard.is_off() {
@@ -468,6 +458,30 @@ fn torque_step(
         dynamic::accelerations(cfg.dynamic, &cfg.dynamic_gains, dynamic, e_eta, [command_rate.v, command_rate.w]);
     dynamic::advance(cfg.dynamic, &cfg.dynamic_gains, dynamic, e_eta, dt);
     (velocity_estimate, cfg.model.acceleration_to_torque(a_v, a_w))
+}
+
+/// What the kinematic controller tracks at a step: the body-frame error to
+/// the slot at `offset` from the estimate, the slot's speed and turn rate,
+/// and its velocity in the world (docs/model.md §17, eq. 17.1–17.3). In the
+/// world frame these are the estimate's own, as eq. 28 has them.
+#[inline]
+fn tracked(
+    frame: Frame,
+    estimate: &LeaderState,
+    offset: [f64; 2],
+    pose: &Pose,
+    heading: (f64, f64),
+) -> (BodyError, f64, f64, [f64; 2]) {
+    match frame {
+        Frame::World => {
+            let e = kinematic::body_error_with(&estimate.pose, offset, pose, heading);
+            (e, estimate.v, estimate.w, [estimate.pose_rate.x, estimate.pose_rate.y])
+        }
+        Frame::Leader => {
+            let r = slot::reference(Frame::Leader, estimate, offset);
+            (kinematic::body_error_to(&r.pose, pose, heading), r.v, r.w, r.rate)
+        }
+    }
 }
 
 #[cfg(test)]
