@@ -60,6 +60,15 @@ pub struct Profile {
 }
 
 impl Profile {
+    /// The start-up ramp's factor 1 − e^(−t/τ) at t (1 without a ramp).
+    pub fn ramp(&self, t_s: f64) -> f64 {
+        if self.ramp_s > 0.0 {
+            1.0 - (-t_s / self.ramp_s).exp()
+        } else {
+            1.0
+        }
+    }
+
     /// (v_r(t), ω_r(t)) (eq. 6's inputs, with the start-up ramp on v).
     pub fn velocity(&self, t_s: f64) -> Velocity {
         let (v, w) = match self.trajectory {
@@ -78,8 +87,7 @@ impl Profile {
                 (speed_mps, turn * speed_mps / radius_m)
             }
         };
-        let ramp = if self.ramp_s > 0.0 { 1.0 - (-t_s / self.ramp_s).exp() } else { 1.0 };
-        Velocity::new(v * ramp, w)
+        Velocity::new(v * self.ramp(t_s), w)
     }
 
     /// An upper bound of v_r over all time (used for docs/model.md §12's speed bound).
@@ -154,8 +162,7 @@ impl Leader {
         let (dx, dy) = (gx - self.pose.x, gy - self.pose.y);
         let bearing = wrap(dy.atan2(dx) - self.pose.theta);
         let w = (gain * bearing).clamp(-turn_rate, turn_rate);
-        let ramp = if self.profile.ramp_s > 0.0 { 1.0 - (-t_s / self.profile.ramp_s).exp() } else { 1.0 };
-        let mut v = speed * bearing.cos().max(0.0) * ramp;
+        let mut v = speed * bearing.cos().max(0.0) * self.profile.ramp(t_s);
         if self.next + 1 == self.route.len() {
             v = v.min(gain * dx.hypot(dy));
         }

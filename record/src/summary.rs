@@ -374,14 +374,11 @@ pub fn name<T: Serialize>(v: &T) -> String {
 
 /// [`Summary::shapes`] of a scenario.
 fn shapes(s: &Scenario) -> Vec<ShapeAssigned> {
-    let mut before: Vec<[f64; 2]> = s.followers.iter().map(|f| f.offset).collect();
     s.shapes
         .iter()
         .map(|c| {
-            let cost = before.iter().zip(&c.offsets).map(|(a, b)| (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sum();
-            before.clone_from(&c.offsets);
             let offsets = s.followers.iter().zip(&c.offsets).map(|(f, &o)| (f.id, o)).collect();
-            ShapeAssigned { at: c.at_s, shape: c.name.clone(), cost, offsets, settled_after: BTreeMap::new() }
+            ShapeAssigned { at: c.at_s, shape: c.name.clone(), cost: c.cost, offsets, settled_after: BTreeMap::new() }
         })
         .collect()
 }

@@ -201,6 +201,8 @@ pub struct ShapeChange {
     pub from_k: u64,
     /// The shape's name, or `offsets` for one given slot by slot.
     pub name: String,
+    /// eq. 17.4's Σ_i |Δ_i(before) − Δ_i(after)|², m², of the assignment.
+    pub cost: f64,
     pub offsets: Vec<[f64; 2]>,
 }
 

@@ -14,7 +14,7 @@ use formation_plant::{Disturbance, Drive, NoiseCov, Pose, RobotParams, Velocity}
 use crate::error::ScenarioError;
 use crate::file::{LeaderFile, RobotModel, SafetyFile, ScenarioFile, ShapeFile, DEFAULT_CMD_TIMEOUT_S, DEFAULT_LAG_S};
 use crate::graph::Graph;
-use crate::shape::{assign, closest, named, MAX_ASSIGNED, SHAPES};
+use crate::shape::{assign, closest, named, total_cost, MAX_ASSIGNED, SHAPES};
 
 use crate::scenario::*;
 use crate::syntax::*;
@@ -31,13 +31,13 @@ pub(crate) struct Check<'a> {
 }
 
 impl Check<'_> {
-    pub(crate) fn fail(&self, field: &str, message: impl Into<String>) -> ScenarioError {
+    fn fail(&self, field: &str, message: impl Into<String>) -> ScenarioError {
         self.fail_with(field, &[], message)
     }
 
     /// A failure of `field` that also depends on the `related` fields: if
     /// any of them came from `--set`, the error names that assignment.
-    pub(crate) fn fail_with(&self, field: &str, related: &[&str], message: impl Into<String>) -> ScenarioError {
+    fn fail_with(&self, field: &str, related: &[&str], message: impl Into<String>) -> ScenarioError {
         let message = message.into();
         // Every `--set` among them, in the command line's order: with
         // `--set dt=0.3 --set duration=1` both are the cause.
@@ -67,7 +67,7 @@ impl Check<'_> {
         self.overridden.iter().rev().find(|(key, _)| covers(key)).map(|(_, a)| a.as_str())
     }
 
-    pub(crate) fn finite(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+    fn finite(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
         match values.iter().find(|v| !v.is_finite()) {
             Some(v) => Err(self.fail(field, format!("must be a finite number, got {v}"))),
             None => Ok(()),
@@ -77,7 +77,7 @@ impl Check<'_> {
     /// Finite and at most `limit` in size (a value beyond any robot's, whose
     /// square overflows the metrics: 1e300 m/s ran to an `inf` formation
     /// error with exit status 0).
-    pub(crate) fn bounded(&self, field: &str, values: &[f64], limit: f64, unit: &str) -> Result<(), ScenarioError> {
+    fn bounded(&self, field: &str, values: &[f64], limit: f64, unit: &str) -> Result<(), ScenarioError> {
         self.finite(field, values)?;
         match values.iter().find(|v| v.abs() > limit) {
             Some(v) => Err(self.fail(field, format!("{} is beyond ±{} {unit}", num(*v), num(limit)))),
@@ -85,7 +85,7 @@ impl Check<'_> {
         }
     }
 
-    pub(crate) fn positive(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+    fn positive(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
         self.finite(field, values)?;
         match values.iter().find(|&&v| v <= 0.0) {
             Some(v) => Err(self.fail(field, format!("must be positive, got {v}"))),
@@ -93,7 +93,7 @@ impl Check<'_> {
         }
     }
 
-    pub(crate) fn non_negative(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
+    fn non_negative(&self, field: &str, values: &[f64]) -> Result<(), ScenarioError> {
         self.finite(field, values)?;
         match values.iter().find(|&&v| v < 0.0) {
             Some(v) => Err(self.fail(field, format!("must not be negative, got {v}"))),
@@ -1103,12 +1103,14 @@ pub(crate) fn validate_formation(
             }
         }
         let to = assign(&held, &slots);
+        let cost = total_cost(&held, &slots, &to);
         held = to.iter().map(|&j| slots[j]).collect();
         let name = row.shape.clone().unwrap_or_else(|| "offsets".to_string());
         changes.push(ShapeChange {
             at_s: row.at,
             from_k: formation_control::math::step_at(row.at, file.dt),
             name,
+            cost,
             offsets: held.clone(),
         });
     }
