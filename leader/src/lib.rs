@@ -49,6 +49,29 @@ pub enum Trajectory {
     /// `speed` cos α (none while the point is behind it), takes the next
     /// point within `reach_m` of this one, and stops at the last.
     Waypoints { speed_mps: f64, turn_rate: f64, turn_gain: f64, reach_m: f64 },
+    /// Steered from outside (`leader.source = "cmd_vel"`, docs/model.md
+    /// §18): the unicycle (eq. 6) integrates the newest command
+    /// ([`Leader::steer`]), each clipped to |v| ≤ `speed_mps`, |ω| ≤
+    /// `turn_rate` ([`Profile::clip`]); silent input stops it.
+    Commanded { speed_mps: f64, turn_rate: f64 },
+    /// An external robot (`leader.source = "robot"`): pose and velocities
+    /// are its odometry's ([`Leader::steer`] with [`Input::Odometry`]), not
+    /// integrated here; silent odometry holds the last pose at rest.
+    External,
+    /// A run's leader played again (`leader.source = "recorded"`): step k's
+    /// state is the recording's row k, bit for bit ([`Leader::recorded`]).
+    Recorded,
+}
+
+/// What steers a leader that is not scripted, at one step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Input {
+    /// A velocity command (v, ω), already clipped ([`Profile::clip`]).
+    Command(Velocity),
+    /// The leader robot's odometry: its pose in the world and its twist.
+    Odometry { pose: Pose, twist: Velocity },
+    /// Nothing fresh within the source's time-out: the leader stops.
+    Silent,
 }
 
 /// A trajectory with the paper's start-up ramp v_r = v_d (1 − e^(−t/τ)).
@@ -79,8 +102,9 @@ impl Profile {
             }
             Trajectory::Line { speed_mps } => (speed_mps, 0.0),
             Trajectory::Circle { speed_mps, radius_m } => (speed_mps, speed_mps / radius_m),
-            // The route's law needs the pose: `Leader::state`.
+            // The route's law needs the pose, a steered leader its input: `Leader::state`.
             Trajectory::Waypoints { speed_mps, .. } => (speed_mps, 0.0),
+            Trajectory::Commanded { .. } | Trajectory::External | Trajectory::Recorded => (0.0, 0.0),
             Trajectory::FigureEight { speed_mps, radius_m } => {
                 let loop_s = 2.0 * std::f64::consts::PI * radius_m.abs() / speed_mps.abs();
                 let turn = if (t_s / loop_s).floor() as i64 % 2 == 0 { 1.0 } else { -1.0 };
@@ -97,8 +121,30 @@ impl Profile {
             Trajectory::Line { speed_mps }
             | Trajectory::Circle { speed_mps, .. }
             | Trajectory::FigureEight { speed_mps, .. }
-            | Trajectory::Waypoints { speed_mps, .. } => speed_mps.abs(),
+            | Trajectory::Waypoints { speed_mps, .. }
+            | Trajectory::Commanded { speed_mps, .. } => speed_mps.abs(),
+            // What a robot or a recording did is not bounded by the scenario.
+            Trajectory::External | Trajectory::Recorded => f64::INFINITY,
         }
+    }
+
+    /// A command within the leader's limits (|v| ≤ speed, |ω| ≤ turn
+    /// rate), and whether it had to be clipped; None for a command that is
+    /// not finite. Only a [`Trajectory::Commanded`] leader has limits.
+    pub fn clip(&self, command: Velocity) -> Option<(Velocity, bool)> {
+        if !command.is_finite() {
+            return None;
+        }
+        let Trajectory::Commanded { speed_mps, turn_rate } = self.trajectory else { return Some((command, false)) };
+        let v = command.v.clamp(-speed_mps, speed_mps);
+        let w = command.w.clamp(-turn_rate, turn_rate);
+        Some((Velocity::new(v, w), v != command.v || w != command.w))
+    }
+
+    /// Whether the leader is steered from outside while the run goes (a
+    /// command or a robot): such a run is simulated again from its record.
+    pub fn is_live(&self) -> bool {
+        matches!(self.trajectory, Trajectory::Commanded { .. } | Trajectory::External)
     }
 }
 
@@ -118,24 +164,53 @@ impl LeaderState {
     }
 }
 
-/// The virtual leader: a profile and the pose integrated from it, and, for
-/// [`Trajectory::Waypoints`], its route and the point it drives to.
+/// The virtual leader: a profile and the pose integrated from it; for
+/// [`Trajectory::Waypoints`], its route and the point it drives to; for a
+/// steered leader, its input; for [`Trajectory::Recorded`], the recording
+/// and the row it is at.
 #[derive(Clone, Debug)]
 pub struct Leader {
     pub profile: Profile,
     pub pose: Pose,
     route: Arc<[[f64; 2]]>,
+    /// The route's point driven to, or the recording's row.
     next: usize,
+    /// A steered leader's velocity: the newest command, or the robot's twist.
+    steered: Velocity,
+    recording: Arc<[LeaderState]>,
 }
 
 impl Leader {
     pub fn new(profile: Profile, pose: Pose) -> Self {
-        Self { profile, pose, route: Arc::from([]), next: 0 }
+        Self::with_route(profile, pose, Arc::from([]))
     }
 
     /// A leader that follows `route` (with [`Trajectory::Waypoints`]).
     pub fn with_route(profile: Profile, pose: Pose, route: Arc<[[f64; 2]]>) -> Self {
-        Self { profile, pose, route, next: 0 }
+        Self { profile, pose, route, next: 0, steered: Velocity::new(0.0, 0.0), recording: Arc::from([]) }
+    }
+
+    /// A leader that plays `recording` again, row k at step k (the last row
+    /// from then on, at rest, should the run outlast it).
+    pub fn recorded(recording: Arc<[LeaderState]>) -> Self {
+        let pose = recording.first().map_or(Pose::default(), |s| s.pose);
+        let profile = Profile { trajectory: Trajectory::Recorded, ramp_s: 0.0 };
+        Self { recording, ..Self::new(profile, pose) }
+    }
+
+    /// The input of a steered leader for the step to come (ignored by a
+    /// scripted one): a command is driven from this pose, a robot's
+    /// odometry taken as the leader's pose and velocities, and silence
+    /// stops the leader where it is.
+    pub fn steer(&mut self, input: Input) {
+        match (self.profile.trajectory, input) {
+            (Trajectory::Commanded { .. }, Input::Command(c)) => self.steered = c,
+            (Trajectory::External, Input::Odometry { pose, twist }) => (self.pose, self.steered) = (pose, twist),
+            (Trajectory::Commanded { .. } | Trajectory::External, Input::Silent) => {
+                self.steered = Velocity::new(0.0, 0.0)
+            }
+            _ => {}
+        }
     }
 
     /// The route's point the leader drives to (None: it has arrived, or has no route).
@@ -150,6 +225,8 @@ impl Leader {
             Trajectory::Waypoints { speed_mps, turn_rate, turn_gain, .. } => {
                 self.route_velocity(speed_mps, turn_rate, turn_gain, t_s)
             }
+            Trajectory::Commanded { .. } | Trajectory::External => self.steered,
+            Trajectory::Recorded => return self.recording_at(self.next),
             _ => self.profile.velocity(t_s),
         };
         let (s, c) = self.pose.theta.sin_cos();
@@ -172,6 +249,16 @@ impl Leader {
     /// Advances the pose to k+1 with the rate of `state` (forward Euler),
     /// and a route to its next point once this one is within reach.
     pub fn advance(&mut self, state: &LeaderState, dt_s: f64) {
+        match self.profile.trajectory {
+            // The robot moves itself: its next odometry says where to.
+            Trajectory::External => return,
+            Trajectory::Recorded => {
+                self.next += 1;
+                self.pose = self.recording_at(self.next).pose;
+                return;
+            }
+            _ => {}
+        }
         self.pose.x += dt_s * state.pose_rate.x;
         self.pose.y += dt_s * state.pose_rate.y;
         self.pose.theta += dt_s * state.pose_rate.theta;
@@ -179,6 +266,17 @@ impl Leader {
             if (gx - self.pose.x).hypot(gy - self.pose.y) < reach_m {
                 self.next += 1;
             }
+        }
+    }
+}
+
+impl Leader {
+    /// The recording's row k, or past its end the last row at rest.
+    fn recording_at(&self, k: usize) -> LeaderState {
+        match (self.recording.get(k), self.recording.last()) {
+            (Some(s), _) => *s,
+            (None, Some(last)) => LeaderState { pose: last.pose, ..LeaderState::default() },
+            (None, None) => LeaderState { pose: self.pose, ..LeaderState::default() },
         }
     }
 }
@@ -286,5 +384,67 @@ mod tests {
             leader.advance(&s, dt);
         }
         assert!(leader.pose.x.hypot(leader.pose.y) < 2e-3, "end {:?}", leader.pose);
+    }
+
+    #[test]
+    fn a_commanded_leader_drives_the_clipped_command_and_stops_when_silent() {
+        let profile = Profile { trajectory: Trajectory::Commanded { speed_mps: 0.2, turn_rate: 1.0 }, ramp_s: 0.0 };
+        let (clipped, was) = profile.clip(Velocity::new(0.5, -3.0)).expect("finite");
+        assert_eq!((clipped.v, clipped.w, was), (0.2, -1.0, true), "clipped to ±0.2 m/s, ±1 rad/s");
+        assert_eq!(profile.clip(Velocity::new(0.1, 0.5)), Some((Velocity::new(0.1, 0.5), false)));
+        assert_eq!(profile.clip(Velocity::new(f64::NAN, 0.0)), None, "a command that is not finite is refused");
+        let mut leader = Leader::new(profile, Pose::default());
+        let dt = 0.01;
+        for k in 0..100 {
+            leader.steer(Input::Command(clipped));
+            let s = leader.state(k as f64 * dt);
+            leader.advance(&s, dt);
+        }
+        // ω = −1 rad/s for 1 s at 0.2 m/s: an arc of radius 0.2 m.
+        let (x, y) = (0.2 * 1.0f64.sin(), -0.2 * (1.0 - 1.0f64.cos()));
+        assert!((leader.pose.x - x).hypot(leader.pose.y - y) < 2e-3, "{:?} against ({x}, {y})", leader.pose);
+        leader.steer(Input::Silent);
+        let at = leader.pose;
+        let s = leader.state(1.0);
+        leader.advance(&s, dt);
+        assert_eq!((s.v, s.w, leader.pose), (0.0, 0.0, at), "silence stops it where it is");
+        assert!(profile.is_live() && !Profile { trajectory: Trajectory::Paper, ramp_s: 0.5 }.is_live());
+    }
+
+    #[test]
+    fn an_external_leader_is_its_robots_odometry_and_rests_when_it_falls_silent() {
+        let mut leader = Leader::new(Profile { trajectory: Trajectory::External, ramp_s: 0.0 }, Pose::default());
+        let pose = Pose::new(1.0, 2.0, 0.5);
+        leader.steer(Input::Odometry { pose, twist: Velocity::new(0.3, 0.1) });
+        let s = leader.state(0.0);
+        assert_eq!((s.pose, s.v, s.w), (pose, 0.3, 0.1));
+        assert_eq!(s.pose_rate, Pose::new(0.3 * 0.5f64.cos(), 0.3 * 0.5f64.sin(), 0.1), "eq. 6 from its twist");
+        leader.advance(&s, 0.01);
+        assert_eq!(leader.pose, pose, "not integrated: the next odometry says where it is");
+        leader.steer(Input::Silent);
+        let s = leader.state(0.01);
+        assert_eq!((s.pose, s.v, s.w), (pose, 0.0, 0.0));
+    }
+
+    #[test]
+    fn a_recorded_leader_plays_its_rows_bit_for_bit_and_rests_past_the_end() {
+        let profile = Profile { trajectory: Trajectory::Paper, ramp_s: 0.5 };
+        let mut original = Leader::new(profile, Pose::new(0.0, 3.0, 0.0));
+        let dt = 0.01;
+        let rows: Vec<LeaderState> = (0..50)
+            .map(|k| {
+                let s = original.state(k as f64 * dt);
+                original.advance(&s, dt);
+                s
+            })
+            .collect();
+        let mut again = Leader::recorded(rows.clone().into());
+        for (k, row) in rows.iter().enumerate() {
+            let s = again.state(k as f64 * dt);
+            assert_eq!(&s, row, "row {k}");
+            again.advance(&s, dt);
+        }
+        let past = again.state(1.0);
+        assert_eq!((past.pose, past.v, past.w), (rows[49].pose, 0.0, 0.0));
     }
 }

@@ -96,6 +96,12 @@ pub async fn run(
         return Err(Error::Input("--start-lead must be ≥ 0".into()));
     }
     let quorum = args.quorum(&scenario)?;
+    if let (true, Some(source)) = (args.standby, scenario.live_leader()) {
+        return Err(Error::Input(format!(
+            "--standby: a leader steered live (leader.source = \"{source}\") cannot be taken over: a standby does not \
+             hear what steers it; run without a standby"
+        )));
+    }
     let after = args.take_over_after;
     if !(after.is_finite() && after > 0.0) {
         return Err(Error::Input(format!("--take-over-after must be a positive number of seconds, not {after}")));
@@ -164,6 +170,7 @@ pub async fn run_leader(
     let hearing = machine.hearing().to_vec();
     let shared = Arc::new(Shared::new(machine));
     let subs = watch_reached(session, keys, &hearing, &shared).await?;
+    let steered = crate::ros2::steer::subscribe(session, scenario, &shared, &timebase).await?;
     let estimate_pub =
         crate::node::control_publisher(session, keys.estimate(wire::LEADER_ID), scenario, "estimate").await?;
 
@@ -187,9 +194,11 @@ pub async fn run_leader(
         print_start_line(&start, &timebase);
     }
 
+    // A leader robot publishes its own odometry and transforms.
+    let robot = scenario.leader_profile.trajectory == formation_leader::Trajectory::External;
     let topics = match scenario.ros2 {
-        Some(r) => Some(LeaderTopics::declare(session, scenario, r.domain_id, start.epoch_unix_ns).await?),
-        None => None,
+        Some(r) if !robot => Some(LeaderTopics::declare(session, scenario, r.domain_id, start.epoch_unix_ns).await?),
+        _ => None,
     };
     // Telemetry through a bounded store and its own thread (see agent.rs).
     let (delivery, acks) = telemetry::start_delivery(session, keys, wire::LEADER_ID, scenario, clock).await?;
@@ -229,6 +238,9 @@ pub async fn run_leader(
     drop(time_server);
     drop(subs);
     drop(done_subs);
+    if let Some(n) = steered.map(|s| s.refused.load(std::sync::atomic::Ordering::Relaxed)).filter(|&n| n > 0) {
+        crate::node::say(&format!("leader: {n} message(s) of its source refused (undecodable, or in another frame)"));
+    }
     outcome.map_err(|e| Error::Run(format!("leader: {e}")))
 }
 

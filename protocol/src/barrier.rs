@@ -75,8 +75,16 @@ pub fn positive_scale(scale: f64) -> f64 {
 /// nodes started with different scenarios refuse to run together.
 pub fn fingerprint(s: &Scenario) -> u64 {
     let text = serde_json::to_string(&s.source).unwrap_or_default();
+    // A recorded leader: the record itself, not only its path (two hosts
+    // whose files differ run different formations).
+    let recording = s
+        .leader_recording
+        .iter()
+        .flat_map(|l| [l.pose.x, l.pose.y, l.pose.theta, l.v, l.w].into_iter().flat_map(f64::to_le_bytes));
     // FNV-1a, 64 bit.
-    text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+    text.bytes()
+        .chain(recording)
+        .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
 }
 
 /// Every leaf of the scenario file's settings (`robot.mass`,

@@ -32,8 +32,10 @@ use crate::barrier::Start;
 use crate::counters::Counters;
 use crate::gate::{self, Kept, Phase, WINDOW};
 use crate::loop_timing::{LoopStats, LoopTimer};
+use crate::steering::Steering;
 use crate::telemetry::{Delivery, Handover, Telemetry, Term};
 use crate::Now;
+use formation_plant::{Pose, Velocity};
 
 /// Lock-step: how long the leader keeps repeating after its last step.
 pub const LINGER: Duration = Duration::from_secs(2);
@@ -144,6 +146,8 @@ pub struct LeaderMachine {
     term: u32,
     /// The step at which it stood down, having heard a higher term.
     stood_down_at: Option<u64>,
+    /// A live leader's input (`cmd_vel`, `robot`; docs/model.md §18).
+    steering: Option<Steering>,
 }
 
 impl LeaderMachine {
@@ -184,7 +188,29 @@ impl LeaderMachine {
             took_over: None,
             term: FIRST_TERM,
             stood_down_at: None,
+            steering: Steering::of(scenario.leader_profile, Duration::from_secs_f64(scenario.leader_timeout_s)),
         }
+    }
+
+    /// A live leader (`leader.source = "cmd_vel"`): a velocity command
+    /// heard at `now`, taken within the leader's limits for the steps to come.
+    pub fn handle_command(&mut self, command: Velocity, now: Now) {
+        if let Some(line) = self.steering.as_mut().and_then(|s| s.command(command, now)) {
+            self.say.push_back(line);
+        }
+    }
+
+    /// A live leader (`leader.source = "robot"`): the leader robot's
+    /// odometry (its pose in the world, its twist) heard at `now`.
+    pub fn handle_leader_odometry(&mut self, pose: Pose, twist: Velocity, now: Now) {
+        if let Some(s) = self.steering.as_mut() {
+            s.odometry(pose, twist, now);
+        }
+    }
+
+    /// What a live leader's source sent so far (None: a scripted leader).
+    pub fn steering(&self) -> Option<&Steering> {
+        self.steering.as_ref()
     }
 
     /// A standby leader of `scenario` (docs/model.md §14): it publishes
@@ -495,9 +521,17 @@ impl LeaderMachine {
         self.states.push(self.state);
         self.latest = Some((k, self.state));
         if !last {
+            let t = (k + 1) as f64 * self.dt_s;
+            if let Some(s) = self.steering.as_mut() {
+                let (input, said) = s.input(now, t);
+                self.trajectory.steer(input);
+                self.say.extend(said);
+            }
             self.trajectory.advance(&self.state, self.dt_s);
-            self.state = self.trajectory.state((k + 1) as f64 * self.dt_s);
+            self.state = self.trajectory.state(t);
             self.publish(k + 1, now);
+        } else if let Some(s) = &self.steering {
+            self.say.push_back(s.summary());
         }
         if self.states.len() >= self.batch_len || last {
             self.batch(k + 1, last);
@@ -753,6 +787,54 @@ mod tests {
         let states: usize = batches.iter().map(|b| b.states.len()).sum();
         assert_eq!(states as u64, 1_001, "every step's state reaches the monitor");
         assert!(batches.last().is_some_and(|b| b.done && b.loop_stats.is_some()));
+    }
+
+    /// A cmd_vel leader (docs/model.md §18) stands until the first command,
+    /// drives each clipped to its limits, and stops at the first step
+    /// computed more than its time-out after the newest: every state it
+    /// sends is the unicycle integrated from what it took.
+    #[test]
+    fn a_commanded_leader_drives_what_it_hears_and_stops_on_silence() {
+        let sets = ["duration=3", "timing=realtime", "leader.source=cmd_vel", "leader.speed=0.5", "leader.timeout=0.2"];
+        let mut l = LeaderMachine::new(&paper(&sets));
+        let epoch = Duration::from_nanos(start0().epoch_unix_ns);
+        l.start(&start0(), epoch);
+        let ms = Duration::from_millis;
+        // 20 Hz from 0.5 s to 1.5 s, each beyond the speed limit: (1.0, 0.3) is taken as (0.5, 0.3).
+        let commands: Vec<Now> = (0..=20).map(|i| epoch + ms(500 + 50 * i)).collect();
+        let (mut t, mut next, mut states) = (epoch, 0, Vec::new());
+        while l.outcome().is_none() {
+            while next < commands.len() && commands[next] <= t {
+                l.handle_command(Velocity::new(1.0, 0.3), commands[next]);
+                next += 1;
+            }
+            l.handle_timeout(t);
+            states.extend(std::iter::from_fn(|| l.poll_telemetry()).flat_map(|b| b.states));
+            t = l.poll_timeout().map_or(t, |n| n.max(t)).min(commands.get(next).copied().unwrap_or(Now::MAX));
+        }
+        assert_eq!(states.len(), 3001);
+        let moving: Vec<usize> = (0..states.len()).filter(|&k| states[k].v != 0.0).collect();
+        let (first, last) = (moving[0], *moving.last().expect("it moved"));
+        // Step k + 1's state is computed when step k is due (k ms after the epoch).
+        assert_eq!(first, 501, "the first command (at 500 ms) drives step 501");
+        assert_eq!(last, 1701, "the newest (at 1500 ms) goes stale 200 ms later");
+        assert_eq!(moving.len(), last - first + 1, "no gap while commands come every 50 ms");
+        assert!(moving.iter().all(|&k| (states[k].v, states[k].w) == (0.5, 0.3)), "clipped to 0.5 m/s");
+        let mut model = formation_leader::Leader::new(
+            formation_leader::Profile {
+                trajectory: formation_leader::Trajectory::Line { speed_mps: 0.0 },
+                ramp_s: 0.0,
+            },
+            paper(&[]).leader_pose,
+        );
+        for (k, s) in states.iter().enumerate() {
+            assert_eq!(s.pose, model.pose, "step {k}: the pose is eq. 6 integrated from what it took");
+            model.advance(s, 0.001);
+        }
+        let said: Vec<String> = std::iter::from_fn(|| l.poll_say()).collect();
+        assert!(said.iter().any(|l| l.contains("beyond the leader's limits")), "{said:?}");
+        assert!(said.iter().any(|l| l.contains("silent for 0.2 s at t = 1.70 s")), "{said:?}");
+        assert!(said.last().is_some_and(|l| l.contains("21 commands taken") && l.contains("21 clipped")), "{said:?}");
     }
 
     /// The states of every message in `sent`, by step.

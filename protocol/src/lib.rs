@@ -60,6 +60,7 @@ pub mod loop_timing;
 pub mod names;
 pub mod patience;
 pub mod poses;
+pub mod steering;
 pub mod telemetry;
 pub mod testing;
 pub mod wire;

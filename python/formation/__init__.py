@@ -27,7 +27,7 @@ from . import _formation
 __all__ = ["Scenario", "Run", "Table", "PaperTable", "Claim", "Paper", "sim", "read_run", "generate", "paper", "replay", "BUILT_IN"]
 
 #: The scenarios built into the package (and the command line), by name.
-BUILT_IN = ("paper", "paper-velocity", "paper-tables", "turtlebot", "swap", "rotation", "doorway")
+BUILT_IN = ("paper", "paper-velocity", "paper-tables", "turtlebot", "swap", "rotation", "doorway", "teleop")
 
 PathLike = Union[str, "os.PathLike[str]"]
 

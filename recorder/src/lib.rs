@@ -284,6 +284,8 @@ pub struct Recorder {
     /// so this is the state it had or would have had; before, those rows
     /// were dropped though their samples had arrived.
     model_leader: formation_leader::Leader,
+    /// A leader steered live: its states from step 0, as far as none is missing.
+    live_leader: Vec<LeaderState>,
     model_k: u64,
     nodes: BTreeMap<u32, NodeStats>,
     malformed: u64,
@@ -361,6 +363,7 @@ impl Recorder {
             leader: VecDeque::new(),
             leader_base: 0,
             model_leader: scenario.leader(),
+            live_leader: Vec::new(),
             model_k: 0,
             nodes,
             malformed: 0,
@@ -401,6 +404,12 @@ impl Recorder {
     /// The leader's state of step k, in step order (`None`: not recorded):
     /// its row, Foxglove, and the state the followers' rows of k pair with.
     fn file_leader(&mut self, k: u64, state: Option<&LeaderState>) -> std::io::Result<()> {
+        if let (Some(s), true) = (state, self.scenario.leader_profile.is_live()) {
+            // The model of a live leader's run is its record (docs/model.md §18).
+            if self.live_leader.len() as u64 == k {
+                self.live_leader.push(*s);
+            }
+        }
         if let Some(s) = state {
             match self.leader_spans.last_mut() {
                 Some(span) if span.1 == k => span.1 = k + 1,
@@ -752,6 +761,12 @@ impl Recorder {
     /// The next step's leader state for the followers' rows to pair with:
     /// its own, or where it has none, the scenario's ([`Recorder::model_leader`]).
     fn push_leader(&mut self, state: Option<LeaderState>) {
+        if self.scenario.leader_profile.is_live() {
+            // A leader steered live has no model: a step it did not
+            // deliver stays unknown, and its followers' rows unpaired.
+            self.leader.push_back(state);
+            return;
+        }
         let k = self.leader_base + self.leader.len() as u64;
         let dt = self.scenario.dt_s;
         while self.model_k < k {
@@ -1185,7 +1200,12 @@ impl Recorder {
             self.left().iter().filter(|l| !self.died.contains_key(&l.0)).map(|&(id, k, _)| (id, k)).collect();
         let died: Vec<(u32, u64)> = self.died.iter().map(|(&id, &k)| (id, k)).collect();
         let gaps: Vec<(u64, u64)> = self.handovers.iter().filter_map(Handover::gap).collect();
-        self.scenario.with_leaves(&leaves).with_died(&died).with_handovers(&gaps).with_joins(&self.joined)
+        let s = self.scenario.with_leaves(&leaves).with_died(&died).with_handovers(&gaps).with_joins(&self.joined);
+        // A live leader: played from what it did, when every step of it arrived.
+        match s.live_leader().is_some() && self.live_leader.len() as u64 == s.steps() + 1 {
+            true => s.with_leader_states(self.live_leader.clone().into()),
+            false => s,
+        }
     }
 
     /// Steps recorded by every follower still in the run (one that left, or

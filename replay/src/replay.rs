@@ -154,6 +154,17 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
             )));
         }
     }
+    // A leader steered live has no model: the run's own leader record is it.
+    let scenario = match scenario.live_leader().map(str::to_string) {
+        Some(source) => scenario.with_recorded_leader(dir).map_err(|e| {
+            Error::Input(format!(
+                "{}: its leader was steered live (leader.source = \"{source}\"), and a replay plays it from the run's \
+                 leader record: {e}",
+                dir.display()
+            ))
+        })?,
+        None => scenario,
+    };
     if record.followers.len() != scenario.followers.len()
         || record.followers.iter().enumerate().any(|(i, f)| f.id != scenario.followers[i].id)
         || record.followers.iter().enumerate().any(|(i, f)| f.sources != scenario.sources_of(i))

@@ -9,7 +9,7 @@ use crate::{Scenario, ScenarioError};
 #[derive(Debug, Clone)]
 #[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct ScenarioArgs {
-    /// Scenario file (TOML), or a built-in one by name (paper, paper-velocity, paper-tables, turtlebot, swap, rotation, doorway). Every key: docs/scenarios.md.
+    /// Scenario file (TOML), or a built-in one by name (paper, paper-velocity, paper-tables, turtlebot, swap, rotation, doorway, teleop). Every key: docs/scenarios.md.
     pub scenario: PathBuf,
     /// Override a scenario value without editing the file, e.g.
     /// `--set filter=kf --set fault.time=10 --set duration=5`. Repeatable.

@@ -200,6 +200,17 @@ pub struct LinkFaultFile {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LeaderFile {
+    /// Where the leader's motion comes from (docs/model.md §18):
+    /// `trajectory` (the default), `cmd_vel`, `robot` or `recorded`.
+    #[serde(default = "d::source", skip_serializing_if = "d::is_trajectory")]
+    pub source: String,
+    /// `recorded`: a run folder (its `leader.csv`) or such a CSV.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recorded: Option<String>,
+    /// `cmd_vel`, `robot`: the leader stops once its input has been silent
+    /// this long, s (default 0.5).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub timeout: Option<f64>,
     /// `paper`, `line`, `circle`, `figure-eight` or `waypoints`.
     #[serde(default = "d::trajectory")]
     pub trajectory: String,
@@ -218,7 +229,7 @@ pub struct LeaderFile {
     /// `waypoints`: the route's points (x, y), m, driven in order at `speed`.
     #[serde(default, deserialize_with = "exact::points", skip_serializing_if = "Vec::is_empty")]
     pub waypoints: Vec<[f64; 2]>,
-    /// `waypoints`: the leader's greatest turn rate, rad/s (default 1).
+    /// `waypoints` and `cmd_vel`: the leader's greatest turn rate, rad/s (default 1).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub turn_rate: Option<f64>,
     /// `waypoints`: k_θ, the turn rate per radian of bearing, 1/s (default 2).
@@ -336,6 +347,8 @@ pub struct RobotFile {
 }
 
 /// `[robot] cmd_timeout` when none is given, s: a driver's usual command time-out.
+/// `leader.timeout`'s default, s: a live leader's input silent this long stops it.
+pub const DEFAULT_LEADER_TIMEOUT_S: f64 = 0.5;
 pub const DEFAULT_CMD_TIMEOUT_S: f64 = 0.5;
 
 /// `[safety]`: the closest two robots may come, and the filter that keeps
@@ -572,6 +585,9 @@ macro_rules! default_impl {
     };
 }
 default_impl!(LeaderFile {
+    source: d::source(),
+    recorded: None,
+    timeout: None,
     trajectory: d::trajectory(),
     pose: d::leader_pose(),
     ramp: d::ramp(),
@@ -672,6 +688,12 @@ mod d {
     }
     pub fn timing() -> String {
         "lockstep".into()
+    }
+    pub fn source() -> String {
+        "trajectory".into()
+    }
+    pub fn is_trajectory(s: &str) -> bool {
+        s == "trajectory"
     }
     pub fn trajectory() -> String {
         "paper".into()

@@ -31,6 +31,7 @@ pub mod generate;
 pub mod graph;
 pub mod load;
 mod overrides;
+pub mod recorded;
 pub mod scenario;
 pub mod shape;
 mod syntax;

@@ -14,7 +14,7 @@ use crate::validate::*;
 
 /// The scenarios inside the binary: the files of `scenarios/` that the
 /// documentation runs, by name.
-pub const BUILT_IN: [(&str, &str); 7] = [
+pub const BUILT_IN: [(&str, &str); 8] = [
     ("paper", include_str!("../../scenarios/paper.toml")),
     ("paper-velocity", include_str!("../../scenarios/paper-velocity.toml")),
     ("paper-tables", include_str!("../../scenarios/paper-tables.toml")),
@@ -22,6 +22,7 @@ pub const BUILT_IN: [(&str, &str); 7] = [
     ("swap", include_str!("../../scenarios/swap.toml")),
     ("rotation", include_str!("../../scenarios/rotation.toml")),
     ("doorway", include_str!("../../scenarios/doorway.toml")),
+    ("teleop", include_str!("../../scenarios/teleop.toml")),
 ];
 
 /// The built-in scenario `path` names: `paper`, `paper.toml` or

@@ -83,8 +83,8 @@ pub(crate) fn override_message(key: &str, message: &str) -> String {
 }
 
 /// A TOML value if VALUE parses as one (number, bool, array, inline table,
-/// quoted string); a bare word (`filter=kf`, `leader.trajectory=figure-eight`)
-/// is a string; anything else is an error with TOML's reason (a missing
+/// quoted string); a bare word (`filter=kf`, `leader.trajectory=figure-eight`,
+/// a path such as `leader.recorded=runs/teleop`) is a string; anything else is an error with TOML's reason (a missing
 /// bracket is not taken for a string).
 pub(crate) fn parse_value(value: &str) -> Result<toml::Value, String> {
     if value.trim().is_empty() {
@@ -101,7 +101,7 @@ pub(crate) fn parse_value(value: &str) -> Result<toml::Value, String> {
         {
             Err(format!("{value} is beyond the whole numbers a value can hold (±9223372036854775807)"))
         }
-        Err(_) if !value.is_empty() && value.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) => {
+        Err(_) if !value.is_empty() && value.chars().all(|c| c.is_ascii_alphanumeric() || "-_./".contains(c)) => {
             Ok(toml::Value::String(value.to_string()))
         }
         Err(e) => Err(format!(

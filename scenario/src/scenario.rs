@@ -3,11 +3,12 @@
 //! [`crate::overrides`]; the checks: [`crate::validate`]), and the
 //! scenarios built into the binary.
 
+use std::path::Path;
 use std::sync::Arc;
 
 use formation_control::{ControlParams, FollowerConfig, LinkLoss, LossWindow, Slots};
 use formation_leader::LeaderState;
-use formation_leader::{Leader, Profile};
+use formation_leader::{Leader, Profile, Trajectory};
 use formation_plant::{Disturbance, NoiseCov, Pose, RobotParams, Velocity};
 use serde::Serialize;
 
@@ -221,6 +222,11 @@ pub struct Scenario {
     pub leader_pose: Pose,
     /// `leader.waypoints` (empty unless the trajectory is `waypoints`).
     pub leader_route: Arc<[[f64; 2]]>,
+    /// `leader.source = "recorded"`: the leader's state at every step of
+    /// the run (empty for any other source; docs/model.md §18).
+    pub leader_recording: Arc<[LeaderState]>,
+    /// `cmd_vel`, `robot`: the leader stops once its input has been silent this long, s.
+    pub leader_timeout_s: f64,
     pub followers: Vec<FollowerSpec>,
     /// `[[formation.shapes]]`, each with its assignment (docs/model.md §17).
     pub shapes: Vec<ShapeChange>,
@@ -313,6 +319,9 @@ impl Scenario {
     }
 
     pub fn leader(&self) -> Leader {
+        if self.leader_profile.trajectory == Trajectory::Recorded {
+            return Leader::recorded(Arc::clone(&self.leader_recording));
+        }
         Leader::with_route(self.leader_profile, self.leader_pose, Arc::clone(&self.leader_route))
     }
 
@@ -492,6 +501,41 @@ impl Scenario {
         self.odom_frame.replace("{id}", &id.to_string())
     }
 
+    /// The frame a leader robot's odometry must carry (`leader.source =
+    /// "robot"`): `ros2.odom_frame` with the follower's prefix made the
+    /// leader's (`leader/odom` by default; a bare `odom` stays `odom`).
+    pub fn leader_odom_frame(&self) -> String {
+        self.odom_frame.replace("follower_{id}", "leader").replace("{id}", "0")
+    }
+
+    /// Where a leader robot's odometry frame sits in the world: at the
+    /// leader's pose with `robot.odom_origin = "start"`, else the world's.
+    pub fn leader_odom_origin(&self) -> Option<Pose> {
+        (self.source.robot.odom_origin.as_deref() == Some("start")).then_some(self.leader_pose)
+    }
+
+    /// This scenario with its leader played from a record (`leader.source =
+    /// "recorded"`): a run folder or its `leader.csv`, checked against `dt`
+    /// and the run's length (docs/model.md §18). A run steered live is
+    /// replayed and explained this way.
+    pub fn with_recorded_leader(self, path: &Path) -> Result<Self, String> {
+        let states = crate::recorded::read(path, self.dt_s, self.steps())?;
+        Ok(self.with_leader_states(states.into()))
+    }
+
+    /// This scenario with its leader's state at every step given (row k at step k).
+    pub fn with_leader_states(mut self, states: Arc<[LeaderState]>) -> Self {
+        self.leader_recording = states;
+        self.leader_profile = Profile { trajectory: Trajectory::Recorded, ramp_s: 0.0 };
+        self
+    }
+
+    /// `leader.source` when it steers the leader while the run goes
+    /// (`cmd_vel`, `robot`), for the commands that cannot take one.
+    pub fn live_leader(&self) -> Option<&str> {
+        self.leader_profile.is_live().then_some(self.source.leader.source.as_str())
+    }
+
     /// The followers the one at `index` exchanges messages with, by index:
     /// its neighbours, and with the safety filter on every other follower
     /// (their robots' poses, docs/model.md §16). Who dials whom follows it.
@@ -523,7 +567,6 @@ mod tests {
     use crate::syntax::find_line;
     use formation_control::{DeadlockRule, Limits, RejoinPolicy, RejoinRule};
     use formation_plant::Drive;
-    use std::path::Path;
 
     /// The warning names what helps here, measured: on the 50-ring at
     /// 10 ms a delay of one step grows ×1.30 a second, no delay is stable

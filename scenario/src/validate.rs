@@ -2,17 +2,21 @@
 //! every bound, the graph against Lemma 1, the fault table, the safety
 //! filter; an error names the field, its line or the `--set` that gave it.
 
+use std::path::Path;
 use std::sync::Arc;
 
 use formation_control::{
     ControlParams, DeadlockRule, DynamicGains, EstimatorGains, Fault, FilterParams, Frame, Guard, KinematicGains,
     Limits, RejoinPolicy, RejoinRule, SafetyParams, Shunting,
 };
-use formation_leader::{Profile, Trajectory};
+use formation_leader::{LeaderState, Profile, Trajectory};
 use formation_plant::{Disturbance, Drive, NoiseCov, Pose, RobotParams, Velocity};
 
 use crate::error::ScenarioError;
-use crate::file::{LeaderFile, RobotModel, SafetyFile, ScenarioFile, ShapeFile, DEFAULT_CMD_TIMEOUT_S, DEFAULT_LAG_S};
+use crate::file::{
+    LeaderFile, RobotModel, SafetyFile, ScenarioFile, ShapeFile, DEFAULT_CMD_TIMEOUT_S, DEFAULT_LAG_S,
+    DEFAULT_LEADER_TIMEOUT_S,
+};
 use crate::graph::Graph;
 use crate::shape::{assign, closest, named, total_cost, MAX_ASSIGNED, SHAPES};
 
@@ -130,6 +134,11 @@ pub(crate) fn validate(
         other => return Err(c.fail("timing", format!("`{other}` is not one of: lockstep, realtime"))),
     };
     let (leader_profile, leader_pose) = validate_leader(&c, &file.leader)?;
+    let leader_timeout_s = validate_source(&c, &file.leader, leader_profile, timing)?;
+    let leader_recording = match leader_profile.trajectory {
+        Trajectory::Recorded => read_recording(&c, &file)?,
+        _ => Arc::from([]),
+    };
     validate_table_sizes(&c, &file)?;
     let followers = validate_followers(&c, &file, leader_pose)?;
     let graph = validate_graph(&c, &file, &followers)?;
@@ -167,6 +176,8 @@ pub(crate) fn validate(
         leader_profile,
         leader_pose,
         leader_route: file.leader.waypoints.clone().into(),
+        leader_recording,
+        leader_timeout_s,
         followers,
         shapes,
         graph,
@@ -485,6 +496,28 @@ pub(crate) fn validate_leader(c: &Check<'_>, l: &LeaderFile) -> Result<(Profile,
     c.non_negative("leader.ramp", &[l.ramp])?;
     c.finite("leader.speed", &[l.speed])?;
     c.finite("leader.radius", &[l.radius])?;
+    let trajectory = match l.source.as_str() {
+        "trajectory" => validate_trajectory(c, l)?,
+        "cmd_vel" => {
+            let turn_rate = l.turn_rate.unwrap_or(1.0);
+            c.positive("leader.speed", &[l.speed])?;
+            c.bounded("leader.speed", &[l.speed], MAX_SPEED, "m/s")?;
+            c.positive("leader.turn_rate", &[turn_rate])?;
+            Trajectory::Commanded { speed_mps: l.speed, turn_rate }
+        }
+        "robot" => Trajectory::External,
+        "recorded" => Trajectory::Recorded,
+        other => {
+            return Err(
+                c.fail("leader.source", format!("`{other}` is not one of: trajectory, cmd_vel, robot, recorded"))
+            )
+        }
+    };
+    Ok((Profile { trajectory, ramp_s: l.ramp }, Pose::new(l.pose[0], l.pose[1], l.pose[2])))
+}
+
+/// `leader.trajectory` and its keys, for `source = "trajectory"`.
+fn validate_trajectory(c: &Check<'_>, l: &LeaderFile) -> Result<Trajectory, ScenarioError> {
     let trajectory = match l.trajectory.as_str() {
         "paper" => Trajectory::Paper,
         "line" => Trajectory::Line { speed_mps: l.speed },
@@ -507,11 +540,49 @@ pub(crate) fn validate_leader(c: &Check<'_>, l: &LeaderFile) -> Result<(Profile,
     ];
     match route_keys.iter().find(|(_, given)| *given) {
         Some((key, _)) if l.trajectory != "waypoints" => {
-            return Err(c.fail(&format!("leader.{key}"), "only for trajectory = \"waypoints\""))
+            Err(c.fail(&format!("leader.{key}"), "only for trajectory = \"waypoints\""))
         }
-        _ => {}
+        _ => Ok(trajectory),
     }
-    Ok((Profile { trajectory, ramp_s: l.ramp }, Pose::new(l.pose[0], l.pose[1], l.pose[2])))
+}
+
+/// A source's own keys (`recorded`, `timeout`) only with it; a live source
+/// (`cmd_vel`, `robot`) only in real time. The time-out, s.
+fn validate_source(c: &Check<'_>, l: &LeaderFile, p: Profile, timing: Timing) -> Result<f64, ScenarioError> {
+    let live = p.is_live();
+    if l.recorded.is_some() != (p.trajectory == Trajectory::Recorded) {
+        return Err(match l.recorded {
+            Some(_) => c.fail("leader.recorded", "only for source = \"recorded\""),
+            None => c.fail("leader.recorded", "missing: source = \"recorded\" plays a run folder or its leader.csv"),
+        });
+    }
+    // A live scenario played again (`--set leader.source=recorded`) keeps its time-out, unused.
+    if l.timeout.is_some() && p.trajectory != Trajectory::Recorded && !live {
+        return Err(c.fail("leader.timeout", "only for source = \"cmd_vel\" or \"robot\""));
+    }
+    if live && timing == Timing::Lockstep {
+        return Err(c.fail_with(
+            "leader.source",
+            &["timing"],
+            format!(
+                "`{}` steers the leader while the run goes: it runs in real time (timing = \"realtime\"); \
+                 lock-step plays such a run again from its record (source = \"recorded\")",
+                l.source
+            ),
+        ));
+    }
+    let timeout = l.timeout.unwrap_or(DEFAULT_LEADER_TIMEOUT_S);
+    c.positive("leader.timeout", &[timeout])?;
+    Ok(timeout)
+}
+
+/// `source = "recorded"`: the record, read and checked against `dt` and the run's length.
+fn read_recording(c: &Check<'_>, file: &ScenarioFile) -> Result<Arc<[LeaderState]>, ScenarioError> {
+    let path = file.leader.recorded.as_deref().unwrap_or_default();
+    let steps = (file.duration / file.dt).round() as u64;
+    crate::recorded::read(Path::new(path), file.dt, steps)
+        .map(Arc::from)
+        .map_err(|e| c.fail_with("leader.recorded", &["dt", "duration"], e))
 }
 
 /// `trajectory = "waypoints"` (docs/model.md §17, eq. 17.6): a route of at

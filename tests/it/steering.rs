@@ -3,6 +3,9 @@
 //! the robots the slots that cost least and the safety filter keeps them
 //! apart while they change places, `scenarios/doorway.toml` passes its door
 //! as a column, and lock-step runs equal `formation sim` byte for byte.
+//! A leader played from a run's record (docs/model.md §18) is that run's
+//! leader bit for bit, in `sim` and in lock-step; the live sources' bad
+//! inputs are one line and exit 2.
 
 use std::path::Path;
 use std::process::Command;
@@ -224,4 +227,83 @@ fn bad_frames_shapes_and_routes_are_one_line_and_exit_2() {
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("leader.reach: only for trajectory = \"waypoints\""), "{err}");
     assert!(!dir.path().join("x").exists(), "a refused scenario wrote a folder");
+}
+
+/// A run's leader record played again (`leader.source = "recorded"`):
+/// `formation sim` writes every file of the run it came from byte for
+/// byte, and a lock-step run with it equals that sim and replays.
+#[test]
+fn a_recorded_leader_is_its_run_again_in_sim_and_in_lock_step() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scenario = turtlebot_in_the_leaders_frame(dir.path());
+    let first = dir.path().join("first");
+    sim(&scenario, &first, &[]);
+    let recorded = format!("leader.recorded=\"{}\"", first.display());
+    let again = dir.path().join("again");
+    sim(&scenario, &again, &["leader.source=recorded", &recorded]);
+    common::same_files(&again, &first, "the run simulated again from its leader's record");
+
+    let out = dir.path().join("run");
+    let o = out.display().to_string();
+    let log = dir.path().join("launch.log");
+    let args = ["launch", &scenario, "-q", "--out", &o, "--set", "leader.source=recorded", "--set", &recorded];
+    let mut run = Group::spawn_logged(&args, &log);
+    let status = run.wait(LIMIT * 2);
+    let said = std::fs::read_to_string(&log).unwrap_or_default();
+    assert!(status.success(), "launch with a recorded leader: {status}\n{said}");
+    run.assert_group_empty();
+    common::same_files(&out, &first, "the lock-step run with a recorded leader");
+    common::replays_byte_for_byte("a recorded leader, lock-step", &out);
+}
+
+#[test]
+fn bad_leader_sources_and_records_are_one_line_and_exit_2() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let record = |name: &str, text: &str| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).expect("write");
+        format!("leader.recorded=\"{}\"", p.display())
+    };
+    let fine_dt = record("fine.csv", "t,x,y,theta,v,w\n0,0,0,0,0,0\n0.01,0,0,0,0,0\n");
+    let short = record("short.csv", "t,x,y,theta,v,w\n0,0,0,0,0,0\n0.02,0,0,0,0,0\n");
+    let not_csv = record("notes.txt", "hello\n");
+    let missing = format!("leader.recorded=\"{}\"", dir.path().join("nowhere").display());
+    let cases: [(&[&str], &str); 9] = [
+        (&["leader.source=joystick"], "`joystick` is not one of: trajectory, cmd_vel, robot, recorded"),
+        (&["leader.source=cmd_vel"], "it runs in real time (timing = \"realtime\")"),
+        (&["leader.source=cmd_vel", "timing=realtime"], "`formation sim` plays such a run again from its record"),
+        (&["leader.source=robot", "timing=realtime", "leader.timeout=0"], "leader.timeout: must be positive"),
+        (&["leader.source=recorded"], "leader.recorded: missing"),
+        (&["leader.source=recorded", &fine_dt], "its steps are 0.01 s apart; the scenario's dt is 0.02 s"),
+        (&["leader.source=recorded", &short], "it ends at t = 0.02 s (1 steps); the scenario runs 60 s"),
+        (&["leader.source=recorded", &not_csv], "not a leader record"),
+        (&["leader.source=recorded", &missing], "No such file"),
+    ];
+    for (sets, want) in cases {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_formation"));
+        c.args(["sim", TURTLEBOT, "-q", "--out"]).arg(dir.path().join("x"));
+        for s in sets {
+            c.args(["--set", s]);
+        }
+        let o = c.output().expect("formation sim");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "--set {sets:?}: {err}");
+        assert_eq!(err.lines().count(), 1, "--set {sets:?}: one line, got:\n{err}");
+        assert!(err.contains(want), "--set {sets:?}: {err}");
+        assert!(!dir.path().join("x").exists(), "--set {sets:?}: no run folder for a refused scenario");
+    }
+    // The limits of cmd_vel, and a standby for a leader that nobody but it hears.
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["sim", "teleop", "-q", "--set", "leader.turn_rate=-1", "--out"])
+        .arg(dir.path().join("y"))
+        .output()
+        .expect("formation sim");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(2) && err.contains("leader.turn_rate: must be positive, got -1"), "{err}");
+    let o = Command::new(env!("CARGO_BIN_EXE_leader"))
+        .args(["--scenario", "teleop", "--standby", "--run", "standby-refused"])
+        .output()
+        .expect("leader --standby");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(2) && err.contains("cannot be taken over"), "leader --standby: {err}");
 }

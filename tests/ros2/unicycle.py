@@ -30,6 +30,7 @@ def main():
     ap.add_argument("--connect", required=True)
     ap.add_argument("--domain", type=int, default=0)
     ap.add_argument("--id", type=int, required=True)
+    ap.add_argument("--namespace", default=None, help="its topics' namespace (default follower_<id>; `leader` for a leader robot)")
     ap.add_argument("--pose", type=float, nargs=3, default=[0.0, 0.0, 0.0])
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--seconds", type=float, default=20.0, help="at most this long (SIGTERM ends it earlier)")
@@ -42,7 +43,7 @@ def main():
 
     store = get_typestore(Stores.ROS2_JAZZY)
     T = store.types
-    ns = f"follower_{a.id}"
+    ns = a.namespace or f"follower_{a.id}"
 
     def key(topic, typename):
         pkg, kind, name = typename.split("/")

@@ -551,6 +551,12 @@ const MODEL_MAX_FOLLOWER_STEPS: u64 = 3_000_000;
 /// run (the simulator on the same scenario: delay, loss and fault table),
 /// or why the model was not run.
 pub fn model_errors(scenario: &Scenario) -> Result<BTreeMap<u32, Option<f64>>, String> {
+    if let Some(source) = scenario.live_leader() {
+        return Err(format!(
+            "the leader was steered live (leader.source = \"{source}\") and not every step of it was recorded: \
+             no model to judge the run by"
+        ));
+    }
     let n = scenario.followers.len() as u64 * (scenario.steps() + 1);
     if n > MODEL_MAX_FOLLOWER_STEPS {
         return Err(format!(

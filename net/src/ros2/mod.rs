@@ -10,10 +10,12 @@
 //! - [`driven`]: a robot the agent drives through `cmd_vel` and `odom`
 //!   instead of simulating it (the [`crate::agent::Body`] of such a follower).
 //! - [`robot`]: `formation robot`, the stand-in robot that speaks ROS 2.
+//! - [`steer`]: a live leader's input (`/leader/cmd_vel`, `/leader/odom`).
 
 pub mod driven;
 pub mod rmw_node;
 pub mod robot;
+pub mod steer;
 pub mod topics;
 
 /// The namespace of follower `id`'s topics (`/follower_<id>`).

@@ -1,0 +1,86 @@
+//! A live leader's input on ROS 2's wire (docs/model.md §18): with
+//! `leader.source = "cmd_vel"` the leader node subscribes
+//! `/leader/cmd_vel` (geometry_msgs/Twist, as `teleop_twist_keyboard` and
+//! `joy`'s teleop publish it); with `"robot"`, `/leader/odom`
+//! (nav_msgs/Odometry of the leader robot, in `ros2.odom_frame`'s leader
+//! frame, mapped into the world from `robot.odom_origin`). Each message
+//! goes to the leader machine with the time it arrived; the machine
+//! clips, counts and times out ([`formation_protocol::steering`]).
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use formation_leader::Trajectory;
+use formation_plant::{Pose, Velocity};
+use formation_protocol::leader::LeaderMachine as Machine;
+use formation_ros2::msgs::{Odometry, Twist};
+use formation_scenario::Scenario;
+
+use super::rmw_node::{RosNode, RosSubscription};
+use super::topics::{OdomFrame, QOS};
+use crate::clock::Timebase;
+use crate::node::Shared;
+use formation_exit::Error;
+
+/// The leader's subscription to its source, and what it could not read.
+pub struct Steered {
+    _node: RosNode,
+    _subscription: RosSubscription,
+    /// Messages that did not decode, or came in another frame.
+    pub refused: Arc<AtomicU64>,
+}
+
+/// Subscribes the source of a live leader (None for a scripted one), on
+/// `ros2.domain_id` (0 without a `[ros2]` table).
+pub async fn subscribe(
+    session: &zenoh::Session,
+    scenario: &Scenario,
+    shared: &Arc<Shared<Machine>>,
+    timebase: &Timebase,
+) -> Result<Option<Steered>, Error> {
+    let domain = scenario.ros2.map_or(0, |r| r.domain_id);
+    let refused = Arc::new(AtomicU64::new(0));
+    let (sh, tb, bad) = (shared.clone(), timebase.clone(), refused.clone());
+    let subscription = match scenario.leader_profile.trajectory {
+        Trajectory::Commanded { .. } => {
+            let node = RosNode::declare(session, domain, super::LEADER_NAMESPACE, "leader_input").await?;
+            let sub = node
+                .subscribe::<Twist, _>("cmd_vel", QOS, move |m, _| match m {
+                    Ok(t) => sh.lock().handle_command(Velocity::new(t.linear.x, t.angular.z), tb.now()),
+                    Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
+                })
+                .await?;
+            (node, sub)
+        }
+        Trajectory::External => {
+            let node = RosNode::declare(session, domain, super::LEADER_NAMESPACE, "leader_input").await?;
+            let (frame_id, origin) =
+                (scenario.leader_odom_frame(), OdomFrame { origin: scenario.leader_odom_origin() });
+            let said = std::sync::Once::new();
+            let sub = node
+                .subscribe::<Odometry, _>("odom", QOS, move |m, _| match m {
+                    Ok(m) if m.header.frame_id == frame_id => {
+                        let p = &m.pose.pose;
+                        let pose = origin.world(Pose::new(p.position.x, p.position.y, p.orientation.yaw()));
+                        let twist = Velocity::new(m.twist.twist.linear.x, m.twist.twist.angular.z);
+                        sh.lock().handle_leader_odometry(pose, twist, tb.now());
+                    }
+                    Ok(m) => {
+                        bad.fetch_add(1, Ordering::Relaxed);
+                        said.call_once(|| {
+                            crate::node::say(&format!(
+                                "leader: the leader robot's odometry in frame `{}` is refused (expected `{frame_id}`: \
+                                 ros2.odom_frame); every such message is dropped and counted",
+                                m.header.frame_id
+                            ))
+                        });
+                    }
+                    Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
+                })
+                .await?;
+            (node, sub)
+        }
+        _ => return Ok(None),
+    };
+    Ok(Some(Steered { _node: subscription.0, _subscription: subscription.1, refused }))
+}

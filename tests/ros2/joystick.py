@@ -1,0 +1,92 @@
+"""A joystick that is not the formation's code: geometry_msgs/Twist on
+`/leader/cmd_vel` over rmw_zenoh's wire (Python eclipse-zenoh and rosbags'
+CDR, with the 33-byte attachment and liveliness tokens), as `joy`'s teleop
+node publishes it, at --rate Hz. It waits until the topic --wait-for
+(e.g. follower_1/odom) carries a message, so that the script plays while
+the run goes however long its start took; then it plays the --script
+phases, each `seconds:v:w`, and falls silent (it sends no zero: the leader
+must stop on its own time-out). --out gets what it sent.
+
+    python joystick.py --connect tcp/127.0.0.1:7447 --wait-for follower_1/odom \
+        --script 6:0.3:0 6:0.1:0.25 --rate 20 --out joystick.json
+"""
+import argparse
+import hashlib
+import json
+import struct
+import sys
+import threading
+import time
+
+import zenoh
+from rosbags.typesys import Stores, get_typestore
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--connect", required=True)
+    ap.add_argument("--domain", type=int, default=0)
+    ap.add_argument("--wait-for", required=True, help="a topic (without the leading /) whose first message starts the script")
+    ap.add_argument("--wait-type", default="nav_msgs/msg/Odometry")
+    ap.add_argument("--script", nargs="+", required=True, help="phases seconds:v:w")
+    ap.add_argument("--rate", type=float, default=20.0)
+    ap.add_argument("--give-up", type=float, default=120.0, help="s to wait for --wait-for (a hang guard)")
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args()
+    phases = [tuple(float(x) for x in p.split(":")) for p in a.script]
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T = store.types
+    twist_t = "geometry_msgs/msg/Twist"
+
+    def key(topic, typename):
+        pkg, kind, name = typename.split("/")
+        return f"{a.domain}/{topic}/{pkg}::{kind}::dds_::{name}_/{store.hash_rihs01(typename)}"
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([a.connect]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    zid = str(session.info.zid())
+    ns = "/teleop"
+    hash_ = store.hash_rihs01(twist_t)
+    pkg, k, name = twist_t.split("/")
+    pub_token = (f"@ros2_lv/{a.domain}/{zid}/0/1/MP/%/%teleop/joystick/%leader%cmd_vel/"
+                 f"{pkg}::{k}::dds_::{name}_/{hash_}/::,10:,:,:,,")
+    tokens = [
+        session.liveliness().declare_token(f"@ros2_lv/{a.domain}/{zid}/0/0/NN/%/%teleop/joystick"),
+        session.liveliness().declare_token(pub_token),
+    ]
+    gid = hashlib.sha256(pub_token.encode()).digest()[:16]
+    pub = session.declare_publisher(key("leader/cmd_vel", twist_t))
+
+    started = threading.Event()
+    sub = session.declare_subscriber(key(a.wait_for, a.wait_type), lambda _s: started.set())
+    if not started.wait(a.give_up):
+        print(f"joystick: nothing on /{a.wait_for} within {a.give_up} s", file=sys.stderr)
+        sys.exit(1)
+    print(f"joystick: /{a.wait_for} heard: playing {len(phases)} phase(s)", file=sys.stderr, flush=True)
+    V3 = T["geometry_msgs/msg/Vector3"]
+    sent, seq, tick = [], 1, time.monotonic()
+    for seconds, v, w in phases:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            msg = T[twist_t](linear=V3(x=v, y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=w))
+            now = time.time_ns()
+            pub.put(bytes(store.serialize_cdr(msg, twist_t)), attachment=struct.pack("<qq", seq, now) + bytes([16]) + gid)
+            sent.append([now, v, w])
+            seq += 1
+            tick += 1.0 / a.rate
+            time.sleep(max(0.0, tick - time.monotonic()))
+    sub.undeclare()
+    for t in tokens:
+        t.undeclare()
+    session.close()
+    with open(a.out, "w") as f:
+        json.dump({"sent": sent}, f)
+    print(f"joystick: {len(sent)} commands sent, then silent", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
