@@ -54,6 +54,11 @@ pub enum Trajectory {
     /// ([`Leader::steer`]), each clipped to |v| ≤ `speed_mps`, |ω| ≤
     /// `turn_rate` ([`Profile::clip`]); silent input stops it.
     Commanded { speed_mps: f64, turn_rate: f64 },
+    /// Through the newest route a planner sent (`leader.source = "path"`,
+    /// a nav_msgs/Path on `/leader/path`), by eq. 17.6 as
+    /// [`Trajectory::Waypoints`]; it stands until the first, and at the
+    /// last point of each.
+    Routed { speed_mps: f64, turn_rate: f64, turn_gain: f64, reach_m: f64 },
     /// An external robot (`leader.source = "robot"`): pose and velocities
     /// are its odometry's ([`Leader::steer`] with [`Input::Odometry`]), not
     /// integrated here; silent odometry holds the last pose at rest.
@@ -64,8 +69,11 @@ pub enum Trajectory {
 }
 
 /// What steers a leader that is not scripted, at one step.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub enum Input {
+    /// A new route ([`Trajectory::Routed`]): driven from its first point
+    /// (the same route again changes nothing).
+    Route(Arc<[[f64; 2]]>),
     /// A velocity command (v, ω), already clipped ([`Profile::clip`]).
     Command(Velocity),
     /// The leader robot's odometry: its pose in the world and its twist.
@@ -104,7 +112,9 @@ impl Profile {
             Trajectory::Circle { speed_mps, radius_m } => (speed_mps, speed_mps / radius_m),
             // The route's law needs the pose, a steered leader its input: `Leader::state`.
             Trajectory::Waypoints { speed_mps, .. } => (speed_mps, 0.0),
-            Trajectory::Commanded { .. } | Trajectory::External | Trajectory::Recorded => (0.0, 0.0),
+            Trajectory::Commanded { .. } | Trajectory::Routed { .. } | Trajectory::External | Trajectory::Recorded => {
+                (0.0, 0.0)
+            }
             Trajectory::FigureEight { speed_mps, radius_m } => {
                 let loop_s = 2.0 * std::f64::consts::PI * radius_m.abs() / speed_mps.abs();
                 let turn = if (t_s / loop_s).floor() as i64 % 2 == 0 { 1.0 } else { -1.0 };
@@ -122,7 +132,8 @@ impl Profile {
             | Trajectory::Circle { speed_mps, .. }
             | Trajectory::FigureEight { speed_mps, .. }
             | Trajectory::Waypoints { speed_mps, .. }
-            | Trajectory::Commanded { speed_mps, .. } => speed_mps.abs(),
+            | Trajectory::Commanded { speed_mps, .. }
+            | Trajectory::Routed { speed_mps, .. } => speed_mps.abs(),
             // What a robot or a recording did is not bounded by the scenario.
             Trajectory::External | Trajectory::Recorded => f64::INFINITY,
         }
@@ -144,7 +155,7 @@ impl Profile {
     /// Whether the leader is steered from outside while the run goes (a
     /// command or a robot): such a run is simulated again from its record.
     pub fn is_live(&self) -> bool {
-        matches!(self.trajectory, Trajectory::Commanded { .. } | Trajectory::External)
+        matches!(self.trajectory, Trajectory::Commanded { .. } | Trajectory::Routed { .. } | Trajectory::External)
     }
 }
 
@@ -205,6 +216,7 @@ impl Leader {
     pub fn steer(&mut self, input: Input) {
         match (self.profile.trajectory, input) {
             (Trajectory::Commanded { .. }, Input::Command(c)) => self.steered = c,
+            (Trajectory::Routed { .. }, Input::Route(r)) if r != self.route => (self.route, self.next) = (r, 0),
             (Trajectory::External, Input::Odometry { pose, twist }) => (self.pose, self.steered) = (pose, twist),
             (Trajectory::Commanded { .. } | Trajectory::External, Input::Silent) => {
                 self.steered = Velocity::new(0.0, 0.0)
@@ -224,6 +236,10 @@ impl Leader {
         let Velocity { v, w } = match self.profile.trajectory {
             Trajectory::Waypoints { speed_mps, turn_rate, turn_gain, .. } => {
                 self.route_velocity(speed_mps, turn_rate, turn_gain, t_s)
+            }
+            // A planner's route: no start-up ramp (it comes while the run goes).
+            Trajectory::Routed { speed_mps, turn_rate, turn_gain, .. } => {
+                self.route_velocity(speed_mps, turn_rate, turn_gain, f64::INFINITY)
             }
             Trajectory::Commanded { .. } | Trajectory::External => self.steered,
             Trajectory::Recorded => return self.recording_at(self.next),
@@ -262,7 +278,11 @@ impl Leader {
         self.pose.x += dt_s * state.pose_rate.x;
         self.pose.y += dt_s * state.pose_rate.y;
         self.pose.theta += dt_s * state.pose_rate.theta;
-        if let (Trajectory::Waypoints { reach_m, .. }, Some([gx, gy])) = (self.profile.trajectory, self.heading_for()) {
+        let reach = match self.profile.trajectory {
+            Trajectory::Waypoints { reach_m, .. } | Trajectory::Routed { reach_m, .. } => Some(reach_m),
+            _ => None,
+        };
+        if let (Some(reach_m), Some([gx, gy])) = (reach, self.heading_for()) {
             if (gx - self.pose.x).hypot(gy - self.pose.y) < reach_m {
                 self.next += 1;
             }
@@ -446,5 +466,33 @@ mod tests {
         }
         let past = again.state(1.0);
         assert_eq!((past.pose, past.v, past.w), (rows[49].pose, 0.0, 0.0));
+    }
+
+    #[test]
+    fn a_routed_leader_stands_until_a_route_comes_and_takes_a_new_one_from_its_start() {
+        let profile = Profile {
+            trajectory: Trajectory::Routed { speed_mps: 0.2, turn_rate: 1.0, turn_gain: 2.0, reach_m: 0.1 },
+            ramp_s: 0.5,
+        };
+        assert!(profile.is_live());
+        let mut leader = Leader::new(profile, Pose::default());
+        let s = leader.state(0.0);
+        assert_eq!((s.v, s.w), (0.0, 0.0), "no route yet: it stands");
+        let route: Arc<[[f64; 2]]> = Arc::from([[1.0, 0.0], [1.0, 1.0]]);
+        leader.steer(Input::Route(route.clone()));
+        let dt = 0.01;
+        for k in 0..600 {
+            leader.steer(Input::Silent);
+            let s = leader.state(k as f64 * dt);
+            assert!(s.v <= 0.2 && s.w.abs() <= 1.0);
+            leader.advance(&s, dt);
+        }
+        assert_eq!(leader.heading_for(), Some([1.0, 1.0]), "past the first point after 6 s at 0.2 m/s");
+        leader.steer(Input::Route(route));
+        assert_eq!(leader.heading_for(), Some([1.0, 1.0]), "the same route again changes nothing");
+        leader.steer(Input::Route(Arc::from([[0.0, 0.0]])));
+        assert_eq!(leader.heading_for(), Some([0.0, 0.0]), "a new route is driven from its start");
+        leader.steer(Input::Route(Arc::from([])));
+        assert_eq!(leader.state(4.0).v, 0.0, "an empty route stops it");
     }
 }

@@ -188,7 +188,8 @@ impl LeaderMachine {
             took_over: None,
             term: FIRST_TERM,
             stood_down_at: None,
-            steering: Steering::of(scenario.leader_profile, Duration::from_secs_f64(scenario.leader_timeout_s)),
+            steering: Steering::of(scenario.leader_profile, Duration::from_secs_f64(scenario.leader_timeout_s))
+                .map(|s| s.within(scenario.source.safety.as_ref().and_then(|s| s.arena))),
         }
     }
 
@@ -205,6 +206,14 @@ impl LeaderMachine {
     pub fn handle_leader_odometry(&mut self, pose: Pose, twist: Velocity, now: Now) {
         if let Some(s) = self.steering.as_mut() {
             s.odometry(pose, twist, now);
+        }
+    }
+
+    /// A live leader (`leader.source = "path"`): a planner's route (its
+    /// points in the world) heard at `now`, driven from the next step on.
+    pub fn handle_path(&mut self, points: Vec<[f64; 2]>, now: Now) {
+        if let Some(line) = self.steering.as_mut().and_then(|s| s.route(points, now)) {
+            self.say.push_back(line);
         }
     }
 

@@ -6,6 +6,7 @@
 //! stops the leader, and the operator is told when it falls silent and
 //! when it is heard again. No clock: time is an argument.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use formation_leader::{Input, Profile};
@@ -18,6 +19,7 @@ pub fn topic_of(profile: &Profile) -> Option<&'static str> {
     use formation_leader::Trajectory;
     match profile.trajectory {
         Trajectory::Commanded { .. } => Some("/leader/cmd_vel"),
+        Trajectory::Routed { .. } => Some("/leader/path"),
         Trajectory::External => Some("/leader/odom"),
         _ => None,
     }
@@ -45,6 +47,10 @@ pub struct Steering {
     latest: Option<(Input, Now)>,
     /// Whether the leader stands for want of input (said once per silence).
     silent: bool,
+    /// A planner's route not yet taken by the leader.
+    route: Option<Arc<[[f64; 2]]>>,
+    /// Where a route's points must lie: x ∈ [x0, x1], y ∈ [y0, y1].
+    arena: Option<[f64; 4]>,
     pub counts: SteerCounts,
 }
 
@@ -53,7 +59,44 @@ impl Steering {
     /// input goes stale after `timeout`.
     pub fn of(profile: Profile, timeout: Duration) -> Option<Self> {
         let topic = topic_of(&profile)?;
-        Some(Self { profile, topic, timeout, latest: None, silent: true, counts: SteerCounts::default() })
+        let counts = SteerCounts::default();
+        Some(Self { profile, topic, timeout, latest: None, silent: true, route: None, arena: None, counts })
+    }
+
+    /// Routes must keep inside `arena` ([x0, x1, y0, y1], `safety.arena`).
+    pub fn within(mut self, arena: Option<[f64; 4]>) -> Self {
+        self.arena = arena;
+        self
+    }
+
+    /// A planner's route heard at `now` (its points in the world, in
+    /// order): taken for the next step, or refused, and the first refusal
+    /// named, for a point that is not finite or lies outside the arena.
+    pub fn route(&mut self, points: Vec<[f64; 2]>, _now: Now) -> Option<String> {
+        let outside = |p: &[f64; 2]| {
+            !(p[0].is_finite() && p[1].is_finite())
+                || self.arena.is_some_and(|[x0, x1, y0, y1]| p[0] < x0 || p[0] > x1 || p[1] < y0 || p[1] > y1)
+        };
+        if let Some(i) = points.iter().position(outside) {
+            self.counts.refused += 1;
+            let where_ = match self.arena {
+                Some([x0, x1, y0, y1]) => format!("outside the arena x ∈ [{x0}, {x1}], y ∈ [{y0}, {y1}] or not finite"),
+                None => "not finite".into(),
+            };
+            return (self.counts.refused == 1).then(|| {
+                format!(
+                    "leader: a route on {} is refused: its point {} ({}, {}) is {where_}; the leader keeps its route, \
+                     and every such route is counted",
+                    self.topic,
+                    i + 1,
+                    points[i][0],
+                    points[i][1]
+                )
+            });
+        }
+        self.counts.taken += 1;
+        self.route = Some(points.into());
+        None
     }
 
     /// A velocity command (v, ω) heard at `now`: taken within the limits.
@@ -96,7 +139,11 @@ impl Steering {
     /// The input for the step computed at `now` (run time `t_s`), and a
     /// line to say when the input falls silent or is heard again.
     pub fn input(&mut self, now: Now, t_s: f64) -> (Input, Option<String>) {
-        let fresh = self.latest.filter(|(_, at)| now.saturating_sub(*at) <= self.timeout);
+        if let formation_leader::Trajectory::Routed { .. } = self.profile.trajectory {
+            // A route stands until the next: it does not go stale.
+            return (self.route.take().map_or(Input::Silent, Input::Route), None);
+        }
+        let fresh = self.latest.clone().filter(|(_, at)| now.saturating_sub(*at) <= self.timeout);
         let said = match (fresh.is_some(), self.silent) {
             (true, true) => {
                 self.silent = false;
@@ -120,6 +167,7 @@ impl Steering {
         let c = self.counts;
         let what = match self.profile.trajectory {
             formation_leader::Trajectory::Commanded { .. } => "commands",
+            formation_leader::Trajectory::Routed { .. } => "routes",
             _ => "odometry messages",
         };
         let clipped = match self.profile.trajectory {
@@ -128,6 +176,12 @@ impl Steering {
             }
             _ => String::new(),
         };
+        if let formation_leader::Trajectory::Routed { .. } = self.profile.trajectory {
+            return format!(
+                "leader: {} {what} taken from {}, {} refused (a point outside the arena or not finite)",
+                c.taken, self.topic, c.refused
+            );
+        }
         format!(
             "leader: {} {what} taken from {}{clipped}, {} refused (not finite); silent for {} s {} time(s)",
             c.taken,
@@ -199,5 +253,24 @@ mod tests {
         assert_eq!(s.input(Duration::ZERO, 0.0).0, Input::Odometry { pose, twist: Velocity::new(9.0, 0.0) });
         assert_eq!((s.counts.taken, s.counts.refused), (1, 1));
         assert!(s.summary().contains("1 odometry messages taken from /leader/odom"));
+    }
+
+    #[test]
+    fn a_route_is_taken_once_for_the_next_step_and_one_outside_the_arena_is_refused() {
+        let p = Profile {
+            trajectory: Trajectory::Routed { speed_mps: 0.2, turn_rate: 1.0, turn_gain: 2.0, reach_m: 0.1 },
+            ramp_s: 0.0,
+        };
+        let mut s = Steering::of(p, Duration::from_millis(500)).expect("live").within(Some([-2.0, 2.0, -1.0, 1.0]));
+        assert_eq!(s.input(Duration::ZERO, 0.0), (Input::Silent, None), "no route: nothing to take");
+        assert_eq!(s.route(vec![[1.0, 0.5], [1.5, -0.5]], Duration::ZERO), None);
+        let refused = s.route(vec![[1.0, 0.5], [3.0, 0.0]], Duration::ZERO).expect("named");
+        assert!(refused.contains("point 2 (3, 0) is outside the arena x ∈ [-2, 2], y ∈ [-1, 1]"), "{refused}");
+        assert_eq!(s.route(vec![[f64::NAN, 0.0]], Duration::ZERO), None, "later refusals are counted, not said");
+        let route: Arc<[[f64; 2]]> = Arc::from([[1.0, 0.5], [1.5, -0.5]]);
+        assert_eq!(s.input(Duration::from_secs(60), 60.0), (Input::Route(route), None), "a route never goes stale");
+        assert_eq!(s.input(Duration::from_secs(61), 61.0).0, Input::Silent, "taken once");
+        assert_eq!((s.counts.taken, s.counts.refused), (1, 2));
+        assert!(s.summary().contains("1 routes taken from /leader/path, 2 refused"), "{}", s.summary());
     }
 }

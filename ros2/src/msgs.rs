@@ -214,6 +214,14 @@ pub struct Odometry {
     pub twist: TwistWithCovariance,
 }
 
+/// nav_msgs/Path: poses to follow, in `header.frame_id` (a planner's
+/// answer, as Nav2 publishes it on `plan`).
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct Path {
+    pub header: Header,
+    pub poses: Vec<PoseStamped>,
+}
+
 /// tf2_msgs/TFMessage: the frames published on `/tf`.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct TFMessage {
@@ -310,6 +318,7 @@ macro_rules! text {
          geometry_msgs/PoseWithCovariance pose\ngeometry_msgs/TwistWithCovariance twist\n"
     };
     (TFMessage) => { "geometry_msgs/TransformStamped[] transforms\n" };
+    (Path) => { "std_msgs/Header header\ngeometry_msgs/PoseStamped[] poses\n" };
     (Clock) => { "builtin_interfaces/Time clock\n" };
 }
 
@@ -319,6 +328,7 @@ macro_rules! name {
     (Time) => { "builtin_interfaces/msg/Time" };
     (Header) => { "std_msgs/msg/Header" };
     (Odometry) => { "nav_msgs/msg/Odometry" };
+    (Path) => { "nav_msgs/msg/Path" };
     (TFMessage) => { "tf2_msgs/msg/TFMessage" };
     (Clock) => { "rosgraph_msgs/msg/Clock" };
     ($geometry:ident) => { concat!("geometry_msgs/msg/", stringify!($geometry)) };
@@ -410,5 +420,11 @@ message!(
     "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
     [TransformStamped, Header, Time, Transform, Vector3, Quaternion],
     { transforms }
+);
+message!(
+    Path,
+    "RIHS01_1957a5bb3cee5da65c4e52e52b65a93df227efce4c20f8458b36e73066ca334b",
+    [Header, Time, PoseStamped, Pose, Point, Quaternion],
+    {header, poses}
 );
 message!(Clock, "RIHS01_692f7a66e93a3c83e71765d033b60349ba68023a8c689a79e48078bcb5c58564", [Time], { clock });

@@ -505,11 +505,18 @@ pub(crate) fn validate_leader(c: &Check<'_>, l: &LeaderFile) -> Result<(Profile,
             c.positive("leader.turn_rate", &[turn_rate])?;
             Trajectory::Commanded { speed_mps: l.speed, turn_rate }
         }
+        "path" if !l.waypoints.is_empty() => {
+            return Err(c.fail("leader.waypoints", "not with source = \"path\": the route comes on /leader/path"))
+        }
+        "path" => {
+            let (speed_mps, turn_rate, turn_gain, reach_m) = route_limits(c, l)?;
+            Trajectory::Routed { speed_mps, turn_rate, turn_gain, reach_m }
+        }
         "robot" => Trajectory::External,
         "recorded" => Trajectory::Recorded,
         other => {
             return Err(
-                c.fail("leader.source", format!("`{other}` is not one of: trajectory, cmd_vel, robot, recorded"))
+                c.fail("leader.source", format!("`{other}` is not one of: trajectory, cmd_vel, path, robot, recorded"))
             )
         }
     };
@@ -556,8 +563,9 @@ fn validate_source(c: &Check<'_>, l: &LeaderFile, p: Profile, timing: Timing) ->
             None => c.fail("leader.recorded", "missing: source = \"recorded\" plays a run folder or its leader.csv"),
         });
     }
-    // A live scenario played again (`--set leader.source=recorded`) keeps its time-out, unused.
-    if l.timeout.is_some() && p.trajectory != Trajectory::Recorded && !live {
+    // A live scenario with another source (`--set leader.source=recorded`
+    // or `path`) keeps its time-out, unused; a scripted one has none.
+    if l.timeout.is_some() && l.source == "trajectory" {
         return Err(c.fail("leader.timeout", "only for source = \"cmd_vel\" or \"robot\""));
     }
     if live && timing == Timing::Lockstep {
@@ -594,6 +602,12 @@ fn validate_waypoints(c: &Check<'_>, l: &LeaderFile) -> Result<Trajectory, Scena
     for p in &l.waypoints {
         c.bounded("leader.waypoints", p, MAX_DISTANCE_M, "m")?;
     }
+    let (speed_mps, turn_rate, turn_gain, reach_m) = route_limits(c, l)?;
+    Ok(Trajectory::Waypoints { speed_mps, turn_rate, turn_gain, reach_m })
+}
+
+/// A route's law (eq. 17.6): speed, turn rate, k_θ and reach, each positive.
+fn route_limits(c: &Check<'_>, l: &LeaderFile) -> Result<(f64, f64, f64, f64), ScenarioError> {
     let (turn_rate, turn_gain, reach) =
         (l.turn_rate.unwrap_or(1.0), l.turn_gain.unwrap_or(2.0), l.reach.unwrap_or(0.1));
     c.positive("leader.speed", &[l.speed])?;
@@ -601,7 +615,7 @@ fn validate_waypoints(c: &Check<'_>, l: &LeaderFile) -> Result<Trajectory, Scena
     c.positive("leader.turn_rate", &[turn_rate])?;
     c.positive("leader.turn_gain", &[turn_gain])?;
     c.positive("leader.reach", &[reach])?;
-    Ok(Trajectory::Waypoints { speed_mps: l.speed, turn_rate, turn_gain, reach_m: reach })
+    Ok((l.speed, turn_rate, turn_gain, reach))
 }
 
 /// The route inside `[safety] arena`, where one is given.

@@ -268,8 +268,10 @@ fn bad_leader_sources_and_records_are_one_line_and_exit_2() {
     let short = record("short.csv", "t,x,y,theta,v,w\n0,0,0,0,0,0\n0.02,0,0,0,0,0\n");
     let not_csv = record("notes.txt", "hello\n");
     let missing = format!("leader.recorded=\"{}\"", dir.path().join("nowhere").display());
-    let cases: [(&[&str], &str); 9] = [
-        (&["leader.source=joystick"], "`joystick` is not one of: trajectory, cmd_vel, robot, recorded"),
+    let cases: [(&[&str], &str); 11] = [
+        (&["leader.source=joystick"], "`joystick` is not one of: trajectory, cmd_vel, path, robot, recorded"),
+        (&["leader.source=path", "timing=realtime", "leader.waypoints=[[1.0,0.0]]"], "the route comes on /leader/path"),
+        (&["leader.source=path", "timing=realtime", "leader.reach=0"], "leader.reach: must be positive"),
         (&["leader.source=cmd_vel"], "it runs in real time (timing = \"realtime\")"),
         (&["leader.source=cmd_vel", "timing=realtime"], "`formation sim` plays such a run again from its record"),
         (&["leader.source=robot", "timing=realtime", "leader.timeout=0"], "leader.timeout: must be positive"),

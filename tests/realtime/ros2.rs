@@ -832,3 +832,63 @@ fn an_external_leader_robot_driven_by_the_joystick_is_estimated() {
         assert!(e < 0.05, "follower {id}: its estimate is {e:.4} m from the leader robot at the end");
     }
 }
+
+/// A planner that is not this project's code (tests/ros2/planner.py)
+/// sends `teleop`'s leader a route on /leader/path (nav_msgs/Path), twice
+/// as planners repeat their plan, then one with a point outside the arena,
+/// twice: the leader drives the first by eq. 17.6 (it passes within reach
+/// of the first point and ends at the last), the same route again changes
+/// nothing, the other is refused and named. Its record plays it again
+/// byte for byte, and the run replays.
+#[test]
+fn a_planners_route_on_leader_path_is_driven_and_one_outside_the_arena_refused() {
+    let _cores = common::cores(common::Load::Light);
+    let Some(py) = common::ros2_python() else { return };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (_router, ep) = router();
+    let sent = tmp.path().join("planner.json").display().to_string();
+    let args = [
+        "--connect",
+        &ep,
+        "--wait-for",
+        "follower_1/odom",
+        "--route",
+        "0.8,0;0.8,0.4",
+        "--route",
+        "9,0",
+        "--repeat",
+        "2",
+        "--every",
+        "1",
+        "--out",
+        &sent,
+    ];
+    let mut planner = python(&py, "planner.py", &args, &tmp.path().join("p.log"));
+    let out = tmp.path().join("run");
+    let sets = ["leader.source=path", "safety.arena=[-3.0,3.0,-3.0,3.0]", "duration=30", "safety.filter=false"];
+    let said = teleop(&ep, &out, "ros2-planner", &sets, &tmp.path().join("launch.log"));
+    let status = planner.wait(common::LIMIT);
+    assert!(status.success(), "planner.py: {status}");
+    assert!(said.contains("its point 1 (9, 0) is outside the arena x ∈ [-3, 3], y ∈ [-3, 3]"), "{said}");
+    assert!(said.contains("leader: 2 routes taken from /leader/path, 2 refused"), "{said}");
+    let rows = leader_rows(&out);
+    let near = |x: f64, y: f64| rows.iter().map(|r| (r[1] - x).hypot(r[2] - y)).fold(f64::INFINITY, f64::min);
+    let (first, last) = (near(0.6, 0.0), near(1.0, 0.1));
+    assert!(first < 0.11, "the leader came {first:.3} m from the route's first point (reach 0.1 m)");
+    assert!(last < 0.05, "the leader came {last:.3} m from the route's last point");
+    let farthest = rows.iter().map(|r| r[1]).fold(f64::NEG_INFINITY, f64::max);
+    assert!(farthest < 1.1, "the leader went to x = {farthest:.2} m: the refused route was driven");
+    assert!(rows.iter().all(|r| r[4] <= 0.12 && r[5].abs() <= 0.08), "the leader kept its limits");
+    let again = tmp.path().join("again");
+    let recorded = format!("leader.recorded=\"{}\"", out.display());
+    let mut sim = Command::new(env!("CARGO_BIN_EXE_formation"));
+    sim.args(["sim", "teleop", "-q", "--out"]).arg(&again);
+    for s in sets.iter().copied().skip(1).chain(["leader.source=recorded", &recorded]) {
+        sim.args(["--set", s]);
+    }
+    let o = sim.output().expect("formation sim");
+    assert!(o.status.success(), "sim from the record: {}", String::from_utf8_lossy(&o.stderr));
+    let (run_leader, sim_leader) = (std::fs::read(out.join("leader.csv")), std::fs::read(again.join("leader.csv")));
+    assert!(run_leader.expect("run") == sim_leader.expect("sim"), "the record played again is another leader");
+    common::replays_byte_for_byte("a planner's run", &out);
+}

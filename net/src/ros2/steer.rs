@@ -3,7 +3,9 @@
 //! `/leader/cmd_vel` (geometry_msgs/Twist, as `teleop_twist_keyboard` and
 //! `joy`'s teleop publish it); with `"robot"`, `/leader/odom`
 //! (nav_msgs/Odometry of the leader robot, in `ros2.odom_frame`'s leader
-//! frame, mapped into the world from `robot.odom_origin`). Each message
+//! frame, mapped into the world from `robot.odom_origin`); with `"path"`,
+//! `/leader/path` (nav_msgs/Path in frame `world`, as a planner sends its
+//! plan: each pose's position a point of the route). Each message
 //! goes to the leader machine with the time it arrived; the machine
 //! clips, counts and times out ([`formation_protocol::steering`]).
 
@@ -13,7 +15,7 @@ use std::sync::Arc;
 use formation_leader::Trajectory;
 use formation_plant::{Pose, Velocity};
 use formation_protocol::leader::LeaderMachine as Machine;
-use formation_ros2::msgs::{Odometry, Twist};
+use formation_ros2::msgs::{Odometry, Path, Twist};
 use formation_scenario::Scenario;
 
 use super::rmw_node::{RosNode, RosSubscription};
@@ -21,6 +23,9 @@ use super::topics::{OdomFrame, QOS};
 use crate::clock::Timebase;
 use crate::node::Shared;
 use formation_exit::Error;
+
+/// The frame a route on `/leader/path` must be in: the scenario's own.
+pub const WORLD_FRAME: &str = formation_ros2::planar::WORLD;
 
 /// The leader's subscription to its source, and what it could not read.
 pub struct Steered {
@@ -47,6 +52,30 @@ pub async fn subscribe(
             let sub = node
                 .subscribe::<Twist, _>("cmd_vel", QOS, move |m, _| match m {
                     Ok(t) => sh.lock().handle_command(Velocity::new(t.linear.x, t.angular.z), tb.now()),
+                    Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
+                })
+                .await?;
+            (node, sub)
+        }
+        Trajectory::Routed { .. } => {
+            let node = RosNode::declare(session, domain, super::LEADER_NAMESPACE, "leader_input").await?;
+            let said = std::sync::Once::new();
+            let sub = node
+                .subscribe::<Path, _>("path", QOS, move |m, _| match m {
+                    Ok(m) if m.header.frame_id == WORLD_FRAME => {
+                        let points = m.poses.iter().map(|p| [p.pose.position.x, p.pose.position.y]).collect();
+                        sh.lock().handle_path(points, tb.now());
+                    }
+                    Ok(m) => {
+                        bad.fetch_add(1, Ordering::Relaxed);
+                        said.call_once(|| {
+                            crate::node::say(&format!(
+                                "leader: a route on /leader/path in frame `{}` is refused (expected `{WORLD_FRAME}`, \
+                                 the scenario's frame); every such route is dropped and counted",
+                                m.header.frame_id
+                            ))
+                        });
+                    }
                     Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
                 })
                 .await?;

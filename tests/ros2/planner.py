@@ -1,0 +1,96 @@
+"""A planner that is not the formation's code: nav_msgs/Path on
+`/leader/path` over rmw_zenoh's wire (Python eclipse-zenoh and rosbags'
+CDR, with the 33-byte attachment and liveliness tokens), as Nav2 publishes
+its plan. It waits until the topic --wait-for (e.g. follower_1/odom)
+carries a message, then publishes each --route (points `x,y;x,y;…`, in
+frame --frame) --repeat times, --every seconds apart, in order.
+
+    python planner.py --connect tcp/127.0.0.1:7447 --wait-for follower_1/odom \
+        --route "1,0;1,1" --route "9,0" --repeat 2 --every 1 --out planner.json
+"""
+import argparse
+import hashlib
+import json
+import math
+import struct
+import sys
+import threading
+import time
+
+import zenoh
+from rosbags.typesys import Stores, get_typestore
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--connect", required=True)
+    ap.add_argument("--domain", type=int, default=0)
+    ap.add_argument("--wait-for", required=True)
+    ap.add_argument("--wait-type", default="nav_msgs/msg/Odometry")
+    ap.add_argument("--route", action="append", required=True, help="x,y;x,y;… (repeatable)")
+    ap.add_argument("--frame", default="world")
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--every", type=float, default=1.0)
+    ap.add_argument("--give-up", type=float, default=120.0)
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args()
+    routes = [[tuple(float(v) for v in p.split(",")) for p in r.split(";")] for r in a.route]
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T = store.types
+    path_t = "nav_msgs/msg/Path"
+
+    def key(topic, typename):
+        pkg, kind, name = typename.split("/")
+        return f"{a.domain}/{topic}/{pkg}::{kind}::dds_::{name}_/{store.hash_rihs01(typename)}"
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([a.connect]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    zid = str(session.info.zid())
+    pkg, k, name = path_t.split("/")
+    pub_token = (f"@ros2_lv/{a.domain}/{zid}/0/1/MP/%/%planner/planner/%leader%path/"
+                 f"{pkg}::{k}::dds_::{name}_/{store.hash_rihs01(path_t)}/::,10:,:,:,,")
+    tokens = [
+        session.liveliness().declare_token(f"@ros2_lv/{a.domain}/{zid}/0/0/NN/%/%planner/planner"),
+        session.liveliness().declare_token(pub_token),
+    ]
+    gid = hashlib.sha256(pub_token.encode()).digest()[:16]
+    pub = session.declare_publisher(key("leader/path", path_t))
+    started = threading.Event()
+    sub = session.declare_subscriber(key(a.wait_for, a.wait_type), lambda _s: started.set())
+    if not started.wait(a.give_up):
+        print(f"planner: nothing on /{a.wait_for} within {a.give_up} s", file=sys.stderr)
+        sys.exit(1)
+    P, Q = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
+    sent, seq = [], 1
+    for route in routes:
+        for _ in range(a.repeat):
+            now = time.time_ns()
+            stamp = T["builtin_interfaces/msg/Time"](sec=now // 1_000_000_000, nanosec=now % 1_000_000_000)
+            header = T["std_msgs/msg/Header"](stamp=stamp, frame_id=a.frame)
+            poses = []
+            for i, (x, y) in enumerate(route):
+                nx, ny = route[min(i + 1, len(route) - 1)]
+                yaw = math.atan2(ny - y, nx - x)
+                pose = T["geometry_msgs/msg/Pose"](position=P(x=x, y=y, z=0.0),
+                                                   orientation=Q(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
+                poses.append(T["geometry_msgs/msg/PoseStamped"](header=header, pose=pose))
+            msg = T[path_t](header=header, poses=poses)
+            pub.put(bytes(store.serialize_cdr(msg, path_t)), attachment=struct.pack("<qq", seq, now) + bytes([16]) + gid)
+            sent.append({"ns": now, "route": route})
+            seq += 1
+            time.sleep(a.every)
+    sub.undeclare()
+    for t in tokens:
+        t.undeclare()
+    session.close()
+    with open(a.out, "w") as f:
+        json.dump({"sent": sent}, f)
+    print(f"planner: {len(sent)} routes sent", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
