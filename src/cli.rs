@@ -273,13 +273,7 @@ pub fn sim(a: &SimArgs) -> Result<(Summary, PathBuf), Error> {
     at_least_one("--every", a.every)?;
     check_threads(a.threads)?;
     let scenario = a.scenario.load()?;
-    if let Some(source) = scenario.live_leader() {
-        return Err(Error::Input(format!(
-            "leader.source = \"{source}\" steers the leader while a networked run goes (formation launch); \
-             `formation sim` plays such a run again from its record: --set leader.source=recorded --set \
-             leader.recorded=runs/NAME"
-        )));
-    }
+    scenario.simulable().map_err(Error::Input)?;
     let dir = a.out.clone().unwrap_or_else(|| Path::new("runs").join(&scenario.name));
     formation_record::out_path::check_out_path("--out", &dir, formation_record::out_path::MAX_OUT_NAME_BYTES)
         .map_err(Error::Input)?;

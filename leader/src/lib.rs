@@ -134,7 +134,8 @@ impl Profile {
             | Trajectory::Waypoints { speed_mps, .. }
             | Trajectory::Commanded { speed_mps, .. }
             | Trajectory::Routed { speed_mps, .. } => speed_mps.abs(),
-            // What a robot or a recording did is not bounded by the scenario.
+            // What a robot or a recording did is not bounded by the scenario
+            // (a record's own: `Scenario::leader_max_speed`).
             Trajectory::External | Trajectory::Recorded => f64::INFINITY,
         }
     }

@@ -1,6 +1,7 @@
-//! What steers a live leader (`leader.source = "cmd_vel"` or `"robot"`,
-//! docs/model.md §18): the newest command or odometry heard and when, and
-//! at each step the input the leader takes. A command beyond the leader's
+//! What steers a live leader (`leader.source = "cmd_vel"`, `"path"` or
+//! `"robot"`, docs/model.md §18): the newest command, route or odometry
+//! heard and when, and at each step the input the leader takes (a route
+//! once, and it never goes stale). A command beyond the leader's
 //! limits is clipped and counted (the first one named); one that is not
 //! finite is refused and counted. Input silent for the source's time-out
 //! stops the leader, and the operator is told when it falls silent and

@@ -108,6 +108,7 @@ impl Observer for MemoryObserver {
 /// `every`-th sample and the last, as `formation sim --every` writes them;
 /// with `every` None the summary only (empty columns), as `--no-csv`.
 pub fn run(scenario: &Scenario, threads: usize, every: Option<u64>) -> Result<MemoryRun, String> {
+    scenario.simulable()?;
     let keep = every.is_some();
     let every = every.unwrap_or(1);
     check_size(scenario, every)?;

@@ -136,6 +136,9 @@ def test_keys_values_and_bad_values_from_python():
     c = s.with_(filter="kf")
     assert c["filter"] == "kf" and s["filter"] == "asif"
     assert "duration=3" in repr(s)
+    # A leader steered live is not simulated: its run is, from its record.
+    with pytest.raises(ValueError, match="plays such a run again from its record"):
+        formation.sim(formation.Scenario.load("teleop", duration=1))
 
 
 def test_a_generated_scenario_is_formation_generates(tmp_path):

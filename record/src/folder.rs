@@ -81,6 +81,11 @@ impl RunWriter {
         self.dir.join(format!("follower_{}.csv", self.ids[index]))
     }
 
+    /// Whether the folder holds CSVs at all (`--no-csv`: none).
+    pub fn csv(&self) -> bool {
+        self.csv
+    }
+
     /// Whether sample k goes into the CSVs.
     pub fn wants(&self, k: u64, last: bool) -> bool {
         self.csv && (k % self.every == 0 || last)
@@ -306,5 +311,15 @@ mod beside_tests {
             assert_eq!(beside(Path::new(dir), ".partial").file_name().unwrap(), "a.partial", "{dir}");
             assert!(beside(Path::new(dir), ".partial").ends_with("runs/a.partial"), "{dir}");
         }
+    }
+}
+
+#[cfg(test)]
+mod header_tests {
+    /// What a run writes as its leader record is what `leader.source =
+    /// "recorded"` reads back (formation_scenario::recorded).
+    #[test]
+    fn the_leader_csv_header_is_the_one_a_recorded_leader_reads() {
+        assert_eq!(crate::row::LEADER_HEADER.trim_end(), formation_scenario::recorded::HEADER);
     }
 }

@@ -54,6 +54,11 @@ use formation_record::{
     HEARING_FILE,
 };
 
+/// A live leader's steps kept for the model of its run (48 bytes each):
+/// beyond, the run is not judged against a model (a model that long is not
+/// run at the run's end either).
+const LIVE_MODEL_STEPS: u64 = 3_000_001;
+
 /// A step some follower's pose is missing from is measured with the poses
 /// that are in once it is this far behind the newest.
 const PROXIMITY_BEHIND: u64 = 10_000;
@@ -406,7 +411,7 @@ impl Recorder {
     fn file_leader(&mut self, k: u64, state: Option<&LeaderState>) -> std::io::Result<()> {
         if let (Some(s), true) = (state, self.scenario.leader_profile.is_live()) {
             // The model of a live leader's run is its record (docs/model.md §18).
-            if self.live_leader.len() as u64 == k {
+            if self.live_leader.len() as u64 == k && k < LIVE_MODEL_STEPS {
                 self.live_leader.push(*s);
             }
         }
@@ -415,7 +420,9 @@ impl Recorder {
                 Some(span) if span.1 == k => span.1 = k + 1,
                 _ => self.leader_spans.push((k, k + 1)),
             }
-            if self.writer.wants(k, k == self.scenario.steps()) {
+            // A live leader's every row: its record is what plays the run again (§18).
+            let live = self.scenario.leader_profile.is_live();
+            if self.writer.wants(k, k == self.scenario.steps()) || (live && self.writer.csv()) {
                 self.writer.leader_row(k as f64 * self.scenario.dt_s, s)?;
             }
             for sink in &self.sinks {

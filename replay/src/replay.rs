@@ -90,6 +90,21 @@ fn handover_gaps(network: &serde_json::Value, steps: u64) -> Vec<(u64, u64)> {
         .collect()
 }
 
+/// A leader steered live has no model: the run's own leader record is it
+/// (docs/model.md §18).
+fn leader_from_the_record(scenario: Scenario, dir: &Path) -> Result<Scenario, Error> {
+    match scenario.live_leader().map(str::to_string) {
+        Some(source) => scenario.with_recorded_leader(dir).map_err(|e| {
+            Error::Input(format!(
+                "{}: its leader was steered live (leader.source = \"{source}\"), and a replay plays it from the run's \
+                 leader record: {e}",
+                dir.display()
+            ))
+        }),
+        None => Ok(scenario),
+    }
+}
+
 /// Reads a run folder's hearing record and the scenario it carries.
 pub fn load(dir: &Path) -> Result<Loaded, Error> {
     if !dir.is_dir() {
@@ -154,17 +169,7 @@ pub fn load(dir: &Path) -> Result<Loaded, Error> {
             )));
         }
     }
-    // A leader steered live has no model: the run's own leader record is it.
-    let scenario = match scenario.live_leader().map(str::to_string) {
-        Some(source) => scenario.with_recorded_leader(dir).map_err(|e| {
-            Error::Input(format!(
-                "{}: its leader was steered live (leader.source = \"{source}\"), and a replay plays it from the run's \
-                 leader record: {e}",
-                dir.display()
-            ))
-        })?,
-        None => scenario,
-    };
+    let scenario = leader_from_the_record(scenario, dir)?;
     if record.followers.len() != scenario.followers.len()
         || record.followers.iter().enumerate().any(|(i, f)| f.id != scenario.followers[i].id)
         || record.followers.iter().enumerate().any(|(i, f)| f.sources != scenario.sources_of(i))

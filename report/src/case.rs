@@ -370,7 +370,7 @@ impl ClaimParams {
                 (f.id, v_c)
             })
             .fold((0, 0.0_f64), |best, x| if x.1.abs() > best.1.abs() { x } else { best });
-        Self { c1: k.c1, shunting_b: k.shunting.b, vr_max: s.leader_profile.max_speed(), jump_follower, jump_expected }
+        Self { c1: k.c1, shunting_b: k.shunting.b, vr_max: s.leader_max_speed(), jump_follower, jump_expected }
     }
 }
 

@@ -201,10 +201,11 @@ pub struct LinkFaultFile {
 #[serde(deny_unknown_fields)]
 pub struct LeaderFile {
     /// Where the leader's motion comes from (docs/model.md §18):
-    /// `trajectory` (the default), `cmd_vel`, `robot` or `recorded`.
+    /// `trajectory` (the default), `cmd_vel`, `path`, `robot` or `recorded`.
     #[serde(default = "d::source", skip_serializing_if = "d::is_trajectory")]
     pub source: String,
-    /// `recorded`: a run folder (its `leader.csv`) or such a CSV.
+    /// `recorded`: a run folder (its `leader.csv`) or such a CSV; a relative
+    /// path is the working directory's, on every host that loads the scenario.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recorded: Option<String>,
     /// `cmd_vel`, `robot`: the leader stops once its input has been silent

@@ -37,7 +37,7 @@ pub fn parse(text: &str, dt_s: f64, steps: u64) -> Result<Vec<LeaderState>, Stri
     if lines.next().map(str::trim) != Some(HEADER) {
         return Err(format!("not a leader record (its first line must be `{HEADER}`, as a run folder's leader.csv)"));
     }
-    let mut states = Vec::with_capacity(steps as usize + 1);
+    let mut states = Vec::new();
     for (k, line) in lines.enumerate().take(steps as usize + 1) {
         let row = k + 2;
         let fields: Vec<f64> =
@@ -53,7 +53,10 @@ pub fn parse(text: &str, dt_s: f64, steps: u64) -> Result<Vec<LeaderState>, Stri
         let want = k as f64 * dt_s;
         if (t - want).abs() > 1e-9 * want.abs().max(1.0) {
             return Err(if k == 1 {
-                format!("its steps are {t} s apart; the scenario's dt is {dt_s} s (simulate it with dt = {t})")
+                format!(
+                    "its rows are {t} s apart; the scenario's dt is {dt_s} s (a record of another dt, or one written \
+                     with --every: a leader is played from every step)"
+                )
             } else {
                 format!("row {row} is at t = {t} s, not step {k}'s {want} s: a step is missing or dt differs")
             });
@@ -99,7 +102,12 @@ mod tests {
         let ok = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
         let cases: [(String, f64, u64, &str); 6] = [
             ("x,y\n0,0\n".into(), 0.02, 0, "not a leader record"),
-            (record(&[ok, [0.01, 0.0, 0.0, 0.0, 0.0, 0.0]]), 0.02, 1, "0.01 s apart; the scenario's dt is 0.02 s"),
+            (
+                record(&[ok, [0.01, 0.0, 0.0, 0.0, 0.0, 0.0]]),
+                0.02,
+                1,
+                "rows are 0.01 s apart; the scenario's dt is 0.02 s",
+            ),
             (record(&[ok, [0.02, 0.0, 0.0, 0.0, 0.0, 0.0], [0.06, 0.0, 0.0, 0.0, 0.0, 0.0]]), 0.02, 2, "missing"),
             (record(&[ok, [0.02, 0.0, f64::NAN, 0.0, 0.0, 0.0]]), 0.02, 1, "not finite"),
             (format!("{HEADER}\n0,0,0\n"), 0.02, 0, "3 fields"),

@@ -530,6 +530,29 @@ impl Scenario {
         self
     }
 
+    /// Whether this scenario can be simulated in one process: not with a
+    /// leader steered live (what steers it is not known in advance); the
+    /// line says how to play such a run again.
+    pub fn simulable(&self) -> Result<(), String> {
+        match self.live_leader() {
+            Some(source) => Err(format!(
+                "leader.source = \"{source}\" steers the leader while a networked run goes (formation launch); a \
+                 simulation plays such a run again from its record: --set leader.source=recorded --set \
+                 leader.recorded=runs/NAME"
+            )),
+            None => Ok(()),
+        }
+    }
+
+    /// The largest |v_r| of the leader (for docs/model.md §12's speed
+    /// bound): a record's own; infinite for a leader steered live.
+    pub fn leader_max_speed(&self) -> f64 {
+        match self.leader_profile.trajectory {
+            Trajectory::Recorded => self.leader_recording.iter().map(|s| s.v.abs()).fold(0.0, f64::max),
+            _ => self.leader_profile.max_speed(),
+        }
+    }
+
     /// `leader.source` when it steers the leader while the run goes
     /// (`cmd_vel`, `robot`), for the commands that cannot take one.
     pub fn live_leader(&self) -> Option<&str> {

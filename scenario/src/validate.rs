@@ -133,12 +133,17 @@ pub(crate) fn validate(
         "realtime" => Timing::Realtime,
         other => return Err(c.fail("timing", format!("`{other}` is not one of: lockstep, realtime"))),
     };
-    let (leader_profile, leader_pose) = validate_leader(&c, &file.leader)?;
+    let (leader_profile, mut leader_pose) = validate_leader(&c, &file.leader)?;
     let leader_timeout_s = validate_source(&c, &file.leader, leader_profile, timing)?;
     let leader_recording = match leader_profile.trajectory {
         Trajectory::Recorded => read_recording(&c, &file)?,
         _ => Arc::from([]),
     };
+    // A recorded leader starts where its record does (followers given by
+    // `body_error` are placed against it).
+    if let Some(first) = leader_recording.first() {
+        leader_pose = first.pose;
+    }
     validate_table_sizes(&c, &file)?;
     let followers = validate_followers(&c, &file, leader_pose)?;
     let graph = validate_graph(&c, &file, &followers)?;
@@ -547,7 +552,7 @@ fn validate_trajectory(c: &Check<'_>, l: &LeaderFile) -> Result<Trajectory, Scen
     ];
     match route_keys.iter().find(|(_, given)| *given) {
         Some((key, _)) if l.trajectory != "waypoints" => {
-            Err(c.fail(&format!("leader.{key}"), "only for trajectory = \"waypoints\""))
+            Err(c.fail(&format!("leader.{key}"), "only for trajectory = \"waypoints\" (or source = \"path\")"))
         }
         _ => Ok(trajectory),
     }
@@ -581,8 +586,25 @@ fn validate_source(c: &Check<'_>, l: &LeaderFile, p: Profile, timing: Timing) ->
     }
     let timeout = l.timeout.unwrap_or(DEFAULT_LEADER_TIMEOUT_S);
     c.positive("leader.timeout", &[timeout])?;
+    c.bounded("leader.timeout", &[timeout], MAX_LEADER_TIMEOUT_S, "s")?;
+    // A route's keys with a live source that has no route (a record played
+    // again keeps the keys of the run it came from, unused).
+    let given = [
+        ("waypoints", !l.waypoints.is_empty(), &["trajectory", "recorded"][..]),
+        ("turn_gain", l.turn_gain.is_some(), &["trajectory", "path", "recorded"]),
+        ("reach", l.reach.is_some(), &["trajectory", "path", "recorded"]),
+    ];
+    if let Some((key, _, with)) = given.iter().find(|(_, set, with)| *set && !with.contains(&l.source.as_str())) {
+        let with: Vec<String> = with.iter().filter(|w| **w != "recorded").map(|w| format!("\"{w}\"")).collect();
+        return Err(
+            c.fail(&format!("leader.{key}"), format!("not with source = \"{}\" (only {})", l.source, with.join(", ")))
+        );
+    }
     Ok(timeout)
 }
+
+/// The longest `leader.timeout`, s: a live leader silent for an hour has stopped.
+const MAX_LEADER_TIMEOUT_S: f64 = 3600.0;
 
 /// `source = "recorded"`: the record, read and checked against `dt` and the run's length.
 fn read_recording(c: &Check<'_>, file: &ScenarioFile) -> Result<Arc<[LeaderState]>, ScenarioError> {

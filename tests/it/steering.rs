@@ -268,15 +268,20 @@ fn bad_leader_sources_and_records_are_one_line_and_exit_2() {
     let short = record("short.csv", "t,x,y,theta,v,w\n0,0,0,0,0,0\n0.02,0,0,0,0,0\n");
     let not_csv = record("notes.txt", "hello\n");
     let missing = format!("leader.recorded=\"{}\"", dir.path().join("nowhere").display());
-    let cases: [(&[&str], &str); 11] = [
+    let cases: [(&[&str], &str); 13] = [
+        (
+            &["leader.source=cmd_vel", "timing=realtime", "leader.reach=0.2"],
+            "leader.reach: not with source = \"cmd_vel\"",
+        ),
+        (&["leader.source=robot", "timing=realtime", "leader.timeout=1e20"], "leader.timeout: 1e20 is beyond ±3600 s"),
         (&["leader.source=joystick"], "`joystick` is not one of: trajectory, cmd_vel, path, robot, recorded"),
         (&["leader.source=path", "timing=realtime", "leader.waypoints=[[1.0,0.0]]"], "the route comes on /leader/path"),
         (&["leader.source=path", "timing=realtime", "leader.reach=0"], "leader.reach: must be positive"),
         (&["leader.source=cmd_vel"], "it runs in real time (timing = \"realtime\")"),
-        (&["leader.source=cmd_vel", "timing=realtime"], "`formation sim` plays such a run again from its record"),
+        (&["leader.source=cmd_vel", "timing=realtime"], "a simulation plays such a run again from its record"),
         (&["leader.source=robot", "timing=realtime", "leader.timeout=0"], "leader.timeout: must be positive"),
         (&["leader.source=recorded"], "leader.recorded: missing"),
-        (&["leader.source=recorded", &fine_dt], "its steps are 0.01 s apart; the scenario's dt is 0.02 s"),
+        (&["leader.source=recorded", &fine_dt], "its rows are 0.01 s apart; the scenario's dt is 0.02 s"),
         (&["leader.source=recorded", &short], "it ends at t = 0.02 s (1 steps); the scenario runs 60 s"),
         (&["leader.source=recorded", &not_csv], "not a leader record"),
         (&["leader.source=recorded", &missing], "No such file"),

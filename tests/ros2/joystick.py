@@ -11,15 +11,12 @@ must stop on its own time-out). --out gets what it sent.
         --script 6:0.3:0 6:0.1:0.25 --rate 20 --out joystick.json
 """
 import argparse
-import hashlib
 import json
-import struct
 import sys
 import threading
 import time
 
-import zenoh
-from rosbags.typesys import Stores, get_typestore
+import rmw
 
 
 def main():
@@ -35,34 +32,15 @@ def main():
     a = ap.parse_args()
     phases = [tuple(float(x) for x in p.split(":")) for p in a.script]
 
-    store = get_typestore(Stores.ROS2_JAZZY)
-    T = store.types
+    T = rmw.STORE.types
     twist_t = "geometry_msgs/msg/Twist"
-
-    def key(topic, typename):
-        pkg, kind, name = typename.split("/")
-        return f"{a.domain}/{topic}/{pkg}::{kind}::dds_::{name}_/{store.hash_rihs01(typename)}"
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([a.connect]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
-    zid = str(session.info.zid())
-    ns = "/teleop"
-    hash_ = store.hash_rihs01(twist_t)
-    pkg, k, name = twist_t.split("/")
-    pub_token = (f"@ros2_lv/{a.domain}/{zid}/0/1/MP/%/%teleop/joystick/%leader%cmd_vel/"
-                 f"{pkg}::{k}::dds_::{name}_/{hash_}/::,10:,:,:,,")
-    tokens = [
-        session.liveliness().declare_token(f"@ros2_lv/{a.domain}/{zid}/0/0/NN/%/%teleop/joystick"),
-        session.liveliness().declare_token(pub_token),
-    ]
-    gid = hashlib.sha256(pub_token.encode()).digest()[:16]
-    pub = session.declare_publisher(key("leader/cmd_vel", twist_t))
+    session = rmw.session(a.connect)
+    node = rmw.Node(session, a.domain, "teleop", "joystick")
+    gid = rmw.gid(node.endpoint(1, "MP", "leader/cmd_vel", twist_t))
+    pub = session.declare_publisher(rmw.key(a.domain, "leader/cmd_vel", twist_t))
 
     started = threading.Event()
-    sub = session.declare_subscriber(key(a.wait_for, a.wait_type), lambda _s: started.set())
+    sub = session.declare_subscriber(rmw.key(a.domain, a.wait_for, a.wait_type), lambda _s: started.set())
     if not started.wait(a.give_up):
         print(f"joystick: nothing on /{a.wait_for} within {a.give_up} s", file=sys.stderr)
         sys.exit(1)
@@ -74,14 +52,13 @@ def main():
         while time.monotonic() < end:
             msg = T[twist_t](linear=V3(x=v, y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=w))
             now = time.time_ns()
-            pub.put(bytes(store.serialize_cdr(msg, twist_t)), attachment=struct.pack("<qq", seq, now) + bytes([16]) + gid)
+            pub.put(bytes(rmw.STORE.serialize_cdr(msg, twist_t)), attachment=rmw.attachment(seq, now, gid))
             sent.append([now, v, w])
             seq += 1
             tick += 1.0 / a.rate
             time.sleep(max(0.0, tick - time.monotonic()))
     sub.undeclare()
-    for t in tokens:
-        t.undeclare()
+    node.close()
     session.close()
     with open(a.out, "w") as f:
         json.dump({"sent": sent}, f)

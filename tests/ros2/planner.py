@@ -9,16 +9,13 @@ frame --frame) --repeat times, --every seconds apart, in order.
         --route "1,0;1,1" --route "9,0" --repeat 2 --every 1 --out planner.json
 """
 import argparse
-import hashlib
 import json
 import math
-import struct
 import sys
 import threading
 import time
 
-import zenoh
-from rosbags.typesys import Stores, get_typestore
+import rmw
 
 
 def main():
@@ -36,31 +33,14 @@ def main():
     a = ap.parse_args()
     routes = [[tuple(float(v) for v in p.split(",")) for p in r.split(";")] for r in a.route]
 
-    store = get_typestore(Stores.ROS2_JAZZY)
-    T = store.types
+    T = rmw.STORE.types
     path_t = "nav_msgs/msg/Path"
-
-    def key(topic, typename):
-        pkg, kind, name = typename.split("/")
-        return f"{a.domain}/{topic}/{pkg}::{kind}::dds_::{name}_/{store.hash_rihs01(typename)}"
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([a.connect]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
-    zid = str(session.info.zid())
-    pkg, k, name = path_t.split("/")
-    pub_token = (f"@ros2_lv/{a.domain}/{zid}/0/1/MP/%/%planner/planner/%leader%path/"
-                 f"{pkg}::{k}::dds_::{name}_/{store.hash_rihs01(path_t)}/::,10:,:,:,,")
-    tokens = [
-        session.liveliness().declare_token(f"@ros2_lv/{a.domain}/{zid}/0/0/NN/%/%planner/planner"),
-        session.liveliness().declare_token(pub_token),
-    ]
-    gid = hashlib.sha256(pub_token.encode()).digest()[:16]
-    pub = session.declare_publisher(key("leader/path", path_t))
+    session = rmw.session(a.connect)
+    node = rmw.Node(session, a.domain, "planner", "planner")
+    gid = rmw.gid(node.endpoint(1, "MP", "leader/path", path_t))
+    pub = session.declare_publisher(rmw.key(a.domain, "leader/path", path_t))
     started = threading.Event()
-    sub = session.declare_subscriber(key(a.wait_for, a.wait_type), lambda _s: started.set())
+    sub = session.declare_subscriber(rmw.key(a.domain, a.wait_for, a.wait_type), lambda _s: started.set())
     if not started.wait(a.give_up):
         print(f"planner: nothing on /{a.wait_for} within {a.give_up} s", file=sys.stderr)
         sys.exit(1)
@@ -79,13 +59,12 @@ def main():
                                                    orientation=Q(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
                 poses.append(T["geometry_msgs/msg/PoseStamped"](header=header, pose=pose))
             msg = T[path_t](header=header, poses=poses)
-            pub.put(bytes(store.serialize_cdr(msg, path_t)), attachment=struct.pack("<qq", seq, now) + bytes([16]) + gid)
+            pub.put(bytes(rmw.STORE.serialize_cdr(msg, path_t)), attachment=rmw.attachment(seq, now, gid))
             sent.append({"ns": now, "route": route})
             seq += 1
             time.sleep(a.every)
     sub.undeclare()
-    for t in tokens:
-        t.undeclare()
+    node.close()
     session.close()
     with open(a.out, "w") as f:
         json.dump({"sent": sent}, f)

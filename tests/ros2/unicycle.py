@@ -11,18 +11,16 @@ pose and every pose it published.
         --dt 0.01 --seconds 20 --stop-after 8 --out robot.json
 """
 import argparse
-import hashlib
 import json
 import math
 import signal
-import struct
 import sys
 import threading
 import time
 
 import numpy as np
-import zenoh
-from rosbags.typesys import Stores, get_typestore
+
+import rmw
 
 
 def main():
@@ -41,33 +39,18 @@ def main():
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
 
-    store = get_typestore(Stores.ROS2_JAZZY)
+    store = rmw.STORE
     T = store.types
     ns = a.namespace or f"follower_{a.id}"
 
     def key(topic, typename):
-        pkg, kind, name = typename.split("/")
-        return f"{a.domain}/{ns}/{topic}/{pkg}::{kind}::dds_::{name}_/{store.hash_rihs01(typename)}"
+        return rmw.key(a.domain, f"{ns}/{topic}", typename)
 
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([a.connect]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
-    zid = str(session.info.zid())
+    session = rmw.session(a.connect)
     odom_t, twist_t = "nav_msgs/msg/Odometry", "geometry_msgs/msg/Twist"
-
-    def token(eid, kind, topic, typename):
-        pkg, k, name = typename.split("/")
-        return (f"@ros2_lv/{a.domain}/{zid}/0/{eid}/{kind}/%/%{ns}/unicycle/%{ns}%{topic}/"
-                f"{pkg}::{k}::dds_::{name}_/{store.hash_rihs01(typename)}/::,10:,:,:,,")
-
-    tokens = [
-        session.liveliness().declare_token(f"@ros2_lv/{a.domain}/{zid}/0/0/NN/%/%{ns}/unicycle"),
-        session.liveliness().declare_token(token(1, "MP", "odom", odom_t)),
-        session.liveliness().declare_token(token(2, "MS", "cmd_vel", twist_t)),
-    ]
-    gid = hashlib.sha256(token(1, "MP", "odom", odom_t).encode()).digest()[:16]
+    node = rmw.Node(session, a.domain, ns, "unicycle")
+    gid = rmw.gid(node.endpoint(1, "MP", f"{ns}/odom", odom_t))
+    node.endpoint(2, "MS", f"{ns}/cmd_vel", twist_t)
     pub = session.declare_publisher(key("odom", odom_t))
 
     lock = threading.Lock()
@@ -120,7 +103,7 @@ def main():
             pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
             twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
         )
-        att = struct.pack("<qq", seq, now) + bytes([16]) + gid
+        att = rmw.attachment(seq, now, gid)
         pub.put(bytes(store.serialize_cdr(msg, odom_t)), attachment=att)
         trail.append([x, y, th])
         seq += 1
@@ -128,8 +111,7 @@ def main():
         if first is None and published == 1:
             print(f"unicycle {a.id}: publishing odometry", file=sys.stderr, flush=True)
     sub.undeclare()
-    for t in tokens:
-        t.undeclare()
+    node.close()
     session.close()
     with lock:
         out = {"published": published, "commands": state["commands"], "after_stop": state["after_stop"],

@@ -10,7 +10,7 @@
 //! - [`driven`]: a robot the agent drives through `cmd_vel` and `odom`
 //!   instead of simulating it (the [`crate::agent::Body`] of such a follower).
 //! - [`robot`]: `formation robot`, the stand-in robot that speaks ROS 2.
-//! - [`steer`]: a live leader's input (`/leader/cmd_vel`, `/leader/odom`).
+//! - [`steer`]: a live leader's input (`/leader/cmd_vel`, `/leader/path`, `/leader/odom`).
 
 pub mod driven;
 pub mod rmw_node;

@@ -46,70 +46,65 @@ pub async fn subscribe(
     let domain = scenario.ros2.map_or(0, |r| r.domain_id);
     let refused = Arc::new(AtomicU64::new(0));
     let (sh, tb, bad) = (shared.clone(), timebase.clone(), refused.clone());
+    if !scenario.leader_profile.is_live() {
+        return Ok(None);
+    }
+    let node = RosNode::declare(session, domain, super::LEADER_NAMESPACE, "leader_input").await?;
     let subscription = match scenario.leader_profile.trajectory {
         Trajectory::Commanded { .. } => {
-            let node = RosNode::declare(session, domain, super::LEADER_NAMESPACE, "leader_input").await?;
-            let sub = node
-                .subscribe::<Twist, _>("cmd_vel", QOS, move |m, _| match m {
-                    Ok(t) => sh.lock().handle_command(Velocity::new(t.linear.x, t.angular.z), tb.now()),
-                    Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
-                })
-                .await?;
-            (node, sub)
+            node.subscribe::<Twist, _>("cmd_vel", QOS, move |m, _| match m {
+                Ok(t) => sh.lock().handle_command(Velocity::new(t.linear.x, t.angular.z), tb.now()),
+                Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
+            })
+            .await?
         }
         Trajectory::Routed { .. } => {
-            let node = RosNode::declare(session, domain, super::LEADER_NAMESPACE, "leader_input").await?;
             let said = std::sync::Once::new();
-            let sub = node
-                .subscribe::<Path, _>("path", QOS, move |m, _| match m {
-                    Ok(m) if m.header.frame_id == WORLD_FRAME => {
-                        let points = m.poses.iter().map(|p| [p.pose.position.x, p.pose.position.y]).collect();
-                        sh.lock().handle_path(points, tb.now());
-                    }
-                    Ok(m) => {
-                        bad.fetch_add(1, Ordering::Relaxed);
-                        said.call_once(|| {
-                            crate::node::say(&format!(
-                                "leader: a route on /leader/path in frame `{}` is refused (expected `{WORLD_FRAME}`, \
+            node.subscribe::<Path, _>("path", QOS, move |m, _| match m {
+                Ok(m) if m.header.frame_id == WORLD_FRAME => {
+                    let points = m.poses.iter().map(|p| [p.pose.position.x, p.pose.position.y]).collect();
+                    sh.lock().handle_path(points, tb.now());
+                }
+                Ok(m) => {
+                    bad.fetch_add(1, Ordering::Relaxed);
+                    said.call_once(|| {
+                        crate::node::say(&format!(
+                            "leader: a route on /leader/path in frame `{}` is refused (expected `{WORLD_FRAME}`, \
                                  the scenario's frame); every such route is dropped and counted",
-                                m.header.frame_id
-                            ))
-                        });
-                    }
-                    Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
-                })
-                .await?;
-            (node, sub)
+                            m.header.frame_id
+                        ))
+                    });
+                }
+                Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
+            })
+            .await?
         }
         Trajectory::External => {
-            let node = RosNode::declare(session, domain, super::LEADER_NAMESPACE, "leader_input").await?;
             let (frame_id, origin) =
                 (scenario.leader_odom_frame(), OdomFrame { origin: scenario.leader_odom_origin() });
             let said = std::sync::Once::new();
-            let sub = node
-                .subscribe::<Odometry, _>("odom", QOS, move |m, _| match m {
-                    Ok(m) if m.header.frame_id == frame_id => {
-                        let p = &m.pose.pose;
-                        let pose = origin.world(Pose::new(p.position.x, p.position.y, p.orientation.yaw()));
-                        let twist = Velocity::new(m.twist.twist.linear.x, m.twist.twist.angular.z);
-                        sh.lock().handle_leader_odometry(pose, twist, tb.now());
-                    }
-                    Ok(m) => {
-                        bad.fetch_add(1, Ordering::Relaxed);
-                        said.call_once(|| {
-                            crate::node::say(&format!(
-                                "leader: the leader robot's odometry in frame `{}` is refused (expected `{frame_id}`: \
+            node.subscribe::<Odometry, _>("odom", QOS, move |m, _| match m {
+                Ok(m) if m.header.frame_id == frame_id => {
+                    let p = &m.pose.pose;
+                    let pose = origin.world(Pose::new(p.position.x, p.position.y, p.orientation.yaw()));
+                    let twist = Velocity::new(m.twist.twist.linear.x, m.twist.twist.angular.z);
+                    sh.lock().handle_leader_odometry(pose, twist, tb.now());
+                }
+                Ok(m) => {
+                    bad.fetch_add(1, Ordering::Relaxed);
+                    said.call_once(|| {
+                        crate::node::say(&format!(
+                            "leader: the leader robot's odometry in frame `{}` is refused (expected `{frame_id}`: \
                                  ros2.odom_frame); every such message is dropped and counted",
-                                m.header.frame_id
-                            ))
-                        });
-                    }
-                    Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
-                })
-                .await?;
-            (node, sub)
+                            m.header.frame_id
+                        ))
+                    });
+                }
+                Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
+            })
+            .await?
         }
         _ => return Ok(None),
     };
-    Ok(Some(Steered { _node: subscription.0, _subscription: subscription.1, refused }))
+    Ok(Some(Steered { _node: node, _subscription: subscription, refused }))
 }
