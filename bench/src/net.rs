@@ -129,7 +129,7 @@ fn group_size(a: &BenchNetArgs, n: usize) -> usize {
 fn launch_args(a: &BenchNetArgs, sets: &[String], port: u16, out: PathBuf, run: &str) -> LaunchArgs {
     LaunchArgs {
         opts: RunOptions {
-            scenario: ScenarioArgs { scenario: a.scenario.clone(), overrides: sets.to_vec() },
+            scenario: ScenarioArgs { scenario: a.scenario.clone(), overrides: sets.to_vec(), leader: None },
             out: Some(out),
             run: Some(run.to_string()),
             time_scale: None,

@@ -207,7 +207,7 @@ impl RunOptions {
 
     /// The scenario's overrides, with what --ros2 and --robots set.
     pub fn overrides(&self) -> Vec<String> {
-        let mut o = self.scenario.overrides.clone();
+        let mut o = self.scenario.all_overrides();
         if self.ros2 {
             o.push("ros2.enabled=true".into());
         }
@@ -229,6 +229,9 @@ impl RunOptions {
         }
         if self.ros2 {
             text = text.replace("--set ros2.enabled=true", "--ros2");
+        }
+        if let Some(l) = &self.scenario.leader {
+            text = text.replace(&format!("--set leader.source=\"{l}\""), &format!("--leader {l}"));
         }
         text
     }

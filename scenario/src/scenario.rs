@@ -537,8 +537,8 @@ impl Scenario {
         match self.live_leader() {
             Some(source) => Err(format!(
                 "leader.source = \"{source}\" steers the leader while a networked run goes (formation launch); a \
-                 simulation plays such a run again from its record: --set leader.source=recorded --set \
-                 leader.recorded=runs/NAME"
+                 simulation plays such a run again from its record: --leader runs/NAME (leader.source = \
+                 \"recorded\", leader.recorded = \"runs/NAME\")"
             )),
             None => Ok(()),
         }

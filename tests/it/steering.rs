@@ -242,6 +242,17 @@ fn a_recorded_leader_is_its_run_again_in_sim_and_in_lock_step() {
     let again = dir.path().join("again");
     sim(&scenario, &again, &["leader.source=recorded", &recorded]);
     common::same_files(&again, &first, "the run simulated again from its leader's record");
+    // `--leader RUN` is the same.
+    let flag = dir.path().join("flag");
+    let o = Command::new(env!("CARGO_BIN_EXE_formation"))
+        .args(["sim", &scenario, "-q", "--leader"])
+        .arg(&first)
+        .arg("--out")
+        .arg(&flag)
+        .output()
+        .expect("formation sim --leader");
+    assert!(o.status.success(), "sim --leader RUN: {}", String::from_utf8_lossy(&o.stderr));
+    common::same_files(&flag, &first, "the run simulated again with --leader RUN");
 
     let out = dir.path().join("run");
     let o = out.display().to_string();
