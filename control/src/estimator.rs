@@ -6,8 +6,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::math::{sat, wrap};
+use crate::math::sat;
 use formation_leader::LeaderState;
+use formation_plant::wrap;
 use formation_plant::Pose;
 
 /// k_i (diagonal of a 3×3 gain), k_a1, k_a2, k_b1, k_b2 (docs/model.md §10).

@@ -4,7 +4,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::math::{wrap, Shunting};
+use crate::math::Shunting;
+use formation_plant::wrap;
 use formation_plant::{Pose, Velocity};
 
 /// Which kinematic controller a follower runs.

@@ -11,8 +11,8 @@ use rand_chacha::rand_core::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::math::wrap;
 use formation_leader::LeaderState;
+use formation_plant::wrap;
 use formation_plant::Pose;
 
 /// Steps k with `from_k ≤ k < to_k` on which a message of the link is lost

@@ -1,19 +1,7 @@
-//! Small shared pieces: angle wrapping, saturation, sign and the shunting
+//! Small shared pieces: saturation, sign and the shunting
 //! model of bioinspired neural dynamics (eq. 34).
 
 use serde::{Deserialize, Serialize};
-use std::f64::consts::PI;
-
-/// Maps an angle into [−π, π) (docs/model.md §1).
-pub fn wrap(a: f64) -> f64 {
-    let w = a - 2.0 * PI * ((a + PI) / (2.0 * PI)).floor();
-    // Rounding can land exactly on π for inputs just below it.
-    if w >= PI {
-        w - 2.0 * PI
-    } else {
-        w
-    }
-}
 
 /// sat(e) = clamp(e, −1, 1) (docs/model.md §1).
 pub fn sat(e: f64) -> f64 {
@@ -83,7 +71,9 @@ pub fn step_at(t_s: f64, dt_s: f64) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use formation_plant::wrap;
     use proptest::prelude::*;
+    use std::f64::consts::PI;
 
     #[test]
     fn wrap_maps_into_half_open_interval() {

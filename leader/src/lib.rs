@@ -26,7 +26,7 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use formation_plant::{Pose, Velocity};
+use formation_plant::{wrap, Pose, Velocity};
 
 /// The leader's velocity profile.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -300,12 +300,6 @@ impl Leader {
             (None, None) => LeaderState { pose: self.pose, ..LeaderState::default() },
         }
     }
-}
-
-/// An angle brought into [−π, π) (docs/model.md §1).
-fn wrap(a: f64) -> f64 {
-    use std::f64::consts::{PI, TAU};
-    (a + PI).rem_euclid(TAU) - PI
 }
 
 #[cfg(test)]

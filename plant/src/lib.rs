@@ -295,6 +295,19 @@ pub enum Drive {
     Velocity { lag_s: f64 },
 }
 
+/// Maps an angle into [−π, π) (docs/model.md §1): the one wrap of every
+/// crate (the controllers', the estimator's, the leader's route).
+pub fn wrap(a: f64) -> f64 {
+    use std::f64::consts::PI;
+    let w = a - 2.0 * PI * ((a + PI) / (2.0 * PI)).floor();
+    // Rounding can land exactly on π for inputs just below it.
+    if w >= PI {
+        w - 2.0 * PI
+    } else {
+        w
+    }
+}
+
 /// The heading as a ROS odometry message carries it and a receiver reads it
 /// back: the quaternion (0, 0, sin(θ/2), cos(θ/2)) and yaw = 2 atan2(z, w).
 /// The ROS 2 node computes exactly this, so the simulator sees the heading

@@ -2,10 +2,10 @@
 //! reports and the CSV [`Row`] made of it against the true leader
 //! (docs/model.md §11).
 
-use formation_control::math::wrap;
 use formation_control::slot::{formation_error, Frame};
 use formation_control::StepOutput;
 use formation_leader::LeaderState;
+use formation_plant::wrap;
 use formation_plant::{Pose, Velocity};
 use serde::{Deserialize, Serialize};
 
