@@ -63,9 +63,13 @@ pub struct ShapeAssigned {
     pub offsets: BTreeMap<u32, [f64; 2]>,
     /// How long after the change, s, each follower's formation error came
     /// within `SETTLED_M` (0.1 m) and stayed there until the next change or
-    /// the end (null: it did not).
+    /// the end (null: it did not, or its record stops before then, so that
+    /// it is not known to have stayed).
     #[serde(default)]
     pub settled_after: BTreeMap<u32, Option<f64>>,
+    /// The step it took effect at.
+    #[serde(skip)]
+    pub from_k: u64,
 }
 
 /// How many samples a follower of an incomplete run recorded, of how many.
@@ -214,10 +218,21 @@ impl Summary {
         self
     }
 
-    /// [`ShapeAssigned::settled_after`] from each follower's accumulator.
+    /// [`ShapeAssigned::settled_after`] from each follower's accumulator;
+    /// null for a follower whose record stops before the change's window
+    /// (to the next change, or the end) does.
     pub fn with_settling(mut self, per_follower: &BTreeMap<u32, Vec<Option<f64>>>) -> Self {
+        let ends: Vec<u64> =
+            self.shapes.iter().skip(1).map(|c| c.from_k).chain(std::iter::once(self.steps + 1)).collect();
         for (i, change) in self.shapes.iter_mut().enumerate() {
-            change.settled_after = per_follower.iter().map(|(&id, s)| (id, s.get(i).copied().flatten())).collect();
+            change.settled_after = per_follower
+                .iter()
+                .map(|(&id, s)| {
+                    // One past the follower's last sample: samples and the gaps between them.
+                    let seen = self.followers.get(&id).map_or(0, |m| m.samples + m.gap_steps);
+                    (id, s.get(i).copied().flatten().filter(|_| seen >= ends[i]))
+                })
+                .collect();
         }
         self
     }
@@ -378,7 +393,38 @@ fn shapes(s: &Scenario) -> Vec<ShapeAssigned> {
         .iter()
         .map(|c| {
             let offsets = s.followers.iter().zip(&c.offsets).map(|(f, &o)| (f.id, o)).collect();
-            ShapeAssigned { at: c.at_s, shape: c.name.clone(), cost: c.cost, offsets, settled_after: BTreeMap::new() }
+            ShapeAssigned {
+                at: c.at_s,
+                shape: c.name.clone(),
+                cost: c.cost,
+                offsets,
+                settled_after: BTreeMap::new(),
+                from_k: c.from_k,
+            }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metrics::FollowerMetrics;
+
+    /// doorway's changes at 20 s (step 1000) and 60 s (step 3000) of 4250
+    /// steps: a follower whose record stops at 70 s is not known to have
+    /// stayed in its wedge slot, so its second `settled_after` is null; the
+    /// first, whose window closed at 60 s, is kept, as is every one of a
+    /// follower recorded to the end.
+    #[test]
+    fn settling_is_null_where_the_record_stops_before_the_window_ends() {
+        let s = Scenario::load(std::path::Path::new("doorway"), &[]).expect("built in");
+        let full = FollowerMetrics { samples: s.steps() + 1, ..FollowerMetrics::default() };
+        let short = FollowerMetrics { samples: 3500, ..FollowerMetrics::default() };
+        let metrics = [(1, full), (2, full), (3, short), (4, full)].into_iter().collect();
+        let settled: BTreeMap<u32, Vec<Option<f64>>> = (1..=4).map(|id| (id, vec![Some(5.0), Some(7.0)])).collect();
+        let summary = Summary::new(&s, metrics).with_settling(&settled);
+        assert_eq!(summary.shapes[0].settled_after[&3], Some(5.0), "its first window closed before its record did");
+        assert_eq!(summary.shapes[1].settled_after[&3], None, "its record stops at 70 s, the window at the end");
+        assert_eq!(summary.shapes[1].settled_after[&1], Some(7.0));
+    }
 }
