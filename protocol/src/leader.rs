@@ -210,9 +210,9 @@ impl LeaderMachine {
     }
 
     /// A live leader (`leader.source = "path"`): a planner's route (its
-    /// points in the world) heard at `now`, driven from the next step on.
-    pub fn handle_path(&mut self, points: Vec<[f64; 2]>, now: Now) {
-        if let Some(line) = self.steering.as_mut().and_then(|s| s.route(points, now)) {
+    /// points in the world), driven from the next step on.
+    pub fn handle_path(&mut self, points: Vec<[f64; 2]>) {
+        if let Some(line) = self.steering.as_mut().and_then(|s| s.route(points)) {
             self.say.push_back(line);
         }
     }

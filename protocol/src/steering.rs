@@ -12,6 +12,7 @@ use std::time::Duration;
 
 use formation_leader::{Input, Profile};
 use formation_plant::{Pose, Velocity};
+use formation_scenario::shape::first_outside;
 
 use crate::Now;
 
@@ -70,15 +71,12 @@ impl Steering {
         self
     }
 
-    /// A planner's route heard at `now` (its points in the world, in
-    /// order): taken for the next step, or refused, and the first refusal
+    /// A planner's route (its points in the world, in order): taken for
+    /// the next step, or refused, and the first refusal
     /// named, for a point that is not finite or lies outside the arena.
-    pub fn route(&mut self, points: Vec<[f64; 2]>, _now: Now) -> Option<String> {
-        let outside = |p: &[f64; 2]| {
-            !(p[0].is_finite() && p[1].is_finite())
-                || self.arena.is_some_and(|[x0, x1, y0, y1]| p[0] < x0 || p[0] > x1 || p[1] < y0 || p[1] > y1)
-        };
-        if let Some(i) = points.iter().position(outside) {
+    pub fn route(&mut self, points: Vec<[f64; 2]>) -> Option<String> {
+        let everywhere = [f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY];
+        if let Some(i) = first_outside(&points, self.arena.unwrap_or(everywhere)) {
             self.counts.refused += 1;
             let where_ = match self.arena {
                 Some([x0, x1, y0, y1]) => format!("outside the arena x ∈ [{x0}, {x1}], y ∈ [{y0}, {y1}] or not finite"),
@@ -264,10 +262,10 @@ mod tests {
         };
         let mut s = Steering::of(p, Duration::from_millis(500)).expect("live").within(Some([-2.0, 2.0, -1.0, 1.0]));
         assert_eq!(s.input(Duration::ZERO, 0.0), (Input::Silent, None), "no route: nothing to take");
-        assert_eq!(s.route(vec![[1.0, 0.5], [1.5, -0.5]], Duration::ZERO), None);
-        let refused = s.route(vec![[1.0, 0.5], [3.0, 0.0]], Duration::ZERO).expect("named");
+        assert_eq!(s.route(vec![[1.0, 0.5], [1.5, -0.5]]), None);
+        let refused = s.route(vec![[1.0, 0.5], [3.0, 0.0]]).expect("named");
         assert!(refused.contains("point 2 (3, 0) is outside the arena x ∈ [-2, 2], y ∈ [-1, 1]"), "{refused}");
-        assert_eq!(s.route(vec![[f64::NAN, 0.0]], Duration::ZERO), None, "later refusals are counted, not said");
+        assert_eq!(s.route(vec![[f64::NAN, 0.0]]), None, "later refusals are counted, not said");
         let route: Arc<[[f64; 2]]> = Arc::from([[1.0, 0.5], [1.5, -0.5]]);
         assert_eq!(s.input(Duration::from_secs(60), 60.0), (Input::Route(route), None), "a route never goes stale");
         assert_eq!(s.input(Duration::from_secs(61), 61.0).0, Input::Silent, "taken once");

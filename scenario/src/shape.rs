@@ -96,6 +96,14 @@ pub fn assign(from: &[[f64; 2]], to: &[[f64; 2]]) -> Vec<usize> {
     kuhn_munkres_min(&weights).1
 }
 
+/// The first point of `points` outside `arena` ([x0, x1, y0, y1],
+/// `safety.arena`) or not finite: a route that the leader may not drive.
+pub fn first_outside(points: &[[f64; 2]], [x0, x1, y0, y1]: [f64; 4]) -> Option<usize> {
+    let inside =
+        |p: &[f64; 2]| p.iter().all(|v| v.is_finite()) && (x0..=x1).contains(&p[0]) && (y0..=y1).contains(&p[1]);
+    points.iter().position(|p| !inside(p))
+}
+
 /// The two slots closest to each other (their indices from 1) and their distance.
 pub fn closest(slots: &[[f64; 2]]) -> Option<(usize, usize, f64)> {
     let pairs = (0..slots.len()).flat_map(|a| (a + 1..slots.len()).map(move |b| (a, b)));
@@ -177,5 +185,15 @@ mod tests {
     fn the_assignment_of_nothing_is_empty() {
         assert!(assign(&[], &[]).is_empty());
         assert_eq!(assign(&[[1.0, 1.0]], &[[1.0, 1.0]]), vec![0]);
+    }
+
+    #[test]
+    fn a_point_outside_the_arena_or_not_finite_is_found() {
+        let arena = [-1.0, 1.0, -2.0, 2.0];
+        assert_eq!(first_outside(&[[0.0, 0.0], [1.0, -2.0]], arena), None, "the edges are inside");
+        assert_eq!(first_outside(&[[0.0, 0.0], [1.5, 0.0]], arena), Some(1));
+        let everywhere = [f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY];
+        assert_eq!(first_outside(&[[f64::INFINITY, 0.0]], everywhere), Some(0), "not finite, even without an arena");
+        assert_eq!(first_outside(&[[0.0, f64::NAN]], everywhere), Some(0));
     }
 }

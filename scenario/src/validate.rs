@@ -643,7 +643,7 @@ fn route_limits(c: &Check<'_>, l: &LeaderFile) -> Result<(f64, f64, f64, f64), S
 /// The route inside `[safety] arena`, where one is given.
 fn validate_route(c: &Check<'_>, file: &ScenarioFile) -> Result<(), ScenarioError> {
     let Some([x0, x1, y0, y1]) = file.safety.as_ref().and_then(|s| s.arena) else { return Ok(()) };
-    match file.leader.waypoints.iter().position(|p| p[0] < x0 || p[0] > x1 || p[1] < y0 || p[1] > y1) {
+    match crate::shape::first_outside(&file.leader.waypoints, [x0, x1, y0, y1]) {
         Some(i) => Err(c.fail(
             "leader.waypoints",
             format!(

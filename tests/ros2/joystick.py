@@ -13,7 +13,6 @@ must stop on its own time-out). --out gets what it sent.
 import argparse
 import json
 import sys
-import threading
 import time
 
 import rmw
@@ -39,11 +38,7 @@ def main():
     gid = rmw.gid(node.endpoint(1, "MP", "leader/cmd_vel", twist_t))
     pub = session.declare_publisher(rmw.key(a.domain, "leader/cmd_vel", twist_t))
 
-    started = threading.Event()
-    sub = session.declare_subscriber(rmw.key(a.domain, a.wait_for, a.wait_type), lambda _s: started.set())
-    if not started.wait(a.give_up):
-        print(f"joystick: nothing on /{a.wait_for} within {a.give_up} s", file=sys.stderr)
-        sys.exit(1)
+    rmw.wait_for(session, a.domain, a.wait_for, a.wait_type, a.give_up, "joystick")
     print(f"joystick: /{a.wait_for} heard: playing {len(phases)} phase(s)", file=sys.stderr, flush=True)
     V3 = T["geometry_msgs/msg/Vector3"]
     sent, seq, tick = [], 1, time.monotonic()
@@ -57,7 +52,6 @@ def main():
             seq += 1
             tick += 1.0 / a.rate
             time.sleep(max(0.0, tick - time.monotonic()))
-    sub.undeclare()
     node.close()
     session.close()
     with open(a.out, "w") as f:

@@ -12,7 +12,6 @@ import argparse
 import json
 import math
 import sys
-import threading
 import time
 
 import rmw
@@ -39,11 +38,7 @@ def main():
     node = rmw.Node(session, a.domain, "planner", "planner")
     gid = rmw.gid(node.endpoint(1, "MP", "leader/path", path_t))
     pub = session.declare_publisher(rmw.key(a.domain, "leader/path", path_t))
-    started = threading.Event()
-    sub = session.declare_subscriber(rmw.key(a.domain, a.wait_for, a.wait_type), lambda _s: started.set())
-    if not started.wait(a.give_up):
-        print(f"planner: nothing on /{a.wait_for} within {a.give_up} s", file=sys.stderr)
-        sys.exit(1)
+    rmw.wait_for(session, a.domain, a.wait_for, a.wait_type, a.give_up, "planner")
     P, Q = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
     sent, seq = [], 1
     for route in routes:
@@ -63,7 +58,6 @@ def main():
             sent.append({"ns": now, "route": route})
             seq += 1
             time.sleep(a.every)
-    sub.undeclare()
     node.close()
     session.close()
     with open(a.out, "w") as f:

@@ -6,6 +6,8 @@ rmw_zenoh drops a sample."""
 import hashlib
 import json
 import struct
+import sys
+import threading
 
 import zenoh
 from rosbags.typesys import Stores, get_typestore
@@ -63,3 +65,15 @@ def gid(token):
 def attachment(seq, source_ns, publisher_gid):
     """rmw_zenoh's attachment: i64 sequence, i64 source time, GID length, GID."""
     return struct.pack("<qq", seq, source_ns) + bytes([16]) + publisher_gid
+
+
+def wait_for(s, domain, topic, typename, give_up, who):
+    """Until `topic` carries a message (the run it serves has started); exits
+    naming it after `give_up` seconds (a hang guard)."""
+    heard = threading.Event()
+    sub = s.declare_subscriber(key(domain, topic, typename), lambda _s: heard.set())
+    ok = heard.wait(give_up)
+    sub.undeclare()
+    if not ok:
+        print(f"{who}: nothing on /{topic} within {give_up} s", file=sys.stderr)
+        sys.exit(1)

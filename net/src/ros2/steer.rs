@@ -43,12 +43,12 @@ pub async fn subscribe(
     shared: &Arc<Shared<Machine>>,
     timebase: &Timebase,
 ) -> Result<Option<Steered>, Error> {
-    let domain = scenario.ros2.map_or(0, |r| r.domain_id);
-    let refused = Arc::new(AtomicU64::new(0));
-    let (sh, tb, bad) = (shared.clone(), timebase.clone(), refused.clone());
     if !scenario.leader_profile.is_live() {
         return Ok(None);
     }
+    let domain = scenario.ros2.map_or(0, |r| r.domain_id);
+    let refused = Arc::new(AtomicU64::new(0));
+    let (sh, tb, bad) = (shared.clone(), timebase.clone(), refused.clone());
     let node = RosNode::declare(session, domain, super::LEADER_NAMESPACE, "leader_input").await?;
     let subscription = match scenario.leader_profile.trajectory {
         Trajectory::Commanded { .. } => {
@@ -63,18 +63,15 @@ pub async fn subscribe(
             node.subscribe::<Path, _>("path", QOS, move |m, _| match m {
                 Ok(m) if m.header.frame_id == WORLD_FRAME => {
                     let points = m.poses.iter().map(|p| [p.pose.position.x, p.pose.position.y]).collect();
-                    sh.lock().handle_path(points, tb.now());
+                    sh.lock().handle_path(points);
                 }
-                Ok(m) => {
-                    bad.fetch_add(1, Ordering::Relaxed);
-                    said.call_once(|| {
-                        crate::node::say(&format!(
-                            "leader: a route on /leader/path in frame `{}` is refused (expected `{WORLD_FRAME}`, \
-                                 the scenario's frame); every such route is dropped and counted",
-                            m.header.frame_id
-                        ))
-                    });
-                }
+                Ok(m) => refuse(&bad, &said, || {
+                    format!(
+                        "leader: a route on /leader/path in frame `{}` is refused (expected `{WORLD_FRAME}`, the \
+                         scenario's frame); every such route is dropped and counted",
+                        m.header.frame_id
+                    )
+                }),
                 Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
             })
             .await?
@@ -90,16 +87,13 @@ pub async fn subscribe(
                     let twist = Velocity::new(m.twist.twist.linear.x, m.twist.twist.angular.z);
                     sh.lock().handle_leader_odometry(pose, twist, tb.now());
                 }
-                Ok(m) => {
-                    bad.fetch_add(1, Ordering::Relaxed);
-                    said.call_once(|| {
-                        crate::node::say(&format!(
-                            "leader: the leader robot's odometry in frame `{}` is refused (expected `{frame_id}`: \
-                                 ros2.odom_frame); every such message is dropped and counted",
-                            m.header.frame_id
-                        ))
-                    });
-                }
+                Ok(m) => refuse(&bad, &said, || {
+                    format!(
+                        "leader: the leader robot's odometry in frame `{}` is refused (expected `{frame_id}`: \
+                         ros2.odom_frame); every such message is dropped and counted",
+                        m.header.frame_id
+                    )
+                }),
                 Err(_) => drop(bad.fetch_add(1, Ordering::Relaxed)),
             })
             .await?
@@ -107,4 +101,10 @@ pub async fn subscribe(
         _ => return Ok(None),
     };
     Ok(Some(Steered { _node: node, _subscription: subscription, refused }))
+}
+
+/// A message in another frame: counted, and the first one said.
+fn refuse(count: &AtomicU64, said: &std::sync::Once, line: impl FnOnce() -> String) {
+    count.fetch_add(1, Ordering::Relaxed);
+    said.call_once(|| crate::node::say(&line()));
 }
